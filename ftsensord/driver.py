@@ -1,0 +1,235 @@
+"""Driver for one MLX90393 at one I2C address.
+
+The driver takes its bus: any object with smbus2's ``i2c_rdwr(*msgs)``
+(``smbus2.SMBus``, or the simulated bus of `ftsensord.sim`). Each command is
+one combined transaction: write the command bytes, repeated start, read the
+reply whose first byte is the status byte. Acceptance is read from the status
+byte, never from the ACK (the chip ACKs every byte, even of a bad command).
+
+Every command is split into a message builder (``*_messages``) and a decoder
+(``decode_*``), so a scheduler can put commands for many chips into one
+``I2C_RDWR`` ioctl and still decode each reply with the same code.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+from smbus2 import i2c_msg
+
+from . import mlx90393 as mlx
+from .errors import (ChipNotRespondingError, ChipProtocolError, ChipRefusedError,
+                     RegisterVerifyError)
+
+
+class I2CBus(Protocol):
+    """What the driver needs of a bus: smbus2's combined transfer."""
+
+    def i2c_rdwr(self, *i2c_msgs: i2c_msg) -> None: ...
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """One RM result, in SI units and the chip's own frame {S_i}.
+
+    ``field_t`` is (Bx, By, Bz) in tesla, NaN for an axis that was not read;
+    ``saturated`` flags per axis a word at or past the valid span, or a field at
+    the Hall element's limit: such an axis is never a valid reading.
+    """
+
+    status: mlx.Status
+    field_t: np.ndarray
+    saturated: np.ndarray
+    temperature_c: float | None
+    raw: dict[str, int]
+
+    @property
+    def any_saturated(self) -> bool:
+        return bool(self.saturated.any())
+
+
+class MLX90393:
+    """One chip: reset, registers, configuration, single and burst measurements.
+
+    ``sleep`` waits the datasheet's times (reset); pass the simulated bus's
+    ``sleep`` when its clock is virtual.
+    """
+
+    def __init__(self, bus: I2CBus, address: int, *,
+                 sleep: Callable[[float], None] = time.sleep):
+        mlx.part_variant(address)  # refuses an address no MLX90393 can have
+        self.bus = bus
+        self.address = address
+        self.sleep = sleep
+        self.settings: mlx.Settings | None = None
+        self.tref = mlx.TREF_TYPICAL
+
+    def __repr__(self) -> str:
+        return f"MLX90393(address=0x{self.address:02X})"
+
+    # --- transactions --------------------------------------------------------
+    def messages(self, command: bytes, reply_len: int) -> tuple[i2c_msg, i2c_msg]:
+        """The write and read messages of one command."""
+        return i2c_msg.write(self.address, command), i2c_msg.read(self.address, reply_len)
+
+    def transfer(self, command: bytes, reply_len: int) -> bytes:
+        """Send ``command`` and read ``reply_len`` bytes (status byte first)."""
+        write, read = self.messages(command, reply_len)
+        try:
+            self.bus.i2c_rdwr(write, read)
+        except OSError as exc:
+            name = mlx.COMMAND_NAMES.get(command[0] & 0xF0, f"0x{command[0]:02X}")
+            raise ChipNotRespondingError(
+                self.address, f"{name} failed on the bus: {exc.strerror or exc}", exc.errno) from exc
+        return bytes(read)
+
+    def check_status(self, byte: int, command: str) -> mlx.Status:
+        """Decode a status byte; raise `ChipRefusedError` when ERROR is set."""
+        status = mlx.Status(byte)
+        if status.error:
+            raise ChipRefusedError(self.address, f"{command} refused, status {status}", status)
+        return status
+
+    def _mode_command(self, opcode: int, zyxt: int, mode_bit: int, name: str) -> mlx.Status:
+        reply = self.transfer(bytes([opcode | zyxt]), 1)
+        status = self.check_status(reply[0], name)
+        if not status.byte & mode_bit:
+            raise ChipProtocolError(self.address, f"{name} accepted without its mode bit, status {status}")
+        return status
+
+    # --- modes -----------------------------------------------------------------
+    def exit_mode(self) -> mlx.Status:
+        """EX: leave burst, wake-on-change or single-measurement mode."""
+        return self.check_status(self.transfer(bytes([mlx.CMD_EX]), 1)[0], "EX")
+
+    def reset(self) -> mlx.Status:
+        """EX, wait 1 ms, RT, wait 2 ms: the datasheet's reset, safe from any mode.
+
+        RT may not clear burst mode on its own, hence the EX first; the wait
+        after RT is 2 ms where the datasheet asks for at least 1.5 ms.
+        """
+        self.exit_mode()
+        self.sleep(mlx.T_AFTER_EX_US * 1e-6)
+        reply = self.transfer(bytes([mlx.CMD_RT]), 1)
+        self.sleep(2e-3)
+        status = self.check_status(reply[0], "RT")
+        if not status.rs:
+            raise ChipProtocolError(self.address, f"RT reply lacks RS, status {status}")
+        self.settings = None
+        return status
+
+    def sm_messages(self, zyxt: int = mlx.ZYXT_XYZ) -> tuple[i2c_msg, i2c_msg]:
+        return self.messages(bytes([mlx.CMD_SM | zyxt]), 1)
+
+    def decode_sm(self, reply: bytes) -> mlx.Status:
+        status = self.check_status(reply[0], "SM")
+        if not status.sm_mode:
+            raise ChipProtocolError(self.address, f"SM accepted without SM_MODE, status {status}")
+        return status
+
+    def start_single(self, zyxt: int = mlx.ZYXT_XYZ) -> mlx.Status:
+        """SM: start one conversion of the selected items (data ready after
+        `mlx.Settings.single_measurement_us`)."""
+        return self._mode_command(mlx.CMD_SM, zyxt, mlx.STATUS_SM_MODE, "SM")
+
+    def start_burst(self, zyxt: int = mlx.ZYXT_XYZ) -> mlx.Status:
+        """SB: convert continuously on the chip's own clock (zyxt 0 uses BURST_SEL)."""
+        return self._mode_command(mlx.CMD_SB, zyxt, mlx.STATUS_BURST_MODE, "SB")
+
+    # --- measurement -------------------------------------------------------------
+    def rm_messages(self, zyxt: int = mlx.ZYXT_XYZ) -> tuple[i2c_msg, i2c_msg]:
+        return self.messages(bytes([mlx.CMD_RM | zyxt]), 1 + 2 * len(mlx.zyxt_items(zyxt)))
+
+    def decode_measurement(self, reply: bytes, zyxt: int = mlx.ZYXT_XYZ) -> Measurement:
+        """Decode an RM reply into tesla and degC, flagging saturated axes."""
+        if self.settings is None:
+            raise ChipProtocolError(self.address, "RM decoded before configure(): the scale is unknown")
+        items = mlx.zyxt_items(zyxt)
+        status = self.check_status(reply[0], "RM")
+        if status.data_bytes != 2 * len(items) or len(reply) != 1 + 2 * len(items):
+            raise ChipProtocolError(
+                self.address, f"RM of {'/'.join(items).upper()} expects {2 * len(items)} data bytes, "
+                f"status D1:D0 says {status.data_bytes} (status {status}, {len(reply) - 1} read)")
+        words = {item: (reply[1 + 2 * i] << 8) | reply[2 + 2 * i] for i, item in enumerate(items)}
+        field = np.full(3, np.nan)
+        saturated = np.zeros(3, dtype=bool)
+        for i, axis in enumerate("xyz"):
+            if axis in words:
+                value, sat = mlx.raw_to_tesla(words[axis], self.settings.gain_sel, self.settings.res(axis),
+                                              axis, tcmp_en=self.settings.tcmp_en,
+                                              hallconf=self.settings.hallconf)
+                field[i] = value
+                saturated[i] = sat or abs(value) >= mlx.HALL_SATURATION_FLAG_T
+        temp = mlx.raw_to_celsius(words["t"], self.tref) if "t" in words else None
+        return Measurement(status, field, saturated, temp, words)
+
+    def read_measurement(self, zyxt: int = mlx.ZYXT_XYZ) -> Measurement:
+        """RM: read the selected items of the last conversion."""
+        write, read = self.rm_messages(zyxt)
+        reply = self.transfer(bytes(write), len(read))
+        return self.decode_measurement(reply, zyxt)
+
+    def measure(self, zyxt: int = mlx.ZYXT_XYZ) -> Measurement:
+        """SM, wait the nominal conversion time (+20 % for the oscillator), RM."""
+        if self.settings is None:
+            raise ChipProtocolError(self.address, "measure() before configure()")
+        self.start_single(zyxt)
+        self.sleep(self.settings.single_measurement_us(zyxt) * 1.2e-6)
+        return self.read_measurement(zyxt)
+
+    # --- registers -----------------------------------------------------------------
+    def read_register(self, reg: int) -> int:
+        """RR: one 16-bit register."""
+        if not 0 <= reg <= mlx.REG_MAX:
+            raise ValueError(f"register address 0x{reg:02X} is out of range 0x00-0x{mlx.REG_MAX:02X}")
+        reply = self.transfer(bytes([mlx.CMD_RR, reg << 2]), 3)
+        status = self.check_status(reply[0], f"RR 0x{reg:02X}")
+        if status.data_bytes != 2:
+            raise ChipProtocolError(self.address, f"RR expects 2 data bytes, status says {status.data_bytes}")
+        return (reply[1] << 8) | reply[2]
+
+    def write_register(self, reg: int, value: int, *, verify: bool = True) -> None:
+        """WR, then (by default) RR and compare: a register must hold what was written."""
+        if not 0 <= reg <= mlx.REG_CUSTOMER_MAX:
+            raise ValueError(f"register 0x{reg:02X} is not writable (customer area 0x00-0x1F)")
+        if not 0 <= value <= 0xFFFF:
+            raise ValueError(f"a register holds 16 bits, got {value!r}")
+        reply = self.transfer(bytes([mlx.CMD_WR, value >> 8, value & 0xFF, reg << 2]), 1)
+        self.check_status(reply[0], f"WR 0x{reg:02X}")
+        if verify:
+            back = self.read_register(reg)
+            if back != value:
+                raise RegisterVerifyError(
+                    self.address, f"register 0x{reg:02X} reads 0x{back:04X} after writing 0x{value:04X}")
+
+    def read_configuration(self) -> dict[int, int]:
+        """CONF1..CONF3 as the chip holds them now."""
+        return {reg: self.read_register(reg) for reg in (mlx.REG_CONF1, mlx.REG_CONF2, mlx.REG_CONF3)}
+
+    def configure(self, settings: mlx.Settings) -> None:
+        """Validate ``settings`` and write them, keeping reserved bits as read.
+
+        Raises `ForbiddenSettingError` before touching the chip when the datasheet
+        does not permit the combination.
+        """
+        settings.validate()
+        current = self.read_configuration()
+        for reg, value in settings.to_registers(current).items():
+            self.write_register(reg, value)
+        self.tref = self.read_register(mlx.REG_TREF)
+        self.settings = settings
+
+    def configuration_matches(self) -> bool:
+        """Read back CONF1..CONF3 and compare with what `configure` wrote.
+
+        Registers have been seen to change after months of running; a caller
+        re-initialises the chip when this returns False.
+        """
+        if self.settings is None:
+            raise ChipProtocolError(self.address, "not configured")
+        current = self.read_configuration()
+        return current == self.settings.to_registers(current)

@@ -1,0 +1,76 @@
+"""Find the MLX90393s on a bus and take one reading from each.
+
+Scanning stops whatever the chips were doing (it sends EX and reconfigures
+them): do not scan a bus a running daemon is using.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from . import mlx90393 as mlx
+from .bus import Bus
+from .driver import MLX90393, Measurement
+from .errors import ChipError
+
+
+@dataclass
+class ChipReport:
+    """What a scan learnt about one address that answered."""
+
+    address: int
+    part: str
+    registers: dict[int, int] = field(default_factory=dict)  # CONF1..CONF3 as found
+    tref: int | None = None
+    measurement: Measurement | None = None
+    error: str | None = None
+
+    def as_dict(self) -> dict[str, object]:
+        found = mlx.Settings.from_registers(self.registers) if len(self.registers) == 3 else None
+        m = self.measurement
+        return {
+            "address": f"0x{self.address:02X}",
+            "part": self.part,
+            "registers": {f"0x{r:02X}": f"0x{v:04X}" for r, v in self.registers.items()},
+            "found_settings": None if found is None else {
+                "GAIN_SEL": found.gain_sel, "HALLCONF": f"0x{found.hallconf:X}",
+                "RES_XYZ": [found.res_x, found.res_y, found.res_z], "OSR": found.osr,
+                "DIG_FILT": found.dig_filt, "OSR2": found.osr2, "TCMP_EN": int(found.tcmp_en),
+                "BURST_SEL": found.burst_sel, "BURST_DATA_RATE": found.burst_data_rate},
+            "tref": None if self.tref is None else f"0x{self.tref:04X}",
+            "field_ut": None if m is None else [round(float(v) * 1e6, 3) for v in m.field_t],
+            "saturated": None if m is None else [bool(s) for s in m.saturated],
+            "temperature_c": None if m is None or m.temperature_c is None else round(m.temperature_c, 2),
+            "error": self.error,
+        }
+
+
+def probe(bus: Bus, address: int) -> bool:
+    """True when a chip answers EX at ``address`` (EX is harmless in every mode)."""
+    try:
+        MLX90393(bus, address, sleep=bus.sleep).exit_mode()
+    except ChipError:
+        # A NACK (no chip) or a refusal: only an answer without ERROR counts.
+        return False
+    return True
+
+
+def scan(bus: Bus, settings: mlx.Settings = mlx.Settings(),
+         addresses: range = range(mlx.ADDRESS_MIN, mlx.ADDRESS_MAX + 1)) -> list[ChipReport]:
+    """Probe ``addresses``; for each chip found, read its registers as found,
+    then configure ``settings`` and take one X, Y, Z, T reading."""
+    reports = []
+    for address in addresses:
+        if not probe(bus, address):
+            continue
+        chip = MLX90393(bus, address, sleep=bus.sleep)
+        report = ChipReport(address, mlx.part_variant(address))
+        try:
+            report.registers = chip.read_configuration()
+            report.tref = chip.read_register(mlx.REG_TREF)
+            chip.configure(settings)
+            report.measurement = chip.measure(mlx.ZYXT_XYZT)
+        except ChipError as exc:
+            report.error = str(exc)
+        reports.append(report)
+    return reports

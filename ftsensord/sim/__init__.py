@@ -1,0 +1,32 @@
+"""The fake bus: emulated MLX90393s fed by a scene, behind smbus2's ``i2c_rdwr``.
+
+`simulated_bus` builds a ready bus from a scene; `ftsensord.bus.open_bus`
+calls it for the ``sim`` and ``sim:<scene file>`` specifications.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .bus import BusFaults, SimulatedBus
+from .chip import NOISELESS, EmulatedMLX90393, NoiseModel
+from .clock import MonotonicClock, VirtualClock
+from .scene import StaticScene, default_scene, load_scene
+
+__all__ = ["BusFaults", "EmulatedMLX90393", "MonotonicClock", "NOISELESS", "NoiseModel",
+           "SimulatedBus", "StaticScene", "VirtualClock", "default_scene", "load_scene",
+           "simulated_bus"]
+
+
+def simulated_bus(scene: StaticScene, *, clock: VirtualClock | MonotonicClock | None = None,
+                  bus_hz: float | None = None, seed: int | None = 0,
+                  noise: NoiseModel = NoiseModel()) -> SimulatedBus:
+    """A bus with one emulated chip per address of ``scene``.
+
+    ``seed`` makes the chips' noise repeatable (None: fresh entropy); each chip
+    gets its own stream, so adding a chip does not change another's noise.
+    """
+    streams = np.random.SeedSequence(seed).spawn(len(scene.addresses))
+    chips = [EmulatedMLX90393(address, scene, rng=np.random.default_rng(stream), noise=noise)
+             for address, stream in zip(scene.addresses, streams)]
+    return SimulatedBus(chips, clock=clock, bus_hz=bus_hz)

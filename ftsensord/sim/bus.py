@@ -1,0 +1,164 @@
+"""A simulated I2C bus with smbus2's ``i2c_rdwr(*msgs)`` surface.
+
+Like the kernel's ``I2C_RDWR`` ioctl it takes up to 42 messages, to several
+addresses, in one call; a message to an address where no chip answers aborts
+the call with ``OSError`` (the messages before it have already happened on the
+wire, as on a real bus). With ``bus_hz`` set it spends the wire time of every
+transfer on its clock: 9 clock bits per byte (8 data + ACK) plus one for each
+start, repeated start and the final stop.
+
+Fault hooks (`BusFaults`, and the chips' own) let tests and scenes break it.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import errno
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+from smbus2 import i2c_msg
+from smbus2.smbus2 import I2C_M_RD
+
+from .chip import EmulatedMLX90393
+from .clock import MonotonicClock, VirtualClock
+
+#: The kernel's limit of messages in one I2C_RDWR ioctl (I2C_RDWR_IOCTL_MAX_MSGS).
+I2C_RDWR_MAX_MSGS = 42
+#: Bits on the wire per byte: 8 data bits and the ACK/NACK bit.
+BITS_PER_BYTE = 9
+
+
+@dataclass
+class BusFaults:
+    """Faults the simulated bus injects; tests and scenes set them.
+
+    ``nack_for[address]`` is how many more transfers touching that address are
+    NACKed (None: until cleared, i.e. a permanent fault); ``io_errors`` is how
+    many more transfers fail bus-wide with ``io_errno`` (EIO, or ETIMEDOUT for a
+    hung bus); ``slowdown`` multiplies the wire time (a bus slower than
+    configured: clock stretching, a longer cable, a lower real clock).
+    """
+
+    nack_for: dict[int, int | None] = field(default_factory=dict)
+    io_errors: int = 0
+    io_errno: int = errno.EIO
+    slowdown: float = 1.0
+
+    def nack(self, address: int, count: int | None = None) -> None:
+        """NACK ``address`` for the next ``count`` transfers (None: until `clear`)."""
+        self.nack_for[address] = count
+
+    def io_error(self, count: int = 1, err: int = errno.EIO) -> None:
+        """Fail the next ``count`` transfers bus-wide with ``err``."""
+        self.io_errors, self.io_errno = count, err
+
+    def clear(self) -> None:
+        self.nack_for.clear()
+        self.io_errors = 0
+        self.slowdown = 1.0
+
+    def take_nack(self, address: int) -> bool:
+        """Whether this transfer to ``address`` is NACKed (counts one transfer)."""
+        if address not in self.nack_for:
+            return False
+        remaining = self.nack_for[address]
+        if remaining is not None:
+            if remaining <= 1:
+                del self.nack_for[address]
+            else:
+                self.nack_for[address] = remaining - 1
+        return True
+
+
+def wire_bits(msgs: Iterable[i2c_msg]) -> int:
+    """Clock bits a combined transfer takes: per message a (repeated) start, the
+    address byte and the data bytes; one stop at the end."""
+    return sum(1 + BITS_PER_BYTE * (1 + m.len) for m in msgs) + 1
+
+
+class SimulatedBus:
+    """Emulated MLX90393s on one bus, reached through ``i2c_rdwr``.
+
+    ``clock`` is shared by every chip (a `VirtualClock` for tests, a
+    `MonotonicClock` for benchmarks); ``bus_hz`` None spends no wire time.
+    ``nack_errno`` is what the adapter reports for an address nobody ACKs: the
+    kernel's documented ENXIO (Raspberry Pi's i2c-bcm2835 says EREMOTEIO).
+    """
+
+    def __init__(self, chips: Iterable[EmulatedMLX90393], *,
+                 clock: VirtualClock | MonotonicClock | None = None,
+                 bus_hz: float | None = None, nack_errno: int = errno.ENXIO):
+        self.chips: dict[int, EmulatedMLX90393] = {}
+        for chip in chips:
+            self.attach(chip)
+        self.clock = clock if clock is not None else VirtualClock()
+        self.bus_hz = bus_hz
+        self.nack_errno = nack_errno
+        self.faults = BusFaults()
+        self.transfers = 0
+        self.closed = False
+
+    # --- the smbus2 surface ----------------------------------------------------
+    def i2c_rdwr(self, *msgs: i2c_msg) -> None:
+        """Run one combined transfer, like ``ioctl(fd, I2C_RDWR, ...)``."""
+        if self.closed:
+            raise OSError(errno.EBADF, "bus is closed")
+        if not 1 <= len(msgs) <= I2C_RDWR_MAX_MSGS:
+            raise OSError(errno.EINVAL, f"I2C_RDWR takes 1 to {I2C_RDWR_MAX_MSGS} messages, got {len(msgs)}")
+        self.transfers += 1
+        start = self.clock.now()
+        bit_s = 0.0 if self.bus_hz is None else self.faults.slowdown / self.bus_hz
+        if self.faults.io_errors > 0:
+            self.faults.io_errors -= 1
+            err = self.faults.io_errno
+            raise OSError(err, errno.errorcode.get(err, "I/O error"))
+        bits = 0
+        try:
+            for msg in msgs:
+                bits += 1 + BITS_PER_BYTE  # (repeated) start and the address byte
+                now = start + bits * bit_s
+                chip = self.chips.get(msg.addr)
+                if chip is None or self.faults.take_nack(msg.addr) or not chip.acks(now):
+                    raise OSError(self.nack_errno,
+                                  f"no ACK from 0x{msg.addr:02X} ({errno.errorcode[self.nack_errno]})")
+                bits += BITS_PER_BYTE * msg.len
+                now = start + bits * bit_s
+                if msg.flags & I2C_M_RD:
+                    data = chip.read(msg.len, now)
+                    ctypes.memmove(msg.buf, data, msg.len)
+                else:
+                    chip.write(bytes(msg), now)
+        finally:
+            self.clock.wait_until(start + (bits + 1) * bit_s)
+
+    def close(self) -> None:
+        self.closed = True
+
+    def __enter__(self) -> SimulatedBus:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # --- time, shared with drivers ------------------------------------------------
+    def sleep(self, seconds: float) -> None:
+        self.clock.sleep(seconds)
+
+    def monotonic(self) -> float:
+        return self.clock.now()
+
+    # --- chips coming and going -----------------------------------------------
+    def attach(self, chip: EmulatedMLX90393) -> None:
+        """Connect a chip (it answers from the next transfer on)."""
+        if chip.address in self.chips:
+            raise ValueError(f"address 0x{chip.address:02X} is already on the bus")
+        self.chips[chip.address] = chip
+
+    def detach(self, address: int) -> EmulatedMLX90393:
+        """Disconnect a chip: its address NACKs until it is attached again.
+
+        A chip that comes back after losing power should be ``power_on()``-ed
+        before `attach`: it then holds its power-on registers, as a real one does.
+        """
+        return self.chips.pop(address)

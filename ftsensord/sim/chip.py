@@ -1,0 +1,292 @@
+"""An emulated MLX90393: register file and command state machine.
+
+It answers the same bytes the chip does. The simulated bus hands it each
+message with the time that message is on the wire, so conversions take the
+datasheet's time on whatever clock the bus runs (virtual or real). The field
+it measures comes from a scene (``scene.field_t(address, t)``), so the chip
+emulation and the physics stay apart.
+
+Where the datasheet is silent, the emulator picks the stricter behaviour so
+that a driver bug shows up here rather than on a real board; each such choice
+says so in a comment.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from .. import mlx90393 as mlx
+
+
+class FieldSource(Protocol):
+    """What the chip needs of a scene: the field it sees and its temperature."""
+
+    def field_t(self, address: int, t: float) -> np.ndarray:
+        """Flux density at the chip, in tesla, in the chip's frame, at time ``t`` (s)."""
+        ...
+
+    def temperature_c(self, address: int, t: float) -> float:
+        """Die temperature in degC at time ``t`` (s)."""
+        ...
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Reading noise: ``sigma = sigma_ref * sqrt(t_ref / TCONVM)`` per axis, Z noisier.
+
+    ESTIMATE, to be replaced by a table measured on a real board: the datasheet
+    gives noise only as curves; users report it follows the total conversion
+    time, not how OSR and DIG_FILT split it. The reference values live here
+    and nowhere else.
+    """
+
+    sigma_ref_xy_ut: float = 2.0
+    t_ref_us: float = 835.0
+    z_factor: float = 1.5
+    temperature_sigma_c: float = 0.05
+
+    def sigma_ut(self, axis: str, tconvm_us: float) -> float:
+        sigma = self.sigma_ref_xy_ut * math.sqrt(self.t_ref_us / tconvm_us)
+        return sigma * self.z_factor if axis == "z" else sigma
+
+
+NOISELESS = NoiseModel(sigma_ref_xy_ut=0.0, temperature_sigma_c=0.0)
+
+
+class Mode(enum.Enum):
+    IDLE = 0
+    SINGLE = mlx.STATUS_SM_MODE
+    BURST = mlx.STATUS_BURST_MODE
+    WOC = mlx.STATUS_WOC_MODE
+
+
+_MODE_OF_OPCODE = {mlx.CMD_SM: Mode.SINGLE, mlx.CMD_SB: Mode.BURST, mlx.CMD_SW: Mode.WOC}
+
+
+class EmulatedMLX90393:
+    """One chip at one address. Times (``now``) are seconds on the bus's clock.
+
+    Fault hooks for tests: ``stuck`` (the same data forever, DRDY always high),
+    ``memory_error`` (a double-bit ECC error: every command but RT refused),
+    `drift_register` (a register that changes by itself).
+    """
+
+    def __init__(self, address: int, scene: FieldSource, *,
+                 rng: np.random.Generator | None = None,
+                 noise: NoiseModel = NoiseModel(),
+                 tref: int = mlx.TREF_TYPICAL):
+        mlx.part_variant(address)
+        self.address = address
+        self.scene = scene
+        self.rng = rng if rng is not None else np.random.default_rng(address)
+        self.noise = noise
+        self.tref = tref
+        # Non-volatile memory: what power-on and RT load into the registers.
+        self.nonvolatile = [0] * (mlx.REG_CUSTOMER_MAX + 1)
+        for reg, value in mlx.POWER_ON_DEFAULTS.items():
+            self.nonvolatile[reg] = value
+        self.stuck = False
+        self.memory_error = False
+        self._pending_drifts: list[tuple[float, int, int]] = []
+        self.power_on()
+
+    # --- state ------------------------------------------------------------------
+    def power_on(self) -> None:
+        """Power-on: registers from non-volatile memory, idle, no data."""
+        self.registers = [0] * (mlx.REG_MAX + 1)
+        self.registers[: len(self.nonvolatile)] = self.nonvolatile
+        self.registers[mlx.REG_TREF] = self.tref
+        self.mode = Mode.IDLE
+        self.busy_until = -math.inf
+        self.reply = b""
+        self._conv_items: tuple[str, ...] = ()
+        self._conv_first = math.inf  # time the first result is ready
+        self._conv_interval = math.inf  # burst interval (inf: one conversion only)
+        self._last_index = -1  # index of the newest result already read
+        self._stuck_words: dict[str, int] | None = None
+
+    def settings(self) -> mlx.Settings:
+        return mlx.Settings.from_registers({r: self.registers[r] for r in
+                                            (mlx.REG_CONF1, mlx.REG_CONF2, mlx.REG_CONF3)})
+
+    def acks(self, now: float) -> bool:
+        """Whether the chip acknowledges its address: not while it resets or stores.
+
+        The datasheet only says to wait; a chip whose digital core is restarting
+        cannot answer, so the emulator NACKs rather than guessing a reply.
+        """
+        return now >= self.busy_until
+
+    def drift_register(self, reg: int, value: int, at: float | None = None) -> None:
+        """Fault: register ``reg`` takes ``value`` by itself (now, or at time ``at``)."""
+        if at is None:
+            self.registers[reg] = value
+        else:
+            self._pending_drifts.append((at, reg, value))
+
+    def _advance(self, now: float) -> None:
+        for item in [d for d in self._pending_drifts if d[0] <= now]:
+            self.registers[item[1]] = item[2]
+            self._pending_drifts.remove(item)
+        if self.mode is Mode.SINGLE and now >= self._conv_first:
+            self.mode = Mode.IDLE  # the chip returns to idle with data ready
+
+    def _newest_index(self, now: float) -> int:
+        """Index of the newest finished conversion (-1: none yet)."""
+        if now < self._conv_first:
+            return -1
+        if math.isinf(self._conv_interval):
+            return 0
+        return int((now - self._conv_first) // self._conv_interval)
+
+    # --- bus side ---------------------------------------------------------------
+    def write(self, data: bytes, now: float) -> None:
+        """A write message: execute the command it carries and prepare the reply."""
+        if not data:
+            return  # a zero-length write is an address probe: ACK only
+        self._advance(now)
+        opcode, zyxt = data[0] & 0xF0, data[0] & 0x0F
+        if self.memory_error and opcode != mlx.CMD_RT:
+            self.reply = self._status(error=True)
+            return
+        handler = {
+            mlx.CMD_SB: self._mode_start, mlx.CMD_SW: self._mode_start, mlx.CMD_SM: self._mode_start,
+            mlx.CMD_RM: self._rm, mlx.CMD_RR: self._rr, mlx.CMD_WR: self._wr, mlx.CMD_EX: self._ex,
+            mlx.CMD_HR: self._hr, mlx.CMD_HS: self._hs, mlx.CMD_RT: self._rt,
+        }.get(opcode)
+        if handler is None:
+            self.reply = self._status(error=True)  # unknown opcode: refused
+            return
+        self.reply = handler(opcode, zyxt, data, now)
+
+    def read(self, length: int, now: float) -> bytes:
+        """A read message: the prepared reply; 0xFF (released SDA) past its end."""
+        self._advance(now)
+        return (self.reply + b"\xff" * length)[:length]
+
+    # --- commands -----------------------------------------------------------------
+    def _status(self, *, error: bool = False, d: int = 0, rs: bool = False) -> bytes:
+        byte = self.mode.value | (mlx.STATUS_ERROR if error else 0) | (mlx.STATUS_RS if rs else 0) | d
+        return bytes([byte])
+
+    def _selected(self, zyxt: int) -> tuple[str, ...]:
+        return mlx.zyxt_items(zyxt or mlx.BURST_SEL.get(self.registers[mlx.REG_CONF2]))
+
+    def _mode_start(self, opcode: int, zyxt: int, data: bytes, now: float) -> bytes:
+        items = self._selected(zyxt)
+        s = self.settings()
+        # Refused: another mode active, nothing selected, or settings the
+        # datasheet forbids (the emulator's choice: a real chip's output there
+        # is undefined, and refusing shows the missing configure at once).
+        if self.mode is not Mode.IDLE or not items or len(data) != 1:
+            return self._status(error=True)
+        try:
+            s.validate()
+        except ValueError:
+            return self._status(error=True)
+        self.mode = _MODE_OF_OPCODE[opcode]
+        zyxt_eff = mlx.items_zyxt(items)
+        self._conv_items = items
+        self._last_index = -1
+        if self.mode is Mode.WOC:
+            # Wake-on-change is accepted as a mode (status bit, exclusivity) but
+            # never produces data here: ftsensord does not use it.
+            self._conv_first, self._conv_interval = math.inf, math.inf
+        else:
+            self._conv_first = now + s.single_measurement_us(zyxt_eff) * 1e-6
+            self._conv_interval = (s.burst_interval_us(zyxt_eff) * 1e-6
+                                   if self.mode is Mode.BURST else math.inf)
+        return self._status()
+
+    def _rm(self, opcode: int, zyxt: int, data: bytes, now: float) -> bytes:
+        items = self._selected(zyxt)
+        if self.stuck and self._stuck_words is not None and set(items) <= set(self._stuck_words):
+            return self._reply_words(items, self._stuck_words)
+        index = self._newest_index(now)
+        # Refused: no new data since the last RM (DRDY low), or items asked for
+        # that the conversion did not make (emulator's choice: refuse).
+        if not items or index <= self._last_index or not set(items) <= set(self._conv_items):
+            return self._status(error=True)
+        self._last_index = index
+        t_done = self._conv_first + (0.0 if math.isinf(self._conv_interval) else index * self._conv_interval)
+        words = self._convert(t_done)
+        if self.stuck:
+            self._stuck_words = words
+        return self._reply_words(items, words)
+
+    def _reply_words(self, items: tuple[str, ...], words: dict[str, int]) -> bytes:
+        out = bytearray(self._status(d=mlx.d_for_items(len(items))))
+        for item in items:
+            out += words[item].to_bytes(2, "big")
+        return bytes(out)
+
+    def _convert(self, t: float) -> dict[str, int]:
+        """Quantised words of a conversion finishing at time ``t``."""
+        s = self.settings()
+        field = np.asarray(self.scene.field_t(self.address, t), dtype=float)
+        words: dict[str, int] = {}
+        for i, axis in enumerate("xyz"):
+            # The Hall element saturates near 50 mT whatever the gain.
+            b_ut = float(np.clip(field[i], -mlx.HALL_SATURATION_T, mlx.HALL_SATURATION_T)) * 1e6
+            sigma = self.noise.sigma_ut(axis, s.tconvm_us())
+            if sigma > 0:
+                b_ut += self.rng.normal(0.0, sigma)
+            counts = round(b_ut / s.sensitivity_ut(axis))
+            words[axis] = mlx.counts_to_raw(counts, s.raw_format(axis))
+        temp = self.scene.temperature_c(self.address, t)
+        if self.noise.temperature_sigma_c > 0:
+            temp += self.rng.normal(0.0, self.noise.temperature_sigma_c)
+        words["t"] = mlx.celsius_to_raw(temp, self.tref)
+        return words
+
+    def _register_address(self, byte: int) -> int | None:
+        # The address travels as reg << 2; set low bits make it malformed
+        # (emulator's choice: refuse rather than guess).
+        return None if byte & 0x03 else byte >> 2
+
+    def _rr(self, opcode: int, zyxt: int, data: bytes, now: float) -> bytes:
+        reg = self._register_address(data[1]) if len(data) == 2 else None
+        if reg is None or self.mode in (Mode.BURST, Mode.WOC):
+            return self._status(error=True)
+        return self._status(d=0) + self.registers[reg].to_bytes(2, "big")
+
+    def _wr(self, opcode: int, zyxt: int, data: bytes, now: float) -> bytes:
+        reg = self._register_address(data[3]) if len(data) == 4 else None
+        if reg is None or reg > mlx.REG_CUSTOMER_MAX or self.mode in (Mode.BURST, Mode.WOC):
+            return self._status(error=True)
+        self.registers[reg] = (data[1] << 8) | data[2]
+        return self._status()
+
+    def _ex(self, opcode: int, zyxt: int, data: bytes, now: float) -> bytes:
+        self.mode = Mode.IDLE
+        self._conv_first, self._conv_interval = math.inf, math.inf
+        return self._status()
+
+    def _rt(self, opcode: int, zyxt: int, data: bytes, now: float) -> bytes:
+        # Quirk of real chips: RT may not clear burst mode; drivers send EX first.
+        burst = self.mode is Mode.BURST
+        first, interval = self._conv_first, self._conv_interval
+        self.power_on()
+        self.memory_error = False
+        if burst:
+            self.mode, self._conv_first, self._conv_interval = Mode.BURST, first, interval
+        self.busy_until = now + mlx.T_AFTER_RT_US * 1e-6
+        return self._status(rs=True)
+
+    def _hr(self, opcode: int, zyxt: int, data: bytes, now: float) -> bytes:
+        if self.mode is not Mode.IDLE:
+            return self._status(error=True)
+        self.registers[: len(self.nonvolatile)] = self.nonvolatile
+        return self._status()
+
+    def _hs(self, opcode: int, zyxt: int, data: bytes, now: float) -> bytes:
+        if self.mode is not Mode.IDLE:
+            return self._status(error=True)
+        self.nonvolatile = list(self.registers[: len(self.nonvolatile)])
+        self.busy_until = now + mlx.T_HS_US * 1e-6
+        return self._status()
