@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from . import mlx90393 as mlx
 from .bus import Bus
 from .driver import MLX90393, Measurement
-from .errors import ChipError
+from .errors import ChipError, ChipNotRespondingError
 
 
 @dataclass
@@ -46,12 +46,17 @@ class ChipReport:
 
 
 def probe(bus: Bus, address: int) -> bool:
-    """True when a chip answers EX at ``address`` (EX is harmless in every mode)."""
+    """True when something ACKs EX at ``address`` (EX is harmless in every mode).
+
+    A chip that answers with ERROR is present, only unwell: `scan` lists it
+    with its error instead of hiding it.
+    """
     try:
         MLX90393(bus, address, sleep=bus.sleep).exit_mode()
-    except ChipError:
-        # A NACK (no chip) or a refusal: only an answer without ERROR counts.
+    except ChipNotRespondingError:
         return False
+    except ChipError:
+        return True
     return True
 
 

@@ -119,7 +119,8 @@ class SimulatedBus:
                 bits += 1 + BITS_PER_BYTE  # (repeated) start and the address byte
                 now = start + bits * bit_s
                 chip = self.chips.get(msg.addr)
-                if chip is None or self.faults.take_nack(msg.addr) or not chip.acks(now):
+                if chip is None or self.faults.take_nack(msg.addr) \
+                        or not chip.acks(now, reading=bool(msg.flags & I2C_M_RD)):
                     raise OSError(self.nack_errno,
                                   f"no ACK from 0x{msg.addr:02X} ({errno.errorcode[self.nack_errno]})")
                 bits += BITS_PER_BYTE * msg.len

@@ -114,13 +114,15 @@ class EmulatedMLX90393:
         return mlx.Settings.from_registers({r: self.registers[r] for r in
                                             (mlx.REG_CONF1, mlx.REG_CONF2, mlx.REG_CONF3)})
 
-    def acks(self, now: float) -> bool:
-        """Whether the chip acknowledges its address: not while it resets or stores.
+    def acks(self, now: float, reading: bool = False) -> bool:
+        """Whether the chip acknowledges its address.
 
-        The datasheet only says to wait; a chip whose digital core is restarting
-        cannot answer, so the emulator NACKs rather than guessing a reply.
+        After RT and HS it still sends the reply to that command, then NACKs
+        new commands until its wait is over. The datasheet only says to wait; a
+        chip whose digital core is restarting cannot answer, so the emulator
+        NACKs rather than guessing a reply.
         """
-        return now >= self.busy_until
+        return reading or now >= self.busy_until
 
     def drift_register(self, reg: int, value: int, at: float | None = None) -> None:
         """Fault: register ``reg`` takes ``value`` by itself (now, or at time ``at``)."""

@@ -1,0 +1,164 @@
+"""One string chooses the bus; scene files; the scan command."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from ftsensord import mlx90393 as mlx
+from ftsensord.bus import open_bus, parse_bus_spec
+from ftsensord.cli import main
+from ftsensord.errors import ConfigError
+from ftsensord.scan import scan
+from ftsensord.sim import SimulatedBus, default_scene, load_scene
+from ftsensord.sim.scene import d101_moment_am2, on_axis_dipole_t
+
+SCENE = """\
+version = 1
+kind = "static"
+temperature_c = 22.0
+
+[[chip]]
+address = 0x0D
+field_ut = [10.0, -20.0, 1500.0]
+
+[[chip]]
+address = 0x1A
+field_ut = [0.0, 0.0, -900.0]
+temperature_c = 40.0
+"""
+
+
+@pytest.mark.parametrize(("spec", "parsed"), [
+    ("sim", ("sim", None)), ("sim:scenes/a.toml", ("sim", "scenes/a.toml")),
+    ("i2c:1", ("i2c", "1")), ("i2c:/dev/i2c-3", ("i2c", "/dev/i2c-3")),
+])
+def test_accepted_bus_specs(spec, parsed):
+    assert parse_bus_spec(spec) == parsed
+
+
+@pytest.mark.parametrize("spec", ["", "i2c", "i2c:", "i2c:one", "spi:0", "sim:", "SIM", None, 1])
+def test_a_bad_bus_spec_names_the_accepted_forms(spec):
+    with pytest.raises(ConfigError, match="i2c:<N>.*sim:<scene file>"):
+        open_bus(spec)
+
+
+def test_sim_options_are_refused_for_a_real_bus():
+    with pytest.raises(ConfigError, match="simulated bus only"):
+        open_bus("i2c:1", bus_hz=400e3)
+
+
+def test_sim_opens_the_default_scene_of_16_chips():
+    bus = open_bus("sim")
+    assert isinstance(bus, SimulatedBus)
+    assert sorted(bus.chips) == list(range(0x0C, 0x1C))
+
+
+def test_default_scene_field_is_the_d101_dipole_at_6_mm():
+    # m = Br V / mu0 for a 1/16" x 1/32" N52 disc: about 1.8e-3 A m^2.
+    assert d101_moment_am2() == pytest.approx(1.81e-3, rel=0.01)
+    bz = default_scene().field_t(0x0C, 0.0)[2]
+    assert bz == pytest.approx(on_axis_dipole_t(d101_moment_am2(), 6e-3))
+    assert 1.5e-3 < bz < 1.9e-3  # inside GAIN_SEL 0 RES 3's range with room for load
+
+
+def test_scene_file_loads(tmp_path):
+    path = tmp_path / "two.toml"
+    path.write_text(SCENE)
+    scene = load_scene(path)
+    assert scene.addresses == (0x0D, 0x1A)
+    assert np.allclose(scene.field_t(0x0D, 0.0), [10e-6, -20e-6, 1500e-6])
+    assert scene.temperature_c(0x0D, 0.0) == 22.0 and scene.temperature_c(0x1A, 0.0) == 40.0
+
+
+@pytest.mark.parametrize(("edit", "key", "expected"), [
+    (("version = 1", "version = 2"), "version", "expected 1"),
+    (('kind = "static"', 'kind = "magic"'), "kind", 'expected "static"'),
+    (("address = 0x0D", "address = 0x0B"), "chip[0].address", "0x0C-0x1B"),
+    (("address = 0x1A", "address = 0x0D"), "chip[1].address", "not used before"),
+    (("[10.0, -20.0, 1500.0]", "[10.0, 1500.0]"), "chip[0].field_ut", "3 finite numbers"),
+    (("[10.0, -20.0, 1500.0]", "[10.0, nan, 1500.0]"), "chip[0].field_ut", "3 finite numbers"),
+    (("temperature_c = 40.0", "temperature_c = \"hot\""), "chip[1].temperature_c", "finite number"),
+    (("temperature_c = 40.0", "colour = 1"), "chip[1].colour", "one of address"),
+    (("temperature_c = 22.0", "temprature_c = 22.0"), "temprature_c", "one of"),
+    (("[[chip]]", "[chips]"), "chips", "one of"),
+    (("version = 1", "version = = 1"), "not valid TOML", ""),
+])
+def test_a_bad_scene_file_names_the_file_the_key_and_what_was_expected(tmp_path, edit, key, expected):
+    path = tmp_path / "bad.toml"
+    path.write_text(SCENE.replace(*edit, 1))
+    with pytest.raises(ConfigError) as exc:
+        load_scene(path)
+    assert str(path) in str(exc.value) and key in str(exc.value) and expected in str(exc.value)
+
+
+def test_a_missing_scene_file_is_a_config_error(tmp_path):
+    with pytest.raises(ConfigError, match="cannot read scene file"):
+        open_bus(f"sim:{tmp_path / 'nope.toml'}")
+
+
+# --- scan ----------------------------------------------------------------------------
+def test_scan_finds_the_default_16_chips_with_variants_registers_and_readings(capsys):
+    assert main(["scan", "--bus", "sim", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    chips = out["chips"]
+    assert [c["address"] for c in chips] == [f"0x{a:02X}" for a in range(0x0C, 0x1C)]
+    assert [c["part"][-3:] for c in chips] == ["011"] * 4 + ["012"] * 4 + ["013"] * 4 + ["014"] * 4
+    bz = default_scene().field_t(0x0C, 0.0)[2] * 1e6
+    for c in chips:
+        assert c["registers"] == {"0x00": "0x007C", "0x01": "0x0000", "0x02": "0x0000"}  # as found
+        assert c["found_settings"]["GAIN_SEL"] == 7
+        # Within 5 sigma of the noise plus one LSB of 9.68 uT on Z.
+        assert c["field_ut"][2] == pytest.approx(bz, abs=5 * 3.0 + 9.68)
+        assert abs(c["field_ut"][0]) < 5 * 2.0 + 6.01
+        assert c["temperature_c"] == pytest.approx(25.0, abs=0.5)
+        assert c["error"] is None and c["saturated"] == [False, False, False]
+
+
+def test_scan_of_a_scene_file_finds_its_chips_and_prints_a_table(tmp_path, capsys):
+    path = tmp_path / "two.toml"
+    path.write_text(SCENE)
+    assert main(["scan", "--bus", f"sim:{path}"]) == 0
+    out = capsys.readouterr().out
+    lines = out.strip().splitlines()
+    assert lines[1].startswith("0x0D  MLX90393SLW-ABA-011") and lines[2].startswith("0x1A  MLX90393SLW-ABA-014")
+    assert "2 chip(s) found" in lines[-1]
+    assert float(lines[2].split()[8]) == pytest.approx(40.0, abs=0.5)  # T/degC column
+
+
+def test_scan_reports_a_chip_that_fails_midway_and_goes_on():
+    bus = open_bus("sim")
+    bus.chips[0x10].memory_error = True  # ACKs but refuses every command but RT
+    bus.detach(0x11)
+    bus.chips[0x12].drift_register(mlx.REG_CONF3, 0, at=0.0)  # harmless: configure rewrites it
+    reports = {r.address: r for r in scan(bus)}
+    assert 0x11 not in reports and len(reports) == 15
+    assert "refused" in reports[0x10].error and reports[0x10].measurement is None
+    assert all(r.error is None and r.measurement is not None for a, r in reports.items() if a != 0x10)
+
+
+def test_scan_exit_codes_on_errors(capsys):
+    assert main(["scan", "--bus", "nonsense"]) == 2
+    assert "accepted forms" in capsys.readouterr().err
+    assert main(["scan", "--bus", "i2c:/dev/i2c-does-not-exist"]) == 2
+    assert "No such file" in capsys.readouterr().err
+
+
+def test_console_entry_point_runs_as_a_module():
+    out = subprocess.run([sys.executable, "-m", "ftsensord", "scan", "--bus", "sim"],
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip().splitlines()[-1] == "16 chip(s) found on sim"
+
+
+def test_the_example_scene_in_config_loads_and_shows_a_saturated_chip():
+    from pathlib import Path
+    path = Path(__file__).resolve().parent.parent / "config" / "scene-static.toml"
+    reports = {r.address: r for r in scan(open_bus(f"sim:{path}"))}
+    assert sorted(reports) == [0x0C, 0x0D, 0x14]
+    assert list(reports[0x14].measurement.saturated) == [False, False, True]
+    assert not reports[0x0D].measurement.any_saturated

@@ -1,0 +1,293 @@
+"""Every command round-trips through the emulated chip, refusals included."""
+
+from __future__ import annotations
+
+import errno
+
+import numpy as np
+import pytest
+from smbus2 import i2c_msg
+
+from ftsensord import mlx90393 as mlx
+from ftsensord.driver import MLX90393
+from ftsensord.errors import ChipNotRespondingError, ChipRefusedError
+from ftsensord.sim import NOISELESS, NoiseModel, StaticScene, VirtualClock, simulated_bus
+
+from .conftest import ADDR
+
+
+def xfer(bus, command: bytes, n: int, address: int = ADDR) -> bytes:
+    """One raw command: write, repeated start, read n bytes."""
+    w, r = i2c_msg.write(address, command), i2c_msg.read(address, n)
+    bus.i2c_rdwr(w, r)
+    return bytes(r)
+
+
+def status(bus, command: bytes, n: int = 1) -> mlx.Status:
+    return mlx.Status(xfer(bus, command, n)[0])
+
+
+def configure_raw(bus, settings: mlx.Settings = mlx.Settings()) -> None:
+    for reg, value in settings.to_registers().items():
+        assert not status(bus, bytes([mlx.CMD_WR, value >> 8, value & 0xFF, reg << 2])).error
+
+
+SM_XYZ_S = mlx.Settings().single_measurement_us() * 1e-6
+
+
+# --- power-on, registers ------------------------------------------------------------
+def test_power_on_registers_and_tref(bus):
+    for reg, expected in ((0x00, 0x007C), (0x01, 0), (0x02, 0), (0x24, mlx.TREF_TYPICAL)):
+        reply = xfer(bus, bytes([mlx.CMD_RR, reg << 2]), 3)
+        assert mlx.Status(reply[0]) == mlx.Status(0x00)  # idle, no error, D=0 (two bytes follow)
+        assert (reply[1] << 8) | reply[2] == expected
+
+
+def test_write_then_read_register(bus):
+    assert status(bus, bytes([mlx.CMD_WR, 0x12, 0x34, 0x04 << 2])).byte == 0
+    assert xfer(bus, bytes([mlx.CMD_RR, 0x04 << 2]), 3)[1:] == b"\x12\x34"
+
+
+@pytest.mark.parametrize("command", [
+    bytes([mlx.CMD_WR, 0, 1, mlx.REG_TREF << 2]),  # Melexis area is read only
+    bytes([mlx.CMD_WR, 0, 1, (0x02 << 2) | 1]),  # malformed address byte
+    bytes([mlx.CMD_RR, (0x02 << 2) | 2]),
+    bytes([mlx.CMD_RR]),  # missing address byte
+    bytes([mlx.CMD_WR, 0, 1]),
+])
+def test_register_address_out_of_range_or_malformed_is_refused(bus, command):
+    assert status(bus, command).error
+
+
+def test_unknown_opcode_is_refused(bus):
+    assert status(bus, bytes([0x70])).error  # Adafruit's wrong "HS"
+    assert status(bus, bytes([0x00])).error
+
+
+def test_memory_recall_and_store(bus):
+    chip = bus.chips[ADDR]
+    assert not status(bus, bytes([mlx.CMD_WR, 0x00, 0x01, 0x01 << 2])).error
+    assert not status(bus, bytes([mlx.CMD_HR])).error  # recall overwrites RAM with NV
+    assert chip.registers[0x01] == 0
+    assert not status(bus, bytes([mlx.CMD_WR, 0x00, 0x05, 0x01 << 2])).error
+    assert not status(bus, bytes([mlx.CMD_HS])).error
+    assert chip.nonvolatile[0x01] == 5
+    with pytest.raises(OSError):  # busy storing for 15 ms: no ACK
+        status(bus, bytes([mlx.CMD_EX]))
+    bus.sleep(mlx.T_HS_US * 1e-6)
+    assert not status(bus, bytes([mlx.CMD_EX])).error
+    chip.power_on()
+    assert chip.registers[0x01] == 5  # power-on loads what HS stored
+
+
+# --- reset ----------------------------------------------------------------------------
+def test_reset_sets_rs_restores_defaults_and_nacks_during_its_wait(bus):
+    configure_raw(bus)
+    s = status(bus, bytes([mlx.CMD_RT]))
+    assert s.rs and not s.error
+    with pytest.raises(OSError) as exc:  # within the 1.5 ms the chip does not answer
+        status(bus, bytes([mlx.CMD_EX]))
+    assert exc.value.errno == errno.ENXIO
+    bus.sleep(mlx.T_AFTER_RT_US * 1e-6)
+    assert not status(bus, bytes([mlx.CMD_EX])).error
+    assert xfer(bus, bytes([mlx.CMD_RR, 0x02 << 2]), 3)[1:] == b"\x00\x00"
+
+
+def test_rt_alone_does_not_leave_burst_but_the_drivers_reset_does(bus):
+    configure_raw(bus)
+    assert status(bus, bytes([mlx.CMD_SB | mlx.ZYXT_XYZ])).burst_mode
+    bus.sleep(0.01)
+    assert status(bus, bytes([mlx.CMD_RT])).burst_mode  # quirk: still bursting
+    bus.sleep(0.002)
+    drv = MLX90393(bus, ADDR, sleep=bus.sleep)
+    s = drv.reset()
+    assert s.rs and not s.burst_mode
+    assert not drv.exit_mode().burst_mode
+
+
+def test_memory_error_refuses_everything_but_rt(bus):
+    bus.chips[ADDR].memory_error = True
+    for command in (bytes([mlx.CMD_EX]), bytes([mlx.CMD_RR, 0]), bytes([mlx.CMD_SM | 0xE])):
+        assert status(bus, command).error
+    assert not status(bus, bytes([mlx.CMD_RT])).error
+    bus.sleep(0.002)
+    assert not status(bus, bytes([mlx.CMD_EX])).error
+
+
+# --- single measurement --------------------------------------------------------------
+def test_single_measurement_timing_data_ready_and_return_to_idle(bus):
+    configure_raw(bus)
+    s = status(bus, bytes([mlx.CMD_SM | mlx.ZYXT_XYZ]))
+    assert s.sm_mode and not s.error
+    bus.sleep(SM_XYZ_S - 200e-6)  # the RM itself takes ~40 us of bus time at most
+    early = xfer(bus, bytes([mlx.CMD_RM | mlx.ZYXT_XYZ]), 7)
+    assert mlx.Status(early[0]).error and mlx.Status(early[0]).sm_mode  # data not ready
+    bus.sleep(200e-6)
+    reply = xfer(bus, bytes([mlx.CMD_RM | mlx.ZYXT_XYZ]), 7)
+    s = mlx.Status(reply[0])
+    assert not s.error and not s.sm_mode and s.data_bytes == 6
+    again = xfer(bus, bytes([mlx.CMD_RM | mlx.ZYXT_XYZ]), 7)
+    assert mlx.Status(again[0]).error  # DRDY low once read
+
+
+def test_rm_of_items_the_conversion_did_not_make_is_refused(bus):
+    configure_raw(bus)
+    status(bus, bytes([mlx.CMD_SM | mlx.ZYXT_X]))
+    bus.sleep(0.01)
+    assert mlx.Status(xfer(bus, bytes([mlx.CMD_RM | mlx.ZYXT_XYZ]), 7)[0]).error
+    reply = xfer(bus, bytes([mlx.CMD_RM | mlx.ZYXT_X]), 3)
+    assert not mlx.Status(reply[0]).error and mlx.Status(reply[0]).d == 0
+
+
+def test_zyxt_zero_uses_burst_sel(bus):
+    configure_raw(bus, mlx.Settings(burst_sel=mlx.ZYXT_XYZT))
+    assert status(bus, bytes([mlx.CMD_SM])).sm_mode
+    bus.sleep(0.01)
+    reply = xfer(bus, bytes([mlx.CMD_RM]), 9)
+    assert mlx.Status(reply[0]).d == 3  # four words: T, X, Y, Z
+
+
+def test_measurement_refused_with_nothing_selected_or_forbidden_settings(bus):
+    configure_raw(bus, mlx.Settings(burst_sel=0))
+    assert status(bus, bytes([mlx.CMD_SM])).error  # zyxt 0 and BURST_SEL 0
+    drv = MLX90393(bus, ADDR, sleep=bus.sleep)
+    drv.reset()  # power-on CONF3 is OSR 0, DIG_FILT 0: forbidden
+    s = status(bus, bytes([mlx.CMD_SM | mlx.ZYXT_XYZ]))
+    assert s.error and not s.sm_mode
+
+
+@pytest.mark.parametrize(("first", "second"), [
+    (mlx.CMD_SM, mlx.CMD_SM), (mlx.CMD_SM, mlx.CMD_SB), (mlx.CMD_SB, mlx.CMD_SM),
+    (mlx.CMD_SB, mlx.CMD_SB), (mlx.CMD_SB, mlx.CMD_SW), (mlx.CMD_SW, mlx.CMD_SB),
+])
+def test_a_mode_command_while_another_mode_is_active_is_refused(bus, first, second):
+    configure_raw(bus)
+    bit = {mlx.CMD_SM: mlx.STATUS_SM_MODE, mlx.CMD_SB: mlx.STATUS_BURST_MODE,
+           mlx.CMD_SW: mlx.STATUS_WOC_MODE}
+    assert status(bus, bytes([first | mlx.ZYXT_XYZ])).byte & bit[first]
+    s = status(bus, bytes([second | mlx.ZYXT_XYZ]))
+    assert s.error
+    if second != first:
+        assert not s.byte & bit[second]  # the refused mode's bit stays clear
+    assert status(bus, bytes([mlx.CMD_EX])).byte & 0xE0 == 0  # EX leaves every mode
+
+
+# --- burst -------------------------------------------------------------------------
+def test_burst_mode_refuses_registers_and_delivers_each_result_once(bus):
+    settings = mlx.Settings()
+    configure_raw(bus, settings)
+    assert status(bus, bytes([mlx.CMD_SB | mlx.ZYXT_XYZ])).burst_mode
+    assert status(bus, bytes([mlx.CMD_RR, 0x00])).error
+    assert status(bus, bytes([mlx.CMD_WR, 0, 0, 0x00])).error
+    assert status(bus, bytes([mlx.CMD_HR])).error
+    bus.sleep(settings.single_measurement_us() * 1e-6)
+    first = xfer(bus, bytes([mlx.CMD_RM | mlx.ZYXT_XYZ]), 7)
+    assert not mlx.Status(first[0]).error and mlx.Status(first[0]).burst_mode
+    assert mlx.Status(xfer(bus, bytes([mlx.CMD_RM | mlx.ZYXT_XYZ]), 7)[0]).error  # not yet
+    bus.sleep(settings.burst_interval_us() * 1e-6)
+    assert not mlx.Status(xfer(bus, bytes([mlx.CMD_RM | mlx.ZYXT_XYZ]), 7)[0]).error
+
+
+def test_burst_results_follow_a_changing_field(bus, scene):
+    drv = MLX90393(bus, ADDR, sleep=bus.sleep)
+    drv.reset()
+    drv.configure(mlx.Settings())
+    drv.start_burst(mlx.ZYXT_XYZ)
+    bus.sleep(0.01)
+    before = drv.read_measurement().field_t
+    scene.set_field(ADDR, [0.0, 0.0, -3e-3])
+    bus.sleep(0.01)
+    after = drv.read_measurement().field_t
+    assert before[2] == pytest.approx(1500e-6, abs=10e-6)
+    assert after[2] == pytest.approx(-3e-3, abs=10e-6)
+
+
+# --- what the conversion produces --------------------------------------------------------
+@pytest.mark.parametrize("settings", [mlx.Settings(), mlx.Settings(gain_sel=7, res_x=0, res_y=1, res_z=2),
+                                      mlx.Settings(gain_sel=4, res_x=1, res_y=1, res_z=1, tcmp_en=True)])
+def test_noiseless_readings_are_the_field_quantised_to_the_lsb(bus, scene, settings):
+    drv = MLX90393(bus, ADDR, sleep=bus.sleep)
+    drv.reset()
+    drv.configure(settings)
+    m = drv.measure(mlx.ZYXT_XYZT)
+    for i, axis in enumerate("xyz"):
+        lsb = settings.sensitivity_ut(axis) * 1e-6
+        assert m.field_t[i] == pytest.approx(round(scene.fields_t[ADDR][i] / lsb) * lsb, abs=1e-12)
+    assert m.temperature_c == pytest.approx(31.5, abs=0.5 / 45.2)
+    assert not m.any_saturated
+
+
+def test_readings_past_the_span_or_the_element_limit_are_flagged(bus, scene):
+    drv = MLX90393(bus, ADDR, sleep=bus.sleep)
+    drv.reset()
+    drv.configure(mlx.Settings(gain_sel=7, res_x=0, res_y=0, res_z=0))  # +-4.9 mT span on X/Y
+    scene.set_field(ADDR, [6e-3, -1e-3, 80e-3])
+    m = drv.measure()
+    assert list(m.saturated) == [True, False, True]
+    drv.configure(mlx.Settings())  # GAIN_SEL 0, RES 3: +-66 mT span, but the element clips at 50 mT
+    m = drv.measure()
+    assert list(m.saturated) == [False, False, True]
+    assert m.field_t[2] == pytest.approx(50e-3, abs=10e-6)
+
+
+def test_noise_shrinks_with_conversion_time_as_the_model_says():
+    noise = NoiseModel()
+    scene = StaticScene({ADDR: np.array([0.0, 0.0, 0.0])})
+    stds = {}
+    for osr, dig_filt in ((2, 0), (3, 7)):  # TCONVM 835 us and 66 627 us
+        # GAIN_SEL 7, RES 0: the LSB (0.15 uT) is small against the noise.
+        settings = mlx.Settings(gain_sel=7, res_x=0, res_y=0, res_z=0, osr=osr, dig_filt=dig_filt)
+        bus = simulated_bus(scene, clock=VirtualClock(), noise=noise, seed=1)
+        drv = MLX90393(bus, ADDR, sleep=bus.sleep)
+        drv.reset()
+        drv.configure(settings)
+        samples = np.array([drv.measure().field_t for _ in range(400)]) * 1e6
+        stds[(osr, dig_filt)] = samples.std(axis=0)
+        expected_x = noise.sigma_ut("x", settings.tconvm_us())
+        # 400 samples: the sample std is within +-15 % of sigma at > 4 standard errors.
+        assert stds[(osr, dig_filt)][0] == pytest.approx(expected_x, rel=0.15)
+        assert stds[(osr, dig_filt)][2] == pytest.approx(noise.z_factor * expected_x, rel=0.15)
+    ratio = stds[(2, 0)][0] / stds[(3, 7)][0]
+    assert ratio == pytest.approx(np.sqrt(mlx.tconvm_us(3, 7) / mlx.tconvm_us(2, 0)), rel=0.25)
+
+
+# --- fault hooks on the chip ---------------------------------------------------------------
+def test_stuck_chip_returns_the_same_data_forever(chip, bus, scene):
+    first = chip.measure()
+    bus.chips[ADDR].stuck = True
+    stuck = chip.measure()
+    scene.set_field(ADDR, [1e-3, 1e-3, 1e-3])
+    for _ in range(3):
+        again = chip.measure()
+        assert np.array_equal(again.field_t, stuck.field_t)
+        assert np.array_equal(again.field_t, first.field_t)
+    bus.chips[ADDR].stuck = False
+    assert chip.measure().field_t[0] == pytest.approx(1e-3, abs=10e-6)
+
+
+def test_a_register_that_changes_by_itself_is_caught_by_read_back(chip, bus):
+    assert chip.configuration_matches()
+    bus.chips[ADDR].drift_register(mlx.REG_CONF3, 0x0000, at=bus.monotonic() + 1.0)
+    assert chip.configuration_matches()
+    bus.sleep(1.0)
+    assert not chip.configuration_matches()
+    chip.configure(chip.settings)
+    assert chip.configuration_matches()
+
+
+def test_driver_refusals_carry_the_status(chip):
+    with pytest.raises(ChipRefusedError) as exc:
+        chip.read_measurement()  # nothing converted yet
+    assert exc.value.status.error and exc.value.address == ADDR
+    chip.start_burst()
+    with pytest.raises(ChipRefusedError, match="RR 0x00 refused"):
+        chip.read_register(0)
+    with pytest.raises(ChipRefusedError, match="SM refused"):
+        chip.start_single()
+
+
+def test_driver_reports_a_nack_with_the_kernel_errno(chip, bus):
+    bus.faults.nack(ADDR)
+    with pytest.raises(ChipNotRespondingError) as exc:
+        chip.exit_mode()
+    assert exc.value.errno == errno.ENXIO and isinstance(exc.value, OSError)

@@ -1,0 +1,164 @@
+"""The simulated bus: the kernel's I2C_RDWR semantics, wire time and fault hooks."""
+
+from __future__ import annotations
+
+import errno
+
+import pytest
+from smbus2 import i2c_msg
+
+from ftsensord import mlx90393 as mlx
+from ftsensord.driver import MLX90393
+from ftsensord.errors import ChipNotRespondingError, ChipRefusedError
+from ftsensord.sim import NOISELESS, MonotonicClock, VirtualClock, default_scene, simulated_bus
+from ftsensord.sim.bus import I2C_RDWR_MAX_MSGS, wire_bits
+
+from .conftest import ADDR
+
+OTHER = 0x14
+
+
+def ex_msgs(address: int) -> tuple[i2c_msg, i2c_msg]:
+    return i2c_msg.write(address, [mlx.CMD_EX]), i2c_msg.read(address, 1)
+
+
+def test_one_transfer_reaches_several_addresses(bus):
+    msgs = [*ex_msgs(ADDR), i2c_msg.write(OTHER, [mlx.CMD_RR, mlx.REG_TREF << 2]), i2c_msg.read(OTHER, 3)]
+    bus.i2c_rdwr(*msgs)
+    assert bytes(msgs[1]) == b"\x00"
+    assert bytes(msgs[3]) == b"\x00" + mlx.TREF_TYPICAL.to_bytes(2, "big")
+    assert bus.transfers == 1
+
+
+def test_at_most_42_messages_per_transfer(bus):
+    bus.i2c_rdwr(*[m for _ in range(I2C_RDWR_MAX_MSGS // 2) for m in ex_msgs(ADDR)])
+    with pytest.raises(OSError) as exc:
+        bus.i2c_rdwr(*[m for _ in range(I2C_RDWR_MAX_MSGS // 2 + 1) for m in ex_msgs(ADDR)][:43])
+    assert exc.value.errno == errno.EINVAL
+    with pytest.raises(OSError):
+        bus.i2c_rdwr()
+
+
+def test_absent_address_aborts_the_transfer_but_earlier_messages_happened(bus):
+    sm = i2c_msg.write(ADDR, [mlx.CMD_WR, 0x00, 0x42, 0x04 << 2])
+    with pytest.raises(OSError) as exc:
+        bus.i2c_rdwr(sm, i2c_msg.read(ADDR, 1), *ex_msgs(0x1B))
+    assert exc.value.errno == errno.ENXIO and "0x1B" in str(exc.value)
+    assert bus.chips[ADDR].registers[0x04] == 0x42
+
+
+def test_nack_errno_is_configurable_for_adapters_that_say_eremoteio(scene):
+    from ftsensord.sim import SimulatedBus
+    from ftsensord.sim.chip import EmulatedMLX90393
+    bus = SimulatedBus([EmulatedMLX90393(ADDR, scene)], nack_errno=errno.EREMOTEIO)
+    with pytest.raises(OSError) as exc:
+        bus.i2c_rdwr(*ex_msgs(0x0D))
+    assert exc.value.errno == errno.EREMOTEIO
+
+
+def test_transient_nack_clears_after_its_count(bus):
+    bus.faults.nack(ADDR, count=2)
+    for _ in range(2):
+        with pytest.raises(OSError):
+            bus.i2c_rdwr(*ex_msgs(ADDR))
+    bus.i2c_rdwr(*ex_msgs(ADDR))
+    bus.i2c_rdwr(*ex_msgs(OTHER))  # the other chip was never affected
+
+
+def test_permanent_nack_lasts_until_cleared(bus):
+    bus.faults.nack(ADDR)
+    for _ in range(5):
+        with pytest.raises(OSError):
+            bus.i2c_rdwr(*ex_msgs(ADDR))
+    bus.i2c_rdwr(*ex_msgs(OTHER))
+    bus.faults.clear()
+    bus.i2c_rdwr(*ex_msgs(ADDR))
+
+
+@pytest.mark.parametrize("err", [errno.EIO, errno.ETIMEDOUT])
+def test_bus_wide_io_error_or_timeout(bus, err):
+    bus.faults.io_error(count=1, err=err)
+    with pytest.raises(OSError) as exc:
+        bus.i2c_rdwr(*ex_msgs(OTHER))
+    assert exc.value.errno == err
+    bus.i2c_rdwr(*ex_msgs(OTHER))
+
+
+def test_chip_disappears_and_comes_back_at_power_on_defaults(chip, bus):
+    gone = bus.detach(ADDR)
+    with pytest.raises(ChipNotRespondingError):
+        chip.exit_mode()
+    gone.power_on()
+    bus.attach(gone)
+    assert not chip.configuration_matches()  # it lost its configuration
+    chip.configure(chip.settings)
+    assert chip.measure().field_t[2] == pytest.approx(1500e-6, abs=10e-6)
+    with pytest.raises(ValueError):
+        bus.attach(gone)
+
+
+def test_closed_bus_refuses_transfers(bus):
+    bus.close()
+    with pytest.raises(OSError) as exc:
+        bus.i2c_rdwr(*ex_msgs(ADDR))
+    assert exc.value.errno == errno.EBADF
+
+
+# --- wire time -----------------------------------------------------------------------------
+def test_wire_bits_match_the_design_notes():
+    # SM: write 1 byte, read the status byte: about 100 us at 400 kHz.
+    assert wire_bits(ex_msgs(ADDR)) == 39
+    # RM of X, Y, Z: write 1 byte, read 7: about 230 us.
+    assert wire_bits([i2c_msg.write(ADDR, [0x4E]), i2c_msg.read(ADDR, 7)]) == 93
+
+
+@pytest.mark.parametrize(("hz", "slowdown"), [(400e3, 1.0), (100e3, 1.0), (400e3, 3.0)])
+def test_a_transfer_spends_its_wire_time_on_the_virtual_clock(scene, hz, slowdown):
+    clock = VirtualClock()
+    bus = simulated_bus(scene, clock=clock, bus_hz=hz, noise=NOISELESS)
+    bus.faults.slowdown = slowdown
+    msgs = [i2c_msg.write(ADDR, [0x4E]), i2c_msg.read(ADDR, 7)]
+    bus.i2c_rdwr(*msgs)
+    assert clock.now() == pytest.approx(93 * slowdown / hz)
+
+
+def test_a_nacked_transfer_spends_the_time_up_to_the_nack(scene):
+    clock = VirtualClock()
+    bus = simulated_bus(scene, clock=clock, bus_hz=400e3)
+    with pytest.raises(OSError):
+        bus.i2c_rdwr(*ex_msgs(0x1B))
+    assert clock.now() == pytest.approx(11 / 400e3)  # start, address byte, stop
+
+
+def test_conversion_sees_the_time_its_command_was_on_the_wire(scene):
+    """Wire time counts: SM then RM exactly one conversion later is ready only
+    once the RM's own bytes have been clocked out."""
+    clock = VirtualClock()
+    bus = simulated_bus(scene, clock=clock, bus_hz=100e3, noise=NOISELESS)
+    drv = MLX90393(bus, ADDR, sleep=bus.sleep)
+    drv.reset()
+    drv.configure(mlx.Settings())
+    sm_bits, rm_cmd_bits = 19, 19  # the command byte is on the wire 19 bits into a transfer
+    conversion = mlx.Settings().single_measurement_us() * 1e-6
+    for early, accepted in ((1e-6, False), (0.0, True)):
+        start = clock.now()
+        drv.start_single()
+        ready = start + sm_bits / 100e3 + conversion
+        clock.wait_until(ready - rm_cmd_bits / 100e3 - early)
+        if accepted:
+            drv.read_measurement()
+        else:
+            with pytest.raises(ChipRefusedError):
+                drv.read_measurement()
+            bus.sleep(0.01)  # let that conversion finish; RM it so the next SM starts afresh
+            drv.read_measurement()
+
+
+def test_real_clock_bus_spends_at_least_its_wire_time():
+    # A lower bound only: a busy machine can make it slower, never faster.
+    clock = MonotonicClock()
+    bus = simulated_bus(default_scene(), clock=clock, bus_hz=100e3)
+    t0 = clock.now()
+    for _ in range(10):
+        bus.i2c_rdwr(i2c_msg.write(ADDR, [0x4E]), i2c_msg.read(ADDR, 7))
+    assert clock.now() - t0 >= 10 * 93 / 100e3
