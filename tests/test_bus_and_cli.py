@@ -15,7 +15,7 @@ from ftsensord.cli import main
 from ftsensord.errors import ConfigError
 from ftsensord.scan import scan
 from ftsensord.sim import SimulatedBus, default_scene, load_scene
-from ftsensord.sim.scene import d101_moment_am2, on_axis_dipole_t
+from ftsensord.sim import PhysicalScene
 
 SCENE = """\
 version = 1
@@ -58,12 +58,13 @@ def test_sim_opens_the_default_scene_of_16_chips():
     assert sorted(bus.chips) == list(range(0x0C, 0x1C))
 
 
-def test_default_scene_field_is_the_d101_dipole_at_6_mm():
-    # m = Br V / mu0 for a 1/16" x 1/32" N52 disc: about 1.8e-3 A m^2.
-    assert d101_moment_am2() == pytest.approx(1.81e-3, rel=0.01)
-    bz = default_scene().field_t(0x0C, 0.0)[2]
-    assert bz == pytest.approx(on_axis_dipole_t(d101_moment_am2(), 6e-3))
-    assert 1.5e-3 < bz < 1.9e-3  # inside GAIN_SEL 0 RES 3's range with room for load
+def test_default_scene_is_two_physical_sensors_at_rest():
+    scene = default_scene()
+    assert isinstance(scene, PhysicalScene) and [s.name for s in scene.sensors] == ["sensor1", "sensor2"]
+    bz = np.array([scene.field_t(a, 0.0)[2] for a in scene.addresses])
+    # Every chip sees the same field at rest (the ring is symmetric): its magnet
+    # 6 mm away plus its neighbours' crosstalk, inside GAIN_SEL 0 RES 3's range.
+    assert np.allclose(bz, bz[0]) and 1.0e-3 < bz[0] < 2.0e-3
 
 
 def test_scene_file_loads(tmp_path):
@@ -77,7 +78,7 @@ def test_scene_file_loads(tmp_path):
 
 @pytest.mark.parametrize(("edit", "key", "expected"), [
     (("version = 1", "version = 2"), "version", "expected 1"),
-    (('kind = "static"', 'kind = "magic"'), "kind", 'expected "static"'),
+    (('kind = "static"', 'kind = "magic"'), "kind", 'expected one of "static", "sensors"'),
     (("address = 0x0D", "address = 0x0B"), "chip[0].address", "0x0C-0x1B"),
     (("address = 0x1A", "address = 0x0D"), "chip[1].address", "not used before"),
     (("[10.0, -20.0, 1500.0]", "[10.0, 1500.0]"), "chip[0].field_ut", "3 finite numbers"),
@@ -97,7 +98,7 @@ def test_a_bad_scene_file_names_the_file_the_key_and_what_was_expected(tmp_path,
 
 
 def test_a_missing_scene_file_is_a_config_error(tmp_path):
-    with pytest.raises(ConfigError, match="cannot read scene file"):
+    with pytest.raises(ConfigError, match="nope.toml: cannot read"):
         open_bus(f"sim:{tmp_path / 'nope.toml'}")
 
 
@@ -108,13 +109,13 @@ def test_scan_finds_the_default_16_chips_with_variants_registers_and_readings(ca
     chips = out["chips"]
     assert [c["address"] for c in chips] == [f"0x{a:02X}" for a in range(0x0C, 0x1C)]
     assert [c["part"][-3:] for c in chips] == ["011"] * 4 + ["012"] * 4 + ["013"] * 4 + ["014"] * 4
-    bz = default_scene().field_t(0x0C, 0.0)[2] * 1e6
+    scene = default_scene()
     for c in chips:
         assert c["registers"] == {"0x00": "0x007C", "0x01": "0x0000", "0x02": "0x0000"}  # as found
         assert c["found_settings"]["GAIN_SEL"] == 7
-        # Within 5 sigma of the noise plus one LSB of 9.68 uT on Z.
-        assert c["field_ut"][2] == pytest.approx(bz, abs=5 * 3.0 + 9.68)
-        assert abs(c["field_ut"][0]) < 5 * 2.0 + 6.01
+        truth = scene.field_t(int(c["address"], 16), 0.0) * 1e6
+        # Within 5 sigma of the noise (2 uT X/Y, 3 uT Z) plus one LSB (6.0 / 9.7 uT).
+        assert np.allclose(c["field_ut"], truth, atol=[16.1, 16.1, 24.7])
         assert c["temperature_c"] == pytest.approx(25.0, abs=0.5)
         assert c["error"] is None and c["saturated"] == [False, False, False]
 

@@ -11,14 +11,16 @@ import numpy as np
 from .bus import BusFaults, SimulatedBus
 from .chip import NOISELESS, EmulatedMLX90393, NoiseModel
 from .clock import MonotonicClock, VirtualClock
+from .chip import FieldSource
+from .physics import PhysicalScene, SimSensor, two_sensor_scene
 from .scene import StaticScene, default_scene, load_scene
 
-__all__ = ["BusFaults", "EmulatedMLX90393", "MonotonicClock", "NOISELESS", "NoiseModel",
-           "SimulatedBus", "StaticScene", "VirtualClock", "default_scene", "load_scene",
-           "simulated_bus"]
+__all__ = ["BusFaults", "EmulatedMLX90393", "FieldSource", "MonotonicClock", "NOISELESS", "NoiseModel",
+           "PhysicalScene", "SimSensor", "SimulatedBus", "StaticScene", "VirtualClock", "default_scene",
+           "load_scene", "simulated_bus", "two_sensor_scene"]
 
 
-def simulated_bus(scene: StaticScene, *, clock: VirtualClock | MonotonicClock | None = None,
+def simulated_bus(scene: FieldSource, *, clock: VirtualClock | MonotonicClock | None = None,
                   bus_hz: float | None = None, seed: int | None = 0,
                   noise: NoiseModel = NoiseModel()) -> SimulatedBus:
     """A bus with one emulated chip per address of ``scene``.
@@ -26,7 +28,8 @@ def simulated_bus(scene: StaticScene, *, clock: VirtualClock | MonotonicClock | 
     ``seed`` makes the chips' noise repeatable (None: fresh entropy); each chip
     gets its own stream, so adding a chip does not change another's noise.
     """
-    streams = np.random.SeedSequence(seed).spawn(len(scene.addresses))
+    addresses = scene.addresses
+    streams = np.random.SeedSequence(seed).spawn(len(addresses))
     chips = [EmulatedMLX90393(address, scene, rng=np.random.default_rng(stream), noise=noise)
-             for address, stream in zip(scene.addresses, streams)]
+             for address, stream in zip(addresses, streams)]
     return SimulatedBus(chips, clock=clock, bus_hz=bus_hz)

@@ -24,7 +24,12 @@ from .. import mlx90393 as mlx
 
 
 class FieldSource(Protocol):
-    """What the chip needs of a scene: the field it sees and its temperature."""
+    """What the chips need of a scene: the field each sees and its temperature."""
+
+    @property
+    def addresses(self) -> tuple[int, ...]:
+        """The chip addresses the scene has a field for."""
+        ...
 
     def field_t(self, address: int, t: float) -> np.ndarray:
         """Flux density at the chip, in tesla, in the chip's frame, at time ``t`` (s)."""

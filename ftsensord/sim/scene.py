@@ -1,58 +1,28 @@
-"""Scenes: what the emulated chips measure.
+"""Scenes: what the emulated chips measure, and scene files.
 
 A scene gives, per chip address, the flux density in the chip's frame (T) and
-the die temperature (degC) at any time. This module holds the simple static
-scene (a given field per chip) and the scene file loader; the physical scene
-(magnets, stiffness, loads) plugs in behind the same two methods.
-
-Scene file (TOML)::
-
-    version = 1
-    kind = "static"
-    temperature_c = 25.0          # optional default for every chip
-
-    [[chip]]
-    address = 0x0C
-    field_ut = [0.0, 0.0, 1676.0] # uT, chip frame
-    temperature_c = 26.0          # optional
+the die temperature (degC) at any time (`ftsensord.sim.chip.FieldSource`).
+Two kinds exist: `StaticScene` (a given field per chip) and the physical
+`ftsensord.sim.physics.PhysicalScene` (magnets, stiffness, loads over time).
+Scene files (TOML) are described in docs/scenes.md.
 """
 
 from __future__ import annotations
 
-import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from .. import mlx90393 as mlx
 from ..errors import ConfigError
+from ..geometry import SensorGeometry
+from ..tomlread import Table, load_toml
+from .loads import NO_LOAD, Load, RecordedLoad, StaticLoad, StepLoad, ramp
+from .physics import (CROSSTALK_MODELS, FIELD_MODELS, PAPER_STIFFNESS_DIAG, PhysicalScene,
+                      SimSensor, two_sensor_scene)
 
 SCENE_VERSION = 1
-
-#: mu_0 / (4 pi), in T m / A.
-MU0_OVER_4PI = 1e-7
-
-#: The paper's magnet, K&J D101-N52: 1/16" diameter, 1/32" thick, Br about 1.45 T.
-D101_DIAMETER_M = 1.5875e-3
-D101_THICKNESS_M = 0.79375e-3
-D101_BR_T = 1.45
-#: The magnet sits 6 mm from its chip along the chip's z axis (paper, III-B).
-MAGNET_GAP_M = 6e-3
-
-
-def d101_moment_am2() -> float:
-    """Dipole moment of one D101-N52, m = Br V / mu_0, in A m^2."""
-    volume = math.pi * (D101_DIAMETER_M / 2) ** 2 * D101_THICKNESS_M
-    return D101_BR_T * volume / (4 * math.pi * MU0_OVER_4PI)
-
-
-def on_axis_dipole_t(moment_am2: float, distance_m: float) -> float:
-    """Field on a dipole's axis, B = (mu_0 / 4 pi) 2 m / r^3, in T."""
-    return MU0_OVER_4PI * 2 * moment_am2 / distance_m**3
-
 
 @dataclass
 class StaticScene:
@@ -80,60 +50,103 @@ class StaticScene:
         self.fields_t[address] = np.asarray(field_t, dtype=float)
 
 
-def default_scene() -> StaticScene:
-    """Two sensors of 8 chips (0x0C-0x13 and 0x14-0x1B), each chip seeing its
-    D101 magnet on its z axis at the nominal 6 mm gap, no load."""
-    bz = on_axis_dipole_t(d101_moment_am2(), MAGNET_GAP_M)
-    return StaticScene({a: np.array([0.0, 0.0, bz]) for a in range(mlx.ADDRESS_MIN, mlx.ADDRESS_MAX + 1)})
+def default_scene() -> PhysicalScene:
+    """Two sensors of 8 chips (0x0C-0x13 and 0x14-0x1B), no load."""
+    return two_sensor_scene()
 
 
-def _expect(cond: bool, path: Path, key: str, expected: str, got: Any) -> None:
-    if not cond:
-        raise ConfigError(f"{path}: {key}: expected {expected}, got {got!r}")
+def _address(t: Table, name: str, value: object) -> int:
+    if not isinstance(value, int) or isinstance(value, bool) or not mlx.ADDRESS_MIN <= value <= mlx.ADDRESS_MAX:
+        raise t.fail(name, "an address in 0x0C-0x1B", value)
+    return value
 
 
-def _number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-
-
-def load_scene(path: str | Path) -> StaticScene:
-    """Read a scene file; errors name the file, the key and what was expected."""
-    path = Path(path)
+def _load(t: Table) -> Load:
+    kind = t.string("kind", choices=("none", "static", "step", "ramp", "recorded"))
+    if kind == "none":
+        t.only({"kind"})
+        return NO_LOAD
+    if kind == "static":
+        t.only({"kind", "wrench"})
+        return StaticLoad(np.array(t.numbers("wrench", 6, unit="N, Nm")))
+    if kind == "step":
+        t.only({"kind", "at_s", "before", "after"})
+        return StepLoad(t.number("at_s", unit="s"), np.array(t.numbers("before", 6, unit="N, Nm")),
+                        np.array(t.numbers("after", 6, unit="N, Nm")))
+    if kind == "ramp":
+        t.only({"kind", "from_s", "to_s", "start", "end"})
+        from_s, to_s = t.number("from_s", unit="s"), t.number("to_s", unit="s")
+        if to_s <= from_s:
+            raise t.fail("to_s", f"a time after from_s ({from_s})", to_s)
+        return ramp(from_s, to_s, np.array(t.numbers("start", 6)), np.array(t.numbers("end", 6)))
+    t.only({"kind", "times_s", "wrenches"})
+    times = t.numbers("times_s", unit="s")
+    rows = t.get("wrenches")
+    if not isinstance(rows, list) or len(rows) != len(times):
+        raise t.fail("wrenches", f"{len(times)} rows, one per time", rows)
+    wrenches = [Table({"row": r}, t.path, f"{t.key('wrenches')}[{i}]").numbers("row", 6)
+                for i, r in enumerate(rows)]
     try:
-        with path.open("rb") as f:
-            doc = tomllib.load(f)
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read scene file: {exc.strerror or exc}") from exc
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
-    known = {"version", "kind", "temperature_c", "chip"}
-    for key in doc:
-        _expect(key in known, path, key, f"one of {sorted(known)}", key)
-    _expect(doc.get("version") == SCENE_VERSION, path, "version", str(SCENE_VERSION), doc.get("version"))
-    _expect(doc.get("kind") == "static", path, "kind", '"static"', doc.get("kind"))
-    default_t = doc.get("temperature_c", 25.0)
-    _expect(_number(default_t), path, "temperature_c", "a finite number (degC)", default_t)
-    chips = doc.get("chip")
-    _expect(isinstance(chips, list) and len(chips) > 0, path, "chip", "a non-empty array of [[chip]] tables", chips)
+        return RecordedLoad(np.array(times), np.array(wrenches))
+    except ValueError as exc:
+        raise t.fail("times_s", "strictly increasing times", times) from exc
+
+
+def _sensor(t: Table, index: int) -> SimSensor:
+    t.only({"name", "addresses", "stiffness_diag", "stiffening", "ring_radius_mm", "tilt_deg",
+            "gap_mm", "load"})
+    addresses = t.get("addresses")
+    if not isinstance(addresses, list) or len(addresses) != 8:
+        raise t.fail("addresses", "8 chip addresses", addresses)
+    addrs = tuple(_address(t, f"addresses[{i}]", a) for i, a in enumerate(addresses))
+    stiffness = t.numbers("stiffness_diag", 6, list(PAPER_STIFFNESS_DIAG), unit="N/m x3, Nm/rad x3")
+    if min(stiffness) <= 0:
+        raise t.fail("stiffness_diag", "6 positive numbers (N/m x3, Nm/rad x3)", stiffness)
+    geometry = SensorGeometry.ring(radius_m=t.number("ring_radius_mm", 8.0, low=1e-3, unit="mm") * 1e-3,
+                                   tilt_deg=t.number("tilt_deg", 25.0, low=-90, high=90, unit="deg"),
+                                   gap_m=t.number("gap_mm", 6.0, low=1e-3, unit="mm") * 1e-3)
+    load = _load(t.table("load")) if "load" in t.doc else NO_LOAD
+    return SimSensor(t.string("name", f"sensor{index + 1}"), addrs, geometry, np.diag(stiffness),
+                     t.number("stiffening", 0.0, low=0.0), load)
+
+
+def _static(doc: Table) -> StaticScene:
+    doc.only({"version", "kind", "temperature_c", "chip"})
     fields: dict[int, np.ndarray] = {}
     temps: dict[int, float] = {}
-    for i, chip in enumerate(chips):
-        where = f"chip[{i}]"
-        _expect(isinstance(chip, dict), path, where, "a table", chip)
-        for key in chip:
-            _expect(key in {"address", "field_ut", "temperature_c"}, path, f"{where}.{key}",
-                    "one of address, field_ut, temperature_c", key)
-        addr = chip.get("address")
-        _expect(isinstance(addr, int) and not isinstance(addr, bool)
-                and mlx.ADDRESS_MIN <= addr <= mlx.ADDRESS_MAX,
-                path, f"{where}.address", "an address in 0x0C-0x1B", addr)
-        _expect(addr not in fields, path, f"{where}.address", "an address not used before", addr)
-        vec = chip.get("field_ut")
-        _expect(isinstance(vec, list) and len(vec) == 3 and all(_number(v) for v in vec),
-                path, f"{where}.field_ut", "3 finite numbers (uT, chip frame)", vec)
-        fields[addr] = np.array(vec, dtype=float) * 1e-6
-        if "temperature_c" in chip:
-            _expect(_number(chip["temperature_c"]), path, f"{where}.temperature_c",
-                    "a finite number (degC)", chip["temperature_c"])
-            temps[addr] = float(chip["temperature_c"])
-    return StaticScene(fields, temps, float(default_t))
+    for chip in doc.tables("chip"):
+        chip.only({"address", "field_ut", "temperature_c"})
+        addr = _address(chip, "address", chip.get("address"))
+        if addr in fields:
+            raise chip.fail("address", "an address not used before", addr)
+        fields[addr] = np.array(chip.numbers("field_ut", 3, unit="uT, chip frame")) * 1e-6
+        if "temperature_c" in chip.doc:
+            temps[addr] = chip.number("temperature_c", unit="degC")
+    return StaticScene(fields, temps, doc.number("temperature_c", 25.0, unit="degC"))
+
+
+def _physical(doc: Table) -> PhysicalScene:
+    doc.only({"version", "kind", "field_model", "crosstalk", "temperature_c",
+              "temperature_drift_c_per_s", "sensor"})
+    sensors = [_sensor(t, i) for i, t in enumerate(doc.tables("sensor"))]
+    seen: set[int] = set()
+    for i, s in enumerate(sensors):
+        for a in s.addresses:
+            if a in seen:
+                raise ConfigError(f"{doc.path}: sensor[{i}].addresses: expected addresses not used before, "
+                                  f"got 0x{a:02X} twice")
+            seen.add(a)
+    return PhysicalScene(sensors, field_model=doc.string("field_model", "cylinder", choices=FIELD_MODELS),
+                         crosstalk=doc.string("crosstalk", "dipole", choices=CROSSTALK_MODELS),
+                         temperature_c=doc.number("temperature_c", 25.0, unit="degC"),
+                         temperature_drift_c_per_s=doc.number("temperature_drift_c_per_s", 0.0, unit="degC/s"))
+
+
+def load_scene(path: str | Path) -> StaticScene | PhysicalScene:
+    """Read a scene file; errors name the file, the key and what was expected."""
+    doc = Table(load_toml(path), path)
+    version = doc.get("version", None)
+    if version != SCENE_VERSION:
+        raise doc.fail("version", str(SCENE_VERSION), version)
+    kind = doc.string("kind", choices=("static", "sensors"))
+    return _static(doc) if kind == "static" else _physical(doc)

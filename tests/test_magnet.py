@@ -1,0 +1,71 @@
+"""Field models against closed forms and quadrature."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from ftsensord.magnet import cel, cylinder_field, cylinder_moment, dipole_field
+
+A, L, BR = 1.5875e-3 / 2, 0.79375e-3, 1.45  # the paper's D101-N52
+
+
+def cel_by_quadrature(kc, p, c, s, n=200_001):
+    phi = np.linspace(0, np.pi / 2, n)
+    co, si = np.cos(phi) ** 2, np.sin(phi) ** 2
+    f = (c * co + s * si) / ((co + p * si) * np.sqrt(co + kc**2 * si))
+    return np.trapezoid(f, phi)
+
+
+@given(st.floats(0.01, 1.0), st.floats(0.01, 4.0), st.floats(-2, 2), st.floats(-2, 2))
+def test_cel_matches_its_defining_integral(kc, p, c, s):
+    assert float(cel(kc, p, c, s)) == pytest.approx(cel_by_quadrature(kc, p, c, s), rel=1e-8, abs=1e-10)
+
+
+def test_cel_gives_the_complete_elliptic_integral_of_the_first_kind():
+    # K(k) = cel(sqrt(1 - k^2), 1, 1, 1); K(0) = pi/2, K(1/sqrt2) = 1.8540746773013719.
+    assert float(cel(1.0, 1.0, 1.0, 1.0)) == pytest.approx(np.pi / 2, rel=1e-15)
+    assert float(cel(np.sqrt(0.5), 1.0, 1.0, 1.0)) == pytest.approx(1.8540746773013719, rel=1e-14)
+    with pytest.raises(ValueError):
+        cel(0.0, 1.0, 1.0, 1.0)
+
+
+@pytest.mark.parametrize("z", [0.5e-3, 1e-3, 3e-3, 6e-3, 20e-3, -6e-3])
+def test_cylinder_on_axis_matches_the_textbook_formula(z):
+    b = L / 2
+    expected = BR / 2 * ((z + b) / np.hypot(z + b, A) - (z - b) / np.hypot(z - b, A))
+    field = cylinder_field(np.array([0.0, 0.0, z]), A, L, BR)
+    assert field[2] == pytest.approx(expected, rel=1e-12)
+    assert field[0] == 0.0 and field[1] == 0.0
+
+
+@given(st.floats(0, 2 * np.pi), st.floats(0.05, np.pi - 0.05))
+def test_cylinder_tends_to_the_dipole_far_away(phi, theta):
+    direction = np.array([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)])
+    m = np.array([0.0, 0.0, cylinder_moment(A, L, BR)])
+    for dist, tol in ((0.2, 1e-4), (2.0, 1e-6)):  # the error falls as (a / r)^2
+        r = direction * dist
+        exact, dipole = cylinder_field(r, A, L, BR), dipole_field(r, m)
+        assert np.linalg.norm(exact - dipole) <= tol * np.linalg.norm(dipole)
+
+
+def test_cylinder_field_is_divergence_and_curl_free_outside():
+    r0, h = np.array([2e-3, -1e-3, 4e-3]), 1e-7
+    jac = np.zeros((3, 3))
+    for i in range(3):
+        e = np.zeros(3)
+        e[i] = h
+        jac[:, i] = (cylinder_field(r0 + e, A, L, BR) - cylinder_field(r0 - e, A, L, BR)) / (2 * h)
+    scale = np.abs(jac).max()
+    assert abs(np.trace(jac)) < 1e-6 * scale
+    assert np.allclose(jac, jac.T, atol=1e-6 * scale)
+
+
+def test_dipole_on_axis_and_broadcasting():
+    m = np.array([0.0, 0.0, 1.8e-3])
+    r = np.array([[0.0, 0.0, 6e-3], [6e-3, 0.0, 0.0]])
+    field = dipole_field(r, m)
+    assert field[0, 2] == pytest.approx(1e-7 * 2 * 1.8e-3 / 6e-3**3)
+    assert field[1, 2] == pytest.approx(-1e-7 * 1.8e-3 / 6e-3**3)  # equator: -m/r^3
