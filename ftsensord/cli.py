@@ -10,10 +10,12 @@ import json
 import sys
 from collections.abc import Sequence
 
+import numpy as np
+
 from . import __version__
 from . import mlx90393 as mlx
 from .bus import ACCEPTED_FORMS, open_bus
-from .errors import FtsensordError
+from .errors import ConfigError, FtsensordError
 from .scan import ChipReport, scan
 
 
@@ -58,6 +60,62 @@ def cmd_scan(args: argparse.Namespace) -> int:
     return 2 if any(r.error for r in reports) else 0
 
 
+def cmd_dataset(args: argparse.Namespace) -> int:
+    from .geometry import SensorGeometry
+    from .rig import paper_plan, record_dataset, simulate_sweeps
+    from .sim import PhysicalScene, default_scene, load_scene, simulated_bus
+    from .sim.loads import StaticLoad
+
+    scene = load_scene(args.scene) if args.scene else default_scene()
+    if not isinstance(scene, PhysicalScene):
+        raise ConfigError(f"{args.scene}: a calibration dataset needs a scene of kind \"sensors\"")
+    names = [s.name for s in scene.sensors]
+    if args.sensor not in names:
+        raise ConfigError(f"--sensor {args.sensor!r}: the scene's sensors are {', '.join(names)}")
+    sensor = next(s for s in scene.sensors if s.name == args.sensor)
+    bus = simulated_bus(scene, seed=args.seed)
+    plan = paper_plan(args.plan, n_fit=args.poses, n_validation=args.validation_poses)
+    dataset = record_dataset(bus, sensor.addresses, plan, lambda w: scene.set_load(sensor.name, StaticLoad(w)),
+                             samples=args.samples, serial=f"sim-{sensor.name}",
+                             source=f"simulated: scene {args.scene or 'default'}, sensor {sensor.name}, "
+                                    f"plan {args.plan}, seed {args.seed}")
+    if not args.no_sweep:
+        dataset.sweeps = simulate_sweeps(sensor.addresses, SensorGeometry.ring(), field_model=scene.field_model,
+                                         samples=args.samples, rng=np.random.default_rng(args.seed))
+    dataset.save(args.output)
+    print(f"wrote {args.output}: {len(dataset)} poses ({args.plan}), {args.samples} samples each, "
+          f"{int(dataset.saturated.any(axis=1).sum())} with a saturated chip")
+    return 0
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from .calfile import Calibration
+    from .calibration import fit
+    from .dataset import Dataset
+    from .report import format_rmse, write_report
+
+    dataset = Dataset.load(args.dataset)
+    result = fit(dataset)
+    report = result.report
+    cal = Calibration(result.model, dataset.addresses, args.serial or dataset.serial, args.frame,
+                      result.position_map, report)
+    cal.save(args.output)
+    sv, iso = report["singular_values_ka"], report["isotropy"]
+    print(f"fit on {report['fit_poses']} poses ({report['left_out_saturated']} left out: saturated), "
+          f"validated on {report['validation_poses']}")
+    if report["validation_rmse"]:
+        print("validation RMSE: " + format_rmse(report["validation_rmse"]))
+    print("fit RMSE:        " + format_rmse(report["fit_rmse"]))
+    print(f"sigma(KA): forces {sv['forces'][0]:.3g}..{sv['forces'][-1]:.3g} N/uT (isotropy {iso['forces']:.2f}), "
+          f"torques {sv['torques'][0]:.3g}..{sv['torques'][-1]:.3g} Nm/uT (isotropy {iso['torques']:.2f})")
+    print(f"wrote {args.output}")
+    if args.report:
+        command = "ftsensord calibrate " + " ".join(args.argv)
+        write_report(args.report, result.model, report, dataset.select(dataset.split == "validation"), command)
+        print(f"wrote {args.report}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="ftsensord", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"ftsensord {__version__}")
@@ -70,11 +128,42 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--bus", default="sim", help=f"bus to scan: {ACCEPTED_FORMS} (default: sim)")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
     p.set_defaults(func=cmd_scan)
+
+    p = sub.add_parser("dataset", help="record a calibration dataset on the simulated bus",
+                       description="Run the paper's calibration procedure (section VII-B) on a simulated "
+                                   "sensor: for each pose of the plan, apply the weight's wrench and average "
+                                   "the chips' readings; also simulate each chip's position-map sweep. The "
+                                   "file has the format a real calibration run records (docs/calibration.md).")
+    p.add_argument("-o", "--output", required=True, help="dataset file to write (JSON)")
+    p.add_argument("--scene", help="scene file of kind \"sensors\" (default: the two-sensor scene)")
+    p.add_argument("--sensor", default="sensor1", help="which sensor of the scene (default: sensor1)")
+    p.add_argument("--plan", default="six-axis", choices=["six-axis", "one-arm"],
+                   help="lever arms: four that excite all six axes (default), or the paper's single rod")
+    p.add_argument("--poses", type=int, default=193, help="fit poses, 50 g and 200 g (default: 193)")
+    p.add_argument("--validation-poses", type=int, default=60, help="validation poses, 100 g (default: 60)")
+    p.add_argument("--samples", type=int, default=100, help="readings averaged per pose (default: 100)")
+    p.add_argument("--seed", type=int, default=0, help="noise seed (default: 0)")
+    p.add_argument("--no-sweep", action="store_true", help="leave out the position-map sweeps")
+    p.set_defaults(func=cmd_dataset)
+
+    p = sub.add_parser("calibrate", help="fit K, A and the zero from a dataset",
+                       description="Fit the linear model w = K A (b - b0) to the dataset's fit poses, "
+                                   "report the RMSE per axis on its validation poses, and write the "
+                                   "calibration file. Refuses (exit 2) when the dataset does not excite all "
+                                   "six axes, saying what to add to the plan.")
+    p.add_argument("dataset", help="dataset file (from `ftsensord dataset` or a real calibration run)")
+    p.add_argument("-o", "--output", required=True, help="calibration file to write (JSON)")
+    p.add_argument("--report", help="also write a Markdown report (and a PNG plot beside it)")
+    p.add_argument("--serial", help="sensor serial to record (default: the dataset's)")
+    p.add_argument("--frame", default="sensor", help="name of the sensor frame (default: sensor)")
+    p.set_defaults(func=cmd_calibrate)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
+    args.argv = argv[1:]
     try:
         return int(args.func(args))
     except FtsensordError as exc:

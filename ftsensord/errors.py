@@ -59,3 +59,8 @@ class ChipProtocolError(ChipError):
 
 class RegisterVerifyError(ChipError):
     """A register read back differs from the value just written."""
+
+
+class CalibrationError(FtsensordError, ValueError):
+    """A dataset cannot give a trustworthy calibration; the message says what
+    is missing and what to add to the calibration plan."""

@@ -17,7 +17,7 @@ import numpy as np
 from .. import mlx90393 as mlx
 from ..errors import ConfigError
 from ..geometry import SensorGeometry
-from ..tomlread import Table, load_toml
+from ..docfile import Table, load_toml
 from .loads import NO_LOAD, Load, RecordedLoad, StaticLoad, StepLoad, ramp
 from .physics import (CROSSTALK_MODELS, FIELD_MODELS, PAPER_STIFFNESS_DIAG, PhysicalScene,
                       SimSensor, two_sensor_scene)

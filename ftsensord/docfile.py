@@ -1,7 +1,9 @@
-"""Reading TOML files with errors that name the file, the key and what was expected."""
+"""Reading TOML and JSON documents with errors that name the file, the key and
+what was expected: scene files, configuration, datasets, calibration files."""
 
 from __future__ import annotations
 
+import json
 import math
 import tomllib
 from collections.abc import Iterable
@@ -24,8 +26,32 @@ def load_toml(path: str | Path) -> dict[str, Any]:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
 
 
+def load_json(path: str | Path) -> dict[str, Any]:
+    path = Path(path)
+    try:
+        with path.open("rb") as f:
+            doc = json.load(f)
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from exc
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: not valid JSON: {exc}") from exc
+    if not isinstance(doc, dict):
+        raise ConfigError(f"{path}: expected a JSON object at the top, got {type(doc).__name__}")
+    return doc
+
+
 def _is_number(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _abbreviate(value: Any, limit: int = 80) -> Any:
+    text = repr(value)
+    return value if len(text) <= limit else _Abbrev(text[:limit] + "...")
+
+
+class _Abbrev(str):
+    def __repr__(self) -> str:
+        return str(self)
 
 
 class Table:
@@ -40,7 +66,7 @@ class Table:
         return f"{self.prefix}{name}"
 
     def fail(self, name: str, expected: str, got: Any) -> ConfigError:
-        return ConfigError(f"{self.path}: {self.key(name)}: expected {expected}, got {got!r}")
+        return ConfigError(f"{self.path}: {self.key(name)}: expected {expected}, got {_abbreviate(got)!r}")
 
     def only(self, allowed: Iterable[str]) -> None:
         """Refuse unknown keys, so a misspelt key never goes unnoticed."""
@@ -88,6 +114,16 @@ class Table:
             count = f"{length} " if length is not None else ""
             raise self.fail(name, f"{count}finite numbers{' (' + unit + ')' if unit else ''}", value)
         return [float(v) for v in value]
+
+    def matrix(self, name: str, rows: int, cols: int, *, unit: str = "") -> list[list[float]]:
+        """A rows x cols matrix of finite numbers, as a list of rows."""
+        value = self.get(name)
+        ok = isinstance(value, list) and len(value) == rows and all(
+            isinstance(r, list) and len(r) == cols and all(_is_number(v) for v in r) for r in value)
+        if not ok:
+            raise self.fail(name, f"a {rows} x {cols} matrix of finite numbers"
+                            + (f" ({unit})" if unit else ""), value)
+        return [[float(v) for v in r] for r in value]
 
     def table(self, name: str, default: Any = _MISSING) -> Table:
         value = self.get(name, default)

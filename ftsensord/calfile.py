@@ -1,0 +1,103 @@
+"""The calibration file: one versioned, human-readable JSON document per sensor.
+
+It holds K, A and the zero with their units and frame, the chip addresses (in
+the order of the flux vector), the sensor's serial, the per-chip position map,
+the fit report, and a SHA-256 checksum of everything else, so a file edited by
+hand or cut short is refused rather than used. Format: docs/calibration.md.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .dataset import parse_addresses
+from .docfile import Table, load_json
+from .model import LinearModel, PositionMap
+
+CAL_FORMAT = "ftsensord-calibration"
+CAL_VERSION = 1
+CAL_UNITS = {"K": "N/m, Nm/rad", "A": "m/T, rad/T", "zero_flux": "T", "wrench": "N, Nm",
+             "twist": "m, rad", "position_map": "M: m/T, o: m"}
+
+
+@dataclass
+class Calibration:
+    """A sensor's calibration: its linear model and what it was made from."""
+
+    model: LinearModel
+    addresses: tuple[int, ...]
+    serial: str = ""
+    frame: str = "sensor"
+    position_map: PositionMap | None = None
+    report: dict[str, Any] = field(default_factory=dict)
+
+    def document(self) -> dict[str, Any]:
+        doc: dict[str, Any] = {
+            "format": CAL_FORMAT, "version": CAL_VERSION, "units": CAL_UNITS,
+            "sensor": {"serial": self.serial, "frame": self.frame,
+                       "addresses": [f"0x{a:02X}" for a in self.addresses]},
+            "model": "w = K A (b - zero_flux); b stacks each chip's (Bx, By, Bz) in its own frame, "
+                     "chips in the order of sensor.addresses; w = [fx fy fz mx my mz] in the sensor frame",
+            "K": self.model.K.tolist(), "A": self.model.A.tolist(), "zero_flux": self.model.zero.tolist(),
+            "fit_report": self.report,
+        }
+        if self.position_map is not None:
+            doc["position_map"] = {"M": self.position_map.M.tolist(), "o": self.position_map.o.tolist()}
+        doc["checksum"] = checksum(doc)
+        return doc
+
+    def save(self, path: str | Path) -> None:
+        Path(path).write_text(json.dumps(self.document(), indent=1) + "\n")
+
+    @classmethod
+    def load(cls, path: str | Path) -> Calibration:
+        """Read and validate; errors name the file, the key and what was expected."""
+        raw = load_json(path)
+        doc = Table(raw, path)
+        doc.only({"format", "version", "units", "sensor", "model", "K", "A", "zero_flux", "fit_report",
+                  "position_map", "checksum"})
+        if doc.get("format") != CAL_FORMAT:
+            raise doc.fail("format", f'"{CAL_FORMAT}"', doc.get("format"))
+        doc.integer("version", what=f"{CAL_VERSION} (this ftsensord reads version {CAL_VERSION})",
+                    low=CAL_VERSION, high=CAL_VERSION)
+        if doc.get("units") != CAL_UNITS:
+            raise doc.fail("units", str(CAL_UNITS), doc.get("units"))
+        sensor = doc.table("sensor")
+        sensor.only({"serial", "frame", "addresses"})
+        addresses = parse_addresses(sensor, "addresses")
+        n = 3 * len(addresses)
+        K = np.array(doc.matrix("K", 6, 6, unit="N/m, Nm/rad"))
+        A = np.array(doc.matrix("A", 6, n, unit="m/T, rad/T"))
+        zero = np.array(doc.numbers("zero_flux", n, unit="T"))
+        pmap = None
+        if "position_map" in raw:
+            pm = doc.table("position_map")
+            pm.only({"M", "o"})
+            M = pm.get("M")
+            if not isinstance(M, list) or len(M) != len(addresses):
+                raise pm.fail("M", f"{len(addresses)} 3x3 matrices, one per chip", M)
+            Ms = [Table({"M": m}, path, f"{pm.key('M')}[{i}]").matrix("M", 3, 3) for i, m in enumerate(M)]
+            pmap = PositionMap(np.array(Ms), np.array(pm.matrix("o", len(addresses), 3, unit="m")))
+        report = doc.get("fit_report", {})
+        if not isinstance(report, dict):
+            raise doc.fail("fit_report", "a table", report)
+        stored = doc.string("checksum")
+        if stored != checksum(raw):
+            raise doc.fail("checksum", f"{checksum(raw)} (the file was changed after it was written)", stored)
+        if np.linalg.matrix_rank(K @ A) < 6:
+            raise doc.fail("K", "K A of rank 6 (a sensor must see all six axes)", "a rank-deficient K A")
+        return cls(LinearModel(K, A, zero), addresses, sensor.string("serial", ""),
+                   sensor.string("frame", "sensor"), pmap, report)
+
+
+def checksum(doc: dict[str, Any]) -> str:
+    """SHA-256 of the canonical JSON of ``doc`` without its "checksum" key."""
+    body = {k: v for k, v in doc.items() if k != "checksum"}
+    text = json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return "sha256:" + hashlib.sha256(text.encode()).hexdigest()

@@ -1,0 +1,237 @@
+"""Calibration (paper, eqs. 12-18): fit A and K, and the zero, from a dataset.
+
+Steps: the position map of each chip from its sweep (eq. 1); the deflection
+twist of every pose by registration (eqs. 5-11); A from twists and flux
+(eq. 15, A = Xi B^+), K from wrenches (eq. 18, K = W (A B)^+), with an explicit
+zero: w = K A (b - b0). Before fitting, the dataset is checked: the wrenches
+must excite all six axes independently, or K is not identifiable and the fit
+refuses, naming what the plan lacks.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .dataset import Dataset
+from .errors import CalibrationError
+from .geometry import SensorGeometry
+from .model import LinearModel, PositionMap, deflection_twist, fit_position_map
+from .rig import simulate_sweeps
+from .sim.chip import NOISELESS
+from .sim.physics import SENSOR_RANGE
+
+AXES = ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
+UNITS = ("N", "N", "N", "Nm", "Nm", "Nm")
+
+#: Excitation test on the wrenches, each axis scaled by the sensor's range and
+#: centred: a direction excited less than 1e-3 of the strongest is below what a
+#: calibration rig knows its loads to (masses and lever arms to about 0.1 %),
+#: so K along it would be fitted to rig error. Also the condition-number limit.
+EXCITATION_TOL = 1e-3
+#: A tied axis is explained by another axis when that one carries at least this
+#: share of its variation: enough to name a partner, not every trace of round-off.
+PARTNER_SHARE = 0.1
+#: Parameters of one row of the affine flux-to-twist fit: 24 slopes and an offset.
+MIN_FIT_POSES = 26
+
+
+@dataclass(frozen=True)
+class Excitation:
+    """How well the wrenches of a dataset excite the six axes.
+
+    ``singular_values`` are those of the centred, range-scaled wrench matrix;
+    ``not_excited`` lists axes that hardly vary; ``tied`` lists groups of axes
+    that vary only together (each a linear function of the others).
+    """
+
+    singular_values: np.ndarray
+    not_excited: list[str]
+    tied: list[list[str]]
+
+    @property
+    def rank(self) -> int:
+        s = self.singular_values
+        return int(np.sum(s > EXCITATION_TOL * s[0])) if s[0] > 0 else 0
+
+    @property
+    def condition(self) -> float:
+        s = self.singular_values
+        return math.inf if s[-1] == 0 else float(s[0] / s[-1])
+
+    @property
+    def identifiable(self) -> bool:
+        return self.rank == 6 and self.condition <= 1 / EXCITATION_TOL
+
+    def describe(self) -> list[str]:
+        """Plain words: 'Mz is not excited', 'Mx and Fy always vary together'."""
+        out = [f"{a} is not excited" for a in self.not_excited]
+        for group in self.tied:
+            out.append(" and ".join(group) + " always vary together")
+        if not out and not self.identifiable:
+            out.append(f"the wrenches are nearly dependent (condition number {self.condition:.3g})")
+        return out
+
+    def advice(self) -> str:
+        forces, torques = {"Fx", "Fy", "Fz"}, {"Mx", "My", "Mz"}
+        involved = set(self.not_excited) | {a for g in self.tied for a in g}
+        force_only = set(self.not_excited) & forces or any(set(g) <= forces for g in self.tied)
+        tips = []
+        if not involved or involved & torques:
+            tips.append("add poses whose lever arm points off the shaft axis (e.g. along x and along y), "
+                        "or a torque fixture, so that every torque varies independently of the forces")
+        if not involved or force_only:
+            tips.append("add orientations that turn gravity along every axis of the sensor")
+        return "; ".join(tips)
+
+
+def check_excitation(wrench: np.ndarray) -> Excitation:
+    """Excitation of the six wrench axes by ``wrench`` (n, 6; N, Nm)."""
+    scaled = (wrench - wrench.mean(axis=0)) / SENSOR_RANGE
+    s = np.linalg.svd(scaled, compute_uv=False)
+    s = np.concatenate([s, np.zeros(6 - len(s))])  # fewer poses than axes
+    std = scaled.std(axis=0)
+    excited = std > EXCITATION_TOL * std.max() if std.max() > 0 else np.zeros(6, dtype=bool)
+    not_excited = [AXES[k] for k in range(6) if not excited[k]]
+    groups: list[set[int]] = []
+    for k in np.flatnonzero(excited):
+        others = [j for j in np.flatnonzero(excited) if j != k]
+        if not others:
+            continue
+        coef, *_ = np.linalg.lstsq(scaled[:, others], scaled[:, k], rcond=None)
+        residual = scaled[:, k] - scaled[:, others] @ coef
+        if residual.std() > EXCITATION_TOL * std[k]:
+            continue  # axis k varies on its own
+        share = np.abs(coef) * std[others] / std[k]
+        group = {k} | {j for j, sh in zip(others, share) if sh >= PARTNER_SHARE}
+        for g in [g for g in groups if g & group]:
+            group |= g
+            groups.remove(g)
+        groups.append(group)
+    tied = sorted([[AXES[k] for k in sorted(g)] for g in groups])
+    return Excitation(s, not_excited, tied)
+
+
+def noise_floor(flux_sem: np.ndarray) -> float:
+    """Largest singular value pure noise reaches in an n x d flux matrix (T).
+
+    A Gaussian n x d matrix of standard deviation sigma has its largest
+    singular value near sigma (sqrt(n) + sqrt(d)) (Marchenko-Pastur edge);
+    flux directions below that are noise, and inverting them would amplify it.
+    """
+    n, d = flux_sem.shape
+    return float(np.median(flux_sem)) * (math.sqrt(n) + math.sqrt(d))
+
+
+@dataclass(frozen=True)
+class LinearFit:
+    model: LinearModel
+    flux_rank: int  # directions of the centred flux kept above the noise floor
+    floor_t: float
+
+
+def fit_linear(flux: np.ndarray, twist: np.ndarray, wrench: np.ndarray, floor_t: float = 0.0) -> LinearFit:
+    """A, K and the zero from flux (n, 24; T), twists (n, 6) and wrenches (n, 6).
+
+    A is the least-squares map of centred flux to centred twist, through the
+    flux directions above ``floor_t`` (a truncated pseudo-inverse); K and an
+    offset c fit W = (A (B - mean)) K^T + c; the zero b0 then solves
+    K A (b_mean - b0) = c with the least change along A's row space.
+    """
+    b_mean = flux.mean(axis=0)
+    centred = flux - b_mean
+    u, s, vt = np.linalg.svd(centred, full_matrices=False)
+    # Without a noise floor, numpy's own rank rule: round-off of the SVD itself.
+    tol = max(floor_t, s[0] * max(centred.shape) * np.finfo(float).eps)
+    keep = s > tol
+    pinv = (vt[keep].T / s[keep]) @ u[:, keep].T  # (24, n)
+    A = (pinv @ (twist - twist.mean(axis=0))).T
+    z = np.column_stack([centred @ A.T, np.ones(len(flux))])
+    coef, *_ = np.linalg.lstsq(z, wrench, rcond=None)
+    K, c = coef[:6].T, coef[6]
+    zero = b_mean - np.linalg.pinv(A) @ np.linalg.solve(K, c)
+    return LinearFit(LinearModel(K, A, zero), int(keep.sum()), float(floor_t))
+
+
+def rmse(model: LinearModel, dataset: Dataset) -> np.ndarray:
+    """Root mean square error per axis (N, Nm) of the model on a dataset."""
+    return np.sqrt(np.mean((model.wrench(dataset.flux_t) - dataset.wrench) ** 2, axis=0))
+
+
+def singular_values_ka(model: LinearModel) -> dict[str, list[float]]:
+    """Singular values of K A for forces (N/uT) and torques (Nm/uT), section VI."""
+    ka_per_ut = model.KA * 1e-6
+    return {"forces": np.linalg.svd(ka_per_ut[:3], compute_uv=False).tolist(),
+            "torques": np.linalg.svd(ka_per_ut[3:], compute_uv=False).tolist()}
+
+
+def position_maps(dataset: Dataset, geometry: SensorGeometry) -> tuple[PositionMap, str]:
+    """Per-chip (M, o) from the dataset's sweeps, or from a model sweep if it has none."""
+    sweeps, source = dataset.sweeps, "sweeps recorded in the dataset"
+    missing = [a for a in dataset.addresses if a not in sweeps]
+    if missing:
+        sweeps = {**simulate_sweeps(missing, geometry, noise=NOISELESS), **sweeps}
+        source = (f"model sweep (exact cylinder field, nominal geometry) for "
+                  f"{', '.join(f'0x{a:02X}' for a in missing)}" + ("" if len(missing) == len(dataset.addresses)
+                                                                   else "; recorded sweeps for the rest"))
+    fits = [fit_position_map(sweeps[a].flux_t, sweeps[a].position_m) for a in dataset.addresses]
+    return PositionMap(np.array([f[0] for f in fits]), np.array([f[1] for f in fits])), source
+
+
+@dataclass
+class CalibrationResult:
+    model: LinearModel
+    position_map: PositionMap
+    report: dict
+
+
+def fit(dataset: Dataset, geometry: SensorGeometry | None = None) -> CalibrationResult:
+    """Fit the linear model to the dataset's "fit" poses and validate on the rest.
+
+    Poses where any chip saturated are left out (and counted). Raises
+    `CalibrationError` when the wrenches do not excite all six axes, or the
+    flux does not follow them.
+    """
+    geometry = geometry or SensorGeometry.ring()
+    if dataset.flux_t.shape[1] != 3 * geometry.n_chips:
+        raise CalibrationError(f"the dataset has {dataset.flux_t.shape[1] // 3} chips, the geometry "
+                               f"{geometry.n_chips}")
+    clean = ~dataset.saturated.any(axis=1)
+    fit_set = dataset.select((dataset.split == "fit") & clean)
+    validation = dataset.select((dataset.split == "validation") & clean)
+    if len(fit_set) < MIN_FIT_POSES:
+        raise CalibrationError(f"{len(fit_set)} usable fit poses; at least {MIN_FIT_POSES} are needed "
+                               f"({int((~clean).sum())} left out for saturation)")
+    excitation = check_excitation(fit_set.wrench)
+    if not excitation.identifiable:
+        raise CalibrationError(
+            "K is not identifiable from this dataset: " + "; ".join(excitation.describe())
+            + f" (rank {excitation.rank} of 6, singular values of the range-scaled wrenches "
+            + ", ".join(f"{v:.3g}" for v in excitation.singular_values) + "). To fix the plan: "
+            + excitation.advice() + ".")
+    pmap, pmap_source = position_maps(dataset, geometry)
+    twists = np.array([deflection_twist(b.reshape(-1, 3), geometry, pmap) for b in fit_set.flux_t])
+    floor = noise_floor(fit_set.flux_sem_t) if fit_set.samples_per_pose > 1 else 0.0
+    result = fit_linear(fit_set.flux_t, twists, fit_set.wrench, floor)
+    if result.flux_rank < 6:
+        raise CalibrationError(
+            f"the flux varies in only {result.flux_rank} directions above the noise floor "
+            f"({floor * 1e6:.3g} uT): chips missing, saturated or not moving with the load")
+    sv = singular_values_ka(result.model)
+    report = {
+        "fit_poses": len(fit_set), "validation_poses": len(validation),
+        "left_out_saturated": int((~clean).sum()), "samples_per_pose": dataset.samples_per_pose,
+        "position_map": pmap_source,
+        "wrench_excitation": {"singular_values": excitation.singular_values.tolist(),
+                              "condition": excitation.condition},
+        "flux_rank_above_floor": result.flux_rank, "noise_floor_ut": floor * 1e6,
+        "singular_values_ka": sv,
+        "isotropy": {"forces": sv["forces"][-1] / sv["forces"][0],
+                     "torques": sv["torques"][-1] / sv["torques"][0]},
+        "fit_rmse": dict(zip(AXES, rmse(result.model, fit_set).tolist())),
+        "validation_rmse": (dict(zip(AXES, rmse(result.model, validation).tolist()))
+                            if len(validation) else None),
+    }
+    return CalibrationResult(result.model, pmap, report)

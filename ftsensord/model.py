@@ -1,0 +1,106 @@
+"""The paper's force model (sections IV and V).
+
+Flux b_i (T, chip frame {S_i}) -> magnet position p_i = M_i b_i + o_i (eq. 1,
+m, chip frame) -> magnet positions in the centre frame {C} -> centre-piece
+pose T_0C by registration against the magnets' fixed positions in {0} ->
+deflection twist xi = log(T_0C)^vee (m, rad). At run time the calibrated
+linear map does it all at once: w = K A (b - b0), w = [f; m] in N, Nm in
+frame {0}.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import se3
+from .geometry import SensorGeometry
+from .registration import Registration, register
+
+
+@dataclass(frozen=True)
+class PositionMap:
+    """p = M b + o per chip (eq. 1): ``M`` (n, 3, 3) in m/T, ``o`` (n, 3) in m."""
+
+    M: np.ndarray
+    o: np.ndarray
+
+    def positions(self, b: np.ndarray) -> np.ndarray:
+        """Magnet positions (n, 3; m, chip frames) from flux ``b`` (n, 3; T, chip frames)."""
+        return np.einsum("nij,nj->ni", self.M, b) + self.o
+
+
+def fit_position_map(b: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares (M, o) with p ~ M b + o, from k >= 4 samples of flux ``b``
+    (k, 3; T) and magnet position ``p`` (k, 3; m), as the paper's stage experiment."""
+    b, p = np.asarray(b, dtype=float), np.asarray(p, dtype=float)
+    if b.shape != p.shape or b.ndim != 2 or b.shape[1] != 3:
+        raise ValueError(f"flux and positions must both be k x 3, got {b.shape} and {p.shape}")
+    centred = b - b.mean(axis=0)
+    # Rank test relative to the largest spread: a flux axis that varies less
+    # than 1e-9 of the others is round-off, and its slope would be noise.
+    s = np.linalg.svd(centred, compute_uv=False)
+    if len(b) < 4 or s[0] == 0 or s[-1] < 1e-9 * s[0]:
+        raise ValueError("the sweep must move the magnet along all three axes (flux rank < 3)")
+    Mt, *_ = np.linalg.lstsq(centred, p - p.mean(axis=0), rcond=None)
+    M = Mt.T
+    return M, p.mean(axis=0) - M @ b.mean(axis=0)
+
+
+def centre_pose(b: np.ndarray, geometry: SensorGeometry, position_map: PositionMap,
+                weights: np.ndarray | None = None) -> Registration:
+    """Pose T_0C of the centre piece from the chips' flux ``b`` (n, 3; T).
+
+    Loop closure (eq. 5): 0p_mi = 0p_C + R_0C Cp_mi with Cp_mi = Cp_si + R_CSi Sip_mi;
+    the centre frame equals {0} at rest, so the nominal chip poses give Cp_si, R_CSi.
+    ``weights`` (n,) drop or down-weight chips (0 for a missing one).
+    """
+    in_chip = position_map.positions(b)
+    in_centre = geometry.chip_p + np.einsum("nij,nj->ni", geometry.chip_R, in_chip)
+    return register(in_centre, geometry.magnet_p, weights)
+
+
+def deflection_twist(b: np.ndarray, geometry: SensorGeometry, position_map: PositionMap,
+                     weights: np.ndarray | None = None) -> np.ndarray:
+    """The deflection twist xi = log(T_0C)^vee = [v; w] (m, rad)."""
+    return se3.log_se3(centre_pose(b, geometry, position_map, weights).as_pose())
+
+
+@dataclass
+class LinearModel:
+    """w = K A (b - b0): ``K`` (6, 6) stiffness (N/m, Nm/rad), ``A`` (6, 24)
+    flux-to-twist map (m/T, rad/T), ``zero`` b0 (24,) the flux at no load (T).
+
+    ``b`` stacks the 8 chips' flux [b_1; ...; b_8], each in its chip frame.
+    """
+
+    K: np.ndarray
+    A: np.ndarray
+    zero: np.ndarray
+    KA: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        # KA is what runs every cycle: one 6 x 24 product, computed once.
+        self.KA = self.K @ self.A
+
+    def twist(self, b: np.ndarray) -> np.ndarray:
+        return self.A @ (b - self.zero)
+
+    def wrench(self, b: np.ndarray) -> np.ndarray:
+        """[f; m] in N, Nm, frame {0}, from stacked flux ``b`` (24,) or (n, 24) in T."""
+        return (b - self.zero) @ self.KA.T
+
+    def with_zero(self, zero: np.ndarray) -> LinearModel:
+        """The same model tared to a new no-load flux."""
+        return LinearModel(self.K, self.A, np.asarray(zero, dtype=float))
+
+
+def tip_wrench(wrenches: list[np.ndarray], tip_to_sensor: list[np.ndarray]) -> np.ndarray:
+    """w_tip = sum_i X(T_tip,i) w_i, the paper's Ad_1 w_1 + Ad_2 w_2 (section V-E).
+
+    ``tip_to_sensor[i]`` is sensor i's frame seen from the tip frame (4x4, m);
+    for sensors parallel to the tip it is a pure translation p_i/tip.
+    """
+    return sum((se3.wrench_transform(T) @ w for T, w in zip(tip_to_sensor, wrenches, strict=True)),
+               start=np.zeros(6))

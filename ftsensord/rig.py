@@ -1,0 +1,113 @@
+"""The calibration rig: plans of poses, and recording a dataset from a bus.
+
+`record_dataset` reads the chips through the same driver the daemon uses, so a
+simulated run (the scene applies the load) and a real one (a robot applies it)
+produce the same `Dataset`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from . import mlx90393 as mlx
+from .bus import Bus
+from .dataset import Dataset, Sweep
+from .driver import MLX90393
+from .geometry import SensorGeometry
+from .magnet import cylinder_field, dipole_field
+from .sim.chip import NoiseModel
+from .sim.loads import CalibrationPose
+
+#: Lever arms (m, frame {0}) from the sensor's centre to the mass: one along the
+#: shaft as in the paper's rod, and three off it so that Mz and the other torques
+#: vary independently of the forces. 200 g at 0.1 m gives 0.196 Nm, the range.
+SIX_AXIS_ARMS = ((0.0, 0.0, 0.10), (0.07, 0.0, 0.07), (0.0, 0.07, 0.07), (-0.05, -0.05, 0.05))
+#: The paper's original plan: the rod only (torques are then fixed by the forces).
+ONE_ARM = ((0.0, 0.0, 0.10),)
+PLANS = {"six-axis": SIX_AXIS_ARMS, "one-arm": ONE_ARM}
+
+
+def fibonacci_directions(n: int, offset: float = 0.5) -> np.ndarray:
+    """``n`` unit vectors spread evenly over the sphere (a Fibonacci lattice)."""
+    k = np.arange(n) + offset
+    z = 1 - 2 * k / n
+    phi = k * math.pi * (3 - math.sqrt(5))
+    r = np.sqrt(1 - z * z)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def paper_plan(plan: str = "six-axis", n_fit: int = 193, n_validation: int = 60,
+               fit_masses: Sequence[float] = (0.05, 0.2), validation_mass: float = 0.1,
+               ) -> list[tuple[CalibrationPose, str]]:
+    """The paper's procedure (section VII-B): ``n_fit`` orientations with 50 g and
+    200 g, validation with 100 g in other orientations; lever arms per ``plan``."""
+    if plan not in PLANS:
+        raise ValueError(f"plan must be one of {sorted(PLANS)}, got {plan!r}")
+    arms = [np.array(a) for a in PLANS[plan]]
+    poses = [(CalibrationPose(d, fit_masses[k % len(fit_masses)], arms[k % len(arms)]), "fit")
+             for k, d in enumerate(fibonacci_directions(n_fit))]
+    poses += [(CalibrationPose(d, validation_mass, arms[k % len(arms)]), "validation")
+              for k, d in enumerate(fibonacci_directions(n_validation, offset=0.25))]
+    return poses
+
+
+def record_dataset(bus: Bus, addresses: Sequence[int], poses: Sequence[tuple[CalibrationPose, str]],
+                   apply_load: Callable[[np.ndarray], None], *, settings: mlx.Settings = mlx.Settings(),
+                   samples: int = 100, serial: str = "", source: str = "") -> Dataset:
+    """For each pose: apply its wrench, then average ``samples`` X, Y, Z readings
+    of every chip (one SM to all chips, wait, one RM to all: two ioctls a sample)."""
+    chips = [MLX90393(bus, a, sleep=bus.sleep) for a in addresses]
+    for chip in chips:
+        chip.reset()
+        chip.configure(settings)
+    wait_s = settings.single_measurement_us() * 1.2e-6  # +20 %: the chip's oscillator tolerance
+    n, c = len(poses), len(chips)
+    mean, sem = np.zeros((n, 3 * c)), np.zeros((n, 3 * c))
+    saturated = np.zeros((n, c), dtype=bool)
+    for k, (pose, _) in enumerate(poses):
+        apply_load(pose.wrench())
+        readings = np.zeros((samples, 3 * c))
+        for s in range(samples):
+            bus.i2c_rdwr(*[m for chip in chips for m in chip.sm_messages()])
+            bus.sleep(wait_s)
+            msgs = [chip.rm_messages() for chip in chips]
+            bus.i2c_rdwr(*[m for pair in msgs for m in pair])
+            for i, (chip, (_, read)) in enumerate(zip(chips, msgs)):
+                m = chip.decode_measurement(bytes(read))
+                readings[s, 3 * i:3 * i + 3] = m.field_t
+                saturated[k, i] |= m.any_saturated
+        mean[k] = readings.mean(axis=0)
+        if samples > 1:
+            sem[k] = readings.std(axis=0, ddof=1) / math.sqrt(samples)
+    return Dataset(tuple(addresses), np.array([p.wrench() for p, _ in poses]), mean, sem, saturated,
+                   np.array([s for _, s in poses]), np.array([p.mass_kg for p, _ in poses]),
+                   np.array([p.lever_m for p, _ in poses]), np.array([p.gravity_dir for p, _ in poses]),
+                   samples, serial, source)
+
+
+def simulate_sweeps(addresses: Sequence[int], geometry: SensorGeometry, *, field_model: str = "cylinder",
+                    settings: mlx.Settings = mlx.Settings(), noise: NoiseModel = NoiseModel(),
+                    samples: int = 100, span_m: float = 1e-3, steps: int = 5,
+                    rng: np.random.Generator | None = None) -> dict[int, Sweep]:
+    """The paper's stage experiment, simulated: one magnet moved over a grid of
+    +-``span_m`` around its nominal place in each chip's frame, the flux averaged
+    over ``samples`` readings (noise of the chip settings, divided by sqrt(samples))."""
+    rng = rng if rng is not None else np.random.default_rng(0)
+    nominal = geometry.magnet_in_chip()
+    offsets = np.linspace(-span_m, span_m, steps)
+    grid = np.stack(np.meshgrid(offsets, offsets, offsets, indexing="ij"), axis=-1).reshape(-1, 3)
+    sigma = np.array([noise.sigma_ut(a, settings.tconvm_us()) for a in "xyz"]) * 1e-6 / math.sqrt(samples)
+    sweeps = {}
+    for address, p0 in zip(addresses, nominal):
+        positions = p0 + grid
+        # The magnet's axis is the chip's z in the stage experiment, as in the sensor.
+        if field_model == "dipole":
+            flux = dipole_field(-positions, np.array([0.0, 0.0, geometry.magnet_moment_am2]))
+        else:
+            flux = cylinder_field(-positions, geometry.magnet_radius_m, geometry.magnet_length_m,
+                                  geometry.magnet_br_t)
+        sweeps[address] = Sweep(positions, flux + rng.normal(0.0, 1.0, flux.shape) * sigma)
+    return sweeps
