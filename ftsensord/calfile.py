@@ -39,7 +39,7 @@ class Calibration:
 
     def document(self) -> dict[str, Any]:
         doc: dict[str, Any] = {
-            "format": CAL_FORMAT, "version": CAL_VERSION, "units": CAL_UNITS,
+            "format": CAL_FORMAT, "version": CAL_VERSION, "units": dict(CAL_UNITS),
             "sensor": {"serial": self.serial, "frame": self.frame,
                        "addresses": [f"0x{a:02X}" for a in self.addresses]},
             "model": "w = K A (b - zero_flux); b stacks each chip's (Bx, By, Bz) in its own frame, "

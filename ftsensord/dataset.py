@@ -64,7 +64,7 @@ class Dataset:
 
     def save(self, path: str | Path) -> None:
         doc = {
-            "format": DATASET_FORMAT, "version": DATASET_VERSION, "units": UNITS,
+            "format": DATASET_FORMAT, "version": DATASET_VERSION, "units": dict(UNITS),
             "frame": "sensor frame {0}: origin at the sensor's centre, z along the shaft towards the tip",
             "sensor": {"serial": self.serial, "addresses": [f"0x{a:02X}" for a in self.addresses]},
             "samples_per_pose": self.samples_per_pose, "source": self.source,

@@ -163,3 +163,37 @@ def test_the_example_scene_in_config_loads_and_shows_a_saturated_chip():
     assert sorted(reports) == [0x0C, 0x0D, 0x14]
     assert list(reports[0x14].measurement.saturated) == [False, False, True]
     assert not reports[0x0D].measurement.any_saturated
+
+
+def test_dataset_and_calibrate_commands(tmp_path, capsys):
+    ds, cal, rep = tmp_path / "ds.json", tmp_path / "cal.json", tmp_path / "report.md"
+    assert main(["dataset", "-o", str(ds), "--poses", "40", "--validation-poses", "10", "--samples", "2"]) == 0
+    assert "50 poses (six-axis)" in capsys.readouterr().out
+    assert main(["calibrate", str(ds), "-o", str(cal), "--report", str(rep), "--serial", "SN-1"]) == 0
+    out = capsys.readouterr().out
+    assert "validation RMSE: Fx" in out and "isotropy" in out
+    from ftsensord.calfile import Calibration
+    loaded = Calibration.load(cal)
+    assert loaded.serial == "SN-1" and loaded.addresses == tuple(range(0x0C, 0x14))
+    text = rep.read_text()
+    assert "paper, Table II" in text and "this calibration" in text and "ftsensord calibrate" in text
+
+
+def test_calibrate_refuses_the_one_arm_plan_with_the_reason(tmp_path, capsys):
+    ds = tmp_path / "one.json"
+    assert main(["dataset", "-o", str(ds), "--plan", "one-arm", "--poses", "30", "--validation-poses", "0",
+                 "--samples", "1", "--no-sweep"]) == 0
+    capsys.readouterr()
+    assert main(["calibrate", str(ds), "-o", str(tmp_path / "cal.json")]) == 2
+    err = capsys.readouterr().err
+    assert "Mz is not excited" in err and "lever arm points off the shaft axis" in err
+    assert not (tmp_path / "cal.json").exists()
+
+
+def test_dataset_refuses_a_static_scene_and_an_unknown_sensor(tmp_path, capsys):
+    scene = tmp_path / "s.toml"
+    scene.write_text(SCENE)
+    assert main(["dataset", "-o", str(tmp_path / "d.json"), "--scene", str(scene)]) == 2
+    assert 'kind "sensors"' in capsys.readouterr().err
+    assert main(["dataset", "-o", str(tmp_path / "d.json"), "--sensor", "sensor9"]) == 2
+    assert "sensor1, sensor2" in capsys.readouterr().err
