@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -48,6 +49,11 @@ class SensorGeometry:
     def magnet_moment_am2(self) -> float:
         return cylinder_moment(self.magnet_radius_m, self.magnet_length_m, self.magnet_br_t)
 
+    @cached_property
+    def magnet_R(self) -> np.ndarray:
+        """Rotation of each magnet's own frame (z along its axis), for the cylinder field."""
+        return np.array([frame_with_z(a) for a in self.magnet_axis])
+
     def magnet_in_chip(self) -> np.ndarray:
         """Nominal position of each chip's own magnet in the chip's frame (n x 3)."""
         return np.einsum("nji,nj->ni", self.chip_R, self.magnet_p - self.chip_p)
@@ -73,3 +79,12 @@ class SensorGeometry:
         chip_R_arr, chip_p_arr = np.array(chip_R), np.array(chip_p)
         axes = chip_R_arr[:, :, 2]
         return cls(chip_R_arr, chip_p_arr, chip_p_arr + gap_m * axes, axes.copy())
+
+
+def frame_with_z(axis: np.ndarray) -> np.ndarray:
+    """A rotation whose third column is the unit vector ``axis`` (any x, y will do
+    for a body symmetric about it)."""
+    helper = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(helper, axis)
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(axis, x), axis], axis=1)

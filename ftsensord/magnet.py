@@ -92,10 +92,13 @@ def cylinder_field(r: np.ndarray, radius: float, length: float, br: float) -> np
     gamma = (a - rho) / (a + rho)
     k_p = np.sqrt((zp**2 + (a - rho) ** 2) / (zp**2 + (a + rho) ** 2))
     k_m = np.sqrt((zm**2 + (a - rho) ** 2) / (zm**2 + (a + rho) ** 2))
+    # The four integrals (B_rho and B_z, at both end faces) in one vectorised call.
     one = np.ones_like(rho)
-    b_rho = b0 * (alpha_p * cel(k_p, one, one, -one) - alpha_m * cel(k_m, one, one, -one))
     g2 = gamma**2
-    b_z = b0 * a / (a + rho) * (beta_p * cel(k_p, g2, one, gamma) - beta_m * cel(k_m, g2, one, gamma))
+    c = cel(np.stack([k_p, k_m, k_p, k_m]), np.stack([one, one, g2, g2]), one,
+            np.stack([-one, -one, gamma, gamma]))
+    b_rho = b0 * (alpha_p * c[0] - alpha_m * c[1])
+    b_z = b0 * a / (a + rho) * (beta_p * c[2] - beta_m * c[3])
     # B_rho is radial: split it along x and y (on the axis, rho = 0, it is 0).
     with np.errstate(invalid="ignore", divide="ignore"):
         cos_phi = np.where(rho > 0, x / rho, 0.0)

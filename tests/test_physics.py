@@ -165,3 +165,14 @@ def test_a_bad_sensors_scene_names_file_key_and_expectation(tmp_path, edit, key,
         load_scene(path)
     msg = str(exc.value)
     assert str(path) in msg and key in msg and expected in msg, msg
+
+
+def test_the_scene_moves_on_its_time_grid():
+    scene = two_sensor_scene()
+    scene.set_load(0, StepLoad(1.0, np.zeros(6), np.array([3.0, 0, 0, 0, 0, 0])))
+    rest, early = scene.field_t(0x0C, 0.0).copy(), scene.field_t(0x0C, 1.0 - 1e-6).copy()
+    assert np.array_equal(rest, early)
+    loaded = scene.field_t(0x0C, 1.0).copy()
+    assert not np.allclose(loaded, rest)
+    # Within one 1 ms step every read sees the same deflection.
+    assert np.array_equal(scene.field_t(0x0C, 1.0 + 0.9e-3), loaded)
