@@ -62,7 +62,8 @@ def cmd_scan(args: argparse.Namespace) -> int:
 
 def cmd_dataset(args: argparse.Namespace) -> int:
     from .geometry import SensorGeometry
-    from .rig import paper_plan, record_dataset, simulate_sweeps
+    from .rig import record_dataset, simulate_sweeps
+    from .sim.loads import paper_plan
     from .sim import PhysicalScene, default_scene, load_scene, simulated_bus
     from .sim.loads import StaticLoad
 

@@ -1,4 +1,4 @@
-"""The calibration rig: plans of poses, and recording a dataset from a bus.
+"""The calibration rig: recording a dataset from a bus, and the simulated stage sweep.
 
 `record_dataset` reads the chips through the same driver the daemon uses, so a
 simulated run (the scene applies the load) and a real one (a robot applies it)
@@ -21,37 +21,6 @@ from .magnet import cylinder_field, dipole_field
 from .sim.chip import NoiseModel
 from .sim.loads import CalibrationPose
 
-#: Lever arms (m, frame {0}) from the sensor's centre to the mass: one along the
-#: shaft as in the paper's rod, and three off it so that Mz and the other torques
-#: vary independently of the forces. 200 g at 0.1 m gives 0.196 Nm, the range.
-SIX_AXIS_ARMS = ((0.0, 0.0, 0.10), (0.07, 0.0, 0.07), (0.0, 0.07, 0.07), (-0.05, -0.05, 0.05))
-#: The paper's original plan: the rod only (torques are then fixed by the forces).
-ONE_ARM = ((0.0, 0.0, 0.10),)
-PLANS = {"six-axis": SIX_AXIS_ARMS, "one-arm": ONE_ARM}
-
-
-def fibonacci_directions(n: int, offset: float = 0.5) -> np.ndarray:
-    """``n`` unit vectors spread evenly over the sphere (a Fibonacci lattice)."""
-    k = np.arange(n) + offset
-    z = 1 - 2 * k / n
-    phi = k * math.pi * (3 - math.sqrt(5))
-    r = np.sqrt(1 - z * z)
-    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
-
-
-def paper_plan(plan: str = "six-axis", n_fit: int = 193, n_validation: int = 60,
-               fit_masses: Sequence[float] = (0.05, 0.2), validation_mass: float = 0.1,
-               ) -> list[tuple[CalibrationPose, str]]:
-    """The paper's procedure (section VII-B): ``n_fit`` orientations with 50 g and
-    200 g, validation with 100 g in other orientations; lever arms per ``plan``."""
-    if plan not in PLANS:
-        raise ValueError(f"plan must be one of {sorted(PLANS)}, got {plan!r}")
-    arms = [np.array(a) for a in PLANS[plan]]
-    poses = [(CalibrationPose(d, fit_masses[k % len(fit_masses)], arms[k % len(arms)]), "fit")
-             for k, d in enumerate(fibonacci_directions(n_fit))]
-    poses += [(CalibrationPose(d, validation_mass, arms[k % len(arms)]), "validation")
-              for k, d in enumerate(fibonacci_directions(n_validation, offset=0.25))]
-    return poses
 
 
 def record_dataset(bus: Bus, addresses: Sequence[int], poses: Sequence[tuple[CalibrationPose, str]],

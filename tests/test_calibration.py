@@ -16,7 +16,8 @@ from ftsensord.dataset import Dataset
 from ftsensord.errors import CalibrationError, ConfigError
 from ftsensord.geometry import SensorGeometry
 from ftsensord.model import LinearModel, PositionMap, deflection_twist, fit_position_map, tip_wrench
-from ftsensord.rig import paper_plan, record_dataset, simulate_sweeps
+from ftsensord.rig import record_dataset, simulate_sweeps
+from ftsensord.sim.loads import paper_plan
 from ftsensord.sim import NOISELESS, VirtualClock, simulated_bus, two_sensor_scene
 from ftsensord.sim.loads import StaticLoad
 from ftsensord import mlx90393 as mlx
@@ -251,3 +252,22 @@ def test_linear_model_with_zero_and_batches():
     b = rng.normal(size=(5, 24))
     assert np.allclose(m.wrench(b), (b - m.zero) @ (m.K @ m.A).T)
     assert np.allclose(m.with_zero(b[0]).wrench(b[0]), 0.0)
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.sampled_from(["drop-mz", "tie-mx-fy", "constant"]))
+def test_fit_refuses_rank_deficient_data_rather_than_returning_a_matrix(seed, kind):
+    rng = np.random.default_rng(seed)
+    n = 40
+    W = rng.normal(size=(n, 6)) * np.array([2, 2, 2, 0.1, 0.1, 0.1])
+    if kind == "drop-mz":
+        W[:, 5] = 0.0
+    elif kind == "tie-mx-fy":
+        W[:, 3] = -0.1 * W[:, 1]
+    else:
+        W[:] = W[0]
+    ds = Dataset((*range(0x0C, 0x14),), W, rng.normal(size=(n, 24)) * 1e-3, np.full((n, 24), 1e-7),
+                 np.zeros((n, 8), dtype=bool), np.array(["fit"] * n), np.zeros(n), np.zeros((n, 3)),
+                 np.zeros((n, 3)), samples_per_pose=10)
+    with pytest.raises(CalibrationError, match="not identifiable"):
+        fit(ds)

@@ -176,3 +176,13 @@ def test_the_scene_moves_on_its_time_grid():
     assert not np.allclose(loaded, rest)
     # Within one 1 ms step every read sees the same deflection.
     assert np.array_equal(scene.field_t(0x0C, 1.0 + 0.9e-3), loaded)
+
+
+def test_robot_load_in_a_scene_file_and_the_example_config(tmp_path):
+    from pathlib import Path
+    path = Path(__file__).resolve().parent.parent / "config" / "scene-two-sensors.toml"
+    scene = load_scene(path)
+    robot = scene.sensors[1].load
+    assert isinstance(robot, CalibrationRobotLoad) and len(robot.poses) == 193 and robot.dwell_s == 2.0
+    assert not np.allclose(robot.wrench(0.0), robot.wrench(2.0))
+    assert np.array_equal(scene.sensors[0].load.wrench(1.5), [2.0, 0, 0, 0, 0, 0])

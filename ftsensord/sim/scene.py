@@ -18,7 +18,8 @@ from .. import mlx90393 as mlx
 from ..errors import ConfigError
 from ..geometry import SensorGeometry
 from ..docfile import Table, load_toml
-from .loads import NO_LOAD, Load, RecordedLoad, StaticLoad, StepLoad, ramp
+from .loads import (NO_LOAD, PLANS, CalibrationRobotLoad, Load, RecordedLoad, StaticLoad, StepLoad,
+                    paper_plan, ramp)
 from .physics import (CROSSTALK_MODELS, FIELD_MODELS, PAPER_STIFFNESS_DIAG, PhysicalScene,
                       SimSensor, two_sensor_scene)
 
@@ -62,7 +63,7 @@ def _address(t: Table, name: str, value: object) -> int:
 
 
 def _load(t: Table) -> Load:
-    kind = t.string("kind", choices=("none", "static", "step", "ramp", "recorded"))
+    kind = t.string("kind", choices=("none", "static", "step", "ramp", "recorded", "robot"))
     if kind == "none":
         t.only({"kind"})
         return NO_LOAD
@@ -79,6 +80,11 @@ def _load(t: Table) -> Load:
         if to_s <= from_s:
             raise t.fail("to_s", f"a time after from_s ({from_s})", to_s)
         return ramp(from_s, to_s, np.array(t.numbers("start", 6)), np.array(t.numbers("end", 6)))
+    if kind == "robot":
+        t.only({"kind", "plan", "poses", "dwell_s"})
+        plan = paper_plan(t.string("plan", "six-axis", choices=sorted(PLANS)),
+                          n_fit=t.integer("poses", 193, low=1, what="a positive integer"), n_validation=0)
+        return CalibrationRobotLoad([pose for pose, _ in plan], t.number("dwell_s", 1.0, low=1e-3, unit="s"))
     t.only({"kind", "times_s", "wrenches"})
     times = t.numbers("times_s", unit="s")
     rows = t.get("wrenches")
