@@ -17,6 +17,7 @@ from . import mlx90393 as mlx
 from .bus import ACCEPTED_FORMS, open_bus
 from .errors import ConfigError, FtsensordError
 from .scan import ChipReport, scan
+from .sim.loads import PLANS
 
 
 def _format_table(reports: list[ChipReport], spec: str) -> str:
@@ -138,7 +139,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, help="dataset file to write (JSON)")
     p.add_argument("--scene", help="scene file of kind \"sensors\" (default: the two-sensor scene)")
     p.add_argument("--sensor", default="sensor1", help="which sensor of the scene (default: sensor1)")
-    p.add_argument("--plan", default="six-axis", choices=["six-axis", "one-arm"],
+    p.add_argument("--plan", default="six-axis", choices=sorted(PLANS),
                    help="lever arms: four that excite all six axes (default), or the paper's single rod")
     p.add_argument("--poses", type=int, default=193, help="fit poses, 50 g and 200 g (default: 193)")
     p.add_argument("--validation-poses", type=int, default=60, help="validation poses, 100 g (default: 60)")

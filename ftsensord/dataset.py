@@ -12,7 +12,7 @@ flux read at each.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +25,8 @@ DATASET_FORMAT = "ftsensord-calibration-dataset"
 DATASET_VERSION = 1
 UNITS = {"flux": "T", "wrench": "N, Nm", "length": "m", "mass": "kg"}
 SPLITS = ("fit", "validation")
+#: The per-pose arrays of a `Dataset`, as named in the file's "poses" entries.
+POSE_FIELDS = ("split", "mass_kg", "lever_m", "gravity_dir", "wrench", "flux_t", "flux_sem_t", "saturated")
 
 
 @dataclass
@@ -58,9 +60,7 @@ class Dataset:
 
     def select(self, mask: np.ndarray) -> Dataset:
         """The poses where ``mask`` is true (sweeps kept)."""
-        return Dataset(self.addresses, self.wrench[mask], self.flux_t[mask], self.flux_sem_t[mask],
-                       self.saturated[mask], self.split[mask], self.mass_kg[mask], self.lever_m[mask],
-                       self.gravity_dir[mask], self.samples_per_pose, self.serial, self.source, self.sweeps)
+        return replace(self, **{name: getattr(self, name)[mask] for name in POSE_FIELDS})
 
     def save(self, path: str | Path) -> None:
         doc = {
@@ -94,18 +94,20 @@ class Dataset:
         sensor.only({"serial", "addresses"})
         addresses = parse_addresses(sensor, "addresses")
         chips = len(addresses)
-        rows = doc.tables("poses")
-        poses = []
-        for row in rows:
-            row.only({"split", "mass_kg", "lever_m", "gravity_dir", "wrench", "flux_t", "flux_sem_t",
-                      "saturated"})
+        columns: dict[str, list] = {name: [] for name in POSE_FIELDS}
+        for row in doc.tables("poses"):
+            row.only(POSE_FIELDS)
             sat = row.get("saturated")
             if not isinstance(sat, list) or len(sat) != chips or not all(isinstance(v, bool) for v in sat):
                 raise row.fail("saturated", f"{chips} booleans, one per chip", sat)
-            poses.append((row.string("split", choices=SPLITS), row.number("mass_kg", low=0, unit="kg"),
-                          row.numbers("lever_m", 3, unit="m"), row.numbers("gravity_dir", 3),
-                          row.numbers("wrench", 6, unit="N, Nm"), row.numbers("flux_t", 3 * chips, unit="T"),
-                          row.numbers("flux_sem_t", 3 * chips, unit="T"), sat))
+            columns["saturated"].append(sat)
+            columns["split"].append(row.string("split", choices=SPLITS))
+            columns["mass_kg"].append(row.number("mass_kg", low=0, unit="kg"))
+            columns["lever_m"].append(row.numbers("lever_m", 3, unit="m"))
+            columns["gravity_dir"].append(row.numbers("gravity_dir", 3))
+            columns["wrench"].append(row.numbers("wrench", 6, unit="N, Nm"))
+            columns["flux_t"].append(row.numbers("flux_t", 3 * chips, unit="T"))
+            columns["flux_sem_t"].append(row.numbers("flux_sem_t", 3 * chips, unit="T"))
         sweeps = {}
         if "position_sweeps" in doc.doc:
             table = doc.table("position_sweeps")
@@ -119,11 +121,11 @@ class Dataset:
                 k = len(positions) if isinstance(positions, list) else 0
                 sweeps[address] = Sweep(np.array(s.matrix("position_m", k, 3, unit="m")),
                                         np.array(s.matrix("flux_t", k, 3, unit="T")))
-        cols = list(zip(*poses))
-        return cls(addresses, np.array(cols[4]), np.array(cols[5]), np.array(cols[6]),
-                   np.array(cols[7], dtype=bool), np.array(cols[0]), np.array(cols[1]), np.array(cols[2]),
-                   np.array(cols[3]), doc.integer("samples_per_pose", low=1, what="a positive integer"),
-                   sensor.string("serial", ""), doc.string("source", ""), sweeps)
+        arrays = {name: np.array(values, dtype=bool if name == "saturated" else None)
+                  for name, values in columns.items()}
+        return cls(addresses, **arrays, samples_per_pose=doc.integer("samples_per_pose", low=1,
+                                                                     what="a positive integer"),
+                   serial=sensor.string("serial", ""), source=doc.string("source", ""), sweeps=sweeps)
 
 
 def parse_address(table: Table, key: str, value: object) -> int:

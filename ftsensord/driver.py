@@ -94,9 +94,9 @@ class MLX90393:
             raise ChipRefusedError(self.address, f"{command} refused, status {status}", status)
         return status
 
-    def _mode_command(self, opcode: int, zyxt: int, mode_bit: int, name: str) -> mlx.Status:
-        reply = self.transfer(bytes([opcode | zyxt]), 1)
-        status = self.check_status(reply[0], name)
+    def _check_mode(self, byte: int, mode_bit: int, name: str) -> mlx.Status:
+        """A mode command's reply: no ERROR, and the mode bit it asked for set."""
+        status = self.check_status(byte, name)
         if not status.byte & mode_bit:
             raise ChipProtocolError(self.address, f"{name} accepted without its mode bit, status {status}")
         return status
@@ -126,23 +126,20 @@ class MLX90393:
         return self.messages(bytes([mlx.CMD_SM | zyxt]), 1)
 
     def decode_sm(self, reply: bytes) -> mlx.Status:
-        status = self.check_status(reply[0], "SM")
-        if not status.sm_mode:
-            raise ChipProtocolError(self.address, f"SM accepted without SM_MODE, status {status}")
-        return status
+        return self._check_mode(reply[0], mlx.STATUS_SM_MODE, "SM")
 
     def start_single(self, zyxt: int = mlx.ZYXT_XYZ) -> mlx.Status:
         """SM: start one conversion of the selected items (data ready after
         `mlx.Settings.single_measurement_us`)."""
-        return self._mode_command(mlx.CMD_SM, zyxt, mlx.STATUS_SM_MODE, "SM")
+        return self.decode_sm(self.transfer(bytes([mlx.CMD_SM | zyxt]), 1))
 
     def start_burst(self, zyxt: int = mlx.ZYXT_XYZ) -> mlx.Status:
         """SB: convert continuously on the chip's own clock (zyxt 0 uses BURST_SEL)."""
-        return self._mode_command(mlx.CMD_SB, zyxt, mlx.STATUS_BURST_MODE, "SB")
+        return self._check_mode(self.transfer(bytes([mlx.CMD_SB | zyxt]), 1)[0], mlx.STATUS_BURST_MODE, "SB")
 
     # --- measurement -------------------------------------------------------------
     def rm_messages(self, zyxt: int = mlx.ZYXT_XYZ) -> tuple[i2c_msg, i2c_msg]:
-        return self.messages(bytes([mlx.CMD_RM | zyxt]), 1 + 2 * len(mlx.zyxt_items(zyxt)))
+        return self.messages(bytes([mlx.CMD_RM | zyxt]), _rm_reply_len(zyxt))
 
     def decode_measurement(self, reply: bytes, zyxt: int = mlx.ZYXT_XYZ) -> Measurement:
         """Decode an RM reply into tesla and degC, flagging saturated axes."""
@@ -169,9 +166,7 @@ class MLX90393:
 
     def read_measurement(self, zyxt: int = mlx.ZYXT_XYZ) -> Measurement:
         """RM: read the selected items of the last conversion."""
-        write, read = self.rm_messages(zyxt)
-        reply = self.transfer(bytes(write), len(read))
-        return self.decode_measurement(reply, zyxt)
+        return self.decode_measurement(self.transfer(bytes([mlx.CMD_RM | zyxt]), _rm_reply_len(zyxt)), zyxt)
 
     def measure(self, zyxt: int = mlx.ZYXT_XYZ) -> Measurement:
         """SM, wait the nominal conversion time (+20 % for the oscillator), RM."""
@@ -233,3 +228,8 @@ class MLX90393:
             raise ChipProtocolError(self.address, "not configured")
         current = self.read_configuration()
         return current == self.settings.to_registers(current)
+
+
+def _rm_reply_len(zyxt: int) -> int:
+    """Bytes of an RM reply: the status byte and two per selected item."""
+    return 1 + 2 * len(mlx.zyxt_items(zyxt))

@@ -40,7 +40,10 @@ def record_dataset(bus: Bus, addresses: Sequence[int], poses: Sequence[tuple[Cal
         apply_load(pose.wrench())
         readings = np.zeros((samples, 3 * c))
         for s in range(samples):
-            bus.i2c_rdwr(*[m for chip in chips for m in chip.sm_messages()])
+            starts = [chip.sm_messages() for chip in chips]
+            bus.i2c_rdwr(*[m for pair in starts for m in pair])
+            for chip, (_, read) in zip(chips, starts):
+                chip.decode_sm(bytes(read))
             bus.sleep(wait_s)
             msgs = [chip.rm_messages() for chip in chips]
             bus.i2c_rdwr(*[m for pair in msgs for m in pair])

@@ -122,7 +122,10 @@ class PhysicalScene:
     def _sensor(self, sensor: int | str) -> SimSensor:
         if isinstance(sensor, int):
             return self.sensors[sensor]
-        return next(s for s in self.sensors if s.name == sensor)
+        for s in self.sensors:
+            if s.name == sensor:
+                return s
+        raise KeyError(f"no sensor {sensor!r}; the scene has {', '.join(s.name for s in self.sensors)}")
 
     def field_t(self, address: int, t: float) -> np.ndarray:
         s, i = self._chip_of[address]
