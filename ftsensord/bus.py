@@ -10,13 +10,25 @@ has.
 from __future__ import annotations
 
 import time
+from collections.abc import Iterable
 from typing import Protocol
 
 from smbus2 import SMBus, i2c_msg
 
 from .errors import ConfigError
 
+#: The kernel's limit of messages in one I2C_RDWR ioctl (I2C_RDWR_IOCTL_MAX_MSGS).
+I2C_RDWR_MAX_MSGS = 42
+#: Bits on the wire per byte: 8 data bits and the ACK/NACK bit.
+BITS_PER_BYTE = 9
+
 ACCEPTED_FORMS = "'i2c:<N>' (e.g. i2c:1), 'i2c:/dev/i2c-<N>', 'sim', or 'sim:<scene file>'"
+
+
+def wire_bits(msgs: Iterable[i2c_msg]) -> int:
+    """Clock bits a combined transfer takes: per message a (repeated) start, the
+    address byte and the data bytes; one stop at the end."""
+    return sum(1 + BITS_PER_BYTE * (1 + m.len) for m in msgs) + 1
 
 
 class Bus(Protocol):

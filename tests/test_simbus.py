@@ -11,7 +11,7 @@ from ftsensord import mlx90393 as mlx
 from ftsensord.driver import MLX90393
 from ftsensord.errors import ChipNotRespondingError, ChipRefusedError
 from ftsensord.sim import NOISELESS, MonotonicClock, VirtualClock, default_scene, simulated_bus
-from ftsensord.sim.bus import I2C_RDWR_MAX_MSGS, wire_bits
+from ftsensord.bus import I2C_RDWR_MAX_MSGS, wire_bits
 
 from .conftest import ADDR
 
@@ -45,6 +45,13 @@ def test_absent_address_aborts_the_transfer_but_earlier_messages_happened(bus):
         bus.i2c_rdwr(sm, i2c_msg.read(ADDR, 1), *ex_msgs(0x1B))
     assert exc.value.errno == errno.ENXIO and "0x1B" in str(exc.value)
     assert bus.chips[ADDR].registers[0x04] == 0x42
+
+
+def test_a_failed_transfer_fills_no_read_buffer_as_i2c_dev(bus):
+    read = i2c_msg.read(ADDR, 3)
+    with pytest.raises(OSError):
+        bus.i2c_rdwr(i2c_msg.write(ADDR, [mlx.CMD_RR, mlx.REG_TREF << 2]), read, *ex_msgs(0x1B))
+    assert bytes(read) == b"\x00\x00\x00"
 
 
 def test_nack_errno_is_configurable_for_adapters_that_say_eremoteio(scene):

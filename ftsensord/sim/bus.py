@@ -3,7 +3,7 @@
 Like the kernel's ``I2C_RDWR`` ioctl it takes up to 42 messages, to several
 addresses, in one call; a message to an address where no chip answers aborts
 the call with ``OSError`` (the messages before it have already happened on the
-wire, as on a real bus). With ``bus_hz`` set it spends the wire time of every
+wire, as on a real bus, but as in i2c-dev no read buffer is filled). With ``bus_hz`` set it spends the wire time of every
 transfer on its clock: 9 clock bits per byte (8 data + ACK) plus one for each
 start, repeated start and the final stop.
 
@@ -20,13 +20,10 @@ from dataclasses import dataclass, field
 from smbus2 import i2c_msg
 from smbus2.smbus2 import I2C_M_RD
 
+from ..bus import BITS_PER_BYTE, I2C_RDWR_MAX_MSGS
 from .chip import EmulatedMLX90393
 from .clock import MonotonicClock, VirtualClock
 
-#: The kernel's limit of messages in one I2C_RDWR ioctl (I2C_RDWR_IOCTL_MAX_MSGS).
-I2C_RDWR_MAX_MSGS = 42
-#: Bits on the wire per byte: 8 data bits and the ACK/NACK bit.
-BITS_PER_BYTE = 9
 
 
 @dataclass
@@ -71,17 +68,13 @@ class BusFaults:
         return True
 
 
-def wire_bits(msgs: Iterable[i2c_msg]) -> int:
-    """Clock bits a combined transfer takes: per message a (repeated) start, the
-    address byte and the data bytes; one stop at the end."""
-    return sum(1 + BITS_PER_BYTE * (1 + m.len) for m in msgs) + 1
-
-
 class SimulatedBus:
     """Emulated MLX90393s on one bus, reached through ``i2c_rdwr``.
 
     ``clock`` is shared by every chip (a `VirtualClock` for tests, a
     `MonotonicClock` for benchmarks); ``bus_hz`` None spends no wire time.
+    Chips and scenes see time since the bus was made (s), so a scene's
+    "step at 1 s" means 1 s after start whatever the clock's origin.
     ``nack_errno`` is what the adapter reports for an address nobody ACKs: the
     kernel's documented ENXIO (Raspberry Pi's i2c-bcm2835 says EREMOTEIO).
     """
@@ -93,6 +86,7 @@ class SimulatedBus:
         for chip in chips:
             self.attach(chip)
         self.clock = clock if clock is not None else VirtualClock()
+        self.epoch = self.clock.now()
         self.bus_hz = bus_hz
         self.nack_errno = nack_errno
         self.faults = BusFaults()
@@ -107,13 +101,14 @@ class SimulatedBus:
         if not 1 <= len(msgs) <= I2C_RDWR_MAX_MSGS:
             raise OSError(errno.EINVAL, f"I2C_RDWR takes 1 to {I2C_RDWR_MAX_MSGS} messages, got {len(msgs)}")
         self.transfers += 1
-        start = self.clock.now()
+        start = self.clock.now() - self.epoch
         bit_s = 0.0 if self.bus_hz is None else self.faults.slowdown / self.bus_hz
         if self.faults.io_errors > 0:
             self.faults.io_errors -= 1
             err = self.faults.io_errno
             raise OSError(err, errno.errorcode.get(err, "I/O error"))
         bits = 0
+        replies: list[tuple[i2c_msg, bytes]] = []
         try:
             for msg in msgs:
                 bits += 1 + BITS_PER_BYTE  # (repeated) start and the address byte
@@ -126,12 +121,14 @@ class SimulatedBus:
                 bits += BITS_PER_BYTE * msg.len
                 now = start + bits * bit_s
                 if msg.flags & I2C_M_RD:
-                    data = chip.read(msg.len, now)
-                    ctypes.memmove(msg.buf, data, msg.len)
+                    replies.append((msg, chip.read(msg.len, now)))
                 else:
                     chip.write(bytes(msg), now)
+            # Like i2c-dev, read buffers are filled only when the whole transfer succeeded.
+            for msg, data in replies:
+                ctypes.memmove(msg.buf, data, msg.len)
         finally:
-            self.clock.wait_until(start + (bits + 1) * bit_s)
+            self.clock.wait_until(self.epoch + start + (bits + 1) * bit_s)
 
     def close(self) -> None:
         self.closed = True
