@@ -15,7 +15,7 @@ import numpy as np
 from . import __version__
 from . import mlx90393 as mlx
 from .bus import ACCEPTED_FORMS, open_bus
-from .errors import ConfigError, FtsensordError
+from .errors import ConfigError, DaemonNotAnswering, FtsensordError
 from .scan import ChipReport, scan
 from .sim.loads import PLANS
 
@@ -118,10 +118,155 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_run(args: argparse.Namespace) -> int:
+    import logging
+
+    from .config import load_config
+    from .service import run
+
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+    return run(load_config(args.config))
+
+
+def _control(args: argparse.Namespace):
+    from .client import ControlClient
+    return ControlClient(args.control, timeout_s=args.timeout)
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    status = _control(args).status()
+    if args.json:
+        print(json.dumps(status, indent=2))
+        return 0
+    jitter = status["jitter_us"]
+    rate = status["achieved_rate_hz"]
+    print(f"ftsensord {status['version']}, up {status['uptime_s']:.0f} s, bus {status['bus']}, "
+          f"scheduler {status['scheduler']}")
+    print(f"rate: {rate:.2f} Hz achieved of {status['rate_hz']:g} Hz configured" if rate else
+          f"rate: - of {status['rate_hz']:g} Hz configured")
+    print(f"bound: {status['bound']}")
+    print(f"cycles {status['cycles']}, missed {status['missed_cycles']}, late {status['late_cycles']}; "
+          f"jitter p50 {jitter['p50']:.0f} us, p99 {jitter['p99']:.0f} us")
+    print(f"averaging {status['averaging']}, low-pass {status['lowpass_hz'] or 'off'}")
+    for name, s in status["sensors"].items():
+        tare = "tared, offset " + " ".join(f"{v:+.4g}" for v in s["tare_wrench"]) if s["tared"] else "not tared"
+        print(f"sensor {name}: frame {s['frame']}, serial {s['serial']}, {tare}; calibration {s['calibration']}")
+    bad = {a: c for a, c in status["chips"].items() if not c["ok"] or c["errors"]}
+    temps = [c["temperature_c"] for c in status["chips"].values() if c["temperature_c"] is not None]
+    print(f"chips: {len(status['chips'])}, failing {sum(not c['ok'] for c in status['chips'].values())}"
+          + (f", {min(temps):.1f}-{max(temps):.1f} degC" if temps else ""))
+    for address, c in bad.items():
+        print(f"  {address}: {'ok' if c['ok'] else 'FAILING'}, {c['errors']} errors, last: {c['last_error']}")
+    return 0
+
+
+def cmd_tare(args: argparse.Namespace) -> int:
+    result = _control(args).tare(samples=args.samples, sensor=args.sensor)
+    for name, offset in result["tare_wrench"].items():
+        print(f"{name}: tared on {result['samples']} samples; removed " + " ".join(f"{v:+.4g}" for v in offset)
+              + " (N, N, N, Nm, Nm, Nm)")
+    return 0
+
+
+def _subscriber(args: argparse.Namespace):
+    from .client import Subscriber
+    return Subscriber(args.endpoint, [args.stream])
+
+
+def cmd_echo(args: argparse.Namespace) -> int:
+    from .wire import flag_names
+
+    with _subscriber(args) as sub:
+        n = 0
+        while args.count is None or n < args.count:
+            sample = sub.receive(timeout_s=args.timeout)
+            if sample is None:
+                print(f"ftsensord: no sample on {args.stream} within {args.timeout:g} s", file=sys.stderr)
+                return 1
+            values = " ".join(f"{v:+10.4f}" if sample.kind == 1 else f"{v * 1e6:+9.1f}" for v in sample.values)
+            flags = ",".join(flag_names(sample.flags))
+            print(f"{sample.seq:8d} {sample.t_mono:14.6f} {values}  {flags}", flush=True)
+            n += 1
+        if sub.gaps:
+            print(f"gaps: {sub.gaps}", file=sys.stderr)
+    return 0
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    import time
+
+    rows = []
+    with _subscriber(args) as sub:
+        end = time.monotonic() + args.seconds if args.seconds else None
+        while (args.count is None or len(rows) < args.count) and (end is None or time.monotonic() < end):
+            sample = sub.receive(timeout_s=args.timeout)
+            if sample is None:
+                print(f"ftsensord: no sample on {args.stream} within {args.timeout:g} s", file=sys.stderr)
+                break
+            rows.append((sample.seq, sample.t_mono, sample.t_wall, sample.flags, *sample.values))
+        gaps = sub.gaps.get(args.stream, 0)
+    data = np.array(rows, dtype=float).reshape(len(rows), -1)
+    if args.file.endswith(".npz"):
+        np.savez(args.file, seq=data[:, 0].astype(np.int64), t_mono=data[:, 1], t_wall=data[:, 2],
+                 flags=data[:, 3].astype(np.int64), values=data[:, 4:], gaps=gaps, stream=args.stream)
+    else:
+        n_values = data.shape[1] - 4
+        names = (["fx_N", "fy_N", "fz_N", "mx_Nm", "my_Nm", "mz_Nm"] if args.stream.startswith("wrench/")
+                 else [f"b{i // 3}{'xyz'[i % 3]}_T" for i in range(n_values)])
+        with open(args.file, "w") as f:
+            f.write(f"# ftsensord record of {args.stream}; {len(rows)} samples, {gaps} missed (sequence gaps)\n")
+            f.write(",".join(["seq", "t_mono_s", "t_wall_s", "flags", *names]) + "\n")
+            for row in data:
+                f.write(f"{int(row[0])},{row[1]:.6f},{row[2]:.6f},{int(row[3])},"
+                        + ",".join(f"{v:.9g}" for v in row[4:]) + "\n")
+    print(f"wrote {args.file}: {len(rows)} samples of {args.stream}, {gaps} missed")
+    return 0 if rows else 1
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="ftsensord", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"ftsensord {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("run", help="run the daemon (the systemd unit runs this)",
+                       description="Read every chip in a steady loop, publish wrenches over ZeroMQ, and "
+                                   "serve control requests. SIGTERM stops it cleanly, SIGHUP reloads.")
+    p.add_argument("--config", help="configuration file (default: the simulated bus, default scene)")
+    p.set_defaults(func=cmd_run)
+
+    def control_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--control", help="control endpoint (default: the running daemon's ipc socket)")
+        p.add_argument("--timeout", type=float, default=3.0, help="seconds to wait for the daemon (default 3)")
+
+    def stream_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("stream", help="stream: wrench/<sensor>, wrench/tip or flux/<sensor>")
+        p.add_argument("--endpoint", help="publish endpoint (default: the running daemon's ipc socket)")
+        p.add_argument("--count", type=int, help="stop after this many samples")
+        p.add_argument("--timeout", type=float, default=3.0, help="give up after this long without a sample")
+
+    p = sub.add_parser("status", help="the running daemon's health",
+                       description="Rate achieved against configured and the computed bound, jitter, "
+                                   "missed cycles, per-chip errors and temperatures, tare offsets, "
+                                   "calibrations. Exit 1 with a message when no daemon answers.")
+    p.add_argument("--json", action="store_true", help="print the whole status as JSON")
+    control_options(p)
+    p.set_defaults(func=cmd_status)
+
+    p = sub.add_parser("tare", help="zero the output at the present load")
+    p.add_argument("--samples", type=int, default=100, help="cycles to average (default 100)")
+    p.add_argument("--sensor", help="only this sensor (default: all)")
+    control_options(p)
+    p.set_defaults(func=cmd_tare)
+
+    p = sub.add_parser("echo", help="print a stream's samples live")
+    stream_options(p)
+    p.set_defaults(func=cmd_echo)
+
+    p = sub.add_parser("record", help="record a stream to CSV or NPZ (by the file's extension)")
+    stream_options(p)
+    p.add_argument("file", help="output file: .csv or .npz")
+    p.add_argument("--seconds", type=float, help="stop after this long")
+    p.set_defaults(func=cmd_record)
     p = sub.add_parser("scan", help="find MLX90393 chips on a bus and read each once",
                        description="Probe 0x0C-0x1B and print each chip's part variant, "
                                    "configuration registers (as found) and one reading. "
@@ -168,6 +313,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.argv = argv[1:]
     try:
         return int(args.func(args))
+    except DaemonNotAnswering as exc:
+        print(f"ftsensord: {exc}", file=sys.stderr)
+        return 1
     except FtsensordError as exc:
         print(f"ftsensord: {exc}", file=sys.stderr)
         return 2

@@ -64,3 +64,15 @@ class RegisterVerifyError(ChipError):
 class CalibrationError(FtsensordError, ValueError):
     """A dataset cannot give a trustworthy calibration; the message says what
     is missing and what to add to the calibration plan."""
+
+
+class WireError(FtsensordError, ValueError):
+    """A published frame that is not an ftsensord sample of this version."""
+
+
+class DaemonNotAnswering(FtsensordError, TimeoutError):
+    """No daemon answered on the control endpoint in time."""
+
+
+class ControlError(FtsensordError, RuntimeError):
+    """The daemon answered a control request with an error."""

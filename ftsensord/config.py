@@ -1,0 +1,188 @@
+"""The daemon's configuration: one TOML file, validated on load.
+
+Every error names the file, the key and what was expected. Relative paths in
+the file (scene, calibrations) are relative to the file's folder;
+``builtin:NAME`` names a file shipped in the package (the simulated sensors'
+calibrations). `config/ftsensord.toml` is a commented example.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from . import mlx90393 as mlx
+from .bus import parse_bus_spec
+from .calfile import Calibration
+from .dataset import parse_addresses
+from .docfile import Table, load_toml
+from .errors import ConfigError
+from .schedule import SCHEDULERS, CycleBound, cycle_bound
+
+CONFIG_VERSION = 1
+BUILTIN = "builtin:"
+
+
+def builtin_path(name: str) -> Path:
+    """A file shipped in the package's data folder."""
+    return Path(str(resources.files("ftsensord") / "data" / name))
+
+
+def default_config_path() -> Path:
+    """The configuration used when none is given: the simulated bus, default scene."""
+    return builtin_path("sim.toml")
+
+
+def runtime_dir() -> Path:
+    """Where the daemon's sockets go: systemd's RuntimeDirectory, else the user's."""
+    if os.environ.get("RUNTIME_DIRECTORY"):
+        return Path(os.environ["RUNTIME_DIRECTORY"].split(":")[0])
+    if os.environ.get("XDG_RUNTIME_DIR"):
+        return Path(os.environ["XDG_RUNTIME_DIR"]) / "ftsensord"
+    return Path(f"/tmp/ftsensord-{os.getuid()}")
+
+
+@dataclass
+class SensorConfig:
+    name: str
+    addresses: tuple[int, ...]
+    calibration_path: Path
+    calibration: Calibration
+
+
+@dataclass
+class Config:
+    """A validated configuration (units in the names: Hz, s, m)."""
+
+    path: Path
+    bus: str
+    bus_hz: float
+    bus_overhead_s: float
+    rate_hz: float
+    scheduler: str
+    averaging: int
+    lowpass_hz: float
+    settings: mlx.Settings
+    sensors: list[SensorConfig]
+    publish: list[str]
+    control: str
+    tool_offsets_m: dict[str, np.ndarray] = field(default_factory=dict)
+    temperature_every: int = 100
+
+    @property
+    def addresses(self) -> list[int]:
+        return [a for s in self.sensors for a in s.addresses]
+
+    def bound(self) -> CycleBound:
+        return cycle_bound(self.scheduler, len(self.addresses), self.settings, self.bus_hz, self.bus_overhead_s)
+
+
+def check_rate(config: Config, rate_hz: float, where: str = "rate_hz") -> None:
+    """Refuse a rate above what the scheduler can achieve, naming the bound and the fixes."""
+    bound = config.bound()
+    if rate_hz <= bound.rate_hz:
+        return
+    n = len(config.addresses)
+    others = ", ".join(f"{s} {cycle_bound(s, n, config.settings, config.bus_hz, config.bus_overhead_s).rate_hz:.0f} Hz"
+                       for s in SCHEDULERS if s != config.scheduler)
+    raise ConfigError(f"{where}: {rate_hz:g} Hz cannot be met: {bound.describe()}. Lower the rate, "
+                      f"change the scheduler ({others}), shorten the conversion (lower OSR or "
+                      f"DIG_FILT), or use a faster bus")
+
+
+def _resolve(table: Table, key: str, value: str) -> Path:
+    if value.startswith(BUILTIN):
+        path = builtin_path(value[len(BUILTIN):])
+    else:
+        path = Path(value).expanduser()
+        if not path.is_absolute():
+            path = table.path.parent / path
+    if not path.is_file():
+        raise table.fail(key, "an existing file (relative to the configuration's folder, or builtin:NAME)",
+                         value)
+    return path
+
+
+def _endpoint(table: Table, key: str, default: str) -> str:
+    value = table.string(key, default)
+    if not value.startswith(("ipc://", "tcp://")):
+        raise table.fail(key, "an ipc:// or tcp:// endpoint", value)
+    if value.startswith("tcp://"):
+        host = value[len("tcp://"):].rsplit(":", 1)[0]
+        if host not in ("127.0.0.1", "localhost", "[::1]"):
+            raise table.fail(key, "a loopback TCP endpoint (127.0.0.1, localhost or [::1])", value)
+    return value
+
+
+def load_config(path: str | Path | None = None) -> Config:
+    """Read and validate a configuration (default: the packaged simulated one)."""
+    path = Path(path) if path is not None else default_config_path()
+    doc = Table(load_toml(path), path)
+    doc.only({"version", "bus", "bus_hz", "bus_overhead_us", "rate_hz", "scheduler", "averaging",
+              "lowpass_hz", "temperature_every", "publish", "publish_tcp", "control", "chip", "sensor", "tool"})
+    doc.integer("version", what=str(CONFIG_VERSION), low=CONFIG_VERSION, high=CONFIG_VERSION)
+    bus = doc.string("bus")
+    try:
+        kind, arg = parse_bus_spec(bus)
+    except ConfigError as exc:
+        raise doc.fail("bus", str(exc).split("; ")[-1], bus) from exc
+    if kind == "sim" and arg:
+        bus = f"sim:{_resolve(doc, 'bus', arg)}"
+    chip = doc.table("chip", {})
+    chip.only({"gain_sel", "hallconf", "res", "osr", "dig_filt", "osr2"})
+    res = chip.numbers("res", 3, [3, 3, 3])
+    settings = mlx.Settings(gain_sel=chip.integer("gain_sel", 0), hallconf=chip.integer("hallconf", 0xC),
+                            res_x=int(res[0]), res_y=int(res[1]), res_z=int(res[2]),
+                            osr=chip.integer("osr", 1), dig_filt=chip.integer("dig_filt", 2),
+                            osr2=chip.integer("osr2", 0))
+    try:
+        settings.validate()
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: chip: {exc}") from exc
+    sensors = []
+    seen: set[int] = set()
+    for t in doc.tables("sensor"):
+        t.only({"name", "addresses", "calibration"})
+        addresses = parse_addresses(t, "addresses")
+        for a in addresses:
+            if a in seen:
+                raise t.fail("addresses", "addresses no other sensor uses", f"0x{a:02X}")
+            seen.add(a)
+        cal_path = _resolve(t, "calibration", t.string("calibration"))
+        calibration = Calibration.load(cal_path)
+        if calibration.addresses != addresses:
+            raise t.fail("calibration", f"a calibration for the chips {[f'0x{a:02X}' for a in addresses]} in "
+                                        f"this order", f"{cal_path} (for {[f'0x{a:02X}' for a in calibration.addresses]})")
+        name = t.string("name")
+        if any(s.name == name for s in sensors):
+            raise t.fail("name", "a name no other sensor has", name)
+        sensors.append(SensorConfig(name, addresses, cal_path, calibration))
+    rt = runtime_dir()
+    publish = [_endpoint(doc, "publish", f"ipc://{rt}/wrench")]
+    if "publish_tcp" in doc.doc:
+        publish.append(_endpoint(doc, "publish_tcp", ""))
+    config = Config(
+        path=path, bus=bus, bus_hz=doc.number("bus_hz", 400e3, low=1e3, high=3.4e6, unit="Hz"),
+        bus_overhead_s=doc.number("bus_overhead_us", 0.0, low=0, high=1e5, unit="us") * 1e-6,
+        rate_hz=doc.number("rate_hz", 100.0, low=0.1, high=10e3, unit="Hz"),
+        scheduler=doc.string("scheduler", "overlapped", choices=SCHEDULERS),
+        averaging=doc.integer("averaging", 1, low=1, high=10_000, what="an integer from 1 to 10000"),
+        lowpass_hz=doc.number("lowpass_hz", 0.0, low=0, unit="Hz (0: off)"),
+        settings=settings, sensors=sensors, publish=publish,
+        control=_endpoint(doc, "control", f"ipc://{rt}/control"),
+        temperature_every=doc.integer("temperature_every", 100, low=0, what="cycles (0: never)"))
+    if "tool" in doc.doc:
+        tool = doc.table("tool")
+        tool.only({"offsets_m"})
+        offsets = tool.table("offsets_m")
+        names = [s.name for s in sensors]
+        for name in offsets.doc:
+            if name not in names:
+                raise offsets.fail(name, f"one of the sensors {', '.join(names)}", name)
+            config.tool_offsets_m[name] = np.array(offsets.numbers(name, 3, unit="m, sensor frame from the tip"))
+    check_rate(config, config.rate_hz, f"{path}: rate_hz")
+    return config

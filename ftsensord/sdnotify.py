@@ -1,0 +1,71 @@
+"""systemd's notify protocol, without a dependency: datagrams to $NOTIFY_SOCKET.
+
+With ``Type=notify`` the daemon says ``READY=1`` once its first cycle has
+published, ``WATCHDOG=1`` as cycles complete (at most every half of
+$WATCHDOG_USEC, so a stuck loop stops the pings and systemd restarts it), and
+``STATUS=...`` for ``systemctl status``. Outside systemd it does nothing.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import time
+
+
+class Notifier:
+    def __init__(self, environ: dict[str, str] | None = None, clock=time.monotonic):
+        env = os.environ if environ is None else environ
+        address = env.get("NOTIFY_SOCKET", "")
+        # A leading "@" is Linux's abstract namespace, spelt with a NUL byte.
+        self.address = "\0" + address[1:] if address.startswith("@") else address
+        usec = env.get("WATCHDOG_USEC", "")
+        pid = env.get("WATCHDOG_PID", "")
+        mine = not pid or pid == str(os.getpid())
+        self.watchdog_interval_s = int(usec) / 2e6 if usec.isdigit() and int(usec) > 0 and mine else None
+        self.clock = clock
+        self._last_ping = -float("inf")
+        self._socket: socket.socket | None = None
+
+    @property
+    def enabled(self) -> bool:
+        return bool(self.address)
+
+    def notify(self, message: str) -> bool:
+        """Send one notification; False when not under systemd or the send failed."""
+        if not self.enabled:
+            return False
+        try:
+            if self._socket is None:
+                self._socket = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
+            self._socket.sendto(message.encode(), self.address)
+        except OSError:
+            return False  # systemd gone or socket full: the service goes on regardless
+        return True
+
+    def ready(self, status: str = "") -> bool:
+        return self.notify("READY=1" + (f"\nSTATUS={status}" if status else ""))
+
+    def status(self, text: str) -> bool:
+        return self.notify(f"STATUS={text}")
+
+    def watchdog(self) -> bool:
+        """Ping the watchdog if it is due (call after every completed cycle)."""
+        if self.watchdog_interval_s is None:
+            return False
+        now = self.clock()
+        if now - self._last_ping < self.watchdog_interval_s:
+            return False
+        self._last_ping = now
+        return self.notify("WATCHDOG=1")
+
+    def stopping(self) -> bool:
+        return self.notify("STOPPING=1")
+
+    def reloading(self) -> bool:
+        return self.notify("RELOADING=1")
+
+    def close(self) -> None:
+        if self._socket is not None:
+            self._socket.close()
+            self._socket = None

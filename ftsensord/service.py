@@ -1,0 +1,95 @@
+"""`ftsensord run`: open the configured bus and sockets, run the daemon, clean up.
+
+Signals become loop events: SIGTERM (and SIGINT) finish the cycle, put the
+chips back to idle and exit 0; SIGHUP reloads calibration and configuration.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+from pathlib import Path
+
+import zmq
+
+from .bus import Bus, open_bus, parse_bus_spec
+from .config import Config
+from .daemon import MAX_REQUEST, Daemon
+from .sdnotify import Notifier
+
+log = logging.getLogger("ftsensord")
+
+#: Samples queued per subscriber before the newest are dropped: a haptic loop
+#: wants the latest value, never a backlog of stale ones.
+PUB_HWM = 8
+#: Control requests queued before more are dropped (a flood cannot eat memory).
+CONTROL_HWM = 100
+
+
+def open_configured_bus(config: Config) -> Bus:
+    """The configured bus; a simulated one spends real wire time at ``bus_hz``."""
+    kind, _ = parse_bus_spec(config.bus)
+    if kind == "sim":
+        from .sim import MonotonicClock
+        return open_bus(config.bus, clock=MonotonicClock(), bus_hz=config.bus_hz, seed=None)
+    return open_bus(config.bus)
+
+
+def _ipc_path(endpoint: str) -> Path | None:
+    return Path(endpoint[len("ipc://"):]) if endpoint.startswith("ipc://") else None
+
+
+def bind(socket: zmq.Socket, endpoint: str) -> None:
+    """Bind, creating an ipc socket's folder; the socket file gets mode 0660
+    (the service's group may connect, nobody else)."""
+    path = _ipc_path(endpoint)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True, mode=0o750)
+    socket.bind(endpoint)
+    if path is not None:
+        os.chmod(path, 0o660)
+
+
+def make_sockets(context: zmq.Context, config: Config) -> tuple[zmq.Socket, zmq.Socket]:
+    publisher = context.socket(zmq.PUB)
+    publisher.setsockopt(zmq.SNDHWM, PUB_HWM)
+    publisher.setsockopt(zmq.LINGER, 0)
+    for endpoint in config.publish:
+        bind(publisher, endpoint)
+    control = context.socket(zmq.ROUTER)
+    control.setsockopt(zmq.MAXMSGSIZE, MAX_REQUEST)
+    control.setsockopt(zmq.RCVHWM, CONTROL_HWM)
+    control.setsockopt(zmq.LINGER, 0)
+    bind(control, config.control)
+    return publisher, control
+
+
+def run(config: Config) -> int:
+    bus = open_configured_bus(config)
+    context = zmq.Context()
+    publisher, control = make_sockets(context, config)
+    daemon = Daemon(config, bus, publisher, control, notifier=Notifier())
+
+    def stop(signum: int, frame: object) -> None:
+        daemon.stop_requested = True
+
+    def reload(signum: int, frame: object) -> None:
+        daemon.reload_requested = True
+
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, stop)
+    signal.signal(signal.SIGHUP, reload)
+    log.info("ftsensord on %s: %s; publishing on %s, control on %s", config.bus, config.bound().describe(),
+             ", ".join(config.publish), config.control)
+    try:
+        return daemon.run()
+    finally:
+        publisher.close()
+        control.close()
+        context.term()
+        bus.close()
+        for endpoint in (*config.publish, config.control):
+            path = _ipc_path(endpoint)
+            if path is not None and path.exists():
+                path.unlink()

@@ -1,0 +1,77 @@
+"""The wire format of published samples (docs/protocol.md has it byte by byte).
+
+One ZeroMQ frame per sample: the topic (ASCII, e.g. ``wrench/sensor1``), one
+NUL byte, then a 40-byte little-endian header and ``count`` float64 values.
+A single frame lets a subscriber keep only the newest sample (ZMQ_CONFLATE),
+and a C client decodes it with one memcpy per field.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import WireError
+
+MAGIC = 0x5446  # b"FT" read as a little-endian u16
+VERSION = 1
+KIND_WRENCH = 1
+KIND_FLUX = 2
+
+#: magic u16, version u8, kind u8, flags u32, seq u64, t_mono f64, t_wall f64,
+#: count u16, reserved u16, reserved u32: 40 bytes, so the values start 8-aligned.
+HEADER = struct.Struct("<HBBIQddHHI")
+assert HEADER.size == 40
+
+# Status flags: each marks every sample a condition affects.
+FLAG_CHIP_MISSING = 1 << 0  # a chip did not answer this cycle
+FLAG_SATURATED = 1 << 1  # a chip's reading was at or past its range
+FLAG_STALE = 1 << 2  # a chip had no new data: its previous reading was used
+FLAG_OVERLOAD = 1 << 3  # the wrench is beyond the sensor's range
+FLAG_DEGRADED = 1 << 4  # estimated from fewer chips than calibrated
+FLAG_LATE = 1 << 5  # the cycle began after its deadline
+FLAG_INVALID = 1 << 6  # no estimate possible: the values are NaN
+
+FLAG_NAMES = {FLAG_CHIP_MISSING: "chip_missing", FLAG_SATURATED: "saturated", FLAG_STALE: "stale",
+              FLAG_OVERLOAD: "overload", FLAG_DEGRADED: "degraded", FLAG_LATE: "late",
+              FLAG_INVALID: "invalid"}
+
+
+def flag_names(flags: int) -> list[str]:
+    return [name for bit, name in FLAG_NAMES.items() if flags & bit]
+
+
+@dataclass(frozen=True)
+class Sample:
+    """One decoded sample. ``values``: a wrench [fx fy fz mx my mz] (N, Nm) in
+    the stream's frame, or the raw flux of a sensor's chips (T, chip frames)."""
+
+    topic: str
+    kind: int
+    seq: int
+    t_mono: float
+    t_wall: float
+    flags: int
+    values: np.ndarray
+
+
+def encode(topic: str, kind: int, seq: int, t_mono: float, t_wall: float, flags: int,
+           values: np.ndarray) -> bytes:
+    values = np.ascontiguousarray(values, dtype="<f8")
+    return (topic.encode("ascii") + b"\0" + HEADER.pack(MAGIC, VERSION, kind, flags, seq, t_mono, t_wall,
+                                                         len(values), 0, 0) + values.tobytes())
+
+
+def decode(frame: bytes) -> Sample:
+    topic, sep, body = bytes(frame).partition(b"\0")
+    if not sep or len(body) < HEADER.size:
+        raise WireError("frame too short or without a topic")
+    magic, version, kind, flags, seq, t_mono, t_wall, count, _, _ = HEADER.unpack_from(body)
+    if magic != MAGIC or version != VERSION:
+        raise WireError(f"not an ftsensord v{VERSION} sample (magic 0x{magic:04X}, version {version})")
+    if len(body) != HEADER.size + 8 * count:
+        raise WireError(f"{count} values announced, {(len(body) - HEADER.size) / 8:g} present")
+    values = np.frombuffer(body, dtype="<f8", count=count, offset=HEADER.size).copy()
+    return Sample(topic.decode("ascii"), kind, seq, t_mono, t_wall, flags, values)
