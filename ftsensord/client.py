@@ -2,8 +2,8 @@
 
     from ftsensord.client import Subscriber, ControlClient
 
-    with Subscriber(streams=["wrench/sensor1"]) as sub:
-        for sample in sub:              # ftsensord.wire.Sample; values in N, Nm
+    with Subscriber(streams=["wrench/sensor1"], latest=True) as sub:
+        for sample in sub:              # the newest ftsensord.wire.Sample; N, Nm
             print(sample.seq, sample.values)
 
     ControlClient().tare(samples=100)
@@ -25,6 +25,8 @@ from . import wire
 from .config import runtime_dir
 from .errors import ControlError, DaemonNotAnswering
 
+#: Samples a recording subscriber may queue: 10 s of five streams at 100 Hz.
+QUEUE_HWM = 5000
 #: Where the systemd unit's RuntimeDirectory puts the sockets.
 SERVICE_RUNTIME_DIR = Path("/run/ftsensord")
 
@@ -89,33 +91,49 @@ class ControlClient:
 class Subscriber:
     """Decoded samples of some streams (``None``: all), with gap counting.
 
-    ``conflate`` keeps only the newest sample (for one stream only: ZeroMQ
-    conflates across everything the socket receives).
+    Two modes. ``latest=True`` (a haptic loop): one conflating socket per
+    stream, so `receive` always gives the newest sample and never a backlog;
+    the sequence numbers count what was skipped. ``latest=False`` (recording):
+    one socket with a deep queue, so a reader that keeps up gets every sample.
+    ZeroMQ drops the *newest* messages when a queue is full, which is why the
+    haptic mode conflates rather than keeping a short queue.
     """
 
     def __init__(self, endpoint: str | None = None, streams: Sequence[str] | None = None, *,
-                 conflate: bool = False, context: zmq.Context | None = None):
+                 latest: bool = False, context: zmq.Context | None = None):
         self.endpoint = endpoint or default_endpoint("wrench")
         self.context = context or zmq.Context.instance()
-        self.socket = self.context.socket(zmq.SUB)
-        self.socket.setsockopt(zmq.LINGER, 0)
-        if conflate:
-            self.socket.setsockopt(zmq.CONFLATE, 1)
-        else:
-            self.socket.setsockopt(zmq.RCVHWM, 64)
-        for stream in streams or [""]:
-            # The NUL after the topic makes "wrench/sensor1" not match "wrench/sensor10".
-            self.socket.setsockopt(zmq.SUBSCRIBE, stream.encode() + b"\0" if stream else b"")
-        self.socket.connect(self.endpoint)
+        if latest and not streams:
+            raise ValueError("latest=True needs the streams named (one conflating socket each)")
+        groups = [[stream] for stream in streams] if latest else [list(streams or [""])]
+        self.sockets = []
+        for group in groups:
+            sock = self.context.socket(zmq.SUB)
+            sock.setsockopt(zmq.LINGER, 0)
+            if latest:
+                sock.setsockopt(zmq.CONFLATE, 1)
+            else:
+                sock.setsockopt(zmq.RCVHWM, QUEUE_HWM)
+            for stream in group:
+                # The NUL after the topic makes "wrench/sensor1" not match "wrench/sensor10".
+                sock.setsockopt(zmq.SUBSCRIBE, stream.encode() + b"\0" if stream else b"")
+            sock.connect(self.endpoint)
+            self.sockets.append(sock)
+        self.poller = zmq.Poller()
+        for sock in self.sockets:
+            self.poller.register(sock, zmq.POLLIN)
         self.last_seq: dict[str, int] = {}
         self.gaps: dict[str, int] = {}
         self.received = 0
 
     def receive(self, timeout_s: float | None = None) -> wire.Sample | None:
-        """The next sample, or None after ``timeout_s`` (None: wait forever)."""
-        if timeout_s is not None and not self.socket.poll(int(timeout_s * 1000)):
+        """The next sample (in latest mode: the newest of a stream that has one),
+        or None after ``timeout_s`` (None: wait forever)."""
+        ready = dict(self.poller.poll(None if timeout_s is None else int(timeout_s * 1000)))
+        sock = next((s for s in self.sockets if s in ready), None)
+        if sock is None:
             return None
-        sample = wire.decode(self.socket.recv())
+        sample = wire.decode(sock.recv())
         last = self.last_seq.get(sample.topic)
         if last is not None and sample.seq > last + 1:
             self.gaps[sample.topic] = self.gaps.get(sample.topic, 0) + sample.seq - last - 1
@@ -130,7 +148,8 @@ class Subscriber:
                 yield sample
 
     def close(self) -> None:
-        self.socket.close()
+        for sock in self.sockets:
+            sock.close()
 
     def __enter__(self) -> Subscriber:
         return self

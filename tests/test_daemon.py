@@ -1,0 +1,326 @@
+"""The daemon's cycle, flags, tare, control and reload, on a virtual clock with
+real (inproc) ZeroMQ sockets."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import socket
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zmq
+
+from ftsensord import wire
+from ftsensord.config import load_config
+from ftsensord.daemon import Daemon
+from ftsensord.errors import ConfigError
+from ftsensord.sdnotify import Notifier
+from ftsensord.sim import VirtualClock, load_scene, simulated_bus
+
+LOAD = [1.0, -0.5, 0.8, 0.02, -0.01, 0.015]
+_ids = itertools.count()
+
+SCENE = f"""
+version = 1
+kind = "sensors"
+[[sensor]]
+name = "sensor1"
+addresses = [0x0C, 0x0D, 0x0E, 0x0F, 0x10, 0x11, 0x12, 0x13]
+[sensor.load]
+kind = "static"
+wrench = {LOAD}
+[[sensor]]
+name = "sensor2"
+addresses = [0x14, 0x15, 0x16, 0x17, 0x18, 0x19, 0x1A, 0x1B]
+"""
+
+
+def write_config(folder: Path, extra: str = "", sensor1_cal: str = "builtin:sim-sensor1.json",
+                 rate_hz: float = 100, chip: str = "") -> Path:
+    (folder / "scene.toml").write_text(SCENE)
+    path = folder / "ftsensord.toml"
+    path.write_text(f"""
+version = 1
+bus = "sim:scene.toml"
+rate_hz = {rate_hz}
+{extra}
+[chip]
+{chip}
+[[sensor]]
+name = "sensor1"
+addresses = [0x0C, 0x0D, 0x0E, 0x0F, 0x10, 0x11, 0x12, 0x13]
+calibration = "{sensor1_cal}"
+[[sensor]]
+name = "sensor2"
+addresses = [0x14, 0x15, 0x16, 0x17, 0x18, 0x19, 0x1A, 0x1B]
+calibration = "builtin:sim-sensor2.json"
+[tool.offsets_m]
+sensor1 = [0.0, 0.0, -0.2]
+sensor2 = [0.0, 0.0, -0.1]
+""")
+    return path
+
+
+class Rig:
+    """A daemon on a virtual clock, a subscriber, and a REQ client on its control socket."""
+
+    def __init__(self, folder: Path, extra: str = "", notifier: Notifier | None = None, **config):
+        self.config = load_config(write_config(folder, extra, **config))
+        self.clock = VirtualClock()
+        self.scene = load_scene(folder / "scene.toml")
+        self.bus = simulated_bus(self.scene, clock=self.clock, bus_hz=400e3, seed=5)
+        ctx = zmq.Context.instance()
+        n = next(_ids)
+        self.pub, self.sub = ctx.socket(zmq.PUB), ctx.socket(zmq.SUB)
+        self.pub.bind(f"inproc://pub{n}")
+        self.sub.connect(f"inproc://pub{n}")
+        self.sub.setsockopt(zmq.SUBSCRIBE, b"")
+        self.router, self.req = ctx.socket(zmq.ROUTER), ctx.socket(zmq.REQ)
+        self.router.bind(f"inproc://ctl{n}")
+        self.req.connect(f"inproc://ctl{n}")
+        self.daemon = Daemon(self.config, self.bus, self.pub, self.router, notifier=notifier,
+                             clock=self.clock.now, wall=lambda: 1.7e9 + self.clock.now())
+        self.daemon.start()
+
+    def cycles(self, n: int = 1) -> dict[str, list[wire.Sample]]:
+        """Run n cycles on the deadline grid; return what was published, by topic."""
+        out: dict[str, list[wire.Sample]] = {}
+        for _ in range(n):
+            deadline = self.clock.now() + self.daemon.period_s
+            self.daemon.cycle()
+            self.clock.wait_until(deadline)
+            while self.sub.poll(0):
+                s = wire.decode(self.sub.recv())
+                out.setdefault(s.topic, []).append(s)
+        return out
+
+    def request(self, **req) -> dict:
+        self.req.send(json.dumps(req).encode())
+        self.daemon.handle_control()
+        assert self.req.poll(1000), "no reply"
+        return json.loads(self.req.recv())
+
+    def close(self) -> None:
+        for s in (self.pub, self.sub, self.router, self.req):
+            s.close(linger=0)
+
+
+@pytest.fixture
+def rig(tmp_path):
+    r = Rig(tmp_path)
+    yield r
+    r.close()
+
+
+def test_every_stream_is_published_with_increasing_sequence_numbers(rig):
+    out = rig.cycles(5)
+    assert sorted(out) == ["flux/sensor1", "flux/sensor2", "wrench/sensor1", "wrench/sensor2", "wrench/tip"]
+    for samples in out.values():
+        assert [s.seq for s in samples] == [0, 1, 2, 3, 4]
+        assert all(b.t_mono > a.t_mono for a, b in zip(samples, samples[1:]))
+    assert len(out["flux/sensor1"][0].values) == 24
+
+
+def test_the_wrench_is_the_applied_one_within_the_calibrations_error(rig):
+    out = rig.cycles(40)
+    w1 = np.mean([s.values for s in out["wrench/sensor1"]], axis=0)
+    w2 = np.mean([s.values for s in out["wrench/sensor2"]], axis=0)
+    # Calibration validates to < 0.1 N and 2 mNm; the load is outside its poses, so allow 3x.
+    assert np.allclose(w1[:3], LOAD[:3], atol=0.3) and np.allclose(w1[3:], LOAD[3:], atol=0.006)
+    assert np.allclose(w2[:3], 0, atol=0.3) and np.allclose(w2[3:], 0, atol=0.006)
+    tip = np.mean([s.values for s in out["wrench/tip"]], axis=0)
+    expected = np.concatenate([w1[:3] + w2[:3], w1[3:] + w2[3:] + np.cross([0, 0, -0.2], w1[:3])
+                               + np.cross([0, 0, -0.1], w2[:3])])
+    assert np.allclose(tip, expected, atol=1e-9)
+    assert all(s.flags == 0 for s in out["wrench/sensor1"])
+
+
+def test_a_missing_chip_invalidates_its_sensor_only_and_recovers_without_restart(rig):
+    rig.bus.faults.nack(0x0E)
+    out = rig.cycles(3)
+    for s in out["wrench/sensor1"]:
+        assert s.flags & wire.FLAG_CHIP_MISSING and s.flags & wire.FLAG_INVALID and np.all(np.isnan(s.values))
+    assert all(np.isnan(s.values[6:9]).all() for s in out["flux/sensor1"])
+    assert all(s.flags == 0 and np.all(np.isfinite(s.values)) for s in out["wrench/sensor2"])
+    assert out["wrench/tip"][-1].flags & wire.FLAG_INVALID
+    status = rig.daemon.status()
+    assert not status["chips"]["0x0E"]["ok"] and status["chips"]["0x0E"]["errors"] >= 3
+    rig.bus.faults.clear()
+    out = rig.cycles(2)
+    assert out["wrench/sensor1"][-1].flags == 0 and rig.daemon.status()["chips"]["0x0E"]["ok"]
+
+
+def test_a_saturated_chip_is_flagged_and_gives_no_wrench(rig):
+    rig.scene.sensors[0].load = type(rig.scene.sensors[0].load)(np.array([0, 0, 0, 0, 0, 0.0]))
+    rig.bus.chips[0x0D].scene = type("Strong", (), {
+        "addresses": rig.scene.addresses, "field_t": lambda self, a, t: np.array([0, 0, 0.07]),
+        "temperature_c": lambda self, a, t: 25.0})()
+    s = rig.cycles(1)["wrench/sensor1"][0]
+    assert s.flags & wire.FLAG_SATURATED and s.flags & wire.FLAG_INVALID and np.all(np.isnan(s.values))
+    assert rig.daemon.status()["chips"]["0x0D"]["saturated"] == 1
+
+
+def test_burst_reading_faster_than_conversion_flags_stale_and_reuses_the_last_reading(tmp_path):
+    # OSR 3, DIG_FILT 5: a burst result every 52 ms, so a read 4 ms later finds none.
+    rig = Rig(tmp_path, 'scheduler = "burst"', rate_hz=10, chip="osr = 3\ndig_filt = 5")
+    rig.clock.sleep(0.1)
+    rig.daemon.cycle()
+    rig.daemon.cycle()  # 4 ms later: no chip has converted since
+    samples = [wire.decode(rig.sub.recv()) for _ in range(2 * 5)]
+    first, second = [x for x in samples if x.topic == "wrench/sensor1"]
+    assert not first.flags & wire.FLAG_STALE
+    assert second.flags & wire.FLAG_STALE and not second.flags & wire.FLAG_INVALID
+    assert np.allclose(second.values, first.values)
+    assert rig.daemon.status()["chips"]["0x0C"]["stale"] == 1
+    rig.close()
+
+
+def test_tare_zeroes_the_output_and_status_shows_the_offset(rig):
+    rig.req.send(json.dumps({"cmd": "tare", "samples": 10}).encode())
+    rig.daemon.handle_control()
+    assert not rig.req.poll(50)  # the reply waits for the samples
+    rig.cycles(10)
+    assert rig.req.poll(1000)
+    reply = json.loads(rig.req.recv())
+    assert reply["ok"] and reply["result"]["samples"] == 10
+    offset = reply["result"]["tare_wrench"]["sensor1"]
+    assert np.allclose(offset[:3], LOAD[:3], atol=0.3)
+    out = rig.cycles(20)
+    w = np.mean([s.values for s in out["wrench/sensor1"]], axis=0)
+    assert np.allclose(w[:3], 0, atol=0.05) and np.allclose(w[3:], 0, atol=0.002)
+    sensors = rig.request(cmd="status")["result"]["sensors"]
+    assert sensors["sensor1"]["tared"] and np.allclose(sensors["sensor1"]["tare_wrench"], offset, atol=0.05)
+
+
+def test_status_reports_rate_bound_jitter_chips_and_calibrations(rig):
+    rig.cycles(20)
+    st = rig.request(cmd="status")["result"]
+    assert st["achieved_rate_hz"] == pytest.approx(100.0, rel=1e-6)  # virtual time: exact
+    assert st["bound_hz"] == pytest.approx(132.4, abs=0.1) and "overlapped" in st["bound"]
+    assert st["cycles"] == 20 and st["missed_cycles"] == 0
+    assert set(st["jitter_us"]) == {"p50", "p99", "max"}
+    assert len(st["chips"]) == 16 and st["chips"]["0x0C"]["temperature_c"] == pytest.approx(25, abs=1)
+    assert st["sensors"]["sensor1"]["serial"] == "sim-sensor1" and not st["sensors"]["sensor1"]["tared"]
+
+
+@pytest.mark.parametrize(("request_", "error"), [
+    (b"not json", "not JSON"), (b"\xff\xfe\x00", "not JSON"), (b"[1, 2]", 'string "cmd"'),
+    (b'{"cmd": 5}', 'string "cmd"'), (b'{"cmd": "launch"}', "unknown command"),
+    (b'{"cmd": "tare", "samples": "many"}', "samples"), (b'{"cmd": "tare", "samples": 0}', "samples"),
+    (b'{"cmd": "tare", "sensor": "sensor9"}', "sensor9"), (b'{"cmd": "status", "verbose": true}', "unknown argument"),
+    (b'{"cmd": "set", "rate_hz": 500}', "cannot be met"), (b'{"cmd": "set", "averaging": 0}', "averaging"),
+    (b'{"cmd": "set", "lowpass_hz": 80}', "below half the rate"), (b"[" * 100_000, "not JSON"),
+])
+def test_bad_requests_get_an_error_reply_and_the_loop_goes_on(rig, request_, error):
+    rig.req.send(request_)
+    rig.daemon.handle_control()
+    assert rig.req.poll(1000)
+    reply = json.loads(rig.req.recv())
+    assert reply["ok"] is False and error in reply["error"]
+    assert [s.seq for s in rig.cycles(2)["wrench/sensor1"]] == [0, 1]
+
+
+def test_set_changes_rate_averaging_and_lowpass_at_run_time(rig):
+    reply = rig.request(cmd="set", rate_hz=50, averaging=4, lowpass_hz=5)
+    assert reply == {"ok": True, "result": {"rate_hz": 50.0, "averaging": 4, "lowpass_hz": 5.0}}
+    assert rig.daemon.period_s == pytest.approx(0.02)
+    raw = rig.cycles(30)["flux/sensor1"]
+    assert len(raw) == 30
+    refused = rig.request(cmd="set", rate_hz=133)
+    assert not refused["ok"] and "132.4 Hz at most" in refused["error"] and "burst" in refused["error"]
+
+
+def test_reload_keeps_the_running_calibration_when_the_new_one_is_bad(tmp_path):
+    from ftsensord.config import builtin_path
+    cal = tmp_path / "cal1.json"
+    cal.write_text(builtin_path("sim-sensor1.json").read_text())
+    rig = Rig(tmp_path)
+    write_config(tmp_path, sensor1_cal=str(cal))
+    assert rig.request(cmd="reload")["ok"]
+    before = rig.daemon.sensors[0].model.KA.copy()
+    doc = json.loads(cal.read_text())
+    doc["K"][0].append(1e9)
+    cal.write_text(json.dumps(doc))
+    reply = rig.request(cmd="reload")
+    assert not reply["ok"] and "cal1.json" in reply["error"] and "K" in reply["error"]
+    assert np.array_equal(rig.daemon.sensors[0].model.KA, before)
+    write_config(tmp_path, extra='scheduler = "burst"', sensor1_cal=str(cal.with_name("missing.json")))
+    assert "missing.json" in rig.request(cmd="reload")["error"]
+    assert rig.cycles(1)["wrench/sensor1"][0].flags == 0
+    rig.close()
+
+
+def test_a_restart_only_change_is_refused_at_reload(tmp_path):
+    rig = Rig(tmp_path)
+    write_config(tmp_path, extra='scheduler = "burst"')
+    reply = rig.request(cmd="reload")
+    assert not reply["ok"] and "scheduler needs a restart" in reply["error"]
+    assert rig.daemon.config.scheduler == "overlapped"
+    rig.close()
+
+
+def test_ready_after_the_first_cycle_and_watchdog_only_as_cycles_complete(tmp_path):
+    path = tmp_path / "notify"
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    server.bind(str(path))
+    server.settimeout(1.0)
+    clock = VirtualClock()
+    # WatchdogSec=16 ms: a ping is due every 8 ms, so every 10 ms cycle pings.
+    notifier = Notifier({"NOTIFY_SOCKET": str(path), "WATCHDOG_USEC": "16000"}, clock=clock.now)
+    rig = Rig(tmp_path, notifier=notifier)
+    notifier.clock = rig.clock.now
+    server.setblocking(False)
+    with pytest.raises(BlockingIOError):
+        server.recv(4096)  # nothing before a cycle has published
+    rig.cycles(1)
+    messages = []
+    while True:
+        try:
+            messages.append(server.recv(4096).decode())
+        except BlockingIOError:
+            break
+    assert messages[0].startswith("READY=1\nSTATUS=") and "WATCHDOG=1" in messages
+    rig.cycles(4)
+    rig.clock.sleep(1.0)  # time passes, but no cycle completes: no ping
+    pings = []
+    while True:
+        try:
+            pings.append(server.recv(4096).decode())
+        except BlockingIOError:
+            break
+    assert pings.count("WATCHDOG=1") == 4
+    rig.close()
+    server.close()
+
+
+def test_config_refuses_a_rate_above_the_bound_naming_it(tmp_path):
+    with pytest.raises(ConfigError) as exc:
+        load_config(write_config(tmp_path, rate_hz=150))
+    msg = str(exc.value)
+    assert "rate_hz: 150 Hz cannot be met" in msg and "132.4 Hz at most" in msg and "burst 272 Hz" in msg
+
+
+@pytest.mark.parametrize(("edit", "key", "expected"), [
+    (("rate_hz = 100", "rate_hz = -1"), "rate_hz", "finite number in [0.1"),
+    (('bus = "sim:scene.toml"', 'bus = "spi:0"'), "bus", "accepted forms"),
+    (('bus = "sim:scene.toml"', 'bus = "sim:nope.toml"'), "bus", "an existing file"),
+    (("0x12, 0x13]", "0x12, 0x12]"), "sensor[0].addresses", "not used twice"),
+    (("[[sensor]]\nname = \"sensor2\"\naddresses = [0x14", "[[sensor]]\nname = \"sensor2\"\naddresses = [0x13"),
+     "sensor[1].addresses", "no other sensor uses"),
+    (('calibration = "builtin:sim-sensor2.json"', 'calibration = "builtin:sim-sensor1.json"'),
+     "sensor[1].calibration", "for the chips"),
+    (("rate_hz = 100", "rate_hz = 100\nscheduler = \"fast\""), "scheduler", 'one of "naive"'),
+    (("[chip]\n", "[chip]\nosr = 0\ndig_filt = 0\n"), "chip", "OSR 0 with DIG_FILT 0"),
+    (("rate_hz = 100", "rate_hz = 100\npublish_tcp = \"tcp://0.0.0.0:5555\""), "publish_tcp", "loopback"),
+    (("sensor2 = [0.0, 0.0, -0.1]", "sensor3 = [0.0, 0.0, -0.1]"), "tool.offsets_m.sensor3", "one of the sensors"),
+    (("rate_hz = 100", "rate_hz = 100\nratehz = 5"), "ratehz", "one of"),
+])
+def test_a_bad_configuration_names_the_file_the_key_and_what_was_expected(tmp_path, edit, key, expected):
+    path = write_config(tmp_path)
+    path.write_text(path.read_text().replace(*edit, 1))
+    with pytest.raises(ConfigError) as exc:
+        load_config(path)
+    msg = str(exc.value)
+    assert str(path) in msg and key in msg and expected in msg, msg

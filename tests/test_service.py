@@ -1,0 +1,198 @@
+"""The service: sd_notify against real datagram sockets, the systemd unit, and
+`ftsensord run` end to end in a subprocess."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ftsensord.client import ControlClient, Subscriber
+from ftsensord.errors import ControlError, DaemonNotAnswering
+from ftsensord.sdnotify import Notifier
+
+from .test_daemon import LOAD, SCENE
+
+ROOT = Path(__file__).resolve().parent.parent
+UNIT = ROOT / "systemd" / "ftsensord.service"
+
+
+# --- sd_notify --------------------------------------------------------------------------
+def test_notify_sends_datagrams_to_a_path_socket(tmp_path):
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    server.bind(str(tmp_path / "n"))
+    server.settimeout(1)
+    n = Notifier({"NOTIFY_SOCKET": str(tmp_path / "n")})
+    assert n.ready("100 Hz") and server.recv(100) == b"READY=1\nSTATUS=100 Hz"
+    assert n.status("up") and server.recv(100) == b"STATUS=up"
+    assert n.stopping() and server.recv(100) == b"STOPPING=1"
+    n.close()
+    server.close()
+
+
+def test_notify_reaches_an_abstract_socket():
+    name = f"ftsensord-test-{os.getpid()}"
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    server.bind("\0" + name)
+    server.settimeout(1)
+    assert Notifier({"NOTIFY_SOCKET": "@" + name}).ready() and server.recv(100) == b"READY=1"
+    server.close()
+
+
+def test_notify_outside_systemd_and_watchdog_rules(tmp_path):
+    assert not Notifier({}).ready() and not Notifier({}).watchdog()
+    # WATCHDOG_PID naming another process: the watchdog is not ours to ping.
+    assert Notifier({"NOTIFY_SOCKET": "/x", "WATCHDOG_USEC": "1000", "WATCHDOG_PID": "1"}).watchdog_interval_s is None
+    assert Notifier({"NOTIFY_SOCKET": "/x", "WATCHDOG_USEC": "3000000"}).watchdog_interval_s == 1.5
+    assert not Notifier({"NOTIFY_SOCKET": str(tmp_path / "gone")}).ready()  # no listener: no crash
+
+
+# --- the unit ---------------------------------------------------------------------------------
+def unit_settings() -> dict[str, list[str]]:
+    settings: dict[str, list[str]] = {}
+    for line in UNIT.read_text().splitlines():
+        if "=" in line and not line.startswith("#"):
+            key, value = line.split("=", 1)
+            settings.setdefault(key.strip(), []).append(value.strip())
+    return settings
+
+
+def test_unit_has_what_the_service_needs():
+    s = unit_settings()
+    assert s["Type"] == ["notify"] and s["Restart"] == ["on-failure"] and "WatchdogSec" in s
+    assert s["ExecReload"] == ["/bin/kill -HUP $MAINPID"] and s["RuntimeDirectory"] == ["ftsensord"]
+    assert s["User"] == ["ftsensord"] and s["SupplementaryGroups"] == ["i2c"]
+    for key, value in (("ProtectSystem", "strict"), ("PrivateTmp", "yes"), ("NoNewPrivileges", "yes"),
+                       ("DevicePolicy", "closed"), ("DeviceAllow", "char-i2c rw")):
+        assert s[key] == [value], key
+    assert s["ExecStart"][0].split()[1:3] == ["run", "--config"]
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze is not installed")
+def test_systemd_analyze_verifies_the_unit(tmp_path):
+    exe = shutil.which("ftsensord") or sys.executable
+    unit = tmp_path / "ftsensord.service"
+    unit.write_text(UNIT.read_text().replace("/usr/local/bin/ftsensord", exe))
+    ok = subprocess.run(["systemd-analyze", "verify", str(unit)], capture_output=True, text=True)
+    assert ok.returncode == 0 and "ftsensord.service" not in ok.stderr, ok.stderr
+    broken = tmp_path / "broken.service"
+    broken.write_text(unit.read_text().replace("Type=notify", "Type=notifyy"))
+    bad = subprocess.run(["systemd-analyze", "verify", str(broken)], capture_output=True, text=True)
+    assert "notifyy" in bad.stderr  # the tool does check what it is given
+
+
+# --- end to end ---------------------------------------------------------------------------------
+@pytest.fixture
+def running(tmp_path):
+    """`ftsensord run` in a subprocess on a scene where sensor1's load steps at 1.5 s."""
+    (tmp_path / "scene.toml").write_text(SCENE.replace(
+        f'kind = "static"\nwrench = {LOAD}', f'kind = "step"\nat_s = 1.5\nbefore = [0, 0, 0, 0, 0, 0]\nafter = {LOAD}'))
+    config = tmp_path / "ftsensord.toml"
+    config.write_text("""
+version = 1
+bus = "sim:scene.toml"
+rate_hz = 100
+[[sensor]]
+name = "sensor1"
+addresses = [0x0C, 0x0D, 0x0E, 0x0F, 0x10, 0x11, 0x12, 0x13]
+calibration = "builtin:sim-sensor1.json"
+[[sensor]]
+name = "sensor2"
+addresses = [0x14, 0x15, 0x16, 0x17, 0x18, 0x19, 0x1A, 0x1B]
+calibration = "builtin:sim-sensor2.json"
+""")
+    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    notify.bind(str(tmp_path / "notify"))
+    notify.settimeout(30)
+    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path), "NOTIFY_SOCKET": str(tmp_path / "notify")}
+    env.pop("RUNTIME_DIRECTORY", None)
+    proc = subprocess.Popen([sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        assert notify.recv(4096).startswith(b"READY=1"), "no READY=1 from the daemon"
+        folder = tmp_path / "ftsensord"
+        yield proc, f"ipc://{folder / 'wrench'}", f"ipc://{folder / 'control'}"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        notify.close()
+
+
+def mean_of(sub: Subscriber, n: int) -> tuple[np.ndarray, list[int]]:
+    samples = [sub.receive(timeout_s=5) for _ in range(n)]
+    assert all(s is not None for s in samples)
+    return np.mean([s.values for s in samples], axis=0), [s.seq for s in samples]
+
+
+def test_end_to_end_load_rate_tare_and_clean_stop(running):
+    proc, pub, ctl = running
+    control = ControlClient(ctl)
+    with Subscriber(pub, ["wrench/sensor1"], latest=True) as newest:
+        time.sleep(2.0)  # past the step at 1.5 s, reading nothing meanwhile
+        first = newest.receive(timeout_s=5)
+        assert first.t_mono > time.monotonic() - 0.05  # the newest sample, not a backlog
+        second = newest.receive(timeout_s=5)
+        assert second.seq > first.seq
+    with Subscriber(pub, ["wrench/sensor1"]) as sub:
+        loaded, seqs = mean_of(sub, 50)
+        assert seqs == list(range(seqs[0], seqs[0] + 50))  # a reader that keeps up misses none
+        assert np.allclose(loaded[:3], LOAD[:3], atol=0.3) and np.allclose(loaded[3:], LOAD[3:], atol=0.006)
+        status = control.status()
+        # Not a timing claim (docs/performance.md has those): the loop runs and reports it.
+        assert status["rate_hz"] == 100 and status["achieved_rate_hz"] > 50
+        assert status["cycles"] > 100 and status["bound_hz"] > 100
+        result = control.tare(samples=20)
+        assert np.allclose(result["tare_wrench"]["sensor1"][:3], LOAD[:3], atol=0.3)
+    with Subscriber(pub, ["wrench/sensor1"]) as sub:
+        tared, _ = mean_of(sub, 30)
+        assert np.allclose(tared[:3], 0, atol=0.05) and np.allclose(tared[3:], 0, atol=0.002)
+        with pytest.raises(ControlError, match="unknown command"):
+            control.request("launch")
+        assert control.status()["sensors"]["sensor1"]["tared"]
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=10) == 0
+    log = proc.stdout.read()
+    assert "stopped after" in log
+    assert not Path(ctl[len("ipc://"):]).exists()  # sockets cleaned up
+
+
+def test_status_without_a_daemon_is_a_clear_nonzero_exit(tmp_path):
+    out = subprocess.run([sys.executable, "-m", "ftsensord", "status", "--control", f"ipc://{tmp_path}/none",
+                          "--timeout", "0.3"], capture_output=True, text=True, timeout=30)
+    assert out.returncode == 1 and "no ftsensord answered" in out.stderr
+    with pytest.raises(DaemonNotAnswering):
+        ControlClient(f"ipc://{tmp_path}/none", timeout_s=0.2).status()
+
+
+def test_cli_echo_record_and_sighup(running, tmp_path):
+    proc, pub, ctl = running
+    echo = subprocess.run([sys.executable, "-m", "ftsensord", "echo", "wrench/sensor2", "--endpoint", pub,
+                           "--count", "3"], capture_output=True, text=True, timeout=30)
+    assert echo.returncode == 0 and len(echo.stdout.splitlines()) == 3
+    csv = tmp_path / "rec.csv"
+    rec = subprocess.run([sys.executable, "-m", "ftsensord", "record", "flux/sensor1", str(csv), "--endpoint", pub,
+                          "--count", "20"], capture_output=True, text=True, timeout=30)
+    assert rec.returncode == 0, rec.stderr
+    lines = csv.read_text().splitlines()
+    assert lines[0].startswith("# ftsensord record of flux/sensor1; 20 samples")
+    assert lines[1].split(",")[:5] == ["seq", "t_mono_s", "t_wall_s", "flags", "b0x_T"] and len(lines) == 22
+    npz = tmp_path / "rec.npz"
+    subprocess.run([sys.executable, "-m", "ftsensord", "record", "wrench/sensor1", str(npz), "--endpoint", pub,
+                    "--count", "10"], check=True, capture_output=True, timeout=30)
+    data = np.load(npz)
+    assert data["values"].shape == (10, 6) and int(data["gaps"]) >= 0
+    assert np.all(np.diff(data["seq"]) >= 1)
+    proc.send_signal(signal.SIGHUP)  # reload: the daemon goes on
+    time.sleep(0.5)
+    assert ControlClient(ctl).status()["cycles"] > 0 and proc.poll() is None
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=10) == 0
