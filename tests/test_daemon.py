@@ -324,3 +324,16 @@ def test_a_bad_configuration_names_the_file_the_key_and_what_was_expected(tmp_pa
         load_config(path)
     msg = str(exc.value)
     assert str(path) in msg and key in msg and expected in msg, msg
+
+
+def test_the_commented_example_configuration_loads(tmp_path):
+    import shutil
+
+    from ftsensord.config import builtin_path
+    root = Path(__file__).resolve().parent.parent
+    shutil.copy(root / "config" / "ftsensord.toml", tmp_path / "ftsensord.toml")
+    shutil.copy(builtin_path("sim-sensor1.json"), tmp_path / "sensor1.json")
+    shutil.copy(builtin_path("sim-sensor2.json"), tmp_path / "sensor2.json")
+    config = load_config(tmp_path / "ftsensord.toml")
+    assert config.bus == "i2c:1" and config.rate_hz == 100 and len(config.addresses) == 16
+    assert config.tool_offsets_m["sensor1"][2] == -0.2

@@ -1,0 +1,91 @@
+"""Achieved rate of the daemon: 16 simulated chips on a bus that spends real wire time.
+
+Starts `ftsensord run` with the default configuration (the simulated bus, 400 kHz,
+overlapped scheduler, 100 Hz) in a subprocess, subscribes to one stream, and after
+``--seconds`` reports from the subscriber's side: samples received, the rate they imply
+(sequence numbers over the daemon's timestamps), sequence gaps, and from the daemon's
+status: missed and late cycles, jitter, and its CPU time. Run:
+
+    python benchmarks/rate.py --seconds 60 [--rate 100] [--scheduler overlapped]
+
+and the figures go to docs/performance.md by hand, with the command line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from ftsensord.client import ControlClient, Subscriber
+from ftsensord.config import builtin_path
+
+
+def cpu_seconds(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=60.0)
+    parser.add_argument("--rate", type=float, default=100.0)
+    parser.add_argument("--scheduler", default="overlapped")
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        config = Path(tmp) / "ftsensord.toml"
+        config.write_text(builtin_path("sim.toml").read_text()
+                          .replace("rate_hz = 100", f"rate_hz = {args.rate:g}")
+                          .replace('scheduler = "overlapped"', f'scheduler = "{args.scheduler}"')
+                          .replace("builtin:", str(builtin_path("")) + "/"))
+        env = {**os.environ, "XDG_RUNTIME_DIR": tmp}
+        env.pop("RUNTIME_DIRECTORY", None)
+        proc = subprocess.Popen([sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=env,
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        folder = Path(tmp) / "ftsensord"
+        control = ControlClient(f"ipc://{folder / 'control'}", timeout_s=5)
+        try:
+            for _ in range(100):
+                if (folder / "control").exists():
+                    break
+                time.sleep(0.1)
+            control.status()
+            with Subscriber(f"ipc://{folder / 'wrench'}", ["wrench/sensor1"]) as sub:
+                first = sub.receive(timeout_s=5)
+                cpu0, wall0 = cpu_seconds(proc.pid), time.monotonic()
+                status0 = control.status()
+                last = first
+                end = time.monotonic() + args.seconds
+                while time.monotonic() < end:
+                    sample = sub.receive(timeout_s=5)
+                    if sample is None:
+                        break
+                    last = sample
+                cpu1, wall1 = cpu_seconds(proc.pid), time.monotonic()
+                status1 = control.status()
+                gaps = sub.gaps.get("wrench/sensor1", 0)
+                received = sub.received - 1
+        finally:
+            proc.send_signal(signal.SIGTERM)
+            proc.wait(timeout=10)
+    achieved = (last.seq - first.seq) / (last.t_mono - first.t_mono)
+    error = (achieved - args.rate) / args.rate
+    print(f"configured {args.rate:g} Hz, scheduler {args.scheduler}, 16 chips, simulated 400 kHz bus in real time")
+    print(f"bound: {status1['bound']}")
+    print(f"over {last.t_mono - first.t_mono:.1f} s: {received} samples received, achieved {achieved:.3f} Hz "
+          f"({error * 100:+.3f} % of configured), {gaps} sequence gaps")
+    print(f"daemon: missed cycles {status1['missed_cycles'] - status0['missed_cycles']}, late cycles "
+          f"{status1['late_cycles'] - status0['late_cycles']} (started over a tenth of a period late); "
+          f"jitter of the last 1000 cycles p50 {status1['jitter_us']['p50']:.0f} us, "
+          f"p99 {status1['jitter_us']['p99']:.0f} us, max {status1['jitter_us']['max']:.0f} us")
+    print(f"daemon CPU: {(cpu1 - cpu0) / (wall1 - wall0) * 100:.1f} % of one core (bus simulation included)")
+    return 0 if abs(error) <= 0.01 else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
