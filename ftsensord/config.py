@@ -52,6 +52,7 @@ class SensorConfig:
     addresses: tuple[int, ...]
     calibration_path: Path
     calibration: Calibration
+    frame: str  # the frame its wrench is expressed in (default: the calibration's)
 
 
 @dataclass
@@ -146,7 +147,7 @@ def load_config(path: str | Path | None = None) -> Config:
     sensors = []
     seen: set[int] = set()
     for t in doc.tables("sensor"):
-        t.only({"name", "addresses", "calibration"})
+        t.only({"name", "addresses", "calibration", "frame"})
         addresses = parse_addresses(t, "addresses")
         for a in addresses:
             if a in seen:
@@ -160,7 +161,7 @@ def load_config(path: str | Path | None = None) -> Config:
         name = t.string("name")
         if any(s.name == name for s in sensors):
             raise t.fail("name", "a name no other sensor has", name)
-        sensors.append(SensorConfig(name, addresses, cal_path, calibration))
+        sensors.append(SensorConfig(name, addresses, cal_path, calibration, t.string("frame", calibration.frame)))
     rt = runtime_dir()
     publish = [_endpoint(doc, "publish", f"ipc://{rt}/wrench")]
     if "publish_tcp" in doc.doc:

@@ -424,7 +424,7 @@ class Daemon:
             "chips": {f"0x{a:02X}": vars(c) for a, c in self.chip_stats.items()},
             "sensors": {s.name: {
                 "calibration": str(s.config.calibration_path), "serial": s.config.calibration.serial,
-                "frame": s.config.calibration.frame, "tared": s.tared,
+                "frame": s.config.frame, "tared": s.tared,
                 "tare_wrench": self._tare_offset(s, s.model.zero) if s.tared else [0.0] * 6,
             } for s in self.sensors},
             "streams": sorted(self.seq), "publish": self.config.publish, "control": self.config.control,

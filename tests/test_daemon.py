@@ -337,3 +337,23 @@ def test_the_commented_example_configuration_loads(tmp_path):
     config = load_config(tmp_path / "ftsensord.toml")
     assert config.bus == "i2c:1" and config.rate_hz == 100 and len(config.addresses) == 16
     assert config.tool_offsets_m["sensor1"][2] == -0.2
+
+
+def test_shutdown_puts_every_chip_back_to_idle(tmp_path):
+    from ftsensord.sim.chip import Mode
+    rig = Rig(tmp_path, 'scheduler = "burst"')
+    rig.cycles(2)
+    assert all(chip.mode is Mode.BURST for chip in rig.bus.chips.values())
+    rig.bus.faults.nack(0x10)  # one chip gone: shutdown still reaches the others
+    rig.daemon.shutdown()
+    assert all(chip.mode is Mode.IDLE for a, chip in rig.bus.chips.items() if a != 0x10)
+    rig.close()
+
+
+def test_sensor_frame_defaults_to_the_calibrations_and_can_be_named(tmp_path):
+    path = write_config(tmp_path)
+    assert [s.frame for s in load_config(path).sensors] == ["sensor1", "sensor2"]
+    path.write_text(path.read_text().replace('calibration = "builtin:sim-sensor2.json"',
+                                             'calibration = "builtin:sim-sensor2.json"\nframe = "lower"'))
+    rig_config = load_config(path)
+    assert rig_config.sensors[1].frame == "lower"
