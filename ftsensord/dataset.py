@@ -19,7 +19,6 @@ import numpy as np
 
 from . import mlx90393 as mlx
 from .docfile import Table, load_json
-from .errors import ConfigError
 
 DATASET_FORMAT = "ftsensord-calibration-dataset"
 DATASET_VERSION = 1

@@ -11,7 +11,7 @@ from smbus2 import i2c_msg
 from ftsensord import mlx90393 as mlx
 from ftsensord.driver import MLX90393
 from ftsensord.errors import ChipNotRespondingError, ChipRefusedError
-from ftsensord.sim import NOISELESS, NoiseModel, StaticScene, VirtualClock, simulated_bus
+from ftsensord.sim import NoiseModel, StaticScene, VirtualClock, simulated_bus
 
 from .conftest import ADDR
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ftsensord import se3
 from ftsensord.errors import ConfigError
 from ftsensord.geometry import SensorGeometry
 from ftsensord.magnet import cylinder_field
