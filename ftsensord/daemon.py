@@ -325,6 +325,9 @@ class Daemon:
             result = handler(args, envelope)
         except (FtsensordError, ValueError, TypeError) as exc:
             return {"ok": False, "error": str(exc)}
+        except Exception:  # a bug must not stop the loop: log it, answer, go on
+            log.exception("control request %r failed", request.get("cmd"))
+            return {"ok": False, "error": "internal error (logged by the daemon)"}
         return None if result is None else {"ok": True, "result": result}
 
     @staticmethod

@@ -19,7 +19,7 @@ from ftsensord.client import ControlClient, Subscriber
 from ftsensord.errors import ControlError, DaemonNotAnswering
 from ftsensord.sdnotify import Notifier
 
-from .test_daemon import LOAD, SCENE
+from .test_daemon import LOAD, SCENE, write_config
 
 ROOT = Path(__file__).resolve().parent.parent
 UNIT = ROOT / "systemd" / "ftsensord.service"
@@ -93,22 +93,9 @@ def test_systemd_analyze_verifies_the_unit(tmp_path):
 @pytest.fixture
 def running(tmp_path):
     """`ftsensord run` in a subprocess on a scene where sensor1's load steps at 1.5 s."""
+    config = write_config(tmp_path)
     (tmp_path / "scene.toml").write_text(SCENE.replace(
         f'kind = "static"\nwrench = {LOAD}', f'kind = "step"\nat_s = 1.5\nbefore = [0, 0, 0, 0, 0, 0]\nafter = {LOAD}'))
-    config = tmp_path / "ftsensord.toml"
-    config.write_text("""
-version = 1
-bus = "sim:scene.toml"
-rate_hz = 100
-[[sensor]]
-name = "sensor1"
-addresses = [0x0C, 0x0D, 0x0E, 0x0F, 0x10, 0x11, 0x12, 0x13]
-calibration = "builtin:sim-sensor1.json"
-[[sensor]]
-name = "sensor2"
-addresses = [0x14, 0x15, 0x16, 0x17, 0x18, 0x19, 0x1A, 0x1B]
-calibration = "builtin:sim-sensor2.json"
-""")
     notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     notify.bind(str(tmp_path / "notify"))
     notify.settimeout(30)
