@@ -220,7 +220,7 @@ class Daemon:
             return
         stats.errors += 1
         stats.last_error = str(r.error)
-        if isinstance(r.error, ChipRefusedError):
+        if isinstance(r.error, ChipRefusedError) and r.error.command == "RM":
             stats.stale += 1
         else:
             stats.ok = False
@@ -236,7 +236,8 @@ class Daemon:
                 flux[part] = sensor.last_flux[part] = r.measurement.field_t
                 if r.measurement.any_saturated:
                     flags |= wire.FLAG_SATURATED
-            elif isinstance(r.error, ChipRefusedError) and np.all(np.isfinite(sensor.last_flux[part])):
+            elif (isinstance(r.error, ChipRefusedError) and r.error.command == "RM"
+                  and np.all(np.isfinite(sensor.last_flux[part]))):
                 flux[part] = sensor.last_flux[part]
                 flags |= wire.FLAG_STALE
             else:

@@ -91,7 +91,8 @@ class MLX90393:
         """Decode a status byte; raise `ChipRefusedError` when ERROR is set."""
         status = mlx.Status(byte)
         if status.error:
-            raise ChipRefusedError(self.address, f"{command} refused, status {status}", status)
+            raise ChipRefusedError(self.address, f"{command} refused, status {status}", status,
+                                   command.split()[0])
         return status
 
     def _check_mode(self, byte: int, mode_bit: int, name: str) -> mlx.Status:

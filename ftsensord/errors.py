@@ -45,12 +45,14 @@ class ChipNotRespondingError(ChipError):
 class ChipRefusedError(ChipError):
     """The chip answered with ERROR set in its status byte: the command was refused.
 
-    ``status`` is the decoded status byte.
+    ``status`` is the decoded status byte, ``command`` the refused command's name
+    (an "RM" refused means no new data; anything else, a chip in the wrong state).
     """
 
-    def __init__(self, address: int, message: str, status: object):
+    def __init__(self, address: int, message: str, status: object, command: str = ""):
         super().__init__(address, message)
         self.status = status
+        self.command = command
 
 
 class ChipProtocolError(ChipError):

@@ -22,7 +22,7 @@ from typing import Any
 from . import mlx90393 as mlx
 from .bus import BITS_PER_BYTE, I2C_RDWR_MAX_MSGS, Bus
 from .driver import MLX90393, Measurement
-from .errors import ChipError, ConfigError
+from .errors import ChipError, ChipNotRespondingError, ChipProtocolError, ChipRefusedError, ConfigError
 
 SCHEDULERS = ("naive", "overlapped", "burst")
 #: The chip's oscillator runs within +-20 % of nominal: wait for the slowest.
@@ -103,14 +103,46 @@ class ChipResult:
         return self.measurement is not None
 
 
+#: Backoff of a chip that does not come back: retried on the next cycle, then after
+#: 20 ms doubling up to 0.5 s, so a returning chip is in use again within 0.5 s plus its
+#: re-initialisation (about 5 ms), inside the 1 s the reliability figures ask.
+BACKOFF_FIRST_S = 0.02
+BACKOFF_MAX_S = 0.5
+#: X, Y and Z words unchanged this many cycles in a row mean a stuck chip. At the
+#: paper's settings the noise (2-3 uT) is a third of an LSB (6-10 uT): an axis keeps
+#: its code at most ~75 % of the time, all three at most ~40 %; 50 cycles in a row then
+#: happen by chance less than once in 1e20. Heavier filtering (high OSR, DIG_FILT)
+#: lowers the noise below the LSB: set ``stuck_cycles`` higher, or 0 to switch it off.
+STUCK_CYCLES = 50
+#: A chip that has had no new data this many cycles in a row is re-initialised.
+STALE_LIMIT = 10
+
+
+@dataclass
+class ChipHealth:
+    """What the reader knows of one chip beyond its last result."""
+
+    failing: bool = False
+    retry_at: float = 0.0
+    backoff_s: float = 0.0
+    reinits: int = 0
+    register_drifts: int = 0
+    stuck_detections: int = 0
+    same_words: int = 0
+    last_words: tuple[int, ...] | None = None
+    stale_run: int = 0
+
+
 @dataclass
 class Reader:
-    """Reads every chip once a cycle with one of the `SCHEDULERS`.
+    """Reads every chip once a cycle with one of the `SCHEDULERS`, and keeps them healthy.
 
     Healthy chips share batched transfers. A NACK aborts a whole transfer, so
-    when a batch fails its chips are tried one by one; a chip that failed is
-    then read on its own until it answers again, so it cannot cost the others
-    their data.
+    when a batch fails its chips are tried one by one. A chip that fails (no
+    answer, a bad reply, stuck data, no new data for too long, registers that
+    changed) leaves the batches and is re-initialised (reset, configure, burst)
+    when its retry is due, with backoff; it rejoins once that succeeds. Every
+    ``readback_every`` cycles one chip's configuration is read back and compared.
     """
 
     bus: Bus
@@ -119,27 +151,38 @@ class Reader:
     settings: mlx.Settings
     bus_hz: float = 400e3
     overhead_s: float = 0.0
-    failing: set[int] = field(default_factory=set)
+    stuck_cycles: int = STUCK_CYCLES
+    readback_every: int = 10
+    health: dict[int, ChipHealth] = field(default_factory=dict)
+    cycle: int = 0
 
     def __post_init__(self) -> None:
         if self.scheduler not in SCHEDULERS:
             raise ConfigError(f"scheduler: expected one of {', '.join(SCHEDULERS)}, got {self.scheduler!r}")
+        self.health = {c.address: ChipHealth() for c in self.chips}
+
+    @property
+    def failing(self) -> set[int]:
+        return {a for a, h in self.health.items() if h.failing}
 
     def conversion_s(self, zyxt: int) -> float:
         return self.settings.single_measurement_us(zyxt) * 1e-6 * OSC_MARGIN
+
+    def _init(self, chip: MLX90393) -> None:
+        chip.reset()
+        chip.configure(self.settings)
+        if self.scheduler == "burst":
+            chip.start_burst(mlx.ZYXT_XYZ)
 
     def start(self) -> dict[int, ChipError]:
         """Reset and configure every chip (and start burst mode); returns the failures."""
         errors = {}
         for chip in self.chips:
             try:
-                chip.reset()
-                chip.configure(self.settings)
-                if self.scheduler == "burst":
-                    chip.start_burst(mlx.ZYXT_XYZ)
+                self._init(chip)
             except ChipError as exc:
                 errors[chip.address] = exc
-                self.failing.add(chip.address)
+                self._fail(chip.address, self.bus.monotonic())
         return errors
 
     def stop(self) -> None:
@@ -150,6 +193,31 @@ class Reader:
             except ChipError:
                 pass
 
+    def _fail(self, address: int, now: float) -> None:
+        h = self.health[address]
+        if not h.failing:
+            h.failing, h.backoff_s, h.retry_at = True, 0.0, now  # first retry: the next cycle
+        else:
+            h.backoff_s = min(max(2 * h.backoff_s, BACKOFF_FIRST_S), BACKOFF_MAX_S)
+            h.retry_at = now + h.backoff_s
+        h.same_words, h.last_words, h.stale_run = 0, None, 0
+
+    def _recover(self, chip: MLX90393, now: float) -> ChipResult:
+        """A failing chip: re-initialise it when its retry is due; no data this cycle."""
+        h = self.health[chip.address]
+        if now < h.retry_at:
+            return ChipResult(chip.address, error=ChipNotRespondingError(
+                chip.address, f"failing; next retry in {h.retry_at - now:.2f} s"))
+        try:
+            self._init(chip)
+        except ChipError as exc:
+            self._fail(chip.address, now)
+            return ChipResult(chip.address, error=exc)
+        h.failing = False
+        h.reinits += 1
+        return ChipResult(chip.address, error=ChipNotRespondingError(
+            chip.address, "re-initialised; read again from the next cycle"))
+
     def read(self, zyxt: int = mlx.ZYXT_XYZ) -> list[ChipResult]:
         """One cycle: a result for every chip, in the order of ``chips``.
 
@@ -158,16 +226,18 @@ class Reader:
         """
         if self.scheduler == "burst":
             zyxt = mlx.ZYXT_XYZ
+        now = self.bus.monotonic()
+        healthy = [c for c in self.chips if not self.health[c.address].failing]
+        results = {c.address: self._recover(c, now) for c in self.chips if self.health[c.address].failing}
         if self.scheduler == "naive":
-            results = {c.address: self._single(c, zyxt) for c in self.chips}
+            results.update({c.address: self._single(c, zyxt) for c in healthy})
         else:
-            results = {}
-            ready = self.chips
+            ready = healthy
             if self.scheduler == "overlapped":
                 t0 = self.bus.monotonic()
-                started = self._batch(self.chips, lambda c: c.sm_messages(zyxt), self._decode_sm)
-                results = {a: ChipResult(a, error=e) for a, e in started.items() if isinstance(e, ChipError)}
-                ready = [c for c in self.chips if c.address not in results]
+                started = self._batch(healthy, lambda c: c.sm_messages(zyxt), self._decode_sm)
+                results.update({a: ChipResult(a, error=e) for a, e in started.items() if isinstance(e, ChipError)})
+                ready = [c for c in healthy if c.address not in results]
                 # Chip k's RM reaches it later after its SM than chip 0's does (an RM
                 # is longer than an SM), so waiting for chip 0 is enough (docs/performance.md).
                 first = self.overhead_s + (1 + BITS_PER_BYTE * 2) / self.bus_hz
@@ -175,9 +245,51 @@ class Reader:
             decoded = self._batch(ready, lambda c: c.rm_messages(zyxt), lambda c, r: c.decode_measurement(r, zyxt))
             for a, v in decoded.items():
                 results[a] = ChipResult(a, error=v) if isinstance(v, ChipError) else ChipResult(a, v)
-        for address, r in results.items():
-            (self.failing.discard if r.ok else self.failing.add)(address)
+        for chip in healthy:
+            results[chip.address] = self._judge(results[chip.address], now)
+        self._read_back(healthy, now)
+        self.cycle += 1
         return [results[c.address] for c in self.chips]
+
+    def _judge(self, r: ChipResult, now: float) -> ChipResult:
+        """Update a healthy chip's health from its result; a stuck chip's data become an error."""
+        h = self.health[r.address]
+        if r.ok:
+            h.stale_run = 0
+            words = tuple(r.measurement.raw.get(a, -1) for a in "xyz")
+            h.same_words = h.same_words + 1 if words == h.last_words else 0
+            h.last_words = words
+            if self.stuck_cycles and h.same_words >= self.stuck_cycles:
+                h.stuck_detections += 1
+                self._fail(r.address, now)
+                return ChipResult(r.address, error=ChipProtocolError(
+                    r.address, f"stuck: the same X, Y, Z words {self.stuck_cycles + 1} cycles in a row"))
+            return r
+        if isinstance(r.error, ChipRefusedError) and r.error.command == "RM":
+            h.stale_run += 1  # no new data (DRDY low): stale, unless it lasts
+            if h.stale_run <= STALE_LIMIT:
+                return r
+        self._fail(r.address, now)
+        return r
+
+    def _read_back(self, healthy: list[MLX90393], now: float) -> None:
+        """Every ``readback_every`` cycles, compare one chip's registers with what was written."""
+        if not self.readback_every or self.cycle % self.readback_every or not healthy:
+            return
+        chip = healthy[(self.cycle // self.readback_every) % len(healthy)]
+        if self.health[chip.address].failing:
+            return
+        try:
+            if self.scheduler == "burst":
+                chip.exit_mode()  # RR is refused in burst mode
+            matches = chip.configuration_matches()
+            if self.scheduler == "burst" and matches:
+                chip.start_burst(mlx.ZYXT_XYZ)
+        except ChipError:
+            matches = False
+        if not matches:
+            self.health[chip.address].register_drifts += 1
+            self._fail(chip.address, now)
 
     @staticmethod
     def _decode_sm(chip: MLX90393, reply: bytes) -> None:
@@ -195,15 +307,14 @@ class Reader:
             return ChipResult(chip.address, error=exc)
 
     def _batch(self, chips: list[MLX90393], messages: Callable, decode: Callable) -> dict[int, Any]:
-        """One transfer for the healthy chips (21 to an ioctl), one each for the rest.
+        """One transfer per 21 chips; when one fails, each of its chips on its own.
 
         Returns per address what ``decode(chip, reply)`` gave, or the `ChipError`.
         """
         out: dict[int, Any] = {}
-        healthy = [c for c in chips if c.address not in self.failing]
-        alone = [c for c in chips if c.address in self.failing]
-        for k in range(0, len(healthy), CHIPS_PER_TRANSFER):
-            group = healthy[k:k + CHIPS_PER_TRANSFER]
+        alone: list[MLX90393] = []
+        for k in range(0, len(chips), CHIPS_PER_TRANSFER):
+            group = chips[k:k + CHIPS_PER_TRANSFER]
             pairs = [messages(c) for c in group]
             try:
                 self.bus.i2c_rdwr(*[m for pair in pairs for m in pair])

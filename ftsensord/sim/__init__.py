@@ -11,11 +11,12 @@ import numpy as np
 from .bus import BusFaults, SimulatedBus
 from .chip import NOISELESS, EmulatedMLX90393, NoiseModel
 from .clock import MonotonicClock, VirtualClock
+from .faults import Fault, FaultScript
 from .chip import FieldSource
 from .physics import PhysicalScene, SimSensor, two_sensor_scene
 from .scene import StaticScene, default_scene, load_scene
 
-__all__ = ["BusFaults", "EmulatedMLX90393", "FieldSource", "MonotonicClock", "NOISELESS", "NoiseModel",
+__all__ = ["Fault", "FaultScript", "BusFaults", "EmulatedMLX90393", "FieldSource", "MonotonicClock", "NOISELESS", "NoiseModel",
            "PhysicalScene", "SimSensor", "SimulatedBus", "StaticScene", "VirtualClock", "default_scene",
            "load_scene", "simulated_bus", "two_sensor_scene"]
 
@@ -32,4 +33,5 @@ def simulated_bus(scene: FieldSource, *, clock: VirtualClock | MonotonicClock | 
     streams = np.random.SeedSequence(seed).spawn(len(addresses))
     chips = [EmulatedMLX90393(address, scene, rng=np.random.default_rng(stream), noise=noise)
              for address, stream in zip(addresses, streams)]
-    return SimulatedBus(chips, clock=clock, bus_hz=bus_hz)
+    faults = getattr(scene, "faults", [])
+    return SimulatedBus(chips, clock=clock, bus_hz=bus_hz, script=FaultScript(faults) if faults else None)

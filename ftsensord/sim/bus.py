@@ -23,6 +23,7 @@ from smbus2.smbus2 import I2C_M_RD
 from ..bus import BITS_PER_BYTE, I2C_RDWR_MAX_MSGS
 from .chip import EmulatedMLX90393
 from .clock import MonotonicClock, VirtualClock
+from .faults import FaultScript
 
 
 
@@ -81,7 +82,8 @@ class SimulatedBus:
 
     def __init__(self, chips: Iterable[EmulatedMLX90393], *,
                  clock: VirtualClock | MonotonicClock | None = None,
-                 bus_hz: float | None = None, nack_errno: int = errno.ENXIO):
+                 bus_hz: float | None = None, nack_errno: int = errno.ENXIO,
+                 script: FaultScript | None = None):
         self.chips: dict[int, EmulatedMLX90393] = {}
         for chip in chips:
             self.attach(chip)
@@ -90,6 +92,7 @@ class SimulatedBus:
         self.bus_hz = bus_hz
         self.nack_errno = nack_errno
         self.faults = BusFaults()
+        self.script = script
         self.transfers = 0
         self.closed = False
 
@@ -102,6 +105,8 @@ class SimulatedBus:
             raise OSError(errno.EINVAL, f"I2C_RDWR takes 1 to {I2C_RDWR_MAX_MSGS} messages, got {len(msgs)}")
         self.transfers += 1
         start = self.clock.now() - self.epoch
+        if self.script is not None:
+            self.script.apply(self, start)
         bit_s = 0.0 if self.bus_hz is None else self.faults.slowdown / self.bus_hz
         if self.faults.io_errors > 0:
             self.faults.io_errors -= 1

@@ -97,6 +97,7 @@ class EmulatedMLX90393:
             self.nonvolatile[reg] = value
         self.stuck = False
         self.memory_error = False
+        self.field_override: np.ndarray | None = None  # fault: a field from elsewhere (T)
         self._pending_drifts: list[tuple[float, int, int]] = []
         self.power_on()
 
@@ -235,7 +236,8 @@ class EmulatedMLX90393:
     def _convert(self, t: float) -> dict[str, int]:
         """Quantised words of a conversion finishing at time ``t``."""
         s = self.settings()
-        field = np.asarray(self.scene.field_t(self.address, t), dtype=float)
+        field = self.field_override if self.field_override is not None else np.asarray(
+            self.scene.field_t(self.address, t), dtype=float)
         words: dict[str, int] = {}
         for i, axis in enumerate("xyz"):
             # The Hall element saturates near 50 mT whatever the gain.

@@ -108,6 +108,7 @@ class PhysicalScene:
                     raise ValueError(f"address 0x{address:02X} is used twice")
                 self._chip_of[address] = (s, i)
         self._cache: dict[int, tuple[bytes, np.ndarray]] = {}
+        self.faults: list = []  # ftsensord.sim.faults.Fault, applied by the simulated bus
 
     @property
     def addresses(self) -> tuple[int, ...]:

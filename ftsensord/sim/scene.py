@@ -18,6 +18,7 @@ from .. import mlx90393 as mlx
 from ..errors import ConfigError
 from ..geometry import SensorGeometry
 from ..docfile import Table, load_toml
+from .faults import FAULT_KINDS, NEEDS_ADDRESS, Fault
 from .loads import (NO_LOAD, PLANS, CalibrationRobotLoad, Load, RecordedLoad, StaticLoad, StepLoad,
                     paper_plan, ramp)
 from .physics import (CROSSTALK_MODELS, FIELD_MODELS, PAPER_STIFFNESS_DIAG, PhysicalScene,
@@ -36,6 +37,7 @@ class StaticScene:
     fields_t: dict[int, np.ndarray]
     temperatures_c: dict[int, float] = field(default_factory=dict)
     default_temperature_c: float = 25.0
+    faults: list[Fault] = field(default_factory=list)
 
     @property
     def addresses(self) -> tuple[int, ...]:
@@ -116,8 +118,31 @@ def _sensor(t: Table, index: int) -> SimSensor:
                      t.number("stiffening", 0.0, low=0.0), load)
 
 
+def _faults(doc: Table, addresses: tuple[int, ...]) -> list[Fault]:
+    if "fault" not in doc.doc:
+        return []
+    faults = []
+    for t in doc.tables("fault"):
+        t.only({"kind", "at_s", "until_s", "address", "register", "value", "factor", "field_mt"})
+        kind = t.string("kind", choices=FAULT_KINDS)
+        address = None
+        if kind in NEEDS_ADDRESS or "address" in t.doc:
+            address = _address(t, "address", t.get("address"))
+            if address not in addresses:
+                raise t.fail("address", "an address of the scene's chips", f"0x{address:02X}")
+        at = t.number("at_s", low=0, unit="s")
+        until = t.number("until_s", float("inf"), low=at, unit="s, after at_s")
+        if until == at and kind != "drift_register":
+            raise t.fail("until_s", "a time after at_s", until)
+        faults.append(Fault(kind, at, until, address, register=t.integer("register", 0, low=0, high=mlx.REG_MAX),
+                            value=t.integer("value", 0, low=0, high=0xFFFF),
+                            factor=t.number("factor", 1.0, low=1.0, unit="times slower"),
+                            field_mt=t.number("field_mt", 60.0, unit="mT")))
+    return faults
+
+
 def _static(doc: Table) -> StaticScene:
-    doc.only({"version", "kind", "temperature_c", "chip"})
+    doc.only({"version", "kind", "temperature_c", "chip", "fault"})
     fields: dict[int, np.ndarray] = {}
     temps: dict[int, float] = {}
     for chip in doc.tables("chip"):
@@ -128,12 +153,14 @@ def _static(doc: Table) -> StaticScene:
         fields[addr] = np.array(chip.numbers("field_ut", 3, unit="uT, chip frame")) * 1e-6
         if "temperature_c" in chip.doc:
             temps[addr] = chip.number("temperature_c", unit="degC")
-    return StaticScene(fields, temps, doc.number("temperature_c", 25.0, unit="degC"))
+    scene = StaticScene(fields, temps, doc.number("temperature_c", 25.0, unit="degC"))
+    scene.faults = _faults(doc, scene.addresses)
+    return scene
 
 
 def _physical(doc: Table) -> PhysicalScene:
     doc.only({"version", "kind", "field_model", "crosstalk", "temperature_c",
-              "temperature_drift_c_per_s", "sensor"})
+              "temperature_drift_c_per_s", "sensor", "fault"})
     sensors = [_sensor(t, i) for i, t in enumerate(doc.tables("sensor"))]
     seen: set[int] = set()
     for i, s in enumerate(sensors):
@@ -142,10 +169,12 @@ def _physical(doc: Table) -> PhysicalScene:
                 raise ConfigError(f"{doc.path}: sensor[{i}].addresses: expected addresses not used before, "
                                   f"got 0x{a:02X} twice")
             seen.add(a)
-    return PhysicalScene(sensors, field_model=doc.string("field_model", "cylinder", choices=FIELD_MODELS),
-                         crosstalk=doc.string("crosstalk", "dipole", choices=CROSSTALK_MODELS),
-                         temperature_c=doc.number("temperature_c", 25.0, unit="degC"),
-                         temperature_drift_c_per_s=doc.number("temperature_drift_c_per_s", 0.0, unit="degC/s"))
+    scene = PhysicalScene(sensors, field_model=doc.string("field_model", "cylinder", choices=FIELD_MODELS),
+                          crosstalk=doc.string("crosstalk", "dipole", choices=CROSSTALK_MODELS),
+                          temperature_c=doc.number("temperature_c", 25.0, unit="degC"),
+                          temperature_drift_c_per_s=doc.number("temperature_drift_c_per_s", 0.0, unit="degC/s"))
+    scene.faults = _faults(doc, scene.addresses)
+    return scene
 
 
 def load_scene(path: str | Path) -> StaticScene | PhysicalScene:
