@@ -22,7 +22,7 @@ from .model import LinearModel, PositionMap
 
 CAL_FORMAT = "ftsensord-calibration"
 CAL_VERSION = 1
-CAL_UNITS = {"K": "N/m, Nm/rad", "A": "m/T, rad/T", "zero_flux": "T", "wrench": "N, Nm",
+CAL_UNITS = {"K": "N/m, Nm/rad", "A": "m/T, rad/T", "H": "T/m, T/rad", "zero_flux": "T", "wrench": "N, Nm",
              "twist": "m, rad", "position_map": "M: m/T, o: m"}
 
 
@@ -43,10 +43,13 @@ class Calibration:
             "sensor": {"serial": self.serial, "frame": self.frame,
                        "addresses": [f"0x{a:02X}" for a in self.addresses]},
             "model": "w = K A (b - zero_flux); b stacks each chip's (Bx, By, Bz) in its own frame, "
-                     "chips in the order of sensor.addresses; w = [fx fy fz mx my mz] in the sensor frame",
+                     "chips in the order of sensor.addresses; w = [fx fy fz mx my mz] in the sensor frame. "
+                     "With chips missing: w = K pinv(H_S) (b_S - zero_S) over the channels S left",
             "K": self.model.K.tolist(), "A": self.model.A.tolist(), "zero_flux": self.model.zero.tolist(),
             "fit_report": self.report,
         }
+        if self.model.H is not None:
+            doc["H"] = self.model.H.tolist()
         if self.position_map is not None:
             doc["position_map"] = {"M": self.position_map.M.tolist(), "o": self.position_map.o.tolist()}
         doc["checksum"] = checksum(doc)
@@ -60,7 +63,7 @@ class Calibration:
         """Read and validate; errors name the file, the key and what was expected."""
         raw = load_json(path)
         doc = Table(raw, path)
-        doc.only({"format", "version", "units", "sensor", "model", "K", "A", "zero_flux", "fit_report",
+        doc.only({"format", "version", "units", "sensor", "model", "K", "A", "H", "zero_flux", "fit_report",
                   "position_map", "checksum"})
         if doc.get("format") != CAL_FORMAT:
             raise doc.fail("format", f'"{CAL_FORMAT}"', doc.get("format"))
@@ -75,6 +78,7 @@ class Calibration:
         K = np.array(doc.matrix("K", 6, 6, unit="N/m, Nm/rad"))
         A = np.array(doc.matrix("A", 6, n, unit="m/T, rad/T"))
         zero = np.array(doc.numbers("zero_flux", n, unit="T"))
+        H = np.array(doc.matrix("H", n, 6, unit="T/m, T/rad")) if "H" in raw else None
         pmap = None
         if "position_map" in raw:
             pm = doc.table("position_map")
@@ -92,7 +96,7 @@ class Calibration:
             raise doc.fail("checksum", f"{checksum(raw)} (the file was changed after it was written)", stored)
         if np.linalg.matrix_rank(K @ A) < 6:
             raise doc.fail("K", "K A of rank 6 (a sensor must see all six axes)", "a rank-deficient K A")
-        return cls(LinearModel(K, A, zero), addresses, sensor.string("serial", ""),
+        return cls(LinearModel(K, A, zero, H), addresses, sensor.string("serial", ""),
                    sensor.string("frame", "sensor"), pmap, report)
 
 

@@ -148,11 +148,14 @@ def fit_linear(flux: np.ndarray, twist: np.ndarray, wrench: np.ndarray, floor_t:
     keep = s > tol
     pinv = (vt[keep].T / s[keep]) @ u[:, keep].T  # (24, n)
     A = (pinv @ (twist - twist.mean(axis=0))).T
-    z = np.column_stack([centred @ A.T, np.ones(len(flux))])
+    xi = centred @ A.T  # the fitted twists, centred
+    z = np.column_stack([xi, np.ones(len(flux))])
     coef, *_ = np.linalg.lstsq(z, wrench, rcond=None)
     K, c = coef[:6].T, coef[6]
     zero = b_mean - np.linalg.pinv(A) @ np.linalg.solve(K, c)
-    return LinearFit(LinearModel(K, A, zero), int(keep.sum()), float(floor_t))
+    # The forward model for degraded mode: flux from twist, b - b0 = H xi.
+    Ht, *_ = np.linalg.lstsq(xi, centred, rcond=None)
+    return LinearFit(LinearModel(K, A, zero, Ht.T), int(keep.sum()), float(floor_t))
 
 
 def rmse(model: LinearModel, dataset: Dataset) -> np.ndarray:

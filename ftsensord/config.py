@@ -21,7 +21,7 @@ from .calfile import Calibration
 from .dataset import parse_addresses
 from .docfile import Table, load_toml
 from .errors import ConfigError
-from .schedule import SCHEDULERS, CycleBound, cycle_bound
+from .schedule import SCHEDULERS, STUCK_CYCLES, CycleBound, cycle_bound
 
 CONFIG_VERSION = 1
 BUILTIN = "builtin:"
@@ -73,6 +73,9 @@ class Config:
     control: str
     tool_offsets_m: dict[str, np.ndarray] = field(default_factory=dict)
     temperature_every: int = 100
+    stuck_cycles: int = STUCK_CYCLES
+    readback_every: int = 10
+    max_missing_chips: int = 2
 
     @property
     def addresses(self) -> list[int]:
@@ -124,7 +127,8 @@ def load_config(path: str | Path | None = None) -> Config:
     path = Path(path) if path is not None else default_config_path()
     doc = Table(load_toml(path), path)
     doc.only({"version", "bus", "bus_hz", "bus_overhead_us", "rate_hz", "scheduler", "averaging",
-              "lowpass_hz", "temperature_every", "publish", "publish_tcp", "control", "chip", "sensor", "tool"})
+              "lowpass_hz", "temperature_every", "stuck_cycles", "readback_every", "max_missing_chips", "publish", "publish_tcp",
+              "control", "chip", "sensor", "tool"})
     doc.integer("version", what=str(CONFIG_VERSION), low=CONFIG_VERSION, high=CONFIG_VERSION)
     bus = doc.string("bus")
     try:
@@ -175,7 +179,11 @@ def load_config(path: str | Path | None = None) -> Config:
         lowpass_hz=doc.number("lowpass_hz", 0.0, low=0, unit="Hz (0: off)"),
         settings=settings, sensors=sensors, publish=publish,
         control=_endpoint(doc, "control", f"ipc://{rt}/control"),
-        temperature_every=doc.integer("temperature_every", 100, low=0, what="cycles (0: never)"))
+        temperature_every=doc.integer("temperature_every", 100, low=0, what="cycles (0: never)"),
+        stuck_cycles=doc.integer("stuck_cycles", STUCK_CYCLES, low=0, what="cycles (0: no stuck detection)"),
+        readback_every=doc.integer("readback_every", 10, low=0, what="cycles (0: no register read-back)"),
+        max_missing_chips=doc.integer("max_missing_chips", 2, low=0, high=5,
+                                      what="0 to 5 chips (degraded mode; 0: off)"))
     if "tool" in doc.doc:
         tool = doc.table("tool")
         tool.only({"offsets_m"})

@@ -93,7 +93,8 @@ class Daemon:
         self.notifier = notifier or Notifier(environ={})
         self.clock, self.wall = clock, wall
         chips = [MLX90393(bus, a, sleep=bus.sleep) for a in config.addresses]
-        self.reader = Reader(bus, chips, config.scheduler, config.settings, config.bus_hz, config.bus_overhead_s)
+        self.reader = Reader(bus, chips, config.scheduler, config.settings, config.bus_hz, config.bus_overhead_s,
+                             stuck_cycles=config.stuck_cycles, readback_every=config.readback_every)
         self.chip_stats = {a: ChipStats(s.name) for s in config.sensors for a in s.addresses}
         self.sensors = [self._runtime(s) for s in config.sensors]
         self.seq: dict[str, int] = {}
@@ -181,14 +182,11 @@ class Daemon:
         base = wire.FLAG_LATE if late else 0
         wrenches, tip_flags = {}, base
         for sensor in self.sensors:
-            flux, flags = self._flux(sensor, results)
+            flux, flags, usable = self._flux(sensor, results)
             flags |= base
             self._publish(f"flux/{sensor.name}", wire.KIND_FLUX, t_mono, t_wall, flags, flux)
-            if flags & (wire.FLAG_CHIP_MISSING | wire.FLAG_SATURATED):
-                wrench = np.full(6, np.nan)  # a failing chip never becomes a wrong wrench
-                flags |= wire.FLAG_INVALID
-            else:
-                wrench = sensor.model.wrench(flux)
+            wrench, flags = self._estimate(sensor, flux, flags, usable)
+            if not flags & wire.FLAG_INVALID:
                 if np.any(np.abs(wrench) > SENSOR_RANGE):
                     flags |= wire.FLAG_OVERLOAD
                 self._feed_tares(sensor, flux, flags)
@@ -225,24 +223,42 @@ class Daemon:
         else:
             stats.ok = False
 
-    def _flux(self, sensor: SensorRuntime, results: dict[int, ChipResult]) -> tuple[np.ndarray, int]:
-        """The sensor's stacked flux (T) and its flags; a chip without new data
-        gives its previous reading (flagged stale), a chip that did not answer NaN."""
+    def _estimate(self, sensor: SensorRuntime, flux: np.ndarray, flags: int,
+                  usable: np.ndarray) -> tuple[np.ndarray, int]:
+        """The wrench from every chip; from the usable ones (degraded) when one or
+        two are missing or saturated; else NaN, flagged invalid. A failing chip's
+        data never enter a wrench."""
+        if usable.all():
+            return sensor.model.wrench(flux), flags
+        if (~usable).sum() <= self.config.max_missing_chips and sensor.model.H is not None:
+            try:
+                return sensor.model.wrench_from(flux, usable), flags | wire.FLAG_DEGRADED
+            except ValueError:
+                pass  # the chips left do not see all six axes
+        return np.full(6, np.nan), flags | wire.FLAG_INVALID
+
+    def _flux(self, sensor: SensorRuntime, results: dict[int, ChipResult]) -> tuple[np.ndarray, int, np.ndarray]:
+        """The sensor's stacked flux (T), its flags, and which chips are usable: a
+        chip without new data gives its previous reading (flagged stale), a chip
+        that did not answer NaN, a saturated chip its reading (not usable)."""
         flux = np.full(3 * len(sensor.config.addresses), np.nan)
+        usable = np.zeros(len(sensor.config.addresses), dtype=bool)
         flags = 0
         for i, address in enumerate(sensor.config.addresses):
             r, part = results[address], slice(3 * i, 3 * i + 3)
             if r.ok:
                 flux[part] = sensor.last_flux[part] = r.measurement.field_t
+                usable[i] = not r.measurement.any_saturated
                 if r.measurement.any_saturated:
                     flags |= wire.FLAG_SATURATED
             elif (isinstance(r.error, ChipRefusedError) and r.error.command == "RM"
                   and np.all(np.isfinite(sensor.last_flux[part]))):
                 flux[part] = sensor.last_flux[part]
+                usable[i] = True
                 flags |= wire.FLAG_STALE
             else:
                 flags |= wire.FLAG_CHIP_MISSING
-        return flux, flags
+        return flux, flags, usable
 
     def _publish(self, topic: str, kind: int, t_mono: float, t_wall: float, flags: int, values: np.ndarray) -> None:
         seq = self.seq.get(topic, 0)
@@ -254,8 +270,8 @@ class Daemon:
 
     # --- tare ----------------------------------------------------------------------------
     def _feed_tares(self, sensor: SensorRuntime, flux: np.ndarray, flags: int) -> None:
-        if flags & wire.FLAG_STALE:
-            return
+        if flags & (wire.FLAG_STALE | wire.FLAG_DEGRADED):
+            return  # a zero needs every chip's fresh reading
         for job in self.tares:
             if sensor.name in job.sensors and len(job.flux.setdefault(sensor.name, [])) < job.samples:
                 job.flux[sensor.name].append(flux)
@@ -413,6 +429,12 @@ class Daemon:
                 f"(bound {self.config.bound().rate_hz:.0f} Hz), {self.missed} missed, "
                 f"{sum(not c.ok for c in self.chip_stats.values())} chip(s) failing")
 
+    def _chip_status(self, address: int, stats: ChipStats) -> dict[str, Any]:
+        h = self.reader.health[address]
+        retry = max(0.0, h.retry_at - self.reader.bus.monotonic()) if h.failing else None
+        return {**vars(stats), "state": "failing" if h.failing else "ok", "retry_in_s": retry,
+                "reinits": h.reinits, "register_drifts": h.register_drifts, "stuck_detections": h.stuck_detections}
+
     def status(self) -> dict[str, Any]:
         bound = self.config.bound()
         lateness_us = np.array(self.lateness) * 1e6 if self.lateness else np.zeros(1)
@@ -425,7 +447,7 @@ class Daemon:
                           "max": float(lateness_us.max())},
             "cycles": self.cycles, "missed_cycles": self.missed, "late_cycles": self.late,
             "averaging": self.config.averaging, "lowpass_hz": self.config.lowpass_hz,
-            "chips": {f"0x{a:02X}": vars(c) for a, c in self.chip_stats.items()},
+            "chips": {f"0x{a:02X}": self._chip_status(a, c) for a, c in self.chip_stats.items()},
             "sensors": {s.name: {
                 "calibration": str(s.config.calibration_path), "serial": s.config.calibration.serial,
                 "frame": s.config.frame, "tared": s.tared,

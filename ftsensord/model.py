@@ -78,11 +78,13 @@ class LinearModel:
     K: np.ndarray
     A: np.ndarray
     zero: np.ndarray
+    H: np.ndarray | None = None
     KA: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         # KA is what runs every cycle: one 6 x 24 product, computed once.
         self.KA = self.K @ self.A
+        self._subsets: dict[bytes, np.ndarray] = {}
 
     def twist(self, b: np.ndarray) -> np.ndarray:
         return self.A @ (b - self.zero)
@@ -93,7 +95,27 @@ class LinearModel:
 
     def with_zero(self, zero: np.ndarray) -> LinearModel:
         """The same model tared to a new no-load flux."""
-        return LinearModel(self.K, self.A, np.asarray(zero, dtype=float))
+        return LinearModel(self.K, self.A, np.asarray(zero, dtype=float), self.H)
+
+    def wrench_from(self, b: np.ndarray, chips: np.ndarray) -> np.ndarray:
+        """The wrench from the chips where ``chips`` (bool, one per chip) is true only.
+
+        Degraded mode: the calibration's forward model ``b - b0 = H xi`` (H fitted
+        on the calibration data) gives the twist by least squares on the channels
+        left, xi = pinv(H_S) (b_S - b0_S), and w = K xi. Needs H, and the chips
+        left must still see all six axes (rank 6).
+        """
+        if self.H is None:
+            raise ValueError("this calibration has no flux model H: no estimate from fewer chips")
+        channels = np.repeat(np.asarray(chips, dtype=bool), 3)
+        key = channels.tobytes()
+        M = self._subsets.get(key)
+        if M is None:
+            H_S = self.H[channels]
+            if np.linalg.matrix_rank(H_S) < 6:
+                raise ValueError("the chips left do not see all six axes")
+            M = self._subsets[key] = self.K @ np.linalg.pinv(H_S)
+        return M @ (b[channels] - self.zero[channels])
 
 
 def tip_wrench(wrenches: list[np.ndarray], tip_to_sensor: list[np.ndarray]) -> np.ndarray:

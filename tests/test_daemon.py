@@ -137,16 +137,19 @@ def test_the_wrench_is_the_applied_one_within_the_calibrations_error(rig):
     assert all(s.flags == 0 for s in out["wrench/sensor1"])
 
 
-def test_a_missing_chip_invalidates_its_sensor_only_and_recovers_without_restart(rig):
+def test_a_missing_chip_degrades_its_sensor_only_and_recovers_without_restart(rig):
     rig.bus.faults.nack(0x0E)
     out = rig.cycles(3)
     for s in out["wrench/sensor1"]:
-        assert s.flags & wire.FLAG_CHIP_MISSING and s.flags & wire.FLAG_INVALID and np.all(np.isnan(s.values))
+        assert s.flags & wire.FLAG_CHIP_MISSING and s.flags & wire.FLAG_DEGRADED
+        assert not s.flags & wire.FLAG_INVALID
+        # Estimated from the seven chips left (docs/reliability.md: within ~20 % of the full set's error).
+        assert np.allclose(s.values[:3], LOAD[:3], atol=0.4) and np.allclose(s.values[3:], LOAD[3:], atol=0.01)
     assert all(np.isnan(s.values[6:9]).all() for s in out["flux/sensor1"])
     assert all(s.flags == 0 and np.all(np.isfinite(s.values)) for s in out["wrench/sensor2"])
-    assert out["wrench/tip"][-1].flags & wire.FLAG_INVALID
+    assert out["wrench/tip"][-1].flags & wire.FLAG_DEGRADED
     status = rig.daemon.status()
-    assert not status["chips"]["0x0E"]["ok"] and status["chips"]["0x0E"]["errors"] >= 3
+    assert not status["chips"]["0x0E"]["ok"] and status["chips"]["0x0E"]["state"] == "failing"
     rig.bus.faults.clear()
     cleared = rig.clock.now()
     samples = rig.cycles(100)["wrench/sensor1"]
@@ -156,13 +159,27 @@ def test_a_missing_chip_invalidates_its_sensor_only_and_recovers_without_restart
     assert rig.daemon.status()["chips"]["0x0E"]["ok"] and rig.daemon.reader.health[0x0E].reinits == 1
 
 
-def test_a_saturated_chip_is_flagged_and_gives_no_wrench(rig):
-    rig.scene.sensors[0].load = type(rig.scene.sensors[0].load)(np.array([0, 0, 0, 0, 0, 0.0]))
-    rig.bus.chips[0x0D].scene = type("Strong", (), {
-        "addresses": rig.scene.addresses, "field_t": lambda self, a, t: np.array([0, 0, 0.07]),
-        "temperature_c": lambda self, a, t: 25.0})()
+def test_three_chips_missing_is_invalid_not_a_guess(rig):
+    for address in (0x0C, 0x0E, 0x11):
+        rig.bus.faults.nack(address)
+    s = rig.cycles(2)["wrench/sensor1"][-1]
+    assert s.flags & wire.FLAG_CHIP_MISSING and s.flags & wire.FLAG_INVALID and np.all(np.isnan(s.values))
+
+
+def test_degraded_mode_can_be_switched_off(tmp_path):
+    rig = Rig(tmp_path, "max_missing_chips = 0")
+    rig.bus.faults.nack(0x0E)
+    s = rig.cycles(2)["wrench/sensor1"][-1]
+    assert s.flags & wire.FLAG_INVALID and np.all(np.isnan(s.values))
+    rig.close()
+
+
+def test_a_saturated_chip_is_flagged_and_left_out_of_the_wrench(rig):
+    rig.scene.sensors[0].load = type(rig.scene.sensors[0].load)(np.zeros(6))
+    rig.bus.chips[0x0D].field_override = np.array([0, 0, 0.07])  # 70 mT: past the Hall element's range
     s = rig.cycles(1)["wrench/sensor1"][0]
-    assert s.flags & wire.FLAG_SATURATED and s.flags & wire.FLAG_INVALID and np.all(np.isnan(s.values))
+    assert s.flags & wire.FLAG_SATURATED and s.flags & wire.FLAG_DEGRADED and not s.flags & wire.FLAG_INVALID
+    assert np.allclose(s.values[:3], 0, atol=0.3)  # the clipped reading did not enter the wrench
     assert rig.daemon.status()["chips"]["0x0D"]["saturated"] == 1
 
 
