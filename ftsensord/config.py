@@ -74,7 +74,7 @@ class Config:
     tool_offsets_m: dict[str, np.ndarray] = field(default_factory=dict)
     temperature_every: int = 100
     stuck_cycles: int = STUCK_CYCLES
-    readback_every: int = 10
+    readback_every: int = 1
     max_missing_chips: int = 2
 
     @property
@@ -82,7 +82,8 @@ class Config:
         return [a for s in self.sensors for a in s.addresses]
 
     def bound(self) -> CycleBound:
-        return cycle_bound(self.scheduler, len(self.addresses), self.settings, self.bus_hz, self.bus_overhead_s)
+        return cycle_bound(self.scheduler, len(self.addresses), self.settings, self.bus_hz, self.bus_overhead_s,
+                           readback=self.readback_every > 0)
 
 
 def check_rate(config: Config, rate_hz: float, where: str = "rate_hz") -> None:
@@ -91,7 +92,7 @@ def check_rate(config: Config, rate_hz: float, where: str = "rate_hz") -> None:
     if rate_hz <= bound.rate_hz:
         return
     n = len(config.addresses)
-    others = ", ".join(f"{s} {cycle_bound(s, n, config.settings, config.bus_hz, config.bus_overhead_s).rate_hz:.0f} Hz"
+    others = ", ".join(f"{s} {cycle_bound(s, n, config.settings, config.bus_hz, config.bus_overhead_s, config.readback_every > 0).rate_hz:.0f} Hz"  # noqa: E501
                        for s in SCHEDULERS if s != config.scheduler)
     raise ConfigError(f"{where}: {rate_hz:g} Hz cannot be met: {bound.describe()}. Lower the rate, "
                       f"change the scheduler ({others}), shorten the conversion (lower OSR or "
@@ -181,7 +182,10 @@ def load_config(path: str | Path | None = None) -> Config:
         control=_endpoint(doc, "control", f"ipc://{rt}/control"),
         temperature_every=doc.integer("temperature_every", 100, low=0, what="cycles (0: never)"),
         stuck_cycles=doc.integer("stuck_cycles", STUCK_CYCLES, low=0, what="cycles (0: no stuck detection)"),
-        readback_every=doc.integer("readback_every", 10, low=0, what="cycles (0: no register read-back)"),
+        # Burst: a chip read back restarts its burst and is stale on the next cycle;
+        # reading back every cycle would make every sample stale, so rarely there.
+        readback_every=doc.integer("readback_every", 100 if doc.get("scheduler", "") == "burst" else 1, low=0,
+                                   what="cycles (0: no register read-back)"),
         max_missing_chips=doc.integer("max_missing_chips", 2, low=0, high=5,
                                       what="0 to 5 chips (degraded mode; 0: off)"))
     if "tool" in doc.doc:

@@ -33,6 +33,8 @@ CHIPS_PER_TRANSFER = I2C_RDWR_MAX_MSGS // 2
 #: start, address, status byte (SM), or status and six data bytes (RM of X, Y, Z).
 SM_BITS = (1 + BITS_PER_BYTE * 2) + (1 + BITS_PER_BYTE * 2)
 RM_BITS = (1 + BITS_PER_BYTE * 2) + (1 + BITS_PER_BYTE * 8)
+#: RR: write the command and the address byte, read status and two data bytes.
+RR_BITS = (1 + BITS_PER_BYTE * 3) + (1 + BITS_PER_BYTE * 4)
 
 
 @dataclass(frozen=True)
@@ -45,10 +47,11 @@ class CycleBound:
     start_s: float  # SM transfers (0 for burst)
     wait_s: float  # waiting for conversions that the bus cannot hide
     read_s: float  # RM transfers
+    check_s: float = 0.0  # reading one chip's registers back (and EX/SB around it in burst)
 
     @property
     def cycle_s(self) -> float:
-        return self.start_s + self.wait_s + self.read_s
+        return self.start_s + self.wait_s + self.read_s + self.check_s
 
     @property
     def rate_hz(self) -> float:
@@ -56,8 +59,8 @@ class CycleBound:
 
     def describe(self) -> str:
         return (f"{self.scheduler}: {self.rate_hz:.1f} Hz at most ({self.cycle_s * 1e3:.2f} ms a cycle: "
-                f"start {self.start_s * 1e3:.2f}, wait {self.wait_s * 1e3:.2f}, read {self.read_s * 1e3:.2f} ms) "
-                f"for {self.n_chips} chips on a {self.bus_hz / 1e3:g} kHz bus")
+                f"start {self.start_s * 1e3:.2f}, wait {self.wait_s * 1e3:.2f}, read {self.read_s * 1e3:.2f}, "
+                f"check {self.check_s * 1e3:.2f} ms) for {self.n_chips} chips on a {self.bus_hz / 1e3:g} kHz bus")
 
 
 def _batched_s(n_chips: int, bits_per_chip: int, bus_hz: float, overhead_s: float) -> float:
@@ -66,27 +69,32 @@ def _batched_s(n_chips: int, bits_per_chip: int, bus_hz: float, overhead_s: floa
 
 
 def cycle_bound(scheduler: str, n_chips: int, settings: mlx.Settings, bus_hz: float,
-                overhead_s: float = 0.0) -> CycleBound:
+                overhead_s: float = 0.0, readback: bool = True) -> CycleBound:
     """The fastest cycle for ``n_chips`` at ``settings`` on a ``bus_hz`` bus.
 
     ``overhead_s`` is the fixed cost of one ioctl (kernel and adapter), which
-    the wire time does not include; measure it on the board.
+    the wire time does not include; measure it on the board. ``readback``
+    counts the cycle that also reads one chip's three registers back.
     """
     conversion = settings.single_measurement_us(mlx.ZYXT_XYZ) * 1e-6 * OSC_MARGIN
     sm_one = (SM_BITS + 1) / bus_hz + overhead_s
     rm_one = (RM_BITS + 1) / bus_hz + overhead_s
+    check = 3 * ((RR_BITS + 1) / bus_hz + overhead_s) if readback else 0.0
     if scheduler == "naive":
-        return CycleBound(scheduler, n_chips, bus_hz, n_chips * sm_one, n_chips * conversion, n_chips * rm_one)
+        return CycleBound(scheduler, n_chips, bus_hz, n_chips * sm_one, n_chips * conversion, n_chips * rm_one,
+                          check)
     read = _batched_s(n_chips, RM_BITS, bus_hz, overhead_s)
     if scheduler == "overlapped":
         start = _batched_s(n_chips, SM_BITS, bus_hz, overhead_s)
         # The first chip's conversion starts one command into the SM transfer; the RM
         # transfer may begin once it is done (later chips finish as their RMs arrive).
         first = (1 + BITS_PER_BYTE * 2) / bus_hz
-        return CycleBound(scheduler, n_chips, bus_hz, start, max(0.0, first + conversion - start), read)
+        return CycleBound(scheduler, n_chips, bus_hz, start, max(0.0, first + conversion - start), read, check)
     if scheduler == "burst":
         interval = settings.burst_interval_us(mlx.ZYXT_XYZ) * 1e-6 * OSC_MARGIN
-        return CycleBound(scheduler, n_chips, bus_hz, 0.0, max(0.0, interval - read), read)
+        if readback:
+            check += 2 * sm_one  # EX before the registers (refused in burst), SB after
+        return CycleBound(scheduler, n_chips, bus_hz, 0.0, max(0.0, interval - read), read, check)
     raise ConfigError(f"scheduler: expected one of {', '.join(SCHEDULERS)}, got {scheduler!r}")
 
 
@@ -142,7 +150,8 @@ class Reader:
     answer, a bad reply, stuck data, no new data for too long, registers that
     changed) leaves the batches and is re-initialised (reset, configure, burst)
     when its retry is due, with backoff; it rejoins once that succeeds. Every
-    ``readback_every`` cycles one chip's configuration is read back and compared.
+    ``readback_every`` cycles one chip's configuration is read back and compared
+    (round robin: with 16 chips, each every 16 cycles at the default of 1).
     """
 
     bus: Bus
@@ -152,7 +161,7 @@ class Reader:
     bus_hz: float = 400e3
     overhead_s: float = 0.0
     stuck_cycles: int = STUCK_CYCLES
-    readback_every: int = 10
+    readback_every: int = 1
     health: dict[int, ChipHealth] = field(default_factory=dict)
     cycle: int = 0
 

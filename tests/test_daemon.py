@@ -38,8 +38,8 @@ addresses = [0x14, 0x15, 0x16, 0x17, 0x18, 0x19, 0x1A, 0x1B]
 
 
 def write_config(folder: Path, extra: str = "", sensor1_cal: str = "builtin:sim-sensor1.json",
-                 rate_hz: float = 100, chip: str = "") -> Path:
-    (folder / "scene.toml").write_text(SCENE)
+                 rate_hz: float = 100, chip: str = "", scene_extra: str = "") -> Path:
+    (folder / "scene.toml").write_text(SCENE + scene_extra)
     path = folder / "ftsensord.toml"
     path.write_text(f"""
 version = 1
@@ -219,7 +219,7 @@ def test_status_reports_rate_bound_jitter_chips_and_calibrations(rig):
     rig.cycles(20)
     st = rig.request(cmd="status")["result"]
     assert st["achieved_rate_hz"] == pytest.approx(100.0, rel=1e-6)  # virtual time: exact
-    assert st["bound_hz"] == pytest.approx(132.4, abs=0.1) and "overlapped" in st["bound"]
+    assert st["bound_hz"] == pytest.approx(124.3, abs=0.1) and "overlapped" in st["bound"]
     assert st["cycles"] == 20 and st["missed_cycles"] == 0
     assert set(st["jitter_us"]) == {"p50", "p99", "max"}
     assert len(st["chips"]) == 16 and st["chips"]["0x0C"]["temperature_c"] == pytest.approx(25, abs=1)
@@ -249,8 +249,8 @@ def test_set_changes_rate_averaging_and_lowpass_at_run_time(rig):
     assert rig.daemon.period_s == pytest.approx(0.02)
     raw = rig.cycles(30)["flux/sensor1"]
     assert len(raw) == 30
-    refused = rig.request(cmd="set", rate_hz=133)
-    assert not refused["ok"] and "132.4 Hz at most" in refused["error"] and "burst" in refused["error"]
+    refused = rig.request(cmd="set", rate_hz=125)
+    assert not refused["ok"] and "124.3 Hz at most" in refused["error"] and "burst" in refused["error"]
 
 
 def test_reload_keeps_the_running_calibration_when_the_new_one_is_bad(tmp_path):
@@ -320,7 +320,7 @@ def test_config_refuses_a_rate_above_the_bound_naming_it(tmp_path):
     with pytest.raises(ConfigError) as exc:
         load_config(write_config(tmp_path, rate_hz=150))
     msg = str(exc.value)
-    assert "rate_hz: 150 Hz cannot be met" in msg and "132.4 Hz at most" in msg and "burst 272 Hz" in msg
+    assert "rate_hz: 150 Hz cannot be met" in msg and "124.3 Hz at most" in msg and "burst 229 Hz" in msg
 
 
 @pytest.mark.parametrize(("edit", "key", "expected"), [

@@ -131,7 +131,7 @@ def _faults(doc: Table, addresses: tuple[int, ...]) -> list[Fault]:
             if address not in addresses:
                 raise t.fail("address", "an address of the scene's chips", f"0x{address:02X}")
         at = t.number("at_s", low=0, unit="s")
-        until = t.number("until_s", float("inf"), low=at, unit="s, after at_s")
+        until = t.number("until_s", low=at, unit="s, after at_s") if "until_s" in t.doc else float("inf")
         if until == at and kind != "drift_register":
             raise t.fail("until_s", "a time after at_s", until)
         faults.append(Fault(kind, at, until, address, register=t.integer("register", 0, low=0, high=mlx.REG_MAX),

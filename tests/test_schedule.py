@@ -1,0 +1,43 @@
+"""The schedulers against their computed bound, on a virtual clock."""
+
+from __future__ import annotations
+
+import pytest
+
+from ftsensord import mlx90393 as mlx
+from ftsensord.driver import MLX90393
+from ftsensord.schedule import Reader, cycle_bound
+from ftsensord.sim import VirtualClock, simulated_bus, two_sensor_scene
+
+
+@pytest.mark.parametrize("scheduler", ["naive", "overlapped", "burst"])
+@pytest.mark.parametrize("hz", [100e3, 400e3])
+def test_a_cycle_takes_exactly_the_computed_bound(scheduler, hz):
+    clock = VirtualClock()
+    bus = simulated_bus(two_sensor_scene(), clock=clock, bus_hz=hz)
+    chips = [MLX90393(bus, a, sleep=bus.sleep) for a in range(0x0C, 0x1C)]
+    reader = Reader(bus, chips, scheduler, mlx.Settings(), hz)
+    assert reader.start() == {}
+    bound = cycle_bound(scheduler, 16, mlx.Settings(), hz)
+    clock.sleep(0.1)
+    for cycle in range(3):
+        t0 = clock.now()
+        results = reader.read()
+        took = clock.now() - t0
+        assert took == pytest.approx(bound.cycle_s, rel=1e-9)
+        if scheduler == "burst" and cycle > 0:
+            # The chip read back last cycle restarted its burst: no new data yet, flagged stale.
+            previous = (cycle - 1) % 16
+            assert [r.address for r in results if not r.ok] == [0x0C + previous]
+            assert results[previous].error.command == "RM"
+        else:
+            assert all(r.ok for r in results)
+        if scheduler == "burst":  # the chips convert on their own: wait out the cycle
+            clock.wait_until(t0 + bound.cycle_s)
+
+
+def test_the_bound_matches_the_design_notes():
+    settings = mlx.Settings()
+    no_check = {s: cycle_bound(s, 16, settings, 400e3, readback=False).rate_hz for s in ("naive", "overlapped", "burst")}
+    assert no_check["naive"] < 20 and 125 < no_check["overlapped"] < 150 and 250 < no_check["burst"] < 290
+    assert cycle_bound("overlapped", 16, settings, 100e3).rate_hz < 100  # 16 chips at 100 Hz need 400 kHz
