@@ -130,7 +130,10 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def _control(args: argparse.Namespace):
     from .client import ControlClient
-    return ControlClient(args.control, timeout_s=args.timeout)
+    curve = (args.curve_cert, args.server_cert) if args.curve_cert else None
+    if (args.curve_cert is None) != (args.server_cert is None):
+        raise ConfigError("--curve-cert and --server-cert go together (CURVE needs both)")
+    return ControlClient(args.control, timeout_s=args.timeout, curve=curve)
 
 
 def cmd_status(args: argparse.Namespace) -> int:
@@ -237,6 +240,8 @@ def build_parser() -> argparse.ArgumentParser:
     def control_options(p: argparse.ArgumentParser) -> None:
         p.add_argument("--control", help="control endpoint (default: the running daemon's ipc socket)")
         p.add_argument("--timeout", type=float, default=3.0, help="seconds to wait for the daemon (default 3)")
+        p.add_argument("--curve-cert", help="this client's certificate (with secret key), for a CURVE endpoint")
+        p.add_argument("--server-cert", help="the daemon's public certificate, for a CURVE endpoint")
 
     def stream_options(p: argparse.ArgumentParser) -> None:
         p.add_argument("stream", help="stream: wrench/<sensor>, wrench/tip or flux/<sensor>")

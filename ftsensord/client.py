@@ -44,10 +44,14 @@ class ControlClient:
     """JSON requests to the daemon's control endpoint (a fresh REQ socket each,
     so a timed-out request never wedges the next)."""
 
-    def __init__(self, endpoint: str | None = None, timeout_s: float = 3.0, context: zmq.Context | None = None):
+    def __init__(self, endpoint: str | None = None, timeout_s: float = 3.0, context: zmq.Context | None = None,
+                 curve: tuple[str, str] | None = None):
+        """``curve``: (this client's certificate with its secret key, the server's
+        public certificate), for a daemon whose control endpoint uses CURVE."""
         self.endpoint = endpoint or default_endpoint("control")
         self.timeout_s = timeout_s
         self.context = context or zmq.Context.instance()
+        self.curve = curve
 
     def request(self, cmd: str, timeout_s: float | None = None, **args: Any) -> Any:
         """Send ``{"cmd": cmd, **args}``; return the reply's result.
@@ -57,6 +61,10 @@ class ControlClient:
         """
         socket = self.context.socket(zmq.REQ)
         socket.setsockopt(zmq.LINGER, 0)
+        if self.curve is not None:
+            from zmq.auth import load_certificate
+            socket.curve_publickey, socket.curve_secretkey = load_certificate(self.curve[0])
+            socket.curve_serverkey, _ = load_certificate(self.curve[1])
         try:
             socket.connect(self.endpoint)
             socket.send(json.dumps({"cmd": cmd, **args}).encode())

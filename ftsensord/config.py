@@ -47,6 +47,20 @@ def runtime_dir() -> Path:
 
 
 @dataclass
+class Security:
+    """Who may reach the endpoints when they leave loopback (docs/protocol.md)."""
+
+    curve_server_cert: Path | None = None  # zmq certificate with the server's secret key
+    curve_clients_dir: Path | None = None  # public certificates of the clients allowed to control
+    allow_insecure_control: bool = False  # control off loopback without CURVE: logged loudly
+    public_stream: bool = False  # the (read-only) wrench stream may leave loopback
+
+    @property
+    def curve(self) -> bool:
+        return self.curve_server_cert is not None
+
+
+@dataclass
 class SensorConfig:
     name: str
     addresses: tuple[int, ...]
@@ -72,6 +86,7 @@ class Config:
     publish: list[str]
     control: str
     tool_offsets_m: dict[str, np.ndarray] = field(default_factory=dict)
+    security: Security = field(default_factory=Security)
     temperature_every: int = 100
     stuck_cycles: int = STUCK_CYCLES
     readback_every: int = 1
@@ -112,15 +127,46 @@ def _resolve(table: Table, key: str, value: str) -> Path:
     return path
 
 
-def _endpoint(table: Table, key: str, default: str) -> str:
+LOOPBACK = ("127.0.0.1", "localhost", "[::1]")
+
+
+def is_loopback(endpoint: str) -> bool:
+    return not endpoint.startswith("tcp://") or endpoint[len("tcp://"):].rsplit(":", 1)[0] in LOOPBACK
+
+
+def _endpoint(table: Table, key: str, default: str, *, off_loopback: bool = False, why: str = "") -> str:
+    """An ipc:// or tcp:// endpoint; TCP only on loopback unless ``off_loopback``."""
     value = table.string(key, default)
     if not value.startswith(("ipc://", "tcp://")):
         raise table.fail(key, "an ipc:// or tcp:// endpoint", value)
-    if value.startswith("tcp://"):
-        host = value[len("tcp://"):].rsplit(":", 1)[0]
-        if host not in ("127.0.0.1", "localhost", "[::1]"):
-            raise table.fail(key, "a loopback TCP endpoint (127.0.0.1, localhost or [::1])", value)
+    if not off_loopback and not is_loopback(value):
+        raise table.fail(key, f"a loopback TCP endpoint (127.0.0.1, localhost or [::1]); {why}", value)
     return value
+
+
+def _security(doc: Table) -> Security:
+    if "security" not in doc.doc:
+        return Security()
+    t = doc.table("security")
+    t.only({"curve_server_cert", "curve_clients_dir", "allow_insecure_control", "public_stream"})
+    cert = _resolve(t, "curve_server_cert", t.string("curve_server_cert")) if "curve_server_cert" in t.doc else None
+    clients = None
+    if "curve_clients_dir" in t.doc:
+        clients = Path(t.string("curve_clients_dir")).expanduser()
+        clients = clients if clients.is_absolute() else t.path.parent / clients
+        if not clients.is_dir():
+            raise t.fail("curve_clients_dir", "a folder of the allowed clients' public certificates",
+                         t.get("curve_clients_dir"))
+    if (cert is None) != (clients is None):
+        raise t.fail("curve_server_cert" if cert is None else "curve_clients_dir",
+                     "both curve_server_cert and curve_clients_dir, or neither", "only one of them")
+    flags = {}
+    for key in ("allow_insecure_control", "public_stream"):
+        value = t.get(key, False)
+        if not isinstance(value, bool):
+            raise t.fail(key, "true or false", value)
+        flags[key] = value
+    return Security(cert, clients, **flags)
 
 
 def load_config(path: str | Path | None = None) -> Config:
@@ -129,7 +175,7 @@ def load_config(path: str | Path | None = None) -> Config:
     doc = Table(load_toml(path), path)
     doc.only({"version", "bus", "bus_hz", "bus_overhead_us", "rate_hz", "scheduler", "averaging",
               "lowpass_hz", "temperature_every", "stuck_cycles", "readback_every", "max_missing_chips", "publish", "publish_tcp",
-              "control", "chip", "sensor", "tool"})
+              "control", "chip", "sensor", "tool", "security"})
     doc.integer("version", what=str(CONFIG_VERSION), low=CONFIG_VERSION, high=CONFIG_VERSION)
     bus = doc.string("bus")
     try:
@@ -167,10 +213,12 @@ def load_config(path: str | Path | None = None) -> Config:
         if any(s.name == name for s in sensors):
             raise t.fail("name", "a name no other sensor has", name)
         sensors.append(SensorConfig(name, addresses, cal_path, calibration, t.string("frame", calibration.frame)))
+    security = _security(doc)
     rt = runtime_dir()
-    publish = [_endpoint(doc, "publish", f"ipc://{rt}/wrench")]
+    stream_why = "set [security] public_stream = true to publish the wrench stream beyond this host"
+    publish = [_endpoint(doc, "publish", f"ipc://{rt}/wrench", off_loopback=security.public_stream, why=stream_why)]
     if "publish_tcp" in doc.doc:
-        publish.append(_endpoint(doc, "publish_tcp", ""))
+        publish.append(_endpoint(doc, "publish_tcp", "", off_loopback=security.public_stream, why=stream_why))
     config = Config(
         path=path, bus=bus, bus_hz=doc.number("bus_hz", 400e3, low=1e3, high=3.4e6, unit="Hz"),
         bus_overhead_s=doc.number("bus_overhead_us", 0.0, low=0, high=1e5, unit="us") * 1e-6,
@@ -179,7 +227,11 @@ def load_config(path: str | Path | None = None) -> Config:
         averaging=doc.integer("averaging", 1, low=1, high=10_000, what="an integer from 1 to 10000"),
         lowpass_hz=doc.number("lowpass_hz", 0.0, low=0, unit="Hz (0: off)"),
         settings=settings, sensors=sensors, publish=publish,
-        control=_endpoint(doc, "control", f"ipc://{rt}/control"),
+        control=_endpoint(doc, "control", f"ipc://{rt}/control",
+                          off_loopback=security.curve or security.allow_insecure_control,
+                          why="control beyond this host needs [security] curve_server_cert and curve_clients_dir "
+                              "(or allow_insecure_control = true, which is logged)"),
+        security=security,
         temperature_every=doc.integer("temperature_every", 100, low=0, what="cycles (0: never)"),
         stuck_cycles=doc.integer("stuck_cycles", STUCK_CYCLES, low=0, what="cycles (0: no stuck detection)"),
         # Burst: a chip read back restarts its burst and is stale on the next cycle;

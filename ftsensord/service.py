@@ -14,7 +14,8 @@ from pathlib import Path
 import zmq
 
 from .bus import Bus, open_bus, parse_bus_spec
-from .config import Config
+from .config import Config, is_loopback
+from .errors import ConfigError
 from .daemon import MAX_REQUEST, Daemon
 from .sdnotify import Notifier
 
@@ -51,7 +52,33 @@ def bind(socket: zmq.Socket, endpoint: str) -> None:
         os.chmod(path, 0o660)
 
 
-def make_sockets(context: zmq.Context, config: Config) -> tuple[zmq.Socket, zmq.Socket]:
+def secure_control(context: zmq.Context, control: zmq.Socket, config: Config) -> object | None:
+    """CURVE on the control socket when configured: the server's secret key, and a ZAP
+    handler that lets in only the clients whose public certificates are in the folder.
+    Returns the authenticator (stop it at exit)."""
+    security = config.security
+    if security.curve:
+        from zmq.auth import load_certificate
+        from zmq.auth.thread import ThreadAuthenticator
+
+        auth = ThreadAuthenticator(context)
+        auth.start()
+        auth.configure_curve(domain="*", location=str(security.curve_clients_dir))
+        public, secret = load_certificate(str(security.curve_server_cert))
+        if secret is None:
+            raise ConfigError(f"{security.curve_server_cert}: no secret key in this certificate")
+        control.curve_secretkey = secret
+        control.curve_publickey = public
+        control.curve_server = True
+        return auth
+    if not is_loopback(config.control):
+        log.warning("SECURITY: control endpoint %s is reachable beyond this host WITHOUT authentication "
+                    "(allow_insecure_control = true)", config.control)
+    return None
+
+
+def make_sockets(context: zmq.Context, config: Config) -> tuple[zmq.Socket, zmq.Socket, object | None]:
+    """The publisher, the control socket, and the CURVE authenticator (None without CURVE)."""
     publisher = context.socket(zmq.PUB)
     publisher.setsockopt(zmq.SNDHWM, PUB_HWM)
     publisher.setsockopt(zmq.LINGER, 0)
@@ -61,14 +88,15 @@ def make_sockets(context: zmq.Context, config: Config) -> tuple[zmq.Socket, zmq.
     control.setsockopt(zmq.MAXMSGSIZE, MAX_REQUEST)
     control.setsockopt(zmq.RCVHWM, CONTROL_HWM)
     control.setsockopt(zmq.LINGER, 0)
+    auth = secure_control(context, control, config)
     bind(control, config.control)
-    return publisher, control
+    return publisher, control, auth
 
 
 def run(config: Config) -> int:
     bus = open_configured_bus(config)
     context = zmq.Context()
-    publisher, control = make_sockets(context, config)
+    publisher, control, auth = make_sockets(context, config)
     daemon = Daemon(config, bus, publisher, control, notifier=Notifier())
 
     def stop(signum: int, frame: object) -> None:
@@ -86,6 +114,8 @@ def run(config: Config) -> int:
         return daemon.run()
     finally:
         publisher.close()
+        if auth is not None:
+            auth.stop()  # type: ignore[attr-defined]
         control.close()
         context.term()
         bus.close()

@@ -378,3 +378,24 @@ def test_sensor_frame_defaults_to_the_calibrations_and_can_be_named(tmp_path):
                                              'calibration = "builtin:sim-sensor2.json"\nframe = "lower"'))
     rig_config = load_config(path)
     assert rig_config.sensors[1].frame == "lower"
+
+
+def test_endpoints_stay_on_loopback_unless_secured_or_made_public_on_purpose(tmp_path):
+    with pytest.raises(ConfigError, match="control: expected a loopback TCP endpoint.*curve_server_cert"):
+        load_config(write_config(tmp_path, extra='control = "tcp://0.0.0.0:5556"'))
+    with pytest.raises(ConfigError, match="publish_tcp: expected a loopback.*public_stream"):
+        load_config(write_config(tmp_path, extra='publish_tcp = "tcp://0.0.0.0:5555"'))
+    ok = load_config(write_config(tmp_path, extra='publish_tcp = "tcp://0.0.0.0:5555"\n'
+                                                  'control = "tcp://0.0.0.0:5556"\n[security]\n'
+                                                  'public_stream = true\nallow_insecure_control = true'))
+    assert ok.security.public_stream and ok.security.allow_insecure_control and not ok.security.curve
+    with pytest.raises(ConfigError, match="both curve_server_cert and curve_clients_dir"):
+        (tmp_path / "server.key_secret").write_text("x")
+        load_config(write_config(tmp_path, extra='[security]\ncurve_server_cert = "server.key_secret"'))
+
+
+def test_no_control_command_takes_a_path(rig):
+    for request in ({"cmd": "reload", "path": "/etc/shadow"}, {"cmd": "tare", "file": "/tmp/x"},
+                    {"cmd": "status", "config": "/root/x.toml"}, {"cmd": "set", "calibration": "../x.json"}):
+        reply = rig.request(**request)
+        assert not reply["ok"] and "unknown argument" in reply["error"]

@@ -185,3 +185,45 @@ def test_cli_echo_record_and_sighup(running, tmp_path):
     assert ControlClient(ctl).status()["cycles"] > 0 and proc.poll() is None
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(timeout=10) == 0
+
+
+def test_curve_control_lets_in_only_known_clients(tmp_path):
+    import zmq
+    import zmq.auth
+
+    from ftsensord.config import load_config
+    from ftsensord.daemon import Daemon
+    from ftsensord.service import make_sockets
+    from ftsensord.sim import VirtualClock, load_scene, simulated_bus
+    keys, clients = tmp_path / "keys", tmp_path / "clients"
+    keys.mkdir()
+    clients.mkdir()
+    server_public, server_secret = zmq.auth.create_certificates(str(keys), "server")
+    good_public, good_secret = zmq.auth.create_certificates(str(keys), "good")
+    _, bad_secret = zmq.auth.create_certificates(str(keys), "bad")
+    shutil.copy(good_public, clients)
+    config = load_config(write_config(tmp_path, extra=(
+        'control = "tcp://0.0.0.0:45671"\n[security]\n'
+        f'curve_server_cert = "{server_secret}"\ncurve_clients_dir = "{clients}"')))
+    ctx = zmq.Context()
+    pub, ctl, auth = make_sockets(ctx, config)
+    daemon = Daemon(config, simulated_bus(load_scene(tmp_path / "scene.toml"), clock=VirtualClock()), pub, ctl)
+    import threading
+    stop = threading.Event()
+    server = threading.Thread(target=lambda: [daemon.handle_control() or time.sleep(0.005)
+                                              for _ in iter(lambda: stop.is_set(), True)])
+    server.start()
+    try:
+        endpoint = "tcp://127.0.0.1:45671"
+        assert ControlClient(endpoint, curve=(good_secret, server_public), timeout_s=3).status()["cycles"] == 0
+        with pytest.raises(DaemonNotAnswering):
+            ControlClient(endpoint, curve=(bad_secret, server_public), timeout_s=0.5).status()
+        with pytest.raises(DaemonNotAnswering):
+            ControlClient(endpoint, timeout_s=0.5).status()  # no CURVE at all
+    finally:
+        stop.set()
+        server.join()
+        auth.stop()
+        pub.close(linger=0)
+        ctl.close(linger=0)
+        ctx.term()
