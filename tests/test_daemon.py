@@ -156,7 +156,8 @@ def test_a_missing_chip_degrades_its_sensor_only_and_recovers_without_restart(ri
     back = next(s for s in samples if s.flags == 0)
     assert back.t_mono - cleared < 1.0  # back within 1 s of the fault clearing, no restart
     assert all(s.flags == 0 for s in samples[samples.index(back):])
-    assert rig.daemon.status()["chips"]["0x0E"]["ok"] and rig.daemon.reader.health[0x0E].reinits == 1
+    # Its registers were intact: it rejoined after a read-back, without a reset.
+    assert rig.daemon.status()["chips"]["0x0E"]["ok"] and rig.daemon.reader.health[0x0E].reinits == 0
 
 
 def test_three_chips_missing_is_invalid_not_a_guess(rig):

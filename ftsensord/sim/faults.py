@@ -114,6 +114,8 @@ def random_faults(addresses: list[int], duration_s: float, rng: np.random.Genera
     """A random schedule for a soak: faults of every kind on random chips, one at a
     time on average ``per_minute``, each lasting about ``mean_length_s``."""
     faults, t = [], start_s
+    if per_minute <= 0:
+        return faults
     kinds = ("nack", "detach", "io_error", "timeout", "stuck", "saturate", "slow", "drift_register")
     while True:
         t += rng.exponential(60.0 / per_minute)

@@ -1,0 +1,140 @@
+"""Soak: the daemon at 100 Hz with 16 simulated chips under random faults, watched from outside.
+
+Writes a scene whose `[[fault]]` list is a random schedule (every kind but "slow": a bus
+slower than the rate needs is refused by design, see docs/reliability.md), runs
+`ftsensord run` on it with real 400 kHz wire time, subscribes to every wrench stream, and
+reports: faults injected; samples flagged; sequence gaps and the longest silence a
+subscriber saw; recovery time after each fault that had no other fault near it (fault end
+to the first unflagged sample of its sensor); missed and late cycles; memory at start and
+end; whether the daemon was still running. Run:
+
+    python benchmarks/soak.py --minutes 30        # the docs' figures
+    python benchmarks/soak.py --minutes 0.3       # quick mode (CI runs it as a test)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ftsensord import wire
+from ftsensord.client import ControlClient, Subscriber
+from ftsensord.config import builtin_path
+from ftsensord.sim.faults import random_faults
+
+SENSORS = {"sensor1": range(0x0C, 0x14), "sensor2": range(0x14, 0x1C)}
+LOAD = [1.0, -0.5, 0.8, 0.02, -0.01, 0.015]
+
+
+def scene_text(faults) -> str:
+    lines = ["version = 1", 'kind = "sensors"']
+    for name, addresses in SENSORS.items():
+        lines += ["[[sensor]]", f'name = "{name}"', f"addresses = {list(addresses)}"]
+        if name == "sensor1":
+            lines += ["[sensor.load]", 'kind = "static"', f"wrench = {LOAD}"]
+    for f in faults:
+        lines += ["[[fault]]", f'kind = "{f.kind}"', f"at_s = {f.at_s:.4f}", f"until_s = {f.until_s:.4f}"]
+        if f.address is not None:
+            lines.append(f"address = {f.address}")
+        if f.kind == "drift_register":
+            lines += [f"register = {f.register}", f"value = {f.value}"]
+        if f.kind == "saturate":
+            lines.append(f"field_mt = {f.field_mt}")
+    return "\n".join(lines) + "\n"
+
+
+def rss_kib(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    return 0
+
+
+def soak(minutes: float, seed: int = 1, per_minute: float = 6.0) -> dict:
+    duration = minutes * 60
+    rng = np.random.default_rng(seed)
+    faults = [f for f in random_faults(list(range(0x0C, 0x1C)), duration, rng, per_minute=per_minute)
+              if f.kind != "slow"]
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp_path = Path(tmp)
+        (tmp_path / "scene.toml").write_text(scene_text(faults))
+        config = tmp_path / "ftsensord.toml"
+        config.write_text(builtin_path("sim.toml").read_text().replace('bus = "sim"', 'bus = "sim:scene.toml"')
+                          .replace("builtin:", str(builtin_path("")) + "/"))
+        env = {**os.environ, "XDG_RUNTIME_DIR": tmp}
+        env.pop("RUNTIME_DIRECTORY", None)
+        proc = subprocess.Popen([sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=env,
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        folder = tmp_path / "ftsensord"
+        for _ in range(100):
+            if (folder / "control").exists():
+                break
+            time.sleep(0.1)
+        control = ControlClient(f"ipc://{folder / 'control'}", timeout_s=5)
+        status0 = control.status()
+        t0_daemon = time.monotonic() - status0["uptime_s"]  # the scene's clock starts with the daemon
+        topics = [f"wrench/{n}" for n in SENSORS] + ["wrench/tip"]
+        samples: dict[str, list[tuple[int, float, int]]] = {t: [] for t in topics}
+        rss_start = rss_kib(proc.pid)
+        with Subscriber(f"ipc://{folder / 'wrench'}", topics) as sub:
+            end = time.monotonic() + duration
+            while time.monotonic() < end and proc.poll() is None:
+                s = sub.receive(timeout_s=2)
+                if s is not None:
+                    samples[s.topic].append((s.seq, s.t_mono - t0_daemon, s.flags))
+            gaps = dict(sub.gaps)
+        alive = proc.poll() is None
+        rss_end = rss_kib(proc.pid) if alive else 0
+        status1 = control.status() if alive else {}
+        proc.send_signal(signal.SIGTERM)
+        exit_code = proc.wait(timeout=10)
+    flagged = {t: sum(1 for _, _, f in v if f) for t, v in samples.items()}
+    silences = {t: max(np.diff([x[1] for x in v]), default=0.0) for t, v in samples.items()}
+    # Recovery after faults with no other fault within 2 s either side of them.
+    recoveries = []
+    for f in faults:
+        if f.kind == "drift_register":
+            continue  # a drift has no end: it is found and repaired, not cleared
+        if any(g is not f and g.at_s < f.until_s + 2 and g.until_s > f.at_s - 2 for g in faults):
+            continue
+        names = [n for n, a in SENSORS.items() if f.address in a] if f.address is not None else list(SENSORS)
+        for name in names:
+            after = [(t, fl) for _, t, fl in samples[f"wrench/{name}"] if t >= f.until_s]
+            clean = next((t for t, fl in after if not fl & ~wire.FLAG_LATE), None)
+            if clean is not None:
+                recoveries.append(clean - f.until_s)
+    return {
+        "minutes": minutes, "faults_injected": len([f for f in faults if f.at_s < duration]),
+        "fault_kinds": sorted({f.kind for f in faults}),
+        "samples": {t: len(v) for t, v in samples.items()}, "flagged": flagged, "sequence_gaps": gaps,
+        "longest_silence_s": silences, "recoveries": len(recoveries),
+        "recovery_max_s": max(recoveries, default=None),
+        "recovery_median_s": float(np.median(recoveries)) if recoveries else None,
+        "missed_cycles": status1.get("missed_cycles"), "late_cycles": status1.get("late_cycles"),
+        "cycles": status1.get("cycles"), "rss_kib_start": rss_start, "rss_kib_end": rss_end,
+        "alive_at_end": alive, "exit_code": exit_code,
+    }
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--minutes", type=float, default=30.0)
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--per-minute", type=float, default=6.0, help="faults per minute on average")
+    args = parser.parse_args()
+    report = soak(args.minutes, args.seed, args.per_minute)
+    print(json.dumps(report, indent=1))
+    return 0 if report["alive_at_end"] and report["exit_code"] == 0 else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
