@@ -38,9 +38,12 @@ class Notifier:
         try:
             if self._socket is None:
                 self._socket = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
-            self._socket.sendto(message.encode(), self.address)
+            # Non-blocking: a unix datagram queue holds only net.unix.max_dgram_qlen
+            # (10) messages and then blocks the sender; a busy systemd must never
+            # stall the loop, so a notification that finds the queue full is dropped.
+            self._socket.sendto(message.encode(), socket.MSG_DONTWAIT, self.address)
         except OSError:
-            return False  # systemd gone or socket full: the service goes on regardless
+            return False  # systemd gone or its queue full: the service goes on regardless
         return True
 
     def ready(self, status: str = "") -> bool:

@@ -227,3 +227,28 @@ def test_curve_control_lets_in_only_known_clients(tmp_path):
         pub.close(linger=0)
         ctl.close(linger=0)
         ctx.term()
+
+
+def test_sighup_storm_and_sigterm_during_a_reload(running):
+    proc, pub, ctl = running
+    with Subscriber(pub, ["wrench/sensor2"]) as sub:
+        sub.receive(timeout_s=5)
+        for _ in range(20):  # reloads land between cycles, whatever the cycle was doing
+            proc.send_signal(signal.SIGHUP)
+            time.sleep(0.013)
+        seqs = [sub.receive(timeout_s=5).seq for _ in range(100)]
+        assert seqs == list(range(seqs[0], seqs[0] + 100))  # no cycle lost to the reloads
+    assert proc.poll() is None
+    proc.send_signal(signal.SIGHUP)
+    proc.send_signal(signal.SIGTERM)  # while the reload is pending or running
+    assert proc.wait(timeout=10) == 0
+
+
+def test_a_notify_socket_nobody_reads_never_blocks_the_sender(tmp_path):
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    server.bind(str(tmp_path / "n"))
+    n = Notifier({"NOTIFY_SOCKET": str(tmp_path / "n")})
+    t0 = time.monotonic()
+    sent = [n.status(f"{i}") for i in range(200)]  # far past the queue's 10 datagrams
+    assert time.monotonic() - t0 < 2.0 and sent[0] and not all(sent)
+    server.close()
