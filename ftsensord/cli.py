@@ -154,12 +154,14 @@ def cmd_status(args: argparse.Namespace) -> int:
     for name, s in status["sensors"].items():
         tare = "tared, offset " + " ".join(f"{v:+.4g}" for v in s["tare_wrench"]) if s["tared"] else "not tared"
         print(f"sensor {name}: frame {s['frame']}, serial {s['serial']}, {tare}; calibration {s['calibration']}")
-    bad = {a: c for a, c in status["chips"].items() if not c["ok"] or c["errors"]}
+    bad = {a: c for a, c in status["chips"].items() if not c["ok"] or c["errors"] or c["reinits"]}
     temps = [c["temperature_c"] for c in status["chips"].values() if c["temperature_c"] is not None]
     print(f"chips: {len(status['chips'])}, failing {sum(not c['ok'] for c in status['chips'].values())}"
           + (f", {min(temps):.1f}-{max(temps):.1f} degC" if temps else ""))
     for address, c in bad.items():
-        print(f"  {address}: {'ok' if c['ok'] else 'FAILING'}, {c['errors']} errors, last: {c['last_error']}")
+        retry = f", retry in {c['retry_in_s']:.2f} s" if c["retry_in_s"] is not None else ""
+        print(f"  {address}: {c['state'].upper()}{retry}, {c['errors']} errors, {c['reinits']} resets, "
+              f"{c['register_drifts']} register changes, {c['stuck_detections']} stuck; last: {c['last_error']}")
     return 0
 
 

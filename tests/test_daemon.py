@@ -338,6 +338,11 @@ def test_config_refuses_a_rate_above_the_bound_naming_it(tmp_path):
     (("rate_hz = 100", "rate_hz = 100\npublish_tcp = \"tcp://0.0.0.0:5555\""), "publish_tcp", "loopback"),
     (("sensor2 = [0.0, 0.0, -0.1]", "sensor3 = [0.0, 0.0, -0.1]"), "tool.offsets_m.sensor3", "one of the sensors"),
     (("rate_hz = 100", "rate_hz = 100\nratehz = 5"), "ratehz", "one of"),
+    (('bus = "sim:scene.toml"', ""), "bus", "missing"),
+    (('calibration = "builtin:sim-sensor2.json"', ""), "sensor[1].calibration", "missing"),
+    (("rate_hz = 100", "rate_hz = nan"), "rate_hz", "finite number"),
+    (("rate_hz = 100", "rate_hz = inf"), "rate_hz", "finite number"),
+    (("version = 1", "version = 2"), "version", "expected 1"),
 ])
 def test_a_bad_configuration_names_the_file_the_key_and_what_was_expected(tmp_path, edit, key, expected):
     path = write_config(tmp_path)
