@@ -40,6 +40,20 @@ def hostile(rng: np.random.Generator) -> bytes:
     return text.encode("utf-8", "surrogatepass")
 
 
+def ask_status(ctx: zmq.Context, endpoint: str, daemon: Daemon) -> dict:
+    """A status request from a fresh client, served as the loop would."""
+    req = ctx.socket(zmq.REQ)
+    req.connect(endpoint)
+    req.send(b'{"cmd": "status"}')
+    for _ in range(100):
+        daemon.handle_control()
+        if req.poll(10):
+            break
+    reply = json.loads(req.recv())
+    req.close(linger=0)
+    return reply
+
+
 def test_ten_thousand_hostile_requests_leave_publishing_intact(tmp_path):
     config_path = write_config(tmp_path, extra=f'publish = "ipc://{tmp_path}/pub"\ncontrol = "ipc://{tmp_path}/ctl"')
     config = load_config(config_path)
@@ -83,15 +97,7 @@ def test_ten_thousand_hostile_requests_leave_publishing_intact(tmp_path):
     # the oversized frame at flood 50 makes ZeroMQ drop that connection with what it carried.
     assert errors >= 0.9 * replies and replies >= 4_000
     assert seqs == list(range(len(seqs))) and len(seqs) >= 99  # publishing never skipped a sample
-    fresh = ctx.socket(zmq.REQ)
-    fresh.connect(config.control)
-    fresh.send(b'{"cmd": "status"}')
-    for _ in range(100):
-        daemon.handle_control()
-        if fresh.poll(10):
-            break
-    assert json.loads(fresh.recv())["result"]["cycles"] == 100  # still serving, every cycle ran
-    fresh.close(linger=0)
+    assert ask_status(ctx, config.control, daemon)["result"]["cycles"] == 100  # still serving, every cycle ran
     for sock in (pub, ctl, sub, client):
         sock.close(linger=0)
     ctx.term()
@@ -110,14 +116,7 @@ def test_an_oversized_request_is_dropped_and_the_next_one_answered(tmp_path):
         daemon.handle_control()
     assert not req.poll(100)  # dropped: the oversized peer is disconnected by ZeroMQ
     req.close()
-    req = ctx.socket(zmq.REQ)
-    req.connect(config.control)
-    req.send(b'{"cmd": "status"}')
-    for _ in range(50):
-        daemon.handle_control()
-        if req.poll(10):
-            break
-    assert json.loads(req.recv())["ok"]
-    for sock in (pub, ctl, req):
+    assert ask_status(ctx, config.control, daemon)["ok"]
+    for sock in (pub, ctl):
         sock.close(linger=0)
     ctx.term()
