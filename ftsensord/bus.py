@@ -90,6 +90,7 @@ def open_bus(spec: str, **sim_options: object) -> Bus:
     """
     kind, arg = parse_bus_spec(spec)
     if kind == "i2c":
+        assert arg is not None  # parse_bus_spec gives i2c an argument
         if sim_options:
             raise ConfigError(f"bus {spec!r}: options {sorted(sim_options)} apply to the simulated bus only")
         return LinuxI2CBus(int(arg) if arg.isdigit() else arg)

@@ -105,7 +105,7 @@ def check_excitation(wrench: np.ndarray) -> Excitation:
         if residual.std() > EXCITATION_TOL * std[k]:
             continue  # axis k varies on its own
         share = np.abs(coef) * std[others] / std[k]
-        group = {k} | {j for j, sh in zip(others, share) if sh >= PARTNER_SHARE}
+        group = {int(k)} | {int(j) for j, sh in zip(others, share) if sh >= PARTNER_SHARE}
         for g in [g for g in groups if g & group]:
             group |= g
             groups.remove(g)

@@ -200,7 +200,7 @@ def cmd_echo(args: argparse.Namespace) -> int:
 def cmd_record(args: argparse.Namespace) -> int:
     import time
 
-    rows = []
+    rows: list[tuple[float, ...]] = []
     with _subscriber(args) as sub:
         end = time.monotonic() + args.seconds if args.seconds else None
         while (args.count is None or len(rows) < args.count) and (end is None or time.monotonic() < end):

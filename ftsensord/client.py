@@ -113,7 +113,7 @@ class Subscriber:
         self.context = context or zmq.Context.instance()
         if latest and not streams:
             raise ValueError("latest=True needs the streams named (one conflating socket each)")
-        groups = [[stream] for stream in streams] if latest else [list(streams or [""])]
+        groups = [[stream] for stream in streams or []] if latest else [list(streams or [""])]
         self.sockets = []
         for group in groups:
             sock = self.context.socket(zmq.SUB)

@@ -195,7 +195,7 @@ def load_config(path: str | Path | None = None) -> Config:
         settings.validate()
     except ConfigError as exc:
         raise ConfigError(f"{path}: chip: {exc}") from exc
-    sensors = []
+    sensors: list[SensorConfig] = []
     seen: set[int] = set()
     for t in doc.tables("sensor"):
         t.only({"name", "addresses", "calibration", "frame"})

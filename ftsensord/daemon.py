@@ -210,11 +210,12 @@ class Daemon:
 
     def _count(self, r: ChipResult) -> None:
         stats = self.chip_stats[r.address]
-        if r.ok:
+        m = r.measurement
+        if m is not None:
             stats.ok = True
-            stats.saturated += r.measurement.any_saturated
-            if r.measurement.temperature_c is not None:
-                stats.temperature_c = round(r.measurement.temperature_c, 2)
+            stats.saturated += m.any_saturated
+            if m.temperature_c is not None:
+                stats.temperature_c = round(m.temperature_c, 2)
             return
         stats.errors += 1
         stats.last_error = str(r.error)
@@ -246,10 +247,11 @@ class Daemon:
         flags = 0
         for i, address in enumerate(sensor.config.addresses):
             r, part = results[address], slice(3 * i, 3 * i + 3)
-            if r.ok:
-                flux[part] = sensor.last_flux[part] = r.measurement.field_t
-                usable[i] = not r.measurement.any_saturated
-                if r.measurement.any_saturated:
+            m = r.measurement
+            if m is not None:
+                flux[part] = sensor.last_flux[part] = m.field_t
+                usable[i] = not m.any_saturated
+                if m.any_saturated:
                     flags |= wire.FLAG_SATURATED
             elif (isinstance(r.error, ChipRefusedError) and r.error.command == "RM"
                   and np.all(np.isfinite(sensor.last_flux[part]))):

@@ -170,6 +170,7 @@ class Reader:
         if self.scheduler not in SCHEDULERS:
             raise ConfigError(f"scheduler: expected one of {', '.join(SCHEDULERS)}, got {self.scheduler!r}")
         self.health = {c.address: ChipHealth() for c in self.chips}
+        self._attempted = False  # one recovery a cycle
 
     @property
     def failing(self) -> set[int]:
@@ -293,7 +294,7 @@ class Reader:
     def _judge(self, r: ChipResult, now: float) -> ChipResult:
         """Update a healthy chip's health from its result; a stuck chip's data become an error."""
         h = self.health[r.address]
-        if r.ok:
+        if r.measurement is not None:
             h.stale_run = 0
             words = tuple(r.measurement.raw.get(a, -1) for a in "xyz")
             h.same_words = h.same_words + 1 if words == h.last_words else 0

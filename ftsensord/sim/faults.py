@@ -113,7 +113,8 @@ def random_faults(addresses: list[int], duration_s: float, rng: np.random.Genera
                   per_minute: float = 6.0, mean_length_s: float = 3.0, start_s: float = 2.0) -> list[Fault]:
     """A random schedule for a soak: faults of every kind on random chips, one at a
     time on average ``per_minute``, each lasting about ``mean_length_s``."""
-    faults, t = [], start_s
+    faults: list[Fault] = []
+    t = start_s
     if per_minute <= 0:
         return faults
     kinds = ("nack", "detach", "io_error", "timeout", "stuck", "saturate", "slow", "drift_register")
