@@ -1,0 +1,115 @@
+"""The nonlinear estimator at the extremes: full range, cold starts, missing and
+saturated chips left out, garbage in. On a dipole scene the forward model is exact,
+so the estimate must be too."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from ftsensord import se3
+from ftsensord.geometry import SensorGeometry
+from ftsensord.nonlinear import FluxModel, NonlinearEstimator
+from ftsensord.sim.physics import PAPER_STIFFNESS_DIAG, SENSOR_RANGE, PhysicalScene, SimSensor
+
+G = SensorGeometry.ring()
+K = np.diag(PAPER_STIFFNESS_DIAG)
+SCENE = PhysicalScene([SimSensor("s", tuple(range(0x0C, 0x14)))], field_model="dipole", crosstalk="dipole")
+
+
+def flux_at(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    xi = np.linalg.solve(K, w)
+    return SCENE.chip_fields(G, se3.exp_se3(xi)).ravel(), xi
+
+
+def estimator() -> NonlinearEstimator:
+    return NonlinearEstimator(FluxModel(G, G.magnet_moment_am2), K)
+
+
+def test_forward_model_is_the_dipole_scene():
+    T = se3.exp_se3(np.array([1e-3, -5e-4, 3e-4, 0.01, -0.005, 0.008]))
+    assert np.allclose(FluxModel(G, G.magnet_moment_am2).predict(T), SCENE.chip_fields(G, T).ravel(), rtol=1e-12)
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.tuples(*[st.floats(-3e-3, 3e-3)] * 3, *[st.floats(-0.03, 0.03)] * 3).map(np.array))
+def test_analytic_jacobian_matches_finite_differences(xi):
+    model = FluxModel(G, G.magnet_moment_am2)
+    T = se3.exp_se3(xi)
+    _, J = model.predict_and_jacobian(T)
+    h = 1e-7  # central differences: error ~h^2 x third derivative, far below 1e-6 here
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = h
+        numeric = (model.predict(se3.exp_se3(d) @ T) - model.predict(se3.exp_se3(-d) @ T)) / (2 * h)
+        assert np.allclose(J[:, k], numeric, rtol=1e-5, atol=1e-6 * np.abs(numeric).max())
+
+
+EXTREMES = [np.array(w, float) for w in (
+    [50, 0, 0, 0, 0, 0], [-50, 0, 0, 0, 0, 0], [0, 50, 0, 0, 0, 0], [0, -50, 0, 0, 0, 0],
+    [0, 0, 20, 0, 0, 0], [0, 0, -20, 0, 0, 0], [0, 0, 0, 0.2, 0, 0], [0, 0, 0, 0, -0.2, 0],
+    [0, 0, 0, 0, 0, 0.2], [35, -35, 14, 0.14, -0.14, 0.14])]
+
+
+@pytest.mark.parametrize("w", EXTREMES, ids=lambda w: " ".join(f"{v:g}" for v in w))
+def test_full_range_loads_are_recovered_from_a_cold_start(w):
+    flux, xi = flux_at(w)
+    est = estimator()
+    e = est.estimate(flux, start=np.eye(4))
+    assert e.converged and e.iterations <= 30
+    assert np.allclose(e.xi, xi, atol=1e-12) and np.allclose(est.wrench(e), w, atol=1e-8)
+
+
+def test_warm_start_follows_a_ramp_in_few_iterations():
+    est = estimator()
+    iterations = []
+    for f in np.linspace(0, 50, 51):
+        flux, xi = flux_at(np.array([f, -0.4 * f, 0.2 * f, 0, 0, 0]))
+        e = est.estimate(flux)
+        assert e.converged and np.allclose(e.xi, xi, atol=1e-12)
+        iterations.append(e.iterations)
+    assert max(iterations[1:]) <= 10  # a cold start at 50 N needs 19
+
+
+@pytest.mark.parametrize("left_out", [(2,), (0, 1), (3, 7)])
+def test_missing_or_saturated_chips_are_left_out(left_out):
+    flux, xi = flux_at(np.array([20.0, 10.0, -5.0, 0.05, -0.05, 0.1]))
+    usable = np.ones(8, dtype=bool)
+    usable[list(left_out)] = False
+    for i in left_out:
+        flux[3 * i:3 * i + 3] = [0.05, -0.05, np.nan][: 3] if i % 2 else [0.05, 0.05, 0.05]  # junk
+    e = estimator().estimate(flux, usable=usable, start=np.eye(4))
+    assert e.converged and np.allclose(e.xi, xi, atol=1e-11)
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**32 - 1))
+def test_garbage_never_diverges_or_raises(seed):
+    rng = np.random.default_rng(seed)
+    flux = rng.normal(0, 5e-3, 24)
+    e = estimator().estimate(flux, start=np.eye(4))
+    assert np.all(np.isfinite(e.pose)) and np.all(np.isfinite(e.xi))
+    # It may find some pose, but never one far outside where the magnets are.
+    assert np.linalg.norm(e.xi[:3]) < 0.05
+
+
+def test_nan_or_too_few_channels_is_a_refusal_not_an_exception():
+    flux, _ = flux_at(np.zeros(6))
+    flux[4] = np.nan
+    assert not estimator().estimate(flux).converged
+    assert not estimator().estimate(flux_at(np.zeros(6))[0], usable=np.array([1, 0, 0, 0, 0, 0, 0, 0], bool)).converged
+
+
+def test_noise_gives_an_error_the_size_the_jacobian_says():
+    rng = np.random.default_rng(4)
+    flux, xi = flux_at(np.array([10.0, 0, 0, 0, 0, 0]))
+    errs = []
+    for _ in range(50):
+        e = estimator().estimate(flux + rng.normal(0, 2e-6, 24), start=np.eye(4))
+        errs.append(e.xi - xi)
+    _, J = FluxModel(G, G.magnet_moment_am2).predict_and_jacobian(se3.exp_se3(xi))
+    predicted = np.sqrt(np.diag(np.linalg.inv(J.T @ J))) * 2e-6  # the Cramer-Rao bound at 2 uT
+    measured = np.std(errs, axis=0)
+    assert np.all(measured < 2 * predicted) and np.all(measured > 0.5 * predicted)
