@@ -19,11 +19,13 @@ import numpy as np
 from .dataset import parse_addresses
 from .docfile import Table, load_json
 from .model import LinearModel, PositionMap
+from .nlcal import NonlinearCalibration
 
 CAL_FORMAT = "ftsensord-calibration"
 CAL_VERSION = 1
 CAL_UNITS = {"K": "N/m, Nm/rad", "A": "m/T, rad/T", "H": "T/m, T/rad", "zero_flux": "T", "wrench": "N, Nm",
-             "twist": "m, rad", "position_map": "M: m/T, o: m"}
+             "twist": "m, rad", "position_map": "M: m/T, o: m",
+             "nonlinear": "gap_m, ring_radius_m: m; tilt_deg: deg; offset_t: T; K: N/m, Nm/rad; zero_twist: m, rad"}
 
 
 @dataclass
@@ -36,6 +38,7 @@ class Calibration:
     frame: str = "sensor"
     position_map: PositionMap | None = None
     report: dict[str, Any] = field(default_factory=dict)
+    nonlinear: NonlinearCalibration | None = None
 
     def document(self) -> dict[str, Any]:
         doc: dict[str, Any] = {
@@ -52,6 +55,11 @@ class Calibration:
             doc["H"] = self.model.H.tolist()
         if self.position_map is not None:
             doc["position_map"] = {"M": self.position_map.M.tolist(), "o": self.position_map.o.tolist()}
+        if self.nonlinear is not None:
+            nl = self.nonlinear
+            doc["nonlinear"] = {"gap_m": nl.gap_m, "ring_radius_m": nl.ring_radius_m, "tilt_deg": nl.tilt_deg,
+                                "scale": nl.scale.tolist(), "offset_t": nl.offset_t.tolist(), "K": nl.K.tolist(),
+                                "zero_twist": nl.zero_twist.tolist(), "fit_rms_residual_t": nl.fit_rms_residual_t}
         doc["checksum"] = checksum(doc)
         return doc
 
@@ -64,7 +72,7 @@ class Calibration:
         raw = load_json(path)
         doc = Table(raw, path)
         doc.only({"format", "version", "units", "sensor", "model", "K", "A", "H", "zero_flux", "fit_report",
-                  "position_map", "checksum"})
+                  "position_map", "nonlinear", "checksum"})
         if doc.get("format") != CAL_FORMAT:
             raise doc.fail("format", f'"{CAL_FORMAT}"', doc.get("format"))
         doc.integer("version", what=f"{CAL_VERSION} (this ftsensord reads version {CAL_VERSION})",
@@ -88,6 +96,16 @@ class Calibration:
                 raise pm.fail("M", f"{len(addresses)} 3x3 matrices, one per chip", M)
             Ms = [Table({"M": m}, path, f"{pm.key('M')}[{i}]").matrix("M", 3, 3) for i, m in enumerate(M)]
             pmap = PositionMap(np.array(Ms), np.array(pm.matrix("o", len(addresses), 3, unit="m")))
+        nonlinear = None
+        if "nonlinear" in raw:
+            t = doc.table("nonlinear")
+            t.only({"gap_m", "ring_radius_m", "tilt_deg", "scale", "offset_t", "K", "zero_twist", "fit_rms_residual_t"})
+            chips = len(addresses)
+            nonlinear = NonlinearCalibration(
+                t.number("gap_m", low=1e-3, high=20e-3, unit="m"), np.array(t.matrix("scale", chips, 3)),
+                np.array(t.matrix("offset_t", chips, 3, unit="T")), np.array(t.matrix("K", 6, 6, unit="N/m, Nm/rad")),
+                np.array(t.numbers("zero_twist", 6, unit="m, rad")), t.number("fit_rms_residual_t", low=0, unit="T"),
+                t.number("ring_radius_m", low=1e-3, high=0.1, unit="m"), t.number("tilt_deg", low=-90, high=90))
         report = doc.get("fit_report", {})
         if not isinstance(report, dict):
             raise doc.fail("fit_report", "a table", report)
@@ -97,7 +115,7 @@ class Calibration:
         if np.linalg.matrix_rank(K @ A) < 6:
             raise doc.fail("K", "K A of rank 6 (a sensor must see all six axes)", "a rank-deficient K A")
         return cls(LinearModel(K, A, zero, H), addresses, sensor.string("serial", ""),
-                   sensor.string("frame", "sensor"), pmap, report)
+                   sensor.string("frame", "sensor"), pmap, report, nonlinear)
 
 
 def checksum(doc: dict[str, Any]) -> str:

@@ -99,8 +99,17 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     dataset = Dataset.load(args.dataset)
     result = fit(dataset)
     report = result.report
+    nonlinear = None
+    if not args.linear_only:
+        from .nlcal import fit_nonlinear, nonlinear_rmse
+        nonlinear = fit_nonlinear(dataset)
+        validation = dataset.select(dataset.split == "validation")
+        report["nonlinear"] = {"gap_mm": nonlinear.gap_m * 1e3, "fit_rms_residual_ut": nonlinear.fit_rms_residual_t * 1e6,
+                               "validation_rmse": (dict(zip(("Fx", "Fy", "Fz", "Mx", "My", "Mz"),
+                                                            nonlinear_rmse(nonlinear, validation).tolist()))
+                                                   if len(validation) else None)}
     cal = Calibration(result.model, dataset.addresses, args.serial or dataset.serial, args.frame,
-                      result.position_map, report)
+                      result.position_map, report, nonlinear)
     cal.save(args.output)
     sv, iso = report["singular_values_ka"], report["isotropy"]
     print(f"fit on {report['fit_poses']} poses ({report['left_out_saturated']} left out: saturated), "
@@ -108,6 +117,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     if report["validation_rmse"]:
         print("validation RMSE: " + format_rmse(report["validation_rmse"]))
     print("fit RMSE:        " + format_rmse(report["fit_rmse"]))
+    if nonlinear is not None and report["nonlinear"]["validation_rmse"]:
+        print(f"nonlinear (gap {nonlinear.gap_m * 1e3:.2f} mm) validation RMSE: "
+              + format_rmse(report["nonlinear"]["validation_rmse"]))
     print(f"sigma(KA): forces {sv['forces'][0]:.3g}..{sv['forces'][-1]:.3g} N/uT (isotropy {iso['forces']:.2f}), "
           f"torques {sv['torques'][0]:.3g}..{sv['torques'][-1]:.3g} Nm/uT (isotropy {iso['torques']:.2f})")
     print(f"wrote {args.output}")
@@ -310,6 +322,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--report", help="also write a Markdown report (and a PNG plot beside it)")
     p.add_argument("--serial", help="sensor serial to record (default: the dataset's)")
     p.add_argument("--frame", default="sensor", help="name of the sensor frame (default: sensor)")
+    p.add_argument("--linear-only", action="store_true",
+                   help="skip the nonlinear estimator's calibration (about 10 s for 193 poses)")
     p.set_defaults(func=cmd_calibrate)
     return parser
 
