@@ -24,6 +24,7 @@ from .errors import ConfigError
 from .schedule import SCHEDULERS, STUCK_CYCLES, CycleBound, cycle_bound
 
 CONFIG_VERSION = 1
+ESTIMATORS = ("linear", "nonlinear")
 BUILTIN = "builtin:"
 
 
@@ -67,6 +68,7 @@ class SensorConfig:
     calibration_path: Path
     calibration: Calibration
     frame: str  # the frame its wrench is expressed in (default: the calibration's)
+    estimator: str = "linear"  # "linear" (K A) or "nonlinear" (the flux model, docs/tradeoff.md)
 
 
 @dataclass
@@ -198,7 +200,7 @@ def load_config(path: str | Path | None = None) -> Config:
     sensors: list[SensorConfig] = []
     seen: set[int] = set()
     for t in doc.tables("sensor"):
-        t.only({"name", "addresses", "calibration", "frame"})
+        t.only({"name", "addresses", "calibration", "frame", "estimator"})
         addresses = parse_addresses(t, "addresses")
         for a in addresses:
             if a in seen:
@@ -212,7 +214,12 @@ def load_config(path: str | Path | None = None) -> Config:
         name = t.string("name")
         if any(s.name == name for s in sensors):
             raise t.fail("name", "a name no other sensor has", name)
-        sensors.append(SensorConfig(name, addresses, cal_path, calibration, t.string("frame", calibration.frame)))
+        estimator = t.string("estimator", "linear", choices=ESTIMATORS)
+        if estimator == "nonlinear" and calibration.nonlinear is None:
+            raise t.fail("estimator", f'"linear": {cal_path} has no nonlinear calibration '
+                                      "(make one with `ftsensord calibrate` without --linear-only)", estimator)
+        sensors.append(SensorConfig(name, addresses, cal_path, calibration, t.string("frame", calibration.frame),
+                                    estimator))
     security = _security(doc)
     rt = runtime_dir()
     stream_why = "set [security] public_stream = true to publish the wrench stream beyond this host"

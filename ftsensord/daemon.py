@@ -31,6 +31,7 @@ from .driver import MLX90393
 from .errors import ChipRefusedError, ConfigError, FtsensordError
 from .filters import WrenchFilter
 from .model import LinearModel
+from .nonlinear import NonlinearEstimator
 from .schedule import ChipResult, Reader
 from .sdnotify import Notifier
 from .sim.physics import SENSOR_RANGE
@@ -65,6 +66,11 @@ class SensorRuntime:
     filter: WrenchFilter
     last_flux: np.ndarray
     tared: bool = False
+    estimator: str = "linear"
+    nonlinear: NonlinearEstimator | None = None  # built from the calibration when it has one
+    zero_twist: np.ndarray | None = None  # the nonlinear estimator's no-load deflection
+    fallbacks: int = 0
+    estimate_s: deque[float] = field(default_factory=lambda: deque(maxlen=STATS_WINDOW))
 
     @property
     def name(self) -> str:
@@ -107,9 +113,12 @@ class Daemon:
         self.ready = False
 
     def _runtime(self, s: SensorConfig) -> SensorRuntime:
+        nl = s.calibration.nonlinear
         return SensorRuntime(s, s.calibration.model,
                              WrenchFilter(self.config.averaging, self.config.lowpass_hz, self.config.rate_hz),
-                             np.full(3 * len(s.addresses), np.nan))
+                             np.full(3 * len(s.addresses), np.nan), estimator=s.estimator,
+                             nonlinear=nl.estimator() if nl is not None else None,
+                             zero_twist=nl.zero_twist.copy() if nl is not None else None)
 
     @property
     def period_s(self) -> float:
@@ -229,6 +238,16 @@ class Daemon:
         """The wrench from every chip; from the usable ones (degraded) when one or
         two are missing or saturated; else NaN, flagged invalid. A failing chip's
         data never enter a wrench."""
+        if sensor.estimator == "nonlinear" and sensor.nonlinear is not None and sensor.zero_twist is not None:
+            if (~usable).sum() <= self.config.max_missing_chips:
+                t0 = time.process_time()
+                e = sensor.nonlinear.estimate(flux, usable)
+                sensor.estimate_s.append(time.process_time() - t0)
+                if e.converged:
+                    w = sensor.nonlinear.stiffness @ (e.xi - sensor.zero_twist)
+                    return w, flags | (0 if usable.all() else wire.FLAG_DEGRADED)
+            sensor.fallbacks += 1
+            flags |= wire.FLAG_FALLBACK
         if usable.all():
             return sensor.model.wrench(flux), flags
         if (~usable).sum() <= self.config.max_missing_chips and sensor.model.H is not None:
@@ -288,6 +307,10 @@ class Daemon:
                         zero = np.mean(job.flux[sensor.name], axis=0)
                         offsets[sensor.name] = self._tare_offset(sensor, zero)
                         sensor.model = sensor.model.with_zero(zero)
+                        if sensor.nonlinear is not None:
+                            e = sensor.nonlinear.estimate(zero)
+                            if e.converged:
+                                sensor.zero_twist = e.xi
                         sensor.filter.reset()
                         sensor.tared = True
                 self.tares.remove(job)
@@ -376,7 +399,9 @@ class Daemon:
         return self.reload()
 
     def _cmd_set(self, args: dict[str, Any], envelope: list[bytes]) -> dict[str, Any]:
-        self._args(args, {"rate_hz", "averaging", "lowpass_hz"})
+        self._args(args, {"rate_hz", "averaging", "lowpass_hz", "estimator", "sensor"})
+        if "estimator" in args:
+            return self._set_estimator(args)
         rate = args.get("rate_hz", self.config.rate_hz)
         averaging = args.get("averaging", self.config.averaging)
         lowpass = args.get("lowpass_hz", self.config.lowpass_hz)
@@ -391,6 +416,24 @@ class Daemon:
         for s in self.sensors:
             s.filter.configure(averaging, float(lowpass), float(rate))
         return {"rate_hz": self.config.rate_hz, "averaging": averaging, "lowpass_hz": self.config.lowpass_hz}
+
+    def _set_estimator(self, args: dict[str, Any]) -> dict[str, Any]:
+        if set(args) - {"estimator", "sensor"}:
+            raise ValueError("set estimator takes only sensor besides; set the rest in another request")
+        estimator, name = args["estimator"], args.get("sensor")
+        if estimator not in ("linear", "nonlinear"):
+            raise ValueError(f'estimator: expected "linear" or "nonlinear", got {str(estimator)[:40]!r}')
+        chosen = [s for s in self.sensors if name is None or s.name == name]
+        if not chosen:
+            raise ValueError(f"sensor: expected one of {[s.name for s in self.sensors]}, got {str(name)[:40]!r}")
+        if estimator == "nonlinear":
+            lacking = [s.name for s in chosen if s.nonlinear is None]
+            if lacking:
+                raise ValueError(f"no nonlinear calibration for {', '.join(lacking)}")
+        for s in chosen:
+            s.estimator = estimator
+            s.filter.reset()
+        return {"estimator": {s.name: s.estimator for s in self.sensors}}
 
     def reload(self) -> dict[str, Any]:
         """Re-read the configuration and calibrations; keep the old ones if the new are bad.
@@ -452,7 +495,10 @@ class Daemon:
             "chips": {f"0x{a:02X}": self._chip_status(a, c) for a, c in self.chip_stats.items()},
             "sensors": {s.name: {
                 "calibration": str(s.config.calibration_path), "serial": s.config.calibration.serial,
-                "frame": s.config.frame, "tared": s.tared,
+                "frame": s.config.frame, "tared": s.tared, "estimator": s.estimator,
+                "nonlinear_calibrated": s.nonlinear is not None, "fallbacks": s.fallbacks,
+                "estimate_cpu_us": {"mean": float(np.mean(s.estimate_s)) * 1e6, "max": float(np.max(s.estimate_s)) * 1e6}
+                if s.estimate_s else None,
                 "tare_wrench": self._tare_offset(s, s.model.zero) if s.tared else [0.0] * 6,
             } for s in self.sensors},
             "streams": sorted(self.seq), "publish": self.config.publish, "control": self.config.control,

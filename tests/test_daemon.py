@@ -405,3 +405,39 @@ def test_no_control_command_takes_a_path(rig):
                     {"cmd": "status", "config": "/root/x.toml"}, {"cmd": "set", "calibration": "../x.json"}):
         reply = rig.request(**request)
         assert not reply["ok"] and "unknown argument" in reply["error"]
+
+
+def test_the_nonlinear_estimator_in_the_loop_and_switched_at_run_time(tmp_path):
+    rig = Rig(tmp_path)
+    linear = np.mean([s.values for s in rig.cycles(30)["wrench/sensor1"]], axis=0)
+    reply = rig.request(cmd="set", estimator="nonlinear", sensor="sensor1")
+    assert reply["ok"] and reply["result"]["estimator"] == {"sensor1": "nonlinear", "sensor2": "linear"}
+    out = rig.cycles(30)["wrench/sensor1"]
+    nonlinear = np.mean([s.values for s in out], axis=0)
+    assert all(s.flags == 0 for s in out)
+    # The applied load is well inside the range: both close, the nonlinear closer.
+    assert np.abs(nonlinear - LOAD).sum() < np.abs(linear - LOAD).sum()
+    assert np.allclose(nonlinear[:3], LOAD[:3], atol=0.05)
+    st = rig.daemon.status()["sensors"]["sensor1"]
+    assert st["estimator"] == "nonlinear" and st["estimate_cpu_us"]["mean"] > 0 and st["fallbacks"] == 0
+    rig.bus.faults.nack(0x0E)  # a missing chip: the flux model simply leaves its channels out
+    s = rig.cycles(3)["wrench/sensor1"][-1]
+    assert s.flags & wire.FLAG_DEGRADED and np.allclose(s.values[:3], LOAD[:3], atol=0.1)
+    assert not rig.request(cmd="set", estimator="quantum")["ok"]
+    rig.close()
+
+
+def test_configuring_the_nonlinear_estimator_needs_its_calibration(tmp_path):
+    import json as json_
+
+    from ftsensord.calfile import Calibration
+    from ftsensord.config import builtin_path
+    cal = Calibration.load(builtin_path("sim-sensor1.json"))
+    cal.nonlinear = None
+    cal.save(tmp_path / "linear-only.json")
+    path = write_config(tmp_path, sensor1_cal=str(tmp_path / "linear-only.json"))
+    path.write_text(path.read_text().replace(f'calibration = "{tmp_path / "linear-only.json"}"',
+                                             f'calibration = "{tmp_path / "linear-only.json"}"\nestimator = "nonlinear"'))
+    with pytest.raises(ConfigError, match="sensor\\[0\\].estimator.*no nonlinear calibration"):
+        load_config(path)
+    assert json_.loads((tmp_path / "linear-only.json").read_text()).get("nonlinear") is None
