@@ -128,8 +128,9 @@ class NonlinearEstimator:
                     step = np.linalg.solve(JtJ + lam * np.diag(np.diag(JtJ)), Jtr)
                 except np.linalg.LinAlgError:
                     return Estimate(se3.log_se3(T), T, False, k, np.sqrt(cost / channels.sum()))
-                scale = min(1.0, MAX_STEP_M / max(np.linalg.norm(step[:3]), 1e-300),
-                            MAX_STEP_RAD / max(np.linalg.norm(step[3:]), 1e-300))
+                # 1e-300: a zero step needs no limit (and must not divide by zero).
+                scale = min(1.0, MAX_STEP_M / max(float(np.linalg.norm(step[:3])), 1e-300),
+                            MAX_STEP_RAD / max(float(np.linalg.norm(step[3:])), 1e-300))
                 step = step * scale
                 T_new = se3.exp_se3(step) @ T
                 r_new = (b - self.model.predict(T_new))[channels]
