@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from ftsensord import se3
 from ftsensord.geometry import SensorGeometry
-from ftsensord.nonlinear import FluxModel, NonlinearEstimator
+from ftsensord.nonlinear import STEP_TOL, FluxModel, NonlinearEstimator
 from ftsensord.sim.physics import PAPER_STIFFNESS_DIAG, SENSOR_RANGE, PhysicalScene, SimSensor
 
 G = SensorGeometry.ring()
@@ -59,7 +59,8 @@ def test_full_range_loads_are_recovered_from_a_cold_start(w):
     est = estimator()
     e = est.estimate(flux, start=np.eye(4))
     assert e.converged and e.iterations <= 30
-    assert np.allclose(e.xi, xi, atol=1e-12) and np.allclose(est.wrench(e), w, atol=1e-8)
+    # Within the stopping rule (Gauss-Newton converges quadratically: usually far within).
+    assert np.allclose(e.xi, xi, atol=STEP_TOL) and np.allclose(est.wrench(e), w, atol=K.max() * STEP_TOL)
 
 
 def test_warm_start_follows_a_ramp_in_few_iterations():
@@ -68,7 +69,7 @@ def test_warm_start_follows_a_ramp_in_few_iterations():
     for f in np.linspace(0, 50, 51):
         flux, xi = flux_at(np.array([f, -0.4 * f, 0.2 * f, 0, 0, 0]))
         e = est.estimate(flux)
-        assert e.converged and np.allclose(e.xi, xi, atol=1e-12)
+        assert e.converged and np.allclose(e.xi, xi, atol=STEP_TOL)
         iterations.append(e.iterations)
     assert max(iterations[1:]) <= 10  # a cold start at 50 N needs 19
 
@@ -81,7 +82,7 @@ def test_missing_or_saturated_chips_are_left_out(left_out):
     for i in left_out:
         flux[3 * i:3 * i + 3] = [0.05, -0.05, np.nan][: 3] if i % 2 else [0.05, 0.05, 0.05]  # junk
     e = estimator().estimate(flux, usable=usable, start=np.eye(4))
-    assert e.converged and np.allclose(e.xi, xi, atol=1e-11)
+    assert e.converged and np.allclose(e.xi, xi, atol=STEP_TOL)
 
 
 @settings(max_examples=30, deadline=None)
