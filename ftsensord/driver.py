@@ -65,7 +65,7 @@ class MLX90393:
         self.bus = bus
         self.address = address
         self.sleep = sleep
-        self.settings: mlx.Settings | None = None
+        self.settings = None
         self.tref = mlx.TREF_TYPICAL
 
     def __repr__(self) -> str:
@@ -157,11 +157,10 @@ class MLX90393:
         saturated = np.zeros(3, dtype=bool)
         for i, axis in enumerate("xyz"):
             if axis in words:
-                value, sat = mlx.raw_to_tesla(words[axis], self.settings.gain_sel, self.settings.res(axis),
-                                              axis, tcmp_en=self.settings.tcmp_en,
-                                              hallconf=self.settings.hallconf)
-                field[i] = value
-                saturated[i] = sat or abs(value) >= mlx.HALL_SATURATION_FLAG_T
+                fmt, tesla_per_count = self._decoding[i]
+                counts = mlx.raw_to_counts(words[axis], fmt)
+                field[i] = value = counts * tesla_per_count
+                saturated[i] = mlx.is_saturated(counts, fmt) or abs(value) >= mlx.HALL_SATURATION_FLAG_T
         temp = mlx.raw_to_celsius(words["t"], self.tref) if "t" in words else None
         return Measurement(status, field, saturated, temp, words)
 
@@ -218,6 +217,18 @@ class MLX90393:
             self.write_register(reg, value)
         self.tref = self.read_register(mlx.REG_TREF)
         self.settings = settings
+
+    @property
+    def settings(self) -> mlx.Settings | None:
+        """What `configure` wrote (None before, or after a reset)."""
+        return self._settings
+
+    @settings.setter
+    def settings(self, settings: mlx.Settings | None) -> None:
+        self._settings = settings
+        # Per axis: the word's coding and tesla per count, fixed until the next configure.
+        self._decoding = [] if settings is None else [
+            (settings.raw_format(a), settings.sensitivity_ut(a) * 1e-6) for a in "xyz"]
 
     def configuration_matches(self) -> bool:
         """Read back CONF1..CONF3 and compare with what `configure` wrote.
