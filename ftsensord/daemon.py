@@ -189,17 +189,18 @@ class Daemon:
         for r in results.values():
             self._count(r)
         base = wire.FLAG_LATE if late else 0
-        wrenches, tip_flags = {}, base
+        wrenches, tip_flags, raw = {}, base, []
         for sensor in self.sensors:
             flux, flags, usable = self._flux(sensor, results)
             flags |= base
-            self._publish(f"flux/{sensor.name}", wire.KIND_FLUX, t_mono, t_wall, flags, flux)
+            raw.append((sensor.name, flux, flags))
             wrench, flags = self._estimate(sensor, flux, flags, usable)
             if not flags & wire.FLAG_INVALID:
                 if np.any(np.abs(wrench) > SENSOR_RANGE):
                     flags |= wire.FLAG_OVERLOAD
                 self._feed_tares(sensor, flux, flags)
             filtered = sensor.filter.update(wrench)
+            # Wrenches first: a haptic loop waits for them; the flux streams are for debugging.
             self._publish(f"wrench/{sensor.name}", wire.KIND_WRENCH, t_mono, t_wall, flags, filtered)
             wrenches[sensor.name] = filtered
             tip_flags |= flags
@@ -207,6 +208,8 @@ class Daemon:
             tip = sum((se3.wrench_transform(se3.pose(p=offset)) @ wrenches[name]
                        for name, offset in self.config.tool_offsets_m.items()), start=np.zeros(6))
             self._publish("wrench/tip", wire.KIND_WRENCH, t_mono, t_wall, tip_flags, tip)
+        for name, flux, flags in raw:
+            self._publish(f"flux/{name}", wire.KIND_FLUX, t_mono, t_wall, flags, flux)
         self._advance_tares()
         self.cycles += 1
         if not self.ready:

@@ -441,3 +441,15 @@ def test_configuring_the_nonlinear_estimator_needs_its_calibration(tmp_path):
     with pytest.raises(ConfigError, match="sensor\\[0\\].estimator.*no nonlinear calibration"):
         load_config(path)
     assert json_.loads((tmp_path / "linear-only.json").read_text()).get("nonlinear") is None
+
+
+def test_a_nonlinear_estimate_that_does_not_converge_falls_back_to_the_linear_flagged(tmp_path):
+    rig = Rig(tmp_path)
+    linear = rig.cycles(1)["wrench/sensor1"][0].values
+    assert rig.request(cmd="set", estimator="nonlinear")["ok"]
+    rig.daemon.sensors[0].nonlinear.max_iterations = 0  # cannot converge
+    s = rig.cycles(1)["wrench/sensor1"][0]
+    assert s.flags & wire.FLAG_FALLBACK and not s.flags & wire.FLAG_INVALID
+    assert np.allclose(s.values, linear, atol=0.3)  # the linear estimate, not a guess
+    assert rig.daemon.status()["sensors"]["sensor1"]["fallbacks"] == 1
+    rig.close()
