@@ -9,7 +9,7 @@ calibrations). `config/ftsensord.toml` is a commented example.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
 
@@ -100,7 +100,7 @@ class Config:
 
     def bound(self) -> CycleBound:
         return cycle_bound(self.scheduler, len(self.addresses), self.settings, self.bus_hz, self.bus_overhead_s,
-                           readback=self.readback_every > 0)
+                           readback=self.readback_every > 0, temperature=self.temperature_every > 0)
 
 
 def check_rate(config: Config, rate_hz: float, where: str = "rate_hz") -> None:
@@ -109,7 +109,7 @@ def check_rate(config: Config, rate_hz: float, where: str = "rate_hz") -> None:
     if rate_hz <= bound.rate_hz:
         return
     n = len(config.addresses)
-    others = ", ".join(f"{s} {cycle_bound(s, n, config.settings, config.bus_hz, config.bus_overhead_s, config.readback_every > 0).rate_hz:.0f} Hz"  # noqa: E501
+    others = ", ".join(f"{s} {replace(config, scheduler=s).bound().rate_hz:.0f} Hz"
                        for s in SCHEDULERS if s != config.scheduler)
     raise ConfigError(f"{where}: {rate_hz:g} Hz cannot be met: {bound.describe()}. Lower the rate, "
                       f"change the scheduler ({others}), shorten the conversion (lower OSR or "

@@ -69,21 +69,25 @@ def _batched_s(n_chips: int, bits_per_chip: int, bus_hz: float, overhead_s: floa
 
 
 def cycle_bound(scheduler: str, n_chips: int, settings: mlx.Settings, bus_hz: float,
-                overhead_s: float = 0.0, readback: bool = True) -> CycleBound:
+                overhead_s: float = 0.0, readback: bool = True, temperature: bool = False) -> CycleBound:
     """The fastest cycle for ``n_chips`` at ``settings`` on a ``bus_hz`` bus.
 
     ``overhead_s`` is the fixed cost of one ioctl (kernel and adapter), which
     the wire time does not include; measure it on the board. ``readback``
-    counts the cycle that also reads one chip's three registers back.
+    counts the cycle that also reads one chip's three registers back;
+    ``temperature`` the cycle that also converts and reads T (not in burst):
+    the bound is that of the slowest cycle, which every cycle must fit.
     """
-    conversion = settings.single_measurement_us(mlx.ZYXT_XYZ) * 1e-6 * OSC_MARGIN
+    zyxt = mlx.ZYXT_XYZT if temperature and scheduler != "burst" else mlx.ZYXT_XYZ
+    conversion = settings.single_measurement_us(zyxt) * 1e-6 * OSC_MARGIN
+    rm_bits = RM_BITS + (BITS_PER_BYTE * 2 if zyxt & mlx.ZYXT_T else 0)
     sm_one = (SM_BITS + 1) / bus_hz + overhead_s
-    rm_one = (RM_BITS + 1) / bus_hz + overhead_s
+    rm_one = (rm_bits + 1) / bus_hz + overhead_s
     check = 3 * ((RR_BITS + 1) / bus_hz + overhead_s) if readback else 0.0
     if scheduler == "naive":
         return CycleBound(scheduler, n_chips, bus_hz, n_chips * sm_one, n_chips * conversion, n_chips * rm_one,
                           check)
-    read = _batched_s(n_chips, RM_BITS, bus_hz, overhead_s)
+    read = _batched_s(n_chips, rm_bits, bus_hz, overhead_s)
     if scheduler == "overlapped":
         start = _batched_s(n_chips, SM_BITS, bus_hz, overhead_s)
         # The first chip's conversion starts one command into the SM transfer; the RM

@@ -41,3 +41,25 @@ def test_the_bound_matches_the_design_notes():
     no_check = {s: cycle_bound(s, 16, settings, 400e3, readback=False).rate_hz for s in ("naive", "overlapped", "burst")}
     assert no_check["naive"] < 20 and 125 < no_check["overlapped"] < 150 and 250 < no_check["burst"] < 290
     assert cycle_bound("overlapped", 16, settings, 100e3).rate_hz < 100  # 16 chips at 100 Hz need 400 kHz
+
+
+def test_the_temperature_cycle_is_counted_in_the_bound():
+    settings = mlx.Settings()
+    plain, with_t = (cycle_bound("overlapped", 16, settings, 400e3, temperature=t) for t in (False, True))
+    # T adds TCONVT (259 us, +20 %) to the wait and two bytes per chip to the RM transfer.
+    assert with_t.cycle_s - plain.cycle_s == pytest.approx(1.2 * 259e-6 + 16 * 18 / 400e3, rel=1e-9)
+    assert cycle_bound("burst", 16, settings, 400e3, temperature=True) == cycle_bound("burst", 16, settings, 400e3)
+
+
+def test_a_temperature_cycle_takes_exactly_its_bound():
+    clock = VirtualClock()
+    bus = simulated_bus(two_sensor_scene(), clock=clock, bus_hz=400e3)
+    reader = Reader(bus, [MLX90393(bus, a, sleep=bus.sleep) for a in range(0x0C, 0x1C)], "overlapped",
+                    mlx.Settings(), 400e3)
+    reader.start()
+    clock.sleep(0.1)
+    t0 = clock.now()
+    results = reader.read(mlx.ZYXT_XYZT)
+    assert all(r.ok and r.measurement.temperature_c is not None for r in results)
+    assert clock.now() - t0 == pytest.approx(cycle_bound("overlapped", 16, mlx.Settings(), 400e3,
+                                                         temperature=True).cycle_s, rel=1e-9)
