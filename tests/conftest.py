@@ -7,9 +7,25 @@ import pytest
 
 from ftsensord import mlx90393 as mlx
 from ftsensord.driver import MLX90393
-from ftsensord.sim import NOISELESS, SimulatedBus, StaticScene, VirtualClock, simulated_bus
+from ftsensord.sim import (
+    NOISELESS,
+    SimulatedBus,
+    StaticScene,
+    VirtualClock,
+    simulated_bus,
+)
 
 ADDR = 0x0C
+
+
+def assert_names_file_and_key(load, path, key: str, expected: str) -> None:
+    """``load(path)`` refuses the file with a ConfigError naming the file, the key and
+    what was expected: the contract for every file the project reads."""
+    from ftsensord.errors import ConfigError
+    with pytest.raises(ConfigError) as exc:
+        load(path)
+    msg = str(exc.value)
+    assert str(path) in msg and key in msg and expected in msg, msg
 
 
 @pytest.fixture

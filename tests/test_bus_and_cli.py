@@ -14,8 +14,9 @@ from ftsensord.bus import open_bus, parse_bus_spec
 from ftsensord.cli import main
 from ftsensord.errors import ConfigError
 from ftsensord.scan import scan
-from ftsensord.sim import SimulatedBus, default_scene, load_scene
-from ftsensord.sim import PhysicalScene
+from ftsensord.sim import PhysicalScene, SimulatedBus, default_scene, load_scene
+
+from .conftest import assert_names_file_and_key
 
 SCENE = """\
 version = 1
@@ -92,9 +93,7 @@ def test_scene_file_loads(tmp_path):
 def test_a_bad_scene_file_names_the_file_the_key_and_what_was_expected(tmp_path, edit, key, expected):
     path = tmp_path / "bad.toml"
     path.write_text(SCENE.replace(*edit, 1))
-    with pytest.raises(ConfigError) as exc:
-        load_scene(path)
-    assert str(path) in str(exc.value) and key in str(exc.value) and expected in str(exc.value)
+    assert_names_file_and_key(load_scene, path, key, expected)
 
 
 def test_a_missing_scene_file_is_a_config_error(tmp_path):

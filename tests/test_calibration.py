@@ -10,18 +10,32 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from ftsensord import mlx90393 as mlx
+from ftsensord import se3
 from ftsensord.calfile import Calibration, checksum
-from ftsensord.calibration import EXCITATION_TOL, check_excitation, fit, fit_linear, noise_floor, rmse
+from ftsensord.calibration import (
+    EXCITATION_TOL,
+    check_excitation,
+    fit,
+    fit_linear,
+    noise_floor,
+    rmse,
+)
 from ftsensord.dataset import Dataset
 from ftsensord.errors import CalibrationError, ConfigError
 from ftsensord.geometry import SensorGeometry
-from ftsensord.model import LinearModel, PositionMap, deflection_twist, fit_position_map, tip_wrench
+from ftsensord.model import (
+    LinearModel,
+    PositionMap,
+    deflection_twist,
+    fit_position_map,
+    tip_wrench,
+)
 from ftsensord.rig import record_dataset, simulate_sweeps
-from ftsensord.sim.loads import paper_plan
 from ftsensord.sim import NOISELESS, VirtualClock, simulated_bus, two_sensor_scene
-from ftsensord.sim.loads import StaticLoad
-from ftsensord import mlx90393 as mlx
-from ftsensord import se3
+from ftsensord.sim.loads import StaticLoad, paper_plan
+
+from .conftest import assert_names_file_and_key
 
 
 def synthetic(n: int, rng: np.random.Generator):
@@ -230,10 +244,7 @@ def test_a_bad_calibration_file_names_the_file_and_key(small_dataset, tmp_path, 
     doc = calibration(fit(small_dataset), small_dataset).document()
     change(doc)
     path.write_text(json.dumps(doc))
-    with pytest.raises(ConfigError) as exc:
-        Calibration.load(path)
-    msg = str(exc.value)
-    assert "cal.json" in msg and key in msg and expected in msg, msg
+    assert_names_file_and_key(Calibration.load, path, key, expected)
 
 
 def test_a_rank_deficient_k_a_is_refused_even_with_a_valid_checksum(small_dataset, tmp_path):

@@ -19,6 +19,8 @@ from ftsensord.errors import ConfigError
 from ftsensord.sdnotify import Notifier
 from ftsensord.sim import VirtualClock, load_scene, simulated_bus
 
+from .conftest import assert_names_file_and_key
+
 LOAD = [1.0, -0.5, 0.8, 0.02, -0.01, 0.015]
 _ids = itertools.count()
 
@@ -348,10 +350,7 @@ def test_config_refuses_a_rate_above_the_bound_naming_it(tmp_path):
 def test_a_bad_configuration_names_the_file_the_key_and_what_was_expected(tmp_path, edit, key, expected):
     path = write_config(tmp_path)
     path.write_text(path.read_text().replace(*edit, 1))
-    with pytest.raises(ConfigError) as exc:
-        load_config(path)
-    msg = str(exc.value)
-    assert str(path) in msg and key in msg and expected in msg, msg
+    assert_names_file_and_key(load_config, path, key, expected)
 
 
 def test_the_commented_example_configuration_loads(tmp_path):

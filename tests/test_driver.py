@@ -10,8 +10,12 @@ import pytest
 
 from ftsensord import mlx90393 as mlx
 from ftsensord.driver import MLX90393
-from ftsensord.errors import (ChipProtocolError, ChipRefusedError, ForbiddenSettingError,
-                              RegisterVerifyError)
+from ftsensord.errors import (
+    ChipProtocolError,
+    ChipRefusedError,
+    ForbiddenSettingError,
+    RegisterVerifyError,
+)
 
 from .conftest import ADDR
 

@@ -12,7 +12,11 @@ from hypothesis import strategies as st
 from ftsensord import se3
 from ftsensord.geometry import SensorGeometry
 from ftsensord.nonlinear import STEP_TOL, FluxModel, NonlinearEstimator
-from ftsensord.sim.physics import PAPER_STIFFNESS_DIAG, SENSOR_RANGE, PhysicalScene, SimSensor
+from ftsensord.sim.physics import (
+    PAPER_STIFFNESS_DIAG,
+    PhysicalScene,
+    SimSensor,
+)
 
 G = SensorGeometry.ring()
 K = np.diag(PAPER_STIFFNESS_DIAG)

@@ -8,10 +8,16 @@ import pytest
 from smbus2 import i2c_msg
 
 from ftsensord import mlx90393 as mlx
+from ftsensord.bus import I2C_RDWR_MAX_MSGS, wire_bits
 from ftsensord.driver import MLX90393
 from ftsensord.errors import ChipNotRespondingError, ChipRefusedError
-from ftsensord.sim import NOISELESS, MonotonicClock, VirtualClock, default_scene, simulated_bus
-from ftsensord.bus import I2C_RDWR_MAX_MSGS, wire_bits
+from ftsensord.sim import (
+    NOISELESS,
+    MonotonicClock,
+    VirtualClock,
+    default_scene,
+    simulated_bus,
+)
 
 from .conftest import ADDR
 
