@@ -123,7 +123,7 @@ def accuracy(settings: mlx.Settings, averaging: int, n_loads: int, cal: Calibrat
         e = est.estimate(flux)
         if not e.converged:
             e = est.estimate(flux, start=np.eye(4))
-        return cal.model.wrench(flux), nl.wrench(est, e.xi)
+        return cal.model.wrench(flux), nl.wrench(e.xi)
 
     rng = np.random.default_rng(5)
     rest = np.array([read(np.zeros(6)) for _ in range(max(20, 120 // averaging))])

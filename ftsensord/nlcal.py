@@ -52,7 +52,8 @@ class NonlinearCalibration:
         g = self.geometry()
         return NonlinearEstimator(FluxModel(g, g.magnet_moment_am2, self.scale.copy(), self.offset_t.copy()), self.K)
 
-    def wrench(self, estimator: NonlinearEstimator, xi: np.ndarray) -> np.ndarray:
+    def wrench(self, xi: np.ndarray) -> np.ndarray:
+        """w = K (xi - xi0), N and Nm, from an estimated deflection."""
         return self.K @ (xi - self.zero_twist)
 
 
@@ -75,12 +76,12 @@ def _alternate(flux: np.ndarray, wrench: np.ndarray, gap_m: float) -> NonlinearC
         coef, *_ = np.linalg.lstsq(z, wrench, rcond=None)
         K, c = coef[:6].T, coef[6]
         predicted = np.linalg.solve(K, (wrench - c).T).T  # the pose each wrench should give
-        modelled = np.array([model.predict(se3.exp_se3(x)) / model.scale.ravel()
-                             - model.offset_t.ravel() / model.scale.ravel() for x in predicted])
-        # A line per channel: measured = s * modelled + o.
+        modelled = np.array([model.raw(se3.exp_se3(x)).ravel() for x in predicted])
+        # A line per channel: measured = s * modelled + o (a channel that never varies keeps s = 1).
         mm, fm = modelled.mean(axis=0), flux.mean(axis=0)
         var = ((modelled - mm) ** 2).sum(axis=0)
-        s = np.where(var > 0, ((modelled - mm) * (flux - fm)).sum(axis=0) / np.where(var > 0, var, 1), 1.0)
+        cov = ((modelled - mm) * (flux - fm)).sum(axis=0)
+        s = np.divide(cov, var, out=np.ones_like(var), where=var > 0)
         model.scale = s.reshape(-1, 3)
         model.offset_t = (fm - s * mm).reshape(-1, 3)
     residual = np.array([b - model.predict(se3.exp_se3(x)) for b, x in zip(flux, predicted, strict=True)])
@@ -118,5 +119,5 @@ def nonlinear_rmse(cal: NonlinearCalibration, dataset: Dataset) -> np.ndarray:
     errors = []
     for b, w in zip(dataset.flux_t, dataset.wrench, strict=True):
         e = estimator.estimate(b)
-        errors.append(cal.wrench(estimator, e.xi) - w)
+        errors.append(cal.wrench(e.xi) - w)
     return np.sqrt(np.mean(np.array(errors) ** 2, axis=0))

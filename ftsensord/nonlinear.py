@@ -68,10 +68,14 @@ class FluxModel:
                             - 15 * rm[..., None] * r[..., :, None] * r[..., None, :] / (d[..., None] ** 7))
         return B.sum(axis=1), G.sum(axis=1), p, R
 
+    def raw(self, T: np.ndarray) -> np.ndarray:
+        """The magnets' field at each chip (n, 3), T, chip frames: before scale and offset."""
+        B, _, _, R = self._fields(T, gradient=False)
+        return np.einsum("nji,nj->ni", R, B)
+
     def predict(self, T: np.ndarray) -> np.ndarray:
         """Stacked flux (3n,), T, each chip in its own frame."""
-        B, _, _, R = self._fields(T, gradient=False)
-        return (self.scale * np.einsum("nji,nj->ni", R, B) + self.offset_t).ravel()
+        return (self.scale * self.raw(T) + self.offset_t).ravel()
 
     def predict_and_jacobian(self, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Flux (3n,) and its derivative (3n, 6) for T <- exp([v; w]) T at v = w = 0.
