@@ -112,11 +112,22 @@ def soak(minutes: float, seed: int = 1, per_minute: float = 6.0) -> dict:
             clean = next((t for t, fl in after if not fl & ~wire.FLAG_LATE), None)
             if clean is not None:
                 recoveries.append(clean - f.until_s)
+    # Where the late cycles fell: during which kind of fault (to 1 s after it), or none.
+    late_by_kind: dict[str, int] = {}
+    for _, t, fl in samples["wrench/sensor1"]:
+        if fl & wire.FLAG_LATE:
+            kind = next((f.kind for f in faults if f.at_s - 0.05 <= t <= f.until_s + 1.0), "no fault")
+            late_by_kind[kind] = late_by_kind.get(kind, 0) + 1
+    s1 = samples["wrench/sensor1"]
+    worst = int(np.argmax(np.diff([x[1] for x in s1]))) if len(s1) > 1 else 0
+    t_silence = s1[worst][1] if s1 else 0.0
     return {
         "minutes": minutes, "faults_injected": len([f for f in faults if f.at_s < duration]),
         "fault_kinds": sorted({f.kind for f in faults}),
         "samples": {t: len(v) for t, v in samples.items()}, "flagged": flagged, "sequence_gaps": gaps,
-        "longest_silence_s": silences, "recoveries": len(recoveries),
+        "longest_silence_s": silences, "longest_silence_at_s": t_silence,
+        "longest_silence_during": [f.kind for f in faults if f.at_s - 0.05 <= t_silence <= f.until_s + 1.0],
+        "late_samples_by_fault_kind": late_by_kind, "recoveries": len(recoveries),
         "recovery_max_s": max(recoveries, default=None),
         "recovery_median_s": float(np.median(recoveries)) if recoveries else None,
         "missed_cycles": status1.get("missed_cycles"), "late_cycles": status1.get("late_cycles"),

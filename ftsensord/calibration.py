@@ -18,10 +18,9 @@ import numpy as np
 from .dataset import Dataset
 from .errors import CalibrationError
 from .geometry import SensorGeometry
-from .model import LinearModel, PositionMap, deflection_twist, fit_position_map
+from .model import SENSOR_RANGE, LinearModel, PositionMap, deflection_twist, fit_position_map
 from .rig import simulate_sweeps
 from .sim.chip import NOISELESS
-from .sim.physics import SENSOR_RANGE
 
 AXES = ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
 UNITS = ("N", "N", "N", "Nm", "Nm", "Nm")

@@ -108,7 +108,6 @@ def check_rate(config: Config, rate_hz: float, where: str = "rate_hz") -> None:
     bound = config.bound()
     if rate_hz <= bound.rate_hz:
         return
-    n = len(config.addresses)
     others = ", ".join(f"{s} {replace(config, scheduler=s).bound().rate_hz:.0f} Hz"
                        for s in SCHEDULERS if s != config.scheduler)
     raise ConfigError(f"{where}: {rate_hz:g} Hz cannot be met: {bound.describe()}. Lower the rate, "

@@ -30,11 +30,10 @@ from .config import Config, SensorConfig, check_rate, load_config
 from .driver import MLX90393
 from .errors import ChipRefusedError, ConfigError, FtsensordError
 from .filters import WrenchFilter
-from .model import LinearModel
+from .model import SENSOR_RANGE, LinearModel
 from .nonlinear import NonlinearEstimator
 from .schedule import ChipResult, Reader
 from .sdnotify import Notifier
-from .sim.physics import SENSOR_RANGE
 
 log = logging.getLogger("ftsensord")
 
@@ -480,7 +479,7 @@ class Daemon:
     def _chip_status(self, address: int, stats: ChipStats) -> dict[str, Any]:
         h = self.reader.health[address]
         retry = max(0.0, h.retry_at - self.reader.bus.monotonic()) if h.failing else None
-        return {**vars(stats), "state": "failing" if h.failing else "ok", "retry_in_s": retry,
+        return {**vars(stats), "state": "resetting" if h.step else "failing" if h.failing else "ok", "retry_in_s": retry,
                 "reinits": h.reinits, "register_drifts": h.register_drifts, "stuck_detections": h.stuck_detections}
 
     def status(self) -> dict[str, Any]:

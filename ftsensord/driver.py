@@ -25,6 +25,9 @@ from . import mlx90393 as mlx
 from .errors import (ChipNotRespondingError, ChipProtocolError, ChipRefusedError,
                      RegisterVerifyError)
 
+#: Wait after RT before the next command: the datasheet asks for at least 1.5 ms.
+T_AFTER_RT_S = 2e-3
+
 
 class I2CBus(Protocol):
     """What the driver needs of a bus: smbus2's combined transfer."""
@@ -115,9 +118,14 @@ class MLX90393:
         """
         self.exit_mode()
         self.sleep(mlx.T_AFTER_EX_US * 1e-6)
-        reply = self.transfer(bytes([mlx.CMD_RT]), 1)
-        self.sleep(2e-3)
-        status = self.check_status(reply[0], "RT")
+        status = self.send_reset()
+        self.sleep(T_AFTER_RT_S)
+        return status
+
+    def send_reset(self) -> mlx.Status:
+        """RT alone: the caller waits `T_AFTER_RT_S` before the next command (and
+        sends EX, then waits 1 ms, before it when the chip may be in a mode)."""
+        status = self.check_status(self.transfer(bytes([mlx.CMD_RT]), 1)[0], "RT")
         if not status.rs:
             raise ChipProtocolError(self.address, f"RT reply lacks RS, status {status}")
         self.settings = None

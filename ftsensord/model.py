@@ -18,6 +18,9 @@ from . import se3
 from .geometry import SensorGeometry
 from .registration import Registration, register
 
+#: The sensor's range (paper): +-50 N in X and Y, +-20 N in Z, +-0.2 Nm, frame {0}.
+SENSOR_RANGE = np.array([50.0, 50.0, 20.0, 0.2, 0.2, 0.2])
+
 
 @dataclass(frozen=True)
 class PositionMap:

@@ -17,9 +17,9 @@ from ftsensord.sim.loads import (
     StepLoad,
     ramp,
 )
+from ftsensord.model import SENSOR_RANGE
 from ftsensord.sim.physics import (
     PAPER_STIFFNESS_DIAG,
-    SENSOR_RANGE,
     PhysicalScene,
     SimSensor,
     two_sensor_scene,

@@ -1,16 +1,33 @@
-"""The speed/accuracy benchmark's quick mode runs in CI (its figures live in docs/tradeoff.md)."""
+"""The speed/accuracy benchmark: its quick mode runs in CI (its figures live in
+docs/tradeoff.md), and its no-truth path (a real bus) is checked on a static scene."""
 
 from __future__ import annotations
 
+import importlib.util
+import math
 import re
 import subprocess
 import sys
 from pathlib import Path
 
+from ftsensord import mlx90393 as mlx
+from ftsensord.config import builtin_path, load_config
+from ftsensord.sim import two_sensor_scene
+
+SCRIPT = Path(__file__).resolve().parent.parent / "benchmarks" / "tradeoff.py"
+
+
+def load_benchmark():
+    """The script as a module (registered first: its dataclasses look themselves up)."""
+    if "tradeoff" not in sys.modules:
+        spec = importlib.util.spec_from_file_location("tradeoff", SCRIPT)
+        sys.modules["tradeoff"] = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(sys.modules["tradeoff"])
+    return sys.modules["tradeoff"]
+
 
 def test_quick_tradeoff_produces_every_section():
-    script = Path(__file__).resolve().parent.parent / "benchmarks" / "tradeoff.py"
-    out = subprocess.run([sys.executable, str(script), "--quick"], capture_output=True, text=True, timeout=300)
+    out = subprocess.run([sys.executable, str(SCRIPT), "--quick"], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     text = out.stdout
     for heading in ("## Rate", "## Accuracy", "## The Pareto front", "## Cost and latency"):
@@ -18,3 +35,35 @@ def test_quick_tradeoff_produces_every_section():
     assert re.search(r"\| 1, 2 \| 835 \| 14\.9 / [\d.]+ \| 124\.3 / [\d.]+ \|", text)  # bounds as computed
     assert text.count("| nonlinear |") == 4 and text.count("| linear |") == 4
     assert "Recommended for 100 Hz" in text or "reaches 100 Hz" not in text
+
+
+def test_pareto_keeps_only_points_nothing_beats():
+    bench = load_benchmark()
+    points = [(100, 0.5, "a"), (50, 0.2, "b"), (100, 0.6, "beaten by a"), (40, 0.3, "beaten by b"), (200, 1, "c")]
+    assert sorted(p[2] for p in bench.pareto(points)) == ["a", "b", "c"]
+
+
+def test_a_bus_without_truth_gives_noise_and_no_rmse(tmp_path):
+    """On a bus with no loads to set (a real one, here a static scene) the benchmark
+    measures noise at rest and leaves the truth columns empty instead of inventing them."""
+    truth = two_sensor_scene()
+    chips = "".join(f"[[chip]]\naddress = {a}\nfield_ut = {[float(v) for v in truth.field_t(a, 0.0) * 1e6]}\n"
+                    for a in range(0x0C, 0x14))
+    (tmp_path / "scene.toml").write_text(f'version = 1\nkind = "static"\n{chips}')
+    (tmp_path / "cfg.toml").write_text(
+        f'version = 1\nbus = "sim:scene.toml"\n[[sensor]]\nname = "s"\naddresses = {list(range(0x0C, 0x14))}\n'
+        f'calibration = "{builtin_path("sim-sensor1.json")}"\n')
+    config = load_config(tmp_path / "cfg.toml")
+    bench = load_benchmark()
+    rows = bench.accuracy(config, mlx.Settings(), 1, 2)
+    assert [r.estimator for r in rows] == ["linear", "nonlinear"]
+    with_truth = bench.accuracy(load_config(builtin_path("sim.toml")), mlx.Settings(), 1, 1)
+    for r, t in zip(rows, with_truth):
+        # The same chips' noise through the same model: the same RMS to sampling error (120 samples: ~7 %).
+        assert 0.7 < r.noise_n / t.noise_n < 1.4 and 0.7 < r.noise_nm / t.noise_nm < 1.4
+        assert math.isnan(r.rmse_cal) and math.isnan(r.rmse_large) and not math.isnan(t.rmse_cal)
+    rates = {(1, 2, s): (124.0, 120.0) for s in ("naive", "overlapped", "burst")}
+    text = bench.render(config, [(1, 2)], rates, rows, {"linear": 300.0, "nonlinear": 1500.0},
+                        (300.0, 800.0, 900.0), True, 1.0)
+    assert "noise F at rest" in text and "RMSE cal. range (N) | RMSE large" in text
+    assert "| - | - | - | - |" in text and "nan" not in text

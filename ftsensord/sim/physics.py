@@ -21,13 +21,12 @@ import numpy as np
 from .. import se3
 from ..geometry import SensorGeometry
 from ..magnet import cylinder_field, dipole_field
+from ..model import SENSOR_RANGE
 from .loads import NO_LOAD, Load
 
 #: Stiffness default: the diagonal of the paper's K, in N/m and Nm/rad (their
 #: signs dropped: a stiffness is positive definite).
 PAPER_STIFFNESS_DIAG = (8.82e3, 12.77e3, 6.50e3, 10.0, 10.0, 10.0)
-#: The sensor's range (paper): +-50 N in X and Y, +-20 N in Z, +-0.2 Nm.
-SENSOR_RANGE = np.array([50.0, 50.0, 20.0, 0.2, 0.2, 0.2])
 #: NdFeB loses about 0.12 % of its remanence per kelvin (N52 grade, typical).
 NDFEB_BR_TEMPCO_PER_K = -1.2e-3
 
