@@ -21,7 +21,7 @@ from .calfile import Calibration
 from .dataset import parse_addresses
 from .docfile import Table, load_toml
 from .errors import ConfigError
-from .schedule import SCHEDULERS, STUCK_CYCLES, CycleBound, cycle_bound
+from .schedule import SCHEDULERS, CycleBound, cycle_bound, stuck_cycles_for
 
 CONFIG_VERSION = 1
 ESTIMATORS = ("linear", "nonlinear")
@@ -90,7 +90,7 @@ class Config:
     tool_offsets_m: dict[str, np.ndarray] = field(default_factory=dict)
     security: Security = field(default_factory=Security)
     temperature_every: int = 100
-    stuck_cycles: int = STUCK_CYCLES
+    stuck_cycles: int = 0  # load_config's default: stuck_cycles_for(settings)
     readback_every: int = 1
     max_missing_chips: int = 2
 
@@ -239,7 +239,8 @@ def load_config(path: str | Path | None = None) -> Config:
                               "(or allow_insecure_control = true, which is logged)"),
         security=security,
         temperature_every=doc.integer("temperature_every", 100, low=0, what="cycles (0: never)"),
-        stuck_cycles=doc.integer("stuck_cycles", STUCK_CYCLES, low=0, what="cycles (0: no stuck detection)"),
+        stuck_cycles=doc.integer("stuck_cycles", stuck_cycles_for(settings), low=0,
+                                 what="cycles (0: no stuck detection)"),
         # Burst: a chip read back restarts its burst and is stale on the next cycle;
         # reading back every cycle would make every sample stale, so rarely there.
         readback_every=doc.integer("readback_every", 100 if doc.get("scheduler", "") == "burst" else 1, low=0,

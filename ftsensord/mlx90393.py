@@ -13,6 +13,7 @@ reference notes. Units: fields in uT where a name says ``_ut`` and in tesla
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from .errors import ForbiddenSettingError
@@ -321,6 +322,21 @@ T_AFTER_RT_US = 1_500.0
 #: HS (memory store) needs at least 15 ms.
 T_HS_US = 15_000.0
 
+#: Reading noise, an ESTIMATE to be replaced by a table measured on a real board: the
+#: datasheet gives noise only as curves against conversion time, and users report it
+#: follows TCONVM, not how OSR and DIG_FILT split it: RMS sigma = 2.0 uT sqrt(835 us /
+#: TCONVM) on X and Y, 1.5 times that on Z. These values live here and nowhere else.
+NOISE_REF_XY_UT = 2.0
+NOISE_REF_TCONVM_US = 835.0
+NOISE_Z_FACTOR = 1.5
+
+
+def noise_ut(axis: str, tconvm_us: float) -> float:
+    """RMS reading noise (uT) of one axis at a conversion time (the estimate above)."""
+    sigma = NOISE_REF_XY_UT * math.sqrt(NOISE_REF_TCONVM_US / tconvm_us)
+    return sigma * NOISE_Z_FACTOR if axis == "z" else sigma
+
+
 #: Not permitted with HALLCONF 0xC; (1, 1) is reported by users, refused too.
 FORBIDDEN_OSR_DIG_FILT = frozenset({(0, 0), (0, 1), (1, 0), (1, 1)})
 
@@ -412,6 +428,10 @@ class Settings:
 
     def raw_format(self, axis: str) -> RawFormat:
         return raw_format(self.res(axis), self.tcmp_en)
+
+    def noise_ut(self, axis: str) -> float:
+        """RMS reading noise of one axis, uT (an estimate: `noise_ut`)."""
+        return noise_ut(axis, self.tconvm_us())
 
     def tconvm_us(self) -> float:
         return tconvm_us(self.osr, self.dig_filt)

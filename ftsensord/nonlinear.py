@@ -27,6 +27,10 @@ MAX_STEP_RAD = 0.05
 #: Converged when a step moves the pose less than 1e-8 m and 1e-8 rad: a hundred times
 #: below what the chips resolve (a uT in 1.6 mT at 6 mm is about 1 um of motion).
 STEP_TOL = 1e-8
+#: A fit whose RMS residual exceeds 1 mT is no pose of this sensor (a chip reading wrong,
+#: or garbage), however well it converged: the dipole model's own error is about 0.2 mT RMS
+#: at the corners of the range (|F| ~70 N with 0.2 Nm) and 7 uT in the middle.
+MAX_RESIDUAL_T = 1e-3
 
 
 @dataclass
@@ -154,7 +158,7 @@ class NonlinearEstimator:
             if done or (np.linalg.norm(step[:3]) < STEP_TOL and np.linalg.norm(step[3:]) < STEP_TOL):
                 break
         rms = np.sqrt(cost / channels.sum())
-        converged = bool(np.isfinite(rms) and (done or k < self.max_iterations))
+        converged = bool(np.isfinite(rms) and rms <= MAX_RESIDUAL_T and (done or k < self.max_iterations))
         if converged:
             self.pose = T
         return Estimate(se3.log_se3(T), T, converged, k, float(rms))

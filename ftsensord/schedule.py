@@ -120,12 +120,28 @@ class ChipResult:
 #: re-initialisation (at most three cycles), inside the 1 s the reliability figures ask.
 BACKOFF_FIRST_S = 0.02
 BACKOFF_MAX_S = 0.5
-#: X, Y and Z words unchanged this many cycles in a row mean a stuck chip. At the
-#: paper's settings the noise (2-3 uT) is a third of an LSB (6-10 uT): an axis keeps
-#: its code at most ~75 % of the time, all three at most ~40 %; 50 cycles in a row then
-#: happen by chance less than once in 1e20. Heavier filtering (high OSR, DIG_FILT)
-#: lowers the noise below the LSB: set ``stuck_cycles`` higher, or 0 to switch it off.
-STUCK_CYCLES = 50
+#: Identical X, Y, Z words this many cycles in a row by chance, on a chip at rest, may
+#: happen at most this often per chip and cycle: 16 chips at 100 Hz make 5e10 chances a
+#: year, so a false "stuck" once in 20 years.
+STUCK_FALSE_ODDS = 1e-12
+#: Beyond this many cycles (10 s at 100 Hz) a stuck chip would be found too late to
+#: matter: the noise is far below an LSB and identical words are normal; detection is off.
+STUCK_MAX_CYCLES = 1000
+
+
+def stuck_cycles_for(settings: mlx.Settings) -> int:
+    """Cycles of identical X, Y, Z words that mean a stuck chip at ``settings``; 0: off.
+
+    Worst case, the field sits at the centre of a code: each reading keeps it with
+    probability erf(LSB / (2 sqrt(2) sigma)) per axis (sigma: `mlx.noise_ut`, an
+    estimate). At the paper's settings (2-3 uT of noise, 6-10 uT LSB) that is 0.67 for
+    all three axes, and 69 cycles; heavy filtering (OSR 3, DIG_FILT 7) turns it off.
+    """
+    keep = math.prod(math.erf(settings.sensitivity_ut(a) / (2 * math.sqrt(2) * settings.noise_ut(a))) for a in "xyz")
+    if keep >= 1.0:
+        return 0
+    n = math.ceil(math.log(STUCK_FALSE_ODDS) / math.log(keep))
+    return n if n <= STUCK_MAX_CYCLES else 0
 #: A chip that has had no new data this many cycles in a row is re-initialised.
 STALE_LIMIT = 10
 
@@ -167,7 +183,7 @@ class Reader:
     settings: mlx.Settings
     bus_hz: float = 400e3
     overhead_s: float = 0.0
-    stuck_cycles: int = STUCK_CYCLES
+    stuck_cycles: int | None = None  # None: `stuck_cycles_for` the settings
     readback_every: int = 1
     health: dict[int, ChipHealth] = field(default_factory=dict)
     cycle: int = 0
@@ -176,6 +192,8 @@ class Reader:
         if self.scheduler not in SCHEDULERS:
             raise ConfigError(f"scheduler: expected one of {', '.join(SCHEDULERS)}, got {self.scheduler!r}")
         self.health = {c.address: ChipHealth() for c in self.chips}
+        if self.stuck_cycles is None:
+            self.stuck_cycles = stuck_cycles_for(self.settings)
         self._attempted = False  # one recovery a cycle
 
     @property

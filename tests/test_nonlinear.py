@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from ftsensord import se3
 from ftsensord.geometry import SensorGeometry
-from ftsensord.nonlinear import STEP_TOL, FluxModel, NonlinearEstimator
+from ftsensord.nonlinear import MAX_RESIDUAL_T, STEP_TOL, FluxModel, NonlinearEstimator
 from ftsensord.sim.physics import (
     PAPER_STIFFNESS_DIAG,
     PhysicalScene,
@@ -96,8 +96,22 @@ def test_garbage_never_diverges_or_raises(seed):
     flux = rng.normal(0, 5e-3, 24)
     e = estimator().estimate(flux, start=np.eye(4))
     assert np.all(np.isfinite(e.pose)) and np.all(np.isfinite(e.xi))
-    # It may find some pose, but never one far outside where the magnets are.
+    # It may find some pose, but never one far outside where the magnets are, and never
+    # claims one that does not explain the flux.
     assert np.linalg.norm(e.xi[:3]) < 0.05
+    assert not e.converged or e.rms_residual_t <= MAX_RESIDUAL_T
+
+
+def test_a_chip_reading_far_off_is_refused_not_fitted():
+    """A chip that reads wrong but is not known to (no error, no saturation) must not
+    bend the pose into a wrench that looks right: the residual gives it away."""
+    flux, xi = flux_at(np.array([20.0, 0, 0, 0, 0, 0]))
+    flux[6:9] = [40e-3, -40e-3, 40e-3]  # chip 3 at a field no magnet of the sensor gives
+    e = estimator().estimate(flux, start=np.eye(4))
+    assert not e.converged and e.rms_residual_t > MAX_RESIDUAL_T
+    usable = np.ones(8, dtype=bool)
+    usable[2] = False  # the same chip left out: the rest give the pose
+    assert np.allclose(estimator().estimate(flux, usable=usable, start=np.eye(4)).xi, xi, atol=STEP_TOL)
 
 
 def test_nan_or_too_few_channels_is_a_refusal_not_an_exception():

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from ftsensord import mlx90393 as mlx
 from ftsensord.driver import MLX90393
-from ftsensord.schedule import Reader, cycle_bound
-from ftsensord.sim import Fault, VirtualClock, simulated_bus, two_sensor_scene
+from ftsensord.schedule import Reader, cycle_bound, stuck_cycles_for
+from ftsensord.sim import Fault, StaticScene, VirtualClock, simulated_bus, two_sensor_scene
 
 
 @pytest.mark.parametrize("scheduler", ["naive", "overlapped", "burst"])
@@ -91,3 +92,35 @@ def test_a_reset_goes_one_command_a_cycle_and_no_cycle_overruns(scheduler):
     # The costliest step, the configuration: 7 register transfers of 65 bits, 1.1 ms of
     # wire (1.5 ms with SB in burst). In one go the reset would add 4.4 ms more.
     assert longest < bound.cycle_s + 1.6e-3
+
+
+def longest_identical_run(settings: mlx.Settings, field_lsb: float, cycles: int) -> int:
+    """The longest run of repeated X, Y, Z words of a chip at rest, its field at
+    ``field_lsb`` codes on every axis (an integer: the centre of a code, the worst case)."""
+    field_t = np.array([field_lsb * settings.sensitivity_ut(a) * 1e-6 for a in "xyz"])
+    bus = simulated_bus(StaticScene({0x0C: field_t}), clock=VirtualClock(), seed=3)
+    chip = MLX90393(bus, 0x0C, sleep=bus.sleep)
+    chip.reset()
+    chip.configure(settings)
+    words, run, longest = None, 0, 0
+    for _ in range(cycles):
+        chip.start_single()
+        bus.sleep(settings.single_measurement_us() * 1.2e-6)
+        m = chip.read_measurement()
+        now = tuple(m.raw[a] for a in "xyz")
+        run = run + 1 if now == words else 0
+        words, longest = now, max(longest, run)
+    return longest
+
+
+def test_the_stuck_threshold_is_far_above_what_noise_gives_at_rest():
+    settings = mlx.Settings()  # the paper's: 2-3 uT of noise on a 6-10 uT code
+    n = stuck_cycles_for(settings)
+    longest = longest_identical_run(settings, 40.0, 3000)
+    assert 5 <= longest < n / 2  # runs happen, and stay well short of the threshold
+
+
+def test_stuck_detection_is_off_where_noise_cannot_move_a_code():
+    settings = mlx.Settings(osr=3, dig_filt=7)  # 0.2 uT of noise on a 6 uT code
+    assert stuck_cycles_for(settings) == 0
+    assert longest_identical_run(settings, 40.0, 300) == 299  # a healthy chip repeats itself

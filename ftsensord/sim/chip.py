@@ -44,15 +44,13 @@ class FieldSource(Protocol):
 class NoiseModel:
     """Reading noise: ``sigma = sigma_ref * sqrt(t_ref / TCONVM)`` per axis, Z noisier.
 
-    ESTIMATE, to be replaced by a table measured on a real board: the datasheet
-    gives noise only as curves; users report it follows the total conversion
-    time, not how OSR and DIG_FILT split it. The reference values live here
-    and nowhere else.
+    The defaults are the estimate in `ftsensord.mlx90393` (`mlx.noise_ut`);
+    a scene may scale them.
     """
 
-    sigma_ref_xy_ut: float = 2.0
-    t_ref_us: float = 835.0
-    z_factor: float = 1.5
+    sigma_ref_xy_ut: float = mlx.NOISE_REF_XY_UT
+    t_ref_us: float = mlx.NOISE_REF_TCONVM_US
+    z_factor: float = mlx.NOISE_Z_FACTOR
     temperature_sigma_c: float = 0.05
 
     def sigma_ut(self, axis: str, tconvm_us: float) -> float:
