@@ -45,12 +45,13 @@ import numpy as np
 import zmq
 
 from ftsensord import mlx90393 as mlx
+from ftsensord import wire
 from ftsensord.bus import Bus, open_bus, parse_bus_spec
 from ftsensord.config import Config, builtin_path, load_config
 from ftsensord.daemon import Daemon
 from ftsensord.driver import MLX90393
 from ftsensord.model import SENSOR_RANGE
-from ftsensord.schedule import Reader, cycle_bound
+from ftsensord.schedule import Reader, cycle_bound, stuck_cycles_for
 from ftsensord.sim import (MonotonicClock, PhysicalScene, VirtualClock, default_scene, load_scene, simulated_bus,
                            two_sensor_scene)
 from ftsensord.sim.loads import StaticLoad, paper_plan
@@ -72,6 +73,9 @@ class Row:
     rmse_cal: float
     rmse_large: float
     rmse_large_nm: float
+    flagged_large: int = 0  # large-load samples flagged (beyond overload): degraded, fallback, saturated...
+    invalid_large: int = 0  # of them, published as NaN (too many chips saturated)
+    n_large: int = 0
 
     @property
     def tconvm_us(self) -> float:
@@ -128,46 +132,63 @@ def loads(kind: str, n: int, rng: np.random.Generator) -> list[np.ndarray]:
     return out
 
 
+class Capture:
+    """Stands in for the publisher socket: keeps each topic's last sample."""
+
+    def __init__(self) -> None:
+        self.last: dict[str, wire.Sample] = {}
+
+    def send(self, frame: bytes, flags: int = 0) -> None:
+        sample = wire.decode(frame)
+        self.last[sample.topic] = sample
+
+
 def accuracy(config: Config, settings: mlx.Settings, averaging: int, n_loads: int) -> list[Row]:
-    """Noise and RMSE of each estimator the first sensor's calibration has, one chip setting
-    and averaging window (RMSE NaN where the bus has no truth)."""
+    """Noise and RMSE of what the daemon publishes for the first sensor, with each estimator
+    its calibration has, at one chip setting and averaging window; on a virtual clock.
+
+    A sample is read after ``averaging`` cycles at a load, so it is the mean of that many
+    fresh estimates, flags as the daemon sets them. RMSE is over the samples the daemon
+    publishes with values (an invalid one is NaN and counted apart); NaN where the bus has
+    no truth.
+    """
     sensor = config.sensors[0]
-    cal = sensor.calibration
-    bus, scene = bench_bus(config, VirtualClock(), seed=11)
-    reader = Reader(bus, [MLX90393(bus, a, sleep=bus.sleep) for a in sensor.addresses], "overlapped", settings,
-                    config.bus_hz, readback_every=0)
-    reader.start()
-    nl = cal.nonlinear
-    est = nl.estimator() if nl is not None else None
-
-    def read(w: np.ndarray | None) -> list[np.ndarray]:
-        if scene is not None and w is not None:
-            scene.set_load(0, StaticLoad(w))
-        bus.sleep(0.02)
-        flux = np.mean([np.concatenate([r.measurement.field_t for r in reader.read()]) for _ in range(averaging)],
-                       axis=0)
-        out = [cal.model.wrench(flux)]
-        if nl is not None and est is not None:
-            e = est.estimate(flux)
-            if not e.converged:
-                e = est.estimate(flux, start=np.eye(4))
-            out.append(nl.wrench(e.xi))
-        return out
-
-    rng = np.random.default_rng(5)
-    rest = np.array([read(np.zeros(6)) for _ in range(max(20, 120 // averaging))])
-    errors = {kind: np.array([np.subtract(read(w), w) for w in loads(kind, n_loads, rng)])
-              for kind in ("small", "cal", "large")} if scene is not None else {}
-    bus.close()
+    estimators = ["linear"] + (["nonlinear"] if sensor.calibration.nonlinear is not None else [])
     rows = []
-    for k, name in enumerate(("linear", "nonlinear")[:rest.shape[1]]):
-        noise = rest[:, k].std(axis=0)
+    for estimator in estimators:
+        bus, scene = bench_bus(config, VirtualClock(), seed=11)
+        cfg = replace(config, settings=settings, averaging=averaging, stuck_cycles=stuck_cycles_for(settings),
+                      scheduler="overlapped", readback_every=0, temperature_every=0, tool_offsets_m={},
+                      sensors=[replace(s, estimator=estimator if s is sensor else "linear") for s in config.sensors])
+        out = Capture()
+        daemon = Daemon(cfg, bus, out, None, clock=bus.monotonic)  # type: ignore[arg-type]
+        daemon.start()
 
-        def rmse(kind: str, axes: slice, k: int = k) -> float:
-            return float(np.sqrt(np.mean(errors[kind][:, k, axes] ** 2))) if errors else NAN
-        rows.append(Row(settings.osr, settings.dig_filt, averaging, name, float(np.linalg.norm(noise[:3])),
+        def read(w: np.ndarray | None) -> wire.Sample:
+            if scene is not None and w is not None:
+                scene.set_load(0, StaticLoad(w))
+            bus.sleep(0.02)
+            for _ in range(averaging):
+                daemon.cycle()
+            return out.last[f"wrench/{sensor.name}"]
+
+        rng = np.random.default_rng(5)
+        rest = np.array([read(np.zeros(6)).values for _ in range(max(20, 120 // averaging))])
+        noise = np.nanstd(rest, axis=0)
+        samples = {kind: [(read(w), w) for w in loads(kind, n_loads, rng)]
+                   for kind in ("small", "cal", "large")} if scene is not None else {}
+        bus.close()
+
+        def rmse(kind: str, axes: slice) -> float:
+            errors = [s.values[axes] - w[axes] for s, w in samples.get(kind, []) if not s.flags & wire.FLAG_INVALID]
+            return float(np.sqrt(np.mean(np.square(errors)))) if errors else NAN
+
+        large = [s.flags for s, _ in samples.get("large", [])]
+        rows.append(Row(settings.osr, settings.dig_filt, averaging, estimator, float(np.linalg.norm(noise[:3])),
                         float(np.linalg.norm(noise[3:])), rmse("small", slice(0, 3)), rmse("cal", slice(0, 3)),
-                        rmse("large", slice(0, 3)), rmse("large", slice(3, 6))))
+                        rmse("large", slice(0, 3)), rmse("large", slice(3, 6)),
+                        flagged_large=sum(bool(f & ~wire.FLAG_OVERLOAD) for f in large),
+                        invalid_large=sum(bool(f & wire.FLAG_INVALID) for f in large), n_large=len(large)))
     return rows
 
 
@@ -356,11 +377,14 @@ def render(config: Config, chip, rates, rows, cpu, lat, quick, elapsed) -> str:
             "## Accuracy: noise at rest and error against the scene's truth", "",
             "Noise: RMS of |F| and |M| at rest; RMSE over the force axes (N) and, at large loads, the torque axes "
             "(mNm). Small: <= 2 N; calibration range: the paper's poses' loads; large: |F| 10-50 N. "
-            "Effective rate: the fastest scheduler's achieved rate over the averaging window."
+            "Effective rate: the fastest scheduler's achieved rate over the averaging window. What the daemon "
+            "publishes for sensor1, flags and all; RMSE over the samples published with values. Large loads "
+            "flagged: samples the daemon marked (saturated chips left out, degraded, a nonlinear fall-back to "
+            "K A), of which invalid (published as NaN, left out of the RMSE)."
             + ("" if truth else " A real bus has no truth: the RMSE columns are empty."), "",
             "| OSR, DIG_FILT | averaging | estimator | effective rate (Hz) | noise F (N) | noise M (mNm) | "
-            "RMSE small (N) | RMSE cal. range (N) | RMSE large (N) | RMSE large (mNm) |",
-            "|---|---|---|---|---|---|---|---|---|---|"]
+            "RMSE small (N) | RMSE cal. range (N) | RMSE large (N) | RMSE large (mNm) | large flagged / invalid |",
+            "|---|---|---|---|---|---|---|---|---|---|---|"]
     points = []
     for r in rows:
         sched, _, achieved = best_rate(rates, r.osr, r.dig_filt)
@@ -368,7 +392,8 @@ def render(config: Config, chip, rates, rows, cpu, lat, quick, elapsed) -> str:
         points.append((effective, error_of(r, truth), r))
         out.append(f"| {r.osr}, {r.dig_filt} | {r.averaging} | {r.estimator} | {effective:.1f} ({sched}) | "
                    f"{r.noise_n:.4f} | {r.noise_nm * 1e3:.2f} | {r.rmse_small:.4f} | {r.rmse_cal:.4f} | "
-                   f"{r.rmse_large:.3f} | {r.rmse_large_nm * 1e3:.2f} |".replace("nan", "-"))
+                   f"{r.rmse_large:.3f} | {r.rmse_large_nm * 1e3:.2f} | "
+                   f"{r.flagged_large} / {r.invalid_large} of {r.n_large} |".replace("nan", "-"))
     front = pareto(points)
     out += ["", f"## The Pareto front (effective rate against {error_name})", "",
             f"| effective rate (Hz) | {error_name} | setting |", "|---|---|---|"]

@@ -90,10 +90,8 @@ class FluxModel:
         B, G, p, R = self._fields(T)
         assert G is not None
         Rt = np.transpose(R, (0, 2, 1))
-        hat_p = np.array([se3.hat(x) for x in p])
-        hat_B = np.array([se3.hat(x) for x in B])
         J_v = Rt @ G
-        J_w = Rt @ (hat_B - G @ hat_p)
+        J_w = Rt @ (se3.hat(B) - G @ se3.hat(p))
         J = np.concatenate([J_v, J_w], axis=2) * self.scale[:, :, None]
         b = self.scale * np.einsum("nij,nj->ni", Rt, B) + self.offset_t
         return b.ravel(), J.reshape(-1, 6)

@@ -24,8 +24,13 @@ NEAR_PI = 1e-3
 
 
 def hat(w: np.ndarray) -> np.ndarray:
-    """The 3x3 skew matrix of ``w``: ``hat(w) @ x == cross(w, x)``."""
-    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    """The 3x3 skew matrix of ``w``: ``hat(w) @ x == cross(w, x)``; for ``w`` of
+    shape (n, 3), the n matrices (n, 3, 3)."""
+    w = np.asarray(w, dtype=float)
+    m = np.zeros(w.shape[:-1] + (3, 3))
+    m[..., 0, 1], m[..., 0, 2], m[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
+    m[..., 1, 0], m[..., 2, 0], m[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
+    return m
 
 
 def vee(m: np.ndarray) -> np.ndarray:

@@ -25,6 +25,8 @@ def test_hat_vee_and_cross_product():
     assert np.array_equal(se3.vee(se3.hat(w)), w)
     xi = np.array([1, 2, 3, 0.1, 0.2, 0.3])
     assert np.array_equal(se3.vee(se3.hat6(xi)), xi)
+    ws = np.random.default_rng(0).normal(size=(5, 3))  # stacked: one matrix per row
+    assert np.allclose(se3.hat(ws) @ x, np.cross(ws, x))
 
 
 @given(unit_vectors, st.floats(0, np.pi))
