@@ -132,3 +132,19 @@ def test_noise_gives_an_error_the_size_the_jacobian_says():
     predicted = np.sqrt(np.diag(np.linalg.inv(J.T @ J))) * 2e-6  # the Cramer-Rao bound at 2 uT
     measured = np.std(errs, axis=0)
     assert np.all(measured < 2 * predicted) and np.all(measured > 0.5 * predicted)
+
+
+def test_the_45_degree_twin_is_refused_and_the_right_pose_found():
+    """Eight identical chips and magnets read the same after a 45 degree turn about the
+    ring's axis: a fit that lands on that twin has a perfect residual and a wrench of
+    ~8 Nm. It must never be the answer; without a start the estimator finds the real pose."""
+    w = np.array([-21.0, 9.0, 20.0, -0.16, 0.14, -0.04])
+    flux, xi = flux_at(w)
+    twin = se3.exp_se3(np.array([0, 0, 0, 0, 0, np.pi / 4])) @ se3.exp_se3(xi)
+    assert np.allclose(FluxModel(G, G.magnet_moment_am2).predict(twin), flux, atol=1e-12)  # the symmetry
+    est = estimator()
+    at_twin = est.estimate(flux, start=twin)
+    assert not at_twin.converged and at_twin.rms_residual_t < 1e-9  # perfect fit, refused
+    est.pose = twin  # a warm start gone wrong
+    e = est.estimate(flux)
+    assert e.converged and np.allclose(est.wrench(e), w, atol=K.max() * STEP_TOL)
