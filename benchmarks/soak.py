@@ -84,13 +84,17 @@ def soak(minutes: float, seed: int = 1, per_minute: float = 6.0) -> dict:
         t0_daemon = time.monotonic() - status0["uptime_s"]  # the scene's clock starts with the daemon
         topics = [f"wrench/{n}" for n in SENSORS] + ["wrench/tip"]
         samples: dict[str, list[tuple[int, float, int]]] = {t: [] for t in topics}
-        rss_start = rss_kib(proc.pid)
+        rss = [rss_kib(proc.pid)]  # at start, then every minute: growth shows as a trend
         with Subscriber(f"ipc://{folder / 'wrench'}", topics) as sub:
             end = time.monotonic() + duration
+            next_rss = time.monotonic() + 60
             while time.monotonic() < end and proc.poll() is None:
                 s = sub.receive(timeout_s=2)
                 if s is not None:
                     samples[s.topic].append((s.seq, s.t_mono - t0_daemon, s.flags))
+                if time.monotonic() >= next_rss:
+                    rss.append(rss_kib(proc.pid))
+                    next_rss += 60
             gaps = dict(sub.gaps)
         alive = proc.poll() is None
         rss_end = rss_kib(proc.pid) if alive else 0
@@ -131,7 +135,8 @@ def soak(minutes: float, seed: int = 1, per_minute: float = 6.0) -> dict:
         "recovery_max_s": max(recoveries, default=None),
         "recovery_median_s": float(np.median(recoveries)) if recoveries else None,
         "missed_cycles": status1.get("missed_cycles"), "late_cycles": status1.get("late_cycles"),
-        "cycles": status1.get("cycles"), "rss_kib_start": rss_start, "rss_kib_end": rss_end,
+        "cycles": status1.get("cycles"), "rss_kib_start": rss[0], "rss_kib_end": rss_end,
+        "rss_kib_each_minute": rss[1:],
         "alive_at_end": alive, "exit_code": exit_code,
     }
 

@@ -395,6 +395,13 @@ def render(config: Config, chip, rates, rows, cpu, lat, quick, elapsed) -> str:
                    f"{r.rmse_large:.3f} | {r.rmse_large_nm * 1e3:.2f} | "
                    f"{r.flagged_large} / {r.invalid_large} of {r.n_large} |".replace("nan", "-"))
     front = pareto(points)
+    if truth:
+        out += ["", "Reading the table: the linear model's error inside the calibration range is its own (a first-order "
+                "map of a 1/r^3 field), so averaging, which only lowers noise, leaves it flat; the nonlinear "
+                "estimator's error is mostly noise, and falls with averaging and longer conversions. Beyond the "
+                "calibration's loads K A extrapolates, its error grows with the load, and no flag says so short of "
+                "`overload` past the sensor's range: where loads leave the calibration range, use the nonlinear "
+                "estimator (or calibrate with larger loads)."]
     out += ["", f"## The Pareto front (effective rate against {error_name})", "",
             f"| effective rate (Hz) | {error_name} | setting |", "|---|---|---|"]
     for p in sorted(front, key=lambda p: -p[0]):

@@ -15,6 +15,7 @@ import numpy as np
 from . import __version__
 from . import mlx90393 as mlx
 from .bus import ACCEPTED_FORMS, open_bus
+from .config import ESTIMATORS
 from .errors import ConfigError, DaemonNotAnswering, FtsensordError
 from .scan import ChipReport, scan
 from .sim.loads import PLANS
@@ -185,6 +186,32 @@ def cmd_tare(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_set(args: argparse.Namespace) -> int:
+    changes = {k: v for k, v in (("rate_hz", args.rate), ("averaging", args.averaging),
+                                 ("lowpass_hz", args.lowpass), ("estimator", args.estimator)) if v is not None}
+    if not changes:
+        raise ConfigError("set: nothing to change; give --rate, --averaging, --lowpass or --estimator")
+    if args.sensor and set(changes) != {"estimator"}:
+        raise ConfigError("set: --sensor goes with --estimator only (rate, averaging and low-pass are the loop's)")
+    control = _control(args)
+    if "estimator" in changes:  # its own request: it is per sensor, the others are the loop's
+        sensor = {"sensor": args.sensor} if args.sensor else {}
+        result = control.set(estimator=changes.pop("estimator"), **sensor)
+        print("estimator: " + ", ".join(f"{n} {e}" for n, e in result["estimator"].items()))
+    if changes:
+        result = control.set(**changes)
+        print(f"rate {result['rate_hz']:g} Hz, averaging {result['averaging']}, "
+              f"low-pass {result['lowpass_hz'] or 'off'}")
+    return 0
+
+
+def cmd_reload(args: argparse.Namespace) -> int:
+    result = _control(args).reload()
+    print(f"reloaded {result['config']}; calibrations: "
+          + ", ".join(f"{name} {path}" for name, path in result["calibrations"].items()))
+    return 0
+
+
 def _subscriber(args: argparse.Namespace):
     from .client import Subscriber
     return Subscriber(args.endpoint, [args.stream])
@@ -276,6 +303,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sensor", help="only this sensor (default: all)")
     control_options(p)
     p.set_defaults(func=cmd_tare)
+
+    p = sub.add_parser("set", help="change the rate, averaging, low-pass or estimator of the running daemon",
+                       description="Changes last until the next restart or reload; a rate above the "
+                                   "computed bound is refused, and nothing changes.")
+    p.add_argument("--rate", type=float, help="loop rate, Hz")
+    p.add_argument("--averaging", type=int, help="samples in the moving average (1: off)")
+    p.add_argument("--lowpass", type=float, help="first-order low-pass cutoff, Hz (0: off)")
+    p.add_argument("--estimator", choices=ESTIMATORS, help="K A, or the flux model (docs/nonlinear.md)")
+    p.add_argument("--sensor", help="with --estimator: only this sensor (default: all)")
+    control_options(p)
+    p.set_defaults(func=cmd_set)
+
+    p = sub.add_parser("reload", help="re-read the configuration and calibration files (as SIGHUP does)",
+                       description="A file with an error is refused with a message naming the file and key; "
+                                   "the running configuration then stays.")
+    control_options(p)
+    p.set_defaults(func=cmd_reload)
 
     p = sub.add_parser("echo", help="print a stream's samples live")
     stream_options(p)

@@ -403,7 +403,11 @@ class Daemon:
     def _cmd_set(self, args: dict[str, Any], envelope: list[bytes]) -> dict[str, Any]:
         self._args(args, {"rate_hz", "averaging", "lowpass_hz", "estimator", "sensor"})
         if "estimator" in args:
+            if set(args) - {"estimator", "sensor"}:
+                raise ValueError("estimator: set it in a request of its own (with sensor, if any)")
             return self._set_estimator(args)
+        if "sensor" in args:
+            raise ValueError("sensor: goes with estimator only (rate, averaging and low-pass are the loop's)")
         rate = args.get("rate_hz", self.config.rate_hz)
         averaging = args.get("averaging", self.config.averaging)
         lowpass = args.get("lowpass_hz", self.config.lowpass_hz)

@@ -424,6 +424,10 @@ def test_the_nonlinear_estimator_in_the_loop_and_switched_at_run_time(tmp_path):
     s = rig.cycles(3)["wrench/sensor1"][-1]
     assert s.flags & wire.FLAG_DEGRADED and np.allclose(s.values[:3], LOAD[:3], atol=0.1)
     assert not rig.request(cmd="set", estimator="quantum")["ok"]
+    # Never half done: an estimator beside loop settings, or a sensor without an estimator, is refused.
+    assert "own" in rig.request(cmd="set", estimator="linear", rate_hz=50)["error"]
+    assert "estimator only" in rig.request(cmd="set", rate_hz=50, sensor="sensor1")["error"]
+    assert rig.daemon.config.rate_hz == 100 and rig.daemon.sensors[0].estimator == "nonlinear"
     rig.close()
 
 

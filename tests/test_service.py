@@ -187,6 +187,29 @@ def test_cli_echo_record_and_sighup(running, tmp_path):
     assert proc.wait(timeout=10) == 0
 
 
+def test_cli_set_and_reload(running):
+    proc, pub, ctl = running
+
+    def cli(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "ftsensord", *args, "--control", ctl], capture_output=True,
+                              text=True, timeout=30)
+
+    out = cli("set", "--rate", "50", "--averaging", "4")
+    assert out.returncode == 0 and "rate 50 Hz, averaging 4" in out.stdout, out.stderr
+    out = cli("set", "--estimator", "nonlinear", "--sensor", "sensor2")
+    assert out.returncode == 0 and "sensor1 linear, sensor2 nonlinear" in out.stdout, out.stderr
+    out = cli("set", "--rate", "5000")
+    assert out.returncode == 2 and "cannot be met" in out.stderr  # above the bound: refused, nothing changed
+    status = ControlClient(ctl).status()
+    assert status["rate_hz"] == 50 and status["averaging"] == 4
+    assert status["sensors"]["sensor2"]["estimator"] == "nonlinear"
+    out = cli("reload")  # back to the files: 100 Hz, the configured estimators
+    assert out.returncode == 0 and out.stdout.startswith("reloaded "), out.stderr
+    assert ControlClient(ctl).status()["rate_hz"] == 100
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=10) == 0
+
+
 def test_curve_control_lets_in_only_known_clients(tmp_path):
     import zmq
     import zmq.auth
