@@ -135,13 +135,15 @@ def stuck_cycles_for(settings: mlx.Settings) -> int:
     Worst case, the field sits at the centre of a code: each reading keeps it with
     probability erf(LSB / (2 sqrt(2) sigma)) per axis (sigma: `mlx.noise_ut`, an
     estimate). At the paper's settings (2-3 uT of noise, 6-10 uT LSB) that is 0.67 for
-    all three axes, and 69 cycles; heavy filtering (OSR 3, DIG_FILT 7) turns it off.
+    all three axes, and 70 cycles; heavy filtering (OSR 3, DIG_FILT 7) turns it off.
     """
     keep = math.prod(math.erf(settings.sensitivity_ut(a) / (2 * math.sqrt(2) * settings.noise_ut(a))) for a in "xyz")
     if keep >= 1.0:
         return 0
     n = math.ceil(math.log(STUCK_FALSE_ODDS) / math.log(keep))
     return n if n <= STUCK_MAX_CYCLES else 0
+
+
 #: A chip that has had no new data this many cycles in a row is re-initialised.
 STALE_LIMIT = 10
 
