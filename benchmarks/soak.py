@@ -4,7 +4,7 @@ Writes a scene whose `[[fault]]` list is a random schedule (every kind but "slow
 slower than the rate needs is refused by design, see docs/reliability.md), runs
 `ftsensord run` on it with real 400 kHz wire time, subscribes to every wrench stream, and
 reports: faults injected; samples flagged; sequence gaps and the longest silence a
-subscriber saw; recovery time after each fault that had no other fault near it (fault end
+subscriber saw, and the silences of a skipped deadline by the fault active then; recovery time after each fault that had no other fault near it (fault end
 to the first unflagged sample of its sensor); missed and late cycles; memory at start and
 end; whether the daemon was still running. Run:
 
@@ -22,6 +22,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +33,7 @@ from ftsensord.config import builtin_path
 from ftsensord.sim.faults import random_faults
 
 SENSORS = {"sensor1": range(0x0C, 0x14), "sensor2": range(0x14, 0x1C)}
+RATE_HZ = 100.0  # the packaged configuration's rate
 LOAD = [1.0, -0.5, 0.8, 0.02, -0.01, 0.015]
 
 
@@ -116,14 +118,16 @@ def soak(minutes: float, seed: int = 1, per_minute: float = 6.0) -> dict:
             clean = next((t for t, fl in after if not fl & ~wire.FLAG_LATE), None)
             if clean is not None:
                 recoveries.append(clean - f.until_s)
-    # Where the late cycles fell: during which kind of fault (to 1 s after it), or none.
-    late_by_kind: dict[str, int] = {}
-    for _, t, fl in samples["wrench/sensor1"]:
-        if fl & wire.FLAG_LATE:
-            kind = next((f.kind for f in faults if f.at_s - 0.05 <= t <= f.until_s + 1.0), "no fault")
-            late_by_kind[kind] = late_by_kind.get(kind, 0) + 1
+    def fault_near(t: float) -> str:
+        """The kind of fault active at t (to 1 s after it), or "no fault"."""
+        return next((f.kind for f in faults if f.at_s - 0.05 <= t <= f.until_s + 1.0), "no fault")
+
     s1 = samples["wrench/sensor1"]
-    worst = int(np.argmax(np.diff([x[1] for x in s1]))) if len(s1) > 1 else 0
+    late_by_kind = Counter(fault_near(t) for _, t, fl in s1 if fl & wire.FLAG_LATE)
+    # A skipped deadline shows as a silence of two periods or more; 1.5 tells it from jitter.
+    times = np.array([x[1] for x in s1])
+    skips_by_kind = Counter(fault_near(t) for t in times[:-1][np.diff(times) > 1.5 / RATE_HZ])
+    worst = int(np.argmax(np.diff(times))) if len(s1) > 1 else 0
     t_silence = s1[worst][1] if s1 else 0.0
     return {
         "minutes": minutes, "faults_injected": len([f for f in faults if f.at_s < duration]),
@@ -131,7 +135,8 @@ def soak(minutes: float, seed: int = 1, per_minute: float = 6.0) -> dict:
         "samples": {t: len(v) for t, v in samples.items()}, "flagged": flagged, "sequence_gaps": gaps,
         "longest_silence_s": silences, "longest_silence_at_s": t_silence,
         "longest_silence_during": [f.kind for f in faults if f.at_s - 0.05 <= t_silence <= f.until_s + 1.0],
-        "late_samples_by_fault_kind": late_by_kind, "recoveries": len(recoveries),
+        "late_samples_by_fault_kind": dict(late_by_kind), "skips_by_fault_kind": dict(skips_by_kind),
+        "recoveries": len(recoveries),
         "recovery_max_s": max(recoveries, default=None),
         "recovery_median_s": float(np.median(recoveries)) if recoveries else None,
         "missed_cycles": status1.get("missed_cycles"), "late_cycles": status1.get("late_cycles"),

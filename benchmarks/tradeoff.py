@@ -73,7 +73,7 @@ class Row:
     rmse_cal: float
     rmse_large: float
     rmse_large_nm: float
-    flagged_large: int = 0  # large-load samples flagged (beyond overload): degraded, fallback, saturated...
+    flagged_large: int = 0  # large-load samples flagged (beyond overload): degraded, extrapolated...
     invalid_large: int = 0  # of them, published as NaN (too many chips saturated)
     n_large: int = 0
 
@@ -380,7 +380,8 @@ def render(config: Config, chip, rates, rows, cpu, lat, quick, elapsed) -> str:
             "Effective rate: the fastest scheduler's achieved rate over the averaging window. What the daemon "
             "publishes for sensor1, flags and all; RMSE over the samples published with values. Large loads "
             "flagged: samples the daemon marked (saturated chips left out, degraded, a nonlinear fall-back to "
-            "K A), of which invalid (published as NaN, left out of the RMSE)."
+            "K A, a linear estimate beyond the calibration's loads), of which invalid (published as NaN, left "
+            "out of the RMSE)."
             + ("" if truth else " A real bus has no truth: the RMSE columns are empty."), "",
             "| OSR, DIG_FILT | averaging | estimator | effective rate (Hz) | noise F (N) | noise M (mNm) | "
             "RMSE small (N) | RMSE cal. range (N) | RMSE large (N) | RMSE large (mNm) | large flagged / invalid |",
@@ -399,9 +400,9 @@ def render(config: Config, chip, rates, rows, cpu, lat, quick, elapsed) -> str:
         out += ["", "Reading the table: the linear model's error inside the calibration range is its own (a first-order "
                 "map of a 1/r^3 field), so averaging, which only lowers noise, leaves it flat; the nonlinear "
                 "estimator's error is mostly noise, and falls with averaging and longer conversions. Beyond the "
-                "calibration's loads K A extrapolates, its error grows with the load, and no flag says so short of "
-                "`overload` past the sensor's range: where loads leave the calibration range, use the nonlinear "
-                "estimator (or calibrate with larger loads)."]
+                "calibration's loads K A extrapolates and its error grows with the load; the daemon flags such "
+                "samples `extrapolated`. Where loads leave the calibration range, use the nonlinear estimator (or "
+                "calibrate with larger loads)."]
     out += ["", f"## The Pareto front (effective rate against {error_name})", "",
             f"| effective rate (Hz) | {error_name} | setting |", "|---|---|---|"]
     for p in sorted(front, key=lambda p: -p[0]):

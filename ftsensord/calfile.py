@@ -39,6 +39,9 @@ class Calibration:
     position_map: PositionMap | None = None
     report: dict[str, Any] = field(default_factory=dict)
     nonlinear: NonlinearCalibration | None = None
+    #: The largest |w| per axis over the fit poses (N, Nm): K A is a first-order fit of
+    #: a 1/r^3 field there, and a linear estimate far beyond it is flagged `extrapolated`.
+    wrench_range: np.ndarray | None = None
 
     def document(self) -> dict[str, Any]:
         doc: dict[str, Any] = {
@@ -53,6 +56,8 @@ class Calibration:
         }
         if self.model.H is not None:
             doc["H"] = self.model.H.tolist()
+        if self.wrench_range is not None:
+            doc["wrench_range"] = self.wrench_range.tolist()
         if self.position_map is not None:
             doc["position_map"] = {"M": self.position_map.M.tolist(), "o": self.position_map.o.tolist()}
         if self.nonlinear is not None:
@@ -72,7 +77,7 @@ class Calibration:
         raw = load_json(path)
         doc = Table(raw, path)
         doc.only({"format", "version", "units", "sensor", "model", "K", "A", "H", "zero_flux", "fit_report",
-                  "position_map", "nonlinear", "checksum"})
+                  "wrench_range", "position_map", "nonlinear", "checksum"})
         if doc.get("format") != CAL_FORMAT:
             raise doc.fail("format", f'"{CAL_FORMAT}"', doc.get("format"))
         doc.integer("version", what=f"{CAL_VERSION} (this ftsensord reads version {CAL_VERSION})",
@@ -87,6 +92,11 @@ class Calibration:
         A = np.array(doc.matrix("A", 6, n, unit="m/T, rad/T"))
         zero = np.array(doc.numbers("zero_flux", n, unit="T"))
         H = np.array(doc.matrix("H", n, 6, unit="T/m, T/rad")) if "H" in raw else None
+        wrench_range = None
+        if "wrench_range" in raw:
+            wrench_range = np.array(doc.numbers("wrench_range", 6, unit="N, Nm"))
+            if np.any(wrench_range <= 0):
+                raise doc.fail("wrench_range", "6 numbers over 0 (N, Nm)", raw["wrench_range"])
         pmap = None
         if "position_map" in raw:
             pm = doc.table("position_map")
@@ -115,7 +125,7 @@ class Calibration:
         if np.linalg.matrix_rank(K @ A) < 6:
             raise doc.fail("K", "K A of rank 6 (a sensor must see all six axes)", "a rank-deficient K A")
         return cls(LinearModel(K, A, zero, H), addresses, sensor.string("serial", ""),
-                   sensor.string("frame", "sensor"), pmap, report, nonlinear)
+                   sensor.string("frame", "sensor"), pmap, report, nonlinear, wrench_range)
 
 
 def checksum(doc: dict[str, Any]) -> str:

@@ -187,6 +187,7 @@ class CalibrationResult:
     model: LinearModel
     position_map: PositionMap
     report: dict
+    wrench_range: np.ndarray  # the largest |w| per axis over the fit poses (N, Nm)
 
 
 def fit(dataset: Dataset, geometry: SensorGeometry | None = None) -> CalibrationResult:
@@ -236,4 +237,4 @@ def fit(dataset: Dataset, geometry: SensorGeometry | None = None) -> Calibration
         "validation_rmse": (dict(zip(AXES, rmse(result.model, validation).tolist()))
                             if len(validation) else None),
     }
-    return CalibrationResult(result.model, pmap, report)
+    return CalibrationResult(result.model, pmap, report, np.abs(fit_set.wrench).max(axis=0))

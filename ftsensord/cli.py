@@ -110,7 +110,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
                                                             nonlinear_rmse(nonlinear, validation).tolist()))
                                                    if len(validation) else None)}
     cal = Calibration(result.model, dataset.addresses, args.serial or dataset.serial, args.frame,
-                      result.position_map, report, nonlinear)
+                      result.position_map, report, nonlinear, result.wrench_range)
     cal.save(args.output)
     sv, iso = report["singular_values_ka"], report["isotropy"]
     print(f"fit on {report['fit_poses']} poses ({report['left_out_saturated']} left out: saturated), "

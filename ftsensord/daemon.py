@@ -45,6 +45,10 @@ STATS_WINDOW = 1000
 MAX_REQUEST = 64 * 1024
 #: A tare gives up when its sensor has been invalid for this many times the samples asked.
 TARE_PATIENCE = 10
+#: A linear estimate is flagged `extrapolated` past this multiple of the calibration's
+#: largest load on an axis: up to 1.5x no axis's error relative to the load has grown
+#: 1.5-fold, by 3x one has nearly tripled (benchmarks/extrapolation.py, docs/calibration.md).
+EXTRAPOLATION_MARGIN = 1.5
 
 
 @dataclass
@@ -68,6 +72,7 @@ class SensorRuntime:
     estimator: str = "linear"
     nonlinear: NonlinearEstimator | None = None  # built from the calibration when it has one
     zero_twist: np.ndarray | None = None  # the nonlinear estimator's no-load deflection
+    tare_wrench: np.ndarray = field(default_factory=lambda: np.zeros(6))  # what the tare removes (N, Nm)
     fallbacks: int = 0
     estimate_s: deque[float] = field(default_factory=lambda: deque(maxlen=STATS_WINDOW))
 
@@ -251,13 +256,22 @@ class Daemon:
             sensor.fallbacks += 1
             flags |= wire.FLAG_FALLBACK
         if usable.all():
-            return sensor.model.wrench(flux), flags
+            return self._linear(sensor, sensor.model.wrench(flux), flags)
         if (~usable).sum() <= self.config.max_missing_chips and sensor.model.H is not None:
             try:
-                return sensor.model.wrench_from(flux, usable), flags | wire.FLAG_DEGRADED
+                return self._linear(sensor, sensor.model.wrench_from(flux, usable), flags | wire.FLAG_DEGRADED)
             except ValueError:
                 pass  # the chips left do not see all six axes
         return np.full(6, np.nan), flags | wire.FLAG_INVALID
+
+    @staticmethod
+    def _linear(sensor: SensorRuntime, wrench: np.ndarray, flags: int) -> tuple[np.ndarray, int]:
+        """A linear estimate, flagged `extrapolated` where the load on the sensor (the
+        wrench plus what a tare removed) is beyond the calibration's loads."""
+        fitted = sensor.config.calibration.wrench_range
+        if fitted is not None and np.any(np.abs(wrench + sensor.tare_wrench) > EXTRAPOLATION_MARGIN * fitted):
+            flags |= wire.FLAG_EXTRAPOLATED
+        return wrench, flags
 
     def _flux(self, sensor: SensorRuntime, results: dict[int, ChipResult]) -> tuple[np.ndarray, int, np.ndarray]:
         """The sensor's stacked flux (T), its flags, and which chips are usable: a
@@ -307,7 +321,8 @@ class Daemon:
                 for sensor in self.sensors:
                     if sensor.name in job.sensors:
                         zero = np.mean(job.flux[sensor.name], axis=0)
-                        offsets[sensor.name] = self._tare_offset(sensor, zero)
+                        sensor.tare_wrench = sensor.config.calibration.model.wrench(zero)
+                        offsets[sensor.name] = sensor.tare_wrench.round(6).tolist()
                         sensor.model = sensor.model.with_zero(zero)
                         if sensor.nonlinear is not None:
                             e = sensor.nonlinear.estimate(zero)
@@ -321,11 +336,6 @@ class Daemon:
                 self.tares.remove(job)
                 self._reply(job.reply_to, {"ok": False, "error": f"tare gave up after {job.cycles} cycles: "
                                                                "the sensor had too few valid samples"})
-
-    @staticmethod
-    def _tare_offset(sensor: SensorRuntime, zero: np.ndarray) -> list[float]:
-        """The wrench the calibration's own zero gives at the tare flux: what tare removes."""
-        return sensor.config.calibration.model.wrench(zero).round(6).tolist()
 
     # --- control ---------------------------------------------------------------------------
     def handle_control(self) -> None:
@@ -505,7 +515,7 @@ class Daemon:
                 "nonlinear_calibrated": s.nonlinear is not None, "fallbacks": s.fallbacks,
                 "estimate_cpu_us": {"mean": float(np.mean(s.estimate_s)) * 1e6, "max": float(np.max(s.estimate_s)) * 1e6}
                 if s.estimate_s else None,
-                "tare_wrench": self._tare_offset(s, s.model.zero) if s.tared else [0.0] * 6,
+                "tare_wrench": s.tare_wrench.round(6).tolist(),
             } for s in self.sensors},
             "streams": sorted(self.seq), "publish": self.config.publish, "control": self.config.control,
         }

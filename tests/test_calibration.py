@@ -215,7 +215,8 @@ def test_dataset_round_trips_and_bad_files_name_the_key(small_dataset, tmp_path)
 
 
 def calibration(result, ds) -> Calibration:
-    return Calibration(result.model, ds.addresses, "SN-7", "sensor1", result.position_map, result.report)
+    return Calibration(result.model, ds.addresses, "SN-7", "sensor1", result.position_map, result.report,
+                       wrench_range=result.wrench_range)
 
 
 def test_calibration_file_round_trips(small_dataset, tmp_path):
@@ -226,6 +227,8 @@ def test_calibration_file_round_trips(small_dataset, tmp_path):
     assert np.array_equal(cal.model.KA, result.model.KA) and np.array_equal(cal.model.zero, result.model.zero)
     assert cal.serial == "SN-7" and cal.frame == "sensor1" and cal.addresses == tuple(range(0x0C, 0x14))
     assert np.array_equal(rmse(cal.model, small_dataset), rmse(result.model, small_dataset))
+    fitted = small_dataset.select(small_dataset.split == "fit")
+    assert np.array_equal(cal.wrench_range, np.abs(fitted.wrench).max(axis=0))
 
 
 @pytest.mark.parametrize(("change", "key", "expected"), [
@@ -238,6 +241,8 @@ def test_calibration_file_round_trips(small_dataset, tmp_path):
     (lambda d: d.update(colour="red"), "colour", "one of"),
     (lambda d: d["zero_flux"].__setitem__(0, 1.0), "checksum", "changed after it was written"),
     (lambda d: d.pop("checksum"), "checksum", "missing"),
+    (lambda d: d["wrench_range"].pop(), "wrench_range", "6 finite numbers (N, Nm)"),
+    (lambda d: d["wrench_range"].__setitem__(2, 0.0), "wrench_range", "6 numbers over 0"),
 ])
 def test_a_bad_calibration_file_names_the_file_and_key(small_dataset, tmp_path, change, key, expected):
     path = tmp_path / "cal.json"

@@ -457,3 +457,32 @@ def test_a_nonlinear_estimate_that_does_not_converge_falls_back_to_the_linear_fl
     assert np.allclose(s.values, linear, atol=0.3)  # the linear estimate, not a guess
     assert rig.daemon.status()["sensors"]["sensor1"]["fallbacks"] == 1
     rig.close()
+
+
+def test_a_linear_estimate_beyond_the_calibrations_loads_is_flagged_extrapolated(tmp_path):
+    from ftsensord.daemon import EXTRAPOLATION_MARGIN
+    from ftsensord.sim.loads import StaticLoad
+
+    def flags(n: int = 3) -> list[int]:
+        return [s.flags for s in rig.cycles(n)["wrench/sensor1"]]
+
+    rig = Rig(tmp_path)
+    fitted = rig.config.sensors[0].calibration.wrench_range
+    assert not any(f & wire.FLAG_EXTRAPOLATED for f in flags())  # LOAD is inside
+    beyond = np.array([2 * EXTRAPOLATION_MARGIN * fitted[0], 0, 0, 0, 0, 0])
+    rig.scene.set_load("sensor1", StaticLoad(beyond))
+    assert all(f & wire.FLAG_EXTRAPOLATED and not f & wire.FLAG_OVERLOAD for f in flags())
+    assert rig.request(cmd="set", estimator="nonlinear")["ok"]  # it models the field there: no flag
+    assert not any(f & wire.FLAG_EXTRAPOLATED for f in flags())
+    # The flag follows the load on the sensor, not the output: a tare does not hide it.
+    assert rig.request(cmd="set", estimator="linear")["ok"]
+    rig.scene.set_load("sensor1", StaticLoad(0.4 * beyond))  # inside
+    rig.req.send(json.dumps({"cmd": "tare", "samples": 5}).encode())
+    rig.daemon.handle_control()
+    rig.cycles(5)
+    assert json.loads(rig.req.recv())["ok"]
+    rig.scene.set_load("sensor1", StaticLoad(0.8 * beyond))
+    out = rig.cycles(3)["wrench/sensor1"]
+    assert all(abs(s.values[0]) < EXTRAPOLATION_MARGIN * fitted[0] for s in out)  # the output is inside...
+    assert all(s.flags & wire.FLAG_EXTRAPOLATED for s in out)  # ...the load is not
+    rig.close()
