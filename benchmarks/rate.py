@@ -4,7 +4,7 @@ Starts `ftsensord run` with the default configuration (the simulated bus, 400 kH
 overlapped scheduler, 100 Hz) in a subprocess, subscribes to one stream, and after
 ``--seconds`` reports from the subscriber's side: samples received, the rate they imply
 (sequence numbers over the daemon's timestamps), sequence gaps, and from the daemon's
-status: missed and late cycles, jitter, and its CPU time. Run:
+status: missed and late cycles, jitter, how long a cycle takes, and its CPU time. Run:
 
     python benchmarks/rate.py --seconds 60 [--rate 100] [--scheduler overlapped]
 
@@ -83,6 +83,9 @@ def main() -> int:
           f"{status1['late_cycles'] - status0['late_cycles']} (started over a tenth of a period late); "
           f"jitter of the last 1000 cycles p50 {status1['jitter_us']['p50']:.0f} us, "
           f"p99 {status1['jitter_us']['p99']:.0f} us, max {status1['jitter_us']['max']:.0f} us")
+    cycle = status1["cycle_us"]
+    print(f"cycle (read, estimate, publish) of the last 1000: p50 {cycle['p50']:.0f} us, p99 {cycle['p99']:.0f} us, "
+          f"max {cycle['max']:.0f} us of a {status1['period_us']:.0f} us period")
     print(f"daemon CPU: {(cpu1 - cpu0) / (wall1 - wall0) * 100:.1f} % of one core (bus simulation included)")
     return 0 if abs(error) <= 0.01 else 1
 

@@ -163,6 +163,9 @@ def cmd_status(args: argparse.Namespace) -> int:
     print(f"bound: {status['bound']}")
     print(f"cycles {status['cycles']}, missed {status['missed_cycles']}, late {status['late_cycles']}; "
           f"jitter p50 {jitter['p50']:.0f} us, p99 {jitter['p99']:.0f} us")
+    cycle = status["cycle_us"]
+    print(f"cycle p50 {cycle['p50']:.0f} us, p99 {cycle['p99']:.0f} us, max {cycle['max']:.0f} us "
+          f"of a {status['period_us']:.0f} us period")
     print(f"averaging {status['averaging']}, low-pass {status['lowpass_hz'] or 'off'}")
     for name, s in status["sensors"].items():
         tare = "tared, offset " + " ".join(f"{v:+.4g}" for v in s["tare_wrench"]) if s["tared"] else "not tared"

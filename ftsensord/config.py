@@ -21,7 +21,7 @@ from .calfile import Calibration
 from .dataset import parse_addresses
 from .docfile import Table, load_toml
 from .errors import ConfigError
-from .schedule import SCHEDULERS, CycleBound, cycle_bound, stuck_cycles_for
+from .schedule import SCHEDULERS, CycleBound, burst_readback_stays_fresh, cycle_bound, stuck_cycles_for
 
 CONFIG_VERSION = 1
 ESTIMATORS = ("linear", "nonlinear")
@@ -241,10 +241,7 @@ def load_config(path: str | Path | None = None) -> Config:
         temperature_every=doc.integer("temperature_every", 100, low=0, what="cycles (0: never)"),
         stuck_cycles=doc.integer("stuck_cycles", stuck_cycles_for(settings), low=0,
                                  what="cycles (0: no stuck detection)"),
-        # Burst: a chip read back restarts its burst and is stale on the next cycle;
-        # reading back every cycle would make every sample stale, so rarely there.
-        readback_every=doc.integer("readback_every", 100 if doc.get("scheduler", "") == "burst" else 1, low=0,
-                                   what="cycles (0: no register read-back)"),
+        readback_every=doc.integer("readback_every", 1, low=0, what="cycles (0: no register read-back)"),
         max_missing_chips=doc.integer("max_missing_chips", 2, low=0, high=5,
                                       what="0 to 5 chips (degraded mode; 0: off)"))
     if "tool" in doc.doc:
@@ -256,5 +253,10 @@ def load_config(path: str | Path | None = None) -> Config:
             if name not in names:
                 raise offsets.fail(name, f"one of the sensors {', '.join(names)}", name)
             config.tool_offsets_m[name] = np.array(offsets.numbers(name, 3, unit="m, sensor frame from the tip"))
+    if config.scheduler == "burst" and "readback_every" not in doc.doc and not burst_readback_stays_fresh(
+            config.bound(), config.settings, config.rate_hz):
+        # A chip read back in burst mode (EX, RR, SB) restarts its burst: with no time for
+        # a new result before the next cycle, every sample would have a stale chip.
+        config.readback_every = 100
     check_rate(config, config.rate_hz, f"{path}: rate_hz")
     return config

@@ -102,6 +102,14 @@ def cycle_bound(scheduler: str, n_chips: int, settings: mlx.Settings, bus_hz: fl
     raise ConfigError(f"scheduler: expected one of {', '.join(SCHEDULERS)}, got {scheduler!r}")
 
 
+def burst_readback_stays_fresh(bound: CycleBound, settings: mlx.Settings, rate_hz: float) -> bool:
+    """Whether reading a chip's registers back in burst mode (EX, RR, SB, which restart
+    its burst) leaves it time for a new result before the next cycle reads it: a period
+    of at least a whole cycle plus one burst interval (conservative: the chip read back
+    is read again later than the cycle's start)."""
+    return 1.0 / rate_hz >= bound.cycle_s + settings.burst_interval_us(mlx.ZYXT_XYZ) * 1e-6 * OSC_MARGIN
+
+
 @dataclass
 class ChipResult:
     """What one cycle got from one chip: a measurement, or why not."""

@@ -252,6 +252,15 @@ def test_a_bad_calibration_file_names_the_file_and_key(small_dataset, tmp_path, 
     assert_names_file_and_key(Calibration.load, path, key, expected)
 
 
+def test_a_file_written_before_wrench_range_still_loads_without_one(small_dataset, tmp_path):
+    doc = calibration(fit(small_dataset), small_dataset).document()
+    del doc["wrench_range"]
+    doc["checksum"] = checksum(doc)
+    path = tmp_path / "cal.json"
+    path.write_text(json.dumps(doc))
+    assert Calibration.load(path).wrench_range is None
+
+
 def test_a_rank_deficient_k_a_is_refused_even_with_a_valid_checksum(small_dataset, tmp_path):
     doc = calibration(fit(small_dataset), small_dataset).document()
     doc["K"][5] = [0.0] * 6

@@ -3,6 +3,7 @@ real (inproc) ZeroMQ sockets."""
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import socket
@@ -226,6 +227,13 @@ def test_status_reports_rate_bound_jitter_chips_and_calibrations(rig):
     assert st["bound_hz"] == pytest.approx(110.2, abs=0.1) and "overlapped" in st["bound"]
     assert st["cycles"] == 20 and st["missed_cycles"] == 0
     assert set(st["jitter_us"]) == {"p50", "p99", "max"}
+    # On a virtual clock CPU is free, so a cycle lasts its wire time: the first, with the
+    # temperature, is the slowest cycle, which the bound is; the others are the bound without it.
+    cycle = st["cycle_us"]
+    assert cycle["max"] == pytest.approx(1e6 / st["bound_hz"], rel=1e-3)
+    no_temperature = dataclasses.replace(rig.config, temperature_every=0).bound()
+    assert cycle["p50"] == pytest.approx(no_temperature.cycle_s * 1e6, rel=1e-3)
+    assert st["period_us"] == pytest.approx(10_000)
     assert len(st["chips"]) == 16 and st["chips"]["0x0C"]["temperature_c"] == pytest.approx(25, abs=1)
     assert st["sensors"]["sensor1"]["serial"] == "sim-sensor1" and not st["sensors"]["sensor1"]["tared"]
 
@@ -318,6 +326,16 @@ def test_ready_after_the_first_cycle_and_watchdog_only_as_cycles_complete(tmp_pa
     assert pings.count("WATCHDOG=1") == 4
     rig.close()
     server.close()
+
+
+@pytest.mark.parametrize(("rate_hz", "every"), [(100, 1), (150, 100), (200, 100)])
+def test_burst_reads_registers_back_every_cycle_where_the_period_leaves_a_new_result_time(tmp_path, rate_hz, every):
+    # The burst bound is 4.37 ms; a result 3.82 ms after SB (with the oscillator's margin):
+    # 8.19 ms, so 100 Hz has the time and 150 Hz does not.
+    config = load_config(write_config(tmp_path, 'scheduler = "burst"', rate_hz=rate_hz))
+    assert config.readback_every == every
+    given = load_config(write_config(tmp_path, 'scheduler = "burst"\nreadback_every = 7', rate_hz=rate_hz))
+    assert given.readback_every == 7  # what the file says wins
 
 
 def test_config_refuses_a_rate_above_the_bound_naming_it(tmp_path):

@@ -78,9 +78,13 @@ def test_a_stuck_chip_is_detected_flagged_and_reinitialised(tmp_path):
     rig.close()
 
 
-def test_a_register_the_chip_accepts_silently_is_found_by_read_back(tmp_path):
+@pytest.mark.parametrize("scheduler", ["overlapped", "burst"])
+def test_a_register_the_chip_accepts_silently_is_found_by_read_back(tmp_path, scheduler):
     # CONF1 to GAIN_SEL 7: the chip converts happily, at a fifth of the expected LSB.
-    rig, out = run(tmp_path, fault("drift_register", 0.3, address=0x10, register=0, value=0x007C), 1.0)
+    rig, out = run(tmp_path, fault("drift_register", 0.3, address=0x10, register=0, value=0x007C), 1.0,
+                   extra=f'scheduler = "{scheduler}"')
+    assert rig.config.readback_every == 1  # burst at 100 Hz has the time (test_config_...burst...)
+    assert not any(s.flags & wire.FLAG_STALE for s in out["wrench/sensor1"])
     h = rig.daemon.reader.health[0x10]
     assert h.register_drifts == 1 and h.reinits == 1
     w = out["wrench/sensor1"]

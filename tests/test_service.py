@@ -138,6 +138,9 @@ def test_end_to_end_load_rate_tare_and_clean_stop(running):
         # Not a timing claim (docs/performance.md has those): the loop runs and reports it.
         assert status["rate_hz"] == 100 and status["achieved_rate_hz"] > 50
         assert status["cycles"] > 100 and status["bound_hz"] > 100
+        text = subprocess.run([sys.executable, "-m", "ftsensord", "status", "--control", ctl],
+                              capture_output=True, text=True, timeout=30).stdout
+        assert "of a 10000 us period" in text and "chips: 16, failing 0" in text  # what an operator reads
         result = control.tare(samples=20)
         assert np.allclose(result["tare_wrench"]["sensor1"][:3], LOAD[:3], atol=0.3)
     with Subscriber(pub, ["wrench/sensor1"]) as sub:
