@@ -95,7 +95,7 @@ def cycle_bound(scheduler: str, n_chips: int, settings: mlx.Settings, bus_hz: fl
         first = (1 + BITS_PER_BYTE * 2) / bus_hz
         return CycleBound(scheduler, n_chips, bus_hz, start, max(0.0, first + conversion - start), read, check)
     if scheduler == "burst":
-        interval = settings.burst_interval_us(mlx.ZYXT_XYZ) * 1e-6 * OSC_MARGIN
+        interval = _burst_interval_s(settings)
         if readback:
             check += 2 * sm_one  # EX before the registers (refused in burst), SB after
         return CycleBound(scheduler, n_chips, bus_hz, 0.0, max(0.0, interval - read), read, check)
@@ -107,7 +107,12 @@ def burst_readback_stays_fresh(bound: CycleBound, settings: mlx.Settings, rate_h
     its burst) leaves it time for a new result before the next cycle reads it: a period
     of at least a whole cycle plus one burst interval (conservative: the chip read back
     is read again later than the cycle's start)."""
-    return 1.0 / rate_hz >= bound.cycle_s + settings.burst_interval_us(mlx.ZYXT_XYZ) * 1e-6 * OSC_MARGIN
+    return 1.0 / rate_hz >= bound.cycle_s + _burst_interval_s(settings)
+
+
+def _burst_interval_s(settings: mlx.Settings) -> float:
+    """The longest interval between a chip's burst results (X, Y, Z), s: the oscillator's margin included."""
+    return settings.burst_interval_us(mlx.ZYXT_XYZ) * 1e-6 * OSC_MARGIN
 
 
 @dataclass
