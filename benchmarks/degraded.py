@@ -15,9 +15,9 @@ import itertools
 
 import numpy as np
 
-from ftsensord.calibration import AXES, fit
-from ftsensord.geometry import SensorGeometry
-from ftsensord.rig import record_dataset, simulate_sweeps
+from ftsensord.calibration.fit import AXES, fit
+from ftsensord.calibration.rig import record_dataset, simulate_sweeps
+from ftsensord.model.geometry import SensorGeometry
 from ftsensord.sim import VirtualClock, simulated_bus, two_sensor_scene
 from ftsensord.sim.loads import StaticLoad, paper_plan
 

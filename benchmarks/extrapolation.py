@@ -16,9 +16,9 @@ import argparse
 
 import numpy as np
 
-from ftsensord.calfile import Calibration
-from ftsensord.calibration import AXES
-from ftsensord.config import builtin_path
+from ftsensord.calibration.calfile import Calibration
+from ftsensord.calibration.fit import AXES
+from ftsensord.service.config import builtin_path
 from ftsensord.sim.loads import StaticLoad
 from ftsensord.sim.physics import two_sensor_scene
 

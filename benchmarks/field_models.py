@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ftsensord import mlx90393 as mlx
-from ftsensord.geometry import SensorGeometry
-from ftsensord.magnet import cylinder_field, dipole_field
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.model.geometry import SensorGeometry
+from ftsensord.model.magnet import cylinder_field, dipole_field
 from ftsensord.sim.chip import NoiseModel
 
 OUT = Path(__file__).resolve().parent.parent / "docs" / "field-model.png"

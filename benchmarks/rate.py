@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 from ftsensord.client import ControlClient, Subscriber
-from ftsensord.config import builtin_path
+from ftsensord.service.config import builtin_path
 
 
 def cpu_seconds(pid: int) -> float:

@@ -28,9 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ftsensord import wire
 from ftsensord.client import ControlClient, Subscriber
-from ftsensord.config import builtin_path
+from ftsensord.service import wire
+from ftsensord.service.config import builtin_path
 from ftsensord.sim.faults import random_faults
 
 SENSORS = {"sensor1": range(0x0C, 0x14), "sensor2": range(0x14, 0x1C)}

@@ -44,16 +44,26 @@ from unittest import mock
 import numpy as np
 import zmq
 
-from ftsensord import mlx90393 as mlx
-from ftsensord import wire
-from ftsensord.bus import Bus, open_bus, parse_bus_spec
-from ftsensord.config import Config, builtin_path, load_config
-from ftsensord.daemon import Daemon
-from ftsensord.driver import MLX90393
-from ftsensord.model import SENSOR_RANGE
-from ftsensord.schedule import Reader, cycle_bound, stuck_cycles_for
-from ftsensord.sim import (MonotonicClock, PhysicalScene, VirtualClock, default_scene, load_scene, simulated_bus,
-                           two_sensor_scene)
+from ftsensord.acquire.bound import cycle_bound
+from ftsensord.acquire.bus import open_bus, parse_bus_spec
+from ftsensord.acquire.health import stuck_cycles_for
+from ftsensord.acquire.reader import Reader
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.chip.driver import MLX90393
+from ftsensord.chip.i2c import Bus
+from ftsensord.model.linear import SENSOR_RANGE
+from ftsensord.service import wire
+from ftsensord.service.config import Config, builtin_path, load_config
+from ftsensord.service.daemon import Daemon
+from ftsensord.sim import (
+    MonotonicClock,
+    PhysicalScene,
+    VirtualClock,
+    default_scene,
+    load_scene,
+    simulated_bus,
+    two_sensor_scene,
+)
 from ftsensord.sim.loads import StaticLoad, paper_plan
 
 DOCS = Path(__file__).resolve().parent.parent / "docs"

@@ -13,11 +13,11 @@ from collections.abc import Sequence
 import numpy as np
 
 from . import __version__
-from . import mlx90393 as mlx
-from .bus import ACCEPTED_FORMS, open_bus
-from .config import ESTIMATORS
+from .acquire.bus import ACCEPTED_FORMS, open_bus
+from .acquire.scan import ChipReport, scan
+from .chip import mlx90393 as mlx
 from .errors import ConfigError, DaemonNotAnswering, FtsensordError
-from .scan import ChipReport, scan
+from .service.config import ESTIMATORS
 from .sim.loads import PLANS
 
 
@@ -63,11 +63,10 @@ def cmd_scan(args: argparse.Namespace) -> int:
 
 
 def cmd_dataset(args: argparse.Namespace) -> int:
-    from .geometry import SensorGeometry
-    from .rig import record_dataset, simulate_sweeps
-    from .sim.loads import paper_plan
+    from .calibration.rig import record_dataset, simulate_sweeps
+    from .model.geometry import SensorGeometry
     from .sim import PhysicalScene, default_scene, load_scene, simulated_bus
-    from .sim.loads import StaticLoad
+    from .sim.loads import StaticLoad, paper_plan
 
     scene = load_scene(args.scene) if args.scene else default_scene()
     if not isinstance(scene, PhysicalScene):
@@ -92,17 +91,17 @@ def cmd_dataset(args: argparse.Namespace) -> int:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from .calfile import Calibration
-    from .calibration import fit
-    from .dataset import Dataset
-    from .report import format_rmse, write_report
+    from .calibration.calfile import Calibration
+    from .calibration.dataset import Dataset
+    from .calibration.fit import fit
+    from .calibration.report import format_rmse, write_report
 
     dataset = Dataset.load(args.dataset)
     result = fit(dataset)
     report = result.report
     nonlinear = None
     if not args.linear_only:
-        from .nlcal import fit_nonlinear, nonlinear_rmse
+        from .calibration.nlfit import fit_nonlinear, nonlinear_rmse
         nonlinear = fit_nonlinear(dataset)
         validation = dataset.select(dataset.split == "validation")
         report["nonlinear"] = {"gap_mm": nonlinear.gap_m * 1e3, "fit_rms_residual_ut": nonlinear.fit_rms_residual_t * 1e6,
@@ -134,8 +133,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 def cmd_run(args: argparse.Namespace) -> int:
     import logging
 
-    from .config import load_config
-    from .service import run
+    from .service.config import load_config
+    from .service.run import run
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     return run(load_config(args.config))
@@ -221,7 +220,7 @@ def _subscriber(args: argparse.Namespace):
 
 
 def cmd_echo(args: argparse.Namespace) -> int:
-    from .wire import flag_names
+    from .service.wire import flag_names
 
     with _subscriber(args) as sub:
         n = 0

@@ -21,9 +21,9 @@ from typing import Any
 
 import zmq
 
-from . import wire
-from .config import runtime_dir
 from .errors import ControlError, DaemonNotAnswering
+from .service import wire
+from .service.config import runtime_dir
 
 #: Samples a recording subscriber may queue: 10 s of five streams at 100 Hz.
 QUEUE_HWM = 5000

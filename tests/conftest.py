@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ftsensord import mlx90393 as mlx
-from ftsensord.driver import MLX90393
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.chip.driver import MLX90393
 from ftsensord.sim import (
     NOISELESS,
     SimulatedBus,

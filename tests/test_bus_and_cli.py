@@ -9,11 +9,11 @@ import sys
 import numpy as np
 import pytest
 
-from ftsensord import mlx90393 as mlx
-from ftsensord.bus import open_bus, parse_bus_spec
+from ftsensord.acquire.bus import open_bus, parse_bus_spec
+from ftsensord.acquire.scan import scan
+from ftsensord.chip import mlx90393 as mlx
 from ftsensord.cli import main
 from ftsensord.errors import ConfigError
-from ftsensord.scan import scan
 from ftsensord.sim import PhysicalScene, SimulatedBus, default_scene, load_scene
 
 from .conftest import assert_names_file_and_key
@@ -171,7 +171,7 @@ def test_dataset_and_calibrate_commands(tmp_path, capsys):
     assert main(["calibrate", str(ds), "-o", str(cal), "--report", str(rep), "--serial", "SN-1"]) == 0
     out = capsys.readouterr().out
     assert "validation RMSE: Fx" in out and "isotropy" in out
-    from ftsensord.calfile import Calibration
+    from ftsensord.calibration.calfile import Calibration
     loaded = Calibration.load(cal)
     assert loaded.serial == "SN-1" and loaded.addresses == tuple(range(0x0C, 0x14))
     text = rep.read_text()

@@ -10,10 +10,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from ftsensord import mlx90393 as mlx
-from ftsensord import se3
-from ftsensord.calfile import Calibration, checksum
-from ftsensord.calibration import (
+from ftsensord.calibration.calfile import Calibration, checksum
+from ftsensord.calibration.dataset import Dataset
+from ftsensord.calibration.fit import (
     EXCITATION_TOL,
     check_excitation,
     fit,
@@ -21,17 +20,18 @@ from ftsensord.calibration import (
     noise_floor,
     rmse,
 )
-from ftsensord.dataset import Dataset
+from ftsensord.calibration.rig import record_dataset, simulate_sweeps
+from ftsensord.chip import mlx90393 as mlx
 from ftsensord.errors import CalibrationError, ConfigError
-from ftsensord.geometry import SensorGeometry
-from ftsensord.model import (
+from ftsensord.model import se3
+from ftsensord.model.geometry import SensorGeometry
+from ftsensord.model.linear import (
     LinearModel,
     PositionMap,
     deflection_twist,
     fit_position_map,
     tip_wrench,
 )
-from ftsensord.rig import record_dataset, simulate_sweeps
 from ftsensord.sim import NOISELESS, VirtualClock, simulated_bus, two_sensor_scene
 from ftsensord.sim.loads import StaticLoad, paper_plan
 

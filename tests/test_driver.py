@@ -8,8 +8,8 @@ import ctypes
 import numpy as np
 import pytest
 
-from ftsensord import mlx90393 as mlx
-from ftsensord.driver import MLX90393
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.chip.driver import MLX90393
 from ftsensord.errors import (
     ChipProtocolError,
     ChipRefusedError,

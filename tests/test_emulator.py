@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from smbus2 import i2c_msg
 
-from ftsensord import mlx90393 as mlx
-from ftsensord.driver import MLX90393
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.chip.driver import MLX90393
 from ftsensord.errors import ChipNotRespondingError, ChipRefusedError
 from ftsensord.sim import NoiseModel, StaticScene, VirtualClock, simulated_bus
 

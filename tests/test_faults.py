@@ -8,8 +8,8 @@ import errno
 import numpy as np
 import pytest
 
-from ftsensord import wire
-from ftsensord.schedule import cycle_bound
+from ftsensord.acquire.bound import cycle_bound
+from ftsensord.service import wire
 from ftsensord.sim import Fault, load_scene
 from ftsensord.sim.faults import random_faults
 

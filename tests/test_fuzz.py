@@ -8,10 +8,10 @@ import json
 import numpy as np
 import zmq
 
-from ftsensord import wire
-from ftsensord.config import load_config
-from ftsensord.daemon import MAX_REQUEST, Daemon
-from ftsensord.service import make_sockets
+from ftsensord.service import wire
+from ftsensord.service.config import load_config
+from ftsensord.service.daemon import MAX_REQUEST, Daemon
+from ftsensord.service.run import make_sockets
 from ftsensord.sim import VirtualClock, load_scene, simulated_bus
 
 from .test_daemon import write_config

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from ftsensord.magnet import cel, cylinder_field, cylinder_moment, dipole_field
+from ftsensord.model.magnet import cel, cylinder_field, cylinder_moment, dipole_field
 
 A, L, BR = 1.5875e-3 / 2, 0.79375e-3, 1.45  # the paper's D101-N52
 

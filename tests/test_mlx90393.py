@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from ftsensord import mlx90393 as mlx
+from ftsensord.chip import mlx90393 as mlx
 from ftsensord.errors import ForbiddenSettingError
 
 # Datasheet sensitivity table, HALLCONF 0xC, RES 0 column: (X/Y, Z) in uT/LSB per GAIN_SEL.

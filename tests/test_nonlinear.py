@@ -9,14 +9,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from ftsensord import se3
-from ftsensord.geometry import SensorGeometry
-from ftsensord.nonlinear import MAX_RESIDUAL_T, STEP_TOL, FluxModel, NonlinearEstimator
-from ftsensord.sim.physics import (
-    PAPER_STIFFNESS_DIAG,
-    PhysicalScene,
-    SimSensor,
+from ftsensord.model import se3
+from ftsensord.model.geometry import SensorGeometry
+from ftsensord.model.nonlinear import (
+    MAX_RESIDUAL_T,
+    STEP_TOL,
+    FluxModel,
+    NonlinearEstimator,
 )
+from ftsensord.sim.physics import PAPER_STIFFNESS_DIAG, PhysicalScene, SimSensor
 
 G = SensorGeometry.ring()
 K = np.diag(PAPER_STIFFNESS_DIAG)

@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ftsensord.geometry import SensorGeometry
-from ftsensord.magnet import cylinder_field
+from ftsensord.model.geometry import SensorGeometry
+from ftsensord.model.linear import SENSOR_RANGE
+from ftsensord.model.magnet import cylinder_field
 from ftsensord.sim import load_scene
 from ftsensord.sim.loads import (
     CalibrationPose,
@@ -17,7 +18,6 @@ from ftsensord.sim.loads import (
     StepLoad,
     ramp,
 )
-from ftsensord.model import SENSOR_RANGE
 from ftsensord.sim.physics import (
     PAPER_STIFFNESS_DIAG,
     PhysicalScene,

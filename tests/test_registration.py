@@ -7,8 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from ftsensord import se3
-from ftsensord.registration import register
+from ftsensord.model import se3
+from ftsensord.model.registration import register
 
 twists = st.tuples(*[st.floats(-0.01, 0.01)] * 3, *[st.floats(-np.pi + 1e-3, np.pi - 1e-3)] * 3).map(np.array)
 

@@ -5,10 +5,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ftsensord import mlx90393 as mlx
-from ftsensord.driver import MLX90393
-from ftsensord.schedule import Reader, cycle_bound, stuck_cycles_for
-from ftsensord.sim import Fault, StaticScene, VirtualClock, simulated_bus, two_sensor_scene
+from ftsensord.acquire.bound import cycle_bound
+from ftsensord.acquire.health import stuck_cycles_for
+from ftsensord.acquire.reader import Reader
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.chip.driver import MLX90393
+from ftsensord.sim import (
+    Fault,
+    StaticScene,
+    VirtualClock,
+    simulated_bus,
+    two_sensor_scene,
+)
 
 
 @pytest.mark.parametrize("scheduler", ["naive", "overlapped", "burst"])

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from ftsensord import se3
+from ftsensord.model import se3
 
 unit_vectors = st.tuples(*[st.floats(-1, 1)] * 3).map(np.array).filter(
     lambda v: np.linalg.norm(v) > 1e-3).map(lambda v: v / np.linalg.norm(v))

@@ -17,7 +17,7 @@ import pytest
 
 from ftsensord.client import ControlClient, Subscriber
 from ftsensord.errors import ControlError, DaemonNotAnswering
-from ftsensord.sdnotify import Notifier
+from ftsensord.service.sdnotify import Notifier
 
 from .test_daemon import LOAD, SCENE, write_config
 
@@ -217,9 +217,9 @@ def test_curve_control_lets_in_only_known_clients(tmp_path):
     import zmq
     import zmq.auth
 
-    from ftsensord.config import load_config
-    from ftsensord.daemon import Daemon
-    from ftsensord.service import make_sockets
+    from ftsensord.service.config import load_config
+    from ftsensord.service.daemon import Daemon
+    from ftsensord.service.run import make_sockets
     from ftsensord.sim import VirtualClock, load_scene, simulated_bus
     keys, clients = tmp_path / "keys", tmp_path / "clients"
     keys.mkdir()

@@ -7,9 +7,9 @@ import errno
 import pytest
 from smbus2 import i2c_msg
 
-from ftsensord import mlx90393 as mlx
-from ftsensord.bus import I2C_RDWR_MAX_MSGS, wire_bits
-from ftsensord.driver import MLX90393
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.chip.driver import MLX90393
+from ftsensord.chip.i2c import I2C_RDWR_MAX_MSGS, wire_bits
 from ftsensord.errors import ChipNotRespondingError, ChipRefusedError
 from ftsensord.sim import (
     NOISELESS,

@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 import smbus2.smbus2 as smbus2_module
 
-from ftsensord import mlx90393 as mlx
-from ftsensord.bus import LinuxI2CBus, open_bus
-from ftsensord.driver import MLX90393
+from ftsensord.acquire.bus import LinuxI2CBus, open_bus
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.chip.driver import MLX90393
 from ftsensord.errors import ChipNotRespondingError
 from ftsensord.sim import NOISELESS, VirtualClock, simulated_bus
 

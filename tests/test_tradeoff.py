@@ -10,8 +10,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from ftsensord import mlx90393 as mlx
-from ftsensord.config import builtin_path, load_config
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.service.config import builtin_path, load_config
 from ftsensord.sim import two_sensor_scene
 
 SCRIPT = Path(__file__).resolve().parent.parent / "benchmarks" / "tradeoff.py"

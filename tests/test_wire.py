@@ -10,8 +10,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from ftsensord import wire
 from ftsensord.errors import WireError
+from ftsensord.service import wire
 
 PROTOCOL = Path(__file__).resolve().parent.parent / "docs" / "protocol.md"
 

@@ -1,7 +1,14 @@
-"""The fake bus: emulated MLX90393s fed by a scene, behind smbus2's ``i2c_rdwr``.
+"""Floor 4, the simulator: emulated MLX90393s fed by a scene, behind smbus2's ``i2c_rdwr``.
 
-`simulated_bus` builds a ready bus from a scene; `ftsensord.bus.open_bus`
-calls it for the ``sim`` and ``sim:<scene file>`` specifications.
+Owns the emulated chip (`chip`), the simulated bus with the kernel's
+semantics, wire time and fault hooks (`bus`), clocks (`clock`), the physics
+of magnets and stiffness (`physics`), loads over time (`loads`), scripted
+faults (`faults`) and scene files (`scene`). `simulated_bus` builds a ready
+bus from a scene; `ftsensord.acquire.bus.open_bus` calls it for the ``sim``
+and ``sim:<scene file>`` specifications.
+
+May import: `chip` (the datasheet's facts), `model` (fields, geometry),
+`docfile`, `errors`. Never acquisition, calibration or the service.
 """
 
 from __future__ import annotations
@@ -9,10 +16,9 @@ from __future__ import annotations
 import numpy as np
 
 from .bus import BusFaults, SimulatedBus
-from .chip import NOISELESS, EmulatedMLX90393, NoiseModel
+from .chip import NOISELESS, EmulatedMLX90393, FieldSource, NoiseModel
 from .clock import MonotonicClock, VirtualClock
 from .faults import Fault, FaultScript
-from .chip import FieldSource
 from .physics import PhysicalScene, SimSensor, two_sensor_scene
 from .scene import StaticScene, default_scene, load_scene
 

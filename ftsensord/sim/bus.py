@@ -20,11 +20,10 @@ from dataclasses import dataclass, field
 from smbus2 import i2c_msg
 from smbus2.smbus2 import I2C_M_RD
 
-from ..bus import BITS_PER_BYTE, I2C_RDWR_MAX_MSGS
+from ..chip.i2c import BITS_PER_BYTE, I2C_RDWR_MAX_MSGS
 from .chip import EmulatedMLX90393
 from .clock import MonotonicClock, VirtualClock
 from .faults import FaultScript
-
 
 
 @dataclass

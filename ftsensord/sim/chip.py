@@ -20,7 +20,7 @@ from typing import Protocol
 
 import numpy as np
 
-from .. import mlx90393 as mlx
+from ..chip import mlx90393 as mlx
 
 
 class FieldSource(Protocol):

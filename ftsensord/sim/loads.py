@@ -15,7 +15,7 @@ from typing import Protocol
 
 import numpy as np
 
-from .. import se3
+from ..model import se3
 
 #: Standard gravity, m/s^2.
 G = 9.80665

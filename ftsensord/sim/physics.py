@@ -18,10 +18,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .. import se3
-from ..geometry import SensorGeometry
-from ..magnet import cylinder_field, dipole_field
-from ..model import SENSOR_RANGE
+from ..model import se3
+from ..model.geometry import SensorGeometry
+from ..model.linear import SENSOR_RANGE
+from ..model.magnet import cylinder_field, dipole_field
 from .loads import NO_LOAD, Load
 
 #: Stiffness default: the diagonal of the paper's K, in N/m and Nm/rad (their

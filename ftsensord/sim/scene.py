@@ -14,15 +14,30 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import mlx90393 as mlx
-from ..errors import ConfigError
-from ..geometry import SensorGeometry
+from ..chip import mlx90393 as mlx
 from ..docfile import Table, load_toml
+from ..errors import ConfigError
+from ..model.geometry import SensorGeometry
 from .faults import FAULT_KINDS, NEEDS_ADDRESS, Fault
-from .loads import (NO_LOAD, PLANS, CalibrationRobotLoad, Load, RecordedLoad, StaticLoad, StepLoad,
-                    paper_plan, ramp)
-from .physics import (CROSSTALK_MODELS, FIELD_MODELS, PAPER_STIFFNESS_DIAG, PhysicalScene,
-                      SimSensor, two_sensor_scene)
+from .loads import (
+    NO_LOAD,
+    PLANS,
+    CalibrationRobotLoad,
+    Load,
+    RecordedLoad,
+    StaticLoad,
+    StepLoad,
+    paper_plan,
+    ramp,
+)
+from .physics import (
+    CROSSTALK_MODELS,
+    FIELD_MODELS,
+    PAPER_STIFFNESS_DIAG,
+    PhysicalScene,
+    SimSensor,
+    two_sensor_scene,
+)
 
 SCENE_VERSION = 1
 

@@ -15,12 +15,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import CalibrationError
+from ..model.geometry import SensorGeometry
+from ..model.linear import (
+    SENSOR_RANGE,
+    LinearModel,
+    PositionMap,
+    deflection_twist,
+    fit_position_map,
+)
+from ..sim.chip import NOISELESS
 from .dataset import Dataset
-from .errors import CalibrationError
-from .geometry import SensorGeometry
-from .model import SENSOR_RANGE, LinearModel, PositionMap, deflection_twist, fit_position_map
 from .rig import simulate_sweeps
-from .sim.chip import NOISELESS
 
 AXES = ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
 UNITS = ("N", "N", "N", "Nm", "Nm", "Nm")

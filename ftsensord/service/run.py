@@ -13,9 +13,10 @@ from pathlib import Path
 
 import zmq
 
-from .bus import Bus, open_bus, parse_bus_spec
+from ..acquire.bus import open_bus, parse_bus_spec
+from ..chip.i2c import Bus
+from ..errors import ConfigError
 from .config import Config, is_loopback
-from .errors import ConfigError
 from .daemon import MAX_REQUEST, Daemon
 from .sdnotify import Notifier
 
@@ -32,7 +33,7 @@ def open_configured_bus(config: Config) -> Bus:
     """The configured bus; a simulated one spends real wire time at ``bus_hz``."""
     kind, _ = parse_bus_spec(config.bus)
     if kind == "sim":
-        from .sim import MonotonicClock
+        from ..sim import MonotonicClock
         return open_bus(config.bus, clock=MonotonicClock(), bus_hz=config.bus_hz, seed=None)
     return open_bus(config.bus)
 

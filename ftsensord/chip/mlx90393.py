@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from .errors import ForbiddenSettingError
+from ..errors import ForbiddenSettingError
 
 # --- Commands (first byte; the low nibble of SB/SW/SM/RM is zyxt) -----------------
 CMD_SB = 0x10  # start burst mode

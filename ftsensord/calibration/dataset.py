@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from . import mlx90393 as mlx
-from .docfile import Table, load_json
+from ..chip import mlx90393 as mlx
+from ..docfile import Table, load_json
 
 DATASET_FORMAT = "ftsensord-calibration-dataset"
 DATASET_VERSION = 1

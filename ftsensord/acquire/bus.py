@@ -10,37 +10,13 @@ has.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterable
-from typing import Protocol
 
 from smbus2 import SMBus, i2c_msg
 
-from .errors import ConfigError
-
-#: The kernel's limit of messages in one I2C_RDWR ioctl (I2C_RDWR_IOCTL_MAX_MSGS).
-I2C_RDWR_MAX_MSGS = 42
-#: Bits on the wire per byte: 8 data bits and the ACK/NACK bit.
-BITS_PER_BYTE = 9
+from ..chip.i2c import Bus
+from ..errors import ConfigError
 
 ACCEPTED_FORMS = "'i2c:<N>' (e.g. i2c:1), 'i2c:/dev/i2c-<N>', 'sim', or 'sim:<scene file>'"
-
-
-def wire_bits(msgs: Iterable[i2c_msg]) -> int:
-    """Clock bits a combined transfer takes: per message a (repeated) start, the
-    address byte and the data bytes; one stop at the end."""
-    return sum(1 + BITS_PER_BYTE * (1 + m.len) for m in msgs) + 1
-
-
-class Bus(Protocol):
-    """The surface every bus offers (smbus2's ``i2c_rdwr`` plus time)."""
-
-    def i2c_rdwr(self, *i2c_msgs: i2c_msg) -> None: ...
-
-    def close(self) -> None: ...
-
-    def sleep(self, seconds: float) -> None: ...
-
-    def monotonic(self) -> float: ...
 
 
 class LinuxI2CBus:
@@ -94,7 +70,7 @@ def open_bus(spec: str, **sim_options: object) -> Bus:
         if sim_options:
             raise ConfigError(f"bus {spec!r}: options {sorted(sim_options)} apply to the simulated bus only")
         return LinuxI2CBus(int(arg) if arg.isdigit() else arg)
-    from . import sim  # the simulator is only imported when asked for
+    from .. import sim  # the simulator is only imported when asked for
 
     scene = sim.load_scene(arg) if arg else sim.default_scene()
     return sim.simulated_bus(scene, **sim_options)  # type: ignore[arg-type]

@@ -5,10 +5,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-
-from .calibration import AXES, UNITS
+from ..model.linear import LinearModel
 from .dataset import Dataset
-from .model import LinearModel
+from .fit import AXES, UNITS
 
 #: The paper's Table II, RMS error per axis (N; mNm for torques).
 PAPER_TABLE_II = (0.2338, 0.1136, 0.3775, 4.1e-3, 10.6e-3, 8.5e-3)

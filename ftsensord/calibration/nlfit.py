@@ -21,11 +21,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import se3
+from ..errors import CalibrationError
+from ..model import se3
+from ..model.geometry import SensorGeometry
+from ..model.nonlinear import FluxModel, NonlinearEstimator
 from .dataset import Dataset
-from .errors import CalibrationError
-from .geometry import SensorGeometry
-from .nonlinear import FluxModel, NonlinearEstimator
 
 ALTERNATIONS = 4
 #: The gap is searched in the paper's 6 mm +- 1.5 mm: the silicone layer's thickness

@@ -21,9 +21,13 @@ from typing import Protocol
 import numpy as np
 from smbus2 import i2c_msg
 
+from ..errors import (
+    ChipNotRespondingError,
+    ChipProtocolError,
+    ChipRefusedError,
+    RegisterVerifyError,
+)
 from . import mlx90393 as mlx
-from .errors import (ChipNotRespondingError, ChipProtocolError, ChipRefusedError,
-                     RegisterVerifyError)
 
 #: Wait after RT before the next command: the datasheet asks for at least 1.5 ms.
 T_AFTER_RT_S = 2e-3

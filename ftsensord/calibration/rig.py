@@ -12,15 +12,14 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from . import mlx90393 as mlx
-from .bus import Bus
+from ..chip import mlx90393 as mlx
+from ..chip.driver import MLX90393
+from ..chip.i2c import Bus
+from ..model.geometry import SensorGeometry
+from ..model.magnet import cylinder_field, dipole_field
+from ..sim.chip import NoiseModel
+from ..sim.loads import CalibrationPose
 from .dataset import Dataset, Sweep
-from .driver import MLX90393
-from .geometry import SensorGeometry
-from .magnet import cylinder_field, dipole_field
-from .sim.chip import NoiseModel
-from .sim.loads import CalibrationPose
-
 
 
 def record_dataset(bus: Bus, addresses: Sequence[int], poses: Sequence[tuple[CalibrationPose, str]],

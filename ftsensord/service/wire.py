@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import WireError
+from ..errors import WireError
 
 MAGIC = 0x5446  # b"FT" read as a little-endian u16
 VERSION = 1

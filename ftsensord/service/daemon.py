@@ -23,16 +23,19 @@ from typing import Any, Callable
 import numpy as np
 import zmq
 
-from . import __version__, se3, wire
-from . import mlx90393 as mlx
-from .bus import Bus
+from .. import __version__
+from ..acquire.health import ChipResult
+from ..acquire.reader import Reader
+from ..chip import mlx90393 as mlx
+from ..chip.driver import MLX90393
+from ..chip.i2c import Bus
+from ..errors import ChipRefusedError, ConfigError, FtsensordError
+from ..model import se3
+from ..model.linear import SENSOR_RANGE, LinearModel
+from ..model.nonlinear import NonlinearEstimator
+from . import wire
 from .config import Config, SensorConfig, check_rate, load_config
-from .driver import MLX90393
-from .errors import ChipRefusedError, ConfigError, FtsensordError
 from .filters import WrenchFilter
-from .model import SENSOR_RANGE, LinearModel
-from .nonlinear import NonlinearEstimator
-from .schedule import ChipResult, Reader
 from .sdnotify import Notifier
 
 log = logging.getLogger("ftsensord")

@@ -15,13 +15,19 @@ from pathlib import Path
 
 import numpy as np
 
-from . import mlx90393 as mlx
-from .bus import parse_bus_spec
-from .calfile import Calibration
-from .dataset import parse_addresses
-from .docfile import Table, load_toml
-from .errors import ConfigError
-from .schedule import SCHEDULERS, CycleBound, burst_readback_stays_fresh, cycle_bound, stuck_cycles_for
+from ..acquire.bound import (
+    SCHEDULERS,
+    CycleBound,
+    burst_readback_stays_fresh,
+    cycle_bound,
+)
+from ..acquire.bus import parse_bus_spec
+from ..acquire.health import stuck_cycles_for
+from ..calibration.calfile import Calibration
+from ..calibration.dataset import parse_addresses
+from ..chip import mlx90393 as mlx
+from ..docfile import Table, load_toml
+from ..errors import ConfigError
 
 CONFIG_VERSION = 1
 ESTIMATORS = ("linear", "nonlinear")

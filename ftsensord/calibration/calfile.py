@@ -16,10 +16,10 @@ from typing import Any
 
 import numpy as np
 
+from ..docfile import Table, load_json
+from ..model.linear import LinearModel, PositionMap
 from .dataset import parse_addresses
-from .docfile import Table, load_json
-from .model import LinearModel, PositionMap
-from .nlcal import NonlinearCalibration
+from .nlfit import NonlinearCalibration
 
 CAL_FORMAT = "ftsensord-calibration"
 CAL_VERSION = 1

@@ -17,8 +17,8 @@ import numpy as np
 
 from . import se3
 from .geometry import SensorGeometry
+from .linear import SENSOR_RANGE
 from .magnet import MU0_OVER_4PI
-from .model import SENSOR_RANGE
 
 #: Largest step per iteration: 1 mm and 0.05 rad. A full-range deflection is about 6 mm
 #: and 0.02 rad; steps this size reach it in a few iterations while keeping the dipole

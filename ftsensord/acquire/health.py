@@ -1,0 +1,223 @@
+"""Chip health: what a cycle's result says of a chip, and bringing a failing chip back.
+
+`ChipCare` judges each healthy chip's result (stuck words, no new data for too
+long), takes a failing chip out with backoff, re-initialises it one command a
+cycle, and reads one chip's registers back now and then. The `Reader`
+(``reader.py``) decides how the bus is driven; this module, what to trust.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from ..chip import mlx90393 as mlx
+from ..chip.driver import MLX90393, T_AFTER_RT_S, Measurement
+from ..chip.i2c import Bus
+from ..errors import (
+    ChipError,
+    ChipNotRespondingError,
+    ChipProtocolError,
+    ChipRefusedError,
+)
+
+
+@dataclass
+class ChipResult:
+    """What one cycle got from one chip: a measurement, or why not."""
+
+    address: int
+    measurement: Measurement | None = None
+    error: ChipError | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.measurement is not None
+
+
+#: Backoff of a chip that does not come back: retried on the next cycle, then after
+#: 20 ms doubling up to 0.5 s, so a returning chip is in use again within 0.5 s plus its
+#: re-initialisation (at most three cycles), inside the 1 s the reliability figures ask.
+BACKOFF_FIRST_S = 0.02
+BACKOFF_MAX_S = 0.5
+#: Identical X, Y, Z words this many cycles in a row by chance, on a chip at rest, may
+#: happen at most this often per chip and cycle: 16 chips at 100 Hz make 5e10 chances a
+#: year, so a false "stuck" once in 20 years.
+STUCK_FALSE_ODDS = 1e-12
+#: Beyond this many cycles (10 s at 100 Hz) a stuck chip would be found too late to
+#: matter: the noise is far below an LSB and identical words are normal; detection is off.
+STUCK_MAX_CYCLES = 1000
+#: A chip that has had no new data this many cycles in a row is re-initialised.
+STALE_LIMIT = 10
+
+
+def stuck_cycles_for(settings: mlx.Settings) -> int:
+    """Cycles of identical X, Y, Z words that mean a stuck chip at ``settings``; 0: off.
+
+    Worst case, the field sits at the centre of a code: each reading keeps it with
+    probability erf(LSB / (2 sqrt(2) sigma)) per axis (sigma: `mlx.noise_ut`, an
+    estimate). At the paper's settings (2-3 uT of noise, 6-10 uT LSB) that is 0.67 for
+    all three axes, and 70 cycles; heavy filtering (OSR 3, DIG_FILT 7) turns it off.
+    """
+    keep = math.prod(math.erf(settings.sensitivity_ut(a) / (2 * math.sqrt(2) * settings.noise_ut(a))) for a in "xyz")
+    if keep >= 1.0:
+        return 0
+    n = math.ceil(math.log(STUCK_FALSE_ODDS) / math.log(keep))
+    return n if n <= STUCK_MAX_CYCLES else 0
+
+
+@dataclass
+class ChipHealth:
+    """What the reader knows of one chip beyond its last result."""
+
+    failing: bool = False
+    retry_at: float = 0.0
+    backoff_s: float = 0.0
+    reinits: int = 0
+    register_drifts: int = 0
+    stuck_detections: int = 0
+    same_words: int = 0
+    last_words: tuple[int, ...] | None = None
+    stale_run: int = 0
+    needs_reset: bool = False  # failed in a way only a reset mends (stuck, registers changed)
+    step: int = 0  # the next step of a re-initialisation under way (0: none)
+    step_at: float = 0.0  # when its previous step was sent (s, bus clock)
+
+
+class ChipCare:
+    """The health of every chip of one bus, and one recovery step a cycle.
+
+    A chip that fails (no answer, a bad reply, stuck data, no new data for too
+    long, registers that changed) is taken out and re-initialised (reset,
+    configure, burst) when its retry is due, with backoff; it rejoins once that
+    succeeds. ``burst``: the chips run in burst mode, which RR refuses, so a
+    read-back goes EX, RR, SB.
+    """
+
+    def __init__(self, bus: Bus, chips: list[MLX90393], settings: mlx.Settings, *, burst: bool,
+                 stuck_cycles: int | None = None):
+        self.bus, self.settings, self.burst = bus, settings, burst
+        self.health = {c.address: ChipHealth() for c in chips}
+        self.stuck_cycles = stuck_cycles_for(settings) if stuck_cycles is None else stuck_cycles
+        self._attempted = False  # one recovery a cycle
+
+    @property
+    def failing(self) -> set[int]:
+        return {a for a, h in self.health.items() if h.failing}
+
+    def new_cycle(self) -> None:
+        self._attempted = False
+
+    def initialise(self, chip: MLX90393) -> None:
+        """Reset and configure a chip (and start burst mode) in one go."""
+        chip.reset()
+        chip.configure(self.settings)
+        if self.burst:
+            chip.start_burst(mlx.ZYXT_XYZ)
+
+    def fail(self, address: int, now: float, reset: bool = False) -> None:
+        h = self.health[address]
+        h.needs_reset |= reset
+        if not h.failing:
+            h.failing, h.backoff_s, h.retry_at = True, 0.0, now  # first retry: the next cycle
+        else:
+            h.backoff_s = min(max(2 * h.backoff_s, BACKOFF_FIRST_S), BACKOFF_MAX_S)
+            h.retry_at = now + h.backoff_s
+        h.same_words, h.last_words, h.stale_run = 0, None, 0
+
+    def recover(self, chip: MLX90393, now: float) -> ChipResult:
+        """A failing chip: one step of bringing it back when its retry is due and
+        this cycle has not spent its one attempt; no data this cycle.
+
+        A chip whose registers are intact needs one step (read them back, 0.5 ms).
+        Otherwise a reset goes one command a cycle, EX, RT, configure, the
+        datasheet's waits (1 ms, 2 ms) falling between cycles: a reset in one
+        go would cost 4.4 ms, more than a cycle's slack at 100 Hz, and 16 chips
+        after a bus-wide fault would cost whole cycles.
+        """
+        h = self.health[chip.address]
+        wait_s = (0.0, mlx.T_AFTER_EX_US * 1e-6, T_AFTER_RT_S)[h.step]
+        if now < h.retry_at or now < h.step_at + wait_s or self._attempted:
+            return ChipResult(chip.address, error=ChipNotRespondingError(
+                chip.address, f"failing; next retry in {max(0.0, h.retry_at - now):.2f} s"))
+        self._attempted = True
+        try:
+            if h.step == 0 and not h.needs_reset and self._still_configured(chip):
+                how = "answers again with its configuration intact"
+            elif h.step == 0:
+                chip.exit_mode()
+                h.step, h.step_at = 1, self.bus.monotonic()
+                how = "reset under way (EX)"
+            elif h.step == 1:
+                chip.send_reset()
+                h.step, h.step_at = 2, self.bus.monotonic()
+                how = "reset under way (RT)"
+            else:
+                h.step = 0
+                chip.configure(self.settings)
+                if self.burst:
+                    chip.start_burst(mlx.ZYXT_XYZ)
+                h.reinits += 1
+                how = "re-initialised"
+        except ChipError as exc:
+            h.step = 0
+            self.fail(chip.address, now)
+            return ChipResult(chip.address, error=exc)
+        if h.step == 0:
+            h.failing = h.needs_reset = False
+            how += "; read again from the next cycle"
+        return ChipResult(chip.address, error=ChipNotRespondingError(chip.address, how))
+
+    def _still_configured(self, chip: MLX90393) -> bool:
+        """A chip back from a glitch usually kept its registers: three reads (0.5 ms)
+        spare it a reset (4.4 ms, most of it the datasheet's waits). False when it
+        lost them (it lost power) or refuses (a stray mode)."""
+        if chip.settings is None:
+            return False
+        try:
+            if self.burst:
+                chip.exit_mode()
+            if not chip.configuration_matches():
+                return False
+            if self.burst:
+                chip.start_burst(mlx.ZYXT_XYZ)
+        except ChipRefusedError:
+            return False
+        return True
+
+    def judge(self, r: ChipResult, now: float) -> ChipResult:
+        """Update a healthy chip's health from its result; a stuck chip's data become an error."""
+        h = self.health[r.address]
+        if r.measurement is not None:
+            h.stale_run = 0
+            words = tuple(r.measurement.raw.get(a, -1) for a in "xyz")
+            h.same_words = h.same_words + 1 if words == h.last_words else 0
+            h.last_words = words
+            if self.stuck_cycles and h.same_words >= self.stuck_cycles:
+                h.stuck_detections += 1
+                self.fail(r.address, now, reset=True)
+                return ChipResult(r.address, error=ChipProtocolError(
+                    r.address, f"stuck: the same X, Y, Z words {self.stuck_cycles + 1} cycles in a row"))
+            return r
+        if isinstance(r.error, ChipRefusedError) and r.error.command == "RM":
+            h.stale_run += 1  # no new data (DRDY low): stale, unless it lasts
+            if h.stale_run <= STALE_LIMIT:
+                return r
+        self.fail(r.address, now)
+        return r
+
+    def read_back(self, chip: MLX90393, now: float) -> None:
+        """Compare ``chip``'s registers with what was written; a chip that differs is reset."""
+        if self.health[chip.address].failing:
+            return
+        try:
+            if self.burst:
+                chip.exit_mode()  # RR is refused in burst mode
+            matches = chip.configuration_matches()
+            if self.burst and matches:
+                chip.start_burst(mlx.ZYXT_XYZ)
+        except ChipError:
+            matches = False
+        if not matches:
+            self.health[chip.address].register_drifts += 1
+            self.fail(chip.address, now, reset=True)
