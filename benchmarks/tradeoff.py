@@ -44,6 +44,7 @@ from unittest import mock
 import numpy as np
 import zmq
 
+from ftsensord.acquire.board import bus_timing
 from ftsensord.acquire.bound import cycle_bound
 from ftsensord.acquire.bus import open_bus, parse_bus_spec
 from ftsensord.acquire.health import stuck_cycles_for
@@ -105,7 +106,9 @@ def bench_bus(config: Config, clock: VirtualClock | MonotonicClock, seed: int = 
 def achieved_rate(config: Config, scheduler: str, settings: mlx.Settings, seconds: float) -> tuple[float, float]:
     """(bound, achieved) in Hz: the reader cycling on deadlines at its bound, in real time."""
     addresses = config.addresses
-    bound = cycle_bound(scheduler, len(addresses), settings, config.bus_hz, config.bus_overhead_s)
+    board = bus_timing(config.bus)  # a simulated board's adapter and costs; a real one's driver
+    bound = cycle_bound(scheduler, len(addresses), settings, board.clock_hz or config.bus_hz,
+                        config.bus_overhead_s if board.ioctl_s is None else board.ioctl_s, adapter=board.adapter)
     bus, _ = bench_bus(config, MonotonicClock())
     reader = Reader(bus, [MLX90393(bus, a, sleep=bus.sleep) for a in addresses], scheduler, settings,
                     config.bus_hz, config.bus_overhead_s, readback_every=1 if scheduler != "burst" else 100)

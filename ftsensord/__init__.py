@@ -36,7 +36,7 @@ _EXPORTS = {
     "ControlClient": "ftsensord.client",
     "FtsensordError": "ftsensord.errors",
 }
-__all__ = ["__version__", *_EXPORTS]
+__all__ = ["ControlClient", "FtsensordError", "MLX90393", "Subscriber", "__version__", "load_config", "open_bus"]
 
 if TYPE_CHECKING:
     from .acquire.bus import open_bus

@@ -14,36 +14,11 @@ import numpy as np
 
 from . import __version__
 from .acquire.bus import ACCEPTED_FORMS, open_bus
-from .acquire.scan import ChipReport, scan
-from .chip import mlx90393 as mlx
+from .acquire.scan import format_table, scan
 from .errors import ConfigError, DaemonNotAnswering, FtsensordError
+from .service.status import describe
 from .service.config import ESTIMATORS
 from .sim.loads import PLANS
-
-
-def _format_table(reports: list[ChipReport], spec: str) -> str:
-    nan3 = [float("nan")] * 3
-    lines = [f"{'addr':<5} {'part':<20} {'CONF1':<6} {'CONF2':<6} {'CONF3':<6} "
-             f"{'Bx/uT':>9} {'By/uT':>9} {'Bz/uT':>9} {'T/degC':>7}  notes"]
-    for r in reports:
-        regs = [f"0x{r.registers[i]:04X}" if i in r.registers else "-" for i in range(3)]
-        m = r.measurement
-        field = nan3 if m is None else [float(v) * 1e6 for v in m.field_t]
-        temp = float("nan") if m is None or m.temperature_c is None else m.temperature_c
-        notes = []
-        if len(r.registers) == 3:
-            s = mlx.Settings.from_registers(r.registers)
-            notes.append(f"found GAIN_SEL={s.gain_sel} RES={s.res_x}{s.res_y}{s.res_z} "
-                         f"OSR={s.osr} DIG_FILT={s.dig_filt}")
-        if m is not None and m.any_saturated:
-            notes.append("SATURATED " + "".join(a for a, sat in zip("XYZ", m.saturated) if sat))
-        if r.error:
-            notes.append(f"ERROR: {r.error}")
-        lines.append(f"0x{r.address:02X}  {r.part:<20} {regs[0]:<6} {regs[1]:<6} {regs[2]:<6} "
-                     f"{field[0]:>9.1f} {field[1]:>9.1f} {field[2]:>9.1f} {temp:>7.2f}  "
-                     + "; ".join(notes))
-    lines.append(f"{len(reports)} chip(s) found on {spec}")
-    return "\n".join(lines)
 
 
 def cmd_scan(args: argparse.Namespace) -> int:
@@ -55,35 +30,32 @@ def cmd_scan(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({"bus": args.bus, "chips": [r.as_dict() for r in reports]}, indent=2))
     else:
-        print(_format_table(reports, args.bus))
+        print(format_table(reports, args.bus))
     if not reports:
         print(f"no MLX90393 answered on {args.bus} (0x0C-0x1B)", file=sys.stderr)
         return 1
     return 2 if any(r.error for r in reports) else 0
 
 
-def cmd_dataset(args: argparse.Namespace) -> int:
-    from .calibration.rig import record_dataset, simulate_sweeps
-    from .model.geometry import SensorGeometry
-    from .sim import PhysicalScene, default_scene, load_scene, simulated_bus
-    from .sim.loads import StaticLoad, paper_plan
+def cmd_doctor(args: argparse.Namespace) -> int:
+    from .acquire.bound import SCHEDULERS
+    from .acquire.doctor import doctor, format_doctor
 
-    scene = load_scene(args.scene) if args.scene else default_scene()
-    if not isinstance(scene, PhysicalScene):
-        raise ConfigError(f"{args.scene}: a calibration dataset needs a scene of kind \"sensors\"")
-    names = [s.name for s in scene.sensors]
-    if args.sensor not in names:
-        raise ConfigError(f"--sensor {args.sensor!r}: the scene's sensors are {', '.join(names)}")
-    sensor = next(s for s in scene.sensors if s.name == args.sensor)
-    bus = simulated_bus(scene, seed=args.seed)
-    plan = paper_plan(args.plan, n_fit=args.poses, n_validation=args.validation_poses)
-    dataset = record_dataset(bus, sensor.addresses, plan, lambda w: scene.set_load(sensor.name, StaticLoad(w)),
-                             samples=args.samples, serial=f"sim-{sensor.name}",
-                             source=f"simulated: scene {args.scene or 'default'}, sensor {sensor.name}, "
-                                    f"plan {args.plan}, seed {args.seed}")
-    if not args.no_sweep:
-        dataset.sweeps = simulate_sweeps(sensor.addresses, SensorGeometry.ring(), field_model=scene.field_model,
-                                         samples=args.samples, rng=np.random.default_rng(args.seed))
+    report = doctor(args.bus, (args.scheduler,) if args.scheduler else SCHEDULERS, bus_hz=args.bus_hz,
+                    force=args.force, real_time=args.real_time)
+    print(json.dumps(report, indent=2) if args.json else format_doctor(report))
+    if not report["chips"]:
+        print(f"no MLX90393 answered on {args.bus} (0x0C-0x1B)", file=sys.stderr)
+        return 1
+    return 2 if report["warnings"] or any(c["error"] for c in report["chips"]) else 0
+
+
+def cmd_dataset(args: argparse.Namespace) -> int:
+    from .calibration.procedure import simulate_dataset
+
+    dataset = simulate_dataset(args.scene, args.sensor, args.plan, poses=args.poses,
+                               validation_poses=args.validation_poses, samples=args.samples, seed=args.seed,
+                               sweeps=not args.no_sweep)
     dataset.save(args.output)
     print(f"wrote {args.output}: {len(dataset)} poses ({args.plan}), {args.samples} samples each, "
           f"{int(dataset.saturated.any(axis=1).sum())} with a saturated chip")
@@ -91,41 +63,18 @@ def cmd_dataset(args: argparse.Namespace) -> int:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from .calibration.calfile import Calibration
     from .calibration.dataset import Dataset
-    from .calibration.fit import fit
-    from .calibration.report import format_rmse, write_report
+    from .calibration.procedure import calibrate, summary
+    from .calibration.report import write_report
 
     dataset = Dataset.load(args.dataset)
-    result = fit(dataset)
-    report = result.report
-    nonlinear = None
-    if not args.linear_only:
-        from .calibration.nlfit import fit_nonlinear, nonlinear_rmse
-        nonlinear = fit_nonlinear(dataset)
-        validation = dataset.select(dataset.split == "validation")
-        report["nonlinear"] = {"gap_mm": nonlinear.gap_m * 1e3, "fit_rms_residual_ut": nonlinear.fit_rms_residual_t * 1e6,
-                               "validation_rmse": (dict(zip(("Fx", "Fy", "Fz", "Mx", "My", "Mz"),
-                                                            nonlinear_rmse(nonlinear, validation).tolist()))
-                                                   if len(validation) else None)}
-    cal = Calibration(result.model, dataset.addresses, args.serial or dataset.serial, args.frame,
-                      result.position_map, report, nonlinear, result.wrench_range)
+    cal, result = calibrate(dataset, serial=args.serial, frame=args.frame, nonlinear=not args.linear_only)
     cal.save(args.output)
-    sv, iso = report["singular_values_ka"], report["isotropy"]
-    print(f"fit on {report['fit_poses']} poses ({report['left_out_saturated']} left out: saturated), "
-          f"validated on {report['validation_poses']}")
-    if report["validation_rmse"]:
-        print("validation RMSE: " + format_rmse(report["validation_rmse"]))
-    print("fit RMSE:        " + format_rmse(report["fit_rmse"]))
-    if nonlinear is not None and report["nonlinear"]["validation_rmse"]:
-        print(f"nonlinear (gap {nonlinear.gap_m * 1e3:.2f} mm) validation RMSE: "
-              + format_rmse(report["nonlinear"]["validation_rmse"]))
-    print(f"sigma(KA): forces {sv['forces'][0]:.3g}..{sv['forces'][-1]:.3g} N/uT (isotropy {iso['forces']:.2f}), "
-          f"torques {sv['torques'][0]:.3g}..{sv['torques'][-1]:.3g} Nm/uT (isotropy {iso['torques']:.2f})")
+    print(summary(cal))
     print(f"wrote {args.output}")
     if args.report:
         command = "ftsensord calibrate " + " ".join(args.argv)
-        write_report(args.report, result.model, report, dataset.select(dataset.split == "validation"), command)
+        write_report(args.report, result.model, cal.report, dataset.select(dataset.split == "validation"), command)
         print(f"wrote {args.report}")
     return 0
 
@@ -153,30 +102,7 @@ def cmd_status(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(status, indent=2))
         return 0
-    jitter = status["jitter_us"]
-    rate = status["achieved_rate_hz"]
-    print(f"ftsensord {status['version']}, up {status['uptime_s']:.0f} s, bus {status['bus']}, "
-          f"scheduler {status['scheduler']}")
-    print(f"rate: {rate:.2f} Hz achieved of {status['rate_hz']:g} Hz configured" if rate else
-          f"rate: - of {status['rate_hz']:g} Hz configured")
-    print(f"bound: {status['bound']}")
-    print(f"cycles {status['cycles']}, missed {status['missed_cycles']}, late {status['late_cycles']}; "
-          f"jitter p50 {jitter['p50']:.0f} us, p99 {jitter['p99']:.0f} us")
-    cycle = status["cycle_us"]
-    print(f"cycle p50 {cycle['p50']:.0f} us, p99 {cycle['p99']:.0f} us, max {cycle['max']:.0f} us "
-          f"of a {status['period_us']:.0f} us period")
-    print(f"averaging {status['averaging']}, low-pass {status['lowpass_hz'] or 'off'}")
-    for name, s in status["sensors"].items():
-        tare = "tared, offset " + " ".join(f"{v:+.4g}" for v in s["tare_wrench"]) if s["tared"] else "not tared"
-        print(f"sensor {name}: frame {s['frame']}, serial {s['serial']}, {tare}; calibration {s['calibration']}")
-    bad = {a: c for a, c in status["chips"].items() if not c["ok"] or c["errors"] or c["reinits"]}
-    temps = [c["temperature_c"] for c in status["chips"].values() if c["temperature_c"] is not None]
-    print(f"chips: {len(status['chips'])}, failing {sum(not c['ok'] for c in status['chips'].values())}"
-          + (f", {min(temps):.1f}-{max(temps):.1f} degC" if temps else ""))
-    for address, c in bad.items():
-        retry = f", retry in {c['retry_in_s']:.2f} s" if c["retry_in_s"] is not None else ""
-        print(f"  {address}: {c['state'].upper()}{retry}, {c['errors']} errors, {c['reinits']} resets, "
-              f"{c['register_drifts']} register changes, {c['stuck_detections']} stuck; last: {c['last_error']}")
+    print(describe(status))
     return 0
 
 
@@ -340,6 +266,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--bus", default="sim", help=f"bus to scan: {ACCEPTED_FORMS} (default: sim)")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
     p.set_defaults(func=cmd_scan)
+
+    p = sub.add_parser("doctor", help="bring a board up: adapter, clock, ioctl cost, chips, bound and rate",
+                       description="Name the I2C adapter and what it accepts in one ioctl, the configured and "
+                                   "measured clock and the cost of one ioctl; find the chips, read each and count "
+                                   "errors over 300 register reads; per scheduler, the computed bound for the "
+                                   "chips found and the rate measured running at it. Takes the bus's lock: "
+                                   "refuses a bus a running daemon holds unless --force. Exit 0: all well; "
+                                   "1: no chip; 2: a warning or a failing chip.")
+    p.add_argument("--bus", default="sim", help=f"bus: {ACCEPTED_FORMS} (default: sim)")
+    p.add_argument("--scheduler", choices=("naive", "overlapped", "burst"), help="only this scheduler (default: all)")
+    p.add_argument("--bus-hz", type=float, default=400e3, help="the clock ftsensord is configured with, Hz (default 400000)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--force", action="store_true", help="go on when another process (a daemon) holds the bus")
+    p.add_argument("--real-time", action="store_true",
+                   help="on the simulated bus, spend real time (default: its virtual clock, instant)")
+    p.set_defaults(func=cmd_doctor)
 
     p = sub.add_parser("dataset", help="record a calibration dataset on the simulated bus",
                        description="Run the paper's calibration procedure (section VII-B) on a simulated "

@@ -44,7 +44,8 @@ def test_power_on_registers_and_tref(bus):
 
 
 def test_write_then_read_register(bus):
-    assert status(bus, bytes([mlx.CMD_WR, 0x12, 0x34, 0x04 << 2])).byte == 0
+    # Idle, no error; D1:D0 1 or 2 as real chips answer WR (meaningless after WR).
+    assert status(bus, bytes([mlx.CMD_WR, 0x12, 0x34, 0x04 << 2])).byte in (0x01, 0x02)
     assert xfer(bus, bytes([mlx.CMD_RR, 0x04 << 2]), 3)[1:] == b"\x12\x34"
 
 
@@ -87,7 +88,7 @@ def test_reset_sets_rs_restores_defaults_and_nacks_during_its_wait(bus):
     assert s.rs and not s.error
     with pytest.raises(OSError) as exc:  # within the 1.5 ms the chip does not answer
         status(bus, bytes([mlx.CMD_EX]))
-    assert exc.value.errno == errno.ENXIO
+    assert exc.value.errno == errno.EREMOTEIO  # i2c-bcm2835's word for a NACK (the default adapter)
     bus.sleep(mlx.T_AFTER_RT_US * 1e-6)
     assert not status(bus, bytes([mlx.CMD_EX])).error
     assert xfer(bus, bytes([mlx.CMD_RR, 0x02 << 2]), 3)[1:] == b"\x00\x00"
@@ -290,4 +291,4 @@ def test_driver_reports_a_nack_with_the_kernel_errno(chip, bus):
     bus.faults.nack(ADDR)
     with pytest.raises(ChipNotRespondingError) as exc:
         chip.exit_mode()
-    assert exc.value.errno == errno.ENXIO and isinstance(exc.value, OSError)
+    assert exc.value.errno == errno.EREMOTEIO and isinstance(exc.value, OSError)

@@ -119,7 +119,8 @@ def test_a_slow_bus_lengthens_cycles_but_loses_nothing(tmp_path):
     t0 = rig.clock.now()
     rig.daemon.cycle()  # the first cycle reads the temperature too
     # The wire takes 1.5 times as long; the chips' conversions do not.
-    slow = cycle_bound("overlapped", 16, rig.config.settings, 400e3 / 1.5, temperature=True)
+    slow = cycle_bound("overlapped", 16, rig.config.settings, 400e3 / 1.5, rig.bus.ioctl_s, temperature=True,
+                       adapter=rig.bus.adapter)
     # Within 1 %: the reader times its wait by the configured bus, so a slower wire
     # shortens it by a fraction of a byte (still safe: the RM's own bits come first).
     assert rig.clock.now() - t0 == pytest.approx(slow.cycle_s, rel=0.01)

@@ -10,7 +10,8 @@ import zmq
 
 from ftsensord.service import wire
 from ftsensord.service.config import load_config
-from ftsensord.service.daemon import MAX_REQUEST, Daemon
+from ftsensord.service.control import MAX_REQUEST
+from ftsensord.service.daemon import Daemon
 from ftsensord.service.run import make_sockets
 from ftsensord.sim import VirtualClock, load_scene, simulated_bus
 

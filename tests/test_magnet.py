@@ -69,3 +69,31 @@ def test_dipole_on_axis_and_broadcasting():
     field = dipole_field(r, m)
     assert field[0, 2] == pytest.approx(1e-7 * 2 * 1.8e-3 / 6e-3**3)
     assert field[1, 2] == pytest.approx(-1e-7 * 1.8e-3 / 6e-3**3)  # equator: -m/r^3
+
+
+@pytest.mark.parametrize("z", [0.5e-3, 1e-3, 3e-3, 6e-3, -2e-3])
+@pytest.mark.parametrize("phi", [0.0, np.pi / 2])
+def test_cylinder_field_at_the_magnets_radius_beyond_its_faces(z, phi):
+    """rho = a exactly (gamma = 0), |z| > L/2: outside the magnet, where one elliptic
+    integral has no value on its own. The field there is the limit from both sides:
+    within 1e-9 relative of rho = a (1 -+ 1e-10). Why 1e-9: the field's slope in rho is
+    about 3 B / a, so 1e-10 of a moves it ~3e-10 relative; round-off is far below."""
+    at = np.array([A * np.cos(phi), A * np.sin(phi), z])
+    assert np.hypot(at[0], at[1]) == A  # the singular point itself, not a neighbour
+    exact = cylinder_field(at, A, L, BR)
+    assert np.all(np.isfinite(exact))
+    for side in (1 - 1e-10, 1 + 1e-10):
+        near = cylinder_field(np.array([A * side * np.cos(phi), A * side * np.sin(phi), z]), A, L, BR)
+        assert np.allclose(exact, near, rtol=1e-9, atol=1e-9 * np.linalg.norm(exact))
+
+
+def test_cylinder_field_on_the_side_face_is_the_mean_of_its_two_sides():
+    """On the side face (rho = a, |z| < L/2) B_z jumps by Br (the surface current): the
+    value there is the mean of inside and outside; on the rim edges it stays singular."""
+    z = 0.2e-3
+    inside, outside = (cylinder_field(np.array([A * f, 0.0, z]), A, L, BR) for f in (1 - 1e-12, 1 + 1e-12))
+    assert inside[2] - outside[2] == pytest.approx(BR, rel=1e-6)
+    assert cylinder_field(np.array([A, 0.0, z]), A, L, BR)[2] == pytest.approx(0.5 * (inside[2] + outside[2]),
+                                                                               rel=1e-9)
+    with pytest.raises(ValueError):
+        cylinder_field(np.array([A, 0.0, L / 2]), A, L, BR)

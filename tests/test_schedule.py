@@ -19,21 +19,24 @@ from ftsensord.sim import (
 )
 
 
+@pytest.mark.parametrize("adapter", ["permissive", "bcm2835", "designware"])
 @pytest.mark.parametrize("scheduler", ["naive", "overlapped", "burst"])
 @pytest.mark.parametrize("hz", [100e3, 400e3])
-def test_a_cycle_takes_exactly_the_computed_bound(scheduler, hz):
+def test_a_cycle_takes_exactly_the_computed_bound(scheduler, hz, adapter):
     clock = VirtualClock()
-    bus = simulated_bus(two_sensor_scene(), clock=clock, bus_hz=hz)
+    bus = simulated_bus(two_sensor_scene(), clock=clock, bus_hz=hz, adapter=adapter, ioctl_s=80e-6)
     chips = [MLX90393(bus, a, sleep=bus.sleep) for a in range(0x0C, 0x1C)]
     reader = Reader(bus, chips, scheduler, mlx.Settings(), hz)
     assert reader.start() == {}
-    bound = cycle_bound(scheduler, 16, mlx.Settings(), hz)
+    bound = cycle_bound(scheduler, 16, mlx.Settings(), hz, 80e-6, adapter=adapter)
+    assert bus.refused == (0 if adapter == "permissive" else 1)  # the probe at start, once
     clock.sleep(0.1)
     for cycle in range(3):
-        t0 = clock.now()
+        t0, ioctls = clock.now(), bus.transfers
         results = reader.read()
         took = clock.now() - t0
         assert took == pytest.approx(bound.cycle_s, rel=1e-9)
+        assert bus.transfers - ioctls == bound.ioctls and bus.refused == (adapter != "permissive")
         if scheduler == "burst" and cycle > 0:
             # The chip read back last cycle restarted its burst: no new data yet, flagged stale.
             previous = (cycle - 1) % 16
@@ -60,9 +63,10 @@ def test_the_temperature_cycle_is_counted_in_the_bound():
     assert cycle_bound("burst", 16, settings, 400e3, temperature=True) == cycle_bound("burst", 16, settings, 400e3)
 
 
-def test_a_temperature_cycle_takes_exactly_its_bound():
+@pytest.mark.parametrize("adapter", ["permissive", "bcm2835", "designware"])
+def test_a_temperature_cycle_takes_exactly_its_bound(adapter):
     clock = VirtualClock()
-    bus = simulated_bus(two_sensor_scene(), clock=clock, bus_hz=400e3)
+    bus = simulated_bus(two_sensor_scene(), clock=clock, bus_hz=400e3, adapter=adapter)
     reader = Reader(bus, [MLX90393(bus, a, sleep=bus.sleep) for a in range(0x0C, 0x1C)], "overlapped",
                     mlx.Settings(), 400e3)
     reader.start()
@@ -70,8 +74,8 @@ def test_a_temperature_cycle_takes_exactly_its_bound():
     t0 = clock.now()
     results = reader.read(mlx.ZYXT_XYZT)
     assert all(r.ok and r.measurement.temperature_c is not None for r in results)
-    assert clock.now() - t0 == pytest.approx(cycle_bound("overlapped", 16, mlx.Settings(), 400e3,
-                                                         temperature=True).cycle_s, rel=1e-9)
+    assert clock.now() - t0 == pytest.approx(cycle_bound("overlapped", 16, mlx.Settings(), 400e3, bus.ioctl_s,
+                                                         temperature=True, adapter=adapter).cycle_s, rel=1e-9)
 
 
 @pytest.mark.parametrize("scheduler", ["overlapped", "burst"])
@@ -86,7 +90,7 @@ def test_a_reset_goes_one_command_a_cycle_and_no_cycle_overruns(scheduler):
     reader = Reader(bus, [MLX90393(bus, a, sleep=bus.sleep) for a in range(0x0C, 0x1C)], scheduler,
                     mlx.Settings(), 400e3, readback_every=0)
     reader.start()
-    bound = cycle_bound(scheduler, 16, mlx.Settings(), 400e3, readback=False)
+    bound = cycle_bound(scheduler, 16, mlx.Settings(), 400e3, bus.ioctl_s, readback=False, adapter=bus.adapter)
     clock.sleep(0.02)
     longest, back_at = 0.0, None
     while clock.now() < 0.6 and back_at is None:
@@ -98,8 +102,10 @@ def test_a_reset_goes_one_command_a_cycle_and_no_cycle_overruns(scheduler):
         clock.wait_until(t0 + 0.01)  # 100 Hz
     assert back_at is not None and reader.health[0x0F].reinits == 1  # reset, not only read back
     # The costliest step, the configuration: 7 register transfers of 65 bits, 1.1 ms of
-    # wire (1.5 ms with SB in burst). In one go the reset would add 4.4 ms more.
-    assert longest < bound.cycle_s + 1.6e-3
+    # wire (1.5 ms with SB in burst), and at most 10 ioctls more than a cycle's (its
+    # transfers and the verification reads) at their fixed cost. In one go the reset
+    # would add 4.4 ms more.
+    assert longest < bound.cycle_s + 1.6e-3 + 10 * bus.ioctl_s
 
 
 def longest_identical_run(settings: mlx.Settings, field_lsb: float, cycles: int) -> int:

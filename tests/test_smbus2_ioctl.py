@@ -71,7 +71,8 @@ class FakeKernel:
 
 @pytest.fixture
 def kernel(monkeypatch, scene):
-    sim_bus = simulated_bus(scene, clock=VirtualClock(), noise=NOISELESS)
+    # The permissive adapter: these tests are about the bytes i2c-dev gets, not a driver's rules.
+    sim_bus = simulated_bus(scene, clock=VirtualClock(), noise=NOISELESS, adapter="permissive")
     fake = FakeKernel(sim_bus)
     monkeypatch.setattr(smbus2_module.os, "open", fake.open)
     monkeypatch.setattr(smbus2_module.os, "close", fake.close)
@@ -112,7 +113,7 @@ def test_a_multi_chip_transfer_goes_out_as_one_ioctl(kernel):
     kernel.transfers.clear()
     bus.i2c_rdwr(*msgs)
     assert [(a, f) for a, f, _, _ in kernel.transfers[0]] == [(0x0C, 0), (0x0C, 1), (0x14, 0), (0x14, 1)]
-    assert all(bytes(m) == b"\x00" for m in msgs[1::2])
+    assert all(not mlx.Status(bytes(m)[0]).error for m in msgs[1::2])
 
 
 @pytest.mark.parametrize("err", [errno.ENXIO, errno.EREMOTEIO, errno.ETIMEDOUT])

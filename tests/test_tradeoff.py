@@ -32,7 +32,8 @@ def test_quick_tradeoff_produces_every_section():
     text = out.stdout
     for heading in ("## Rate", "## Accuracy", "## The Pareto front", "## Cost and latency"):
         assert heading in text
-    assert re.search(r"\| 1, 2 \| 835 \| 14\.9 / [\d.]+ \| 124\.3 / [\d.]+ \|", text)  # bounds as computed
+    # Bounds as computed for the default (Pi 4) adapter: naive 14.5, overlapped 116.2, burst 176.4 Hz.
+    assert re.search(r"\| 1, 2 \| 835 \| 14\.5 / [\d.]+ \| 116\.2 / [\d.]+ \| .* \| 176\.4 / [\d.]+ \|", text)
     assert text.count("| nonlinear |") == 4 and text.count("| linear |") == 4
     assert "Recommended for 100 Hz" in text or "reaches 100 Hz" not in text
 

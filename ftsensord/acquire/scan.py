@@ -79,3 +79,29 @@ def scan(bus: Bus, settings: mlx.Settings = mlx.Settings(),
             report.error = str(exc)
         reports.append(report)
     return reports
+
+
+def format_table(reports: list[ChipReport], spec: str) -> str:
+    """The reports as the table `ftsensord scan` prints (fields in uT, temperatures in degC)."""
+    nan3 = [float("nan")] * 3
+    lines = [f"{'addr':<5} {'part':<20} {'CONF1':<6} {'CONF2':<6} {'CONF3':<6} "
+             f"{'Bx/uT':>9} {'By/uT':>9} {'Bz/uT':>9} {'T/degC':>7}  notes"]
+    for r in reports:
+        regs = [f"0x{r.registers[i]:04X}" if i in r.registers else "-" for i in range(3)]
+        m = r.measurement
+        field = nan3 if m is None else [float(v) * 1e6 for v in m.field_t]
+        temp = float("nan") if m is None or m.temperature_c is None else m.temperature_c
+        notes = []
+        if len(r.registers) == 3:
+            s = mlx.Settings.from_registers(r.registers)
+            notes.append(f"found GAIN_SEL={s.gain_sel} RES={s.res_x}{s.res_y}{s.res_z} "
+                         f"OSR={s.osr} DIG_FILT={s.dig_filt}")
+        if m is not None and m.any_saturated:
+            notes.append("SATURATED " + "".join(a for a, sat in zip("XYZ", m.saturated) if sat))
+        if r.error:
+            notes.append(f"ERROR: {r.error}")
+        lines.append(f"0x{r.address:02X}  {r.part:<20} {regs[0]:<6} {regs[1]:<6} {regs[2]:<6} "
+                     f"{field[0]:>9.1f} {field[1]:>9.1f} {field[2]:>9.1f} {temp:>7.2f}  "
+                     + "; ".join(notes))
+    lines.append(f"{len(reports)} chip(s) found on {spec}")
+    return "\n".join(lines)

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from ..docfile import Table, load_json
+from ..errors import ConfigError
 from ..model.linear import LinearModel, PositionMap
 from .dataset import parse_addresses
 from .nlfit import NonlinearCalibration
@@ -50,12 +51,16 @@ class Calibration:
                        "addresses": [f"0x{a:02X}" for a in self.addresses]},
             "model": "w = K A (b - zero_flux); b stacks each chip's (Bx, By, Bz) in its own frame, "
                      "chips in the order of sensor.addresses; w = [fx fy fz mx my mz] in the sensor frame. "
-                     "With chips missing: w = K pinv(H_S) (b_S - zero_S) over the channels S left",
+                     "With chips missing: w = K pinv(H_S) (b_S - zero_S) over the channels S left. "
+                     "With room_directions R (unit columns): b - zero_flux is first projected off them, "
+                     "(I - R R^T) (b - zero_flux), so a uniform field (the Earth's) gives no wrench",
             "K": self.model.K.tolist(), "A": self.model.A.tolist(), "zero_flux": self.model.zero.tolist(),
             "fit_report": self.report,
         }
         if self.model.H is not None:
             doc["H"] = self.model.H.tolist()
+        if self.model.room is not None:
+            doc["room_directions"] = self.model.room.tolist()
         if self.wrench_range is not None:
             doc["wrench_range"] = self.wrench_range.tolist()
         if self.position_map is not None:
@@ -65,6 +70,8 @@ class Calibration:
             doc["nonlinear"] = {"gap_m": nl.gap_m, "ring_radius_m": nl.ring_radius_m, "tilt_deg": nl.tilt_deg,
                                 "scale": nl.scale.tolist(), "offset_t": nl.offset_t.tolist(), "K": nl.K.tolist(),
                                 "zero_twist": nl.zero_twist.tolist(), "fit_rms_residual_t": nl.fit_rms_residual_t}
+            if nl.warnings:  # a fit kept against its refusal: the reasons travel with it
+                doc["nonlinear"]["warnings"] = list(nl.warnings)
         doc["checksum"] = checksum(doc)
         return doc
 
@@ -77,7 +84,7 @@ class Calibration:
         raw = load_json(path)
         doc = Table(raw, path)
         doc.only({"format", "version", "units", "sensor", "model", "K", "A", "H", "zero_flux", "fit_report",
-                  "wrench_range", "position_map", "nonlinear", "checksum"})
+                  "wrench_range", "position_map", "nonlinear", "room_directions", "checksum"})
         if doc.get("format") != CAL_FORMAT:
             raise doc.fail("format", f'"{CAL_FORMAT}"', doc.get("format"))
         doc.integer("version", what=f"{CAL_VERSION} (this ftsensord reads version {CAL_VERSION})",
@@ -92,6 +99,12 @@ class Calibration:
         A = np.array(doc.matrix("A", 6, n, unit="m/T, rad/T"))
         zero = np.array(doc.numbers("zero_flux", n, unit="T"))
         H = np.array(doc.matrix("H", n, 6, unit="T/m, T/rad")) if "H" in raw else None
+        room = None
+        if "room_directions" in raw:
+            room = np.array(doc.matrix("room_directions", n, 3, unit="unit vectors"))
+            # 1e-9: orthonormal to the 17 digits JSON keeps; a hand edit is far off it.
+            if not np.allclose(room.T @ room, np.eye(3), atol=1e-9):
+                raise doc.fail("room_directions", f"{n} x 3 with orthonormal columns", "columns that are not")
         wrench_range = None
         if "wrench_range" in raw:
             wrench_range = np.array(doc.numbers("wrench_range", 6, unit="N, Nm"))
@@ -109,13 +122,18 @@ class Calibration:
         nonlinear = None
         if "nonlinear" in raw:
             t = doc.table("nonlinear")
-            t.only({"gap_m", "ring_radius_m", "tilt_deg", "scale", "offset_t", "K", "zero_twist", "fit_rms_residual_t"})
+            t.only({"gap_m", "ring_radius_m", "tilt_deg", "scale", "offset_t", "K", "zero_twist", "fit_rms_residual_t",
+                    "warnings"})
             chips = len(addresses)
+            warnings = t.get("warnings", [])
+            if not isinstance(warnings, list) or not all(isinstance(w, str) for w in warnings):
+                raise t.fail("warnings", "a list of strings", warnings)
             nonlinear = NonlinearCalibration(
                 t.number("gap_m", low=1e-3, high=20e-3, unit="m"), np.array(t.matrix("scale", chips, 3)),
                 np.array(t.matrix("offset_t", chips, 3, unit="T")), np.array(t.matrix("K", 6, 6, unit="N/m, Nm/rad")),
                 np.array(t.numbers("zero_twist", 6, unit="m, rad")), t.number("fit_rms_residual_t", low=0, unit="T"),
-                t.number("ring_radius_m", low=1e-3, high=0.1, unit="m"), t.number("tilt_deg", low=-90, high=90))
+                t.number("ring_radius_m", low=1e-3, high=0.1, unit="m"), t.number("tilt_deg", low=-90, high=90),
+                tuple(warnings))
         report = doc.get("fit_report", {})
         if not isinstance(report, dict):
             raise doc.fail("fit_report", "a table", report)
@@ -124,7 +142,13 @@ class Calibration:
             raise doc.fail("checksum", f"{checksum(raw)} (the file was changed after it was written)", stored)
         if np.linalg.matrix_rank(K @ A) < 6:
             raise doc.fail("K", "K A of rank 6 (a sensor must see all six axes)", "a rank-deficient K A")
-        return cls(LinearModel(K, A, zero, H), addresses, sensor.string("serial", ""),
+        for key, stiffness in (("K", K), ("nonlinear.K", None if nonlinear is None else nonlinear.K)):
+            if stiffness is not None:
+                lowest = float(np.linalg.eigvalsh(0.5 * (stiffness + stiffness.T))[0])
+                if not lowest > 0:  # the test `fit.check_stiffness` makes, for a file
+                    raise ConfigError(f"{path}: {key}: expected a positive definite stiffness (x^T K x > 0), "
+                                      f"got one whose symmetric part has eigenvalue {lowest:.3g}")
+        return cls(LinearModel(K, A, zero, H, room), addresses, sensor.string("serial", ""),
                    sensor.string("frame", "sensor"), pmap, report, nonlinear, wrench_range)
 
 

@@ -6,7 +6,12 @@ wrench in the sensor frame {0} (N, Nm), the flux of each chip averaged over
 standard error of each mean, which chips saturated, and how the pose was made
 (mass, lever arm, gravity's direction). Optionally, per chip, a position-map
 sweep (the paper's stage experiment): magnet positions (m, chip frame) and the
-flux read at each.
+flux read at each. Optionally, per pose, the sensor's full orientation in the
+world (``rotation``, R_w0), which a robot knows from its joints.
+
+Flux that no MLX90393 can report is refused when a dataset is read or fitted
+(`implausible_flux`): a chip's Hall element saturates near 50 mT whatever its
+gain, so a larger value is a unit error (mT, uT or gauss written as T) or garbage.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ..chip import mlx90393 as mlx
 from ..docfile import Table, load_json
@@ -23,9 +29,40 @@ from ..docfile import Table, load_json
 DATASET_FORMAT = "ftsensord-calibration-dataset"
 DATASET_VERSION = 1
 UNITS = {"flux": "T", "wrench": "N, Nm", "length": "m", "mass": "kg"}
-SPLITS = ("fit", "validation")
+#: "no-load": the sensor alone (rod and mass off) at an orientation: what the room's field
+#: does to the chips (docs/calibration.md).
+SPLITS = ("fit", "validation", "no-load")
 #: The per-pose arrays of a `Dataset`, as named in the file's "poses" entries.
 POSE_FIELDS = ("split", "mass_kg", "lever_m", "gravity_dir", "wrench", "flux_t", "flux_sem_t", "saturated")
+#: The largest |flux| a chip's reading can have (T): its Hall element saturates at 50 mT
+#: whatever the gain, and the mean of clipped readings stays there; plus 10 uT, about one
+#: LSB of the widest setting (9.7 uT on Z), for the quantisation of a clipped reading.
+FLUX_LIMIT_T = mlx.HALL_SATURATION_T + 10e-6
+#: Units a wrong flux is commonly written in, and their size in T, for the refusal's hint.
+WRONG_UNITS = (("mT", 1e-3), ("gauss", 1e-4), ("uT", 1e-6))
+#: A unit is suggested only if the strongest reading it gives is at least this (T): each
+#: chip has its magnet 6 mm away, about 1.5 mT, so a sensor's strongest reading is never
+#: below 0.1 mT (the magnet would have to be 15 mm off).
+STRONGEST_READING_MIN_T = 1e-4
+
+
+def implausible_flux(values: ArrayLike, saturated: ArrayLike | None = None) -> str | None:
+    """Why ``values`` (T) cannot be a chip's readings, or None when they can. The
+    channels of chips flagged ``saturated`` (one bool per chip, per row) are not
+    readings and not judged: whatever a clipped chip reports is left out anyway."""
+    values = np.asarray(values, dtype=float)
+    if saturated is not None:
+        values = np.where(np.repeat(np.asarray(saturated, dtype=bool), 3, axis=-1), 0.0, values)
+    if not values.size:
+        return None
+    worst = float(np.abs(values).max())
+    if worst <= FLUX_LIMIT_T:
+        return None
+    units = [f"{unit} (x {size:g})" for unit, size in WRONG_UNITS
+             if STRONGEST_READING_MIN_T <= worst * size <= FLUX_LIMIT_T]
+    hint = f"; it would fit if written in {' or '.join(units)}" if units else ""
+    return (f"|flux| up to {worst:.4g} T, beyond the {mlx.HALL_SATURATION_T * 1e3:g} mT an MLX90393 can "
+            f"read (flux is in T){hint}")
 
 
 @dataclass
@@ -53,13 +90,20 @@ class Dataset:
     serial: str = ""
     source: str = ""
     sweeps: dict[int, Sweep] = field(default_factory=dict)
+    rotation: np.ndarray | None = None  # (n, 3, 3) R_w0 per pose, world z up; None: not recorded
+    path: str = ""  # the file it was read from, for error messages (not saved)
 
     def __len__(self) -> int:
         return len(self.wrench)
 
     def select(self, mask: np.ndarray) -> Dataset:
         """The poses where ``mask`` is true (sweeps kept)."""
-        return replace(self, **{name: getattr(self, name)[mask] for name in POSE_FIELDS})
+        picked = {name: getattr(self, name)[mask] for name in POSE_FIELDS}
+        return replace(self, **picked, rotation=None if self.rotation is None else self.rotation[mask])
+
+    def where(self) -> str:
+        """'ds.json: ' when read from a file, for messages that name it."""
+        return f"{self.path}: " if self.path else ""
 
     def save(self, path: str | Path) -> None:
         doc = {
@@ -72,6 +116,7 @@ class Dataset:
                 "lever_m": self.lever_m[k].tolist(), "gravity_dir": self.gravity_dir[k].tolist(),
                 "wrench": self.wrench[k].tolist(), "flux_t": self.flux_t[k].tolist(),
                 "flux_sem_t": self.flux_sem_t[k].tolist(), "saturated": self.saturated[k].tolist(),
+                **({} if self.rotation is None else {"rotation": self.rotation[k].tolist()}),
             } for k in range(len(self))],
             "position_sweeps": {f"0x{a:02X}": {"position_m": s.position_m.tolist(), "flux_t": s.flux_t.tolist()}
                                 for a, s in self.sweeps.items()},
@@ -94,8 +139,10 @@ class Dataset:
         addresses = parse_addresses(sensor, "addresses")
         chips = len(addresses)
         columns: dict[str, list] = {name: [] for name in POSE_FIELDS}
-        for row in doc.tables("poses"):
-            row.only(POSE_FIELDS)
+        rotations = []
+        rows = doc.tables("poses")
+        for row in rows:
+            row.only((*POSE_FIELDS, "rotation"))
             sat = row.get("saturated")
             if not isinstance(sat, list) or len(sat) != chips or not all(isinstance(v, bool) for v in sat):
                 raise row.fail("saturated", f"{chips} booleans, one per chip", sat)
@@ -105,8 +152,19 @@ class Dataset:
             columns["lever_m"].append(row.numbers("lever_m", 3, unit="m"))
             columns["gravity_dir"].append(row.numbers("gravity_dir", 3))
             columns["wrench"].append(row.numbers("wrench", 6, unit="N, Nm"))
-            columns["flux_t"].append(row.numbers("flux_t", 3 * chips, unit="T"))
-            columns["flux_sem_t"].append(row.numbers("flux_sem_t", 3 * chips, unit="T"))
+            for key in ("flux_t", "flux_sem_t"):
+                values = row.numbers(key, 3 * chips, unit="T")
+                why = implausible_flux(values, sat)
+                if why is not None:
+                    raise row.fail(key, f"{3 * chips} readings an MLX90393 can make: {why}", values)
+                columns[key].append(values)
+            if any(v < 0 for v in columns["flux_sem_t"][-1]):
+                raise row.fail("flux_sem_t", "standard errors >= 0 (T)", columns["flux_sem_t"][-1])
+            if ("rotation" in row.doc) != ("rotation" in rows[0].doc):
+                raise row.fail("rotation", "a rotation in every pose or in none (as poses[0])",
+                               row.doc.get("rotation", "none"))
+            if "rotation" in row.doc:
+                rotations.append(_rotation(row, columns["gravity_dir"][-1]))
         sweeps = {}
         if "position_sweeps" in doc.doc:
             table = doc.table("position_sweeps")
@@ -118,13 +176,30 @@ class Dataset:
                 s.only({"position_m", "flux_t"})
                 positions = s.get("position_m")
                 k = len(positions) if isinstance(positions, list) else 0
-                sweeps[address] = Sweep(np.array(s.matrix("position_m", k, 3, unit="m")),
-                                        np.array(s.matrix("flux_t", k, 3, unit="T")))
+                flux = np.array(s.matrix("flux_t", k, 3, unit="T"))
+                why = implausible_flux(flux)
+                if why is not None:
+                    raise s.fail("flux_t", f"readings an MLX90393 can make: {why}", flux.tolist())
+                sweeps[address] = Sweep(np.array(s.matrix("position_m", k, 3, unit="m")), flux)
         arrays = {name: np.array(values, dtype=bool if name == "saturated" else None)
                   for name, values in columns.items()}
         return cls(addresses, **arrays, samples_per_pose=doc.integer("samples_per_pose", low=1,
                                                                      what="a positive integer"),
-                   serial=sensor.string("serial", ""), source=doc.string("source", ""), sweeps=sweeps)
+                   serial=sensor.string("serial", ""), source=doc.string("source", ""), sweeps=sweeps,
+                   rotation=np.array(rotations) if rotations else None, path=str(path))
+
+
+def _rotation(row: Table, gravity_dir: list[float]) -> np.ndarray:
+    """A pose's R_w0: orthonormal, determinant +1, and turning its gravity_dir to down."""
+    R = np.array(row.matrix("rotation", 3, 3))
+    # 1e-6: a robot's orientation written with 7 digits or more; anything worse is not a rotation.
+    if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) <= 0:
+        raise row.fail("rotation", "a rotation matrix (orthonormal rows, determinant +1), R_w0", R.tolist())
+    g = np.asarray(gravity_dir)
+    # 1e-3 (0.06 deg): both come from one robot pose; a larger gap is a pose written wrong.
+    if np.linalg.norm(g) == 0 or not np.allclose(R.T @ [0.0, 0.0, -1.0], g / np.linalg.norm(g), atol=1e-3):
+        raise row.fail("rotation", f"R_w0 with R^T (0, 0, -1) = gravity_dir {gravity_dir}", R.tolist())
+    return R
 
 
 def parse_address(table: Table, key: str, value: object) -> int:

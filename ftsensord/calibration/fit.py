@@ -3,9 +3,17 @@
 Steps: the position map of each chip from its sweep (eq. 1); the deflection
 twist of every pose by registration (eqs. 5-11); A from twists and flux
 (eq. 15, A = Xi B^+), K from wrenches (eq. 18, K = W (A B)^+), with an explicit
-zero: w = K A (b - b0). Before fitting, the dataset is checked: the wrenches
-must excite all six axes independently, or K is not identifiable and the fit
-refuses, naming what the plan lacks.
+zero: w = K A (b - b0). Before fitting, the dataset is checked: the flux must
+be a chip's, the wrenches must excite all six axes independently, or K is not
+identifiable and the fit refuses, naming what the plan lacks; a K that is not
+positive definite is refused too.
+
+The room's field (the Earth's, fixed in the world) turns in the sensor's frame
+as the robot turns the sensor. Uniform, it adds R_i^T u to chip i (u the field
+in {0}): 3 directions of the 24-dim flux (`room_directions`). The fit can
+project them out of the flux before fitting A, so that K A rejects any uniform
+field; the directions are measured from no-load poses at several orientations,
+or taken from the nominal geometry (docs/calibration.md).
 """
 
 from __future__ import annotations
@@ -25,7 +33,7 @@ from ..model.linear import (
     fit_position_map,
 )
 from ..sim.chip import NOISELESS
-from .dataset import Dataset
+from .dataset import Dataset, implausible_flux
 from .rig import simulate_sweeps
 
 AXES = ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
@@ -41,6 +49,22 @@ EXCITATION_TOL = 1e-3
 PARTNER_SHARE = 0.1
 #: Parameters of one row of the affine flux-to-twist fit: 24 slopes and an offset.
 MIN_FIT_POSES = 26
+#: How the fit treats the room's field: "none" (a field-free room), "geometry" (project
+#: out the directions the nominal chip orientations give), "measured" (those the no-load
+#: poses span), "auto" ("measured" when the dataset has enough no-load poses, else "none").
+ROOM_FIELD_MODES = ("auto", "none", "geometry", "measured")
+#: No-load poses needed to measure the 3 room directions: 4 span them once centred; 6
+#: leave a spare pose per direction to test that no 4th direction varies.
+MIN_NO_LOAD_POSES = 6
+#: The room's 3 directions must stand this far above the no-load noise floor to be
+#: measured (a 50 uT field turned through the room stands ~100 times above it; a
+#: field-free room not at all): below it they are noise, and the nominal ones are used.
+ROOM_SIGNAL_FACTOR = 10.0
+#: A 4th direction varying at no load above this many times the noise floor is not a
+#: uniform field: a rod or mass left on (its weight turns with the sensor), or a field
+#: that is not uniform (steel or a motor near the sensor). 3x: pure noise stays under
+#: the floor itself (Marchenko-Pastur edge) with margin.
+ROOM_EXTRA_FACTOR = 3.0
 
 
 @dataclass(frozen=True)
@@ -137,16 +161,21 @@ class LinearFit:
     floor_t: float
 
 
-def fit_linear(flux: np.ndarray, twist: np.ndarray, wrench: np.ndarray, floor_t: float = 0.0) -> LinearFit:
+def fit_linear(flux: np.ndarray, twist: np.ndarray, wrench: np.ndarray, floor_t: float = 0.0,
+               room: np.ndarray | None = None) -> LinearFit:
     """A, K and the zero from flux (n, 24; T), twists (n, 6) and wrenches (n, 6).
 
     A is the least-squares map of centred flux to centred twist, through the
     flux directions above ``floor_t`` (a truncated pseudo-inverse); K and an
     offset c fit W = (A (B - mean)) K^T + c; the zero b0 then solves
     K A (b_mean - b0) = c with the least change along A's row space.
+    ``room`` (24 x 3, orthonormal) are flux directions projected out of the
+    centred flux first: A is then blind to them (A room = 0), and so is K A.
     """
     b_mean = flux.mean(axis=0)
     centred = flux - b_mean
+    if room is not None:
+        centred = centred - (centred @ room) @ room.T
     u, s, vt = np.linalg.svd(centred, full_matrices=False)
     # Without a noise floor, numpy's own rank rule: round-off of the SVD itself.
     tol = max(floor_t, s[0] * max(centred.shape) * np.finfo(float).eps)
@@ -160,7 +189,7 @@ def fit_linear(flux: np.ndarray, twist: np.ndarray, wrench: np.ndarray, floor_t:
     zero = b_mean - np.linalg.pinv(A) @ np.linalg.solve(K, c)
     # The forward model for degraded mode: flux from twist, b - b0 = H xi.
     Ht, *_ = np.linalg.lstsq(xi, centred, rcond=None)
-    return LinearFit(LinearModel(K, A, zero, Ht.T), int(keep.sum()), float(floor_t))
+    return LinearFit(LinearModel(K, A, zero, Ht.T, room=room), int(keep.sum()), float(floor_t))
 
 
 def rmse(model: LinearModel, dataset: Dataset) -> np.ndarray:
@@ -184,8 +213,88 @@ def position_maps(dataset: Dataset, geometry: SensorGeometry) -> tuple[PositionM
         source = (f"model sweep (exact cylinder field, nominal geometry) for "
                   f"{', '.join(f'0x{a:02X}' for a in missing)}" + ("" if len(missing) == len(dataset.addresses)
                                                                    else "; recorded sweeps for the rest"))
-    fits = [fit_position_map(sweeps[a].flux_t, sweeps[a].position_m) for a in dataset.addresses]
+    fits = []
+    for a in dataset.addresses:
+        try:
+            fits.append(fit_position_map(sweeps[a].flux_t, sweeps[a].position_m))
+        except ValueError as exc:
+            raise CalibrationError(f"{dataset.where()}position_sweeps.0x{a:02X}: chip 0x{a:02X}'s position-map "
+                                   f"sweep cannot give its map: {exc}. Record the sweep again, moving the "
+                                   "magnet along all three axes") from exc
     return PositionMap(np.array([f[0] for f in fits]), np.array([f[1] for f in fits])), source
+
+
+def check_plausible(dataset: Dataset) -> None:
+    """Refuse flux no MLX90393 can report, naming the chip and the pose."""
+    judged = np.repeat(~dataset.saturated, 3, axis=1)  # a saturated chip's values are no readings
+    for name, values in (("flux_t", dataset.flux_t), ("flux_sem_t", dataset.flux_sem_t)):
+        why = implausible_flux(values, dataset.saturated)
+        if why is not None:
+            k, j = np.unravel_index(int(np.argmax(np.where(judged, np.abs(values), 0.0))), values.shape)
+            raise CalibrationError(f"{dataset.where()}poses[{k}].{name}: chip 0x{dataset.addresses[j // 3]:02X} "
+                                   f"({'xyz'[j % 3]}) reads {values[k, j]:.4g}: {why}")
+    for a, sweep in dataset.sweeps.items():
+        why = implausible_flux(sweep.flux_t)
+        if why is not None:
+            raise CalibrationError(f"{dataset.where()}position_sweeps.0x{a:02X}.flux_t: {why}")
+
+
+def check_stiffness(K: np.ndarray, what: str) -> None:
+    """Refuse a K that is not positive definite: a stiffness stores energy under any
+    deflection, x^T K x > 0 (the test of the symmetric part, which a fitted, slightly
+    asymmetric K is judged by; unaffected by the mixed units N/m and Nm/rad, since
+    scaling the axes is a congruence, which keeps the signs of the eigenvalues)."""
+    lowest = float(np.linalg.eigvalsh(0.5 * (K + K.T))[0])
+    if not lowest > 0:
+        raise CalibrationError(
+            f"{what}: K is not positive definite (lowest eigenvalue of its symmetric part {lowest:.3g}): some "
+            "deflection would store no energy, or move against its load. The recorded wrenches do not match "
+            "the flux: check their signs, frame and units (N, Nm in {0})")
+
+
+def room_directions(dataset: Dataset, geometry: SensorGeometry, mode: str = "auto"
+                    ) -> tuple[np.ndarray | None, dict]:
+    """The 3 flux directions (24 x 3, orthonormal) a uniform room field takes, per ``mode``
+    (`ROOM_FIELD_MODES`), and a report of how they were found.
+
+    "measured": the top 3 directions of the centred flux of the unsaturated no-load
+    poses (any orientations: the field turns in the sensor's frame, the magnets do
+    not move). They hold the as-built chips' tilts and gains, which the nominal
+    geometry does not. Refused when a 4th direction varies (no uniform field does).
+    """
+    if mode not in ROOM_FIELD_MODES:
+        raise ValueError(f"room field mode must be one of {ROOM_FIELD_MODES}, got {mode!r}")
+    no_load = dataset.select((dataset.split == "no-load") & ~dataset.saturated.any(axis=1))
+    if mode == "auto":
+        mode = "measured" if len(no_load) >= MIN_NO_LOAD_POSES else "none"
+    if mode == "none":
+        return None, {"mode": "none", "no_load_poses": len(no_load)}
+    if mode == "geometry":
+        return geometry.room_directions(), {"mode": "geometry", "no_load_poses": len(no_load),
+                                            "source": "nominal chip orientations"}
+    if len(no_load) < MIN_NO_LOAD_POSES:
+        raise CalibrationError(f"{dataset.where()}{len(no_load)} unsaturated no-load poses: measuring the room "
+                               f"field's directions needs at least {MIN_NO_LOAD_POSES}, at orientations that "
+                               "turn every sensor axis through the field")
+    centred = no_load.flux_t - no_load.flux_t.mean(axis=0)
+    _, sv, vt = np.linalg.svd(centred, full_matrices=False)
+    floor = noise_floor(no_load.flux_sem_t) if no_load.samples_per_pose > 1 else 0.0
+    report = {"mode": "measured", "no_load_poses": len(no_load), "noise_floor_ut": floor * 1e6,
+              "singular_values_ut": (sv[:5] * 1e6).tolist()}
+    if len(sv) > 3 and sv[3] > ROOM_EXTRA_FACTOR * floor:
+        raise CalibrationError(
+            f"{dataset.where()}the no-load poses vary in more than 3 flux directions (singular values "
+            + ", ".join(f"{v * 1e6:.3g}" for v in sv[:5]) + f" uT; noise floor {floor * 1e6:.3g} uT): not a "
+            "uniform field alone. Take the rod and mass off for the no-load poses, and move steel and motors "
+            "away from the sensor")
+    if sv[2] < ROOM_SIGNAL_FACTOR * floor:
+        # The room field is too weak to measure its directions: nothing to reject that the
+        # noise does not hide, so the nominal directions are as good and cost the same.
+        report.update(mode="geometry", source="nominal chip orientations (the no-load poses show no room "
+                      f"field above {ROOM_SIGNAL_FACTOR:g} x the noise floor)")
+        return geometry.room_directions(), report
+    report["source"] = "no-load poses"
+    return vt[:3].T, report
 
 
 @dataclass
@@ -196,23 +305,31 @@ class CalibrationResult:
     wrench_range: np.ndarray  # the largest |w| per axis over the fit poses (N, Nm)
 
 
-def fit(dataset: Dataset, geometry: SensorGeometry | None = None) -> CalibrationResult:
+def fit(dataset: Dataset, geometry: SensorGeometry | None = None, *, room_field: str = "auto"
+        ) -> CalibrationResult:
     """Fit the linear model to the dataset's "fit" poses and validate on the rest.
 
-    Poses where any chip saturated are left out (and counted). Raises
-    `CalibrationError` when the wrenches do not excite all six axes, or the
-    flux does not follow them.
+    Poses where any chip saturated are left out (and counted). ``room_field``
+    (`ROOM_FIELD_MODES`) says how a uniform room field is rejected. Raises
+    `CalibrationError` when the flux is no chip's, the wrenches do not excite
+    all six axes, the flux does not follow them, or K is not positive definite.
     """
     geometry = geometry or SensorGeometry.ring()
     if dataset.flux_t.shape[1] != 3 * geometry.n_chips:
         raise CalibrationError(f"the dataset has {dataset.flux_t.shape[1] // 3} chips, the geometry "
                                f"{geometry.n_chips}")
-    clean = ~dataset.saturated.any(axis=1)
+    check_plausible(dataset)
+    clean = np.asarray(~dataset.saturated.any(axis=1), dtype=bool)
     fit_set = dataset.select((dataset.split == "fit") & clean)
     validation = dataset.select((dataset.split == "validation") & clean)
     if len(fit_set) < MIN_FIT_POSES:
-        raise CalibrationError(f"{len(fit_set)} usable fit poses; at least {MIN_FIT_POSES} are needed "
-                               f"({int((~clean).sum())} left out for saturation)")
+        fits = np.asarray(dataset.split == "fit")
+        counts = dataset.saturated[fits].sum(axis=0)
+        chips = ", ".join(f"0x{a:02X} in {n}" for a, n in zip(dataset.addresses, counts) if n)
+        raise CalibrationError(f"{dataset.where()}{len(fit_set)} usable fit poses; at least {MIN_FIT_POSES} are "
+                               f"needed ({int((~clean[fits]).sum())} left out for saturation"
+                               + (f": chip {chips} poses" if chips else "") + "). A chip saturates near "
+                               "50 mT: lighter masses, or a magnet further from that chip")
     excitation = check_excitation(fit_set.wrench)
     if not excitation.identifiable:
         raise CalibrationError(
@@ -220,19 +337,28 @@ def fit(dataset: Dataset, geometry: SensorGeometry | None = None) -> Calibration
             + f" (rank {excitation.rank} of 6, singular values of the range-scaled wrenches "
             + ", ".join(f"{v:.3g}" for v in excitation.singular_values) + "). To fix the plan: "
             + excitation.advice() + ".")
+    room, room_report = room_directions(dataset, geometry, room_field)
     pmap, pmap_source = position_maps(dataset, geometry)
-    twists = np.array([deflection_twist(b.reshape(-1, 3), geometry, pmap) for b in fit_set.flux_t])
+    flux = fit_set.flux_t
+    if room is not None:
+        # The twists are measured on flux with the room's field taken out (its part along
+        # the room directions set to the poses' mean), or the field would bend them.
+        flux = flux - ((flux - flux.mean(axis=0)) @ room) @ room.T
+    twists = np.array([deflection_twist(b.reshape(-1, 3), geometry, pmap) for b in flux])
     floor = noise_floor(fit_set.flux_sem_t) if fit_set.samples_per_pose > 1 else 0.0
-    result = fit_linear(fit_set.flux_t, twists, fit_set.wrench, floor)
+    result = fit_linear(fit_set.flux_t, twists, fit_set.wrench, floor, room)
     if result.flux_rank < 6:
         raise CalibrationError(
             f"the flux varies in only {result.flux_rank} directions above the noise floor "
             f"({floor * 1e6:.3g} uT): chips missing, saturated or not moving with the load")
+    check_stiffness(result.model.K, f"{dataset.where()}the fitted stiffness"
+                    + ("" if room is not None else " (the room's field was not rejected: if the sensor was turned "
+                       "in it, record no-load poses, docs/calibration.md)"))
     sv = singular_values_ka(result.model)
     report = {
         "fit_poses": len(fit_set), "validation_poses": len(validation),
         "left_out_saturated": int((~clean).sum()), "samples_per_pose": dataset.samples_per_pose,
-        "position_map": pmap_source,
+        "position_map": pmap_source, "room_field": room_report,
         "wrench_excitation": {"singular_values": excitation.singular_values.tolist(),
                               "condition": excitation.condition},
         "flux_rank_above_floor": result.flux_rank, "noise_floor_ut": floor * 1e6,

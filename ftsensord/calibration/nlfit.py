@@ -12,11 +12,21 @@ Alternating, each step a plain least-squares problem:
 
 The gap, which changes the model's shape rather than its scale, is chosen by a short
 golden-section search on the fit residual.
+
+A fit is refused (`CalibrationError`, naming the figure) when its gap lands on the
+search's bound (the best gap may lie beyond it: the model does not fit this sensor)
+or its residual is far above the chips' noise; ``allow_poor_fit`` keeps such a fit
+with the reasons in ``warnings``, which the calibration file and report carry. A K
+that is not positive definite is refused always: no estimator can use it. Refusing is the default because a nonlinear
+model fitted wrong converges at run time to wrong wrenches with no flag: the
+estimator's fall-back only catches fits that fail, not a model that is off.
 """
 
 from __future__ import annotations
 
 import math
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,6 +42,27 @@ ALTERNATIONS = 4
 #: varies by casting, not by more.
 GAP_RANGE_M = (4.5e-3, 7.5e-3)
 GAP_ITERATIONS = 8
+#: Gap evaluations a fit makes: two to open the golden section, one per iteration.
+GAP_EVALUATIONS = 2 + GAP_ITERATIONS
+#: The fit residual (RMS per channel) a right fit stays under: noise alone gives about
+#: the mean's standard error, and as-built parts (the tolerances of docs/scenes.md) leave
+#: 3 to 4 uT the model cannot absorb (per-magnet placement), so 10 uT, or 10 standard
+#: errors where the readings are noisier, separates those from a fit that is off: an
+#: unrejected room field leaves 20 uT and more (docs/calibration.md).
+RESIDUAL_LIMIT_T = 10e-6
+RESIDUAL_NOISE_FACTOR = 10.0
+
+
+@dataclass(frozen=True)
+class FitProgress:
+    """Where a nonlinear fit is: ``step`` of ``steps`` gap evaluations done, the gap
+    just tried (m) and its fit residual (T, RMS per channel), seconds since the start."""
+
+    step: int
+    steps: int
+    gap_m: float
+    rms_residual_t: float
+    elapsed_s: float
 
 
 @dataclass
@@ -44,6 +75,8 @@ class NonlinearCalibration:
     fit_rms_residual_t: float
     ring_radius_m: float = 8e-3
     tilt_deg: float = 25.0
+    #: Why this fit would have been refused, when kept with ``allow_poor_fit``.
+    warnings: tuple[str, ...] = ()
 
     def geometry(self) -> SensorGeometry:
         return SensorGeometry.ring(radius_m=self.ring_radius_m, tilt_deg=self.tilt_deg, gap_m=self.gap_m)
@@ -89,28 +122,78 @@ def _alternate(flux: np.ndarray, wrench: np.ndarray, gap_m: float) -> NonlinearC
                                 float(np.sqrt(np.mean(residual**2))))
 
 
-def fit_nonlinear(dataset: Dataset) -> NonlinearCalibration:
+def fit_nonlinear(dataset: Dataset, *, progress: Callable[[FitProgress], None] | None = None,
+                  allow_poor_fit: bool = False) -> NonlinearCalibration:
     """Fit on the dataset's unsaturated "fit" poses (the identifiability checks are the
-    linear fit's: run `ftsensord.calibration.fit` first)."""
+    linear fit's: run `ftsensord.calibration.fit` first).
+
+    ``progress`` is called after each of the `GAP_EVALUATIONS` evaluations (each fits
+    every pose a few times: about a second per 200 poses). Refuses a fit on the gap's
+    search bound or with a residual far above the noise, unless ``allow_poor_fit``:
+    then it is kept, the reasons in ``warnings``. Refuses a K not positive definite.
+    """
     rows = (dataset.split == "fit") & ~dataset.saturated.any(axis=1)
     flux, wrench = dataset.flux_t[rows], dataset.wrench[rows]
     if len(flux) < 13:
         raise CalibrationError(f"{len(flux)} usable fit poses: the nonlinear fit needs at least 13")
+    start = time.monotonic()
+    done = 0
+
+    def evaluate(gap_m: float) -> NonlinearCalibration:
+        nonlocal done
+        result = _alternate(flux, wrench, gap_m)
+        done += 1
+        if progress is not None:
+            progress(FitProgress(done, GAP_EVALUATIONS, gap_m, result.fit_rms_residual_t,
+                                 time.monotonic() - start))
+        return result
+
     # Golden-section search of the gap on the fit residual.
     a, b = GAP_RANGE_M
     phi = (math.sqrt(5) - 1) / 2
     x1, x2 = b - phi * (b - a), a + phi * (b - a)
-    f1, f2 = _alternate(flux, wrench, x1), _alternate(flux, wrench, x2)
+    f1, f2 = evaluate(x1), evaluate(x2)
     for _ in range(GAP_ITERATIONS):
         if f1.fit_rms_residual_t <= f2.fit_rms_residual_t:
             b, x2, f2 = x2, x1, f1
             x1 = b - phi * (b - a)
-            f1 = _alternate(flux, wrench, x1)
+            f1 = evaluate(x1)
         else:
             a, x1, f1 = x1, x2, f2
             x2 = a + phi * (b - a)
-            f2 = _alternate(flux, wrench, x2)
-    return f1 if f1.fit_rms_residual_t <= f2.fit_rms_residual_t else f2
+            f2 = evaluate(x2)
+    best = f1 if f1.fit_rms_residual_t <= f2.fit_rms_residual_t else f2
+    lowest = float(np.linalg.eigvalsh(0.5 * (best.K + best.K.T))[0])
+    if not lowest > 0:  # never kept: no estimator can use a stiffness that is none
+        raise CalibrationError(f"{dataset.where()}the nonlinear fit is refused: its K is not positive definite "
+                               f"(lowest eigenvalue of its symmetric part {lowest:.3g})"
+                               + "".join(f"; {p}" for p in _problems(best, (a, b), dataset.flux_sem_t[rows])))
+    problems = _problems(best, (a, b), dataset.flux_sem_t[rows])
+    if problems and not allow_poor_fit:
+        raise CalibrationError(f"{dataset.where()}the nonlinear fit is refused: " + "; ".join(problems)
+                               + ". The linear calibration is not affected (calibrate with the nonlinear "
+                               "fit off, or allow a poor fit to keep it with these warnings)")
+    best.warnings = tuple(problems)
+    return best
+
+
+def _problems(cal: NonlinearCalibration, bracket: tuple[float, float], sem_t: np.ndarray) -> list[str]:
+    """What makes a fit untrustworthy, each with its figure (empty: none)."""
+    out = []
+    low, high = GAP_RANGE_M
+    # A bracket that never moved off an end of the range holds the best gap at that end:
+    # the residual was still falling there, and the true gap may lie beyond it.
+    if bracket[0] == low or bracket[1] == high:
+        edge = low if bracket[0] == low else high
+        out.append(f"the gap landed on its search bound ({cal.gap_m * 1e3:.3f} mm, bound {edge * 1e3:g} mm of "
+                   f"{low * 1e3:g}-{high * 1e3:g} mm): the model does not fit this sensor's flux")
+    noise = float(np.median(sem_t)) if sem_t.size else 0.0
+    limit = max(RESIDUAL_LIMIT_T, RESIDUAL_NOISE_FACTOR * noise)
+    if not cal.fit_rms_residual_t <= limit:
+        out.append(f"the fit residual is {cal.fit_rms_residual_t * 1e6:.3g} uT RMS, above the {limit * 1e6:.3g} uT "
+                   f"a right fit stays under (noise {noise * 1e6:.3g} uT): a field the model lacks (an "
+                   "unrejected room field?) or a chip reading wrong")
+    return out
 
 
 def nonlinear_rmse(cal: NonlinearCalibration, dataset: Dataset) -> np.ndarray:

@@ -83,10 +83,26 @@ def write_report(path: str | Path, model: LinearModel, report: dict, validation:
         "(range-scaled, centred)",
         f"- flux directions kept above the noise floor ({report['noise_floor_ut']:.3g} uT): "
         f"{report['flux_rank_above_floor']}",
-        f"- position map: {report['position_map']}", "",
+        f"- position map: {report['position_map']}",
+        f"- room field: {_room_line(report.get('room_field'))}", "",
     ]
+    warnings = (report.get("nonlinear") or {}).get("warnings") or []
+    if warnings:
+        lines[2:2] = ["## WARNING: the nonlinear calibration was kept against its refusal", "",
+                      *[f"- {w}" for w in warnings], ""]
     if plotted:
         lines += ["## Applied against measured (validation poses)", "", f"![validation]({png.name})", ""]
     elif len(validation):
         lines += ["(No plot: install the `plot` extra, `pip install 'ftsensord[plot]'`, for matplotlib.)", ""]
     path.write_text("\n".join(lines))
+
+
+def _room_line(room: dict | None) -> str:
+    """How the fit treated the room's field, in words."""
+    if not room or room.get("mode") == "none":
+        return ("not rejected (a field-free room assumed: record no-load poses, docs/calibration.md)"
+                if room is not None else "not recorded")
+    text = f"{room['mode']} directions projected out ({room.get('source', '')}; {room['no_load_poses']} no-load poses)"
+    if "singular_values_ut" in room:
+        text += ": no-load flux singular values " + ", ".join(f"{v:.3g}" for v in room["singular_values_ut"]) + " uT"
+    return text

@@ -18,15 +18,24 @@ from ..chip.i2c import Bus
 from ..model.geometry import SensorGeometry
 from ..model.magnet import cylinder_field, dipole_field
 from ..sim.chip import NoiseModel
-from ..sim.loads import CalibrationPose
+from ..sim.loads import CalibrationPose, FixedOrientation, StaticLoad
+from ..sim.physics import PhysicalScene
 from .dataset import Dataset, Sweep
 
 
 def record_dataset(bus: Bus, addresses: Sequence[int], poses: Sequence[tuple[CalibrationPose, str]],
                    apply_load: Callable[[np.ndarray], None], *, settings: mlx.Settings = mlx.Settings(),
-                   samples: int = 100, serial: str = "", source: str = "") -> Dataset:
-    """For each pose: apply its wrench, then average ``samples`` X, Y, Z readings
-    of every chip (one SM to all chips, wait, one RM to all: two ioctls a sample)."""
+                   samples: int = 100, serial: str = "", source: str = "",
+                   turn: Callable[[np.ndarray], None] | None = None) -> Dataset:
+    """For each pose: turn the sensor (``turn(R_w0)``, when given: the robot's
+    orientation, which the room's field sees), apply its wrench, then average
+    ``samples`` X, Y, Z readings of every chip: an SM to each chip, the conversion
+    time, an RM to each. One write and one read per ioctl: the shape every Linux
+    adapter takes (the Pi's i2c-bcm2835 refuses a read that is not last).
+
+    Each pose's full orientation is recorded in the dataset (``rotation``), as a
+    real robot knows it from its joints.
+    """
     chips = [MLX90393(bus, a, sleep=bus.sleep) for a in addresses]
     for chip in chips:
         chip.reset()
@@ -36,18 +45,16 @@ def record_dataset(bus: Bus, addresses: Sequence[int], poses: Sequence[tuple[Cal
     mean, sem = np.zeros((n, 3 * c)), np.zeros((n, 3 * c))
     saturated = np.zeros((n, c), dtype=bool)
     for k, (pose, _) in enumerate(poses):
+        if turn is not None:
+            turn(pose.orientation())
         apply_load(pose.wrench())
         readings = np.zeros((samples, 3 * c))
         for s in range(samples):
-            starts = [chip.sm_messages() for chip in chips]
-            bus.i2c_rdwr(*[m for pair in starts for m in pair])
-            for chip, (_, read) in zip(chips, starts):
-                chip.decode_sm(bytes(read))
+            for chip in chips:
+                chip.start_single()
             bus.sleep(wait_s)
-            msgs = [chip.rm_messages() for chip in chips]
-            bus.i2c_rdwr(*[m for pair in msgs for m in pair])
-            for i, (chip, (_, read)) in enumerate(zip(chips, msgs)):
-                m = chip.decode_measurement(bytes(read))
+            for i, chip in enumerate(chips):
+                m = chip.read_measurement()
                 readings[s, 3 * i:3 * i + 3] = m.field_t
                 saturated[k, i] |= m.any_saturated
         mean[k] = readings.mean(axis=0)
@@ -56,7 +63,15 @@ def record_dataset(bus: Bus, addresses: Sequence[int], poses: Sequence[tuple[Cal
     return Dataset(tuple(addresses), np.array([p.wrench() for p, _ in poses]), mean, sem, saturated,
                    np.array([s for _, s in poses]), np.array([p.mass_kg for p, _ in poses]),
                    np.array([p.lever_m for p, _ in poses]), np.array([p.gravity_dir for p, _ in poses]),
-                   samples, serial, source)
+                   samples, serial, source, rotation=np.array([p.orientation() for p, _ in poses]))
+
+
+def simulated_robot(scene: PhysicalScene, sensor: str) -> dict[str, Callable[[np.ndarray], None]]:
+    """The keyword arguments of `record_dataset` that make a simulated scene's
+    sensor do what the calibration robot does to a real one: carry the pose's
+    wrench and turn in the room (``apply_load`` and ``turn``)."""
+    return {"apply_load": lambda w: scene.set_load(sensor, StaticLoad(w)),
+            "turn": lambda R: scene.set_orientation(sensor, FixedOrientation(R))}
 
 
 def simulate_sweeps(addresses: Sequence[int], geometry: SensorGeometry, *, field_model: str = "cylinder",

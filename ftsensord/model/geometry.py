@@ -16,6 +16,7 @@ from functools import cached_property
 
 import numpy as np
 
+from . import se3
 from .magnet import cylinder_moment
 
 #: The paper's magnet, K&J D101-N52: 1/16" diameter, 1/32" thick, Br about 1.45 T.
@@ -30,7 +31,9 @@ class SensorGeometry:
 
     ``chip_R[i]`` is R_0Si (columns: the chip's x, y, z axes), ``chip_p[i]``
     its position; ``magnet_p[i]`` and ``magnet_axis[i]`` (unit, the direction
-    of magnetisation) place magnet i. All magnets share one size and Br.
+    of magnetisation) place magnet i. All magnets share one size and nominal
+    Br; ``magnet_strength[i]`` (default 1) is magnet i's remanence relative to
+    it, as an as-built part's magnets differ by a few %.
     """
 
     chip_R: np.ndarray
@@ -40,6 +43,7 @@ class SensorGeometry:
     magnet_radius_m: float = D101_RADIUS_M
     magnet_length_m: float = D101_LENGTH_M
     magnet_br_t: float = D101_BR_T
+    magnet_strength: np.ndarray | None = None
 
     @property
     def n_chips(self) -> int:
@@ -53,6 +57,22 @@ class SensorGeometry:
     def magnet_R(self) -> np.ndarray:
         """Rotation of each magnet's own frame (z along its axis), for the cylinder field."""
         return np.array([frame_with_z(a) for a in self.magnet_axis])
+
+    @cached_property
+    def strengths(self) -> np.ndarray:
+        """Each magnet's remanence relative to ``magnet_br_t`` (n,): ones unless as built."""
+        return np.ones(self.n_chips) if self.magnet_strength is None else np.asarray(self.magnet_strength, float)
+
+    def room_directions(self) -> np.ndarray:
+        """The 3 directions (24 x 3, orthonormal columns) a uniform field makes in the
+        stacked flux: a field u in frame {0} adds [R_01^T u; ...; R_0n^T u].
+
+        Since sum_i R_i R_i^T = n I, the stacked R_i^T divided by sqrt(n) is already
+        orthonormal; the QR below only keeps that exact for an as-built geometry too.
+        """
+        stacked = np.concatenate([R.T for R in self.chip_R], axis=0)
+        q, _ = np.linalg.qr(stacked)
+        return q
 
     def magnet_in_chip(self) -> np.ndarray:
         """Nominal position of each chip's own magnet in the chip's frame (n x 3)."""
@@ -88,3 +108,25 @@ def frame_with_z(axis: np.ndarray) -> np.ndarray:
     x = np.cross(helper, axis)
     x /= np.linalg.norm(x)
     return np.stack([x, np.cross(axis, x), axis], axis=1)
+
+
+def as_built(nominal: SensorGeometry, rng: np.random.Generator, *, magnet_position_m: float = 0.0,
+             magnet_strength_rel: float = 0.0, chip_tilt_rad: float = 0.0) -> SensorGeometry:
+    """One hand-made sensor drawn from ``nominal`` with the given standard deviations:
+    each magnet moved by N(0, magnet_position_m) per axis (m, frame {0}) and its
+    remanence scaled by 1 + N(0, magnet_strength_rel); each chip turned by a rotation
+    vector of N(0, chip_tilt_rad) per axis (rad, the chip's frame), so its tilt
+    angle has RMS sqrt(3) chip_tilt_rad. The magnets' axes stay those of the
+    nominal part (a disc magnet pressed into its pocket sits square to it).
+    Deterministic in ``rng``: the caller draws once per sensor, with its seed.
+    """
+    n = nominal.n_chips
+    magnet_shift = rng.normal(0.0, 1.0, (n, 3)) * magnet_position_m
+    strength = 1.0 + rng.normal(0.0, 1.0, n) * magnet_strength_rel
+    if np.any(strength <= 0):
+        raise ValueError(f"a remanence tolerance of {magnet_strength_rel:.0%} drew a magnet with no field")
+    tilts = rng.normal(0.0, 1.0, (n, 3)) * chip_tilt_rad
+    chip_R = np.array([R @ se3.exp_so3(w) for R, w in zip(nominal.chip_R, tilts, strict=True)])
+    return SensorGeometry(chip_R, nominal.chip_p.copy(), nominal.magnet_p + magnet_shift,
+                          nominal.magnet_axis.copy(), nominal.magnet_radius_m, nominal.magnet_length_m,
+                          nominal.magnet_br_t, nominal.strengths * strength)

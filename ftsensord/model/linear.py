@@ -41,10 +41,14 @@ def fit_position_map(b: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarr
     if b.shape != p.shape or b.ndim != 2 or b.shape[1] != 3:
         raise ValueError(f"flux and positions must both be k x 3, got {b.shape} and {p.shape}")
     centred = b - b.mean(axis=0)
-    # Rank test relative to the largest spread: a flux axis that varies less
-    # than 1e-9 of the others is round-off, and its slope would be noise.
+    # Rank tests relative to the largest spread: an axis that varies less than 1e-9 of
+    # the others is round-off, and its slope would be noise. The positions first: a
+    # recorded sweep along fewer axes still has noisy flux of rank 3, fitted to noise.
+    sp = np.linalg.svd(p - p.mean(axis=0), compute_uv=False) if len(p) else np.zeros(1)
+    if len(b) < 4 or sp[0] == 0 or sp[-1] < 1e-9 * sp[0]:
+        raise ValueError("the sweep must move the magnet along all three axes (position rank < 3)")
     s = np.linalg.svd(centred, compute_uv=False)
-    if len(b) < 4 or s[0] == 0 or s[-1] < 1e-9 * s[0]:
+    if s[0] == 0 or s[-1] < 1e-9 * s[0]:
         raise ValueError("the sweep must move the magnet along all three axes (flux rank < 3)")
     Mt, *_ = np.linalg.lstsq(centred, p - p.mean(axis=0), rcond=None)
     M = Mt.T
@@ -76,17 +80,34 @@ class LinearModel:
     flux-to-twist map (m/T, rad/T), ``zero`` b0 (24,) the flux at no load (T).
 
     ``b`` stacks the 8 chips' flux [b_1; ...; b_8], each in its chip frame.
+
+    ``room`` (24, 3; orthonormal columns), when set, are the flux directions a
+    uniform field (the Earth's, fixed in the world) takes in this sensor's chips:
+    they are projected out of b - b0 before K A, w = K A P (b - b0) with
+    P = I - room room^T, so that turning the sensor in a uniform field gives no
+    wrench. (A fitted with those directions projected out already has A room = 0,
+    and P changes nothing; for one fitted without, it costs the part of the load's
+    signal along them.)
     """
 
     K: np.ndarray
     A: np.ndarray
     zero: np.ndarray
     H: np.ndarray | None = None
+    room: np.ndarray | None = None
     KA: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        # KA is what runs every cycle: one 6 x 24 product, computed once.
+        # KA is what runs every cycle: one 6 x 24 product, computed once, projection included.
         self.KA = self.K @ self.A
+        if self.room is not None:
+            self.room = np.asarray(self.room, dtype=float)
+            n = self.A.shape[1]
+            # 1e-9: orthonormal to round-off; anything worse is not a set of directions.
+            if self.room.ndim != 2 or self.room.shape[0] != n or self.room.shape[1] >= n \
+                    or not np.allclose(self.room.T @ self.room, np.eye(self.room.shape[1]), atol=1e-9):
+                raise ValueError(f"room must be {n} x k with orthonormal columns, got shape {self.room.shape}")
+            self.KA = self.KA - (self.KA @ self.room) @ self.room.T
         self._subsets: dict[bytes, np.ndarray] = {}
 
     def twist(self, b: np.ndarray) -> np.ndarray:
@@ -98,7 +119,17 @@ class LinearModel:
 
     def with_zero(self, zero: np.ndarray) -> LinearModel:
         """The same model tared to a new no-load flux."""
-        return LinearModel(self.K, self.A, np.asarray(zero, dtype=float), self.H)
+        return LinearModel(self.K, self.A, np.asarray(zero, dtype=float), self.H, self.room)
+
+    def rejecting_room_field(self, room: np.ndarray | None = None,
+                             geometry: SensorGeometry | None = None) -> LinearModel:
+        """The same model blind to a uniform field: along ``room`` (24 x k,
+        orthonormal; e.g. measured at calibration), or the directions ``geometry``'s
+        chip orientations give (default the nominal ring's), exact for a sensor built
+        as drawn and leaking, for an as-built one, in proportion to its chips' tilts."""
+        if room is None:
+            room = (geometry or SensorGeometry.ring()).room_directions()
+        return LinearModel(self.K, self.A, self.zero, self.H, room)
 
     def wrench_from(self, b: np.ndarray, chips: np.ndarray) -> np.ndarray:
         """The wrench from the chips where ``chips`` (bool, one per chip) is true only.
@@ -106,7 +137,9 @@ class LinearModel:
         Degraded mode: the calibration's forward model ``b - b0 = H xi`` (H fitted
         on the calibration data) gives the twist by least squares on the channels
         left, xi = pinv(H_S) (b_S - b0_S), and w = K xi. Needs H, and the chips
-        left must still see all six axes (rank 6).
+        left must still see all six axes (rank 6). With ``room`` set, the uniform
+        field u is estimated beside the twist, b - b0 = H xi + room u, which needs
+        the chips left to tell the two apart (rank 6 + 3).
         """
         if self.H is None:
             raise ValueError("this calibration has no flux model H: no estimate from fewer chips")
@@ -114,10 +147,11 @@ class LinearModel:
         key = channels.tobytes()
         M = self._subsets.get(key)
         if M is None:
-            H_S = self.H[channels]
-            if np.linalg.matrix_rank(H_S) < 6:
-                raise ValueError("the chips left do not see all six axes")
-            M = self._subsets[key] = self.K @ np.linalg.pinv(H_S)
+            H_S = self.H[channels] if self.room is None else np.hstack([self.H, self.room])[channels]
+            if np.linalg.matrix_rank(H_S) < H_S.shape[1]:
+                raise ValueError("the chips left do not see all six axes"
+                                 + ("" if self.room is None else " apart from the room's field"))
+            M = self._subsets[key] = self.K @ np.linalg.pinv(H_S)[:6]
         return M @ (b[channels] - self.zero[channels])
 
 

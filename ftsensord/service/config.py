@@ -15,7 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..acquire.board import bus_timing
 from ..acquire.bound import (
+    DEFAULT_SCHEDULER,
     SCHEDULERS,
     CycleBound,
     burst_readback_stays_fresh,
@@ -26,6 +28,7 @@ from ..acquire.health import stuck_cycles_for
 from ..calibration.calfile import Calibration
 from ..calibration.dataset import parse_addresses
 from ..chip import mlx90393 as mlx
+from ..chip.i2c import BusTiming
 from ..docfile import Table, load_toml
 from ..errors import ConfigError
 
@@ -104,17 +107,28 @@ class Config:
     def addresses(self) -> list[int]:
         return [a for s in self.sensors for a in s.addresses]
 
-    def bound(self) -> CycleBound:
-        return cycle_bound(self.scheduler, len(self.addresses), self.settings, self.bus_hz, self.bus_overhead_s,
-                           readback=self.readback_every > 0, temperature=self.temperature_every > 0)
+    def bound(self, timing: BusTiming | None = None) -> CycleBound:
+        """The scheduler's bound on this bus: ``timing`` is what was measured on the
+        board (`acquire.board`); else what the bus string says (a simulated board),
+        else the configured ``bus_hz`` and ``bus_overhead_us``, counted with the
+        adapter's rules where the system names its driver (unknown: the narrowest)."""
+        known = bus_timing(self.bus)
+        if timing is not None:
+            known = BusTiming(timing.adapter or known.adapter,
+                              timing.ioctl_s if timing.ioctl_s is not None else known.ioctl_s,
+                              timing.clock_hz or known.clock_hz)
+        return cycle_bound(self.scheduler, len(self.addresses), self.settings, known.clock_hz or self.bus_hz,
+                           self.bus_overhead_s if known.ioctl_s is None else known.ioctl_s,
+                           readback=self.readback_every > 0, temperature=self.temperature_every > 0,
+                           adapter=known.adapter)
 
 
-def check_rate(config: Config, rate_hz: float, where: str = "rate_hz") -> None:
+def check_rate(config: Config, rate_hz: float, where: str = "rate_hz", timing: BusTiming | None = None) -> None:
     """Refuse a rate above what the scheduler can achieve, naming the bound and the fixes."""
-    bound = config.bound()
+    bound = config.bound(timing)
     if rate_hz <= bound.rate_hz:
         return
-    others = ", ".join(f"{s} {replace(config, scheduler=s).bound().rate_hz:.0f} Hz"
+    others = ", ".join(f"{s} {replace(config, scheduler=s).bound(timing).rate_hz:.0f} Hz"
                        for s in SCHEDULERS if s != config.scheduler)
     raise ConfigError(f"{where}: {rate_hz:g} Hz cannot be met: {bound.describe()}. Lower the rate, "
                       f"change the scheduler ({others}), shorten the conversion (lower OSR or "
@@ -188,9 +202,10 @@ def load_config(path: str | Path | None = None) -> Config:
     try:
         kind, arg = parse_bus_spec(bus)
     except ConfigError as exc:
-        raise doc.fail("bus", str(exc).split("; ")[-1], bus) from exc
+        raise doc.fail("bus", str(exc).split("; ", 1)[-1], bus) from exc
     if kind == "sim" and arg:
-        bus = f"sim:{_resolve(doc, 'bus', arg)}"
+        options = bus.partition("?")[2]  # the simulated board's options stay
+        bus = f"sim:{_resolve(doc, 'bus', arg)}" + (f"?{options}" if options else "")
     chip = doc.table("chip", {})
     chip.only({"gain_sel", "hallconf", "res", "osr", "dig_filt", "osr2"})
     res = chip.numbers("res", 3, [3, 3, 3])
@@ -235,7 +250,7 @@ def load_config(path: str | Path | None = None) -> Config:
         path=path, bus=bus, bus_hz=doc.number("bus_hz", 400e3, low=1e3, high=3.4e6, unit="Hz"),
         bus_overhead_s=doc.number("bus_overhead_us", 0.0, low=0, high=1e5, unit="us") * 1e-6,
         rate_hz=doc.number("rate_hz", 100.0, low=0.1, high=10e3, unit="Hz"),
-        scheduler=doc.string("scheduler", "overlapped", choices=SCHEDULERS),
+        scheduler=doc.string("scheduler", DEFAULT_SCHEDULER, choices=SCHEDULERS),
         averaging=doc.integer("averaging", 1, low=1, high=10_000, what="an integer from 1 to 10000"),
         lowpass_hz=doc.number("lowpass_hz", 0.0, low=0, unit="Hz (0: off)"),
         settings=settings, sensors=sensors, publish=publish,
@@ -266,3 +281,13 @@ def load_config(path: str | Path | None = None) -> Config:
         config.readback_every = 100
     check_rate(config, config.rate_hz, f"{path}: rate_hz")
     return config
+
+
+def needs_restart(old: Config, new: Config) -> list[str]:
+    """What differs between two configurations that a reload cannot change (the bus,
+    its chips, the scheduler, the endpoints); empty when a reload can take ``new``."""
+    return [name for name, a, b in (
+        ("bus", new.bus, old.bus), ("bus_hz", new.bus_hz, old.bus_hz),
+        ("scheduler", new.scheduler, old.scheduler), ("chip", new.settings, old.settings),
+        ("sensor addresses", [(s.name, s.addresses) for s in new.sensors], [(s.name, s.addresses) for s in old.sensors]),
+        ("endpoints", (new.publish, new.control), (old.publish, old.control))) if a != b]

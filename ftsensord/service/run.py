@@ -17,7 +17,8 @@ from ..acquire.bus import open_bus, parse_bus_spec
 from ..chip.i2c import Bus
 from ..errors import ConfigError
 from .config import Config, is_loopback
-from .daemon import MAX_REQUEST, Daemon
+from .control import MAX_REQUEST
+from .daemon import Daemon
 from .sdnotify import Notifier
 
 log = logging.getLogger("ftsensord")

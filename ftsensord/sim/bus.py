@@ -1,11 +1,17 @@
 """A simulated I2C bus with smbus2's ``i2c_rdwr(*msgs)`` surface.
 
-Like the kernel's ``I2C_RDWR`` ioctl it takes up to 42 messages, to several
-addresses, in one call; a message to an address where no chip answers aborts
-the call with ``OSError`` (the messages before it have already happened on the
-wire, as on a real bus, but as in i2c-dev no read buffer is filled). With ``bus_hz`` set it spends the wire time of every
-transfer on its clock: 9 clock bits per byte (8 data + ACK) plus one for each
-start, repeated start and the final stop.
+Like the kernel's ``I2C_RDWR`` ioctl it takes up to 42 messages in one call;
+what else one call may hold is the adapter driver's rule (`ADAPTER_RULES`):
+``permissive`` takes any mix of addresses and reads, ``bcm2835`` (the
+Raspberry Pi 0-4, the default) only a read that is last, ``designware`` only
+one address. A refused call raises ``OSError`` with the driver's errno. A
+message to an address where no chip answers aborts the call with ``OSError``
+(the messages before it have already happened on the wire, as on a real bus,
+but as in i2c-dev no read buffer is filled). With a clock (``bus_hz``, or
+``clock_hz`` where the wire really runs at another one) it spends per call a
+fixed ``ioctl_s`` (the kernel's and the driver's work) and the wire time of
+the transfer: 9 clock bits per byte (8 data + ACK) plus one for each start,
+repeated start and the final stop.
 
 Fault hooks (`BusFaults`, and the chips' own) let tests and scenes break it.
 """
@@ -20,7 +26,7 @@ from dataclasses import dataclass, field
 from smbus2 import i2c_msg
 from smbus2.smbus2 import I2C_M_RD
 
-from ..chip.i2c import BITS_PER_BYTE, I2C_RDWR_MAX_MSGS
+from ..chip.i2c import ADAPTER_RULES, BITS_PER_BYTE, I2C_RDWR_MAX_MSGS, BusTiming
 from .chip import EmulatedMLX90393
 from .clock import MonotonicClock, VirtualClock
 from .faults import FaultScript
@@ -68,6 +74,17 @@ class BusFaults:
         return True
 
 
+#: Default adapter: the most likely board is a Raspberry Pi 4 with its own driver.
+DEFAULT_ADAPTER = "bcm2835"
+#: Default cost of one I2C_RDWR ioctl on a Pi 4 (s): syscall, copying the messages,
+#: starting the controller, its interrupts and waking the caller. A Pi Zero (ARM11,
+#: 1 GHz) was measured at 1.1 kHz doing write() then read() of 1 and 14 bytes at
+#: 400 kHz (raspberrypi.stackexchange.com q. 109657): 909 us, of which 393 us on the
+#: wire, so about 250 us a syscall; the Pi 4's Cortex-A72 runs such kernel paths about
+#: 4x faster, hence 60 us, the figure issue 14 measured. `acquire.board` measures it.
+DEFAULT_IOCTL_S = 60e-6
+
+
 class SimulatedBus:
     """Emulated MLX90393s on one bus, reached through ``i2c_rdwr``.
 
@@ -75,25 +92,51 @@ class SimulatedBus:
     `MonotonicClock` for benchmarks); ``bus_hz`` None spends no wire time.
     Chips and scenes see time since the bus was made (s), so a scene's
     "step at 1 s" means 1 s after start whatever the clock's origin.
-    ``nack_errno`` is what the adapter reports for an address nobody ACKs: the
-    kernel's documented ENXIO (Raspberry Pi's i2c-bcm2835 says EREMOTEIO).
+    ``adapter`` names the driver's rules (`ADAPTER_RULES`); ``nack_errno`` is
+    what it reports for an address nobody ACKs (None: the driver's own, the
+    kernel's documented ENXIO for ``permissive``, EREMOTEIO for the others).
+    ``clock_hz`` is the clock the wire really runs at (None: ``bus_hz``), what
+    a Pi whose core clock drops under load gives. ``ioctl_s`` is spent per
+    call, refused ones included, whenever the bus spends time at all.
+    ``transfers`` counts calls, ``refused`` those the adapter refused.
     """
 
     def __init__(self, chips: Iterable[EmulatedMLX90393], *,
                  clock: VirtualClock | MonotonicClock | None = None,
-                 bus_hz: float | None = None, nack_errno: int = errno.ENXIO,
-                 script: FaultScript | None = None):
+                 bus_hz: float | None = None, nack_errno: int | None = None,
+                 script: FaultScript | None = None, adapter: str = DEFAULT_ADAPTER,
+                 ioctl_s: float = DEFAULT_IOCTL_S, clock_hz: float | None = None):
+        if adapter not in ADAPTER_RULES:
+            raise ValueError(f"adapter: expected one of {', '.join(ADAPTER_RULES)}, got {adapter!r}")
         self.chips: dict[int, EmulatedMLX90393] = {}
         for chip in chips:
             self.attach(chip)
         self.clock = clock if clock is not None else VirtualClock()
         self.epoch = self.clock.now()
         self.bus_hz = bus_hz
-        self.nack_errno = nack_errno
+        self.clock_hz = clock_hz
+        self.ioctl_s = ioctl_s
+        self.rules = ADAPTER_RULES[adapter]
+        self.nack_errno = self.rules.nack_errno if nack_errno is None else nack_errno
         self.faults = BusFaults()
         self.script = script
         self.transfers = 0
+        self.refused = 0
         self.closed = False
+
+    @property
+    def adapter(self) -> str:
+        return self.rules.name
+
+    @property
+    def wire_hz(self) -> float | None:
+        """The clock the wire runs at (Hz), None for an ideal bus that spends no time."""
+        return self.clock_hz if self.clock_hz is not None else self.bus_hz
+
+    @property
+    def timing(self) -> BusTiming:
+        """What this bus really costs, as `acquire.board` would measure it on a board."""
+        return BusTiming(self.adapter, self.ioctl_s if self.wire_hz is not None else 0.0, self.wire_hz)
 
     # --- the smbus2 surface ----------------------------------------------------
     def i2c_rdwr(self, *msgs: i2c_msg) -> None:
@@ -106,10 +149,22 @@ class SimulatedBus:
         start = self.clock.now() - self.epoch
         if self.script is not None:
             self.script.apply(self, start)
-        bit_s = 0.0 if self.bus_hz is None else self.faults.slowdown / self.bus_hz
+        wire_hz = self.wire_hz
+        bit_s = 0.0 if wire_hz is None else self.faults.slowdown / wire_hz
+        # The kernel's fixed cost, spent before the first clock edge (syscall, setup).
+        start += 0.0 if wire_hz is None else self.ioctl_s
+        refusal = self.rules.refusal(msgs)
+        if refusal is not None:
+            self.refused += 1
+            err, reached, words = refusal
+            if reached == 0:  # refused before the bus is touched
+                self.clock.wait_until(self.epoch + start)
+                raise OSError(err, f"{self.adapter}: {words} ({errno.errorcode[err]})")
+            msgs = msgs[:reached]  # designware: what was queued before the check ran goes out
         if self.faults.io_errors > 0:
             self.faults.io_errors -= 1
             err = self.faults.io_errno
+            self.clock.wait_until(self.epoch + start)
             raise OSError(err, errno.errorcode.get(err, "I/O error"))
         bits = 0
         replies: list[tuple[i2c_msg, bytes]] = []
@@ -128,6 +183,8 @@ class SimulatedBus:
                     replies.append((msg, chip.read(msg.len, now)))
                 else:
                     chip.write(bytes(msg), now)
+            if refusal is not None:
+                raise OSError(refusal[0], f"{self.adapter}: {refusal[2]} ({errno.errorcode[refusal[0]]})")
             # Like i2c-dev, read buffers are filled only when the whole transfer succeeded.
             for msg, data in replies:
                 ctypes.memmove(msg.buf, data, msg.len)

@@ -71,7 +71,73 @@ class Mode(enum.Enum):
 _MODE_OF_OPCODE = {mlx.CMD_SM: Mode.SINGLE, mlx.CMD_SB: Mode.BURST, mlx.CMD_SW: Mode.WOC}
 
 
-class EmulatedMLX90393:
+class RegisterCommands:
+    """The status byte and the register commands of `EmulatedMLX90393` (RR, WR, HR,
+    HS, a register drifting by itself): a part of the chip kept apart so that each
+    class stays readable."""
+
+    registers: list[int]
+    nonvolatile: list[int]
+    mode: Mode
+    busy_until: float
+    _d_rng: np.random.Generator
+    _pending_drifts: list[tuple[float, int, int]]
+
+    def _status(self, *, error: bool = False, d: int | None = None, rs: bool = False) -> bytes:
+        """The status byte; ``d`` None for a reply without data.
+
+        Logic captures of real chips show D1:D0 set in replies that carry no data:
+        EX and WR 0x01 or 0x02, RT 0x05 or 0x06, SM (xyz) 0x21 or 0x22. The emulator
+        draws 1 or 2 for every such reply (SB, SW, HR, HS and refusals too, where no
+        capture exists: SB's 0x81/0x82 follows SM's pattern with its own mode bit),
+        so a driver that compares whole status bytes, or waits for a zero D, fails
+        here as it would on a board.
+        """
+        if d is None:
+            d = int(self._d_rng.integers(1, 3))
+        byte = self.mode.value | (mlx.STATUS_ERROR if error else 0) | (mlx.STATUS_RS if rs else 0) | d
+        return bytes([byte])
+
+    def drift_register(self, reg: int, value: int, at: float | None = None) -> None:
+        """Fault: register ``reg`` takes ``value`` by itself (now, or at time ``at``)."""
+        if at is None:
+            self.registers[reg] = value
+        else:
+            self._pending_drifts.append((at, reg, value))
+
+    def _register_address(self, byte: int) -> int | None:
+        # The address travels as reg << 2; set low bits make it malformed
+        # (emulator's choice: refuse rather than guess).
+        return None if byte & 0x03 else byte >> 2
+
+    def _rr(self, opcode: int, zyxt: int, data: bytes, now: float) -> bytes:
+        reg = self._register_address(data[1]) if len(data) == 2 else None
+        if reg is None or self.mode in (Mode.BURST, Mode.WOC):
+            return self._status(error=True)
+        return self._status(d=0) + self.registers[reg].to_bytes(2, "big")
+
+    def _wr(self, opcode: int, zyxt: int, data: bytes, now: float) -> bytes:
+        reg = self._register_address(data[3]) if len(data) == 4 else None
+        if reg is None or reg > mlx.REG_CUSTOMER_MAX or self.mode in (Mode.BURST, Mode.WOC):
+            return self._status(error=True)
+        self.registers[reg] = (data[1] << 8) | data[2]
+        return self._status()
+
+    def _hr(self, opcode: int, zyxt: int, data: bytes, now: float) -> bytes:
+        if self.mode is not Mode.IDLE:
+            return self._status(error=True)
+        self.registers[: len(self.nonvolatile)] = self.nonvolatile
+        return self._status()
+
+    def _hs(self, opcode: int, zyxt: int, data: bytes, now: float) -> bytes:
+        if self.mode is not Mode.IDLE:
+            return self._status(error=True)
+        self.nonvolatile = list(self.registers[: len(self.nonvolatile)])
+        self.busy_until = now + mlx.T_HS_US * 1e-6
+        return self._status()
+
+
+class EmulatedMLX90393(RegisterCommands):
     """One chip at one address. Times (``now``) are seconds on the bus's clock.
 
     Fault hooks for tests: ``stuck`` (the same data forever, DRDY always high),
@@ -87,6 +153,10 @@ class EmulatedMLX90393:
         self.address = address
         self.scene = scene
         self.rng = rng if rng is not None else np.random.default_rng(address)
+        # D1:D0 of replies without data vary on their own stream, so the noise a seed
+        # gives stays what it was (spawning does not advance ``rng``).
+        seed_seq = getattr(self.rng.bit_generator, "seed_seq", None)
+        self._d_rng = np.random.default_rng(seed_seq.spawn(1)[0] if seed_seq is not None else address)
         self.noise = noise
         self.tref = tref
         # Non-volatile memory: what power-on and RT load into the registers.
@@ -108,6 +178,7 @@ class EmulatedMLX90393:
         self.mode = Mode.IDLE
         self.busy_until = -math.inf
         self.reply = b""
+        self._reply_pending = False  # a command whose reply has not been read yet
         self._conv_items: tuple[str, ...] = ()
         self._conv_first = math.inf  # time the first result is ready
         self._conv_interval = math.inf  # burst interval (inf: one conversion only)
@@ -121,19 +192,16 @@ class EmulatedMLX90393:
     def acks(self, now: float, reading: bool = False) -> bool:
         """Whether the chip acknowledges its address.
 
-        After RT and HS it still sends the reply to that command, then NACKs
-        new commands until its wait is over. The datasheet only says to wait; a
-        chip whose digital core is restarting cannot answer, so the emulator
-        NACKs rather than guessing a reply.
+        A read is acknowledged only after a command whose reply it reads, once:
+        captures show a real chip NACKs a bare read (``i2cdetect -r`` does not
+        find it). After RT and HS it still sends the reply to that command,
+        then NACKs new commands until its wait is over. The datasheet only says
+        to wait; a chip whose digital core is restarting cannot answer, so the
+        emulator NACKs rather than guessing a reply.
         """
-        return reading or now >= self.busy_until
-
-    def drift_register(self, reg: int, value: int, at: float | None = None) -> None:
-        """Fault: register ``reg`` takes ``value`` by itself (now, or at time ``at``)."""
-        if at is None:
-            self.registers[reg] = value
-        else:
-            self._pending_drifts.append((at, reg, value))
+        if reading:
+            return self._reply_pending
+        return now >= self.busy_until
 
     def _advance(self, now: float) -> None:
         for item in [d for d in self._pending_drifts if d[0] <= now]:
@@ -156,6 +224,7 @@ class EmulatedMLX90393:
         if not data:
             return  # a zero-length write is an address probe: ACK only
         self._advance(now)
+        self._reply_pending = True  # (set again below: RT's power-on clears it)
         opcode, zyxt = data[0] & 0xF0, data[0] & 0x0F
         if self.memory_error and opcode != mlx.CMD_RT:
             self.reply = self._status(error=True)
@@ -169,17 +238,15 @@ class EmulatedMLX90393:
             self.reply = self._status(error=True)  # unknown opcode: refused
             return
         self.reply = handler(opcode, zyxt, data, now)
+        self._reply_pending = True
 
     def read(self, length: int, now: float) -> bytes:
         """A read message: the prepared reply; 0xFF (released SDA) past its end."""
         self._advance(now)
+        self._reply_pending = False
         return (self.reply + b"\xff" * length)[:length]
 
     # --- commands -----------------------------------------------------------------
-    def _status(self, *, error: bool = False, d: int = 0, rs: bool = False) -> bytes:
-        byte = self.mode.value | (mlx.STATUS_ERROR if error else 0) | (mlx.STATUS_RS if rs else 0) | d
-        return bytes([byte])
-
     def _selected(self, zyxt: int) -> tuple[str, ...]:
         return mlx.zyxt_items(zyxt or mlx.BURST_SEL.get(self.registers[mlx.REG_CONF2]))
 
@@ -251,24 +318,6 @@ class EmulatedMLX90393:
         words["t"] = mlx.celsius_to_raw(temp, self.tref)
         return words
 
-    def _register_address(self, byte: int) -> int | None:
-        # The address travels as reg << 2; set low bits make it malformed
-        # (emulator's choice: refuse rather than guess).
-        return None if byte & 0x03 else byte >> 2
-
-    def _rr(self, opcode: int, zyxt: int, data: bytes, now: float) -> bytes:
-        reg = self._register_address(data[1]) if len(data) == 2 else None
-        if reg is None or self.mode in (Mode.BURST, Mode.WOC):
-            return self._status(error=True)
-        return self._status(d=0) + self.registers[reg].to_bytes(2, "big")
-
-    def _wr(self, opcode: int, zyxt: int, data: bytes, now: float) -> bytes:
-        reg = self._register_address(data[3]) if len(data) == 4 else None
-        if reg is None or reg > mlx.REG_CUSTOMER_MAX or self.mode in (Mode.BURST, Mode.WOC):
-            return self._status(error=True)
-        self.registers[reg] = (data[1] << 8) | data[2]
-        return self._status()
-
     def _ex(self, opcode: int, zyxt: int, data: bytes, now: float) -> bytes:
         self.mode = Mode.IDLE
         self._conv_first, self._conv_interval = math.inf, math.inf
@@ -284,16 +333,3 @@ class EmulatedMLX90393:
             self.mode, self._conv_first, self._conv_interval = Mode.BURST, first, interval
         self.busy_until = now + mlx.T_AFTER_RT_US * 1e-6
         return self._status(rs=True)
-
-    def _hr(self, opcode: int, zyxt: int, data: bytes, now: float) -> bytes:
-        if self.mode is not Mode.IDLE:
-            return self._status(error=True)
-        self.registers[: len(self.nonvolatile)] = self.nonvolatile
-        return self._status()
-
-    def _hs(self, opcode: int, zyxt: int, data: bytes, now: float) -> bytes:
-        if self.mode is not Mode.IDLE:
-            return self._status(error=True)
-        self.nonvolatile = list(self.registers[: len(self.nonvolatile)])
-        self.busy_until = now + mlx.T_HS_US * 1e-6
-        return self._status()

@@ -1,9 +1,12 @@
 """Loads over time: the wrench [f; m] (N, Nm) on a sensor's centre piece,
-expressed in the sensor's frame {0}, as a function of time t (s).
+expressed in the sensor's frame {0}, as a function of time t (s); and the
+sensor's orientation over time, R_w0 (frame {0} in the world), which turns the
+room's field into the sensor's frame.
 
 The calibration robot of the paper's section VII-B is here too: a robot turns
 the sensor through many orientations with a known mass on a rod fixed to the
-centre piece; the wrench is the mass's weight moved to {0} by the adjoint.
+centre piece; the wrench is the mass's weight moved to {0} by the adjoint, and
+the robot's orientation is the sensor's.
 """
 
 from __future__ import annotations
@@ -86,14 +89,136 @@ def ramp(from_s: float, to_s: float, start: np.ndarray, end: np.ndarray) -> Reco
     return RecordedLoad(np.array([from_s, to_s]), np.stack([_wrench(start), _wrench(end)]))
 
 
+# --- orientation over time -------------------------------------------------------------
+#: World frame: z up, so gravity is -z (and x north, y west for a room field in
+#: north-east-down figures turned into it: docs/scenes.md).
+DOWN = np.array([0.0, 0.0, -1.0])
+
+
+def _rotation(R: object) -> np.ndarray:
+    arr = np.asarray(R, dtype=float)
+    # 1e-9: far above round-off of a product of a few rotations, far below any real turn.
+    if arr.shape != (3, 3) or not np.allclose(arr.T @ arr, np.eye(3), atol=1e-9) or np.linalg.det(arr) <= 0:
+        raise ValueError(f"a rotation is a 3 x 3 orthonormal matrix of determinant +1, got {R!r}")
+    return arr
+
+
+class Orientation(Protocol):
+    def rotation(self, t: float) -> np.ndarray:
+        """R_w0 (3 x 3): the sensor's frame {0} seen in the world at time ``t`` (s)."""
+        ...
+
+
+@dataclass
+class FixedOrientation:
+    """The sensor held still: R_w0 = exp(rotvec) (rad)."""
+
+    R: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.R = _rotation(self.R)
+
+    @classmethod
+    def from_rotvec_deg(cls, rotvec_deg: object) -> FixedOrientation:
+        return cls(se3.exp_so3(np.radians(np.asarray(rotvec_deg, dtype=float))))
+
+    def rotation(self, t: float) -> np.ndarray:
+        return self.R
+
+
+IDENTITY = FixedOrientation(np.eye(3))
+
+
+@dataclass
+class RecordedOrientation:
+    """A recorded sequence of orientations, held at both ends and interpolated
+    between samples along the shortest rotation (slerp):
+    R(t) = R_k exp(s log(R_k^T R_k+1)), s = (t - t_k) / (t_k+1 - t_k).
+
+    Why not component-wise on the rotation vectors: a rotation vector is not
+    linear in the motion, so interpolating its components turns about a wrong,
+    time-varying axis and at a non-uniform rate (wildly so where the vectors pass
+    near 180 deg, where the same rotation has two vectors); the geodesic is what a
+    constant angular velocity between two samples would do, which is the honest
+    assumption between a recording's samples.
+    """
+
+    times_s: np.ndarray
+    rotations: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.times_s = np.asarray(self.times_s, dtype=float)
+        if (self.times_s.ndim != 1 or len(self.times_s) < 1 or np.any(np.diff(self.times_s) <= 0)
+                or len(self.rotations) != len(self.times_s)):
+            raise ValueError("a recorded orientation needs increasing times and one rotation per time")
+        self.rotations = np.array([_rotation(R) for R in self.rotations])
+        self._steps = [se3.log_so3(a.T @ b) for a, b in zip(self.rotations[:-1], self.rotations[1:])]
+
+    @classmethod
+    def from_rotvecs_deg(cls, times_s: object, rotvecs_deg: object) -> RecordedOrientation:
+        return cls(np.asarray(times_s, dtype=float),
+                   np.array([se3.exp_so3(np.radians(w)) for w in np.asarray(rotvecs_deg, dtype=float)]))
+
+    def rotation(self, t: float) -> np.ndarray:
+        times = self.times_s
+        if t <= times[0]:
+            return self.rotations[0]
+        if t >= times[-1]:
+            return self.rotations[-1]
+        k = int(np.searchsorted(times, t, side="right")) - 1
+        s = (t - times[k]) / (times[k + 1] - times[k])
+        return self.rotations[k] @ se3.exp_so3(s * self._steps[k])
+
+
+def gravity_to_down(gravity_dir: np.ndarray, yaw_rad: float = 0.0) -> np.ndarray:
+    """R_w0 that turns ``gravity_dir`` (unit, in {0}) onto the world's down, then
+    turns the sensor by ``yaw_rad`` about the vertical (which gravity cannot see,
+    and a room field can).
+
+    The shortest turn taking g to down is about g x down; at g = up exactly that
+    axis vanishes and any horizontal axis does: x is taken (tested).
+    """
+    g = np.asarray(gravity_dir, dtype=float)
+    g = g / np.linalg.norm(g)
+    axis = np.cross(g, DOWN)
+    sin_a, cos_a = float(np.linalg.norm(axis)), float(g @ DOWN)
+    if sin_a == 0.0:
+        # g = down: no turn; g = up: a half turn about x (any horizontal axis would do).
+        base = np.eye(3) if cos_a > 0 else se3.exp_so3(np.array([np.pi, 0.0, 0.0]))
+    else:
+        base = se3.exp_so3(axis / sin_a * np.arctan2(sin_a, cos_a))
+    return se3.exp_so3(np.array([0.0, 0.0, yaw_rad])) @ base
+
+
+# --- the calibration robot -----------------------------------------------------------------
 @dataclass(frozen=True)
 class CalibrationPose:
     """One robot pose: gravity's direction seen in frame {0} (unit), the mass
-    (kg) and the lever arm from {0}'s origin to the mass's centre (m, in {0})."""
+    (kg) and the lever arm from {0}'s origin to the mass's centre (m, in {0}).
+
+    ``rotation`` is R_w0, the sensor's full orientation in the world (z up), as
+    the robot knows it from its joints; gravity fixes it only up to a turn about
+    the vertical, which a room field does see. When not given, the turn taking
+    gravity straight down is assumed (`gravity_to_down`).
+    """
 
     gravity_dir: np.ndarray
     mass_kg: float
     lever_m: np.ndarray
+    rotation: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.rotation is not None:
+            R = _rotation(self.rotation)
+            g = np.asarray(self.gravity_dir, dtype=float)
+            # 1e-6 (0.2 arcsec): the two are written from one robot pose; any larger
+            # disagreement is a pose recorded wrong, which would corrupt both fits.
+            if not np.allclose(R.T @ DOWN, g / np.linalg.norm(g), atol=1e-6):
+                raise ValueError(f"rotation and gravity_dir disagree: R^T down = {R.T @ DOWN}, gravity_dir = {g}")
+
+    def orientation(self) -> np.ndarray:
+        """R_w0 at this pose."""
+        return self.rotation if self.rotation is not None else gravity_to_down(self.gravity_dir)
 
     def wrench(self) -> np.ndarray:
         """w = X_{0,w} [0 0 -m g 0 0 0]: the weight at the mass, moved to {0}.
@@ -108,14 +233,20 @@ class CalibrationPose:
 
 @dataclass
 class CalibrationRobotLoad:
-    """The robot holds each pose for ``dwell_s`` in turn, then the last one."""
+    """The robot holds each pose for ``dwell_s`` in turn, then the last one. It is
+    the sensor's load and its orientation at once (an `Orientation` too)."""
 
     poses: list[CalibrationPose]
     dwell_s: float = 1.0
 
+    def _pose(self, t: float) -> CalibrationPose:
+        return self.poses[min(max(int(t // self.dwell_s), 0), len(self.poses) - 1)]
+
     def wrench(self, t: float) -> np.ndarray:
-        k = min(max(int(t // self.dwell_s), 0), len(self.poses) - 1)
-        return self.poses[k].wrench()
+        return self._pose(t).wrench()
+
+    def rotation(self, t: float) -> np.ndarray:
+        return self._pose(t).orientation()
 
 
 #: Lever arms (m, frame {0}) from the sensor's centre to the mass: one along the
@@ -136,16 +267,35 @@ def fibonacci_directions(n: int, offset: float = 0.5) -> np.ndarray:
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
 
 
+#: The robot's turn about the vertical from one pose to the next: the golden angle,
+#: so that any run of poses faces the room's horizontal field from spread directions.
+YAW_STEP_RAD = math.pi * (3 - math.sqrt(5))
+
+
 def paper_plan(plan: str = "six-axis", n_fit: int = 193, n_validation: int = 60,
                fit_masses: Sequence[float] = (0.05, 0.2), validation_mass: float = 0.1,
-               ) -> list[tuple[CalibrationPose, str]]:
+               n_no_load: int = 0) -> list[tuple[CalibrationPose, str]]:
     """The paper's procedure (section VII-B): ``n_fit`` orientations with 50 g and
-    200 g, validation with 100 g in other orientations; lever arms per ``plan``."""
+    200 g, validation with 100 g in other orientations; lever arms per ``plan``.
+
+    Each pose carries the robot's full orientation: gravity along the pose's
+    direction, turned about the vertical by `YAW_STEP_RAD` more at every pose.
+    ``n_no_load`` poses (split "no-load", rod and mass off) at further orientations
+    record what the room's field alone does to the chips (docs/calibration.md).
+    """
     if plan not in PLANS:
         raise ValueError(f"plan must be one of {sorted(PLANS)}, got {plan!r}")
     arms = [np.array(a) for a in PLANS[plan]]
-    poses = [(CalibrationPose(d, fit_masses[k % len(fit_masses)], arms[k % len(arms)]), "fit")
-             for k, d in enumerate(fibonacci_directions(n_fit))]
-    poses += [(CalibrationPose(d, validation_mass, arms[k % len(arms)]), "validation")
-              for k, d in enumerate(fibonacci_directions(n_validation, offset=0.25))]
+    poses: list[tuple[CalibrationPose, str]] = []
+
+    def add(d: np.ndarray, mass: float, arm: np.ndarray, split: str) -> None:
+        R = gravity_to_down(d, YAW_STEP_RAD * len(poses))
+        poses.append((CalibrationPose(R.T @ DOWN, mass, arm, R), split))
+
+    for k, d in enumerate(fibonacci_directions(n_fit)):
+        add(d, fit_masses[k % len(fit_masses)], arms[k % len(arms)], "fit")
+    for k, d in enumerate(fibonacci_directions(n_validation, offset=0.25)):
+        add(d, validation_mass, arms[k % len(arms)], "validation")
+    for d in fibonacci_directions(n_no_load, offset=0.75):
+        add(d, 0.0, np.zeros(3), "no-load")
     return poses

@@ -1,9 +1,13 @@
-"""The physical scene: sensors of chips and magnets, a stiffness, loads over time.
+"""The physical scene: sensors of chips and magnets, a stiffness, loads over time,
+the room's field and the sensors' orientations in it.
 
 For a chip of sensor s at time t: the load gives the wrench on the centre
 piece; the stiffness turns it into the deflection twist xi (w = K xi, plus an
 optional stiffening term); the chips move with T = exp(xi); each chip sees the
-field of its own magnet and, with crosstalk on, of the sensor's other magnets.
+field of its own magnet and, with crosstalk on, of the sensor's other magnets,
+plus the room's uniform field (fixed in the world) turned into its frame by the
+sensor's orientation R_w0(t) and the deflection; an as-built chip then reads
+it with its own gain per axis.
 
 Model only what the scene requires: the own magnet defaults to the exact
 cylinder field (the dipole errs by about 30 uT at the 6 mm gap, ten times the
@@ -19,16 +23,18 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..model import se3
-from ..model.geometry import SensorGeometry
+from ..model.geometry import SensorGeometry, as_built
 from ..model.linear import SENSOR_RANGE
 from ..model.magnet import cylinder_field, dipole_field
-from .loads import NO_LOAD, Load
+from .loads import IDENTITY, NO_LOAD, Load, Orientation
 
 #: Stiffness default: the diagonal of the paper's K, in N/m and Nm/rad (their
 #: signs dropped: a stiffness is positive definite).
 PAPER_STIFFNESS_DIAG = (8.82e3, 12.77e3, 6.50e3, 10.0, 10.0, 10.0)
 #: NdFeB loses about 0.12 % of its remanence per kelvin (N52 grade, typical).
 NDFEB_BR_TEMPCO_PER_K = -1.2e-3
+
+_NO_FIELD = np.zeros(3)
 
 FIELD_MODELS = ("dipole", "cylinder")
 CROSSTALK_MODELS = ("off", "dipole", "cylinder")
@@ -43,9 +49,44 @@ TIME_STEP_S = 1e-3
 NEWTON_TOL = 1e-12
 
 
+@dataclass(frozen=True)
+class Tolerances:
+    """Standard deviations of a hand-made sensor's departures from its drawing.
+
+    ``magnet_position_m`` per axis (m), ``magnet_remanence_rel`` (fraction),
+    ``chip_tilt_rad`` per axis of a chip's rotation vector (rad), ``chip_gain_rel``
+    per axis of a chip's sensitivity (fraction), ``ring_radius_m`` (m, one draw for
+    the whole ring). ``seed`` names the part: the same seed builds the same sensor.
+    """
+
+    magnet_position_m: float = 0.0
+    magnet_remanence_rel: float = 0.0
+    chip_tilt_rad: float = 0.0
+    chip_gain_rel: float = 0.0
+    ring_radius_m: float = 0.0
+    seed: int = 0
+
+    def build(self, radius_m: float = 8e-3, tilt_deg: float = 25.0,
+              gap_m: float = 6e-3) -> tuple[SensorGeometry, np.ndarray]:
+        """The as-built geometry and the chips' gains (n, 3), drawn once from ``seed``
+        in a fixed order (ring radius; magnets' positions and remanence, chips' tilts;
+        gains): every draw is made whatever its deviation, so setting one tolerance
+        to 0 leaves the others' draws of the same seed unchanged."""
+        rng = np.random.default_rng(self.seed)
+        radius = radius_m + rng.normal() * self.ring_radius_m
+        if radius <= 0:  # no ring: a tolerance written in the wrong unit
+            raise ValueError(f"ring radius tolerance {self.ring_radius_m * 1e3} mm drew a radius of {radius * 1e3:.3g} mm")
+        nominal = SensorGeometry.ring(radius_m=radius, tilt_deg=tilt_deg, gap_m=gap_m)
+        geometry = as_built(nominal, rng, magnet_position_m=self.magnet_position_m,
+                            magnet_strength_rel=self.magnet_remanence_rel, chip_tilt_rad=self.chip_tilt_rad)
+        gains = 1.0 + rng.normal(0.0, 1.0, (nominal.n_chips, 3)) * self.chip_gain_rel
+        return geometry, gains
+
+
 @dataclass
 class SimSensor:
-    """One sensor in the scene: its 8 chip addresses, geometry, stiffness, load.
+    """One sensor in the scene: its 8 chip addresses, geometry, stiffness, load,
+    orientation in the world, and each chip's gain per axis (default 1).
 
     ``stiffening`` s makes the silicone stiffer at large deflection:
     w = K (xi + s xi (xi / xi_range)^2) per axis, xi_range being the deflection
@@ -58,11 +99,17 @@ class SimSensor:
     stiffness: np.ndarray = field(default_factory=lambda: np.diag(PAPER_STIFFNESS_DIAG))
     stiffening: float = 0.0
     load: Load = field(default_factory=lambda: NO_LOAD)
+    orientation: Orientation = field(default_factory=lambda: IDENTITY)
+    chip_gain: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.stiffness = np.asarray(self.stiffness, dtype=float)
         if len(self.addresses) != self.geometry.n_chips:
             raise ValueError(f"{self.name}: {len(self.addresses)} addresses for {self.geometry.n_chips} chips")
+        if self.chip_gain is not None:
+            self.chip_gain = np.asarray(self.chip_gain, dtype=float)
+            if self.chip_gain.shape != (self.geometry.n_chips, 3) or np.any(self.chip_gain <= 0):
+                raise ValueError(f"{self.name}: chip_gain must be {self.geometry.n_chips} x 3 positive numbers")
         K = self.stiffness
         if K.shape != (6, 6) or not np.allclose(K, K.T) or np.any(np.linalg.eigvalsh(K) <= 0):
             raise ValueError(f"{self.name}: stiffness must be a 6x6 symmetric positive definite matrix")
@@ -89,7 +136,8 @@ class PhysicalScene:
 
     def __init__(self, sensors: list[SimSensor], *, field_model: str = "cylinder",
                  crosstalk: str = "dipole", temperature_c: float = 25.0,
-                 temperature_drift_c_per_s: float = 0.0, time_step_s: float = TIME_STEP_S):
+                 temperature_drift_c_per_s: float = 0.0, time_step_s: float = TIME_STEP_S,
+                 external_field_t: np.ndarray | None = None):
         if field_model not in FIELD_MODELS:
             raise ValueError(f"field_model must be one of {FIELD_MODELS}, got {field_model!r}")
         if crosstalk not in CROSSTALK_MODELS:
@@ -100,6 +148,7 @@ class PhysicalScene:
         self.temperature_c0 = temperature_c
         self.temperature_drift = temperature_drift_c_per_s
         self.time_step_s = time_step_s
+        self.external_field_t = np.zeros(3) if external_field_t is None else external_field_t
         self._chip_of: dict[int, tuple[int, int]] = {}
         for s, sensor in enumerate(sensors):
             for i, address in enumerate(sensor.addresses):
@@ -113,11 +162,28 @@ class PhysicalScene:
     def addresses(self) -> tuple[int, ...]:
         return tuple(sorted(self._chip_of))
 
+    @property
+    def external_field_t(self) -> np.ndarray:
+        """The room's uniform field in the world frame (T): the Earth's, or a motor's."""
+        return self._external_field_t
+
+    @external_field_t.setter
+    def external_field_t(self, value: np.ndarray) -> None:
+        field_t = np.asarray(value, dtype=float)
+        if field_t.shape != (3,) or not np.all(np.isfinite(field_t)):
+            raise ValueError(f"external_field_t must be 3 finite numbers (T), got {value!r}")
+        self._external_field_t = field_t
+        self._room_on = bool(np.any(field_t))
+
     def temperature_c(self, address: int, t: float) -> float:
         return self.temperature_c0 + self.temperature_drift * t
 
     def set_load(self, sensor: int | str, load: Load) -> None:
         self._sensor(sensor).load = load
+
+    def set_orientation(self, sensor: int | str, orientation: Orientation) -> None:
+        """Turn a sensor in the world (its load is unchanged: it is given in {0})."""
+        self._sensor(sensor).orientation = orientation
 
     def _sensor(self, sensor: int | str) -> SimSensor:
         if isinstance(sensor, int):
@@ -133,17 +199,29 @@ class PhysicalScene:
         t = math.floor(t / self.time_step_s) * self.time_step_s
         xi = sensor.deflection(sensor.load.wrench(t))
         scale = 1.0 + NDFEB_BR_TEMPCO_PER_K * (self.temperature_c(address, t) - 25.0)
-        key = np.append(xi, scale).tobytes()
+        # The room's field in {0}: only the turning sensor makes it change (and a field-free
+        # room needs no orientation at all: the common case stays as cheap as before).
+        room = (sensor.orientation.rotation(t).T @ self.external_field_t if self._room_on else _NO_FIELD)
+        key = np.concatenate([xi, [scale], room]).tobytes()
         cached = self._cache.get(s)
         if cached is None or cached[0] != key:
             # One vectorised evaluation serves every chip of the sensor read in this step.
-            cached = (key, scale * self.chip_fields(sensor.geometry, se3.exp_se3(xi)))
+            fields = self.chip_fields(sensor.geometry, se3.exp_se3(xi), magnet_scale=scale,
+                                      room_t=room if self._room_on else None)
+            if sensor.chip_gain is not None:
+                fields = fields * sensor.chip_gain  # the chip's sensitivity, before its ADC
+            cached = (key, fields)
             self._cache[s] = cached
         return cached[1][i]
 
-    def chip_fields(self, geometry: SensorGeometry, T: np.ndarray,
-                    chips: list[int] | None = None) -> np.ndarray:
-        """Field (T) at chips (default: all), each in its own frame, centre piece at pose T."""
+    def chip_fields(self, geometry: SensorGeometry, T: np.ndarray, chips: list[int] | None = None, *,
+                    magnet_scale: float = 1.0, room_t: np.ndarray | None = None) -> np.ndarray:
+        """Field (T) at chips (default: all), each in its own frame, centre piece at pose T.
+
+        ``magnet_scale`` scales the magnets' field (their remanence against temperature);
+        ``room_t`` is a uniform field in frame {0} (T) added to it: a chip turned by the
+        deflection sees it turned too.
+        """
         idx = np.arange(geometry.n_chips) if chips is None else np.asarray(chips)
         R_chips = np.einsum("ij,njk->nik", T[:3, :3], geometry.chip_R[idx])
         p_chips = geometry.chip_p[idx] @ T[:3, :3].T + T[:3, 3]
@@ -152,18 +230,22 @@ class PhysicalScene:
             other = magnet_fields(geometry, p_chips, self.crosstalk)
             other[np.arange(len(idx)), idx] = 0.0  # the own magnet is counted above
             fields = fields + other.sum(axis=1)
+        fields = magnet_scale * fields
+        if room_t is not None:
+            fields = fields + room_t
         return np.einsum("nji,nj->ni", R_chips, fields)
 
 
 def _field(geometry: SensorGeometry, r: np.ndarray, magnets: np.ndarray, model: str) -> np.ndarray:
     """Field (T, frame {0}) at offsets ``r`` (..., 3) from the magnets ``magnets`` (...)."""
     axes = geometry.magnet_axis[magnets]
+    strength = geometry.strengths[magnets][..., None]  # both fields are linear in Br
     if model == "dipole":
-        return dipole_field(r, geometry.magnet_moment_am2 * axes)
+        return dipole_field(r, geometry.magnet_moment_am2 * strength * axes)
     R = geometry.magnet_R[magnets]  # the cylinder field is written in the magnet's frame
     local = np.einsum("...ji,...j->...i", R, r)
     b_local = cylinder_field(local, geometry.magnet_radius_m, geometry.magnet_length_m, geometry.magnet_br_t)
-    return np.einsum("...ij,...j->...i", R, b_local)
+    return strength * np.einsum("...ij,...j->...i", R, b_local)
 
 
 def own_magnet_field(geometry: SensorGeometry, points: np.ndarray, chips: np.ndarray, model: str) -> np.ndarray:

@@ -10,6 +10,7 @@ Scene files (TOML) are described in docs/scenes.md.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -20,11 +21,15 @@ from ..errors import ConfigError
 from ..model.geometry import SensorGeometry
 from .faults import FAULT_KINDS, NEEDS_ADDRESS, Fault
 from .loads import (
+    IDENTITY,
     NO_LOAD,
     PLANS,
     CalibrationRobotLoad,
+    FixedOrientation,
     Load,
+    Orientation,
     RecordedLoad,
+    RecordedOrientation,
     StaticLoad,
     StepLoad,
     paper_plan,
@@ -36,6 +41,7 @@ from .physics import (
     PAPER_STIFFNESS_DIAG,
     PhysicalScene,
     SimSensor,
+    Tolerances,
     two_sensor_scene,
 )
 
@@ -115,9 +121,45 @@ def _load(t: Table) -> Load:
         raise t.fail("times_s", "strictly increasing times", times) from exc
 
 
+def _orientation(t: Table) -> Orientation:
+    kind = t.string("kind", choices=("fixed", "recorded"))
+    if kind == "fixed":
+        t.only({"kind", "rotvec_deg"})
+        return FixedOrientation.from_rotvec_deg(t.numbers("rotvec_deg", 3, unit="deg, rotation vector"))
+    t.only({"kind", "times_s", "rotvec_deg"})
+    times = t.numbers("times_s", unit="s")
+    rows = t.get("rotvec_deg")
+    if not isinstance(rows, list) or not times or len(rows) != len(times):
+        raise t.fail("rotvec_deg", f"{len(times)} rows of 3 numbers (deg), one per time", rows)
+    vectors = [Table({f"rotvec_deg[{i}]": r}, t.path, t.prefix).numbers(f"rotvec_deg[{i}]", 3, unit="deg")
+               for i, r in enumerate(rows)]
+    if any(b <= a for a, b in pairwise(times)):
+        raise t.fail("times_s", "strictly increasing times (s)", times)
+    return RecordedOrientation.from_rotvecs_deg(times, vectors)
+
+
+#: Scene keys of `[sensor.tolerances]` (standard deviations, in the units named), the
+#: factor to SI (mm -> m, % -> fraction, deg -> rad), and the largest accepted. A
+#: hand-made part is off by tenths of a mm, a few % and degrees; 1 mm, 15 deg or 20 %
+#: and more is a unit mistake or another drawing. 20 % also keeps a magnet's or chip's
+#: strength positive (a draw 5 sd below the mean: once in 3 million).
+TOLERANCE_KEYS = {"magnet_position_mm": (1e-3, 1.0), "magnet_remanence_pct": (1e-2, 20.0),
+                  "chip_tilt_deg": (np.pi / 180, 15.0), "chip_gain_pct": (1e-2, 20.0),
+                  "ring_radius_mm": (1e-3, 1.0)}
+
+
+def _tolerances(t: Table) -> Tolerances:
+    t.only({*TOLERANCE_KEYS, "seed"})
+    sd = {k: t.number(k, 0.0, low=0.0, high=high, unit=k.rsplit("_", 1)[1] + ", standard deviation") * factor
+          for k, (factor, high) in TOLERANCE_KEYS.items()}
+    return Tolerances(sd["magnet_position_mm"], sd["magnet_remanence_pct"], sd["chip_tilt_deg"],
+                      sd["chip_gain_pct"], sd["ring_radius_mm"],
+                      t.integer("seed", low=0, what="an integer >= 0 naming the part"))
+
+
 def _sensor(t: Table, index: int) -> SimSensor:
     t.only({"name", "addresses", "stiffness_diag", "stiffening", "ring_radius_mm", "tilt_deg",
-            "gap_mm", "load"})
+            "gap_mm", "load", "orientation", "tolerances"})
     addresses = t.get("addresses")
     if not isinstance(addresses, list) or len(addresses) != 8:
         raise t.fail("addresses", "8 chip addresses", addresses)
@@ -125,12 +167,29 @@ def _sensor(t: Table, index: int) -> SimSensor:
     stiffness = t.numbers("stiffness_diag", 6, list(PAPER_STIFFNESS_DIAG), unit="N/m x3, Nm/rad x3")
     if min(stiffness) <= 0:
         raise t.fail("stiffness_diag", "6 positive numbers (N/m x3, Nm/rad x3)", stiffness)
-    geometry = SensorGeometry.ring(radius_m=t.number("ring_radius_mm", 8.0, low=1e-3, unit="mm") * 1e-3,
-                                   tilt_deg=t.number("tilt_deg", 25.0, low=-90, high=90, unit="deg"),
-                                   gap_m=t.number("gap_mm", 6.0, low=1e-3, unit="mm") * 1e-3)
+    shape: dict[str, float] = {"radius_m": t.number("ring_radius_mm", 8.0, low=1e-3, unit="mm") * 1e-3,
+             "tilt_deg": t.number("tilt_deg", 25.0, low=-90, high=90, unit="deg"),
+             "gap_m": t.number("gap_mm", 6.0, low=1e-3, unit="mm") * 1e-3}
+    gains = None
+    if "tolerances" in t.doc:
+        tol = t.table("tolerances")
+        try:
+            geometry, gains = _tolerances(tol).build(**shape)
+        except ValueError as exc:
+            raise t.fail("tolerances", f"tolerances that build a sensor ({exc})", tol.doc) from exc
+    else:
+        geometry = SensorGeometry.ring(radius_m=shape["radius_m"], tilt_deg=shape["tilt_deg"], gap_m=shape["gap_m"])
     load = _load(t.table("load")) if "load" in t.doc else NO_LOAD
+    orientation: Orientation = IDENTITY
+    if "orientation" in t.doc:
+        if isinstance(load, CalibrationRobotLoad):
+            raise t.fail("orientation", 'no orientation with a load of kind "robot" (the robot turns the '
+                         "sensor through its poses)", t.get("orientation"))
+        orientation = _orientation(t.table("orientation"))
+    elif isinstance(load, CalibrationRobotLoad):
+        orientation = load  # the robot's poses turn the sensor
     return SimSensor(t.string("name", f"sensor{index + 1}"), addrs, geometry, np.diag(stiffness),
-                     t.number("stiffening", 0.0, low=0.0), load)
+                     t.number("stiffening", 0.0, low=0.0), load, orientation, gains)
 
 
 def _faults(doc: Table, addresses: tuple[int, ...]) -> list[Fault]:
@@ -175,7 +234,7 @@ def _static(doc: Table) -> StaticScene:
 
 def _physical(doc: Table) -> PhysicalScene:
     doc.only({"version", "kind", "field_model", "crosstalk", "temperature_c",
-              "temperature_drift_c_per_s", "sensor", "fault"})
+              "temperature_drift_c_per_s", "external_field_ut", "sensor", "fault"})
     sensors = [_sensor(t, i) for i, t in enumerate(doc.tables("sensor"))]
     seen: set[int] = set()
     for i, s in enumerate(sensors):
@@ -187,9 +246,24 @@ def _physical(doc: Table) -> PhysicalScene:
     scene = PhysicalScene(sensors, field_model=doc.string("field_model", "cylinder", choices=FIELD_MODELS),
                           crosstalk=doc.string("crosstalk", "dipole", choices=CROSSTALK_MODELS),
                           temperature_c=doc.number("temperature_c", 25.0, unit="degC"),
-                          temperature_drift_c_per_s=doc.number("temperature_drift_c_per_s", 0.0, unit="degC/s"))
+                          temperature_drift_c_per_s=doc.number("temperature_drift_c_per_s", 0.0, unit="degC/s"),
+                          external_field_t=_external_field(doc))
     scene.faults = _faults(doc, scene.addresses)
     return scene
+
+
+#: The strongest room field a scene may hold (uT): 5 mT is 100 times the Earth's and
+#: a tenth of where a chip saturates; more is a unit mistake (mT or T written as uT
+#: gives a field far smaller, nT far larger) or a magnet on the bench, not a room.
+EXTERNAL_FIELD_MAX_UT = 5000.0
+
+
+def _external_field(doc: Table) -> np.ndarray:
+    field_ut = np.array(doc.numbers("external_field_ut", 3, [0.0, 0.0, 0.0], unit="uT, world frame, z up"))
+    if np.linalg.norm(field_ut) > EXTERNAL_FIELD_MAX_UT:
+        raise doc.fail("external_field_ut", f"a room's field, |B| <= {EXTERNAL_FIELD_MAX_UT:g} uT (the Earth's "
+                       "is 25-65 uT)", field_ut.tolist())
+    return field_ut * 1e-6
 
 
 def load_scene(path: str | Path) -> StaticScene | PhysicalScene:

@@ -1,0 +1,167 @@
+"""``ftsensord doctor``: bring a board up, and say what it can do.
+
+`doctor` opens a bus (taking its lock: it refuses a bus a running daemon holds
+unless forced), names the adapter and what it accepts in one ioctl, the
+configured and the measured clock and the cost of one ioctl (`board`), finds
+the chips (`scan`) and counts errors over a few hundred register reads each,
+then per scheduler computes the bound for the chips found and runs a short
+while at the fastest rate the bound allows, measuring the rate achieved. It
+returns a plain dict (JSON as it is).
+
+It disturbs the chips (EX, reconfiguration, modes): never on a bus a daemon
+is using. On the simulated bus the run goes on the simulator's own clock
+(virtual by default: instant and repeatable; ``real_time`` spends real time,
+host CPU included).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from ..chip import mlx90393 as mlx
+from ..chip.driver import MLX90393
+from ..chip.i2c import Bus
+from ..errors import ChipError
+from .board import know_board
+from .bound import SCHEDULERS, Shapes, burst_readback_stays_fresh, cycle_bound
+from .bus import open_bus, parse_bus
+from .reader import Reader, probe_shapes
+from .scan import scan
+
+#: Register reads per chip to count errors over (CONF1..CONF3 in turn).
+ERROR_READS = 300
+#: Cycles of the short run per scheduler (after a few to settle).
+RUN_CYCLES = 200
+SETTLE_CYCLES = 5
+
+
+def _register_errors(bus: Bus, address: int, expected: dict[int, int], reads: int) -> dict[str, int]:
+    """Read CONF1..CONF3 ``reads`` times in all; count what went wrong."""
+    chip = MLX90393(bus, address, sleep=bus.sleep)
+    regs = sorted(expected)
+    counts = {"reads": reads, "no_answer": 0, "refused_or_bad_reply": 0, "wrong_value": 0}
+    for k in range(reads):
+        reg = regs[k % len(regs)]
+        try:
+            if chip.read_register(reg) != expected[reg]:
+                counts["wrong_value"] += 1
+        except ChipError as exc:
+            counts["no_answer" if getattr(exc, "errno", None) is not None else "refused_or_bad_reply"] += 1
+    return counts
+
+
+def _short_run(bus: Bus, addresses: list[int], scheduler: str, settings: mlx.Settings, bus_hz: float,
+               overhead_s: float, adapter: str | None, cycles: int) -> dict[str, Any]:
+    """Run ``scheduler`` at its bound's rate for ``cycles``; the measured rate and errors."""
+    probe = cycle_bound(scheduler, len(addresses), settings, bus_hz, overhead_s, adapter=adapter)
+    readback_every = 1
+    if scheduler == "burst" and not burst_readback_stays_fresh(probe, settings, probe.rate_hz):
+        readback_every = 100  # as the daemon does: a burst read back every cycle would go stale
+    bound = cycle_bound(scheduler, len(addresses), settings, bus_hz, overhead_s, readback=readback_every > 0,
+                        adapter=adapter)
+    chips = [MLX90393(bus, a, sleep=bus.sleep) for a in addresses]
+    reader = Reader(bus, chips, scheduler, settings, bus_hz, overhead_s, readback_every=readback_every)
+    failed = reader.start()
+    period = bound.cycle_s
+    errors = 0
+    refused0 = getattr(bus, "refused", None)
+    t_first = None
+    next_at = bus.monotonic()
+    for k in range(SETTLE_CYCLES + cycles + 1):
+        bus.sleep(max(0.0, next_at - bus.monotonic()))
+        if k == SETTLE_CYCLES:
+            t_first = bus.monotonic()
+        if k == SETTLE_CYCLES + cycles:
+            break
+        next_at = max(next_at + period, bus.monotonic())  # late: start again from now, never catch up
+        results = reader.read()
+        if k >= SETTLE_CYCLES:
+            errors += sum(not r.ok for r in results)
+    assert t_first is not None
+    elapsed = bus.monotonic() - t_first
+    reader.stop()
+    out: dict[str, Any] = {
+        "bound_hz": bound.rate_hz, "bound": bound.describe(), "ioctls_per_cycle": bound.ioctls,
+        "measured_hz": cycles / elapsed if elapsed > 0 else math.inf, "cycles": cycles,
+        "chip_errors": errors, "start_failures": {f"0x{a:02X}": str(e) for a, e in failed.items()},
+    }
+    if refused0 is not None:  # the simulated bus counts what its adapter refused
+        out["refused_ioctls"] = bus.refused - refused0  # type: ignore[attr-defined]
+    return out
+
+
+def doctor(spec: str, schedulers: tuple[str, ...] = SCHEDULERS, *, bus_hz: float = 400e3, force: bool = False,
+           settings: mlx.Settings | None = None, error_reads: int = ERROR_READS, cycles: int = RUN_CYCLES,
+           real_time: bool = False) -> dict[str, Any]:
+    """Everything `ftsensord doctor` reports, as a plain dict (see the module's doc).
+
+    ``bus_hz`` is the clock ftsensord would be configured with (Hz); ``force``
+    goes on when another process holds the bus. Raises `BusBusyError` (held
+    and not forced), `ConfigError` (a bad spec), ``OSError`` (no device).
+    """
+    settings = settings or mlx.Settings()
+    options: dict[str, object] = {}
+    if parse_bus(spec).kind == "sim":
+        from ..sim import MonotonicClock, VirtualClock
+        options = {"clock": MonotonicClock() if real_time else VirtualClock(), "bus_hz": bus_hz}
+    bus = open_bus(spec, exclusive=True, force=force, **options)
+    try:
+        reports = scan(bus, settings)
+        addresses = [r.address for r in reports]
+        board = know_board(bus, addresses[0] if addresses else None, bus_hz)
+        timing = board.timing
+        clock_hz = timing.clock_hz or bus_hz
+        ioctl_s = timing.ioctl_s if timing.ioctl_s is not None else 0.0
+        shapes = probe_shapes(bus, [MLX90393(bus, a, sleep=bus.sleep) for a in addresses]) if addresses else None
+        chips = []
+        for r in reports:
+            entry = r.as_dict()
+            chip = MLX90393(bus, r.address, sleep=bus.sleep)
+            try:
+                expected = chip.read_configuration()
+                entry["errors"] = _register_errors(bus, r.address, expected, error_reads)
+            except ChipError as exc:
+                entry["errors"] = {"reads": 0, "failed": str(exc)}
+            chips.append(entry)
+        runs = {s: _short_run(bus, addresses, s, settings, clock_hz, ioctl_s, board.adapter, cycles)
+                for s in schedulers} if addresses else {}
+    finally:
+        bus.close()
+    return {
+        "bus": spec, "adapter": board.adapter, "driver": board.driver,
+        "accepts": None if shapes is None else {
+            "read_not_last": shapes.reads_inside, "several_addresses": shapes.many_addresses,
+            "transfers": shapes.describe()},
+        "rules_counted": (shapes or Shapes.of(board.adapter)).describe(),
+        "configured_clock_hz": board.configured_hz, "wanted_clock_hz": bus_hz,
+        "clock_hz": clock_hz, "clock_measured": timing.clock_hz is not None,
+        "ioctl_us": ioctl_s * 1e6, "warnings": board.warnings,
+        "clock": "virtual" if options and not real_time else "real",
+        "chips": chips, "schedulers": runs,
+    }
+
+
+def format_doctor(report: dict[str, Any]) -> str:
+    """The report as text for a person at a terminal."""
+    lines = [f"bus {report['bus']}: adapter {report['adapter'] or 'unknown'} (driver {report['driver'] or '?'})"]
+    accepts = report["accepts"]
+    lines.append(f"  one ioctl takes: {accepts['transfers'] if accepts else 'not probed (no chip answered)'}")
+    measured = "measured" if report["clock_measured"] else "not measured, configured"
+    configured = report["configured_clock_hz"]
+    lines.append(f"  clock {report['clock_hz'] / 1e3:.1f} kHz ({measured}); kernel's "
+                 f"{'unknown' if configured is None else f'{configured / 1e3:.0f} kHz'}; "
+                 f"ioctl {report['ioctl_us']:.0f} us")
+    lines += [f"  WARNING: {w}" for w in report["warnings"]]
+    for c in report["chips"]:
+        errors = c["errors"]
+        bad = sum(v for k, v in errors.items() if k not in ("reads", "failed") and isinstance(v, int))
+        lines.append(f"  {c['address']} {c['part']}: B = {c['field_ut']} uT, T = {c['temperature_c']} degC, "
+                     f"{bad} errors in {errors.get('reads', 0)} register reads"
+                     + (f"; {c['error']}" if c["error"] else ""))
+    for name, run in report["schedulers"].items():
+        lines.append(f"  {name}: bound {run['bound_hz']:.1f} Hz, measured {run['measured_hz']:.1f} Hz at it "
+                     f"({run['cycles']} cycles, {run['chip_errors']} chip errors)")
+    if not report["chips"]:
+        lines.append("  no MLX90393 answered (0x0C-0x1B)")
+    return "\n".join(lines)

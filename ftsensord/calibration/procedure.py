@@ -1,0 +1,78 @@
+"""The calibration procedure end to end: a simulated run of the paper's plan, and the fits
+that turn a dataset into a `Calibration` (what `ftsensord dataset` and `calibrate` do)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import ConfigError
+from ..model.geometry import SensorGeometry
+from ..sim import PhysicalScene, default_scene, load_scene, simulated_bus
+from ..sim.loads import paper_plan
+from .calfile import Calibration
+from .dataset import Dataset
+from .fit import AXES, CalibrationResult, fit
+from .nlfit import fit_nonlinear, nonlinear_rmse
+from .report import format_rmse
+from .rig import record_dataset, simulate_sweeps, simulated_robot
+
+
+def simulate_dataset(scene_path: str | Path | None, sensor_name: str, plan: str, *, poses: int,
+                     validation_poses: int, samples: int, seed: int, sweeps: bool = True) -> Dataset:
+    """Run the paper's calibration procedure (section VII-B) on a simulated sensor of a
+    scene (None: the default scene): each pose's wrench applied, ``samples`` readings
+    averaged; with ``sweeps``, each chip's position-map sweep too."""
+    scene = load_scene(scene_path) if scene_path else default_scene()
+    if not isinstance(scene, PhysicalScene):
+        raise ConfigError(f"{scene_path}: a calibration dataset needs a scene of kind \"sensors\"")
+    names = [s.name for s in scene.sensors]
+    if sensor_name not in names:
+        raise ConfigError(f"--sensor {sensor_name!r}: the scene's sensors are {', '.join(names)}")
+    sensor = next(s for s in scene.sensors if s.name == sensor_name)
+    bus = simulated_bus(scene, seed=seed)
+    dataset = record_dataset(bus, sensor.addresses, paper_plan(plan, n_fit=poses, n_validation=validation_poses),
+                             **simulated_robot(scene, sensor.name), samples=samples,
+                             serial=f"sim-{sensor.name}",
+                             source=f"simulated: scene {scene_path or 'default'}, sensor {sensor.name}, "
+                                    f"plan {plan}, seed {seed}")
+    if sweeps:
+        dataset.sweeps = simulate_sweeps(sensor.addresses, SensorGeometry.ring(), field_model=scene.field_model,
+                                         samples=samples, rng=np.random.default_rng(seed))
+    return dataset
+
+
+def calibrate(dataset: Dataset, *, serial: str | None = None, frame: str = "sensor",
+              nonlinear: bool = True) -> tuple[Calibration, CalibrationResult]:
+    """The linear fit (and, with ``nonlinear``, the flux model's) of ``dataset``, as a
+    calibration file's content; its report holds the validation RMSE of each."""
+    result = fit(dataset)
+    report = result.report
+    nl = None
+    if nonlinear:
+        nl = fit_nonlinear(dataset)
+        validation = dataset.select(dataset.split == "validation")
+        report["nonlinear"] = {"gap_mm": nl.gap_m * 1e3, "fit_rms_residual_ut": nl.fit_rms_residual_t * 1e6,
+                               "validation_rmse": (dict(zip(AXES, nonlinear_rmse(nl, validation).tolist()))
+                                                   if len(validation) else None)}
+    cal = Calibration(result.model, dataset.addresses, serial or dataset.serial, frame, result.position_map,
+                      report, nl, result.wrench_range)
+    return cal, result
+
+
+def summary(cal: Calibration) -> str:
+    """What `ftsensord calibrate` prints: poses used, RMSE per axis, singular values of K A."""
+    report = cal.report
+    sv, iso = report["singular_values_ka"], report["isotropy"]
+    lines = [f"fit on {report['fit_poses']} poses ({report['left_out_saturated']} left out: saturated), "
+             f"validated on {report['validation_poses']}"]
+    if report["validation_rmse"]:
+        lines.append("validation RMSE: " + format_rmse(report["validation_rmse"]))
+    lines.append("fit RMSE:        " + format_rmse(report["fit_rmse"]))
+    if cal.nonlinear is not None and report["nonlinear"]["validation_rmse"]:
+        lines.append(f"nonlinear (gap {cal.nonlinear.gap_m * 1e3:.2f} mm) validation RMSE: "
+                     + format_rmse(report["nonlinear"]["validation_rmse"]))
+    lines.append(f"sigma(KA): forces {sv['forces'][0]:.3g}..{sv['forces'][-1]:.3g} N/uT (isotropy {iso['forces']:.2f}), "
+                 f"torques {sv['torques'][0]:.3g}..{sv['torques'][-1]:.3g} Nm/uT (isotropy {iso['torques']:.2f})")
+    return "\n".join(lines)

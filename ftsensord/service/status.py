@@ -1,0 +1,96 @@
+"""What the daemon tells an operator: per-chip counters, the status reply and its one-line summary.
+
+The keys of the `status` reply are documented in docs/protocol.md.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from ..acquire.health import ChipHealth, ChipResult
+from ..errors import ChipError, ChipRefusedError
+
+
+@dataclass
+class ChipStats:
+    sensor: str
+    ok: bool = True
+    errors: int = 0
+    saturated: int = 0
+    stale: int = 0
+    last_error: str | None = None
+    temperature_c: float | None = None
+
+
+class ChipLedger:
+    """Counts, per chip, what its results were since the daemon started."""
+
+    def __init__(self, sensors: dict[str, tuple[int, ...]]):
+        self.chips = {a: ChipStats(name) for name, addresses in sensors.items() for a in addresses}
+
+    def failed_to_start(self, address: int, exc: ChipError) -> None:
+        stats = self.chips[address]
+        stats.ok, stats.errors, stats.last_error = False, stats.errors + 1, str(exc)
+
+    def count(self, r: ChipResult) -> None:
+        stats = self.chips[r.address]
+        m = r.measurement
+        if m is not None:
+            stats.ok = True
+            stats.saturated += m.any_saturated
+            if m.temperature_c is not None:
+                stats.temperature_c = round(m.temperature_c, 2)
+            return
+        stats.errors += 1
+        stats.last_error = str(r.error)
+        if isinstance(r.error, ChipRefusedError) and r.error.command == "RM":
+            stats.stale += 1
+        else:
+            stats.ok = False
+
+    @property
+    def failing(self) -> int:
+        return sum(not c.ok for c in self.chips.values())
+
+    def report(self, health: dict[int, ChipHealth], now: float) -> dict[str, Any]:
+        """Every chip's counters and its reader's view (state, retry, resets), keyed "0x0C"."""
+        out = {}
+        for address, stats in self.chips.items():
+            h = health[address]
+            retry = max(0.0, h.retry_at - now) if h.failing else None
+            out[f"0x{address:02X}"] = {
+                **vars(stats), "state": "resetting" if h.step else "failing" if h.failing else "ok",
+                "retry_in_s": retry, "reinits": h.reinits, "register_drifts": h.register_drifts,
+                "stuck_detections": h.stuck_detections}
+        return out
+
+def describe(status: dict[str, Any]) -> str:
+    """A `status` reply as the text `ftsensord status` prints: rate against bound, jitter,
+    cycle time, smoothing, sensors, and the chips that are not well."""
+    out: list[str] = []
+    jitter = status["jitter_us"]
+    rate = status["achieved_rate_hz"]
+    out.append(f"ftsensord {status['version']}, up {status['uptime_s']:.0f} s, bus {status['bus']}, "
+               f"scheduler {status['scheduler']}")
+    out.append(f"rate: {rate:.2f} Hz achieved of {status['rate_hz']:g} Hz configured" if rate else
+               f"rate: - of {status['rate_hz']:g} Hz configured")
+    out.append(f"bound: {status['bound']}")
+    out.append(f"cycles {status['cycles']}, missed {status['missed_cycles']}, late {status['late_cycles']}; "
+               f"jitter p50 {jitter['p50']:.0f} us, p99 {jitter['p99']:.0f} us")
+    cycle = status["cycle_us"]
+    out.append(f"cycle p50 {cycle['p50']:.0f} us, p99 {cycle['p99']:.0f} us, max {cycle['max']:.0f} us "
+               f"of a {status['period_us']:.0f} us period")
+    out.append(f"averaging {status['averaging']}, low-pass {status['lowpass_hz'] or 'off'}")
+    for name, s in status["sensors"].items():
+        tare = "tared, offset " + " ".join(f"{v:+.4g}" for v in s["tare_wrench"]) if s["tared"] else "not tared"
+        out.append(f"sensor {name}: frame {s['frame']}, serial {s['serial']}, {tare}; calibration {s['calibration']}")
+    bad = {a: c for a, c in status["chips"].items() if not c["ok"] or c["errors"] or c["reinits"]}
+    temps = [c["temperature_c"] for c in status["chips"].values() if c["temperature_c"] is not None]
+    out.append(f"chips: {len(status['chips'])}, failing {sum(not c['ok'] for c in status['chips'].values())}"
+               + (f", {min(temps):.1f}-{max(temps):.1f} degC" if temps else ""))
+    for address, c in bad.items():
+        retry = f", retry in {c['retry_in_s']:.2f} s" if c["retry_in_s"] is not None else ""
+        out.append(f"  {address}: {c['state'].upper()}{retry}, {c['errors']} errors, {c['reinits']} resets, "
+              f"{c['register_drifts']} register changes, {c['stuck_detections']} stuck; last: {c['last_error']}")
+    return "\n".join(out)

@@ -1,0 +1,207 @@
+"""Plausibility at the door: flux no chip can read, a stiffness that is none, sweeps
+that cannot give a position map, saturated chips named, room data that is not a
+uniform field, and nonlinear fits that are off refused with their figure."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from ftsensord.calibration.calfile import Calibration, checksum
+from ftsensord.calibration.dataset import Dataset, Sweep
+from ftsensord.calibration.fit import fit
+from ftsensord.calibration.nlfit import GAP_EVALUATIONS, GAP_RANGE_M, fit_nonlinear
+from ftsensord.calibration.report import write_report
+from ftsensord.calibration.rig import record_dataset, simulate_sweeps, simulated_robot
+from ftsensord.errors import CalibrationError
+from ftsensord.model.geometry import SensorGeometry
+from ftsensord.sim import VirtualClock, simulated_bus
+from ftsensord.sim.loads import CalibrationPose, paper_plan
+from ftsensord.sim.physics import PhysicalScene, SimSensor
+
+from .conftest import assert_names_file_and_key
+
+ADDRS = tuple(range(0x0C, 0x14))
+EARTH_T = np.array([22.3, 1.4, -42.6]) * 1e-6
+
+
+def run(field_t: np.ndarray, plan=None, seed: int = 3) -> Dataset:
+    s = SimSensor("s", ADDRS)
+    scene = PhysicalScene([s], external_field_t=field_t)
+    bus = simulated_bus(scene, clock=VirtualClock(), seed=seed)
+    ds = record_dataset(bus, ADDRS, plan or paper_plan(n_fit=60, n_validation=20, n_no_load=12), samples=4,
+                        **simulated_robot(scene, "s"))
+    ds.sweeps = simulate_sweeps(ADDRS, SensorGeometry.ring(), samples=4)
+    return ds
+
+
+@pytest.fixture(scope="module")
+def clean() -> Dataset:
+    return run(np.zeros(3))
+
+
+@pytest.fixture(scope="module")
+def room() -> Dataset:
+    return run(EARTH_T)
+
+
+def copy(ds: Dataset, **changes) -> Dataset:
+    return Dataset(**{**ds.__dict__, **changes})
+
+
+# --- flux a chip cannot read -----------------------------------------------------------------
+@pytest.mark.parametrize(("factor", "unit"), [(1e3, "written in mT (x 0.001)"), (1e4, "gauss (x 0.0001)"),
+                                            (1e6, "written in uT (x 1e-06)")])
+def test_flux_in_the_wrong_unit_is_refused_at_load_naming_the_unit(clean, tmp_path, factor, unit):
+    path = tmp_path / "ds.json"
+    copy(clean, flux_t=clean.flux_t * factor).save(path)
+    assert_names_file_and_key(Dataset.load, path, "poses[0].flux_t", unit)
+
+
+def test_flux_beyond_the_hall_elements_range_is_refused_by_the_fit_naming_the_chip(clean):
+    bad = copy(clean, flux_t=clean.flux_t.copy())
+    bad.flux_t[7, 3 * 2 + 1] = 0.0612  # 61 mT on chip 3's y: past the 50 mT the element saturates at
+    with pytest.raises(CalibrationError, match=r"poses\[7\].flux_t: chip 0x0E \(y\) reads 0.0612: .*50 mT"):
+        fit(bad)
+
+
+def test_a_saturated_chips_clipped_values_are_not_judged(clean, tmp_path):
+    ds = copy(clean, flux_t=clean.flux_t.copy(), saturated=clean.saturated.copy())
+    ds.flux_t[3, 0:3] = 0.07  # whatever a clipped chip reports: left out, not a reading
+    ds.saturated[3, 0] = True
+    path = tmp_path / "ds.json"
+    ds.save(path)
+    assert Dataset.load(path).saturated[3, 0]
+    assert fit(ds).report["left_out_saturated"] == 1
+
+
+def test_a_saturated_chip_that_leaves_too_few_poses_is_named(clean):
+    ds = copy(clean, saturated=clean.saturated.copy())
+    fit_rows = np.flatnonzero(ds.split == "fit")
+    ds.saturated[fit_rows[:40], 3] = True
+    with pytest.raises(CalibrationError, match=r"20 usable fit poses.*40 left out for saturation: chip 0x0F in 40"):
+        fit(ds)
+
+
+# --- a stiffness that is no stiffness ---------------------------------------------------------------
+def test_a_k_that_is_not_positive_definite_is_refused_by_the_fit(clean):
+    flipped = copy(clean, wrench=-clean.wrench)  # wrenches recorded with the wrong sign
+    with pytest.raises(CalibrationError, match="K is not positive definite"):
+        fit(flipped)
+
+
+def test_a_calibration_file_with_a_k_not_positive_definite_names_file_and_key(clean, tmp_path):
+    result = fit(clean)
+    doc = Calibration(result.model, ADDRS, "SN-1").document()
+    doc["K"] = (-np.array(doc["K"])).tolist()  # rank 6 still: only positive definiteness catches it
+    doc["checksum"] = checksum(doc)
+    path = tmp_path / "cal.json"
+    path.write_text(json.dumps(doc))
+    assert_names_file_and_key(Calibration.load, path, "K", "positive definite")
+
+
+def test_a_nonlinear_k_not_positive_definite_is_refused_on_load(clean, tmp_path):
+    result = fit(clean)
+    doc = Calibration(result.model, ADDRS, "SN-1").document()
+    doc["nonlinear"] = {"gap_m": 6e-3, "ring_radius_m": 8e-3, "tilt_deg": 25.0, "scale": np.ones((8, 3)).tolist(),
+                        "offset_t": np.zeros((8, 3)).tolist(), "K": np.diag([1e4, 1e4, 1e4, 10, 10, -10.0]).tolist(),
+                        "zero_twist": [0.0] * 6, "fit_rms_residual_t": 1e-6}
+    doc["checksum"] = checksum(doc)
+    path = tmp_path / "cal.json"
+    path.write_text(json.dumps(doc))
+    assert_names_file_and_key(Calibration.load, path, "nonlinear.K", "positive definite")
+
+
+# --- sweeps that cannot give a position map ---------------------------------------------------------
+def test_a_rank_deficient_sweep_names_the_chip_and_the_file(clean, tmp_path):
+    sweep = clean.sweeps[0x0E]
+    along_x = np.abs(sweep.position_m[:, 1] - sweep.position_m[0, 1]) + np.abs(sweep.position_m[:, 2]
+                                                                             - sweep.position_m[0, 2]) < 1e-12
+    flat = copy(clean, sweeps={**clean.sweeps, 0x0E: Sweep(sweep.position_m[along_x], sweep.flux_t[along_x])})
+    path = tmp_path / "ds.json"
+    flat.save(path)
+    with pytest.raises(CalibrationError) as exc:
+        fit(Dataset.load(path))
+    msg = str(exc.value)
+    assert str(path) in msg and "position_sweeps.0x0E" in msg and "position rank < 3" in msg, msg
+
+
+# --- orientations and no-load poses --------------------------------------------------------------------
+def test_orientations_round_trip_and_a_wrong_one_names_the_pose(room, tmp_path):
+    path = tmp_path / "ds.json"
+    room.save(path)
+    back = Dataset.load(path)
+    assert np.array_equal(back.rotation, room.rotation) and back.path == str(path)
+    doc = json.loads(path.read_text())
+    doc["poses"][5]["rotation"] = np.eye(3).tolist()  # gravity straight down: not pose 5's
+    path.write_text(json.dumps(doc))
+    assert_names_file_and_key(Dataset.load, path, "poses[5].rotation", "R^T (0, 0, -1) = gravity_dir")
+    del doc["poses"][5]["rotation"]
+    path.write_text(json.dumps(doc))
+    assert_names_file_and_key(Dataset.load, path, "poses[5].rotation", "in every pose or in none")
+
+
+def test_no_load_poses_with_the_rod_left_on_are_refused():
+    """The rod's weight turns with the sensor: its deflection adds directions no uniform
+    field makes, and projecting them out would remove the loads' own signal."""
+    plan = paper_plan(n_fit=60, n_validation=0, n_no_load=12)
+    rod_on = [(CalibrationPose(p.gravity_dir, 0.05, np.array([0.0, 0.0, 0.1]), p.rotation), split)
+              if split == "no-load" else (p, split) for p, split in plan]
+    ds = run(EARTH_T, rod_on)
+    with pytest.raises(CalibrationError, match="more than 3 flux directions.*rod and mass off"):
+        fit(ds)
+
+
+def test_measuring_the_room_needs_enough_no_load_poses(room):
+    few = room.select(np.flatnonzero(room.split != "no-load").tolist() + np.flatnonzero(room.split == "no-load")[:3]
+                      .tolist())
+    with pytest.raises(CalibrationError, match="3 unsaturated no-load poses.*at least 6"):
+        fit(few, room_field="measured")
+    # "auto" with too few: no rejection; the corrupted K is refused, and the refusal names the room.
+    with pytest.raises(CalibrationError, match="room's field was not rejected.*not positive definite"):
+        fit(few)
+    assert fit(few, room_field="geometry").report["room_field"]["mode"] == "geometry"
+
+
+# --- the nonlinear fit: progress and refusal ----------------------------------------------------------------
+def test_the_nonlinear_fit_reports_progress_and_keeps_a_right_fit(clean):
+    steps = []
+    cal = fit_nonlinear(clean, progress=steps.append)
+    assert [p.step for p in steps] == list(range(1, GAP_EVALUATIONS + 1))
+    assert all(p.steps == GAP_EVALUATIONS and GAP_RANGE_M[0] < p.gap_m < GAP_RANGE_M[1] for p in steps)
+    assert min(p.rms_residual_t for p in steps) == cal.fit_rms_residual_t
+    assert steps[-1].elapsed_s >= steps[0].elapsed_s and cal.warnings == ()
+
+
+def test_a_nonlinear_fit_fooled_by_the_room_is_refused_naming_its_figures(room):
+    """The nonlinear model has no room field yet: in the Earth's field its gap runs to the
+    search bound, its residual is ~20 uT against 1.5 uT of noise, and its K is no stiffness."""
+    with pytest.raises(CalibrationError) as exc:
+        fit_nonlinear(room, allow_poor_fit=True)  # a K that is no stiffness is never kept
+    msg = str(exc.value)
+    assert "K is not positive definite" in msg
+    assert "gap landed on its search bound" in msg and "bound 4.5 mm" in msg
+    assert "fit residual is" in msg and "above the 15 uT" in msg
+
+
+def test_a_poor_fit_kept_on_request_carries_its_warnings_into_file_and_report(clean, tmp_path):
+    """A chip reading 60 uT of garbage on top of its flux: refused for its residual; kept on
+    request, the warning travels in the calibration file and heads the report."""
+    bad = copy(clean, flux_t=clean.flux_t.copy())
+    bad.flux_t[:, 12:15] += np.random.default_rng(0).normal(0, 60e-6, (len(bad), 3))
+    with pytest.raises(CalibrationError, match=r"fit residual is [\d.]+ uT RMS, above the 15 uT"):
+        fit_nonlinear(bad)
+    nl = fit_nonlinear(bad, allow_poor_fit=True)
+    assert len(nl.warnings) == 1 and "residual" in nl.warnings[0]
+    result = fit(clean)
+    report = {**result.report, "nonlinear": {"warnings": list(nl.warnings)}}
+    path = tmp_path / "cal.json"
+    Calibration(result.model, ADDRS, "SN-1", report=report, nonlinear=nl).save(path)
+    assert Calibration.load(path).nonlinear.warnings == nl.warnings
+    md = tmp_path / "report.md"
+    write_report(md, result.model, report, clean.select(clean.split == "validation"), "test")
+    text = md.read_text()
+    assert "WARNING: the nonlinear calibration was kept against its refusal" in text
+    assert "the fit residual is" in text and "room field: geometry directions projected out" in text
