@@ -4,7 +4,7 @@ For chip settings (OSR, DIG_FILT across the permitted range), averaging windows,
 schedulers and estimators:
 
 - the computed bound on the rate, and the rate achieved in real time on the configured bus
-  (`ftsensord.schedule.Reader` cycling at its bound; the simulated bus spends real wire time);
+  (`ftsensord.acquire.reader.Reader` cycling at its bound; the simulated bus spends real wire time);
 - wrench noise at rest (RMS) and, on the simulated bus, accuracy against the scene's truth
   (RMSE) at small loads (<= 2 N, 0.02 Nm), inside the calibration's range (the paper's poses'
   loads) and at large loads (|F| 10 to 50 N, torques to 0.2 Nm), on a virtual clock (the
@@ -29,7 +29,6 @@ The plot needs the `plot` extra.
 from __future__ import annotations
 
 import argparse
-import ctypes
 import os
 import platform
 import signal
@@ -63,9 +62,11 @@ from ftsensord.sim import (
     default_scene,
     load_scene,
     simulated_bus,
-    two_sensor_scene,
 )
 from ftsensord.sim.loads import StaticLoad, paper_plan
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from cycle_cpu import InstantBus  # noqa: E402  (a sibling script: one stand-in bus for both)
 
 DOCS = Path(__file__).resolve().parent.parent / "docs"
 ADDRESSES = list(range(0x0C, 0x1C))  # the instant bus's chips: the default scene's
@@ -205,57 +206,6 @@ def accuracy(config: Config, settings: mlx.Settings, averaging: int, n_loads: in
     return rows
 
 
-class InstantBus:
-    """Answers like 16 healthy chips at once, with the default scene's flux at rest plus a
-    little noise: what the daemon itself costs, without the simulator."""
-
-    def __init__(self, settings: mlx.Settings):
-        self.regs = settings.to_registers()
-        scene = two_sensor_scene()
-        words = {a: [mlx.counts_to_raw(round(b * 1e6 / settings.sensitivity_ut(ax)), settings.raw_format(ax))
-                     for b, ax in zip(scene.field_t(a, 0.0), "xyz")] for a in ADDRESSES}
-        rng = np.random.default_rng(0)
-        # Eight precomputed readings a chip, an LSB of noise apart: a fake bus must cost nothing.
-        self.replies = {}
-        for a in ADDRESSES:
-            for k in range(8):
-                data = b"".join((w + int(rng.integers(-1, 2))).to_bytes(2, "big") for w in words[a])
-                self.replies[(a, k, 7)] = bytes([0x02]) + data
-                self.replies[(a, k, 9)] = bytes([0x03]) + (46244).to_bytes(2, "big") + data
-        self.k = 0
-
-    def i2c_rdwr(self, *msgs) -> None:
-        command, address = b"", 0
-        for m in msgs:
-            if m.flags & 1:
-                reply = self._reply(address, command, m.len)
-                ctypes.memmove(m.buf, reply, m.len)
-            else:
-                command, address = bytes(m), m.addr
-
-    def _reply(self, address: int, command: bytes, n: int) -> bytes:
-        op = command[0] & 0xF0
-        if op == mlx.CMD_RM:
-            self.k += 1
-            return self.replies[(address, self.k % 8, n)]
-        if op == mlx.CMD_RR:
-            reg = command[1] >> 2
-            value = self.regs.get(reg, mlx.TREF_TYPICAL if reg == mlx.REG_TREF else 0)
-            return b"\x00" + value.to_bytes(2, "big")
-        if op == mlx.CMD_RT:
-            return b"\x04"
-        return b"\x20" if op == mlx.CMD_SM else b"\x80" if op == mlx.CMD_SB else b"\x00"
-
-    def sleep(self, s: float) -> None:
-        pass
-
-    def monotonic(self) -> float:
-        return time.monotonic()
-
-    def close(self) -> None:
-        pass
-
-
 def daemon_cpu_us(estimator: str, cycles: int) -> float:
     """CPU time (us) of one daemon cycle: 16 chips, two sensors, tip, publish."""
     with tempfile.TemporaryDirectory() as tmp:
@@ -265,7 +215,7 @@ def daemon_cpu_us(estimator: str, cycles: int) -> float:
         ctx = zmq.Context()
         pub = ctx.socket(zmq.PUB)
         pub.bind(f"ipc://{tmp}/pub")
-        daemon = Daemon(config, InstantBus(config.settings), pub, None)
+        daemon = Daemon(config, InstantBus(config), pub, None)
         daemon.start()
         for _ in range(20):
             daemon.cycle()

@@ -15,7 +15,9 @@ imports only from its own floor or those below (tests/test_layout.py checks it):
    calibration file, the report.
 7. `service`: configuration, the loop, the per-sensor pipeline, tare, control,
    status, the wire format, sockets, sd_notify.
-8. `client`, `cli`: what a user runs and imports.
+8. `client`: subscribing to the streams, sending control requests.
+9. `recording`, `plot`: streams to CSV, NPZ or MCAP files; live plots.
+10. `cli`: the `ftsensord` command.
 
 The names below are the public face; they are imported on first use, so
 ``import ftsensord`` stays cheap and pulls in no floor it does not need.

@@ -10,19 +10,17 @@ import json
 import sys
 from collections.abc import Sequence
 
-import numpy as np
-
 from . import __version__
 from .acquire.bus import ACCEPTED_FORMS, open_bus
 from .acquire.scan import format_table, scan
 from .errors import ConfigError, DaemonNotAnswering, FtsensordError
-from .service.status import describe
 from .service.config import ESTIMATORS
+from .service.status import describe
 from .sim.loads import PLANS
 
 
 def cmd_scan(args: argparse.Namespace) -> int:
-    bus = open_bus(args.bus)
+    bus = open_bus(args.bus, exclusive=True, force=args.force)  # it reconfigures chips: never under a daemon
     try:
         reports = scan(bus)
     finally:
@@ -55,7 +53,7 @@ def cmd_dataset(args: argparse.Namespace) -> int:
 
     dataset = simulate_dataset(args.scene, args.sensor, args.plan, poses=args.poses,
                                validation_poses=args.validation_poses, samples=args.samples, seed=args.seed,
-                               sweeps=not args.no_sweep)
+                               sweeps=not args.no_sweep, no_load_poses=args.no_load_poses)
     dataset.save(args.output)
     print(f"wrote {args.output}: {len(dataset)} poses ({args.plan}), {args.samples} samples each, "
           f"{int(dataset.saturated.any(axis=1).sum())} with a saturated chip")
@@ -64,11 +62,27 @@ def cmd_dataset(args: argparse.Namespace) -> int:
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from .calibration.dataset import Dataset
+    from .calibration.nlfit import FitProgress
     from .calibration.procedure import calibrate, summary
     from .calibration.report import write_report
+    from .errors import CalibrationError
 
     dataset = Dataset.load(args.dataset)
-    cal, result = calibrate(dataset, serial=args.serial, frame=args.frame, nonlinear=not args.linear_only)
+
+    def progress(p: FitProgress) -> None:
+        print(f"nonlinear fit: iteration {p.step}/{p.steps}, residual {p.rms_residual_t * 1e6:.2f} uT RMS, "
+              f"{p.elapsed_s:.1f} s", file=sys.stderr, flush=True)
+
+    try:
+        cal, result = calibrate(dataset, serial=args.serial, frame=args.frame, nonlinear=not args.linear_only,
+                                progress=progress, allow_poor_fit=args.allow_poor_fit)
+    except CalibrationError as exc:
+        if "nonlinear fit is refused" not in str(exc):
+            raise
+        # Nothing is written: the user chooses between the linear part alone and a poor fit.
+        raise CalibrationError(f"{exc}\nNo file written. To write the linear calibration alone: "
+                               f"ftsensord calibrate {args.dataset} -o {args.output} --linear-only; to keep "
+                               "this nonlinear fit with its warnings: add --allow-poor-fit") from exc
     cal.save(args.output)
     print(summary(cal))
     print(f"wrote {args.output}")
@@ -114,6 +128,14 @@ def cmd_tare(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_untare(args: argparse.Namespace) -> int:
+    result = _control(args).untare(sensor=args.sensor)
+    for name, offset in result["removed_tare_wrench"].items():
+        print(f"{name}: back to the calibration's zero; the tare had removed "
+              + " ".join(f"{v:+.4g}" for v in offset) + " (N, N, N, Nm, Nm, Nm)")
+    return 0
+
+
 def cmd_set(args: argparse.Namespace) -> int:
     changes = {k: v for k, v in (("rate_hz", args.rate), ("averaging", args.averaging),
                                  ("lowpass_hz", args.lowpass), ("estimator", args.estimator)) if v is not None}
@@ -148,51 +170,57 @@ def _subscriber(args: argparse.Namespace):
 def cmd_echo(args: argparse.Namespace) -> int:
     from .service.wire import flag_names
 
+    n = 0
     with _subscriber(args) as sub:
-        n = 0
-        while args.count is None or n < args.count:
-            sample = sub.receive(timeout_s=args.timeout)
-            if sample is None:
-                print(f"ftsensord: no sample on {args.stream} within {args.timeout:g} s", file=sys.stderr)
-                return 1
-            values = " ".join(f"{v:+10.4f}" if sample.kind == 1 else f"{v * 1e6:+9.1f}" for v in sample.values)
-            flags = ",".join(flag_names(sample.flags))
-            print(f"{sample.seq:8d} {sample.t_mono:14.6f} {values}  {flags}", flush=True)
-            n += 1
+        try:
+            while args.count is None or n < args.count:
+                sample = sub.receive(timeout_s=args.timeout)
+                if sample is None:
+                    print(f"ftsensord: no sample on {args.stream} within {args.timeout:g} s", file=sys.stderr)
+                    return 1
+                values = " ".join(f"{v:+10.4f}" if sample.kind == 1 else f"{v * 1e6:+9.1f}" for v in sample.values)
+                flags = ",".join(flag_names(sample.flags))
+                print(f"{sample.seq:8d} {sample.t_mono:14.6f} {values}  {flags}", flush=True)
+                n += 1
+        except KeyboardInterrupt:  # Ctrl-C is how one stops a live echo: its normal end
+            print(f"ftsensord: {n} samples", file=sys.stderr)
         if sub.gaps:
             print(f"gaps: {sub.gaps}", file=sys.stderr)
     return 0
 
 
 def cmd_record(args: argparse.Namespace) -> int:
-    import time
+    from .client import Subscriber
+    from .recording import (
+        StopOnSignals,
+        daemon_frames,
+        open_writer,
+        record,
+        summary_line,
+    )
 
-    rows: list[tuple[float, ...]] = []
-    with _subscriber(args) as sub:
-        end = time.monotonic() + args.seconds if args.seconds else None
-        while (args.count is None or len(rows) < args.count) and (end is None or time.monotonic() < end):
-            sample = sub.receive(timeout_s=args.timeout)
-            if sample is None:
-                print(f"ftsensord: no sample on {args.stream} within {args.timeout:g} s", file=sys.stderr)
-                break
-            rows.append((sample.seq, sample.t_mono, sample.t_wall, sample.flags, *sample.values))
-        gaps = sub.gaps.get(args.stream, 0)
-    data = np.array(rows, dtype=float).reshape(len(rows), -1)
-    if args.file.endswith(".npz"):
-        np.savez(args.file, seq=data[:, 0].astype(np.int64), t_mono=data[:, 1], t_wall=data[:, 2],
-                 flags=data[:, 3].astype(np.int64), values=data[:, 4:], gaps=gaps, stream=args.stream)
-    else:
-        n_values = data.shape[1] - 4
-        names = (["fx_N", "fy_N", "fz_N", "mx_Nm", "my_Nm", "mz_Nm"] if args.stream.startswith("wrench/")
-                 else [f"b{i // 3}{'xyz'[i % 3]}_T" for i in range(n_values)])
-        with open(args.file, "w") as f:
-            f.write(f"# ftsensord record of {args.stream}; {len(rows)} samples, {gaps} missed (sequence gaps)\n")
-            f.write(",".join(["seq", "t_mono_s", "t_wall_s", "flags", *names]) + "\n")
-            for row in data:
-                f.write(f"{int(row[0])},{row[1]:.6f},{row[2]:.6f},{int(row[3])},"
-                        + ",".join(f"{v:.9g}" for v in row[4:]) + "\n")
-    print(f"wrote {args.file}: {len(rows)} samples of {args.stream}, {gaps} missed")
-    return 0 if rows else 1
+    with StopOnSignals() as stopped:  # from here on a signal ends the recording cleanly
+        mcap = args.file.lower().endswith(".mcap")
+        frames = daemon_frames(args.streams, args.endpoint, args.control, args.timeout) if mcap else {}
+        writer = open_writer(args.file, args.streams, frames)
+        with Subscriber(args.endpoint, args.streams) as sub:
+            outcome = record(sub, writer, args.streams, count=args.count, seconds=args.seconds,
+                             timeout_s=args.timeout, stop=stopped.is_set)
+    if outcome.reason == "timeout":
+        print(f"ftsensord: no sample within {args.timeout:g} s", file=sys.stderr)
+    print(summary_line(args.file, outcome, stopped.name), flush=True)
+    return 0 if any(t.samples for t in outcome.tallies.values()) else 1
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    from .plot import live, snapshot
+
+    if args.png:
+        shot = snapshot(args.streams, args.seconds or 5.0, args.png, endpoint=args.endpoint, timeout_s=args.timeout)
+        print(f"wrote {args.png}: " + ", ".join(f"{s} {h.samples} samples, {h.missed} missed"
+                                                for s, h in shot.histories.items()))
+        return 0 if all(h.samples for h in shot.histories.values()) else 1
+    return live(args.streams, args.seconds or 10.0, endpoint=args.endpoint)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -232,6 +260,11 @@ def build_parser() -> argparse.ArgumentParser:
     control_options(p)
     p.set_defaults(func=cmd_tare)
 
+    p = sub.add_parser("untare", help="undo the tare: back to the calibration's own zero")
+    p.add_argument("--sensor", help="only this sensor (default: all)")
+    control_options(p)
+    p.set_defaults(func=cmd_untare)
+
     p = sub.add_parser("set", help="change the rate, averaging, low-pass or estimator of the running daemon",
                        description="Changes last until the next restart or reload; a rate above the "
                                    "computed bound is refused, and nothing changes.")
@@ -253,18 +286,35 @@ def build_parser() -> argparse.ArgumentParser:
     stream_options(p)
     p.set_defaults(func=cmd_echo)
 
-    p = sub.add_parser("record", help="record a stream to CSV or NPZ (by the file's extension)")
-    stream_options(p)
-    p.add_argument("file", help="output file: .csv or .npz")
+    p = sub.add_parser("record", help="record streams to CSV, NPZ or MCAP (by the file's extension)",
+                       description="Written as it arrives; Ctrl-C, SIGTERM or SIGHUP end it with the file "
+                                   "complete and a summary. docs/clients.md, Recording.")
+    p.add_argument("streams", nargs="+", metavar="STREAM", help="wrench/<sensor>, wrench/tip or flux/<sensor>")
+    p.add_argument("file", help="output file: .csv, .npz or .mcap")
+    p.add_argument("--endpoint", help="publish endpoint (default: the running daemon's ipc socket)")
+    p.add_argument("--control", help="control endpoint, asked for the frames (default: beside --endpoint)")
+    p.add_argument("--count", type=int, help="stop after this many samples (all streams together)")
     p.add_argument("--seconds", type=float, help="stop after this long")
+    p.add_argument("--timeout", type=float, default=3.0, help="give up after this long without a sample")
     p.set_defaults(func=cmd_record)
+
+    p = sub.add_parser("plot", help="live plot of streams' wrenches and flags (or, --png, a snapshot)")
+    p.add_argument("streams", nargs="+", metavar="STREAM", help="wrench/<sensor>, wrench/tip or flux/<sensor>")
+    p.add_argument("--seconds", type=float, help="time shown (default 10; with --png: collected, default 5)")
+    p.add_argument("--png", help="write a snapshot to this file and exit (headless)")
+    p.add_argument("--endpoint", help="publish endpoint (default: the running daemon's ipc socket)")
+    p.add_argument("--timeout", type=float, default=3.0, help="with --png: give up after this long without a sample")
+    p.set_defaults(func=cmd_plot)
+
     p = sub.add_parser("scan", help="find MLX90393 chips on a bus and read each once",
                        description="Probe 0x0C-0x1B and print each chip's part variant, "
                                    "configuration registers (as found) and one reading. "
-                                   "Stops and reconfigures the chips: not while the daemon runs. "
+                                   "Stops and reconfigures the chips: takes the bus's lock and refuses a bus "
+                                   "a running daemon holds unless --force. "
                                    "Exit 0: all read; 1: none found; 2: some failed.")
     p.add_argument("--bus", default="sim", help=f"bus to scan: {ACCEPTED_FORMS} (default: sim)")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    p.add_argument("--force", action="store_true", help="go on when another process (a daemon) holds the bus")
     p.set_defaults(func=cmd_scan)
 
     p = sub.add_parser("doctor", help="bring a board up: adapter, clock, ioctl cost, chips, bound and rate",
@@ -298,6 +348,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--samples", type=int, default=100, help="readings averaged per pose (default: 100)")
     p.add_argument("--seed", type=int, default=0, help="noise seed (default: 0)")
     p.add_argument("--no-sweep", action="store_true", help="leave out the position-map sweeps")
+    p.add_argument("--no-load-poses", type=int, default=24,
+                   help="poses with the rod and masses off, to measure the room's field (default: 24; "
+                        "at least 6 for the fit to use them, 12 or more advised)")
     p.set_defaults(func=cmd_dataset)
 
     p = sub.add_parser("calibrate", help="fit K, A and the zero from a dataset",
@@ -311,7 +364,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--serial", help="sensor serial to record (default: the dataset's)")
     p.add_argument("--frame", default="sensor", help="name of the sensor frame (default: sensor)")
     p.add_argument("--linear-only", action="store_true",
-                   help="skip the nonlinear estimator's calibration (about 10 s for 193 poses)")
+                   help="skip the nonlinear estimator's calibration (a few s for 193 poses)")
+    p.add_argument("--allow-poor-fit", action="store_true",
+                   help="keep a nonlinear fit that would be refused (a magnet fitted far off, a residual far "
+                        "above noise), with its warnings in the file and report")
     p.set_defaults(func=cmd_calibrate)
     return parser
 
@@ -322,6 +378,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.argv = argv[1:]
     try:
         return int(args.func(args))
+    except KeyboardInterrupt:  # Ctrl-C: a message, not a traceback
+        print("ftsensord: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        # The reader left (`ftsensord echo ... | head`) with what it wanted. As the Python docs
+        # advise: point stdout at devnull, so the interpreter's last flush does not fail again.
+        import os
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except DaemonNotAnswering as exc:
         print(f"ftsensord: {exc}", file=sys.stderr)
         return 1

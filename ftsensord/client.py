@@ -15,6 +15,7 @@ user's runtime folder (see `ftsensord.config.runtime_dir`).
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -23,7 +24,7 @@ import zmq
 
 from .errors import ControlError, DaemonNotAnswering
 from .service import wire
-from .service.config import runtime_dir
+from .service.config import check_private_dir, runtime_dir
 
 #: Samples a recording subscriber may queue: 10 s of five streams at 100 Hz.
 QUEUE_HWM = 5000
@@ -33,11 +34,17 @@ SERVICE_RUNTIME_DIR = Path("/run/ftsensord")
 
 def default_endpoint(name: str) -> str:
     """``ipc://.../<name>`` of a running daemon: the service's if its socket
-    exists, else this user's runtime folder."""
-    for folder in (SERVICE_RUNTIME_DIR, runtime_dir()):
-        if (folder / name).exists():
-            return f"ipc://{folder / name}"
-    return f"ipc://{runtime_dir() / name}"
+    exists, else this user's runtime folder. A folder someone else could have put
+    sockets in (a symlink, another user's, writable by others) is refused with
+    ConfigError: a client must never read a wrench from an impostor."""
+    if os.path.lexists(SERVICE_RUNTIME_DIR / name):
+        # Made by systemd for the service's user: any owner, but in root's /run.
+        check_private_dir(SERVICE_RUNTIME_DIR, owner=-1)
+        return f"ipc://{SERVICE_RUNTIME_DIR / name}"
+    folder = runtime_dir()
+    if os.path.lexists(folder):
+        check_private_dir(folder)
+    return f"ipc://{folder / name}"
 
 
 class ControlClient:
@@ -88,6 +95,12 @@ class ControlClient:
         if sensor:
             args["sensor"] = sensor
         return self.request("tare", timeout_s=self.timeout_s + samples * 0.1, **args)
+
+    def untare(self, sensor: str | None = None) -> dict[str, Any]:
+        """Back to the calibration's own zero (every sensor, or ``sensor``); returns the
+        wrench (N, Nm) each tare had removed, by sensor."""
+        args: dict[str, Any] = {"sensor": sensor} if sensor else {}
+        return self.request("untare", **args)
 
     def reload(self) -> dict[str, Any]:
         return self.request("reload")

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import tomllib
 from collections.abc import Iterable
 from pathlib import Path
@@ -15,26 +16,149 @@ from .errors import ConfigError
 _MISSING = object()
 
 
-def load_toml(path: str | Path) -> dict[str, Any]:
-    path = Path(path)
+#: Largest file read, bytes: a dataset of 100,000 samples of 16 chips is about 40 MB.
+MAX_FILE_BYTES = 256 * 1024 * 1024
+#: Deepest nesting of arrays and tables accepted: the project's deepest documents
+#: (a calibration's matrices inside its model table) nest 4 deep; Python's own parsers
+#: recurse per level and fail near 1000 with an exception a caller would not expect.
+MAX_DEPTH = 32
+#: Longest integer literal accepted, characters (no integer the project reads has 20):
+#: Python refuses to turn more than 4300 digits into an int (a plain ValueError), and
+#: int() of a long literal costs quadratic time below that.
+MAX_NUMBER_CHARS = 100
+
+
+class _TooLong(str):
+    """An integer literal longer than MAX_NUMBER_CHARS, kept to be reported with its key."""
+
+
+def _bounded_number(convert: Any) -> Any:
+    def parse(text: str) -> Any:
+        return _TooLong(text) if len(text) > MAX_NUMBER_CHARS else convert(text)
+    return parse
+
+
+def _check_tree(doc: Any, max_depth: int) -> str | None:
+    """None when ``doc`` nests at most ``max_depth`` deep and holds no over-long number;
+    else what is wrong, with the key path (``a.b[3]``)."""
+    stack: list[tuple[Any, str, int]] = [(doc, "", 0)]
+    while stack:
+        value, where, depth = stack.pop()
+        if isinstance(value, _TooLong):
+            return (f"{where or 'the document'}: an integer of {len(value)} characters "
+                    f"(at most {MAX_NUMBER_CHARS})")
+        if isinstance(value, dict):
+            items: Iterable[tuple[str, Any]] = ((f"{where}.{k}" if where else str(k)[:80], v)
+                                                for k, v in value.items())
+        elif isinstance(value, list):
+            items = ((f"{where}[{i}]", v) for i, v in enumerate(value)
+                     if isinstance(v, (dict, list, _TooLong)))
+        else:
+            continue
+        if depth >= max_depth:
+            return f"{where or 'the document'}: nested deeper than {max_depth} levels"
+        stack.extend((v, k, depth + 1) for k, v in items)
+    return None
+
+
+def parse_json(raw: bytes | str, *, max_bytes: int = MAX_FILE_BYTES, max_depth: int = MAX_DEPTH) -> Any:
+    """JSON within limits: at most ``max_bytes``, ``max_depth`` levels of nesting, integer
+    literals of at most MAX_NUMBER_CHARS characters. Raises ConfigError (a ValueError) saying what
+    was wrong and where (the key path); never another exception, whatever ``raw`` holds."""
+    if len(raw) > max_bytes:
+        raise ConfigError(f"{len(raw)} bytes, more than the {max_bytes} accepted")
+    try:
+        # Only integers need the hook: float() of a long literal is linear and bounded by
+        # the size limit; a hook on every float would double the time of a dataset.
+        doc = json.loads(raw, parse_int=_bounded_number(int))
+    except RecursionError as exc:
+        raise ConfigError(f"nested deeper than {max_depth} levels") from exc
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"not UTF-8 text: {exc.reason} at byte {exc.start}") from exc
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"not valid JSON: {exc}") from exc
+    except ValueError as exc:  # whatever else Python's parser refuses: never out of here
+        raise ConfigError(f"not valid JSON: {exc}") from exc
+    problem = _check_tree(doc, max_depth)
+    if problem is not None:
+        raise ConfigError(problem)
+    return doc
+
+
+def _read(path: Path) -> bytes:
     try:
         with path.open("rb") as f:
-            return tomllib.load(f)
+            raw = f.read(MAX_FILE_BYTES + 1)
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from exc
+    if len(raw) > MAX_FILE_BYTES:
+        raise ConfigError(f"{path}: larger than the {MAX_FILE_BYTES} bytes accepted")
+    return raw
+
+
+_TOML_KEY = re.compile(r"^\s*([A-Za-z0-9_.\-\"' ]+?)\s*=")
+_TOML_TABLE = re.compile(r"^\s*\[+\s*([^\]]+?)\s*\]")
+_LONG_DIGITS = re.compile(r"[0-9_]{" + str(MAX_NUMBER_CHARS + 1) + ",}")
+
+
+def _toml_locate(text: str) -> str:
+    """Where in a TOML text the first over-long number is: 'line N, key T.K' (tomllib
+    does not say which key an int() that failed belonged to)."""
+    table = ""
+    for n, line in enumerate(text.splitlines(), 1):
+        header = _TOML_TABLE.match(line)
+        if header and "=" not in line.split("]")[0]:
+            table = header.group(1) + "."
+        if _LONG_DIGITS.search(line):
+            key = _TOML_KEY.match(line)
+            return f"line {n}, key {table}{key.group(1) if key else '?'}"
+    return "somewhere"
+
+
+def load_toml(path: str | Path) -> dict[str, Any]:
+    """A TOML file within the limits (size, depth, number length); ConfigError naming the
+    file and the key otherwise."""
+    path = Path(path)
+    raw = _read(path)
+    try:
+        text = raw.decode("utf-8")
+        doc = tomllib.loads(text)
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text: {exc.reason} at byte {exc.start}") from exc
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+    except RecursionError as exc:
+        raise ConfigError(f"{path}: nested deeper than {MAX_DEPTH} levels") from exc
+    except ValueError as exc:  # int() of more than 4300 digits: tomllib lets it through
+        raise ConfigError(f"{path}: {_toml_locate(text)}: an integer longer than {MAX_NUMBER_CHARS} "
+                          f"characters ({str(exc)[:80]})") from exc
+    problem = _check_tree(doc, MAX_DEPTH)
+    if problem is None:
+        problem = next((f"{k}: an integer of more than {MAX_NUMBER_CHARS} digits" for k in _long_ints(doc)), None)
+    if problem is not None:
+        raise ConfigError(f"{path}: {problem}")
+    return doc
+
+
+def _long_ints(doc: Any, where: str = "") -> Iterable[str]:
+    """Key paths of integers over MAX_NUMBER_CHARS digits (tomllib has no parse_int hook)."""
+    if isinstance(doc, dict):
+        for k, v in doc.items():
+            yield from _long_ints(v, f"{where}.{k}" if where else str(k))
+    elif isinstance(doc, list):
+        for i, v in enumerate(doc):
+            yield from _long_ints(v, f"{where}[{i}]")
+    elif isinstance(doc, int) and not isinstance(doc, bool) and doc.bit_length() > 3.33 * MAX_NUMBER_CHARS:
+        yield where
 
 
 def load_json(path: str | Path) -> dict[str, Any]:
+    """A JSON file within the limits (`parse_json`); ConfigError naming the file and the key otherwise."""
     path = Path(path)
     try:
-        with path.open("rb") as f:
-            doc = json.load(f)
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from exc
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{path}: not valid JSON: {exc}") from exc
+        doc = parse_json(_read(path))
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from exc
     if not isinstance(doc, dict):
         raise ConfigError(f"{path}: expected a JSON object at the top, got {type(doc).__name__}")
     return doc

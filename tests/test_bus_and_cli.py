@@ -166,7 +166,8 @@ def test_the_example_scene_in_config_loads_and_shows_a_saturated_chip():
 
 def test_dataset_and_calibrate_commands(tmp_path, capsys):
     ds, cal, rep = tmp_path / "ds.json", tmp_path / "cal.json", tmp_path / "report.md"
-    assert main(["dataset", "-o", str(ds), "--poses", "40", "--validation-poses", "10", "--samples", "2"]) == 0
+    assert main(["dataset", "-o", str(ds), "--poses", "40", "--validation-poses", "10", "--samples", "2",
+                 "--no-load-poses", "0"]) == 0
     assert "50 poses (six-axis)" in capsys.readouterr().out
     assert main(["calibrate", str(ds), "-o", str(cal), "--report", str(rep), "--serial", "SN-1"]) == 0
     out = capsys.readouterr().out

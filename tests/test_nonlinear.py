@@ -149,3 +149,64 @@ def test_the_45_degree_twin_is_refused_and_the_right_pose_found():
     est.pose = twin  # a warm start gone wrong
     e = est.estimate(flux)
     assert e.converged and np.allclose(est.wrench(e), w, atol=K.max() * STEP_TOL)
+
+
+# --- the background field and the part as built ---------------------------------------------------------------
+def test_an_axial_push_is_not_mistaken_for_a_uniform_field():
+    """The ring's one near-degeneracy: 20 N along z reads exactly as 4.5 N in a 1.55 mT field
+    along z (the radial flux's slope in z passes through zero near 12 N). Both unknowns at
+    once from rest would land there; the staged cold start and the prior do not."""
+    w = np.array([0, 0, 20.0, 0, 0, 0])
+    flux, xi = flux_at(w)
+    e = estimator().estimate(flux, start=np.eye(4))
+    assert e.converged and np.allclose(e.xi, xi, atol=STEP_TOL) and np.linalg.norm(e.background_t) < 1e-9
+
+
+@pytest.mark.parametrize("field_ut", [[22.3, 1.4, -42.6], [50.0, 0, 0], [0, 0, 50.0]])
+def test_turning_the_sensor_in_a_50_ut_field_gives_no_false_wrench(field_ut):
+    """No load, the sensor turned through 48 orientations in a uniform field, tared at the
+    first. On the dipole scene the model is exact, so what is left is the prior's pull on
+    the field (1 uT against 50 uT: it moves u by under 1e-3 of itself, and the pose by that
+    times the pose-field coupling) and the stopping rule: 2 mN and 0.05 mNm bound both with
+    margin, 25 and 40 times under the issue's 0.05 N and 2 mNm. Without the background
+    term the same sweep gives tenths of a newton."""
+    from ftsensord.sim.loads import fibonacci_directions, gravity_to_down
+    u_world = np.array(field_ut) * 1e-6
+    est, plain = estimator(), NonlinearEstimator(FluxModel(G, G.magnet_moment_am2), K, background=False)
+    rest = FluxModel(G, G.magnet_moment_am2).predict(np.eye(4))
+    worst, worst_plain, xi0, xi0_plain = np.zeros(6), np.zeros(6), None, None
+    for k, d in enumerate(fibonacci_directions(48)):
+        R = gravity_to_down(d, 2.4 * k)  # R_w0: the sensor's orientation in the world
+        flux = rest + np.concatenate([R_i.T @ (R.T @ u_world) for R_i in G.chip_R])
+        e, p = est.estimate(flux), plain.estimate(flux)
+        assert e.converged
+        xi0 = e.xi if xi0 is None else xi0
+        xi0_plain = p.xi if xi0_plain is None else xi0_plain
+        worst = np.maximum(worst, np.abs(K @ (e.xi - xi0)))
+        worst_plain = np.maximum(worst_plain, np.abs(K @ (p.xi - xi0_plain)))
+    assert np.all(worst[:3] < 2e-3) and np.all(worst[3:] < 0.05e-3), worst
+    assert worst_plain[:3].max() > 0.1  # the term is what rejects it
+
+
+def test_an_as_built_sensor_in_the_room_is_fitted_to_the_chips_noise():
+    """Seed 1's part (config/scene-room.toml's tolerances) calibrated in the Earth's field:
+    the fit's free parameters (chip response matrices, magnet positions and moments, a
+    background field per pose) absorb the part and the room, so the residual is the
+    chips' noise: the median standard error of the pose means, times at most 1.3 (the
+    dipole model against the cylinder magnets; the fit's 350 parameters lower it by
+    sqrt(1 - 350/1440) = 0.87, noise alone gives 0.87 to 0.9). The old model, per-axis
+    scales on the drawn magnets, left 3.4 uT field-free and was refused in the room."""
+    from ftsensord.calibration.nlfit import fit_nonlinear
+    from ftsensord.calibration.rig import record_dataset, simulated_robot
+    from ftsensord.sim import VirtualClock, simulated_bus
+    from ftsensord.sim.loads import paper_plan
+    from ftsensord.sim.physics import Tolerances
+    geometry, gains = Tolerances(0.15e-3, 0.03, np.radians(1.5), 0.02, 0.1e-3, seed=1).build()
+    s = SimSensor("s", tuple(range(0x0C, 0x14)), geometry, chip_gain=gains)
+    scene = PhysicalScene([s], external_field_t=np.array([22.3, 1.4, -42.6]) * 1e-6)
+    ds = record_dataset(simulated_bus(scene, clock=VirtualClock(), seed=7), s.addresses,
+                        paper_plan(n_fit=60, n_validation=0, n_no_load=12), samples=10, **simulated_robot(scene, "s"))
+    nl = fit_nonlinear(ds)  # refused if a magnet lands far off or the residual is far above noise
+    noise = float(np.median(ds.flux_sem_t))
+    assert nl.warnings == () and 0.7 * noise < nl.fit_rms_residual_t < 1.3 * noise
+    assert np.max(np.linalg.norm(nl.magnet_p_m - SensorGeometry.ring().magnet_p, axis=1)) < 1e-3

@@ -163,3 +163,32 @@ def test_control_refuses_what_the_daemon_must_not_see(request_, error):
     reply = ask(Control(None, target), **request_)
     assert reply is not None and reply["ok"] is False and error in reply["error"]
     assert target.calls == []
+
+
+# --- calibrations kept across reloads ------------------------------------------------------------
+def test_a_reload_reuses_an_unchanged_calibration_and_reads_a_changed_one(tmp_path):
+    from pathlib import Path
+
+    from ftsensord.errors import ConfigError
+    from ftsensord.service.config import Calibrations, load_config
+
+    packaged = Path(__file__).resolve().parent.parent / "ftsensord" / "data" / "sim-sensor1.json"
+    path = tmp_path / "cal.json"
+    path.write_bytes(packaged.read_bytes())
+    cache = Calibrations()
+    first = cache.load(path)
+    assert cache.load(path) is first  # unchanged: not read again
+    doc = json.loads(path.read_text())
+    doc["sensor"]["serial"] = doc["sensor"]["serial"][::-1]  # same size, other content
+    from ftsensord.calibration.calfile import checksum
+    doc["checksum"] = checksum(doc)
+    path.write_text(json.dumps(doc, indent=1) + "\n")
+    again = cache.load(path)
+    assert again is not first and again.serial == first.serial[::-1]
+    path.unlink()
+    with pytest.raises(ConfigError, match=str(path)):
+        cache.load(path)
+    # The daemon's reload goes through it: the configuration's own calibrations are remembered.
+    config = load_config()
+    cal = config.sensors[0]
+    assert Calibrations().remember(config).load(cal.calibration_path) is cal.calibration

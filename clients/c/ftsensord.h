@@ -132,6 +132,7 @@ FTS_STATIC_ASSERT_(ZMQ_SUB == FTS_ZMQ_SUB_ && ZMQ_SUBSCRIBE == FTS_ZMQ_SUBSCRIBE
 #define FTS_FLAG_INVALID (1u << 6)       /* no estimate possible: the values are NaN */
 #define FTS_FLAG_FALLBACK (1u << 7)      /* nonlinear estimator did not converge: linear used */
 #define FTS_FLAG_EXTRAPOLATED (1u << 8)  /* a linear estimate beyond the calibration's loads */
+#define FTS_FLAG_INCONSISTENT (1u << 9)  /* the chips disagree with each other: one reads wrong */
 
 /* Sizes; define before including to change. A wrench has 6 values, flux 3 per chip. */
 #ifndef FTS_MAX_VALUES
@@ -320,6 +321,7 @@ static inline const char *fts_flag_name(uint32_t bit)
     case FTS_FLAG_INVALID: return "invalid";
     case FTS_FLAG_FALLBACK: return "fallback";
     case FTS_FLAG_EXTRAPOLATED: return "extrapolated";
+    case FTS_FLAG_INCONSISTENT: return "inconsistent";
     default: return NULL;
     }
 }

@@ -8,6 +8,7 @@ cycle, and reads one chip's registers back now and then. The `Reader`
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 
@@ -20,6 +21,8 @@ from ..errors import (
     ChipProtocolError,
     ChipRefusedError,
 )
+
+log = logging.getLogger("ftsensord")
 
 
 @dataclass
@@ -78,6 +81,7 @@ class ChipHealth:
     stuck_detections: int = 0
     same_words: int = 0
     last_words: tuple[int, ...] | None = None
+    stuck_words: tuple[int, ...] | None = None  # the words it was stuck at: out until they change
     stale_run: int = 0
     needs_reset: bool = False  # failed in a way only a reset mends (stuck, registers changed)
     step: int = 0  # the next step of a re-initialisation under way (0: none)
@@ -115,10 +119,13 @@ class ChipCare:
         if self.burst:
             chip.start_burst(mlx.ZYXT_XYZ)
 
-    def fail(self, address: int, now: float, reset: bool = False) -> None:
+    def fail(self, address: int, now: float, reset: bool = False, why: str = "") -> None:
+        """Take a chip out (``reset``: only a reset mends it); logged once, as it starts failing."""
         h = self.health[address]
         h.needs_reset |= reset
         if not h.failing:
+            log.warning("chip 0x%02X failing%s: %s", address, ", to be reset" if reset else "",
+                        why or "no valid answer")
             h.failing, h.backoff_s, h.retry_at = True, 0.0, now  # first retry: the next cycle
         else:
             h.backoff_s = min(max(2 * h.backoff_s, BACKOFF_FIRST_S), BACKOFF_MAX_S)
@@ -161,10 +168,11 @@ class ChipCare:
                 how = "re-initialised"
         except ChipError as exc:
             h.step = 0
-            self.fail(chip.address, now)
+            self.fail(chip.address, now, why=str(exc))
             return ChipResult(chip.address, error=exc)
         if h.step == 0:
             h.failing = h.needs_reset = False
+            log.info("chip 0x%02X back: %s", chip.address, how)
             how += "; read again from the next cycle"
         return ChipResult(chip.address, error=ChipNotRespondingError(chip.address, how))
 
@@ -190,20 +198,30 @@ class ChipCare:
         h = self.health[r.address]
         if r.measurement is not None:
             h.stale_run = 0
-            words = tuple(r.measurement.raw.get(a, -1) for a in "xyz")
+            raw = r.measurement.raw
+            words = (raw.get("x", -1), raw.get("y", -1), raw.get("z", -1))
+            moved = h.last_words is not None and words != h.last_words
             h.same_words = h.same_words + 1 if words == h.last_words else 0
             h.last_words = words
             if self.stuck_cycles and h.same_words >= self.stuck_cycles:
                 h.stuck_detections += 1
-                self.fail(r.address, now, reset=True)
+                self.fail(r.address, now, reset=True, why=f"stuck ({self.stuck_cycles + 1} identical readings)")
+                h.stuck_words = words
                 return ChipResult(r.address, error=ChipProtocolError(
                     r.address, f"stuck: the same X, Y, Z words {self.stuck_cycles + 1} cycles in a row"))
+            if h.stuck_words is not None:
+                # Back from its reset: out until two of its readings in a row differ (a
+                # stuck chip may give one fresh reading after a reset, then freeze again).
+                if not moved:
+                    return ChipResult(r.address, error=ChipProtocolError(
+                        r.address, "stuck before its reset: out until its words change"))
+                h.stuck_words = None  # it converts again
             return r
         if isinstance(r.error, ChipRefusedError) and r.error.command == "RM":
             h.stale_run += 1  # no new data (DRDY low): stale, unless it lasts
             if h.stale_run <= STALE_LIMIT:
                 return r
-        self.fail(r.address, now)
+        self.fail(r.address, now, why=str(r.error))
         return r
 
     def read_back(self, chip: MLX90393, now: float) -> None:
@@ -216,8 +234,13 @@ class ChipCare:
             matches = chip.configuration_matches()
             if self.burst and matches:
                 chip.start_burst(mlx.ZYXT_XYZ)
+        except ChipNotRespondingError as exc:
+            # A NACK says nothing of the registers: the chip is retried like any chip that
+            # did not answer (registers checked on its return), not counted as drift, not reset.
+            self.fail(chip.address, now, why=f"no answer to the register read-back ({exc})")
+            return
         except ChipError:
-            matches = False
+            matches = False  # refused or garbled: its state is unknown, only a reset mends it
         if not matches:
             self.health[chip.address].register_drifts += 1
-            self.fail(chip.address, now, reset=True)
+            self.fail(chip.address, now, reset=True, why="registers differ from what was written")

@@ -66,12 +66,7 @@ class Calibration:
         if self.position_map is not None:
             doc["position_map"] = {"M": self.position_map.M.tolist(), "o": self.position_map.o.tolist()}
         if self.nonlinear is not None:
-            nl = self.nonlinear
-            doc["nonlinear"] = {"gap_m": nl.gap_m, "ring_radius_m": nl.ring_radius_m, "tilt_deg": nl.tilt_deg,
-                                "scale": nl.scale.tolist(), "offset_t": nl.offset_t.tolist(), "K": nl.K.tolist(),
-                                "zero_twist": nl.zero_twist.tolist(), "fit_rms_residual_t": nl.fit_rms_residual_t}
-            if nl.warnings:  # a fit kept against its refusal: the reasons travel with it
-                doc["nonlinear"]["warnings"] = list(nl.warnings)
+            doc["nonlinear"] = self.nonlinear.document()
         doc["checksum"] = checksum(doc)
         return doc
 
@@ -119,21 +114,7 @@ class Calibration:
                 raise pm.fail("M", f"{len(addresses)} 3x3 matrices, one per chip", M)
             Ms = [Table({"M": m}, path, f"{pm.key('M')}[{i}]").matrix("M", 3, 3) for i, m in enumerate(M)]
             pmap = PositionMap(np.array(Ms), np.array(pm.matrix("o", len(addresses), 3, unit="m")))
-        nonlinear = None
-        if "nonlinear" in raw:
-            t = doc.table("nonlinear")
-            t.only({"gap_m", "ring_radius_m", "tilt_deg", "scale", "offset_t", "K", "zero_twist", "fit_rms_residual_t",
-                    "warnings"})
-            chips = len(addresses)
-            warnings = t.get("warnings", [])
-            if not isinstance(warnings, list) or not all(isinstance(w, str) for w in warnings):
-                raise t.fail("warnings", "a list of strings", warnings)
-            nonlinear = NonlinearCalibration(
-                t.number("gap_m", low=1e-3, high=20e-3, unit="m"), np.array(t.matrix("scale", chips, 3)),
-                np.array(t.matrix("offset_t", chips, 3, unit="T")), np.array(t.matrix("K", 6, 6, unit="N/m, Nm/rad")),
-                np.array(t.numbers("zero_twist", 6, unit="m, rad")), t.number("fit_rms_residual_t", low=0, unit="T"),
-                t.number("ring_radius_m", low=1e-3, high=0.1, unit="m"), t.number("tilt_deg", low=-90, high=90),
-                tuple(warnings))
+        nonlinear = _nonlinear(doc, len(addresses)) if "nonlinear" in raw else None
         report = doc.get("fit_report", {})
         if not isinstance(report, dict):
             raise doc.fail("fit_report", "a table", report)
@@ -150,6 +131,37 @@ class Calibration:
                                       f"got one whose symmetric part has eigenvalue {lowest:.3g}")
         return cls(LinearModel(K, A, zero, H, room), addresses, sensor.string("serial", ""),
                    sensor.string("frame", "sensor"), pmap, report, nonlinear, wrench_range)
+
+
+def _nonlinear(doc: Table, chips: int) -> NonlinearCalibration:
+    """The ``nonlinear`` section (`NonlinearCalibration.document` writes it)."""
+    t = doc.table("nonlinear")
+    t.only({"gap_m", "ring_radius_m", "tilt_deg", "scale", "offset_t", "K", "zero_twist", "fit_rms_residual_t",
+            "magnet_p_m", "magnet_strength", "warnings"})
+    warnings = t.get("warnings", [])
+    if not isinstance(warnings, list) or not all(isinstance(w, str) for w in warnings):
+        raise t.fail("warnings", "a list of strings", warnings)
+    scale_raw = t.get("scale")
+    if isinstance(scale_raw, list) and scale_raw and isinstance(scale_raw[0], list) \
+            and scale_raw[0] and isinstance(scale_raw[0][0], list):  # a full 3 x 3 response per chip
+        if len(scale_raw) != chips:
+            raise t.fail("scale", f"{chips} 3x3 matrices, one per chip, or {chips} x 3 gains", scale_raw)
+        scale = np.array([Table({"scale": m}, t.path, f"{t.key('scale')}[{i}]").matrix("scale", 3, 3)
+                          for i, m in enumerate(scale_raw)])
+    else:
+        scale = np.array(t.matrix("scale", chips, 3))
+    magnet_p = np.array(t.matrix("magnet_p_m", chips, 3, unit="m")) if "magnet_p_m" in t.doc else None
+    strength = None
+    if "magnet_strength" in t.doc:
+        strength = np.array(t.numbers("magnet_strength", chips))
+        if np.any(strength <= 0):
+            raise t.fail("magnet_strength", f"{chips} numbers over 0 (relative moments)", t.get("magnet_strength"))
+    return NonlinearCalibration(
+        t.number("gap_m", low=1e-3, high=20e-3, unit="m"), scale,
+        np.array(t.matrix("offset_t", chips, 3, unit="T")), np.array(t.matrix("K", 6, 6, unit="N/m, Nm/rad")),
+        np.array(t.numbers("zero_twist", 6, unit="m, rad")), t.number("fit_rms_residual_t", low=0, unit="T"),
+        t.number("ring_radius_m", low=1e-3, high=0.1, unit="m"), t.number("tilt_deg", low=-90, high=90),
+        tuple(warnings), magnet_p, strength)
 
 
 def checksum(doc: dict[str, Any]) -> str:

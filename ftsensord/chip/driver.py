@@ -16,12 +16,13 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Protocol, cast
 
 import numpy as np
 from smbus2 import i2c_msg
 
 from ..errors import (
+    ChipError,
     ChipNotRespondingError,
     ChipProtocolError,
     ChipRefusedError,
@@ -39,13 +40,14 @@ class I2CBus(Protocol):
     def i2c_rdwr(self, *i2c_msgs: i2c_msg) -> None: ...
 
 
-@dataclass(frozen=True)
+@dataclass(eq=False, slots=True)
 class Measurement:
     """One RM result, in SI units and the chip's own frame {S_i}.
 
     ``field_t`` is (Bx, By, Bz) in tesla, NaN for an axis that was not read;
     ``saturated`` flags per axis a word at or past the valid span, or a field at
     the Hall element's limit: such an axis is never a valid reading.
+    ``saturated_any``: ``saturated.any()`` when the decoder already knows it.
     """
 
     status: mlx.Status
@@ -53,10 +55,11 @@ class Measurement:
     saturated: np.ndarray
     temperature_c: float | None
     raw: dict[str, int]
+    saturated_any: bool | None = None
 
     @property
     def any_saturated(self) -> bool:
-        return bool(self.saturated.any())
+        return bool(self.saturated.any()) if self.saturated_any is None else self.saturated_any
 
 
 class MLX90393:
@@ -66,6 +69,7 @@ class MLX90393:
     ``sleep`` when its clock is virtual.
     """
 
+    settings_changes = 0  # counts changes of any chip's settings: a `BlockDecoder` built before may be stale
     def __init__(self, bus: I2CBus, address: int, *,
                  sleep: Callable[[float], None] = time.sleep):
         mlx.part_variant(address)  # refuses an address no MLX90393 can have
@@ -74,14 +78,20 @@ class MLX90393:
         self.sleep = sleep
         self.settings = None
         self.tref = mlx.TREF_TYPICAL
+        # Built once per command and reused: a new i2c_msg costs two ctypes buffers.
+        self._msgs: dict[tuple[bytes, int], tuple[i2c_msg, i2c_msg]] = {}
 
     def __repr__(self) -> str:
         return f"MLX90393(address=0x{self.address:02X})"
 
     # --- transactions --------------------------------------------------------
     def messages(self, command: bytes, reply_len: int) -> tuple[i2c_msg, i2c_msg]:
-        """The write and read messages of one command."""
-        return i2c_msg.write(self.address, command), i2c_msg.read(self.address, reply_len)
+        """The write and read messages of one command, built once and reused (the read's buffer: the last reply)."""
+        key = (command, reply_len)
+        pair = self._msgs.get(key)
+        if pair is None:
+            pair = self._msgs[key] = (i2c_msg.write(self.address, command), i2c_msg.read(self.address, reply_len))
+        return pair
 
     def transfer(self, command: bytes, reply_len: int) -> bytes:
         """Send ``command`` and read ``reply_len`` bytes (status byte first)."""
@@ -89,9 +99,7 @@ class MLX90393:
         try:
             self.bus.i2c_rdwr(write, read)
         except OSError as exc:
-            name = mlx.COMMAND_NAMES.get(command[0] & 0xF0, f"0x{command[0]:02X}")
-            raise ChipNotRespondingError(
-                self.address, f"{name} failed on the bus: {exc.strerror or exc}", exc.errno) from exc
+            raise bus_error(self.address, command, exc) from exc
         return bytes(read)
 
     def check_status(self, byte: int, command: str) -> mlx.Status:
@@ -238,6 +246,7 @@ class MLX90393:
     @settings.setter
     def settings(self, settings: mlx.Settings | None) -> None:
         self._settings = settings
+        MLX90393.settings_changes += 1  # a `BlockDecoder` built before is stale
         # Per axis: the word's coding and tesla per count, fixed until the next configure.
         self._decoding = [] if settings is None else [
             (settings.raw_format(a), settings.sensitivity_ut(a) * 1e-6) for a in "xyz"]
@@ -257,3 +266,92 @@ class MLX90393:
 def _rm_reply_len(zyxt: int) -> int:
     """Bytes of an RM reply: the status byte and two per selected item."""
     return 1 + 2 * len(mlx.zyxt_items(zyxt))
+
+
+def bus_error(address: int, command: bytes, exc: OSError) -> ChipNotRespondingError:
+    """The error of ``command`` to ``address`` failing on the bus with ``exc`` (a NACK, an I/O error)."""
+    name = mlx.COMMAND_NAMES.get(command[0] & 0xF0, f"0x{command[0]:02X}")
+    return ChipNotRespondingError(address, f"{name} failed on the bus: {exc.strerror or exc}", exc.errno)
+
+
+#: Every status byte's `mlx.Status`, made once: it is frozen, so sharing is safe and a
+#: cycle builds none.
+_STATUS = tuple(mlx.Status(b) for b in range(256))
+
+
+class BlockDecoder:
+    """RM replies of many chips decoded together: one numpy pass over an (n, L) block.
+
+    Built for one list of chips and one zyxt; per chip and axis the word's coding
+    and tesla per count are fixed by `MLX90393.configure`, so the decoder holds them
+    as arrays and is valid while every chip keeps the settings it was built with
+    (`valid_for`). A reply whose status byte has ERROR set, or whose D1:D0 does not
+    announce the words asked for, is left to `MLX90393.decode_measurement` (the
+    same error, raised the same way); the rest need no per-chip decoding.
+    """
+
+    def __init__(self, chips: list[MLX90393], zyxt: int):
+        self.chips, self.zyxt = chips, zyxt
+        self.items = mlx.zyxt_items(zyxt)
+        self.reply_len = 1 + 2 * len(self.items)
+        self.settings = [c.settings for c in chips]
+        self.changes = MLX90393.settings_changes
+        if any(s is None for s in self.settings):
+            raise ChipProtocolError(chips[0].address, "a block decoder built before configure()")
+        n = len(chips)
+        self.columns = [self.items.index(a) for a in "xyz" if a in self.items]
+        self.axes = [i for i, a in enumerate("xyz") if a in self.items]
+        self.t_column = self.items.index("t") if "t" in self.items else None
+        # D1:D0 as it must read for these items: 2 * D + 2 data bytes (`Status.data_bytes`).
+        self.d_expected = len(self.items) - 1
+        fmts = [[c._decoding[a][0] for a in self.axes] for c in chips]
+        self.signed = np.array([[f.signed for f in row] for row in fmts], dtype=bool).reshape(n, -1)
+        self.zero = np.array([[f.zero for f in row] for row in fmts], dtype=np.int32).reshape(n, -1)
+        self.span = np.array([[f.span for f in row] for row in fmts], dtype=np.int32).reshape(n, -1)
+        self.scale = np.array([[c._decoding[a][1] for a in self.axes] for c in chips]).reshape(n, -1)
+
+    def valid_for(self, chips: list[MLX90393]) -> bool:
+        """True while ``chips`` are the ones built for, with the same settings."""
+        if self.changes == MLX90393.settings_changes and chips == self.chips:
+            return True  # no chip's settings changed since: no need to ask each
+        valid = len(chips) == len(self.chips) and all(
+            c is d and c.settings is s for c, d, s in zip(chips, self.chips, self.settings))
+        if valid:
+            self.changes = MLX90393.settings_changes
+        return valid
+
+    def decode(self, block: np.ndarray) -> list[Measurement | ChipError]:
+        """Per chip, in order: its `Measurement`, or the `ChipError` its reply gives.
+
+        ``block`` (n, L) uint8: each row one chip's reply, status byte first.
+        """
+        status = block[:, 0]
+        bad = ((status & mlx.STATUS_ERROR) != 0) | ((status & mlx.STATUS_D_MASK) != self.d_expected)
+        words = (block[:, 1::2].astype(np.int32) << 8) | block[:, 2::2]
+        n = len(self.chips)
+        field = np.full((n, 3), np.nan)
+        saturated = np.zeros((n, 3), dtype=bool)
+        if self.columns:
+            w = words[:, self.columns]
+            counts = np.where(self.signed, w - ((w & 0x8000) << 1), w - self.zero)
+            value = counts * self.scale
+            field[:, self.axes] = value
+            saturated[:, self.axes] = (np.abs(counts) >= self.span) | (np.abs(value) >= mlx.HALL_SATURATION_FLAG_T)
+        sat_any = cast("list[bool]", saturated.any(axis=1).tolist())
+        rows = cast("list[list[int]]", words.tolist())
+        statuses = status.tolist()
+        bad_rows = cast("list[bool]", bad.tolist())
+        items, t_column, status_of = self.items, self.t_column, _STATUS.__getitem__
+        out: list[Measurement | ChipError] = []
+        for i, chip in enumerate(self.chips):
+            if bad_rows[i]:
+                try:  # the per-chip decoder raises the error it always raised
+                    out.append(chip.decode_measurement(bytes(block[i]), self.zyxt))
+                except ChipError as exc:
+                    out.append(exc)
+                continue
+            row = rows[i]
+            temp = None if t_column is None else mlx.raw_to_celsius(row[t_column], chip.tref)
+            out.append(Measurement(status_of(statuses[i]), field[i], saturated[i], temp, dict(zip(items, row)),
+                                   sat_any[i]))
+        return out

@@ -9,6 +9,7 @@ calibrations). `config/ftsensord.toml` is a commented example.
 from __future__ import annotations
 
 import os
+import stat
 from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
@@ -48,12 +49,56 @@ def default_config_path() -> Path:
 
 
 def runtime_dir() -> Path:
-    """Where the daemon's sockets go: systemd's RuntimeDirectory, else the user's."""
+    """Where the daemon's sockets go: systemd's RuntimeDirectory, else the user's
+    ($XDG_RUNTIME_DIR/ftsensord), else /tmp/ftsensord-<uid> (sudo, cron, containers).
+    Only a name: `ensure_private_dir` creates and checks it before use."""
     if os.environ.get("RUNTIME_DIRECTORY"):
         return Path(os.environ["RUNTIME_DIRECTORY"].split(":")[0])
     if os.environ.get("XDG_RUNTIME_DIR"):
         return Path(os.environ["XDG_RUNTIME_DIR"]) / "ftsensord"
     return Path(f"/tmp/ftsensord-{os.getuid()}")
+
+
+def check_private_dir(path: Path, owner: int | None = None) -> None:
+    """Refuse a folder for sockets that someone else could swap them in: a symlink, not a
+    folder, not owned by ``owner`` (default: this process's user), or writable by its group
+    or others. ``owner=-1``: any owner, but then its parent must be root's and not writable
+    by others (only root, or systemd for the service, can have made it)."""
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError as exc:
+        raise ConfigError(f"{path}: the runtime folder does not exist") from exc
+    uid = os.geteuid() if owner is None else owner
+    why = None
+    if stat.S_ISLNK(st.st_mode):
+        why = "is a symbolic link"
+    elif not stat.S_ISDIR(st.st_mode):
+        why = "is not a folder"
+    elif uid != -1 and st.st_uid != uid:
+        why = f"belongs to uid {st.st_uid}, not to uid {uid}"
+    elif st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+        why = f"is writable by {'others' if st.st_mode & stat.S_IWOTH else 'its group'} (mode {st.st_mode & 0o7777:04o})"
+    elif uid == -1:
+        parent = os.lstat(path.parent)
+        if parent.st_uid != 0 or parent.st_mode & stat.S_IWOTH:
+            why = f"is in {path.parent}, which root alone does not control"
+    if why is not None:
+        raise ConfigError(f"{path}: refusing this runtime folder: it {why}; another user could put their "
+                          "sockets in place of the daemon's. Remove it (or fix its owner and mode 0700), "
+                          "or set RUNTIME_DIRECTORY or XDG_RUNTIME_DIR")
+
+
+def ensure_private_dir(path: Path) -> Path:
+    """Create ``path`` mode 0700 if missing (its missing parents too), then check it with
+    `check_private_dir` (lstat: a symlink put there meanwhile is refused, never followed)."""
+    if not os.path.lexists(path):
+        path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
+        try:
+            os.mkdir(path, 0o700)  # one syscall: exists already (someone else's?) or ours
+        except FileExistsError:
+            pass  # made meanwhile: the check below decides
+    check_private_dir(path)
+    return path
 
 
 @dataclass
@@ -190,8 +235,43 @@ def _security(doc: Table) -> Security:
     return Security(cert, clients, **flags)
 
 
-def load_config(path: str | Path | None = None) -> Config:
-    """Read and validate a configuration (default: the packaged simulated one)."""
+class Calibrations:
+    """Calibration files by path, read again only when changed: a reload that changes a
+    rate reuses the checked calibrations (and their pipelines' precomputed checks) instead
+    of parsing them again, so it fits between two cycles. Changed means another size,
+    modification time or inode: an editor or `ftsensord calibrate -o` changes them all."""
+
+    def __init__(self) -> None:
+        self._seen: dict[Path, tuple[tuple[int, ...], Calibration]] = {}
+
+    @staticmethod
+    def _signature(path: Path) -> tuple[int, ...]:
+        st = path.stat()
+        return st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns
+
+    def remember(self, config: Config) -> Calibrations:
+        """Take ``config``'s calibrations as their files are now; returns self."""
+        for s in config.sensors:
+            self._seen[s.calibration_path] = (self._signature(s.calibration_path), s.calibration)
+        return self
+
+    def load(self, path: Path) -> Calibration:
+        seen = self._seen.get(path)
+        try:
+            signature = self._signature(path)
+        except OSError:
+            signature = ()  # Calibration.load names the file and the error
+        if seen is not None and seen[0] == signature:
+            return seen[1]
+        calibration = Calibration.load(path)
+        if signature:
+            self._seen[path] = (signature, calibration)
+        return calibration
+
+
+def load_config(path: str | Path | None = None, calibrations: Calibrations | None = None) -> Config:
+    """Read and validate a configuration (default: the packaged simulated one);
+    ``calibrations``: files already read, reused where unchanged."""
     path = Path(path) if path is not None else default_config_path()
     doc = Table(load_toml(path), path)
     doc.only({"version", "bus", "bus_hz", "bus_overhead_us", "rate_hz", "scheduler", "averaging",
@@ -227,7 +307,7 @@ def load_config(path: str | Path | None = None) -> Config:
                 raise t.fail("addresses", "addresses no other sensor uses", f"0x{a:02X}")
             seen.add(a)
         cal_path = _resolve(t, "calibration", t.string("calibration"))
-        calibration = Calibration.load(cal_path)
+        calibration = calibrations.load(cal_path) if calibrations is not None else Calibration.load(cal_path)
         if calibration.addresses != addresses:
             raise t.fail("calibration", f"a calibration for the chips {[f'0x{a:02X}' for a in addresses]} in "
                                         f"this order", f"{cal_path} (for {[f'0x{a:02X}' for a in calibration.addresses]})")
@@ -291,3 +371,12 @@ def needs_restart(old: Config, new: Config) -> list[str]:
         ("scheduler", new.scheduler, old.scheduler), ("chip", new.settings, old.settings),
         ("sensor addresses", [(s.name, s.addresses) for s in new.sensors], [(s.name, s.addresses) for s in old.sensors]),
         ("endpoints", (new.publish, new.control), (old.publish, old.control))) if a != b]
+
+
+def reload_config(old: Config, calibrations: Calibrations | None = None) -> Config:
+    """Re-read ``old``'s file; ConfigError when it is bad or changes what needs a restart."""
+    new = load_config(old.path, calibrations)
+    fixed = needs_restart(old, new)
+    if fixed:
+        raise ConfigError(f"{new.path}: changing {', '.join(fixed)} needs a restart; nothing was changed")
+    return new

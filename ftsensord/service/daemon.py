@@ -19,22 +19,21 @@ from typing import Any, Callable
 import numpy as np
 import zmq
 
-from .. import __version__
+from ..acquire.board import know_board
 from ..acquire.reader import Reader
 from ..chip import mlx90393 as mlx
 from ..chip.driver import MLX90393
-from ..chip.i2c import Bus
+from ..chip.i2c import Bus, BusTiming
 from ..errors import ConfigError, FtsensordError
-from ..model import se3
 from . import wire
-from .config import Config, SensorConfig, check_rate, load_config, needs_restart
+from .config import Calibrations, Config, SensorConfig, check_rate, reload_config
 from .control import Control
 from .filters import WrenchFilter
-from .loop import LoopTiming, percentiles_us
-from .pipeline import SensorPipeline
+from .loop import LoopTiming, serve_until
+from .pipeline import SensorPipeline, tip_wrench, use_estimator
 from .sdnotify import Notifier
-from .status import ChipLedger
-from .tare import Tares
+from .status import ChipLedger, status_line, status_reply
+from .tare import Tares, carry_tares
 
 log = logging.getLogger("ftsensord")
 
@@ -53,8 +52,9 @@ class Daemon:
         chips = [MLX90393(bus, a, sleep=bus.sleep) for a in config.addresses]
         self.reader = Reader(bus, chips, config.scheduler, config.settings, config.bus_hz, config.bus_overhead_s,
                              stuck_cycles=config.stuck_cycles, readback_every=config.readback_every)
+        self.board_timing: BusTiming | None = getattr(bus, "timing", None)  # a real bus's: measured at start
         self.chips = ChipLedger({s.name: s.addresses for s in config.sensors})
-        self.sensors = [self._pipeline(s) for s in config.sensors]
+        self.sensors = [self._pipeline(s, config) for s in config.sensors]
         self.timing = LoopTiming()
         self.control = Control(control, self)
         self.tares = Tares(self.control.reply)
@@ -62,10 +62,12 @@ class Daemon:
         self.started_at = clock()
         self.stop_requested = self.reload_requested = False
         self.ready = False
+        self.calibrations = Calibrations().remember(config)
 
-    def _pipeline(self, s: SensorConfig) -> SensorPipeline:
-        smoothing = WrenchFilter(self.config.averaging, self.config.lowpass_hz, self.config.rate_hz)
-        return SensorPipeline.build(s, smoothing, self.config.max_missing_chips)
+    @staticmethod
+    def _pipeline(s: SensorConfig, config: Config) -> SensorPipeline:
+        smoothing = WrenchFilter(config.averaging, config.lowpass_hz, config.rate_hz)
+        return SensorPipeline.build(s, smoothing, config.max_missing_chips, config.settings)
 
     @property
     def period_s(self) -> float:
@@ -77,6 +79,11 @@ class Daemon:
 
     # --- the loop ------------------------------------------------------------------
     def start(self) -> None:
+        """Know the board (a real adapter: driver, clock and ioctl cost measured), start every chip."""
+        if getattr(self.bus, "number", None) is not None:
+            self.board_timing = measure_board(self.bus, self.config)
+        if self.board_timing is not None:
+            self.reader.use_timing(self.board_timing)
         for address, exc in self.reader.start().items():
             self.chips.failed_to_start(address, exc)
             log.warning("chip 0x%02X failed to start: %s", address, exc)
@@ -100,20 +107,8 @@ class Daemon:
         return 0
 
     def serve_until(self, deadline: float) -> None:
-        """Answer control requests until ``deadline``, then return (sleeping the last ms)."""
-        poller = zmq.Poller()
-        socket = self.control.socket
-        if socket is not None:
-            poller.register(socket, zmq.POLLIN)
-        while not self.stop_requested:
-            self.control.serve_waiting()
-            remaining = deadline - self.clock()
-            if remaining <= 0:
-                return
-            if remaining > 2e-3 and socket is not None:
-                poller.poll(timeout=int((remaining - 1e-3) * 1000))
-            else:
-                time.sleep(remaining)
+        """Answer control requests until ``deadline`` within this cycle's budget (`loop.serve_until`)."""
+        serve_until(self.control, deadline, self.period_s, self.clock, self.bus.sleep, lambda: self.stop_requested)
 
     def handle_control(self) -> None:
         """Answer every waiting control request now (tests call this between cycles)."""
@@ -144,11 +139,7 @@ class Daemon:
             # Wrenches first: a haptic loop waits for them; the flux streams are for debugging.
             self._publish(f"wrench/{name}", wire.KIND_WRENCH, seq, t_mono, t_wall, s.flags, s.wrench)
         if self.config.tool_offsets_m:
-            tip = sum((se3.wrench_transform(se3.pose(p=offset)) @ samples[name].wrench
-                       for name, offset in self.config.tool_offsets_m.items()), start=np.zeros(6))
-            tip_flags = 0
-            for s in samples.values():
-                tip_flags |= s.flags  # the tip is as good as its worst sensor
+            tip, tip_flags = tip_wrench(samples, self.config.tool_offsets_m)
             self._publish("wrench/tip", wire.KIND_WRENCH, seq, t_mono, t_wall, tip_flags, tip)
         for name, s in samples.items():
             self._publish(f"flux/{name}", wire.KIND_FLUX, seq, t_mono, t_wall, s.flux_flags, s.flux)
@@ -172,69 +163,79 @@ class Daemon:
 
     # --- what control requests do (`control.Controlled`) ---------------------------------
     def request_tare(self, envelope: list[bytes], sensors: list[str], samples: int) -> None:
+        """Start a tare (answered when done); ValueError when one of ``sensors`` has one under way."""
         self.tares.request(envelope, sensors, samples)
+
+    def untare(self, sensors: list[str]) -> dict[str, Any]:
+        """Back to the calibrations' own zeros; refused for a sensor with a tare under way."""
+        return {"removed_tare_wrench": self.tares.untare([s for s in self.sensors if s.name in sensors])}
 
     def loop_settings(self) -> tuple[float, int, float]:
         return self.config.rate_hz, self.config.averaging, self.config.lowpass_hz
 
     def set_loop(self, rate_hz: float, averaging: int, lowpass_hz: float) -> dict[str, Any]:
-        check_rate(self.config, rate_hz)
+        check_rate(self.config, rate_hz, timing=self.board_timing)
         self.config.rate_hz, self.config.averaging, self.config.lowpass_hz = rate_hz, averaging, lowpass_hz
         for s in self.sensors:
             s.filter.configure(averaging, lowpass_hz, rate_hz)
         return {"rate_hz": rate_hz, "averaging": averaging, "lowpass_hz": lowpass_hz}
 
     def set_estimator(self, estimator: str, sensor: str | None) -> dict[str, Any]:
-        chosen = [s for s in self.sensors if sensor is None or s.name == sensor]
-        lacking = [s.name for s in chosen if estimator == "nonlinear" and s.nonlinear is None]
-        if lacking:
-            raise ValueError(f"no nonlinear calibration for {', '.join(lacking)}")
-        for s in chosen:
-            s.use(estimator)
-        return {"estimator": {s.name: s.estimator for s in self.sensors}}
+        return {"estimator": use_estimator(self.sensors, estimator, sensor)}
 
     def reload(self) -> dict[str, Any]:
         """Re-read the configuration and calibrations; keep the old ones if the new are bad.
 
         Calibrations, rate, averaging, low-pass and tool offsets change at once;
-        a change of bus, chips, scheduler or endpoints needs a restart.
+        a change of bus, chips, scheduler or endpoints needs a restart. Unchanged
+        calibration files are not read again (`config.Calibrations`): such a reload
+        takes about 1 ms and fits between two cycles.
         """
         self.notifier.reloading()
         try:
-            new = load_config(self.config.path)
-            fixed = needs_restart(self.config, new)
-            if fixed:
-                raise ConfigError(f"{new.path}: changing {', '.join(fixed)} needs a restart; nothing was changed")
+            new = reload_config(self.config, self.calibrations)
+            self.notifier.check_rate(new.rate_hz, f"{new.path}: rate_hz")
         except FtsensordError as exc:
             log.error("reload refused, the running configuration stays: %s", exc)
             self.notifier.ready(self.status_line())
             raise
         self.config = new
-        self.sensors = [self._pipeline(s) for s in new.sensors]
+        # The reader's care follows the file: stuck detection and register read-back.
+        self.reader.readback_every = new.readback_every
+        self.reader.stuck_cycles = self.reader.care.stuck_cycles = new.stuck_cycles
+        old, self.sensors = self.sensors, [self._pipeline(s, new) for s in new.sensors]
+        tares = carry_tares(old, self.sensors)  # kept where the calibration is the same, else dropped, said
         log.info("reloaded %s", new.path)
         self.notifier.ready(self.status_line())
-        return {"config": str(new.path), "calibrations": {s.name: str(s.calibration_path) for s in new.sensors}}
+        return {"config": str(new.path), "calibrations": {s.name: str(s.calibration_path) for s in new.sensors},
+                "tare": tares}
 
-    # --- status --------------------------------------------------------------------------------
+    # --- status (`service.status`) ---------------------------------------------------------
     def status_line(self) -> str:
-        rate = self.timing.achieved_rate_hz()
-        return (f"{'%.1f' % rate if rate else '-'} Hz of {self.config.rate_hz:g} Hz "
-                f"(bound {self.config.bound().rate_hz:.0f} Hz), {self.timing.missed} missed, "
-                f"{self.chips.failing} chip(s) failing")
+        return status_line(self)
 
     def status(self) -> dict[str, Any]:
-        bound, t = self.config.bound(), self.timing
-        return {
-            "version": __version__, "uptime_s": round(self.clock() - self.started_at, 3),
-            "config": str(self.config.path), "bus": self.config.bus, "scheduler": self.config.scheduler,
-            "rate_hz": self.config.rate_hz, "achieved_rate_hz": t.achieved_rate_hz(),
-            "bound_hz": bound.rate_hz, "bound": bound.describe(),
-            "jitter_us": percentiles_us(t.lateness),
-            # What the loop leaves of its period: the bound counts the bus, this adds the CPU.
-            "cycle_us": percentiles_us(t.durations), "period_us": self.period_s * 1e6,
-            "cycles": t.cycles, "missed_cycles": t.missed, "late_cycles": t.late,
-            "averaging": self.config.averaging, "lowpass_hz": self.config.lowpass_hz,
-            "chips": self.chips.report(self.reader.health, self.reader.bus.monotonic()),
-            "sensors": {s.name: s.status() for s in self.sensors},
-            "streams": sorted(self.streams), "publish": self.config.publish, "control": self.config.control,
-        }
+        return status_reply(self)
+
+
+def measure_board(bus: Bus, config: Config) -> BusTiming:
+    """A real adapter's rules, ioctl cost and clock, measured through the first chip that
+    answers (`acquire.board.know_board`); logs its warnings, and one when the configured
+    rate is beyond the bound at the measured figures (checked before at the configured clock)."""
+    report = None
+    for address in config.addresses[:4]:
+        report = know_board(bus, address, config.bus_hz)
+        if report.measured is not None:
+            break
+    assert report is not None  # a configuration names at least one chip
+    for warning in report.warnings:
+        log.warning("%s", warning)
+    m = report.measured
+    log.info("I2C adapter %s (%s): %s", report.driver or "unknown", report.adapter or "rules unknown",
+             "not measured (no chip answered)" if m is None else
+             f"ioctl {m.ioctl_s * 1e6:.0f} us, clock {m.clock_hz / 1e3:.0f} kHz measured")
+    try:
+        check_rate(config, config.rate_hz, "rate_hz on this board", timing=report.timing)
+    except ConfigError as slow:
+        log.warning("%s: cycles will run late", slow)
+    return report.timing

@@ -9,8 +9,12 @@ never made up by a burst.
 from __future__ import annotations
 
 from collections import deque
+from typing import Callable
 
 import numpy as np
+import zmq
+
+from .control import BUDGET_FRACTION, Budget, Control
 
 #: A cycle starting later than this fraction of a period after its deadline is late.
 LATE_FRACTION = 0.1
@@ -60,3 +64,34 @@ def percentiles_us(seconds: deque[float]) -> dict[str, float]:
     """p50, p99 and max of durations in s, in us (zeros before the first cycle)."""
     us = np.array(seconds) * 1e6 if seconds else np.zeros(1)
     return {"p50": float(np.percentile(us, 50)), "p99": float(np.percentile(us, 99)), "max": float(us.max())}
+
+
+def serve_until(control: Control, deadline: float, period_s: float, clock: Callable[[], float],
+                sleep: Callable[[float], None], stopped: Callable[[], bool]) -> None:
+    """Answer control requests until ``deadline`` (s on ``clock``), then return.
+
+    The loop comes first: this cycle's control work has a `Budget` (MAX_PER_CYCLE
+    requests, BUDGET_FRACTION of the period, at least one request), shared in turn
+    among clients; what does not fit waits for the next cycle, however many clients
+    flood the socket. Waiting ends with ``sleep``, the bus's: the loop's clock is the
+    bus's (virtual in tests, so a test can run this very code)."""
+    poller = zmq.Poller()
+    socket = control.socket
+    if socket is not None:
+        poller.register(socket, zmq.POLLIN)
+    budget = Budget(seconds=min(BUDGET_FRACTION * period_s, deadline - clock()))
+    spent = False
+    while not stopped():
+        if not spent:
+            spent = control.serve_waiting(budget)
+        remaining = deadline - clock()
+        if remaining <= 0:
+            return
+        # Budget spent: the requests left stay queued, and a poll would return at once
+        # for them and spin; so sleep. Else wait for a request until 1 ms before.
+        if not spent and socket is not None and remaining > 2e-3 \
+                and poller.poll(timeout=int((remaining - 1e-3) * 1000)):
+            continue
+        remaining = deadline - clock()
+        if remaining > 0:
+            sleep(min(remaining, 0.05))  # short steps: a signal stops the loop

@@ -18,8 +18,10 @@ from typing import Any
 import numpy as np
 
 from ..acquire.health import ChipResult
+from ..chip import mlx90393 as mlx
 from ..errors import ChipRefusedError
-from ..model.linear import SENSOR_RANGE, LinearModel
+from ..model import se3
+from ..model.linear import SENSOR_RANGE, Consistency, LinearModel, chi2_quantile
 from ..model.nonlinear import NonlinearEstimator
 from . import wire
 from .config import SensorConfig
@@ -30,6 +32,46 @@ from .loop import STATS_WINDOW
 #: largest load on an axis: up to 1.5x no axis's error relative to the load has grown
 #: 1.5-fold, by 3x one has nearly tripled (benchmarks/extrapolation.py, docs/calibration.md).
 EXTRAPOLATION_MARGIN = 1.5
+#: The redundancy check (`LinearModel.consistency`), two tests on the whitened residual:
+#: the whole residual (chi-square, 3 n - 6 dof: any disagreement, e.g. a field two chips
+#: see) and, per chip, how much it drops when that chip is left out (chi-square, 3 dof: the
+#: likelihood-ratio test for one faulty chip, far more sensitive to one, as its 3 dof hold
+#: less noise and a fifth of the model error), and the slow test below. Under noise alone a
+#: sample fails any with these odds in all (half to the whole residual's test, a quarter to
+#: each per-chip test, split among the chips): at
+#: 2 sensors x 100 Hz a false alarm once in 58 days, and it costs one flagged sample
+#: estimated from 7 chips.
+CONSISTENCY_FALSE_ODDS = 1e-9
+#: The linear model's own residual (whitened norm, in noise sigmas), which the noise
+#: threshold is raised by: at most AT_REST + AT_RANGE * s^2 for a load s times the
+#: calibration's largest (the largest ratio over the axes). Measured on the nominal scene
+#: with both shipped calibrations (600 loads at each s, tests/test_consistency.py measures
+#: it again). Whole residual: 2.0 at rest (the calibration's zero is 4 uT off the scene's),
+#: 3.6 at s = 0.25, 6.4 at 0.5, 20.3 at 1, 48.5 at 1.5. Largest one-chip drop: 1.0 at
+#: rest, 1.3 at 0.1, 1.9 at 0.25, 3.8 at 0.5, 11.3 at 1, 27.6 at 1.5. The bounds below
+#: clear each by at least 11 %. A real sensor's calibration with a larger model error
+#: needs larger ones.
+MODEL_RESIDUAL_AT_REST, MODEL_RESIDUAL_AT_RANGE = 2.5, 26.0
+CHIP_RESIDUAL_AT_REST, CHIP_RESIDUAL_AT_RANGE = 1.5, 13.0
+#: A chip found disagreeing stays out (its samples flagged) until it has agreed this many
+#: samples in a row at a looser limit, the noise's 1 % point: a stuck chip under a slow
+#: load hovers at the threshold for a while, and in and out it would let samples through
+#: that are nearly as wrong as the threshold allows.
+REJOIN_SAMPLES, REJOIN_ODDS = 20, 1e-2
+#: A third test, on each chip's drop summed over this many samples (chi-square, 3 x this
+#: dof): a chip drifting off slowly (stuck under a slow load) is found at a third of the
+#: disagreement one sample needs, before its error reaches 5 sigma of the wrench (one
+#: sample's test lets through up to 0.64 sigma of wrench per unit of residual, 5.7 sigma
+#: at its limit). Minkowski: |sum (noise + model)^2|^(1/2) <= |sum noise^2|^(1/2) +
+#: sqrt(N) max|model|, so the odds hold. 10 samples: 0.1 s at 100 Hz.
+SLOW_WINDOW = 10
+
+
+def channel_sigma_t(settings: mlx.Settings, chips: int) -> np.ndarray:
+    """Each channel's reading noise (T, chips x 3): the chip's noise and its LSB's
+    quantisation (LSB^2 / 12), which at the paper's settings is as large."""
+    per_axis = [np.hypot(settings.noise_ut(a), settings.sensitivity_ut(a) / np.sqrt(12)) * 1e-6 for a in "xyz"]
+    return np.tile(per_axis, chips)
 
 
 @dataclass
@@ -56,14 +98,20 @@ class SensorPipeline:
     zero_twist: np.ndarray | None = None  # the nonlinear estimator's no-load deflection
     tare_wrench: np.ndarray = field(default_factory=lambda: np.zeros(6))  # what the tare removes (N, Nm)
     fallbacks: int = 0
+    sigma_t: np.ndarray | None = None  # each channel's noise (T); None: the default chip settings'
+    check: RedundancyCheck = field(default_factory=lambda: RedundancyCheck())
     estimate_s: deque[float] = field(default_factory=lambda: deque(maxlen=STATS_WINDOW))
 
     @classmethod
-    def build(cls, s: SensorConfig, smoothing: WrenchFilter, max_missing_chips: int) -> SensorPipeline:
+    def build(cls, s: SensorConfig, smoothing: WrenchFilter, max_missing_chips: int,
+              settings: mlx.Settings | None = None) -> SensorPipeline:
         nl = s.calibration.nonlinear
+        sigma_t = channel_sigma_t(settings or mlx.Settings(), len(s.addresses))
+        if s.calibration.model.H is not None:  # the check's 9 projections (1.4 ms) now, not in a cycle
+            s.calibration.model.consistency(s.calibration.model.zero, sigma_t, np.ones(len(s.addresses), bool))
         return cls(s, s.calibration.model, smoothing, max_missing_chips, np.full(3 * len(s.addresses), np.nan),
                    estimator=s.estimator, nonlinear=nl.estimator() if nl is not None else None,
-                   zero_twist=nl.zero_twist.copy() if nl is not None else None)
+                   zero_twist=nl.zero_twist.copy() if nl is not None else None, sigma_t=sigma_t)
 
     @property
     def name(self) -> str:
@@ -78,10 +126,17 @@ class SensorPipeline:
         valid = not wflags & wire.FLAG_INVALID
         if valid and np.any(np.abs(wrench) > SENSOR_RANGE):
             wflags |= wire.FLAG_OVERLOAD
-        return SensorSample(flux, flags, self.filter.update(wrench), wflags, valid)
+        filtered, wflags = self.filter.update(wrench, wflags)  # a filtered wrench carries its inputs' flags
+        return SensorSample(flux, flags, filtered, wflags, valid)
 
     def flux(self, results: dict[int, ChipResult]) -> tuple[np.ndarray, int, np.ndarray]:
         """The sensor's stacked flux (T), its flags, and which chips are usable."""
+        rs = [results[a] for a in self.config.addresses]
+        ms = [r.measurement for r in rs]
+        if all(m is not None and not m.any_saturated for m in ms):  # the usual cycle: one stack, no loop
+            flux = np.concatenate([m.field_t for m in ms])  # type: ignore[union-attr]
+            self.last_flux[:] = flux
+            return flux, 0, np.ones(len(ms), dtype=bool)
         flux = np.full(3 * len(self.config.addresses), np.nan)
         usable = np.zeros(len(self.config.addresses), dtype=bool)
         flags = 0
@@ -104,7 +159,10 @@ class SensorPipeline:
 
     def estimate(self, flux: np.ndarray, flags: int, usable: np.ndarray) -> tuple[np.ndarray, int]:
         """The wrench from every chip; from the usable ones (degraded) when one or
-        two are missing or saturated; else NaN, flagged invalid."""
+        two are missing or saturated, or disagree with the others (inconsistent);
+        else NaN, flagged invalid."""
+        usable, checked = self.check.chips(self, flux, usable)
+        flags |= checked
         few_missing = (~usable).sum() <= self.max_missing_chips
         if self.estimator == "nonlinear" and self.nonlinear is not None and self.zero_twist is not None:
             if few_missing:
@@ -161,3 +219,118 @@ class SensorPipeline:
                                 "max": float(np.max(self.estimate_s)) * 1e6} if self.estimate_s else None,
             "tare_wrench": self.tare_wrench.round(6).tolist(),
         }
+
+
+def use_estimator(pipelines: list[SensorPipeline], estimator: str, sensor: str | None) -> dict[str, str]:
+    """Switch ``sensor``'s (None: every) estimator; ValueError where a nonlinear one lacks
+    its calibration. Returns each sensor's estimator."""
+    chosen = [p for p in pipelines if sensor is None or p.name == sensor]
+    lacking = [p.name for p in chosen if estimator == "nonlinear" and p.nonlinear is None]
+    if lacking:
+        raise ValueError(f"no nonlinear calibration for {', '.join(lacking)}")
+    for p in chosen:
+        p.use(estimator)
+    return {p.name: p.estimator for p in pipelines}
+
+
+def tip_wrench(samples: dict[str, SensorSample], offsets_m: dict[str, np.ndarray]) -> tuple[np.ndarray, int]:
+    """The wrench at the tool tip (N, Nm, tip frame): each sensor's moved from its offset
+    (m, sensor frame from the tip) and summed, with every sensor's flags: the tip is as
+    good as its worst sensor."""
+    tip, flags = np.zeros(6), 0
+    for name, offset in offsets_m.items():
+        tip += se3.wrench_transform(se3.pose(p=offset)) @ samples[name].wrench
+        flags |= samples[name].flags
+    return tip, flags
+
+
+class RedundancyCheck:
+    """Which of a sensor's chips agree with one deflection (`LinearModel.consistency`),
+    sample by sample, and which were found out and stay out until they agree again."""
+
+    def __init__(self) -> None:
+        self.inconsistent = 0  # samples flagged
+        self.suspects: dict[int, int] = {}  # chip index: samples it has agreed since found out
+        self.slow: deque[tuple[np.ndarray, float]] = deque(maxlen=SLOW_WINDOW)
+        self.slow_key = b""  # the chips the drops in `slow` were computed over
+
+    def chips(self, p: SensorPipeline, flux: np.ndarray, usable: np.ndarray) -> tuple[np.ndarray, int]:
+        """The chips to estimate from, and `inconsistent` (+ `degraded`) when the usable
+        chips' residual is beyond noise and model error: the chip whose leaving explains
+        it is left out if the rest then agree, else the sample is flagged as it stands."""
+        if p.model.H is None or p.sigma_t is None or usable.sum() * 3 <= 6 + (
+                0 if p.model.room is None else p.model.room.shape[1]):
+            return usable, 0  # no flux model or no redundancy left: nothing to check against
+        c = p.model.consistency(flux, p.sigma_t, usable)
+        out = usable.copy()
+        for chip in list(self.suspects):
+            if not usable[chip]:
+                continue  # missing or saturated this cycle: no news of it
+            drop = c.chi2 - c.chi2_without[chip]
+            self.suspects[chip] = self.suspects[chip] + 1 if drop <= self._limits(p, c, 1, REJOIN_ODDS)[1] ** 2 else 0
+            if self.suspects[chip] >= REJOIN_SAMPLES:
+                del self.suspects[chip]
+            else:
+                out[chip] = False
+        if not out.all() and out.sum() < usable.sum():
+            if (~out).sum() > p.max_missing_chips:
+                return usable, wire.FLAG_INCONSISTENT  # too many out to estimate without them
+            c = p.model.consistency(flux, p.sigma_t, out)
+        if not np.isfinite(c.chi2):
+            return out, 0
+        culprit = None if self._agree(p, c, int(out.sum())) else c.culprit()
+        if culprit is None:
+            culprit = self._slow_culprit(p, c, out)
+        if culprit is None:
+            return out, 0 if out.sum() == usable.sum() else wire.FLAG_INCONSISTENT | wire.FLAG_DEGRADED
+        self.inconsistent += 1
+        rest = out.copy()
+        rest[culprit] = False
+        if (~rest).sum() <= p.max_missing_chips and np.isfinite(c.chi2_without[culprit]):
+            again = p.model.consistency(flux, p.sigma_t, rest)
+            if self._agree(p, again, int(rest.sum())):
+                self.suspects[culprit] = 0
+                return rest, wire.FLAG_INCONSISTENT | wire.FLAG_DEGRADED
+        return out, wire.FLAG_INCONSISTENT
+
+    def _agree(self, p: SensorPipeline, c: Consistency, chips: int) -> bool:
+        """Both tests within their limits. |noise + model| <= |noise| + |model|, so the
+        false-alarm odds stay within CONSISTENCY_FALSE_ODDS."""
+        whole, one = self._limits(p, c, chips, CONSISTENCY_FALSE_ODDS)
+        drop = c.chi2 - c.chi2_without  # -inf for a chip not in use or not to be left out
+        return bool(c.chi2 <= whole ** 2 and np.max(drop) <= one ** 2)
+
+    def _slow_culprit(self, p: SensorPipeline, c: Consistency, chips: np.ndarray) -> int | None:
+        """The chip whose drop summed over the last `SLOW_WINDOW` samples (over the same
+        chips) is beyond noise and model error, or None."""
+        key = chips.tobytes()
+        if key != self.slow_key:
+            self.slow.clear()
+            self.slow_key = key
+        drop = c.chi2 - c.chi2_without
+        self.slow.append((np.where(np.isfinite(drop), drop, 0.0), self._load2(p, c)))
+        if len(self.slow) < SLOW_WINDOW:
+            return None
+        total = np.sum([d for d, _ in self.slow], axis=0)
+        s2 = max(s for _, s in self.slow)
+        n = int(chips.sum())
+        limit = np.sqrt(chi2_quantile(3 * SLOW_WINDOW, CONSISTENCY_FALSE_ODDS / (4 * n))) \
+            + np.sqrt(SLOW_WINDOW) * (CHIP_RESIDUAL_AT_REST + CHIP_RESIDUAL_AT_RANGE * s2)
+        if np.max(total) <= limit ** 2:
+            return None
+        self.slow.clear()
+        return int(np.argmax(total))
+
+    def _load2(self, p: SensorPipeline, c: Consistency) -> float:
+        """The load's square, as a fraction of the calibration's largest (largest over the axes)."""
+        fitted = p.config.calibration.wrench_range
+        return float(np.max(np.abs(c.wrench + p.tare_wrench) / (fitted if fitted is not None else SENSOR_RANGE)) ** 2)
+
+    def _limits(self, p: SensorPipeline, c: Consistency, chips: int, odds: float) -> tuple[float, float]:
+        """The limits (whitened norms) of the whole residual and of one chip's drop: the
+        noise's at ``odds`` (half to the whole, a quarter to one chip's, split among
+        ``chips``; the last quarter is the slow test's) plus the model's own error at this load."""
+        s2 = self._load2(p, c)
+        whole = np.sqrt(chi2_quantile(c.dof, odds / 2)) + MODEL_RESIDUAL_AT_REST + MODEL_RESIDUAL_AT_RANGE * s2
+        one = np.sqrt(chi2_quantile(3, odds / (4 * chips))) + CHIP_RESIDUAL_AT_REST + CHIP_RESIDUAL_AT_RANGE * s2
+        return float(whole), float(one)

@@ -6,6 +6,7 @@ chips back to idle and exit 0; SIGHUP reloads calibration and configuration.
 
 from __future__ import annotations
 
+import fcntl
 import logging
 import os
 import signal
@@ -15,8 +16,8 @@ import zmq
 
 from ..acquire.bus import open_bus, parse_bus_spec
 from ..chip.i2c import Bus
-from ..errors import ConfigError
-from .config import Config, is_loopback
+from ..errors import ConfigError, FtsensordError
+from .config import Config, ensure_private_dir, is_loopback
 from .control import MAX_REQUEST
 from .daemon import Daemon
 from .sdnotify import Notifier
@@ -31,12 +32,14 @@ CONTROL_HWM = 100
 
 
 def open_configured_bus(config: Config) -> Bus:
-    """The configured bus; a simulated one spends real wire time at ``bus_hz``."""
+    """The configured bus; a simulated one spends real wire time at ``bus_hz``. A real
+    one is locked for the daemon alone (``scan`` and ``doctor`` then refuse it); the
+    daemon measures its costs at start (`Daemon.start`, `acquire.board.know_board`)."""
     kind, _ = parse_bus_spec(config.bus)
     if kind == "sim":
         from ..sim import MonotonicClock
         return open_bus(config.bus, clock=MonotonicClock(), bus_hz=config.bus_hz, seed=None)
-    return open_bus(config.bus)
+    return open_bus(config.bus, exclusive=True)
 
 
 def _ipc_path(endpoint: str) -> Path | None:
@@ -44,14 +47,52 @@ def _ipc_path(endpoint: str) -> Path | None:
 
 
 def bind(socket: zmq.Socket, endpoint: str) -> None:
-    """Bind, creating an ipc socket's folder; the socket file gets mode 0660
-    (the service's group may connect, nobody else)."""
+    """Bind, creating an ipc socket's folder (0700) and refusing one another user could
+    tamper with (`ensure_private_dir`); the socket file gets mode 0660 (the service's
+    group may connect, nobody else)."""
     path = _ipc_path(endpoint)
     if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True, mode=0o750)
+        ensure_private_dir(path.parent)
     socket.bind(endpoint)
     if path is not None:
         os.chmod(path, 0o660)
+
+
+#: The lock file in each folder holding the daemon's ipc sockets.
+LOCK_NAME = "ftsensord.lock"
+
+
+def lock_runtime(config: Config) -> list[int]:
+    """Take the exclusive lock (flock) in every folder of the configured ipc endpoints;
+    refuse, naming the first daemon's pid, when another daemon holds one. Returns the
+    open descriptors: the locks last while they stay open (the kernel drops them at exit,
+    even after kill -9)."""
+    folders = sorted({p.parent for p in map(_ipc_path, (*config.publish, config.control)) if p is not None})
+    held: list[int] = []
+    try:
+        for folder in folders:
+            ensure_private_dir(folder)
+            held.append(_lock(folder / LOCK_NAME))
+    except BaseException:
+        for fd in held:
+            os.close(fd)
+        raise
+    return held
+
+
+def _lock(path: Path) -> int:
+    # O_NOFOLLOW: a symlink planted as the lock file is refused, not written through.
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o600)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        pid = os.pread(fd, 32, 0).decode("ascii", "replace").strip() or "unknown"
+        os.close(fd)
+        raise ConfigError(f"{path.parent}: another ftsensord (pid {pid}) runs here; stop it first "
+                          "(or give this one other endpoints)") from None
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+    return fd
 
 
 def secure_control(context: zmq.Context, control: zmq.Socket, config: Config) -> object | None:
@@ -96,10 +137,24 @@ def make_sockets(context: zmq.Context, config: Config) -> tuple[zmq.Socket, zmq.
 
 
 def run(config: Config) -> int:
-    bus = open_configured_bus(config)
+    notifier = Notifier()
+    notifier.check_rate(config.rate_hz, f"{config.path}: rate_hz")
+    locks = lock_runtime(config)  # before the bus: a second daemon must not touch the chips
+    try:
+        try:
+            bus = open_configured_bus(config)
+        except (OSError, FtsensordError) as exc:
+            raise ConfigError(f"{config.path}: bus: cannot open {config.bus!r}: {exc}") from exc
+        return _serve(config, bus, notifier)
+    finally:
+        for fd in locks:
+            os.close(fd)
+
+
+def _serve(config: Config, bus: Bus, notifier: Notifier) -> int:
     context = zmq.Context()
     publisher, control, auth = make_sockets(context, config)
-    daemon = Daemon(config, bus, publisher, control, notifier=Notifier())
+    daemon = Daemon(config, bus, publisher, control, notifier=notifier)
 
     def stop(signum: int, frame: object) -> None:
         daemon.stop_requested = True
@@ -123,5 +178,5 @@ def run(config: Config) -> int:
         bus.close()
         for endpoint in (*config.publish, config.control):
             path = _ipc_path(endpoint)
-            if path is not None and path.exists():
-                path.unlink()
+            if path is not None and os.path.lexists(path):
+                path.unlink()  # ours: the folder is checked and locked

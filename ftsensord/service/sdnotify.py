@@ -4,6 +4,8 @@ With ``Type=notify`` the daemon says ``READY=1`` once its first cycle has
 published, ``WATCHDOG=1`` as cycles complete (at most every half of
 $WATCHDOG_USEC, so a stuck loop stops the pings and systemd restarts it), and
 ``STATUS=...`` for ``systemctl status``. Outside systemd it does nothing.
+Pings never come from anywhere but a completed cycle, so a rate too slow for
+the watchdog is refused (`Notifier.check_rate`) rather than pinged between cycles.
 """
 
 from __future__ import annotations
@@ -11,6 +13,8 @@ from __future__ import annotations
 import os
 import socket
 import time
+
+from ..errors import ConfigError
 
 
 class Notifier:
@@ -61,6 +65,21 @@ class Notifier:
             return False
         self._last_ping = now
         return self.notify("WATCHDOG=1")
+
+    def check_rate(self, rate_hz: float, where: str = "rate_hz") -> None:
+        """Refuse a loop rate whose period is longer than half the watchdog interval.
+
+        Pings follow completed cycles only (a ping from anywhere else would keep a stuck
+        loop alive), so a cycle must complete at least twice per WatchdogSec: one late
+        cycle must not restart the service. Outside a watchdog, any rate goes."""
+        if self.watchdog_interval_s is None:
+            return
+        watchdog_s = 2 * self.watchdog_interval_s
+        if 1.0 / rate_hz > self.watchdog_interval_s:
+            raise ConfigError(f"{where}: {rate_hz:g} Hz is a cycle every {1 / rate_hz:g} s, too slow for the "
+                              f"watchdog (WatchdogSec={watchdog_s:g} s wants a cycle at least every "
+                              f"{self.watchdog_interval_s:g} s): use at least {1 / self.watchdog_interval_s:g} Hz "
+                              "or raise WatchdogSec in the unit")
 
     def stopping(self) -> bool:
         return self.notify("STOPPING=1")

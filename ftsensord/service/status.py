@@ -6,10 +6,15 @@ The keys of the `status` reply are documented in docs/protocol.md.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+from .. import __version__
 from ..acquire.health import ChipHealth, ChipResult
 from ..errors import ChipError, ChipRefusedError
+from .loop import percentiles_us
+
+if TYPE_CHECKING:
+    from .daemon import Daemon
 
 
 @dataclass
@@ -64,6 +69,36 @@ class ChipLedger:
                 "retry_in_s": retry, "reinits": h.reinits, "register_drifts": h.register_drifts,
                 "stuck_detections": h.stuck_detections}
         return out
+
+
+def status_line(d: Daemon) -> str:
+    """The one line systemd shows (`systemctl status`): rate against bound, misses, failing chips."""
+    rate = d.timing.achieved_rate_hz()
+    return (f"{'%.1f' % rate if rate else '-'} Hz of {d.config.rate_hz:g} Hz "
+            f"(bound {d.config.bound(d.board_timing).rate_hz:.0f} Hz), {d.timing.missed} missed, "
+            f"{d.chips.failing} chip(s) failing")
+
+
+def status_reply(d: Daemon) -> dict[str, Any]:
+    """The `status` reply (keys in docs/protocol.md)."""
+    bound, t, board = d.config.bound(d.board_timing), d.timing, d.board_timing
+    return {
+        "version": __version__, "uptime_s": round(d.clock() - d.started_at, 3),
+        "config": str(d.config.path), "bus": d.config.bus, "scheduler": d.config.scheduler,
+        "rate_hz": d.config.rate_hz, "achieved_rate_hz": t.achieved_rate_hz(),
+        "bound_hz": bound.rate_hz, "bound": bound.describe(),  # the bus as measured at start, or simulated:
+        "adapter": board and board.adapter, "clock_hz": board and board.clock_hz,
+        "ioctl_us": None if board is None or board.ioctl_s is None else board.ioctl_s * 1e6,
+        "jitter_us": percentiles_us(t.lateness),
+        # What the loop leaves of its period: the bound counts the bus, this adds the CPU.
+        "cycle_us": percentiles_us(t.durations), "period_us": d.period_s * 1e6,
+        "cycles": t.cycles, "missed_cycles": t.missed, "late_cycles": t.late,
+        "averaging": d.config.averaging, "lowpass_hz": d.config.lowpass_hz,
+        "chips": d.chips.report(d.reader.health, d.reader.bus.monotonic()),
+        "sensors": {s.name: s.status() for s in d.sensors},
+        "streams": sorted(d.streams), "publish": d.config.publish, "control": d.config.control,
+    }
+
 
 def describe(status: dict[str, Any]) -> str:
     """A `status` reply as the text `ftsensord status` prints: rate against bound, jitter,

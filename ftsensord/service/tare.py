@@ -2,10 +2,19 @@
 
 A tare request waits while its samples come in, one a cycle, then is
 answered through the reply function it was given (the control endpoint's).
+A tare takes only samples without any flag (a flagged sample may hold a
+stuck, missing or disagreeing chip, or a load beyond the calibration's), and
+only a steady load: when the two halves of its samples differ beyond their
+noise the load moved (or drifted) and the tare is refused, saying why. One
+tare per sensor at a time; a tare survives a reload that keeps the sensor's
+calibration, and `untare` goes back to the calibration's own zero.
 """
 
 from __future__ import annotations
 
+import logging
+import math
+from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -15,10 +24,17 @@ import numpy as np
 from . import wire
 from .pipeline import SensorPipeline
 
+log = logging.getLogger("ftsensord")
+
 #: A tare gives up when its sensor has been invalid for this many times the samples asked.
 TARE_PATIENCE = 10
+#: The halves of a tare's samples may differ by this many standard deviations of their
+#: difference (per axis, from the chips' noise): under noise alone a tare is refused
+#: with odds of 2e-9 per axis; a load that moves or drifts by more is refused.
+TARE_STEADY_SIGMAS = 6.0
 
 Reply = Callable[[list[bytes], dict[str, Any]], None]
+AXES = ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
 
 
 @dataclass
@@ -27,6 +43,8 @@ class TareJob:
     sensors: list[str]
     samples: int
     flux: dict[str, list[np.ndarray]] = field(default_factory=dict)
+    seen: dict[str, Counter[str]] = field(default_factory=dict)  # flags of the samples turned away
+    turned_away: dict[str, int] = field(default_factory=dict)  # how many, by sensor
     cycles: int = 0
 
 
@@ -37,27 +55,119 @@ class Tares:
         self.reply = reply
         self.jobs: list[TareJob] = []
 
+    def busy(self, sensors: Sequence[str]) -> list[str]:
+        """Those of ``sensors`` with a tare under way."""
+        return [n for n in sensors if any(n in job.sensors for job in self.jobs)]
+
     def request(self, envelope: list[bytes], sensors: list[str], samples: int) -> None:
+        """Start a tare of ``sensors``; ValueError if one of them has a tare under way."""
+        busy = self.busy(sensors)
+        if busy:
+            raise ValueError(f"a tare of {', '.join(busy)} is under way: wait for its reply")
         self.jobs.append(TareJob(envelope, sensors, samples))
 
+    def untare(self, pipelines: Sequence[SensorPipeline]) -> dict[str, list[float]]:
+        """Back to the calibrations' own zeros; ValueError if one has a tare under way.
+        Returns, by sensor, the wrench (N, Nm) each tare had removed."""
+        busy = self.busy([p.name for p in pipelines])
+        if busy:
+            raise ValueError(f"a tare of {', '.join(busy)} is under way: wait for its reply, then untare")
+        removed = {p.name: untare(p) for p in pipelines}
+        log.info("untared %s", ", ".join(removed))
+        return removed
+
     def feed(self, sensor: str, flux: np.ndarray, flags: int) -> None:
-        """Offer one cycle's flux (T) of ``sensor`` with its sample's flags."""
-        if flags & (wire.FLAG_STALE | wire.FLAG_DEGRADED):
-            return  # a zero needs every chip's fresh reading
+        """Offer one cycle's flux (T) of ``sensor`` with its sample's flags (those of its
+        published wrench: a filtered wrench's include what its filter still holds)."""
         for job in self.jobs:
-            if sensor in job.sensors and len(job.flux.setdefault(sensor, [])) < job.samples:
+            if sensor not in job.sensors:
+                continue
+            if flags:  # a zero needs every chip fresh, agreeing and within the calibration
+                job.seen.setdefault(sensor, Counter()).update(wire.flag_names(flags))
+                job.turned_away[sensor] = job.turned_away.get(sensor, 0) + 1
+            elif len(job.flux.setdefault(sensor, [])) < job.samples:
                 job.flux[sensor].append(flux)
 
     def advance(self, pipelines: Sequence[SensorPipeline]) -> None:
         """After a cycle: finish the tares that have their samples, give up on the hopeless."""
+        by_name = {p.name: p for p in pipelines}
         for job in list(self.jobs):
             job.cycles += 1
             if all(len(job.flux.get(n, [])) >= job.samples for n in job.sensors):
-                offsets = {p.name: p.tare(np.mean(job.flux[p.name], axis=0)).round(6).tolist()
-                           for p in pipelines if p.name in job.sensors}
                 self.jobs.remove(job)
+                moved = [m for n in job.sensors if n in by_name
+                         for m in [unsteady(by_name[n], np.array(job.flux[n]))] if m]
+                if moved:
+                    self.reply(job.reply_to, {"ok": False, "error": "tare refused, nothing changed: "
+                                                                    + "; ".join(moved)})
+                    continue
+                offsets = {n: by_name[n].tare(np.mean(job.flux[n], axis=0)).round(6).tolist()
+                           for n in job.sensors if n in by_name}
                 self.reply(job.reply_to, {"ok": True, "result": {"tare_wrench": offsets, "samples": job.samples}})
             elif job.cycles > TARE_PATIENCE * job.samples:
                 self.jobs.remove(job)
-                self.reply(job.reply_to, {"ok": False, "error": f"tare gave up after {job.cycles} cycles: "
-                                                                "the sensor had too few valid samples"})
+                self.reply(job.reply_to, {"ok": False, "error": f"tare refused after {job.cycles} cycles, "
+                                                                "nothing changed: " + _shortfall(job)})
+
+
+def _shortfall(job: TareJob) -> str:
+    """Which sensors lacked clean samples, and the flags that turned theirs away."""
+    parts = []
+    for n in job.sensors:
+        got = len(job.flux.get(n, []))
+        if got >= job.samples:
+            continue
+        seen = job.seen.get(n, Counter())
+        flags = ", ".join(f"{name} in {count}" for name, count in seen.most_common()) or "none"
+        parts.append(f"{n} had {got} of {job.samples} samples without a flag (flags seen: {flags}; "
+                     f"{max(0, job.cycles - got - job.turned_away.get(n, 0))} cycles without an estimate)")
+    return "; ".join(parts) + "; a tare takes only samples without any flag"
+
+
+def unsteady(p: SensorPipeline, flux: np.ndarray) -> str | None:
+    """Why ``flux`` (samples x channels, T) is no zero (the load moved), or None."""
+    if len(flux) < 2 or p.sigma_t is None:
+        return None  # one sample: nothing to compare
+    half = len(flux) // 2
+    w = p.config.calibration.model.wrench(flux)
+    diff = w[half:].mean(axis=0) - w[:half].mean(axis=0)
+    KA = p.config.calibration.model.KA
+    sigma_w = np.sqrt(np.einsum("ij,j,ij->i", KA, p.sigma_t ** 2, KA))  # one sample's noise per axis
+    limit = TARE_STEADY_SIGMAS * sigma_w * math.sqrt(1 / half + 1 / (len(flux) - half))
+    worst = int(np.argmax(np.abs(diff) / limit))
+    if abs(diff[worst]) <= limit[worst]:
+        return None
+    return (f"{p.name}'s load moved during the tare ({AXES[worst]} changed by {diff[worst]:+.4g} between "
+            f"its halves, noise allows {limit[worst]:.2g}): hold it still and tare again")
+
+
+def untare(p: SensorPipeline) -> list[float]:
+    """Back to the calibration's own zero; returns the wrench (N, Nm) the tare had removed."""
+    removed = p.tare_wrench.round(6).tolist()
+    p.model = p.config.calibration.model
+    p.tare_wrench = np.zeros(6)
+    nl = p.config.calibration.nonlinear
+    p.zero_twist = nl.zero_twist.copy() if nl is not None else None
+    p.tared = False
+    p.filter.reset()
+    return removed
+
+
+def carry_tares(old: Sequence[SensorPipeline], new: Sequence[SensorPipeline]) -> dict[str, str]:
+    """After a reload: each tared sensor keeps its tare if its calibration is unchanged,
+    else drops it (a zero measured through one calibration is no zero for another
+    fitted on other data). Logs and returns what happened, by sensor, for the reply."""
+    before = {p.name: p for p in old}
+    out = {}
+    for p in new:
+        o = before.get(p.name)
+        if o is None or not o.tared:
+            continue
+        if o.config.calibration.document() == p.config.calibration.document():
+            p.tare(o.model.zero)
+            out[p.name] = "kept (calibration unchanged)"
+            log.info("reload: %s's tare %s", p.name, out[p.name])
+        else:
+            out[p.name] = "dropped: its calibration changed; tare it again"
+            log.warning("reload: %s's tare %s", p.name, out[p.name])
+    return out

@@ -1,0 +1,238 @@
+"""Accuracy that holds: the linear and nonlinear estimators on as-built sensors in the
+Earth's field, with enough loads to count fall-backs. Writes docs/accuracy-figures.md.
+
+    python benchmarks/accuracy.py            # the figures in docs/ (a few minutes)
+    python benchmarks/accuracy.py --quick    # structure only (CI: tests/test_accuracy_bench.py)
+
+Per sensor: the paper's calibration run on the simulated bus (`record_dataset`: the
+emulated chips, the robot turning the sensor in the room), 193 fit poses (50 g, 200 g),
+24 no-load poses, 100 readings a pose; the linear fit (`fit`, room field measured) and
+the nonlinear one (`fit_nonlinear`). Then three test classes, each reading the scene's
+exact field at every chip (gains, tilts, the room's field turned by the orientation)
+plus Gaussian noise of the chips' per-reading standard deviation (measured from the
+dataset's standard errors) averaged over 16 readings:
+
+- "100 g": the validation poses of the same run (100 g on the four lever arms, their
+  own orientations), `--loads` of them, 100 readings averaged as the paper's Table II;
+- "large": `--loads` random wrenches, |F| 10-50 N, torques to the sensor's range, each
+  at a random orientation in the room;
+- "sweep": no load, the sensor turned through 48 orientations, tared at the first: the
+  largest false wrench.
+
+A nonlinear estimate that does not converge falls back to the linear one (as in the
+daemon) and is counted. Sensors: the as-built parts of seeds 1, 2, 3 (the tolerances of
+config/scene-room.toml) in its Earth's field; and the ablation on seed 1 (nominal
+field-free, + room field, + tolerances, + both).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ftsensord.calibration.fit import fit
+from ftsensord.calibration.nlfit import NonlinearCalibration, fit_nonlinear
+from ftsensord.calibration.rig import record_dataset, simulate_sweeps, simulated_robot
+from ftsensord.chip.mlx90393 import HALL_SATURATION_T
+from ftsensord.model import se3
+from ftsensord.model.geometry import SensorGeometry
+from ftsensord.model.linear import SENSOR_RANGE, LinearModel
+from ftsensord.sim import PhysicalScene, SimSensor, VirtualClock, simulated_bus
+from ftsensord.sim.loads import (
+    FixedOrientation,
+    StaticLoad,
+    fibonacci_directions,
+    paper_plan,
+)
+from ftsensord.sim.physics import Tolerances
+
+EARTH_T = np.array([22.3, 1.4, -42.6]) * 1e-6  # config/scene-room.toml
+ADDRS = tuple(range(0x0C, 0x14))
+#: The paper's Table II (real sensor, 100 g validation), N and Nm.
+PAPER = np.array([0.2338, 0.1136, 0.3775, 4.1e-3, 10.6e-3, 8.5e-3])
+#: Readings averaged per test load: 16 (a daemon's filter window at 100 Hz) for the large
+#: loads and the sweep; the paper's 100 for its 100 g validation, as Table II was measured.
+AVERAGING = 16
+PAPER_AVERAGING = 100
+
+
+def part(seed: int) -> Tolerances:
+    """The tolerances of config/scene-room.toml, one part per seed."""
+    return Tolerances(0.15e-3, 0.03, np.radians(1.5), 0.02, 0.1e-3, seed=seed)
+
+
+@dataclass
+class Result:
+    name: str
+    rmse: dict[tuple[str, str], np.ndarray]  # per (class, estimator): (6,)
+    fallbacks: dict[str, int]
+    loads: dict[str, int]
+    sweep: dict[str, np.ndarray]  # estimator: largest |false wrench| per axis
+    residual_ut: float
+    warnings: tuple[str, ...]
+    saturated: dict[str, int]  # loads read with a chip saturated (left out of the estimates)
+    invalid: dict[str, int]  # loads whose unsaturated chips could not give a wrench (out of the RMSE)
+
+
+def make_sensor(tol: Tolerances | None) -> SimSensor:
+    geometry, gains = tol.build() if tol else (SensorGeometry.ring(), None)
+    return SimSensor("s", ADDRS, geometry, chip_gain=gains)
+
+
+def evaluate(name: str, tol: Tolerances | None, field_t: np.ndarray, args: argparse.Namespace, seed: int) -> Result:
+    sensor = make_sensor(tol)
+    scene = PhysicalScene([sensor], external_field_t=field_t)
+    plan = paper_plan(n_fit=args.fit_poses, n_validation=args.loads, n_no_load=args.no_load_poses)
+    ds = record_dataset(simulated_bus(scene, clock=VirtualClock(), seed=seed), ADDRS, plan, samples=args.samples,
+                        **simulated_robot(scene, "s"))
+    ds.sweeps = simulate_sweeps(ADDRS, SensorGeometry.ring(), samples=args.samples)
+    linear = fit(ds).model
+    nl = fit_nonlinear(ds, allow_poor_fit=True)
+    reading_sigma = float(np.median(ds.flux_sem_t)) * np.sqrt(args.samples)  # one reading's, T
+    rng = np.random.default_rng(seed + 1000)
+
+    def flux(w: np.ndarray, R: np.ndarray, noise: bool = True, averaging: int = AVERAGING) -> np.ndarray:
+        sensor.load, sensor.orientation = StaticLoad(w), FixedOrientation(R)
+        exact = np.concatenate([scene.field_t(a, 0.0) for a in ADDRS])
+        return exact + rng.normal(0, reading_sigma / np.sqrt(averaging) if noise else 0.0, exact.shape)
+
+    cases = {"100 g": [(p.wrench(), p.orientation()) for p, s in plan if s == "validation"]}
+    large = []
+    for _ in range(args.loads):
+        w = rng.uniform(-1, 1, 6)
+        f = w[:3] / np.linalg.norm(w[:3]) * rng.uniform(10, 50)
+        w = np.concatenate([np.clip(f, -SENSOR_RANGE[:3], SENSOR_RANGE[:3]), w[3:] * SENSOR_RANGE[3:]])
+        large.append((w, se3.exp_so3(rng.normal(0, 1, 3) * np.pi)))
+    cases["large"] = large
+    rmse: dict[tuple[str, str], np.ndarray] = {}
+    fallbacks, loads, saturated, invalid = {}, {}, {}, {}
+    for kind, pairs in cases.items():
+        est = nl.estimator()
+        err_l, err_n, err_c, fb, sat, bad = [], [], [], 0, 0, 0
+        for w, R in pairs:
+            b = flux(w, R, averaging=PAPER_AVERAGING if kind == "100 g" else AVERAGING)
+            # A chip beyond the Hall element's 50 mT reads clipped and is flagged saturated:
+            # left out, as the daemon does (degraded mode); a sample whose chips left cannot
+            # give all six axes is published invalid and is left out of the RMSE (counted).
+            usable = np.all(np.abs(b.reshape(-1, 3)) < HALL_SATURATION_T, axis=1)
+            try:
+                wl = linear.wrench(b) if usable.all() else linear.wrench_from(b, usable)
+            except ValueError:
+                bad += 1
+                continue
+            sat += int(not usable.all())
+            e = est.estimate(b, usable)
+            if not e.converged:
+                fb += 1
+            err_l.append(wl - w)
+            err_n.append((nl.wrench(e.xi) if e.converged else wl) - w)
+            if e.converged:
+                err_c.append(nl.wrench(e.xi) - w)
+        rmse[(kind, "linear")] = np.sqrt(np.mean(np.square(err_l), axis=0))
+        rmse[(kind, "nonlinear")] = np.sqrt(np.mean(np.square(err_n), axis=0))
+        rmse[(kind, "nonlinear, converged")] = np.sqrt(np.mean(np.square(err_c), axis=0))
+        fallbacks[kind], loads[kind], saturated[kind], invalid[kind] = fb, len(pairs), sat, bad
+    sweep = sweep_false_wrench(linear, nl, flux)
+    exact = sweep_false_wrench(linear, nl, lambda w, R: flux(w, R, noise=False))
+    sweep.update({f"{k}, noiseless": v for k, v in exact.items()})
+    return Result(name, rmse, fallbacks, loads, sweep, nl.fit_rms_residual_t * 1e6, nl.warnings, saturated, invalid)
+
+
+def sweep_false_wrench(linear: LinearModel, nl: NonlinearCalibration, flux) -> dict[str, np.ndarray]:  # type: ignore[no-untyped-def]
+    """No load, 48 orientations, tare at the first: the largest false wrench per axis."""
+    rots = [se3.exp_so3(np.cross([0, 0, 1.0], d) / max(np.linalg.norm(np.cross([0, 0, 1.0], d)), 1e-12)
+                        * np.arccos(np.clip(d[2], -1, 1))) @ se3.exp_so3(np.array([0, 0, 2.4 * k]))
+            for k, d in enumerate(fibonacci_directions(48))]
+    readings = [flux(np.zeros(6), R) for R in rots]
+    lin = linear.with_zero(readings[0])
+    est = nl.estimator()
+    xi0 = est.estimate(readings[0]).xi
+    out_l, out_n = [], []
+    for b in readings:
+        out_l.append(np.abs(lin.wrench(b)))
+        e = est.estimate(b)
+        out_n.append(np.abs(nl.K @ (e.xi - xi0)) if e.converged else np.abs(lin.wrench(b)))
+    return {"linear": np.max(out_l, axis=0), "nonlinear": np.max(out_n, axis=0)}
+
+
+def row(values: np.ndarray, spread: np.ndarray | None = None) -> str:
+    scale = np.array([1, 1, 1, 1e3, 1e3, 1e3])  # N, mNm
+    cells = []
+    for k in range(6):
+        v = values[k] * scale[k]
+        cells.append(f"{v:.3g}" + ("" if spread is None else f" +- {spread[k] * scale[k]:.2g}"))
+    return " | ".join(cells)
+
+
+def render(results: list[Result], ablation: list[Result], args: argparse.Namespace, elapsed: float) -> str:
+    head = "| Fx (N) | Fy (N) | Fz (N) | Mx (mNm) | My (mNm) | Mz (mNm) |"
+    out = ["# Accuracy figures (generated by benchmarks/accuracy.py)", "",
+           (f"Command: `python benchmarks/accuracy.py{' --quick' if args.quick else ''}`; {elapsed:.0f} s. "
+           f"Per sensor: {args.fit_poses} fit poses, {args.no_load_poses} no-load poses, {args.samples} readings "
+           f"a pose; {results[0].loads['100 g']} loads of 100 g ({PAPER_AVERAGING} readings averaged, as the "
+           f"paper's) and {results[0].loads['large']} large loads (|F| 10-50 N, {AVERAGING} readings); a no-load "
+           f"sweep of 48 orientations ({AVERAGING} readings)."), "",
+           "## As-built sensors in the Earth's field", "",
+           (f"Sensors: seeds {', '.join(r.name for r in results)}. RMSE per axis, mean +- standard deviation "
+            "across sensors."), "",
+           "| class | estimator " + head, "|---|---" + "|---" * 6 + "|",
+           "| 100 g | paper, Table II | " + row(PAPER) + " |"]
+    for kind in ("100 g", "large"):
+        for estimator in ("linear", "nonlinear", "nonlinear, converged"):
+            values = np.array([r.rmse[(kind, estimator)] for r in results])
+            out.append(f"| {kind} | {estimator} | " + row(values.mean(axis=0), values.std(axis=0)) + " |")
+    out += ["", ("| sensor | fit residual (uT) | fall-backs 100 g | fall-backs large | large: a chip saturated "
+                 "| large: invalid | warnings |"), "|---|---|---|---|---|---|---|"]
+    for r in results:
+        out.append(f"| seed {r.name} | {r.residual_ut:.3g} | {r.fallbacks['100 g']} of {r.loads['100 g']} | "
+                   f"{r.fallbacks['large']} of {r.loads['large']} | {r.saturated['large']} | {r.invalid['large']} | "
+                   f"{'; '.join(r.warnings) or 'none'} |")
+    out += ["", "No-load sweep, largest false wrench after a tare at the first orientation (mean across sensors):", "",
+            "| estimator " + head, "|---" + "|---" * 6 + "|"]
+    for estimator in ("linear", "nonlinear", "linear, noiseless", "nonlinear, noiseless"):
+        out.append(f"| {estimator} | " + row(np.mean([r.sweep[estimator] for r in results], axis=0)) + " |")
+    out += ["", "## Ablation (seed 1): which effect costs what", "",
+            "| sensor | class | estimator " + head, "|---|---|---" + "|---" * 6 + "|"]
+    for r in ablation:
+        for kind in ("100 g", "large"):
+            for estimator in ("linear", "nonlinear"):
+                out.append(f"| {r.name} | {kind} | {estimator} | " + row(r.rmse[(kind, estimator)]) + " |")
+    out += ["", "| sensor | fit residual (uT) | fall-backs 100 g | fall-backs large |", "|---|---|---|---|"]
+    for r in ablation:
+        out.append(f"| {r.name} | {r.residual_ut:.3g} | {r.fallbacks['100 g']} of {r.loads['100 g']} | "
+                   f"{r.fallbacks['large']} of {r.loads['large']} |")
+    return "\n".join(out) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true", help="few poses and loads, one extra seed: structure only")
+    parser.add_argument("--out", default=str(Path(__file__).parent.parent / "docs" / "accuracy-figures.md"))
+    args = parser.parse_args(argv)
+    seeds: tuple[int, ...]
+    if args.quick:
+        args.fit_poses, args.no_load_poses, args.samples, args.loads, seeds = 60, 12, 4, 10, (1, 2)
+    else:
+        args.fit_poses, args.no_load_poses, args.samples, args.loads, seeds = 193, 24, 100, 200, (1, 2, 3)
+    start = time.monotonic()
+    results = [evaluate(str(s), part(s), EARTH_T, args, seed=s) for s in seeds]
+    ablation = [evaluate("nominal, field-free", None, np.zeros(3), args, seed=1),
+                evaluate("nominal, Earth's field", None, EARTH_T, args, seed=1),
+                evaluate("as-built, field-free", part(1), np.zeros(3), args, seed=1),
+                results[0]]
+    ablation[-1] = Result("as-built, Earth's field", *[getattr(results[0], f) for f in
+                                                      ("rmse", "fallbacks", "loads", "sweep", "residual_ut", "warnings",
+                                                       "saturated", "invalid")])
+    text = render(results, ablation, args, time.monotonic() - start)
+    Path(args.out).write_text(text)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

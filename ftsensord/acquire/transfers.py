@@ -1,0 +1,235 @@
+"""The transfers of one bus, as wide as its adapter takes, and what they cost in Python.
+
+`probe_shapes` asks the adapter what it takes in one ioctl (harmless register reads);
+`Transfers` sends SM and RM to many chips in as few ioctls as that allows. The RM of a
+set of chips is planned once (`RMPlan`): its messages are built once and reused every
+cycle, each chip's reply lands in one shared block, and the block is decoded in one numpy
+pass (`chip.driver.BlockDecoder`), so a cycle spends no per-chip Python on messages and
+little on decoding.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import logging
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from smbus2 import i2c_msg
+
+from ..chip import mlx90393 as mlx
+from ..chip.driver import MLX90393, BlockDecoder, bus_error
+from ..chip.i2c import I2C_M_RD, I2C_RDWR_MAX_MSGS, SHAPE_REFUSED, Bus
+from ..errors import ChipError
+from .bound import Shapes
+from .health import ChipResult
+
+log = logging.getLogger("ftsensord")
+
+
+def _rr_tref(chip: MLX90393) -> tuple[i2c_msg, i2c_msg]:
+    # RR of TREF: harmless in every mode (refused in burst mode, which changes nothing).
+    return chip.messages(bytes([mlx.CMD_RR, mlx.REG_TREF << 2]), 3)
+
+
+def _accepted(bus: Bus, msgs: list[i2c_msg]) -> bool | None:
+    """True: the adapter took the transfer; False: it refused its shape; None: no answer (NACK, I/O)."""
+    try:
+        bus.i2c_rdwr(*msgs)
+    except OSError as exc:
+        return False if exc.errno in SHAPE_REFUSED else None
+    return True
+
+
+def probe_shapes(bus: Bus, chips: list[MLX90393], tries: int = 4) -> Shapes | None:
+    """What the adapter takes in one ioctl, asked with harmless register reads.
+
+    A chip that answers a plain (write, read) is asked two pairs in one ioctl
+    (a read that is not last: i2c-bcm2835 refuses), then with a second chip
+    that answers, a write to each and one read (two addresses: i2c-designware
+    refuses). EOPNOTSUPP and EINVAL mean "not this shape"; a NACK or I/O error
+    says nothing, and the next chip is tried (at most ``tries``). None when no
+    chip answered at all.
+    """
+    answering = [c for c in chips[:tries] if _accepted(bus, list(_rr_tref(c)))]
+    if not answering:
+        return None
+    a = answering[0]
+    reads_inside = _accepted(bus, [*_rr_tref(a), *_rr_tref(a)]) is True
+    many = False
+    for b in answering[1:]:
+        took = _accepted(bus, [_rr_tref(a)[0], *_rr_tref(b)])
+        if took is not None:
+            many = took
+            break
+    return Shapes(reads_inside=reads_inside, many_addresses=many)
+
+
+class Transfers:
+    """The transfers of one bus as wide as its adapter takes (`Shapes`), learnt by
+    `probe_shapes` at start and again after a refusal, so a refused ioctl is paid
+    once, not every cycle. ``unread_sm``: chips whose last SM went without its status read."""
+
+    def __init__(self, bus: Bus):
+        self.bus = bus
+        self.shapes = Shapes()  # the narrowest until `learn` has asked
+        self.reprobe = True
+        self.probe_at = 0  # the cycle of the next probe while none has answered
+        self.unread_sm: set[int] = set()
+        self._plans: dict[tuple, RMPlan] = {}
+
+    def learn(self, chips: list[MLX90393], cycle: int) -> None:
+        if cycle < self.probe_at:
+            return
+        found = probe_shapes(self.bus, chips)
+        if found is not None:
+            self.shapes, self.reprobe = found, False
+        else:  # no chip answered: the narrowest meanwhile, asked again in 100 cycles (1 s at 100 Hz)
+            self.probe_at = cycle + 100
+
+    def start_all(self, chips: list[MLX90393], zyxt: int) -> dict[int, ChipResult]:
+        """SM to ``chips``; the refusals (a chip missing from the result started).
+
+        Where the adapter takes many writes but one read (i2c-bcm2835), the SMs go
+        as writes alone, up to 42 chips an ioctl, and their status is not read: a
+        chip that refused its SM (a stray mode, lost registers) shows it in the
+        following RM, refused for lack of new data while its status shows no
+        conversion under way (SM_MODE clear): `_overlapped` turns that into the SM's
+        refusal, so the chip fails at once as if the SM's status had been read.
+        What is lost is only the reply's byte itself (never compared whole anyway).
+        """
+        if len(chips) > 1 and self.shapes.sm_writes_only:
+            alone: list[MLX90393] = []
+            for k in range(0, len(chips), I2C_RDWR_MAX_MSGS):
+                group = chips[k:k + I2C_RDWR_MAX_MSGS]
+                try:
+                    self.bus.i2c_rdwr(*[c.sm_messages(zyxt)[0] for c in group])
+                except OSError as exc:
+                    self.refused(exc)
+                    alone.extend(group)  # which one failed? ask each with its status
+                    continue
+                self.unread_sm.update(c.address for c in group)
+            started = self.batch(alone, lambda c: c.sm_messages(zyxt), self._decode_sm)
+        else:
+            started = self.batch(chips, lambda c: c.sm_messages(zyxt), self._decode_sm)
+        return {a: ChipResult(a, error=e) for a, e in started.items() if isinstance(e, ChipError)}
+
+    def read_all(self, chips: list[MLX90393], zyxt: int) -> dict[int, ChipResult]:
+        """RM from ``chips``: as wide transfers as the adapter takes, their replies
+        landing in one block that is decoded at once (`BlockDecoder`); when a
+        transfer of several fails, each of its chips on its own."""
+        if not chips:
+            return {}
+        plan = self._rm_plan(chips, zyxt)
+        failed: dict[int, ChipError] = {}
+        alone: list[int] = []
+        for members, msgs in plan.transfers:
+            if len(members) > 1:
+                try:
+                    self.bus.i2c_rdwr(*msgs)
+                    continue
+                except OSError as exc:
+                    self.refused(exc)
+            alone.extend(members)  # one chip, or which one failed? ask each on its own
+        for i in alone:
+            write, read = plan.pairs[i]
+            try:
+                self.bus.i2c_rdwr(write, read)
+            except OSError as exc:
+                failed[chips[i].address] = bus_error(chips[i].address, plan.command, exc)
+        out = {}
+        for chip, m in zip(chips, plan.decoder.decode(plan.block)):
+            a = chip.address
+            e = failed.get(a)
+            if e is not None:
+                out[a] = ChipResult(a, error=e)
+            elif isinstance(m, ChipError):
+                out[a] = ChipResult(a, error=m)
+            else:
+                out[a] = ChipResult(a, m)
+        return out
+
+    def _rm_plan(self, chips: list[MLX90393], zyxt: int) -> RMPlan:
+        """The RM transfers of ``chips`` at the learnt shapes, built once and reused
+        while the chips, their settings and the shapes stay the same."""
+        per = self.shapes.pairs_per_transfer
+        key = (tuple(c.address for c in chips), zyxt, per)
+        plan = self._plans.get(key)
+        if plan is None or not plan.decoder.valid_for(chips):
+            if len(self._plans) >= 8:  # healthy sets come and go with faults: keep a few
+                self._plans.clear()
+            plan = self._plans[key] = RMPlan(chips, zyxt, per)
+        return plan
+
+    def refused(self, exc: OSError) -> None:
+        """A transfer failed: a refused shape (not a NACK) means the adapter takes less
+        than was learnt; ask again at the next cycle, the narrowest shape until then."""
+        if exc.errno in SHAPE_REFUSED:
+            log.warning("the I2C adapter refused a transfer (%s): learning again what it takes", exc)
+            self.shapes, self.reprobe = Shapes(), True
+
+    @staticmethod
+    def _decode_sm(chip: MLX90393, reply: bytes) -> None:
+        status = mlx.Status(reply[0])
+        if status.error and status.sm_mode:
+            return  # it got the SM before its batch failed, and is converting
+        chip.decode_sm(reply)
+
+    def batch(self, chips: list[MLX90393], messages: Callable, decode: Callable) -> dict[int, Any]:
+        """One transfer per as many chips as the adapter takes (`Shapes`); when one
+        of several fails, each of its chips on its own.
+
+        Returns per address what ``decode(chip, reply)`` gave, or the `ChipError`.
+        """
+        out: dict[int, Any] = {}
+        alone: list[MLX90393] = []
+        per = self.shapes.pairs_per_transfer
+        for k in range(0, len(chips), per):
+            group = chips[k:k + per]
+            if len(group) == 1:
+                alone.extend(group)  # one chip: its own transfer, its own error
+                continue
+            pairs = [messages(c) for c in group]
+            try:
+                self.bus.i2c_rdwr(*[m for pair in pairs for m in pair])
+            except OSError as exc:
+                self.refused(exc)
+                alone.extend(group)  # which one failed? ask each on its own
+                continue
+            for chip, (_, read) in zip(group, pairs):
+                out[chip.address] = _decoded(decode, chip, bytes(read))
+        for chip in alone:
+            write, read = messages(chip)
+            try:
+                out[chip.address] = _decoded(decode, chip, chip.transfer(bytes(write), len(read)))
+            except ChipError as exc:
+                out[chip.address] = exc
+        return out
+
+
+class RMPlan:
+    """The RM of a list of chips, built once: each chip's read message points into one
+    (n, L) block (``block``, uint8), so a cycle's replies are decoded in one pass by
+    ``decoder``; ``transfers`` groups the (write, read) pairs ``per`` chips an ioctl."""
+
+    def __init__(self, chips: list[MLX90393], zyxt: int, per: int):
+        self.decoder = BlockDecoder(chips, zyxt)
+        L = self.decoder.reply_len
+        self.command = bytes([mlx.CMD_RM | zyxt])
+        self.block = np.zeros((len(chips), L), dtype=np.uint8)
+        base = self.block.ctypes.data
+        self.pairs = [(c.messages(self.command, L)[0],
+                       i2c_msg(addr=c.address, flags=I2C_M_RD, len=L,
+                               buf=ctypes.cast(base + i * L, ctypes.POINTER(ctypes.c_char))))
+                      for i, c in enumerate(chips)]
+        self.transfers = [(list(range(k, min(k + per, len(chips)))),
+                           [m for pair in self.pairs[k:k + per] for m in pair])
+                          for k in range(0, len(chips), per)]
+
+
+def _decoded(decode: Callable, chip: MLX90393, reply: bytes) -> Any:
+    try:
+        return decode(chip, reply)
+    except ChipError as exc:
+        return exc

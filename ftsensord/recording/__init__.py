@@ -1,0 +1,387 @@
+"""Recording streams to disk as they arrive: CSV, NPZ (through a sidecar) and MCAP.
+
+Every writer holds at most `FLUSH_EVERY_S` of samples in the process, so memory
+stays flat however long a recording runs, and a recorder killed outright
+(``kill -9``, a power-less crash of the process, not of the host) loses at most
+that much; what was flushed is in the kernel's page cache and reaches the disk
+without the process. Ending cleanly (count, time, SIGINT/SIGTERM/SIGHUP) makes
+the file complete and returns a per-stream summary.
+
+- **CSV** (one stream): a row per sample as it comes; the first line is rewritten
+  in place at a clean end with the sample and gap counts.
+- **NPZ** (one stream): a zip cannot be appended to safely, so rows go to a
+  sidecar ``FILE.npz.part`` (a JSON line, then fixed-size binary records) and
+  the ``.npz`` is built from it at a clean end, the sidecar then removed. After a
+  kill the sidecar stays: `load_rows` reads it (a torn last record is dropped),
+  `finish_npz` turns it into the ``.npz``.
+- **MCAP** (any number of streams): each wrench a ROS 2 ``geometry_msgs/msg/WrenchStamped``
+  (CDR), each chip of a flux stream a ``sensor_msgs/msg/MagneticField``, and per
+  stream a companion ``<topic>/status`` (``ftsensord_msgs/msg/SampleStatus``: seq,
+  flags, missed). A chunk is closed every `FLUSH_EVERY_S`; the summary and index
+  come at a clean end. A file cut short still reads, chunk by chunk, with
+  `read_mcap` (mcap's non-seeking reader) and `recover_mcap` rewrites it whole.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import struct
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from .. import __version__
+from ..errors import ConfigError
+from ..service import wire
+
+#: Longest a received sample waits in the process before it is handed to the
+#: kernel: half the one second a kill may cost, so a slow flush still meets it.
+FLUSH_EVERY_S = 0.5
+WRENCH_COLUMNS = ["fx_N", "fy_N", "fz_N", "mx_Nm", "my_Nm", "mz_Nm"]
+#: Width of the CSV's first line, kept free so the summary can replace it in place.
+CSV_HEAD_WIDTH = 160
+
+
+@dataclass
+class Tally:
+    """What one stream gave a recording: samples, and sequence numbers skipped."""
+
+    samples: int = 0
+    gaps: int = 0
+    first_seq: int | None = None
+    last_seq: int | None = None
+
+    def add(self, seq: int) -> None:
+        if self.last_seq is not None and seq > self.last_seq + 1:
+            self.gaps += seq - self.last_seq - 1
+        self.first_seq = seq if self.first_seq is None else self.first_seq
+        self.last_seq = seq
+        self.samples += 1
+
+
+class SampleWriter(Protocol):
+    def write(self, sample: wire.Sample) -> None: ...
+    def flush(self) -> None: ...
+    def close(self, tallies: dict[str, Tally]) -> None: ...
+
+
+def value_columns(stream: str, count: int) -> list[str]:
+    """Column names of a stream's values: the wrench's (N, Nm), or each chip's flux (T)."""
+    if stream.startswith("wrench/"):
+        return WRENCH_COLUMNS
+    return [f"b{i // 3}{'xyz'[i % 3]}_T" for i in range(count)]
+
+
+class CsvWriter:
+    """One stream to CSV, a row per sample; the first line carries the summary at the end."""
+
+    def __init__(self, path: str | Path, stream: str):
+        self.path, self.stream = Path(path), stream
+        self.file = open(self.path, "w", encoding="ascii")
+        self._head(f"# ftsensord record of {stream}; recording (this line is replaced at a clean end)")
+        self.columns_written = False
+
+    def _head(self, text: str) -> None:
+        self.file.seek(0)
+        self.file.write(text[:CSV_HEAD_WIDTH - 1].ljust(CSV_HEAD_WIDTH - 1) + "\n")
+
+    def write(self, sample: wire.Sample) -> None:
+        if not self.columns_written:
+            names = value_columns(self.stream, len(sample.values))
+            self.file.write(",".join(["seq", "t_mono_s", "t_wall_s", "flags", *names]) + "\n")
+            self.columns_written = True
+        self.file.write(f"{sample.seq},{sample.t_mono:.6f},{sample.t_wall:.6f},{sample.flags},"
+                        + ",".join(f"{v:.9g}" for v in sample.values) + "\n")
+
+    def flush(self) -> None:
+        self.file.flush()
+
+    def close(self, tallies: dict[str, Tally]) -> None:
+        t = tallies.get(self.stream, Tally())
+        self.file.flush()
+        end = self.file.tell()
+        self._head(f"# ftsensord record of {self.stream}; {t.samples} samples, {t.gaps} missed (sequence gaps)")
+        self.file.seek(end)
+        self.file.close()
+
+
+def _rows_dtype(count: int) -> np.dtype:
+    return np.dtype([("seq", "<i8"), ("t_mono", "<f8"), ("t_wall", "<f8"), ("flags", "<i8"),
+                     ("values", "<f8", (count,))])
+
+
+class NpzWriter:
+    """One stream to ``.npz``, through the sidecar ``<path>.part`` written as rows come."""
+
+    def __init__(self, path: str | Path, stream: str):
+        self.path, self.stream = Path(path), stream
+        self.part = Path(f"{self.path}.part")
+        self.file = open(self.part, "wb")
+        self.dtype: np.dtype | None = None
+
+    def write(self, sample: wire.Sample) -> None:
+        if self.dtype is None:
+            self.dtype = _rows_dtype(len(sample.values))
+            head = {"format": "ftsensord-rows", "version": 1, "stream": self.stream, "kind": sample.kind,
+                    "count": len(sample.values), "columns": value_columns(self.stream, len(sample.values))}
+            self.file.write(json.dumps(head).encode() + b"\n")
+        row = np.zeros((), self.dtype)
+        row["seq"], row["t_mono"], row["t_wall"], row["flags"] = sample.seq, sample.t_mono, sample.t_wall, sample.flags
+        row["values"] = sample.values
+        self.file.write(row.tobytes())
+
+    def flush(self) -> None:
+        self.file.flush()
+
+    def close(self, tallies: dict[str, Tally]) -> None:
+        self.file.close()
+        if self.dtype is None:  # nothing received: an empty file of the same keys
+            np.savez(self.path, seq=np.zeros(0, np.int64), t_mono=np.zeros(0), t_wall=np.zeros(0),
+                     flags=np.zeros(0, np.int64), values=np.zeros((0, 0)), gaps=0, stream=self.stream)
+            self.part.unlink()
+            return
+        finish_npz(self.part, self.path)
+
+
+#: Rows a step of `gaps_of` and `finish_npz` holds in memory (1 MB of a flux stream).
+CHUNK_ROWS = 4096
+
+
+def load_rows(part: str | Path) -> dict[str, Any]:
+    """The rows of an NPZ sidecar (``FILE.npz.part``), as the ``.npz`` would hold them.
+
+    Memory-mapped columns, so a long recording is not read into memory; a record
+    torn by a kill (the file's length not a whole number of records) is dropped.
+    """
+    part = Path(part)
+    with open(part, "rb") as f:
+        line = f.readline()
+    try:
+        head = json.loads(line)
+        count = int(head["count"])
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ConfigError(f"{part}: not an ftsensord rows sidecar (first line: JSON with \"count\")") from exc
+    dtype = _rows_dtype(count)
+    n = (part.stat().st_size - len(line)) // dtype.itemsize
+    rows = (np.memmap(part, dtype=dtype, mode="r", offset=len(line), shape=(n,)) if n
+            else np.zeros(0, dtype))
+    return {"seq": rows["seq"], "t_mono": rows["t_mono"], "t_wall": rows["t_wall"], "flags": rows["flags"],
+            "values": rows["values"], "gaps": gaps_of(rows["seq"]), "stream": head["stream"]}
+
+
+def gaps_of(seq: np.ndarray) -> int:
+    """Sequence numbers skipped, counted a chunk at a time (overlapping by one)."""
+    gaps = 0
+    for i in range(0, max(len(seq) - 1, 0), CHUNK_ROWS):
+        steps = np.diff(np.asarray(seq[i:i + CHUNK_ROWS + 1], dtype=np.int64))
+        gaps += int(np.sum(steps[steps > 1] - 1))
+    return gaps
+
+
+def finish_npz(part: str | Path, npz: str | Path | None = None) -> int:
+    """Build the ``.npz`` from a sidecar (by default beside it, ``.part`` removed
+    from the name), remove the sidecar, and return the number of samples.
+
+    Each column is copied a chunk at a time (np.savez would hold up to 16 MiB of
+    a column), so this too runs in flat memory."""
+    import zipfile
+
+    part = Path(part)
+    npz = Path(npz) if npz is not None else part.with_suffix("")
+    data = load_rows(part)
+    with zipfile.ZipFile(npz, "w", allowZip64=True) as zf:
+        for key, value in data.items():
+            column = np.asarray(value) if not isinstance(value, np.ndarray) else value
+            with zf.open(f"{key}.npy", "w", force_zip64=True) as f:
+                header = {"descr": np.lib.format.dtype_to_descr(column.dtype), "fortran_order": False,
+                          "shape": column.shape}
+                np.lib.format.write_array_header_2_0(f, header)
+                for i in range(0, max(len(column), 1) if column.ndim else 1, CHUNK_ROWS):
+                    f.write(np.ascontiguousarray(column[i:i + CHUNK_ROWS] if column.ndim else column).tobytes())
+    part.unlink()
+    return len(data["seq"])
+
+
+def open_writer(path: str | Path, streams: list[str], frames: dict[str, str] | None = None) -> SampleWriter:
+    """The writer for a file, by its extension: ``.csv``, ``.npz`` (one stream each) or ``.mcap``."""
+    suffix = Path(path).suffix.lower()
+    if suffix == ".mcap":
+        from .ros2mcap import McapWriter
+        return McapWriter(path, frames or {})
+    if suffix not in (".csv", ".npz"):
+        raise ConfigError(f"{path}: record writes .csv, .npz or .mcap (by the file's extension)")
+    if len(streams) != 1:
+        raise ConfigError(f"{path}: a {suffix} file holds one stream ({len(streams)} given); "
+                          "record several into one .mcap, or run one record per stream")
+    return CsvWriter(path, streams[0]) if suffix == ".csv" else NpzWriter(path, streams[0])
+
+
+class Receiver(Protocol):
+    def receive(self, timeout_s: float | None = None) -> wire.Sample | None: ...
+
+
+@dataclass
+class Outcome:
+    tallies: dict[str, Tally]
+    reason: str  # why it stopped: "count", "seconds", "timeout", "stopped"
+
+
+def record(sub: Receiver, writer: SampleWriter, streams: list[str], *, count: int | None = None,
+           seconds: float | None = None, timeout_s: float = 3.0, stop: Callable[[], bool] = lambda: False,
+           clock: Callable[[], float] = time.monotonic, flush_every_s: float = FLUSH_EVERY_S) -> Outcome:
+    """Write what ``sub`` receives until ``count`` samples (all streams together),
+    ``seconds``, ``timeout_s`` without a sample, or ``stop()`` turns true; then
+    take what is already queued, and close the writer (the file is complete).
+
+    ``stop`` is looked at least every ``flush_every_s``: a signal handler sets it.
+    """
+    tallies = {s: Tally() for s in streams}
+    start = last_sample = last_flush = clock()
+    reason = "stopped"
+
+    def take(sample: wire.Sample) -> None:
+        writer.write(sample)
+        tallies.setdefault(sample.topic, Tally()).add(sample.seq)
+
+    try:
+        while True:
+            now = clock()
+            if stop():
+                # Samples already in this process's queue were received: keep them
+                # (bounded, as the publisher goes on meanwhile).
+                for _ in range(10_000):
+                    sample = sub.receive(timeout_s=0)
+                    if sample is None:
+                        break
+                    take(sample)
+                break
+            if count is not None and sum(t.samples for t in tallies.values()) >= count:
+                reason = "count"
+                break
+            if seconds is not None and now - start >= seconds:
+                reason = "seconds"
+                break
+            if now - last_sample >= timeout_s:
+                reason = "timeout"
+                break
+            wait = min(flush_every_s, timeout_s - (now - last_sample),
+                       seconds - (now - start) if seconds is not None else flush_every_s)
+            sample = sub.receive(timeout_s=max(wait, 0.0))
+            if sample is not None:
+                take(sample)
+                last_sample = clock()
+            if clock() - last_flush >= flush_every_s:
+                writer.flush()
+                last_flush = clock()
+    finally:
+        writer.close(tallies)
+    return Outcome(tallies, reason)
+
+
+def summary_line(path: str | Path, outcome: Outcome, stopped_by: str | None = None) -> str:
+    parts = [f"{s}: {t.samples} samples, {t.gaps} missed" + (f" (seq {t.first_seq}-{t.last_seq})" if t.samples else "")
+             for s, t in outcome.tallies.items()]
+    return f"wrote {path}: " + "; ".join(parts) + (f" (stopped by {stopped_by})" if stopped_by else "")
+
+
+class StopOnSignals:
+    """While entered, SIGINT, SIGTERM and SIGHUP only note their name (the
+    recording loop looks at `is_set`); the previous handlers come back on exit."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+    def __init__(self) -> None:
+        self.name: str | None = None
+        self.before: dict[int, Any] = {}
+
+    def _note(self, signum: int, frame: object) -> None:
+        self.name = self.name or signal.Signals(signum).name
+
+    def is_set(self) -> bool:
+        return self.name is not None
+
+    def __enter__(self) -> StopOnSignals:
+        self.before = {s: signal.signal(s, self._note) for s in self.SIGNALS}
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for s, handler in self.before.items():
+            signal.signal(s, handler)
+
+
+def daemon_frames(streams: list[str], endpoint: str | None, control: str | None, timeout_s: float) -> dict[str, str]:
+    """Each stream's frame from the daemon's status (asked on ``control``, by
+    default beside an ipc ``endpoint``); the stream's name, said on stderr, when
+    no daemon answers."""
+    import sys
+
+    from ..client import ControlClient
+    from ..errors import FtsensordError
+    from .ros2mcap import frames_from_status
+
+    if control is None and endpoint and endpoint.startswith("ipc://"):
+        control = endpoint.rsplit("/", 1)[0] + "/control"  # the daemon's sockets share a folder
+    try:
+        status = ControlClient(control, timeout_s=timeout_s).status()
+    except FtsensordError as exc:
+        print(f"ftsensord: {exc}; frame_id: the stream's name", file=sys.stderr)
+        status = {}
+    return frames_from_status(status, streams)
+
+
+def read_mcap(path: str | Path, decode: bool = True) -> Iterator[tuple[str, Any, int]]:
+    """``(topic, message, log_time_ns)`` of every message of an MCAP file, in file
+    order, ROS 2 messages decoded (``decode=False``: raw bytes). A file cut short
+    (a killed recorder) yields every message of its complete chunks and stops at
+    the tear; a complete file reads wholly."""
+    from mcap.exceptions import McapError
+    from mcap.reader import NonSeekingReader
+
+    factories = []
+    if decode:
+        from mcap_ros2.decoder import DecoderFactory
+        factories = [DecoderFactory()]
+    with open(path, "rb") as f:
+        reader = NonSeekingReader(f, decoder_factories=factories)
+        messages = (reader.iter_decoded_messages(log_time_order=False) if decode
+                    else ((s, c, m, m.data) for s, c, m in reader.iter_messages(log_time_order=False)))
+        try:
+            for _schema, channel, message, decoded in messages:
+                yield channel.topic, decoded, message.log_time
+        except (McapError, struct.error, EOFError, ValueError):
+            return  # the tear: a record cut by the kill
+
+
+def recover_mcap(src: str | Path, dst: str | Path) -> int:
+    """Rewrite an MCAP cut short (no summary, torn end) as a complete, indexed
+    file; return the messages kept. (The mcap CLI's ``mcap recover`` does the same.)"""
+    from mcap.exceptions import McapError
+    from mcap.records import Channel, Message, Schema
+    from mcap.stream_reader import StreamReader
+    from mcap.writer import Writer
+
+    kept = 0
+    with open(src, "rb") as f, open(dst, "wb") as out:
+        writer = Writer(out)
+        writer.start(profile="ros2", library=f"ftsensord {__version__} (recovered)")
+        schemas: dict[int, int] = {}
+        channels: dict[int, int] = {}
+        try:
+            for r in StreamReader(f, skip_magic=False, emit_chunks=False).records:
+                if isinstance(r, Schema):
+                    schemas.setdefault(r.id, writer.register_schema(r.name, r.encoding, r.data))
+                elif isinstance(r, Channel) and r.id not in channels:
+                    channels[r.id] = writer.register_channel(r.topic, r.message_encoding,
+                                                             schemas.get(r.schema_id, 0), r.metadata)
+                elif isinstance(r, Message) and r.channel_id in channels:
+                    writer.add_message(channels[r.channel_id], r.log_time, r.data, r.publish_time, r.sequence)
+                    kept += 1
+        except (McapError, struct.error, EOFError, ValueError):
+            pass  # the tear
+        writer.finish()
+    return kept

@@ -1,0 +1,178 @@
+"""Samples as ROS 2 messages in an MCAP file, written as they arrive.
+
+Topics (a stream ``wrench/sensor1`` becomes ``/wrench/sensor1``):
+
+- ``/wrench/<name>``: ``geometry_msgs/msg/WrenchStamped``, N and Nm, ``header.stamp``
+  the sample's ``t_wall`` (UTC), ``header.frame_id`` the stream's frame.
+- ``/flux/<sensor>/chip<i>``: ``sensor_msgs/msg/MagneticField`` per chip, T in the
+  chip's frame (``<sensor>/chip<i>``), covariance all zero (ROS: unknown); NaN for a
+  chip that did not answer, as on the wire.
+- ``/<stream>/status``: ``ftsensord_msgs/msg/SampleStatus``, the sample's sequence
+  number, flags (``ftsensord.service.wire``) and sequence numbers missed before it,
+  stamped as the sample.
+
+Messages are CDR (little-endian), encoded here for these fixed layouts; each
+message's MCAP ``log_time`` and ``publish_time`` are its stamp, so viewers put it
+at the sample's own time. ``mcap`` (the writer) is imported only here: the
+``record`` extra.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from .. import __version__
+from ..errors import ConfigError
+from ..service import wire
+
+_SEP = "\n" + "=" * 80 + "\n"
+_TIME = "MSG: builtin_interfaces/Time\nint32 sec\nuint32 nanosec"
+_HEADER = "MSG: std_msgs/Header\nbuiltin_interfaces/Time stamp\nstring frame_id"
+_VECTOR3 = "MSG: geometry_msgs/Vector3\nfloat64 x\nfloat64 y\nfloat64 z"
+
+#: ROS 2 message definitions as rosbag2 stores them: the type, then each dependency.
+SCHEMAS = {
+    "geometry_msgs/msg/WrenchStamped": _SEP.join([
+        "std_msgs/Header header\ngeometry_msgs/Wrench wrench",
+        "MSG: geometry_msgs/Wrench\ngeometry_msgs/Vector3 force\ngeometry_msgs/Vector3 torque",
+        _VECTOR3, _HEADER, _TIME]),
+    "sensor_msgs/msg/MagneticField": _SEP.join([
+        "std_msgs/Header header\ngeometry_msgs/Vector3 magnetic_field\nfloat64[9] magnetic_field_covariance",
+        _VECTOR3, _HEADER, _TIME]),
+    "ftsensord_msgs/msg/SampleStatus": _SEP.join([
+        ("# One ftsensord sample's bookkeeping (ftsensord.service.wire).\n"
+         "std_msgs/Header header\n"
+         "uint64 seq     # the stream's sequence number: it counts the daemon's cycles\n"
+         "uint32 flags   # FLAG_* bits: chip_missing 1, saturated 2, stale 4, overload 8, degraded 16, ...\n"
+         "uint32 missed  # sequence numbers not received between the previous sample and this one"),
+        _HEADER, _TIME]),
+}
+WRENCH, FLUX, STATUS = SCHEMAS
+
+
+class _Cdr:
+    """A CDR little-endian message: alignment counts from after the 4-byte encapsulation."""
+
+    def __init__(self) -> None:
+        self.buf = bytearray(b"\x00\x01\x00\x00")  # CDR_LE, no options
+
+    def _align(self, n: int) -> None:
+        self.buf += b"\0" * (-(len(self.buf) - 4) % n)
+
+    def put(self, fmt: str, *values: float) -> None:
+        """Fields of one struct format whose fields are all of the first one's size (CDR aligns each)."""
+        self._align(struct.calcsize("<" + fmt.lstrip("0123456789")[0]))  # the first field's size
+        self.buf += struct.pack("<" + fmt, *values)
+
+    def header(self, t_wall: float, frame_id: str) -> None:
+        sec, nanosec = stamp(t_wall)
+        self.put("iI", sec, nanosec)
+        text = frame_id.encode() + b"\0"
+        self.put("I", len(text))
+        self.buf += text
+
+
+def stamp(t_wall: float) -> tuple[int, int]:
+    """(sec, nanosec) of a UNIX time in seconds, as builtin_interfaces/Time."""
+    return divmod(round(t_wall * 1e9), 1_000_000_000)
+
+
+def encode_wrench(t_wall: float, frame_id: str, values: object) -> bytes:
+    m = _Cdr()
+    m.header(t_wall, frame_id)
+    m.put("6d", *(float(v) for v in values))  # type: ignore[attr-defined]
+    return bytes(m.buf)
+
+
+def encode_field(t_wall: float, frame_id: str, b: object) -> bytes:
+    m = _Cdr()
+    m.header(t_wall, frame_id)
+    m.put("3d", *(float(v) for v in b))  # type: ignore[attr-defined]
+    m.put("9d", *([0.0] * 9))
+    return bytes(m.buf)
+
+
+def encode_status(t_wall: float, frame_id: str, seq: int, flags: int, missed: int) -> bytes:
+    m = _Cdr()
+    m.header(t_wall, frame_id)
+    m.put("Q", seq)
+    m.put("II", flags, min(missed, 2**32 - 1))
+    return bytes(m.buf)
+
+
+class McapWriter:
+    """Samples of any streams into one MCAP file; the recorder's `flush` closes a chunk."""
+
+    def __init__(self, path: str | Path, frames: dict[str, str]):
+        try:
+            from mcap.writer import CompressionType, Writer
+        except ImportError as exc:
+            raise ConfigError("recording MCAP needs the mcap package: pip install 'ftsensord[record]'") from exc
+        self.path, self.frames = Path(path), frames
+        self.file = open(self.path, "wb")
+        # zstd per chunk; a chunk is cut by time (flush), so its size bound rarely acts.
+        self.writer = Writer(self.file, compression=CompressionType.ZSTD)
+        self.writer.start(profile="ros2", library=f"ftsensord {__version__}")
+        self.schemas = {name: self.writer.register_schema(name, "ros2msg", text.encode())
+                        for name, text in SCHEMAS.items()}
+        self.channels: dict[str, int] = {}
+        self.last_seq: dict[str, int] = {}
+
+    def _channel(self, topic: str, schema: str, frame: str) -> int:
+        if topic not in self.channels:
+            self.channels[topic] = self.writer.register_channel(topic, "cdr", self.schemas[schema],
+                                                                {"frame_id": frame})
+        return self.channels[topic]
+
+    def _add(self, topic: str, schema: str, frame: str, t_ns: int, seq: int, data: bytes) -> None:
+        # MCAP's sequence field is u32: the low bits; the status message has all 64.
+        self.writer.add_message(self._channel(topic, schema, frame), t_ns, data, t_ns, seq & 0xFFFFFFFF)
+
+    def write(self, sample: wire.Sample) -> None:
+        topic, t = "/" + sample.topic, sample.t_wall
+        frame = self.frames.get(sample.topic, sample.topic)
+        t_ns = round(t * 1e9)
+        if sample.kind == wire.KIND_WRENCH:
+            self._add(topic, WRENCH, frame, t_ns, sample.seq, encode_wrench(t, frame, sample.values))
+        else:
+            sensor = sample.topic.split("/", 1)[-1]
+            for i in range(len(sample.values) // 3):
+                chip_frame = f"{sensor}/chip{i}"
+                self._add(f"{topic}/chip{i}", FLUX, chip_frame, t_ns, sample.seq,
+                          encode_field(t, chip_frame, sample.values[3 * i:3 * i + 3]))
+        last = self.last_seq.get(sample.topic)
+        missed = sample.seq - last - 1 if last is not None and sample.seq > last + 1 else 0
+        self.last_seq[sample.topic] = sample.seq
+        self._add(f"{topic}/status", STATUS, frame, t_ns, sample.seq,
+                  encode_status(t, frame, sample.seq, sample.flags, missed))
+
+    def flush(self) -> None:
+        self.writer.flush()  # closes the chunk, writes it and its index, flushes the file
+
+    def close(self, tallies: Mapping[str, Any]) -> None:
+        """Write the summary (with each stream's samples, missed and frame as metadata)."""
+        self.writer.add_metadata("ftsensord", {
+            "version": __version__,
+            **{f"{s}.samples": str(t.samples) for s, t in tallies.items()},
+            **{f"{s}.missed": str(t.gaps) for s, t in tallies.items()},
+            **{f"{s}.frame": self.frames.get(s, s) for s in tallies}})
+        self.writer.finish()
+        self.file.close()
+
+
+def frames_from_status(status: dict, streams: list[str]) -> dict[str, str]:
+    """Each stream's frame as the daemon's status names it; the stream's own name
+    where it names none (a wrench's numbers are in *some* frame: better a name
+    that says whose than an invented one)."""
+    named: dict = status["frames"] if isinstance(status.get("frames"), dict) else {}
+    sensors: dict = status["sensors"] if isinstance(status.get("sensors"), dict) else {}
+    frames = {}
+    for stream in streams:
+        kind, _, name = stream.partition("/")
+        frame = named.get(stream) or (sensors.get(name, {}).get("frame") if kind == "wrench" else None)
+        frames[stream] = str(frame) if frame else stream
+    return frames
+

@@ -1,0 +1,35 @@
+"""benchmarks/accuracy.py --quick: the structure of what it writes (sections, sensors,
+counts of loads and fall-backs), not its figures, which docs/accuracy-figures.md holds."""
+
+from __future__ import annotations
+
+import importlib.util
+import re
+import sys
+from pathlib import Path
+
+BENCH = Path(__file__).parent.parent / "benchmarks" / "accuracy.py"
+
+
+def test_the_quick_accuracy_benchmark_reports_every_section_and_count(tmp_path):
+    spec = importlib.util.spec_from_file_location("accuracy_bench", BENCH)
+    assert spec is not None and spec.loader is not None
+    bench = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = bench  # its dataclasses look their module up there
+    spec.loader.exec_module(bench)
+    out = tmp_path / "figures.md"
+    assert bench.main(["--quick", "--out", str(out)]) == 0
+    text = out.read_text()
+    for section in ("## As-built sensors in the Earth's field", "## Ablation (seed 1): which effect costs what"):
+        assert section in text
+    assert "10 loads of 100 g (100 readings" in text and "10 large loads" in text and "Sensors: seeds 1, 2." in text
+    # Both classes for both estimators, with a spread across the sensors.
+    for kind in ("100 g", "large"):
+        for estimator in ("linear", "nonlinear"):
+            assert re.search(rf"\| {kind} \| {estimator} \| [\d.e+-]+ \+- ", text), (kind, estimator)
+    # Fall-backs counted per sensor and class, out of the loads used.
+    assert len(re.findall(r"\| seed \d \| [\d.]+ \| \d+ of 10 \| \d+ of 10 \| \d+ \| \d+ \|", text)) == 2
+    ablation = ("nominal, field-free", "nominal, Earth's field", "as-built, field-free", "as-built, Earth's field")
+    for name in ablation:
+        assert text.count(f"| {name} | ") == 5  # 2 classes x 2 estimators, and its fall-backs
+    assert re.search(r"\| nonlinear \| [\d.e+-]+ \|", text.split("No-load sweep")[1])

@@ -1,0 +1,164 @@
+"""The cheap cycle: messages built once and reused, replies decoded as one block exactly as
+one chip at a time, the board known at the daemon's start, and the CPU benchmark's quick
+mode (its structure, never a timing threshold)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ftsensord.acquire.reader import Reader
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.chip.driver import MLX90393, BlockDecoder
+from ftsensord.errors import ChipError
+from ftsensord.sim import StaticScene, VirtualClock, simulated_bus
+
+from .test_daemon import Rig
+
+ROOT = Path(__file__).resolve().parent.parent
+ADDRESSES = [0x0C, 0x0D, 0x0E, 0x0F]
+
+
+def _scene() -> StaticScene:
+    rng = np.random.default_rng(3)
+    return StaticScene({a: rng.uniform(-2e-3, 2e-3, 3) for a in ADDRESSES}, dict.fromkeys(ADDRESSES, 30.0))
+
+
+def _reader(adapter: str = "permissive") -> Reader:
+    bus = simulated_bus(_scene(), clock=VirtualClock(), bus_hz=400e3, adapter=adapter, seed=1)
+    reader = Reader(bus, [MLX90393(bus, a, sleep=bus.sleep) for a in ADDRESSES], "overlapped", mlx.Settings(),
+                    readback_every=0)
+    assert reader.start() == {}
+    return reader
+
+
+@pytest.mark.parametrize("adapter", ["permissive", "bcm2835", "designware"])
+def test_messages_are_built_once_and_reused(adapter):
+    reader = _reader(adapter)
+    reader.read()
+    plans = dict(reader.xfer._plans)
+    firsts = [c.sm_messages()[0] for c in reader.chips]
+    for _ in range(3):
+        results = reader.read()
+        assert all(r.ok for r in results)
+    assert reader.xfer._plans.keys() == plans.keys()
+    assert all(reader.xfer._plans[k] is plans[k] for k in plans)  # the same RM messages every cycle
+    assert [c.sm_messages()[0] for c in reader.chips] == firsts and all(
+        a is b for a, b in zip((c.sm_messages()[0] for c in reader.chips), firsts))
+
+
+def _one_by_one(chips: list[MLX90393], block: np.ndarray, zyxt: int) -> list:
+    out = []
+    for chip, row in zip(chips, block):
+        try:
+            out.append(chip.decode_measurement(bytes(row), zyxt))
+        except ChipError as exc:
+            out.append(exc)
+    return out
+
+
+@pytest.mark.parametrize("zyxt", [mlx.ZYXT_XYZ, mlx.ZYXT_XYZT, mlx.ZYXT_Y])
+@pytest.mark.parametrize("res", [0, 3])
+def test_block_decoding_equals_one_chip_at_a_time(zyxt, res):
+    """Random words (rails and saturation included), bad status bytes among them: the block
+    decoder gives what the per-chip decoder gives, errors included."""
+    bus = simulated_bus(_scene(), clock=VirtualClock())
+    chips = [MLX90393(bus, a, sleep=bus.sleep) for a in ADDRESSES]
+    for c in chips:
+        c.reset()
+        c.configure(mlx.Settings(res_x=res, res_y=res, res_z=res))
+    decoder = BlockDecoder(chips, zyxt)
+    rng = np.random.default_rng(7)
+    k = len(mlx.zyxt_items(zyxt))
+    for _ in range(50):
+        block = rng.integers(0, 256, (len(chips), 1 + 2 * k)).astype(np.uint8)
+        block[:, 0] = k - 1  # D1:D0 right for these items ...
+        block[1, 0] = rng.choice([0x10, 0x10 | (k - 1), (k % 4)])  # ... except: ERROR, or D1:D0 wrong
+        block[2, 1:3] = rng.choice([[0x80, 0x00], [0x7F, 0xFF], [0xFF, 0xFF], [0, 0]])  # the rails
+        fast, slow = decoder.decode(block), _one_by_one(chips, block, zyxt)
+        for f, s in zip(fast, slow):
+            assert type(f) is type(s)
+            if isinstance(s, ChipError):
+                assert str(f) == str(s)
+                continue
+            np.testing.assert_array_equal(f.field_t, s.field_t)
+            np.testing.assert_array_equal(f.saturated, s.saturated)
+            assert f.any_saturated == s.any_saturated and f.raw == s.raw and f.status == s.status
+            assert f.temperature_c == s.temperature_c
+
+
+def test_block_decoder_is_rebuilt_after_a_reconfiguration():
+    reader = _reader()
+    reader.read()
+    (plan,) = reader.xfer._plans.values()
+    chip = reader.chips[0]
+    chip.configure(mlx.Settings(gain_sel=5))  # a new scale: the old decoder would be wrong
+    assert not plan.decoder.valid_for(reader.chips)
+    results = reader.read()
+    assert results[0].ok
+    truth = _scene().field_t(chip.address, 0.0)
+    # 50 uT: the chips' noise at these settings is a few uT, a wrong scale (x2.5) would be mT off.
+    assert np.allclose(results[0].measurement.field_t, truth, atol=50e-6)
+
+
+class BoardBus:
+    """A simulated board behind the surface of `acquire.bus.LinuxI2CBus`: an adapter
+    number (nothing in sysfs under it), no timing until `acquire.board` measures it."""
+
+    def __init__(self, inner):
+        self.inner, self.number, self.timing = inner, 977, None
+
+    def i2c_rdwr(self, *msgs):
+        self.inner.i2c_rdwr(*msgs)
+
+    def sleep(self, s):
+        self.inner.sleep(s)
+
+    def monotonic(self):
+        return self.inner.monotonic()
+
+    def close(self):
+        self.inner.close()
+
+
+def test_daemon_knows_a_real_board_at_start(tmp_path, caplog):
+    """On a real bus the daemon measures ioctl cost and clock, warns of a slow clock, and
+    bounds the rate and reports with what it measured; on a simulated one it takes its timing."""
+    rig = Rig(tmp_path)
+    try:
+        sim = rig.daemon.status()
+        assert sim["adapter"] == "bcm2835" and sim["clock_hz"] == 400e3 and sim["ioctl_us"] == pytest.approx(60)
+        slow = simulated_bus(rig.scene, clock=rig.clock, bus_hz=400e3, clock_hz=250e3, ioctl_s=80e-6, seed=5)
+        rig.daemon.__init__(rig.config, BoardBus(slow), rig.pub, rig.router, clock=rig.clock.now)
+        assert rig.daemon.status()["ioctl_us"] is None  # not measured before start
+        with caplog.at_level(logging.WARNING, logger="ftsensord"):
+            rig.daemon.start()
+        assert any("measures 250 kHz" in r.getMessage() and "core_freq" in r.getMessage() for r in caplog.records)
+        status = rig.daemon.status()
+        assert status["clock_hz"] == pytest.approx(250e3, rel=0.02)
+        assert status["ioctl_us"] == pytest.approx(80, abs=5)
+        assert status["bound_hz"] == pytest.approx(rig.config.bound(rig.daemon.board_timing).rate_hz)
+        assert status["bound_hz"] < sim["bound_hz"]  # the slower board's bound, not the configured one
+        assert rig.daemon.reader.bus_hz == pytest.approx(250e3, rel=0.02)
+    finally:
+        rig.close()
+
+
+def test_cycle_cpu_quick_mode_reports_the_ratio():
+    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "cycle_cpu.py"), "--quick", "--json"],
+                         capture_output=True, text=True, timeout=300, check=True).stdout
+    r = json.loads(out)
+    for key in ("reference_us", "daemon_linear_us", "daemon_nonlinear_us", "nonlinear_per_sensor_us",
+                "estimate_per_sensor_us", "pi_factor", "pi_estimate_linear_us", "pinned_cpu", "load_1min"):
+        assert np.isfinite(r[key]), key
+    assert r["reference_us"] > 0 and r["daemon_linear_us"] > 0
+    assert r["ratio"] == pytest.approx(r["daemon_linear_us"] / r["reference_us"])
+    assert r["pi_estimate_linear_us"] == pytest.approx(r["daemon_linear_us"] * r["pi_factor"])
+    assert len(r["samples"]["linear"]) == r["rounds"] == len(r["samples"]["reference"])
+    assert r["failing_chips"] == 0  # the instant bus must keep every chip healthy, or the figure lies

@@ -1,0 +1,315 @@
+"""`ftsensord record` keeps what it received (each format, each way of stopping it),
+in flat memory; MCAP read back with mcap's reader and ROS 2 decoding; `echo`
+ends cleanly on Ctrl-C and on a closed pipe."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ftsensord.client import ControlClient, Subscriber
+from ftsensord.recording import (
+    CSV_HEAD_WIDTH,
+    finish_npz,
+    load_rows,
+    open_writer,
+    read_mcap,
+    record,
+    recover_mcap,
+)
+from ftsensord.recording.ros2mcap import stamp
+from ftsensord.service import wire
+
+from .test_daemon import write_config
+
+STREAMS = ["wrench/sensor1", "wrench/tip"]
+#: A kill -9 may lose what waited for its flush (0.5 s) and the hop to the recorder: 1 s promised.
+KILL_LOSS_S = 1.0
+#: A sample published this long before a stop signal has surely reached the recorder's queue.
+DELIVERED_S = 0.3
+
+
+@pytest.fixture(scope="module")
+def daemon(tmp_path_factory):
+    """`ftsensord run` on the simulated bus (sensor1 loaded, static), shared by this module's tests."""
+    tmp = tmp_path_factory.mktemp("daemon")
+    config = write_config(tmp)
+    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    notify.bind(str(tmp / "notify"))
+    notify.settimeout(30)
+    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp), "NOTIFY_SOCKET": str(tmp / "notify")}
+    env.pop("RUNTIME_DIRECTORY", None)
+    proc = subprocess.Popen([sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        assert notify.recv(4096).startswith(b"READY=1"), "no READY=1 from the daemon"
+        yield f"ipc://{tmp / 'ftsensord' / 'wrench'}", f"ipc://{tmp / 'ftsensord' / 'control'}"
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+        notify.close()
+
+
+class Reference(threading.Thread):
+    """A Python subscriber receiving in parallel: every sample, by stream and seq."""
+
+    def __init__(self, endpoint: str, streams: list[str]):
+        super().__init__(daemon=True)
+        self.sub = Subscriber(endpoint, streams)
+        self.samples: dict[str, dict[int, wire.Sample]] = {s: {} for s in streams}
+        self.done = threading.Event()
+
+    def run(self) -> None:
+        while not self.done.is_set():
+            s = self.sub.receive(timeout_s=0.1)
+            if s is not None:
+                self.samples[s.topic][s.seq] = s
+        self.sub.close()
+
+    def wait_for(self, n: int) -> None:
+        deadline = time.monotonic() + 10
+        while min(len(v) for v in self.samples.values()) < n:
+            assert time.monotonic() < deadline, "the reference subscriber received nothing"
+            time.sleep(0.05)
+
+    def stop(self) -> None:
+        self.done.set()
+        self.join(timeout=5)
+
+
+def cli(*args: str, **kw) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "ftsensord", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, **kw)
+
+
+def seqs_in(path: Path, killed: bool) -> dict[str, list[int]]:
+    """Each stream's sequence numbers as the file holds them (after a kill: as the
+    documented loaders read what is left)."""
+    if path.suffix == ".csv":
+        text = path.read_text()
+        lines = text.splitlines(keepends=True)
+        if killed and lines and not lines[-1].endswith("\n"):
+            lines.pop()  # a row torn by the kill
+        return {STREAMS[0]: [int(line.split(",")[0]) for line in lines[2:]]}
+    if path.suffix == ".npz":
+        part = Path(f"{path}.part")
+        if killed:
+            assert part.exists() and not path.exists()
+            rows = load_rows(part)["seq"].tolist()
+            assert finish_npz(part) == len(rows) and not part.exists()
+        else:
+            assert not part.exists()
+        return {STREAMS[0]: np.load(path)["seq"].tolist()}
+    out: dict[str, list[int]] = {s: [] for s in STREAMS}
+    for topic, msg, _ in read_mcap(path):
+        if topic.endswith("/status"):
+            out[topic[1:-len("/status")]].append(msg.seq)
+    return out
+
+
+def check_kept(path: Path, ref: Reference, streams: list[str], t_stop: float, killed: bool) -> dict[str, int]:
+    """No received sample lost: the file's seqs are the reference's, without a hole,
+    up to the stop (after a kill: up to the stop less KILL_LOSS_S). Returns the counts."""
+    got = seqs_in(path, killed)
+    counts = {}
+    for stream in streams:
+        seqs, seen = got[stream], ref.samples[stream]
+        assert seqs and seqs == sorted(seqs), stream
+        assert set(seqs) <= set(seen), f"{stream}: seqs the reference never saw"
+        expected = [q for q in sorted(seen) if seqs[0] <= q <= seqs[-1]]
+        assert seqs == expected, f"{stream}: {len(set(expected) - set(seqs))} samples missing"
+        margin = KILL_LOSS_S if killed else DELIVERED_S
+        before = [q for q, s in seen.items() if s.t_mono <= t_stop - margin]
+        assert seqs[-1] >= max(before), f"{stream}: stopped {seqs[-1]}, reference had {max(before)}"
+        counts[stream] = len(seqs)
+    return counts
+
+
+@pytest.mark.parametrize("fmt", ["csv", "npz", "mcap"])
+@pytest.mark.parametrize("how", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGKILL],
+                         ids=["SIGINT", "SIGTERM", "SIGHUP", "kill-9"])
+def test_record_stopped_keeps_every_received_sample(daemon, tmp_path, fmt, how):
+    pub, _ = daemon
+    streams = STREAMS if fmt == "mcap" else STREAMS[:1]
+    path = tmp_path / f"rec.{fmt}"
+    ref = Reference(pub, streams)
+    ref.start()
+    try:
+        ref.wait_for(5)
+        proc = cli("record", *streams, str(path), "--endpoint", pub)
+        time.sleep(2.0)
+        t_stop = time.monotonic()
+        proc.send_signal(how)
+        out, err = proc.communicate(timeout=20)
+        time.sleep(0.3)
+    finally:
+        ref.stop()
+    killed = how == signal.SIGKILL
+    assert proc.returncode == (-signal.SIGKILL if killed else 0), err
+    assert "Traceback" not in err
+    counts = check_kept(path, ref, streams, t_stop, killed)
+    if not killed:  # a clean end: the summary is the file's
+        assert f"(stopped by {signal.Signals(how).name})" in out
+        for stream, n in counts.items():
+            assert f"{stream}: {n} samples, " in out
+        if fmt == "csv":
+            head = path.read_text().splitlines()[0]
+            assert head.startswith(f"# ftsensord record of {STREAMS[0]}; {counts[STREAMS[0]]} samples, ")
+            assert len(head) == CSV_HEAD_WIDTH - 1
+        if fmt == "mcap":  # complete: summary and index, read by the seeking reader
+            from mcap.reader import make_reader
+            with open(path, "rb") as f:
+                summary = make_reader(f).get_summary()
+            assert summary is not None and summary.chunk_indexes
+            assert summary.statistics.message_count == 2 * sum(counts.values())
+    elif fmt == "mcap":  # cut short, yet recoverable into a complete file
+        fixed = tmp_path / "fixed.mcap"
+        assert recover_mcap(path, fixed) == 2 * sum(counts.values())
+        from mcap.reader import make_reader
+        with open(fixed, "rb") as f:
+            assert make_reader(f).get_summary().statistics.message_count == 2 * sum(counts.values())
+
+
+class Synthetic:
+    """A receiver of n made-up samples, one per call (no sockets: memory is the recorder's)."""
+
+    def __init__(self, n: int, stream: str, values: int):
+        self.n, self.i, self.stream, self.values = n, 0, stream, values
+
+    def receive(self, timeout_s: float | None = None) -> wire.Sample | None:
+        if self.i >= self.n:
+            return None
+        self.i += 1
+        kind = wire.KIND_WRENCH if self.stream.startswith("wrench/") else wire.KIND_FLUX
+        return wire.Sample(self.stream, kind, self.i, self.i * 0.01, 1.7e9 + self.i * 0.01, 0,
+                           np.full(self.values, self.i * 1e-3))
+
+
+@pytest.mark.parametrize("fmt", ["csv", "npz", "mcap"])
+def test_record_memory_stays_flat(tmp_path, fmt):
+    """Ten times the samples, not ten times the memory: the writers keep at most a
+    flush's worth (the old recorder kept every row, ~0.4 kB each on a flux stream)."""
+    peaks = []
+    for n in (1_000, 10_000):
+        ticks = iter(range(10**9))
+
+        def clock(ticks=ticks) -> float:  # 1 ms per look: a flush every ~100 samples
+            return next(ticks) * 1e-3
+
+        writer = open_writer(tmp_path / f"m{n}.{fmt}", ["wrench/sensor1"])
+        source = Synthetic(n, "wrench/sensor1", 6)
+        tracemalloc.start()
+        outcome = record(source, writer, ["wrench/sensor1"], timeout_s=1e9, clock=clock,
+                         stop=lambda source=source: source.i >= source.n)
+        peaks.append(tracemalloc.get_traced_memory()[1])
+        tracemalloc.stop()
+        assert outcome.reason == "stopped" and outcome.tallies["wrench/sensor1"].samples == n
+    # 9,000 more rows kept as the old recorder kept them (a tuple of 10 floats) would be > 3 MB;
+    # MCAP's chunk index grows ~0.1 kB a flush (90 more here).
+    assert peaks[1] - peaks[0] < 300_000, peaks
+
+
+def test_mcap_holds_ros2_messages_matching_what_was_published(daemon, tmp_path):
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    pub, ctl = daemon
+    streams = [*STREAMS, "flux/sensor1"]
+    path = tmp_path / "rec.mcap"
+    ref = Reference(pub, streams)
+    ref.start()
+    try:
+        ref.wait_for(5)
+        done = subprocess.run([sys.executable, "-m", "ftsensord", "record", *streams, str(path), "--endpoint", pub,
+                               "--count", "150"], capture_output=True, text=True, timeout=60)
+        time.sleep(0.3)
+    finally:
+        ref.stop()
+    assert done.returncode == 0, done.stderr
+    frames = {name: s["frame"] for name, s in ControlClient(ctl).status()["sensors"].items()}
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        summary = reader.get_summary()
+        types = {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values()}
+        assert types["/wrench/sensor1"] == types["/wrench/tip"] == "geometry_msgs/msg/WrenchStamped"
+        assert types["/flux/sensor1/chip7"] == "sensor_msgs/msg/MagneticField"
+        assert set(types) == {"/wrench/sensor1", "/wrench/tip", "/wrench/sensor1/status", "/wrench/tip/status",
+                              "/flux/sensor1/status", *(f"/flux/sensor1/chip{i}" for i in range(8))}
+        checked = dict.fromkeys(types, 0)
+        pending: dict[str, list] = {}
+        for _, channel, message, msg in reader.iter_decoded_messages(log_time_order=False):
+            topic = channel.topic
+            checked[topic] += 1
+            if topic.endswith("/status"):
+                sample = ref.samples[topic[1:-len("/status")]][msg.seq]
+                assert msg.flags == sample.flags and message.sequence == msg.seq & 0xFFFFFFFF
+                for other in pending.pop(topic[1:-len("/status")], []):  # the values before it: same sample
+                    other(sample)
+            else:
+                stream = topic[1:] if topic.startswith("/wrench/") else topic[1:].rsplit("/", 1)[0]
+                pending.setdefault(stream, []).append(lambda s, m=msg, t=topic, lt=message.log_time:
+                                                      _matches(s, m, t, lt, frames))
+    assert not any(pending.values())
+    assert all(n > 0 for n in checked.values()), checked
+    assert sum(checked[f"/{s}/status"] for s in streams) >= 150
+
+
+def _matches(sample: wire.Sample, msg, topic: str, log_time: int, frames: dict[str, str]) -> None:
+    sec, nanosec = stamp(sample.t_wall)
+    assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (sec, nanosec)
+    assert abs(sec + nanosec * 1e-9 - sample.t_wall) < 1e-6 and log_time == sec * 10**9 + nanosec
+    if topic.startswith("/wrench/"):
+        name = topic.split("/")[2]
+        assert msg.header.frame_id == frames.get(name, topic[1:])
+        w = msg.wrench
+        got = [w.force.x, w.force.y, w.force.z, w.torque.x, w.torque.y, w.torque.z]
+        assert got == sample.values.tolist()  # float64 both ways: exact
+    else:
+        chip = int(topic.rsplit("chip", 1)[1])
+        b = msg.magnetic_field
+        np.testing.assert_array_equal([b.x, b.y, b.z], sample.values[3 * chip:3 * chip + 3])
+        assert msg.header.frame_id == f"sensor1/chip{chip}"
+
+
+def test_csv_and_npz_refuse_several_streams(tmp_path):
+    with pytest.raises(ValueError, match="holds one stream"):
+        open_writer(tmp_path / "x.csv", STREAMS)
+    with pytest.raises(ValueError, match=r"\.csv, \.npz or \.mcap"):
+        open_writer(tmp_path / "x.txt", STREAMS[:1])
+
+
+def test_echo_into_a_closed_pipe_exits_quietly(daemon):
+    pub, _ = daemon
+    proc = cli("echo", "wrench/sensor1", "--endpoint", pub)
+    assert proc.stdout.readline() and proc.stdout.readline()
+    proc.stdout.close()  # as `| head -2` does
+    err = proc.stderr.read()
+    assert proc.wait(timeout=10) == 0 and "Traceback" not in err and "Broken pipe" not in err, err
+
+
+def test_ctrl_c_ends_echo_and_other_commands_without_a_traceback(daemon, tmp_path):
+    pub, _ = daemon
+    proc = cli("echo", "wrench/sensor1", "--endpoint", pub)
+    assert proc.stdout.readline()
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=10)
+    assert proc.returncode == 0 and "Traceback" not in err and " samples" in err, err
+    # A command waiting on a daemon that never answers: Ctrl-C gives 130 and a line.
+    proc = cli("status", "--control", f"ipc://{tmp_path}/nobody", "--timeout", "30")
+    time.sleep(1.5)  # into the wait
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=10)
+    assert proc.returncode == 130 and err.strip() == "ftsensord: interrupted", err
