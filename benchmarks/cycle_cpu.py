@@ -111,7 +111,7 @@ class Reference:
         self.zero = fmt.zero
         self.scale = np.array([config.settings.sensitivity_ut(a) * 1e-6 for a in "xyz"])
         self.models = [(s.name, s.calibration.model.KA, s.calibration.model.zero) for s in config.sensors]
-        self.tip = [se3.wrench_transform(se3.pose(p=config.tool_offsets_m[name])) for name, _, _ in self.models]
+        self.tip = [se3.wrench_transform(config.tool_poses[name]) for name, _, _ in self.models]
         self.seq = 0
 
     def cycle(self) -> None:

@@ -172,7 +172,7 @@ def accuracy(config: Config, settings: mlx.Settings, averaging: int, n_loads: in
     for estimator in estimators:
         bus, scene = bench_bus(config, VirtualClock(), seed=11)
         cfg = replace(config, settings=settings, averaging=averaging, stuck_cycles=stuck_cycles_for(settings),
-                      scheduler="overlapped", readback_every=0, temperature_every=0, tool_offsets_m={},
+                      scheduler="overlapped", readback_every=0, temperature_every=0, tool_poses={},
                       sensors=[replace(s, estimator=estimator if s is sensor else "linear") for s in config.sensors])
         out = Capture()
         daemon = Daemon(cfg, bus, out, None, clock=bus.monotonic)  # type: ignore[arg-type]

@@ -177,3 +177,43 @@ class Subscriber:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class OrientationPublisher:
+    """Tell the daemon how the tool is turned, for gravity compensation (docs/clients.md).
+
+        with OrientationPublisher() as pub:
+            pub.send("sensor1", quaternion_wxyz)   # or a 3 x 3 R_world,sensor; or "tip"
+
+    A PUB socket connected to the daemon's orientation endpoint: a send never
+    blocks (nothing is queued for a daemon not running), the daemon keeps the newest.
+    """
+
+    def __init__(self, endpoint: str | None = None, context: zmq.Context | None = None):
+        from .service import orientation
+
+        self._encode = orientation.encode
+        self.endpoint = endpoint or default_endpoint("orientation")
+        self.socket = (context or zmq.Context.instance()).socket(zmq.PUB)
+        self.socket.setsockopt(zmq.LINGER, 0)
+        self.socket.connect(self.endpoint)
+
+    def send(self, frame: str, rotation: Any, t_sender: float | None = None) -> None:
+        """``rotation``: a unit quaternion [w x y z] or a rotation matrix taking ``frame``'s
+        vectors into the world; ``t_sender`` (s) defaults to this host's CLOCK_MONOTONIC."""
+        import time
+
+        t = time.monotonic() if t_sender is None else t_sender
+        try:
+            self.socket.send(self._encode(frame, rotation, t), zmq.NOBLOCK)
+        except zmq.Again:
+            pass  # the queue is full: latest value wins, the next send replaces it
+
+    def close(self) -> None:
+        self.socket.close(linger=0)
+
+    def __enter__(self) -> OrientationPublisher:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

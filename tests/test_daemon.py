@@ -40,9 +40,17 @@ addresses = [0x14, 0x15, 0x16, 0x17, 0x18, 0x19, 0x1A, 0x1B]
 """
 
 
+TOOL = """
+[tool.offsets_m]
+sensor1 = [0.0, 0.0, -0.2]
+sensor2 = [0.0, 0.0, -0.1]
+"""
+
+
 def write_config(folder: Path, extra: str = "", sensor1_cal: str = "builtin:sim-sensor1.json",
-                 rate_hz: float = 100, chip: str = "", scene_extra: str = "", scheduler: str | None = None) -> Path:
-    (folder / "scene.toml").write_text(SCENE + scene_extra)
+                 rate_hz: float = 100, chip: str = "", scene_extra: str = "", scheduler: str | None = None,
+                 scene: str = SCENE, tool: str = TOOL) -> Path:
+    (folder / "scene.toml").write_text(scene + scene_extra)
     path = folder / "ftsensord.toml"
     path.write_text(f"""
 version = 1
@@ -60,9 +68,7 @@ calibration = "{sensor1_cal}"
 name = "sensor2"
 addresses = [0x14, 0x15, 0x16, 0x17, 0x18, 0x19, 0x1A, 0x1B]
 calibration = "builtin:sim-sensor2.json"
-[tool.offsets_m]
-sensor1 = [0.0, 0.0, -0.2]
-sensor2 = [0.0, 0.0, -0.1]
+{tool}
 """)
     return path
 
@@ -70,7 +76,8 @@ sensor2 = [0.0, 0.0, -0.1]
 class Rig:
     """A daemon on a virtual clock, a subscriber, and a REQ client on its control socket."""
 
-    def __init__(self, folder: Path, extra: str = "", notifier: Notifier | None = None, **config):
+    def __init__(self, folder: Path, extra: str = "", notifier: Notifier | None = None,
+                 orientation: zmq.Socket | None = None, **config):
         if "scheduler" not in extra:
             config.setdefault("scheduler", "overlapped")  # the cycle these tests reason about
         self.config = load_config(write_config(folder, extra, **config))
@@ -87,7 +94,7 @@ class Rig:
         self.router.bind(f"inproc://ctl{n}")
         self.req.connect(f"inproc://ctl{n}")
         self.daemon = Daemon(self.config, self.bus, self.pub, self.router, notifier=notifier,
-                             clock=self.clock.now, wall=lambda: 1.7e9 + self.clock.now())
+                             clock=self.clock.now, wall=lambda: 1.7e9 + self.clock.now(), orientation=orientation)
         self.daemon.start()
 
     def cycles(self, n: int = 1) -> dict[str, list[wire.Sample]]:
@@ -385,7 +392,7 @@ def test_the_commented_example_configuration_loads(tmp_path):
     shutil.copy(builtin_path("sim-sensor2.json"), tmp_path / "sensor2.json")
     config = load_config(tmp_path / "ftsensord.toml")
     assert config.bus == "i2c:1" and config.rate_hz == 100 and len(config.addresses) == 16
-    assert config.tool_offsets_m["sensor1"][2] == -0.2
+    assert config.tool_poses["sensor1"][2, 3] == -0.2
 
 
 def test_shutdown_puts_every_chip_back_to_idle(tmp_path):

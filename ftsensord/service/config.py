@@ -32,6 +32,7 @@ from ..chip import mlx90393 as mlx
 from ..chip.i2c import BusTiming
 from ..docfile import Table, load_toml
 from ..errors import ConfigError
+from .frames import TIP, GravityConfig, gravity_config, tool_poses
 
 CONFIG_VERSION = 1
 ESTIMATORS = ("linear", "nonlinear")
@@ -141,12 +142,19 @@ class Config:
     sensors: list[SensorConfig]
     publish: list[str]
     control: str
-    tool_offsets_m: dict[str, np.ndarray] = field(default_factory=dict)
+    tool_poses: dict[str, np.ndarray] = field(default_factory=dict)  # sensor: T_tip,s (4x4, m)
+    tool_frame: str = TIP  # the tip frame's name (wrench/tip is in it)
+    gravity: GravityConfig | None = None  # gravity compensation ([gravity]), off when None
     security: Security = field(default_factory=Security)
     temperature_every: int = 100
     stuck_cycles: int = 0  # load_config's default: stuck_cycles_for(settings)
     readback_every: int = 1
     max_missing_chips: int = 2
+
+    @property
+    def orientation_endpoint(self) -> str | None:
+        """Where the orientation stream comes in (gravity from the stream), else None."""
+        return self.gravity.endpoint if self.gravity is not None else None
 
     @property
     def addresses(self) -> list[int]:
@@ -276,7 +284,7 @@ def load_config(path: str | Path | None = None, calibrations: Calibrations | Non
     doc = Table(load_toml(path), path)
     doc.only({"version", "bus", "bus_hz", "bus_overhead_us", "rate_hz", "scheduler", "averaging",
               "lowpass_hz", "temperature_every", "stuck_cycles", "readback_every", "max_missing_chips", "publish", "publish_tcp",
-              "control", "chip", "sensor", "tool", "security"})
+              "control", "chip", "sensor", "tool", "gravity", "security"})
     doc.integer("version", what=str(CONFIG_VERSION), low=CONFIG_VERSION, high=CONFIG_VERSION)
     bus = doc.string("bus")
     try:
@@ -345,15 +353,14 @@ def load_config(path: str | Path | None = None, calibrations: Calibrations | Non
         readback_every=doc.integer("readback_every", 1, low=0, what="cycles (0: no register read-back)"),
         max_missing_chips=doc.integer("max_missing_chips", 2, low=0, high=5,
                                       what="0 to 5 chips (degraded mode; 0: off)"))
+    names = [s.name for s in sensors]
     if "tool" in doc.doc:
-        tool = doc.table("tool")
-        tool.only({"offsets_m"})
-        offsets = tool.table("offsets_m")
-        names = [s.name for s in sensors]
-        for name in offsets.doc:
-            if name not in names:
-                raise offsets.fail(name, f"one of the sensors {', '.join(names)}", name)
-            config.tool_offsets_m[name] = np.array(offsets.numbers(name, 3, unit="m, sensor frame from the tip"))
+        config.tool_poses, config.tool_frame = tool_poses(doc.table("tool"), names)
+    if "gravity" in doc.doc:
+        config.gravity = gravity_config(doc.table("gravity"), names, config.tool_poses, f"ipc://{rt}/orientation")
+        if config.gravity.endpoint is not None:
+            config.gravity.endpoint = _endpoint(doc.table("gravity"), "endpoint", config.gravity.endpoint,
+                                                why="orientations decide the compensated wrench: this host only")
     if config.scheduler == "burst" and "readback_every" not in doc.doc and not burst_readback_stays_fresh(
             config.bound(), config.settings, config.rate_hz):
         # A chip read back in burst mode (EX, RR, SB) restarts its burst: with no time for
@@ -370,7 +377,8 @@ def needs_restart(old: Config, new: Config) -> list[str]:
         ("bus", new.bus, old.bus), ("bus_hz", new.bus_hz, old.bus_hz),
         ("scheduler", new.scheduler, old.scheduler), ("chip", new.settings, old.settings),
         ("sensor addresses", [(s.name, s.addresses) for s in new.sensors], [(s.name, s.addresses) for s in old.sensors]),
-        ("endpoints", (new.publish, new.control), (old.publish, old.control))) if a != b]
+        ("endpoints", (new.publish, new.control, new.orientation_endpoint),
+         (old.publish, old.control, old.orientation_endpoint))) if a != b]
 
 
 def reload_config(old: Config, calibrations: Calibrations | None = None) -> Config:

@@ -29,7 +29,10 @@ from . import wire
 from .config import Calibrations, Config, SensorConfig, check_rate, reload_config
 from .control import Control
 from .filters import WrenchFilter
+from .frames import TIP
+from .gravity import Gravity
 from .loop import LoopTiming, serve_until
+from .orientation import OrientationReceiver
 from .pipeline import SensorPipeline, tip_wrench, use_estimator
 from .sdnotify import Notifier
 from .status import ChipLedger, status_line, status_reply
@@ -43,7 +46,7 @@ class Daemon:
 
     def __init__(self, config: Config, bus: Bus, publisher: zmq.Socket, control: zmq.Socket | None = None, *,
                  notifier: Notifier | None = None, clock: Callable[[], float] = time.monotonic,
-                 wall: Callable[[], float] = time.time):
+                 wall: Callable[[], float] = time.time, orientation: zmq.Socket | None = None):
         self.config = config
         self.bus = bus
         self.publisher = publisher
@@ -55,6 +58,8 @@ class Daemon:
         self.board_timing: BusTiming | None = getattr(bus, "timing", None)  # a real bus's: measured at start
         self.chips = ChipLedger({s.name: s.addresses for s in config.sensors})
         self.sensors = [self._pipeline(s, config) for s in config.sensors]
+        self.orientations = OrientationReceiver(orientation, {*self.sensor_names, TIP})
+        self.gravity = self._gravity(config)
         self.timing = LoopTiming()
         self.control = Control(control, self)
         self.tares = Tares(self.control.reply)
@@ -68,6 +73,10 @@ class Daemon:
     def _pipeline(s: SensorConfig, config: Config) -> SensorPipeline:
         smoothing = WrenchFilter(config.averaging, config.lowpass_hz, config.rate_hz)
         return SensorPipeline.build(s, smoothing, config.max_missing_chips, config.settings)
+
+    def _gravity(self, config: Config) -> Gravity | None:
+        g = config.gravity
+        return g and Gravity(g, config.tool_poses, self.orientations, config.averaging, config.lowpass_hz, config.rate_hz)
 
     @property
     def period_s(self) -> float:
@@ -132,15 +141,19 @@ class Daemon:
         seq = self.timing.cycles + self.timing.missed
         for r in results.values():
             self.chips.count(r)
+        self.orientations.drain(start)
         samples = {p.name: p.step(results, wire.FLAG_LATE if late else 0) for p in self.sensors}
         for name, s in samples.items():
             if s.valid:
-                self.tares.feed(name, s.flux, s.flags)
+                flags, gravity = self.gravity.tare_input(name, start) if self.gravity else (0, None)
+                self.tares.feed(name, s.flux, s.flags | flags, gravity)
             # Wrenches first: a haptic loop waits for them; the flux streams are for debugging.
             self._publish(f"wrench/{name}", wire.KIND_WRENCH, seq, t_mono, t_wall, s.flags, s.wrench)
-        if self.config.tool_offsets_m:
-            tip, tip_flags = tip_wrench(samples, self.config.tool_offsets_m)
-            self._publish("wrench/tip", wire.KIND_WRENCH, seq, t_mono, t_wall, tip_flags, tip)
+        tip = tip_wrench(samples, self.config.tool_poses) if self.config.tool_poses else None
+        if tip is not None:
+            self._publish("wrench/tip", wire.KIND_WRENCH, seq, t_mono, t_wall, tip[1], tip[0])
+        for topic, flags, values in self.gravity.streams(samples, tip, self.sensors, start) if self.gravity else ():
+            self._publish(topic, wire.KIND_WRENCH, seq, t_mono, t_wall, flags, values)
         for name, s in samples.items():
             self._publish(f"flux/{name}", wire.KIND_FLUX, seq, t_mono, t_wall, s.flux_flags, s.flux)
         self.tares.advance(self.sensors)
@@ -176,8 +189,8 @@ class Daemon:
     def set_loop(self, rate_hz: float, averaging: int, lowpass_hz: float) -> dict[str, Any]:
         check_rate(self.config, rate_hz, timing=self.board_timing)
         self.config.rate_hz, self.config.averaging, self.config.lowpass_hz = rate_hz, averaging, lowpass_hz
-        for s in self.sensors:
-            s.filter.configure(averaging, lowpass_hz, rate_hz)
+        for f in [s.filter for s in self.sensors] + list(self.gravity.filters.values() if self.gravity else []):
+            f.configure(averaging, lowpass_hz, rate_hz)
         return {"rate_hz": rate_hz, "averaging": averaging, "lowpass_hz": lowpass_hz}
 
     def set_estimator(self, estimator: str, sensor: str | None) -> dict[str, Any]:
@@ -186,7 +199,7 @@ class Daemon:
     def reload(self) -> dict[str, Any]:
         """Re-read the configuration and calibrations; keep the old ones if the new are bad.
 
-        Calibrations, rate, averaging, low-pass and tool offsets change at once;
+        Calibrations, rate, averaging, low-pass, tool poses and gravity change at once;
         a change of bus, chips, scheduler or endpoints needs a restart. Unchanged
         calibration files are not read again (`config.Calibrations`): such a reload
         takes about 1 ms and fits between two cycles.
@@ -205,6 +218,7 @@ class Daemon:
         self.reader.stuck_cycles = self.reader.care.stuck_cycles = new.stuck_cycles
         old, self.sensors = self.sensors, [self._pipeline(s, new) for s in new.sensors]
         tares = carry_tares(old, self.sensors)  # kept where the calibration is the same, else dropped, said
+        self.gravity = self._gravity(new)
         log.info("reloaded %s", new.path)
         self.notifier.ready(self.status_line())
         return {"config": str(new.path), "calibrations": {s.name: str(s.calibration_path) for s in new.sensors},

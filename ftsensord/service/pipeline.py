@@ -97,6 +97,8 @@ class SensorPipeline:
     nonlinear: NonlinearEstimator | None = None  # built from the calibration when it has one
     zero_twist: np.ndarray | None = None  # the nonlinear estimator's no-load deflection
     tare_wrench: np.ndarray = field(default_factory=lambda: np.zeros(6))  # what the tare removes (N, Nm)
+    # Gravity (m/s^2, sensor frame) over the tare's samples: zero untared, None unknown (`service.gravity`).
+    tare_gravity: np.ndarray | None = field(default_factory=lambda: np.zeros(3))
     fallbacks: int = 0
     sigma_t: np.ndarray | None = None  # each channel's noise (T); None: the default chip settings'
     check: RedundancyCheck = field(default_factory=lambda: RedundancyCheck())
@@ -191,9 +193,11 @@ class SensorPipeline:
             flags |= wire.FLAG_EXTRAPOLATED
         return wrench, flags
 
-    def tare(self, zero: np.ndarray) -> np.ndarray:
-        """Make ``zero`` (the mean no-load flux, T) the new zero; returns the wrench it removes."""
+    def tare(self, zero: np.ndarray, gravity: np.ndarray | None = None) -> np.ndarray:
+        """Make ``zero`` (the mean no-load flux, T) the new zero; returns the wrench it removes.
+        ``gravity``: the mean gravity (m/s^2, sensor frame) while it was measured, None if unknown."""
         self.tare_wrench = self.config.calibration.model.wrench(zero)
+        self.tare_gravity = None if gravity is None else np.array(gravity, dtype=float)
         self.model = self.model.with_zero(zero)
         if self.nonlinear is not None:
             e = self.nonlinear.estimate(zero)
@@ -233,13 +237,13 @@ def use_estimator(pipelines: list[SensorPipeline], estimator: str, sensor: str |
     return {p.name: p.estimator for p in pipelines}
 
 
-def tip_wrench(samples: dict[str, SensorSample], offsets_m: dict[str, np.ndarray]) -> tuple[np.ndarray, int]:
-    """The wrench at the tool tip (N, Nm, tip frame): each sensor's moved from its offset
-    (m, sensor frame from the tip) and summed, with every sensor's flags: the tip is as
-    good as its worst sensor."""
+def tip_wrench(samples: dict[str, SensorSample], poses: dict[str, np.ndarray]) -> tuple[np.ndarray, int]:
+    """The wrench at the tool tip (N, Nm, tip frame): each sensor's moved from its pose
+    in the tip frame (T_tip,s: f_tip = R f_s, m_tip = R m_s + p x R f_s) and summed, with
+    every sensor's flags: the tip is as good as its worst sensor."""
     tip, flags = np.zeros(6), 0
-    for name, offset in offsets_m.items():
-        tip += se3.wrench_transform(se3.pose(p=offset)) @ samples[name].wrench
+    for name, T in poses.items():
+        tip += se3.wrench_transform(T) @ samples[name].wrench
         flags |= samples[name].flags
     return tip, flags
 

@@ -20,6 +20,7 @@ from ..errors import ConfigError, FtsensordError
 from .config import Config, ensure_private_dir, is_loopback
 from .control import MAX_REQUEST
 from .daemon import Daemon
+from .orientation import open_receiver
 from .sdnotify import Notifier
 
 log = logging.getLogger("ftsensord")
@@ -62,12 +63,18 @@ def bind(socket: zmq.Socket, endpoint: str) -> None:
 LOCK_NAME = "ftsensord.lock"
 
 
+def endpoints(config: Config) -> list[str]:
+    """Every endpoint the daemon binds: the streams', control's, the orientation stream's."""
+    orientation = config.orientation_endpoint
+    return [*config.publish, config.control, *([orientation] if orientation else [])]
+
+
 def lock_runtime(config: Config) -> list[int]:
     """Take the exclusive lock (flock) in every folder of the configured ipc endpoints;
     refuse, naming the first daemon's pid, when another daemon holds one. Returns the
     open descriptors: the locks last while they stay open (the kernel drops them at exit,
     even after kill -9)."""
-    folders = sorted({p.parent for p in map(_ipc_path, (*config.publish, config.control)) if p is not None})
+    folders = sorted({p.parent for p in map(_ipc_path, endpoints(config)) if p is not None})
     held: list[int] = []
     try:
         for folder in folders:
@@ -154,7 +161,9 @@ def run(config: Config) -> int:
 def _serve(config: Config, bus: Bus, notifier: Notifier) -> int:
     context = zmq.Context()
     publisher, control, auth = make_sockets(context, config)
-    daemon = Daemon(config, bus, publisher, control, notifier=notifier)
+    endpoint = config.orientation_endpoint
+    orientation = open_receiver(context, endpoint, bind) if endpoint else None
+    daemon = Daemon(config, bus, publisher, control, notifier=notifier, orientation=orientation)
 
     def stop(signum: int, frame: object) -> None:
         daemon.stop_requested = True
@@ -174,9 +183,11 @@ def _serve(config: Config, bus: Bus, notifier: Notifier) -> int:
         if auth is not None:
             auth.stop()  # type: ignore[attr-defined]
         control.close()
+        if orientation is not None:
+            orientation.close()
         context.term()
         bus.close()
-        for endpoint in (*config.publish, config.control):
+        for endpoint in endpoints(config):
             path = _ipc_path(endpoint)
             if path is not None and os.path.lexists(path):
                 path.unlink()  # ours: the folder is checked and locked

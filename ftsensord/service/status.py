@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 from .. import __version__
 from ..acquire.health import ChipHealth, ChipResult
 from ..errors import ChipError, ChipRefusedError
+from .frames import TIP
 from .loop import percentiles_us
 
 if TYPE_CHECKING:
@@ -79,6 +80,24 @@ def status_line(d: Daemon) -> str:
             f"{d.chips.failing} chip(s) failing")
 
 
+def stream_frames(d: Daemon) -> dict[str, str]:
+    """The frame of every stream the configuration publishes: a sensor's wrench in its
+    frame, the tip's in the tip frame, a compensated wrench in its raw one's, a flux
+    stream in its chips' frames (``<sensor>/chip<i>``, i from 0)."""
+    compensated = d.config.gravity.payloads if d.config.gravity is not None else {}
+    frames = {}
+    for s in d.config.sensors:
+        frames[f"wrench/{s.name}"] = s.frame
+        if s.name in compensated:
+            frames[f"wrench/{s.name}/compensated"] = s.frame
+        frames[f"flux/{s.name}"] = f"{s.name}/chip<i>"
+    if d.config.tool_poses:
+        frames["wrench/tip"] = d.config.tool_frame
+        if TIP in compensated:
+            frames["wrench/tip/compensated"] = d.config.tool_frame
+    return frames
+
+
 def status_reply(d: Daemon) -> dict[str, Any]:
     """The `status` reply (keys in docs/protocol.md)."""
     bound, t, board = d.config.bound(d.board_timing), d.timing, d.board_timing
@@ -97,6 +116,7 @@ def status_reply(d: Daemon) -> dict[str, Any]:
         "chips": d.chips.report(d.reader.health, d.reader.bus.monotonic()),
         "sensors": {s.name: s.status() for s in d.sensors},
         "streams": sorted(d.streams), "publish": d.config.publish, "control": d.config.control,
+        "frames": stream_frames(d), "gravity": d.gravity.status(d.sensors, d.clock()) if d.gravity else None,
     }
 
 
@@ -120,6 +140,16 @@ def describe(status: dict[str, Any]) -> str:
     for name, s in status["sensors"].items():
         tare = "tared, offset " + " ".join(f"{v:+.4g}" for v in s["tare_wrench"]) if s["tared"] else "not tared"
         out.append(f"sensor {name}: frame {s['frame']}, serial {s['serial']}, {tare}; calibration {s['calibration']}")
+    if "wrench/tip" in status.get("frames", {}):
+        out.append(f"tip: frame {status['frames']['wrench/tip']}")
+    gravity = status.get("gravity")
+    if gravity:
+        stream = gravity["stream"]
+        out.append(f"gravity compensation ({gravity['orientation']}): " + ", ".join(
+            f"{f} {g['mass_kg'] * 1e3:.0f} g" + (" (orientation stale)" if g["orientation_stale"] else "")
+            for f, g in gravity["frames"].items())
+            + (f"; orientation messages {stream['received']} received, "
+               f"{sum(stream['dropped'].values())} dropped" if gravity["orientation"] == "stream" else ""))
     bad = {a: c for a, c in status["chips"].items() if not c["ok"] or c["errors"] or c["reinits"]}
     temps = [c["temperature_c"] for c in status["chips"].values() if c["temperature_c"] is not None]
     out.append(f"chips: {len(status['chips'])}, failing {sum(not c['ok'] for c in status['chips'].values())}"

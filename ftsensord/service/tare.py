@@ -43,6 +43,7 @@ class TareJob:
     sensors: list[str]
     samples: int
     flux: dict[str, list[np.ndarray]] = field(default_factory=dict)
+    gravity: dict[str, list[np.ndarray | None]] = field(default_factory=dict)  # m/s^2, sensor frame
     seen: dict[str, Counter[str]] = field(default_factory=dict)  # flags of the samples turned away
     turned_away: dict[str, int] = field(default_factory=dict)  # how many, by sensor
     cycles: int = 0
@@ -76,9 +77,10 @@ class Tares:
         log.info("untared %s", ", ".join(removed))
         return removed
 
-    def feed(self, sensor: str, flux: np.ndarray, flags: int) -> None:
+    def feed(self, sensor: str, flux: np.ndarray, flags: int, gravity: np.ndarray | None = None) -> None:
         """Offer one cycle's flux (T) of ``sensor`` with its sample's flags (those of its
-        published wrench: a filtered wrench's include what its filter still holds)."""
+        published wrench: a filtered wrench's include what its filter still holds) and
+        gravity (m/s^2, sensor frame; None: unknown) at that sample."""
         for job in self.jobs:
             if sensor not in job.sensors:
                 continue
@@ -87,6 +89,7 @@ class Tares:
                 job.turned_away[sensor] = job.turned_away.get(sensor, 0) + 1
             elif len(job.flux.setdefault(sensor, [])) < job.samples:
                 job.flux[sensor].append(flux)
+                job.gravity.setdefault(sensor, []).append(gravity)
 
     def advance(self, pipelines: Sequence[SensorPipeline]) -> None:
         """After a cycle: finish the tares that have their samples, give up on the hopeless."""
@@ -101,13 +104,18 @@ class Tares:
                     self.reply(job.reply_to, {"ok": False, "error": "tare refused, nothing changed: "
                                                                     + "; ".join(moved)})
                     continue
-                offsets = {n: by_name[n].tare(np.mean(job.flux[n], axis=0)).round(6).tolist()
+                offsets = {n: by_name[n].tare(np.mean(job.flux[n], axis=0), _mean(job.gravity[n])).round(6).tolist()
                            for n in job.sensors if n in by_name}
                 self.reply(job.reply_to, {"ok": True, "result": {"tare_wrench": offsets, "samples": job.samples}})
             elif job.cycles > TARE_PATIENCE * job.samples:
                 self.jobs.remove(job)
                 self.reply(job.reply_to, {"ok": False, "error": f"tare refused after {job.cycles} cycles, "
                                                                 "nothing changed: " + _shortfall(job)})
+
+
+def _mean(gravity: list[np.ndarray | None]) -> np.ndarray | None:
+    """The mean gravity over a tare's samples (the weight is linear in it), None if one was unknown."""
+    return None if any(g is None for g in gravity) else np.mean(gravity, axis=0)
 
 
 def _shortfall(job: TareJob) -> str:
@@ -146,6 +154,7 @@ def untare(p: SensorPipeline) -> list[float]:
     removed = p.tare_wrench.round(6).tolist()
     p.model = p.config.calibration.model
     p.tare_wrench = np.zeros(6)
+    p.tare_gravity = np.zeros(3)
     nl = p.config.calibration.nonlinear
     p.zero_twist = nl.zero_twist.copy() if nl is not None else None
     p.tared = False
@@ -164,7 +173,7 @@ def carry_tares(old: Sequence[SensorPipeline], new: Sequence[SensorPipeline]) ->
         if o is None or not o.tared:
             continue
         if o.config.calibration.document() == p.config.calibration.document():
-            p.tare(o.model.zero)
+            p.tare(o.model.zero, o.tare_gravity)
             out[p.name] = "kept (calibration unchanged)"
             log.info("reload: %s's tare %s", p.name, out[p.name])
         else:

@@ -26,7 +26,7 @@ from ..model import se3
 from ..model.geometry import SensorGeometry, as_built
 from ..model.linear import SENSOR_RANGE
 from ..model.magnet import cylinder_field, dipole_field
-from .loads import IDENTITY, NO_LOAD, Load, Orientation
+from .loads import DOWN, G, IDENTITY, NO_LOAD, Load, Orientation
 
 #: Stiffness default: the diagonal of the paper's K, in N/m and Nm/rad (their
 #: signs dropped: a stiffness is positive definite).
@@ -88,6 +88,9 @@ class SimSensor:
     """One sensor in the scene: its 8 chip addresses, geometry, stiffness, load,
     orientation in the world, and each chip's gain per axis (default 1).
 
+    ``tool_mass_kg`` at ``tool_com_m`` (m, frame {0}) hangs on the sensor: its weight
+    turns with the orientation, f = m R_w0^T g, moment c x f, added to the load.
+
     ``stiffening`` s makes the silicone stiffer at large deflection:
     w = K (xi + s xi (xi / xi_range)^2) per axis, xi_range being the deflection
     at the sensor's range; s = 0.3 is 30 % stiffer at full range.
@@ -101,6 +104,16 @@ class SimSensor:
     load: Load = field(default_factory=lambda: NO_LOAD)
     orientation: Orientation = field(default_factory=lambda: IDENTITY)
     chip_gain: np.ndarray | None = None
+    tool_mass_kg: float = 0.0
+    tool_com_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def wrench(self, t: float) -> np.ndarray:
+        """The wrench on the centre piece (N, Nm, frame {0}) at ``t``: the load and the tool's weight."""
+        w = self.load.wrench(t)
+        if self.tool_mass_kg == 0.0:
+            return w
+        f = self.tool_mass_kg * G * (self.orientation.rotation(t).T @ DOWN)
+        return w + np.concatenate([f, np.cross(self.tool_com_m, f)])
 
     def __post_init__(self) -> None:
         self.stiffness = np.asarray(self.stiffness, dtype=float)
@@ -197,7 +210,7 @@ class PhysicalScene:
         s, i = self._chip_of[address]
         sensor = self.sensors[s]
         t = math.floor(t / self.time_step_s) * self.time_step_s
-        xi = sensor.deflection(sensor.load.wrench(t))
+        xi = sensor.deflection(sensor.wrench(t))
         scale = 1.0 + NDFEB_BR_TEMPCO_PER_K * (self.temperature_c(address, t) - 25.0)
         # The room's field in {0}: only the turning sensor makes it change (and a field-free
         # room needs no orientation at all: the common case stays as cheap as before).

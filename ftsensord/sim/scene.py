@@ -159,7 +159,7 @@ def _tolerances(t: Table) -> Tolerances:
 
 def _sensor(t: Table, index: int) -> SimSensor:
     t.only({"name", "addresses", "stiffness_diag", "stiffening", "ring_radius_mm", "tilt_deg",
-            "gap_mm", "load", "orientation", "tolerances"})
+            "gap_mm", "load", "orientation", "tolerances", "tool"})
     addresses = t.get("addresses")
     if not isinstance(addresses, list) or len(addresses) != 8:
         raise t.fail("addresses", "8 chip addresses", addresses)
@@ -188,8 +188,17 @@ def _sensor(t: Table, index: int) -> SimSensor:
         orientation = _orientation(t.table("orientation"))
     elif isinstance(load, CalibrationRobotLoad):
         orientation = load  # the robot's poses turn the sensor
+    mass_kg, com_m = 0.0, np.zeros(3)
+    if "tool" in t.doc:
+        if isinstance(load, CalibrationRobotLoad):
+            raise t.fail("tool", 'no tool with a load of kind "robot" (the robot\'s poses carry its masses)',
+                         t.get("tool"))
+        tool = t.table("tool")
+        tool.only({"mass_g", "com_mm"})
+        mass_kg = tool.number("mass_g", low=0.0, high=5000.0, unit="g") * 1e-3  # 5 kg: 100 times the range
+        com_m = np.array(tool.numbers("com_mm", 3, unit="mm, frame {0}")) * 1e-3
     return SimSensor(t.string("name", f"sensor{index + 1}"), addrs, geometry, np.diag(stiffness),
-                     t.number("stiffening", 0.0, low=0.0), load, orientation, gains)
+                     t.number("stiffening", 0.0, low=0.0), load, orientation, gains, mass_kg, com_m)
 
 
 def _faults(doc: Table, addresses: tuple[int, ...]) -> list[Fault]:
