@@ -17,7 +17,6 @@ import numpy as np
 import pytest
 import zmq
 
-from ftsensord.errors import ConfigError
 from ftsensord.model import se3
 from ftsensord.service import orientation as ori
 from ftsensord.service import wire
@@ -243,3 +242,139 @@ def test_mount_orientation_compensates_without_a_stream(tmp_path):
     raw = np.mean([s.values for s in out["wrench/sensor2"]], axis=0)
     assert np.max(np.abs(raw[:3])) > 0.25  # sensor2's 40 g, derived through the tool from sensor1's mount
     rig.close()
+
+
+def test_before_any_orientation_the_compensated_wrench_is_nan_and_flagged_then_stale_after_the_timeout(tmp_path):
+    t = Turning(tmp_path)
+    first = t.cycles(2, send=False)["wrench/sensor1/compensated"]
+    assert all(np.all(np.isnan(s.values)) and s.flags == wire.FLAG_ORIENTATION_STALE | wire.FLAG_INVALID
+               for s in first)
+    t.turn(orientations(5)[1])
+    fresh = t.cycles(5)["wrench/sensor1/compensated"]
+    assert [s.flags for s in fresh] == [0] * 5
+    # stale_after_s = 0.05: four 10 ms cycles without a message are fresh, the fifth is at the
+    # limit (its start a few us past the grid, with the bus's time), the sixth on stale.
+    quiet = t.cycles(9, send=False)
+    flags = [s.flags for s in quiet["wrench/sensor1/compensated"]]
+    assert flags[:4] == [0] * 4 and all(f == wire.FLAG_ORIENTATION_STALE for f in flags[5:]), flags
+    assert all(np.all(np.isfinite(s.values)) for s in quiet["wrench/sensor1/compensated"])  # the last orientation
+    assert all(s.flags == 0 for s in quiet["wrench/sensor1"])  # the raw stream does not depend on it
+    assert [s.flags for s in t.cycles(2)["wrench/tip/compensated"]] == [0, 0]  # a message: fresh again
+    t.close()
+
+
+def test_a_tare_needs_a_fresh_orientation_where_compensation_depends_on_it(tmp_path):
+    t = Turning(tmp_path)
+    t.rig.req.send(json.dumps({"cmd": "tare", "samples": 3}).encode())
+    t.rig.daemon.handle_control()
+    t.cycles(40, send=False)
+    reply = json.loads(t.rig.req.recv())
+    assert not reply["ok"] and "orientation_stale" in reply["error"], reply
+    t.close()
+
+
+def test_tares_at_different_orientations_leave_the_tips_weight_at_tare_unknown(tmp_path):
+    t = Turning(tmp_path)
+    t.turn(orientations(5)[1])
+    for sensor, R in (("sensor1", orientations(5)[1]), ("sensor2", orientations(5)[3])):
+        t.turn(R)
+        t.cycles(2)
+        t.rig.req.send(json.dumps({"cmd": "tare", "samples": 5, "sensor": sensor}).encode())
+        t.rig.daemon.handle_control()
+        t.cycles(7)
+        assert json.loads(t.rig.req.recv())["ok"]
+    out = t.cycles(3)
+    assert all(np.all(np.isnan(s.values)) and s.flags & wire.FLAG_INVALID for s in out["wrench/tip/compensated"])
+    assert all(s.flags == 0 for s in out["wrench/sensor2/compensated"])  # each sensor knows its own
+    assert t.rig.daemon.status()["gravity"]["frames"]["tip"]["tare_gravity_mps2"] is None
+    t.rig.request(cmd="untare")
+    out = t.cycles(2)
+    assert all(s.flags == 0 for s in out["wrench/tip/compensated"])  # all untared: agreed again (zero)
+    t.close()
+
+
+#: The documented test vector (docs/clients.md): sensor1 turned 90 deg about z, as a
+#: quaternion [sqrt(1/2), 0, 0, sqrt(1/2)], sent at t_sender 12.5 s.
+VECTOR = bytes.fromhex(
+    "46544f52" "01" "01" "0000"
+    + "73656e736f7231" + "00" * 25
+    + "0000000000002940"
+    + "cd3b7f669ea0e63f" "0000000000000000" "0000000000000000" "cd3b7f669ea0e63f")
+
+
+def test_the_orientation_message_matches_its_documented_test_vector():
+    q = [np.sqrt(0.5), 0.0, 0.0, np.sqrt(0.5)]
+    assert ori.encode("sensor1", q, 12.5) == VECTOR
+    o = ori.decode(VECTOR)
+    assert o.frame == "sensor1" and o.t_sender == 12.5
+    assert np.allclose(o.R, [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-15)
+    matrix = ori.decode(ori.encode("tip", o.R, 1.0))
+    assert len(ori.encode("tip", o.R, 1.0)) == 120 and np.allclose(matrix.R, o.R, atol=1e-15)
+
+
+def _bad(message: bytes, offset: int, fmt: str, *values) -> bytes:
+    out = bytearray(message)
+    struct.pack_into(fmt, out, offset, *values)
+    return bytes(out)
+
+
+QUAT_SCALE = {  # norms either side of the tolerance (1e-3): accepted (normalised) and refused
+    1 + 0.9e-3: True, 1 - 0.9e-3: True, 1 + 1.1e-3: False, 1 - 1.1e-3: False}
+
+
+@pytest.mark.parametrize("scale,accepted", QUAT_SCALE.items())
+def test_a_quaternion_beyond_the_unit_tolerance_is_refused(scale, accepted):
+    q = np.array([np.cos(0.3), np.sin(0.3), 0.0, 0.0]) * scale
+    if accepted:
+        assert np.allclose(ori.decode(ori.encode("tip", q, 0.0)).R, ori.quaternion_matrix(q / scale), atol=1e-12)
+    else:
+        with pytest.raises(ValueError, match="not_unit"):
+            ori.decode(ori.encode("tip", q, 0.0))
+
+
+def test_malformed_orientation_messages_are_dropped_and_counted_and_the_daemon_goes_on(tmp_path):
+    t = Turning(tmp_path)
+    good = ori.encode("tip", np.eye(3), 0.0)
+    reflection = np.diag([1.0, 1.0, -1.0])
+    bad = {"size": [b"", b"FTOR", VECTOR[:-1], VECTOR + b"\0"], "magic": [_bad(VECTOR, 0, "4s", b"FTOX")],
+           "version": [_bad(VECTOR, 4, "B", 2)], "representation": [_bad(VECTOR, 5, "B", 3)],
+           "frame": [_bad(VECTOR, 8, "32s", b""), _bad(VECTOR, 8, "32s", b"a\0b"), _bad(VECTOR, 8, "32s", b"\xff")],
+           "unknown_frame": [ori.encode("sensor9", np.eye(3), 0.0)],
+           "not_finite": [_bad(VECTOR, 48, "<d", float("nan")), _bad(VECTOR, 40, "<d", float("inf"))],
+           "not_unit": [ori.encode("tip", [0.0] * 4, 0.0), ori.encode("tip", reflection, 0.0),
+                        ori.encode("tip", 1.01 * np.eye(3), 0.0)]}
+    t.turn(np.eye(3))
+    for messages in bad.values():
+        for m in messages:
+            t.pub.send(m)
+    t.pub.send_multipart([good, good])
+    out = t.cycles(3)  # each cycle also sends a good one
+    stream = t.rig.daemon.status()["gravity"]["stream"]
+    assert stream["dropped"] == {**{k: len(v) for k, v in bad.items()}, "parts": 1}
+    assert stream["received"] == 3 and stream["frames"]["tip"]["t_sender"] == pytest.approx(t.rig.clock.now() - 0.01, abs=0.011)
+    assert len(out["wrench/sensor1/compensated"]) == 3 and all(s.flags == 0 for s in out["wrench/tip/compensated"])
+    t.close()
+
+
+@pytest.mark.parametrize("old,new,key,expected", [
+    ("[tool.pose.sensor1]", "[tool.offsets_m]\nsensor1 = [0.0, 0.0, -0.2]\n[tool.pose.sensor1]", "tool.pose", "either"),
+    ("rotvec_deg = [0.0, 0.0, 90.0]", "rotvec_deg = [0.0, 90.0]", "tool.pose.sensor1.rotvec_deg", "3 finite numbers"),
+    ("[tool.pose.sensor2]", "[tool.pose.sensor3]", "tool.pose.sensor3", "one of the sensors"),
+    ('orientation = "stream"', 'orientation = "imu"', "gravity.orientation", "one of"),
+    ("stale_after_s = 0.05", "gravity_mps2 = [0.0, 0.0, -9810.0]", "gravity.gravity_mps2", "|g| 9.7-9.9"),
+    (f"mass_kg = {M1}", "mass_kg = 50.0", "gravity.sensor1.mass_kg", "kg"),
+    ('orientation = "stream"', 'orientation = "mount"', "gravity.sensor1.mount_rotvec_deg", "orientation in the world"),
+    ("[tool]", "[toolx]", "gravity.tip", "one of"),  # no [tool]: no tip
+])
+def test_bad_tool_and_gravity_keys_are_refused_naming_file_and_key(tmp_path, old, new, key, expected):
+    text = (gravity() + TOOL).replace(old, new, 1)
+    if new == "[toolx]":
+        text = gravity()
+    path = write_config(tmp_path, text, scene=scene(), tool="")
+    assert_names_file_and_key(load_config, path, key, expected)
+
+
+def test_the_older_translation_only_tool_form_still_reads_as_parallel_frames(tmp_path):
+    config = load_config(write_config(tmp_path))
+    assert np.array_equal(config.tool_poses["sensor2"], se3.pose(p=np.array([0.0, 0.0, -0.1])))
+    assert config.tool_frame == "tip" and config.gravity is None
