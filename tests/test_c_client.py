@@ -127,6 +127,33 @@ def test_constants_match_the_wire_format_and_libzmq(tools):
     assert table["errno.EAGAIN"][0] == zmq.EAGAIN
 
 
+def test_the_c_orientation_sender_writes_the_documented_vector_and_the_daemons_receiver_takes_it(tools, tmp_path):
+    from ftsensord.service.orientation import OrientationReceiver
+
+    from .test_gravity import VECTOR
+
+    sub = zmq.Context.instance().socket(zmq.SUB)
+    sub.setsockopt(zmq.SUBSCRIBE, b"")
+    endpoint = f"ipc://{tmp_path}/orientation"
+    sub.bind(endpoint)
+    receiver = OrientationReceiver(sub, {"sensor1", "tip"})
+    for driver in tools.drivers():
+        # Sent 50 times 10 ms apart: the first go out before the subscription has arrived,
+        # which the SUB socket sends only while it is used (as the daemon's is, every cycle).
+        proc = subprocess.Popen([driver, "orient", endpoint, "50"], stdout=subprocess.PIPE, text=True)
+        while proc.poll() is None:
+            sub.poll(10)
+            receiver.drain(0.0)
+        receiver.drain(0.0)
+        assert proc.returncode == 0 and bytes.fromhex(proc.stdout.read().strip()) == VECTOR
+        proc.stdout.close()
+        assert receiver.received >= 1 and not receiver.dropped, driver
+        receiver.received = 0
+    sub.close(linger=0)
+    assert receiver.latest["sensor1"].t_sender == 12.5
+    assert np.allclose(receiver.latest["sensor1"].R, [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-15)
+
+
 # --- decoding -------------------------------------------------------------------------------------
 def frame(topic="wrench/sensor1", kind=wire.KIND_WRENCH, seq=42, t_mono=1234.5, t_wall=1763836800.25,
           flags=0x24, values=(1.0, -0.5, 0.8, 0.02, -0.01, 0.015)) -> bytes:

@@ -53,7 +53,7 @@
  * libzmq: if <zmq.h> is found (__has_include) it is included and the constants used are
  * checked against it at compile time. Otherwise (e.g. linking against the libzmq that the
  * pyzmq wheel ships without its header), or with FTSENSORD_NO_ZMQ_H defined, the header
- * declares the nine libzmq functions it calls itself: libzmq's C ABI is stable (zmq.h:
+ * declares the ten libzmq functions it calls itself: libzmq's C ABI is stable (zmq.h:
  * "the value of constants must not change"), and the declarations are identical to
  * zmq.h's, so both may appear in one translation unit. Needs libzmq >= 4.0 (CONFLATE).
  *
@@ -95,12 +95,14 @@ int zmq_close(void *s);
 int zmq_setsockopt(void *s, int option, const void *optval, size_t optvallen);
 int zmq_connect(void *s, const char *addr);
 int zmq_recv(void *s, void *buf, size_t len, int flags);
+int zmq_send(void *s, const void *buf, size_t len, int flags);
 int zmq_errno(void);
 const char *zmq_strerror(int errnum);
 #endif
 
 /* libzmq's constants this header uses (stable ABI values). */
 enum {
+    FTS_ZMQ_PUB_ = 1,
     FTS_ZMQ_SUB_ = 2,
     FTS_ZMQ_SUBSCRIBE_ = 6,
     FTS_ZMQ_LINGER_ = 17,
@@ -109,7 +111,7 @@ enum {
     FTS_ZMQ_DONTWAIT_ = 1
 };
 #ifdef ZMQ_VERSION_MAJOR
-FTS_STATIC_ASSERT_(ZMQ_SUB == FTS_ZMQ_SUB_ && ZMQ_SUBSCRIBE == FTS_ZMQ_SUBSCRIBE_ &&
+FTS_STATIC_ASSERT_(ZMQ_PUB == FTS_ZMQ_PUB_ && ZMQ_SUB == FTS_ZMQ_SUB_ && ZMQ_SUBSCRIBE == FTS_ZMQ_SUBSCRIBE_ &&
                        ZMQ_LINGER == FTS_ZMQ_LINGER_ && ZMQ_RCVTIMEO == FTS_ZMQ_RCVTIMEO_ &&
                        ZMQ_CONFLATE == FTS_ZMQ_CONFLATE_ && ZMQ_DONTWAIT == FTS_ZMQ_DONTWAIT_,
                    "ftsensord.h: libzmq constants differ from zmq.h");
@@ -133,6 +135,7 @@ FTS_STATIC_ASSERT_(ZMQ_SUB == FTS_ZMQ_SUB_ && ZMQ_SUBSCRIBE == FTS_ZMQ_SUBSCRIBE
 #define FTS_FLAG_FALLBACK (1u << 7)      /* nonlinear estimator did not converge: linear used */
 #define FTS_FLAG_EXTRAPOLATED (1u << 8)  /* a linear estimate beyond the calibration's loads */
 #define FTS_FLAG_INCONSISTENT (1u << 9)  /* the chips disagree with each other: one reads wrong */
+#define FTS_FLAG_ORIENTATION_STALE (1u << 10) /* compensated: orientation older than stale_after_s, or unknown */
 
 /* Sizes; define before including to change. A wrench has 6 values, flux 3 per chip. */
 #ifndef FTS_MAX_VALUES
@@ -322,6 +325,7 @@ static inline const char *fts_flag_name(uint32_t bit)
     case FTS_FLAG_FALLBACK: return "fallback";
     case FTS_FLAG_EXTRAPOLATED: return "extrapolated";
     case FTS_FLAG_INCONSISTENT: return "inconsistent";
+    case FTS_FLAG_ORIENTATION_STALE: return "orientation_stale";
     default: return NULL;
     }
 }
@@ -464,6 +468,80 @@ static inline int fts_wait(fts_sub *s, fts_reading *r, int timeout_ms)
         if (rc != FTS_OK) return rc;
     }
     return fts_latest(s, r);
+}
+
+/* ---- the orientation stream: gravity compensation (docs/clients.md) ------------------------
+ * The haptic application tells the daemon how the tool is turned: a unit quaternion
+ * [w x y z] (Hamilton) of R_world,frame for a sensor's name or "tip", with its own time.
+ * PUB, connected to the daemon's ipc://<runtime>/orientation: a send never blocks. */
+#define FTS_ORIENT_SIZE 80u /* the quaternion message: 48-byte header, 4 doubles */
+
+static inline void fts_put_f64le_(unsigned char *p, double v)
+{
+    uint64_t u;
+    memcpy(&u, &v, sizeof u);
+    for (int i = 0; i < 8; ++i) p[i] = (unsigned char)(u >> (8 * i));
+}
+
+/* Encode one orientation message into out (FTS_ORIENT_SIZE bytes); FTS_E_ARG for a NULL,
+ * an empty frame name or one over 31 characters. */
+static inline int fts_orientation_encode(unsigned char *out, const char *frame, const double q_wxyz[4],
+                                         double t_sender)
+{
+    if (out == NULL || frame == NULL || q_wxyz == NULL) return FTS_E_ARG;
+    size_t n = strlen(frame);
+    if (n == 0 || n > 31) return FTS_E_ARG;
+    memset(out, 0, FTS_ORIENT_SIZE);
+    memcpy(out, "FTOR", 4);
+    out[4] = 1; /* version */
+    out[5] = 1; /* representation: quaternion */
+    memcpy(out + 8, frame, n);
+    fts_put_f64le_(out + 40, t_sender);
+    for (int i = 0; i < 4; ++i) fts_put_f64le_(out + 48 + 8 * i, q_wxyz[i]);
+    return FTS_OK;
+}
+
+typedef struct {
+    void *ctx, *sock;
+    int zmq_err; /* libzmq's errno of the last FTS_E_ZMQ */
+} fts_orient;
+
+static inline void fts_orientation_close(fts_orient *p)
+{
+    if (p == NULL) return;
+    if (p->sock != NULL) zmq_close(p->sock);
+    if (p->ctx != NULL) zmq_ctx_term(p->ctx);
+    p->sock = p->ctx = NULL;
+}
+
+/* Connect a publisher of orientations to the daemon's endpoint (it need not run yet). */
+static inline int fts_orientation_open(fts_orient *p, const char *endpoint)
+{
+    if (p == NULL || endpoint == NULL) return FTS_E_ARG;
+    memset(p, 0, sizeof *p);
+    int zero = 0;
+    if ((p->ctx = zmq_ctx_new()) == NULL || (p->sock = zmq_socket(p->ctx, FTS_ZMQ_PUB_)) == NULL ||
+        zmq_setsockopt(p->sock, FTS_ZMQ_LINGER_, &zero, sizeof zero) != 0 || zmq_connect(p->sock, endpoint) != 0) {
+        p->zmq_err = zmq_errno();
+        fts_orientation_close(p);
+        return FTS_E_ZMQ;
+    }
+    return FTS_OK;
+}
+
+/* Send R_world,frame as a unit quaternion; never blocks (a full queue drops it: the
+ * daemon keeps the newest anyway). */
+static inline int fts_orientation_send(fts_orient *p, const char *frame, const double q_wxyz[4], double t_sender)
+{
+    unsigned char m[FTS_ORIENT_SIZE];
+    if (p == NULL || p->sock == NULL) return FTS_E_ARG;
+    int rc = fts_orientation_encode(m, frame, q_wxyz, t_sender);
+    if (rc != FTS_OK) return rc;
+    if (zmq_send(p->sock, m, sizeof m, FTS_ZMQ_DONTWAIT_) < 0 && zmq_errno() != EAGAIN) {
+        p->zmq_err = zmq_errno();
+        return FTS_E_ZMQ;
+    }
+    return FTS_OK;
 }
 
 #ifdef __cplusplus

@@ -113,10 +113,11 @@ static int cmd_constants(void)
         {"FLAG_DEGRADED", (long)FTS_FLAG_DEGRADED}, {"FLAG_LATE", (long)FTS_FLAG_LATE},
         {"FLAG_INVALID", (long)FTS_FLAG_INVALID}, {"FLAG_FALLBACK", (long)FTS_FLAG_FALLBACK},
         {"FLAG_EXTRAPOLATED", (long)FTS_FLAG_EXTRAPOLATED}, {"FLAG_INCONSISTENT", (long)FTS_FLAG_INCONSISTENT},
+        {"FLAG_ORIENTATION_STALE", (long)FTS_FLAG_ORIENTATION_STALE},
         {"MAGIC", (long)FTS_MAGIC},
         {"VERSION", (long)FTS_VERSION}, {"KIND_WRENCH", (long)FTS_KIND_WRENCH},
         {"KIND_FLUX", (long)FTS_KIND_FLUX}, {"HEADER_SIZE", (long)FTS_HEADER_SIZE},
-        {"zmq.SUB", (long)FTS_ZMQ_SUB_}, {"zmq.SUBSCRIBE", (long)FTS_ZMQ_SUBSCRIBE_},
+        {"zmq.PUB", (long)FTS_ZMQ_PUB_}, {"zmq.SUB", (long)FTS_ZMQ_SUB_}, {"zmq.SUBSCRIBE", (long)FTS_ZMQ_SUBSCRIBE_},
         {"zmq.LINGER", (long)FTS_ZMQ_LINGER_}, {"zmq.RCVTIMEO", (long)FTS_ZMQ_RCVTIMEO_},
         {"zmq.CONFLATE", (long)FTS_ZMQ_CONFLATE_}, {"zmq.DONTWAIT", (long)FTS_ZMQ_DONTWAIT_},
         {"errno.EAGAIN", (long)EAGAIN}, {"errno.EINTR", (long)EINTR},
@@ -129,12 +130,35 @@ static int cmd_constants(void)
     return 0;
 }
 
+/* Encode the documented orientation test vector (hex), then send N of them to ENDPOINT
+ * 10 ms apart, when given. */
+static int cmd_orient(int argc, char **argv)
+{
+    const double h = 0.70710678118654757; /* sqrt(1/2), the double nearest */
+    const double q[4] = {h, 0.0, 0.0, h};
+    unsigned char m[FTS_ORIENT_SIZE];
+    if (fts_orientation_encode(m, "sensor1", q, 12.5) != FTS_OK) return 1;
+    for (size_t i = 0; i < sizeof m; ++i) printf("%02x", m[i]);
+    printf("\n");
+    if (argc < 2) return 0;
+    fts_orient p;
+    if (fts_orientation_open(&p, argv[0]) != FTS_OK) return 1;
+    const struct timespec tick = {0, 10000000L};
+    for (int i = 0, n = atoi(argv[1]); i < n; ++i) {
+        if (fts_orientation_send(&p, "sensor1", q, 12.5) != FTS_OK) return 1;
+        nanosleep(&tick, NULL);
+    }
+    fts_orientation_close(&p);
+    return 0;
+}
+
 int main(int argc, char **argv)
 {
+    if (argc >= 2 && strcmp(argv[1], "orient") == 0) return cmd_orient(argc - 2, argv + 2);
     if (argc >= 2 && strcmp(argv[1], "constants") == 0) return cmd_constants();
     if (argc == 3 && strcmp(argv[1], "decode") == 0) return cmd_decode(argv[2]);
     if (argc >= 2 && strcmp(argv[1], "track") == 0) return cmd_track(argc - 2, argv + 2);
     if (argc == 4 && strcmp(argv[1], "sub") == 0) return cmd_sub(argv[2], argv[3]);
-    fprintf(stderr, "usage: %s constants | decode HEX | track SEQ... | sub ENDPOINT TOPIC\n", argv[0]);
+    fprintf(stderr, "usage: %s constants | decode HEX | track SEQ... | sub ENDPOINT TOPIC | orient [ENDPOINT N]\n", argv[0]);
     return 2;
 }
