@@ -200,8 +200,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     )
 
     with StopOnSignals() as stopped:  # from here on a signal ends the recording cleanly
-        mcap = args.file.lower().endswith(".mcap")
-        frames = daemon_frames(args.streams, args.endpoint, args.control, args.timeout) if mcap else {}
+        frames = daemon_frames(args.streams, args.endpoint, args.control, args.timeout)
         writer = open_writer(args.file, args.streams, frames)
         with Subscriber(args.endpoint, args.streams) as sub:
             outcome = record(sub, writer, args.streams, count=args.count, seconds=args.seconds,

@@ -11,17 +11,27 @@ its LSB's quantisation, `pipeline.channel_sigma_t`); for the tip, sum_i X_i C_i 
 from __future__ import annotations
 
 import json
+import os
+import re
+import signal
+import socket
 import struct
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 import zmq
 
+from ftsensord.client import ControlClient, OrientationPublisher, Subscriber
 from ftsensord.model import se3
 from ftsensord.service import orientation as ori
 from ftsensord.service import wire
 from ftsensord.service.config import load_config
 from ftsensord.service.pipeline import SensorSample, tip_wrench
+from ftsensord.sim import load_scene
 from ftsensord.sim.loads import FixedOrientation, fibonacci_directions, gravity_to_down
 
 from .conftest import assert_names_file_and_key
@@ -295,14 +305,12 @@ def test_tares_at_different_orientations_leave_the_tips_weight_at_tare_unknown(t
 
 #: The documented test vector (docs/clients.md): sensor1 turned 90 deg about z, as a
 #: quaternion [sqrt(1/2), 0, 0, sqrt(1/2)], sent at t_sender 12.5 s.
-VECTOR = bytes.fromhex(
-    "46544f52" "01" "01" "0000"
-    + "73656e736f7231" + "00" * 25
-    + "0000000000002940"
-    + "cd3b7f669ea0e63f" "0000000000000000" "0000000000000000" "cd3b7f669ea0e63f")
+VECTOR = bytes.fromhex(re.search(r"<!-- vector: orientation -->\s*```\n(.*?)```",
+                                 (Path(__file__).parent.parent / "docs" / "clients.md").read_text(), re.S).group(1))
 
 
 def test_the_orientation_message_matches_its_documented_test_vector():
+    assert VECTOR[:4] == b"FTOR" and len(VECTOR) == 80
     q = [np.sqrt(0.5), 0.0, 0.0, np.sqrt(0.5)]
     assert ori.encode("sensor1", q, 12.5) == VECTOR
     o = ori.decode(VECTOR)
@@ -378,3 +386,51 @@ def test_the_older_translation_only_tool_form_still_reads_as_parallel_frames(tmp
     config = load_config(write_config(tmp_path))
     assert np.array_equal(config.tool_poses["sensor2"], se3.pose(p=np.array([0.0, 0.0, -0.1])))
     assert config.tool_frame == "tip" and config.gravity is None
+
+
+def test_a_scene_tool_is_read_and_refused_beside_a_robot(tmp_path):
+    path = tmp_path / "scene.toml"
+    path.write_text(scene())
+    s = load_scene(path).sensors[0]
+    assert s.tool_mass_kg == pytest.approx(M1) and np.allclose(s.tool_com_m, C1)
+    # Upright (identity): the weight pulls along -z of {0}, its moment c x f.
+    f = np.array([0.0, 0.0, -M1 * 9.80665])
+    assert np.allclose(s.wrench(0.0), np.concatenate([f, np.cross(C1, f)]))
+    path.write_text(scene().replace("[sensor.tool]", '[sensor.load]\nkind = "robot"\nposes = 3\n[sensor.tool]', 1))
+    assert_names_file_and_key(load_scene, path, "sensor[0].tool", 'no tool with a load of kind "robot"')
+
+
+def test_ftsensord_run_compensates_with_orientations_from_the_python_publisher(tmp_path):
+    config = write_config(tmp_path, gravity(), scene=scene(), tool=TOOL)
+    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    notify.bind(str(tmp_path / "notify"))
+    notify.settimeout(30)
+    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path), "NOTIFY_SOCKET": str(tmp_path / "notify")}
+    env.pop("RUNTIME_DIRECTORY", None)
+    proc = subprocess.Popen([sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    rt = tmp_path / "ftsensord"
+    try:
+        assert notify.recv(4096).startswith(b"READY=1")
+        assert (rt / "orientation").exists() and oct((rt / "orientation").stat().st_mode & 0o777) == "0o660"
+        streams = ["wrench/sensor1", "wrench/sensor1/compensated"]
+        got: dict[str, list] = {s: [] for s in streams}
+        with OrientationPublisher(f"ipc://{rt}/orientation") as pub, \
+                Subscriber(f"ipc://{rt}/wrench", streams) as sub:
+            deadline = time.monotonic() + 20
+            while min(len(v) for v in got.values()) < 20 and time.monotonic() < deadline:
+                pub.send("sensor1", [1.0, 0.0, 0.0, 0.0])  # upright, as the scene holds it
+                s = sub.receive(timeout_s=0.01)
+                if s is not None and (s.topic == "wrench/sensor1" or s.flags == 0):
+                    got[s.topic].append(s.values)
+        status = ControlClient(f"ipc://{rt}/control").status()
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=20)
+        notify.close()
+    assert proc.returncode == 0 and "Traceback" not in err
+    assert min(len(v) for v in got.values()) == 20
+    raw, comp = (np.mean(got[s], axis=0) for s in streams)
+    assert raw[2] < -0.35 and abs(comp[2]) < 0.15  # the 0.49 N weight taken off (untared: the zero's error)
+    assert status["gravity"]["stream"]["received"] > 0 and status["frames"]["wrench/tip/compensated"] == "tool_tip"
+    assert not (rt / "orientation").exists()  # removed at exit

@@ -167,7 +167,8 @@ def test_record_stopped_keeps_every_received_sample(daemon, tmp_path, fmt, how):
             assert f"{stream}: {n} samples, " in out
         if fmt == "csv":
             head = path.read_text().splitlines()[0]
-            assert head.startswith(f"# ftsensord record of {STREAMS[0]}; {counts[STREAMS[0]]} samples, ")
+            frame = ControlClient(daemon[1]).status()["frames"][STREAMS[0]]
+            assert head.startswith(f"# ftsensord record of {STREAMS[0]} (frame {frame}); {counts[STREAMS[0]]} samples, ")
             assert len(head) == CSV_HEAD_WIDTH - 1
         if fmt == "mcap":  # complete: summary and index, read by the seeking reader
             from mcap.reader import make_reader
@@ -239,7 +240,7 @@ def test_mcap_holds_ros2_messages_matching_what_was_published(daemon, tmp_path):
     finally:
         ref.stop()
     assert done.returncode == 0, done.stderr
-    frames = {name: s["frame"] for name, s in ControlClient(ctl).status()["sensors"].items()}
+    frames = ControlClient(ctl).status()["frames"]
     with open(path, "rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
         summary = reader.get_summary()
@@ -272,8 +273,7 @@ def _matches(sample: wire.Sample, msg, topic: str, log_time: int, frames: dict[s
     assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (sec, nanosec)
     assert abs(sec + nanosec * 1e-9 - sample.t_wall) < 1e-6 and log_time == sec * 10**9 + nanosec
     if topic.startswith("/wrench/"):
-        name = topic.split("/")[2]
-        assert msg.header.frame_id == frames.get(name, topic[1:])
+        assert msg.header.frame_id == frames[topic[1:]]
         w = msg.wrench
         got = [w.force.x, w.force.y, w.force.z, w.torque.x, w.torque.y, w.torque.z]
         assert got == sample.values.tolist()  # float64 both ways: exact

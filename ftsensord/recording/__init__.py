@@ -7,8 +7,9 @@ that much; what was flushed is in the kernel's page cache and reaches the disk
 without the process. Ending cleanly (count, time, SIGINT/SIGTERM/SIGHUP) makes
 the file complete and returns a per-stream summary.
 
-- **CSV** (one stream): a row per sample as it comes; the first line is rewritten
-  in place at a clean end with the sample and gap counts.
+- **CSV** (one stream): a row per sample as it comes; the first line names the
+  stream and its frame, and is rewritten in place at a clean end with the sample
+  and gap counts.
 - **NPZ** (one stream): a zip cannot be appended to safely, so rows go to a
   sidecar ``FILE.npz.part`` (a JSON line, then fixed-size binary records) and
   the ``.npz`` is built from it at a clean end, the sidecar then removed. After a
@@ -78,12 +79,14 @@ def value_columns(stream: str, count: int) -> list[str]:
 
 
 class CsvWriter:
-    """One stream to CSV, a row per sample; the first line carries the summary at the end."""
+    """One stream to CSV, a row per sample; the first line names the stream's frame and
+    carries the summary at the end."""
 
-    def __init__(self, path: str | Path, stream: str):
+    def __init__(self, path: str | Path, stream: str, frame: str | None = None):
         self.path, self.stream = Path(path), stream
+        self.name = f"{stream} (frame {frame or stream})"
         self.file = open(self.path, "w", encoding="ascii")
-        self._head(f"# ftsensord record of {stream}; recording (this line is replaced at a clean end)")
+        self._head(f"# ftsensord record of {self.name}; recording (this line is replaced at a clean end)")
         self.columns_written = False
 
     def _head(self, text: str) -> None:
@@ -105,7 +108,7 @@ class CsvWriter:
         t = tallies.get(self.stream, Tally())
         self.file.flush()
         end = self.file.tell()
-        self._head(f"# ftsensord record of {self.stream}; {t.samples} samples, {t.gaps} missed (sequence gaps)")
+        self._head(f"# ftsensord record of {self.name}; {t.samples} samples, {t.gaps} missed (sequence gaps)")
         self.file.seek(end)
         self.file.close()
 
@@ -118,8 +121,8 @@ def _rows_dtype(count: int) -> np.dtype:
 class NpzWriter:
     """One stream to ``.npz``, through the sidecar ``<path>.part`` written as rows come."""
 
-    def __init__(self, path: str | Path, stream: str):
-        self.path, self.stream = Path(path), stream
+    def __init__(self, path: str | Path, stream: str, frame: str | None = None):
+        self.path, self.stream, self.frame = Path(path), stream, frame or stream
         self.part = Path(f"{self.path}.part")
         self.file = open(self.part, "wb")
         self.dtype: np.dtype | None = None
@@ -127,7 +130,8 @@ class NpzWriter:
     def write(self, sample: wire.Sample) -> None:
         if self.dtype is None:
             self.dtype = _rows_dtype(len(sample.values))
-            head = {"format": "ftsensord-rows", "version": 1, "stream": self.stream, "kind": sample.kind,
+            head = {"format": "ftsensord-rows", "version": 1, "stream": self.stream, "frame": self.frame,
+                    "kind": sample.kind,
                     "count": len(sample.values), "columns": value_columns(self.stream, len(sample.values))}
             self.file.write(json.dumps(head).encode() + b"\n")
         row = np.zeros((), self.dtype)
@@ -142,7 +146,8 @@ class NpzWriter:
         self.file.close()
         if self.dtype is None:  # nothing received: an empty file of the same keys
             np.savez(self.path, seq=np.zeros(0, np.int64), t_mono=np.zeros(0), t_wall=np.zeros(0),
-                     flags=np.zeros(0, np.int64), values=np.zeros((0, 0)), gaps=0, stream=self.stream)
+                     flags=np.zeros(0, np.int64), values=np.zeros((0, 0)), gaps=0, stream=self.stream,
+                     frame=self.frame)
             self.part.unlink()
             return
         finish_npz(self.part, self.path)
@@ -171,7 +176,8 @@ def load_rows(part: str | Path) -> dict[str, Any]:
     rows = (np.memmap(part, dtype=dtype, mode="r", offset=len(line), shape=(n,)) if n
             else np.zeros(0, dtype))
     return {"seq": rows["seq"], "t_mono": rows["t_mono"], "t_wall": rows["t_wall"], "flags": rows["flags"],
-            "values": rows["values"], "gaps": gaps_of(rows["seq"]), "stream": head["stream"]}
+            "values": rows["values"], "gaps": gaps_of(rows["seq"]), "stream": head["stream"],
+            "frame": head.get("frame", head["stream"])}
 
 
 def gaps_of(seq: np.ndarray) -> int:
@@ -208,7 +214,8 @@ def finish_npz(part: str | Path, npz: str | Path | None = None) -> int:
 
 
 def open_writer(path: str | Path, streams: list[str], frames: dict[str, str] | None = None) -> SampleWriter:
-    """The writer for a file, by its extension: ``.csv``, ``.npz`` (one stream each) or ``.mcap``."""
+    """The writer for a file, by its extension: ``.csv``, ``.npz`` (one stream each) or ``.mcap``;
+    ``frames``: each stream's frame (`daemon_frames`), written into the file."""
     suffix = Path(path).suffix.lower()
     if suffix == ".mcap":
         from .ros2mcap import McapWriter
@@ -218,7 +225,8 @@ def open_writer(path: str | Path, streams: list[str], frames: dict[str, str] | N
     if len(streams) != 1:
         raise ConfigError(f"{path}: a {suffix} file holds one stream ({len(streams)} given); "
                           "record several into one .mcap, or run one record per stream")
-    return CsvWriter(path, streams[0]) if suffix == ".csv" else NpzWriter(path, streams[0])
+    frame = (frames or {}).get(streams[0])
+    return CsvWriter(path, streams[0], frame) if suffix == ".csv" else NpzWriter(path, streams[0], frame)
 
 
 class Receiver(Protocol):
