@@ -373,6 +373,8 @@ def test_malformed_orientation_messages_are_dropped_and_counted_and_the_daemon_g
     (f"mass_kg = {M1}", "mass_kg = 50.0", "gravity.sensor1.mass_kg", "kg"),
     ('orientation = "stream"', 'orientation = "mount"', "gravity.sensor1.mount_rotvec_deg", "orientation in the world"),
     ("[tool]", "[toolx]", "gravity.tip", "one of"),  # no [tool]: no tip
+    (f"mass_kg = {M2}", f"mass_kg = {M2}\nmount_rotvec_deg = [0.0, 0.0, 0.0]", "gravity.sensor2.mount_rotvec_deg",
+     'no mount with orientation = "stream"'),
 ])
 def test_bad_tool_and_gravity_keys_are_refused_naming_file_and_key(tmp_path, old, new, key, expected):
     text = (gravity() + TOOL).replace(old, new, 1)
@@ -434,3 +436,38 @@ def test_ftsensord_run_compensates_with_orientations_from_the_python_publisher(t
     assert raw[2] < -0.35 and abs(comp[2]) < 0.15  # the 0.49 N weight taken off (untared: the zero's error)
     assert status["gravity"]["stream"]["received"] > 0 and status["frames"]["wrench/tip/compensated"] == "tool_tip"
     assert not (rt / "orientation").exists()  # removed at exit
+
+
+def test_the_weight_is_averaged_as_the_wrench_so_a_sudden_turn_leaves_no_transient(tmp_path):
+    t = Turning(tmp_path)
+    sigma = noise_sigma(t)["wrench/sensor1/compensated"]
+    assert t.rig.request(cmd="set", averaging=5)["ok"]
+    t.turn(np.eye(3))
+    t.cycles(8)
+    t.turn(se3.exp_so3(np.array([np.pi, 0.0, 0.0])))  # upside down at once: Fz swings by 2 x 0.49 N
+    out = t.cycles(8)
+    comp = np.array([s.values for s in out["wrench/sensor1/compensated"]])
+    raw = np.array([s.values for s in out["wrench/sensor1"]])
+    assert np.ptp(raw[:, 2]) > 0.6  # the raw average walks over 5 samples...
+    # ...and the compensated one does not: both averages hold the same samples (untared:
+    # the calibration's zero error stays, as in the mount test).
+    assert np.all(np.abs(comp[:, :3] - comp[:, :3].mean(axis=0)) < 5 * sigma[:3] / np.sqrt(5) + 0.1), comp
+    t.close()
+
+
+def test_a_reload_keeps_the_tare_and_its_gravity(tmp_path):
+    t = Turning(tmp_path)
+    t.turn(orientations(7)[3])
+    t.cycles(3)
+    assert t.tare()["ok"]
+    before = t.rig.daemon.status()["gravity"]["frames"]
+    reply = t.rig.request(cmd="reload")
+    assert reply["ok"] and reply["result"]["tare"] == {"sensor1": "kept (calibration unchanged)",
+                                                       "sensor2": "kept (calibration unchanged)"}
+    assert t.rig.daemon.status()["gravity"]["frames"] == before
+    t.turn(orientations(7)[5])
+    out = t.cycles(10)
+    for name in ("sensor1", "tip"):
+        w = np.mean([s.values for s in out[f"wrench/{name}/compensated"]], axis=0)
+        assert np.all(np.abs(w[:3]) < 0.15), (name, w)  # right after the turn as before the reload
+    t.close()

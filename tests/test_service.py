@@ -175,7 +175,7 @@ def test_cli_echo_record_and_sighup(running, tmp_path):
                           "--count", "20"], capture_output=True, text=True, timeout=30)
     assert rec.returncode == 0, rec.stderr
     lines = csv.read_text().splitlines()
-    assert lines[0].startswith("# ftsensord record of flux/sensor1; 20 samples")
+    assert lines[0].startswith("# ftsensord record of flux/sensor1 (frame sensor1/chip<i>); 20 samples")
     assert lines[1].split(",")[:5] == ["seq", "t_mono_s", "t_wall_s", "flags", "b0x_T"] and len(lines) == 22
     npz = tmp_path / "rec.npz"
     subprocess.run([sys.executable, "-m", "ftsensord", "record", "wrench/sensor1", str(npz), "--endpoint", pub,

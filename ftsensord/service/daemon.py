@@ -76,7 +76,8 @@ class Daemon:
 
     def _gravity(self, config: Config) -> Gravity | None:
         g = config.gravity
-        return g and Gravity(g, config.tool_poses, self.orientations, config.averaging, config.lowpass_hz, config.rate_hz)
+        return None if g is None else Gravity(g, config.tool_poses, self.orientations, config.averaging,
+                                              config.lowpass_hz, config.rate_hz)
 
     @property
     def period_s(self) -> float:
@@ -189,8 +190,10 @@ class Daemon:
     def set_loop(self, rate_hz: float, averaging: int, lowpass_hz: float) -> dict[str, Any]:
         check_rate(self.config, rate_hz, timing=self.board_timing)
         self.config.rate_hz, self.config.averaging, self.config.lowpass_hz = rate_hz, averaging, lowpass_hz
-        for f in [s.filter for s in self.sensors] + list(self.gravity.filters.values() if self.gravity else []):
-            f.configure(averaging, lowpass_hz, rate_hz)
+        for s in self.sensors:
+            s.filter.configure(averaging, lowpass_hz, rate_hz)
+        if self.gravity is not None:
+            self.gravity.configure(averaging, lowpass_hz, rate_hz)  # the weight lags as the wrench
         return {"rate_hz": rate_hz, "averaging": averaging, "lowpass_hz": lowpass_hz}
 
     def set_estimator(self, estimator: str, sensor: str | None) -> dict[str, Any]:

@@ -106,6 +106,9 @@ def gravity_config(g: Table, sensors: list[str], tool: dict[str, np.ndarray], de
         config.payloads[name] = Payload(t.number("mass_kg", low=0.0, high=10.0, unit="kg"),
                                         np.array(t.numbers("com_m", 3, unit="m, in this frame")))
         if "mount_rotvec_deg" in t.doc:
+            if source != "mount":
+                raise t.fail("mount_rotvec_deg", 'no mount with orientation = "stream" (the stream gives it)',
+                             t.get("mount_rotvec_deg"))
             rotvec = np.radians(t.numbers("mount_rotvec_deg", 3, unit="deg, the frame's axes in the world"))
             config.mounts[name] = se3.exp_so3(rotvec)
     if not config.payloads:

@@ -135,9 +135,10 @@ class Gravity:
         frames = {}
         for f, payload in self.config.payloads.items():
             R, stale = self.orientation(f, now)
+            g_tare = tares[f]
             frames[f] = {"mass_kg": payload.mass_kg, "com_m": payload.com_m.tolist(),
                          "orientation_known": R is not None, "orientation_stale": stale,
-                         "tare_gravity_mps2": None if tares[f] is None else np.round(tares[f], 6).tolist()}
+                         "tare_gravity_mps2": None if g_tare is None else np.round(g_tare, 6).tolist()}
         return {"orientation": self.config.source, "endpoint": self.config.endpoint,
                 "stale_after_s": self.config.stale_after_s, "gravity_mps2": self.config.gravity_mps2.tolist(),
                 "frames": frames, "stream": self.receiver.status(now)}

@@ -115,7 +115,8 @@ class Tares:
 
 def _mean(gravity: list[np.ndarray | None]) -> np.ndarray | None:
     """The mean gravity over a tare's samples (the weight is linear in it), None if one was unknown."""
-    return None if any(g is None for g in gravity) else np.mean(gravity, axis=0)
+    known = [g for g in gravity if g is not None]
+    return np.mean(known, axis=0) if len(known) == len(gravity) else None
 
 
 def _shortfall(job: TareJob) -> str:
