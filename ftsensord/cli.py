@@ -11,6 +11,7 @@ import sys
 from collections.abc import Sequence
 
 from . import __version__
+from .bridge import add_parser as add_bridge_parser
 from .acquire.bus import ACCEPTED_FORMS, open_bus
 from .acquire.scan import format_table, scan
 from .errors import ConfigError, DaemonNotAnswering, FtsensordError
@@ -304,6 +305,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--endpoint", help="publish endpoint (default: the running daemon's ipc socket)")
     p.add_argument("--timeout", type=float, default=3.0, help="with --png: give up after this long without a sample")
     p.set_defaults(func=cmd_plot)
+
+    add_bridge_parser(sub)
 
     p = sub.add_parser("scan", help="find MLX90393 chips on a bus and read each once",
                        description="Probe 0x0C-0x1B and print each chip's part variant, "

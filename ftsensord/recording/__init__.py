@@ -291,10 +291,10 @@ def record(sub: Receiver, writer: SampleWriter, streams: list[str], *, count: in
     return Outcome(tallies, reason)
 
 
-def summary_line(path: str | Path, outcome: Outcome, stopped_by: str | None = None) -> str:
+def summary_line(path: str | Path, outcome: Outcome, stopped_by: str | None = None, verb: str = "wrote") -> str:
     parts = [f"{s}: {t.samples} samples, {t.gaps} missed" + (f" (seq {t.first_seq}-{t.last_seq})" if t.samples else "")
              for s, t in outcome.tallies.items()]
-    return f"wrote {path}: " + "; ".join(parts) + (f" (stopped by {stopped_by})" if stopped_by else "")
+    return f"{verb} {path}: " + "; ".join(parts) + (f" (stopped by {stopped_by})" if stopped_by else "")
 
 
 class StopOnSignals:

@@ -103,6 +103,24 @@ def encode_status(t_wall: float, frame_id: str, seq: int, flags: int, missed: in
     return bytes(m.buf)
 
 
+def ros2_messages(sample: wire.Sample, frame: str, last_seq: int | None) -> list[tuple[str, str, str, bytes]]:
+    """One sample as ROS 2 messages, ``(topic, schema, frame_id, CDR)``: a wrench's
+    ``WrenchStamped`` (or a ``MagneticField`` per chip of a flux stream) in ``frame``, then
+    its ``SampleStatus`` (missed: sequence numbers after ``last_seq``, the stream's previous)."""
+    topic, t = "/" + sample.topic, sample.t_wall
+    out = []
+    if sample.kind == wire.KIND_WRENCH:
+        out.append((topic, WRENCH, frame, encode_wrench(t, frame, sample.values)))
+    else:
+        sensor = sample.topic.split("/", 1)[-1]
+        for i in range(len(sample.values) // 3):
+            chip_frame = f"{sensor}/chip{i}"
+            out.append((f"{topic}/chip{i}", FLUX, chip_frame, encode_field(t, chip_frame, sample.values[3 * i:3 * i + 3])))
+    missed = sample.seq - last_seq - 1 if last_seq is not None and sample.seq > last_seq + 1 else 0
+    out.append((f"{topic}/status", STATUS, frame, encode_status(t, frame, sample.seq, sample.flags, missed)))
+    return out
+
+
 class McapWriter:
     """Samples of any streams into one MCAP file; the recorder's `flush` closes a chunk."""
 
@@ -132,22 +150,11 @@ class McapWriter:
         self.writer.add_message(self._channel(topic, schema, frame), t_ns, data, t_ns, seq & 0xFFFFFFFF)
 
     def write(self, sample: wire.Sample) -> None:
-        topic, t = "/" + sample.topic, sample.t_wall
-        frame = self.frames.get(sample.topic, sample.topic)
-        t_ns = round(t * 1e9)
-        if sample.kind == wire.KIND_WRENCH:
-            self._add(topic, WRENCH, frame, t_ns, sample.seq, encode_wrench(t, frame, sample.values))
-        else:
-            sensor = sample.topic.split("/", 1)[-1]
-            for i in range(len(sample.values) // 3):
-                chip_frame = f"{sensor}/chip{i}"
-                self._add(f"{topic}/chip{i}", FLUX, chip_frame, t_ns, sample.seq,
-                          encode_field(t, chip_frame, sample.values[3 * i:3 * i + 3]))
         last = self.last_seq.get(sample.topic)
-        missed = sample.seq - last - 1 if last is not None and sample.seq > last + 1 else 0
         self.last_seq[sample.topic] = sample.seq
-        self._add(f"{topic}/status", STATUS, frame, t_ns, sample.seq,
-                  encode_status(t, frame, sample.seq, sample.flags, missed))
+        t_ns = round(sample.t_wall * 1e9)
+        for topic, schema, frame, data in ros2_messages(sample, self.frames.get(sample.topic, sample.topic), last):
+            self._add(topic, schema, frame, t_ns, sample.seq, data)
 
     def flush(self) -> None:
         self.writer.flush()  # closes the chunk, writes it and its index, flushes the file
