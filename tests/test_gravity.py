@@ -33,6 +33,7 @@ from ftsensord.service import orientation as ori
 from ftsensord.service import wire
 from ftsensord.service.config import load_config
 from ftsensord.service.pipeline import SensorSample, tip_wrench
+from ftsensord.service.status import describe
 from ftsensord.sim import load_scene
 from ftsensord.sim.loads import FixedOrientation, fibonacci_directions, gravity_to_down
 
@@ -404,8 +405,11 @@ def test_malformed_orientation_messages_are_dropped_and_counted_and_the_daemon_g
             t.pub.send(m)
     t.pub.send_multipart([good, good])
     out = t.cycles(3)  # each cycle also sends a good one
-    stream = t.rig.daemon.status()["gravity"]["stream"]
+    status = t.rig.daemon.status()
+    stream = status["gravity"]["stream"]
     assert stream["dropped"] == {**{k: len(v) for k, v in bad.items()}, "parts": 1}
+    dropped = sum(map(len, bad.values())) + 1
+    assert f"orientation messages 3 received, {dropped} dropped" in describe(status)  # `ftsensord status`
     assert stream["received"] == 3 and stream["frames"]["tip"]["t_sender"] == pytest.approx(t.rig.clock.now() - 0.01, abs=0.011)
     assert len(out["wrench/sensor1/compensated"]) == 3 and all(s.flags == 0 for s in out["wrench/tip/compensated"])
     t.close()
