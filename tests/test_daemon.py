@@ -393,6 +393,14 @@ def test_the_commented_example_configuration_loads(tmp_path):
     config = load_config(tmp_path / "ftsensord.toml")
     assert config.bus == "i2c:1" and config.rate_hz == 100 and len(config.addresses) == 16
     assert config.tool_poses["sensor1"][2, 3] == -0.2
+    # Its commented [gravity] block, switched on as written (the mount is for "mount" only).
+    text = (tmp_path / "ftsensord.toml").read_text()
+    start, end = text.index("# [gravity]"), text.index("# Who may connect")
+    block = "\n".join(line[2:] if line.startswith("# ") and not line.startswith("#  ") and "mount_rotvec" not in line
+                      else line for line in text[start:end].splitlines())
+    (tmp_path / "ftsensord.toml").write_text(text[:start] + block + "\n" + text[end:])
+    gravity = load_config(tmp_path / "ftsensord.toml").gravity
+    assert gravity is not None and gravity.source == "stream" and sorted(gravity.payloads) == ["sensor1", "tip"]
 
 
 def test_shutdown_puts_every_chip_back_to_idle(tmp_path):
