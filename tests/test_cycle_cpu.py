@@ -162,3 +162,4 @@ def test_cycle_cpu_quick_mode_reports_the_ratio():
     assert r["pi_estimate_linear_us"] == pytest.approx(r["daemon_linear_us"] * r["pi_factor"])
     assert len(r["samples"]["linear"]) == r["rounds"] == len(r["samples"]["reference"])
     assert r["failing_chips"] == 0  # the instant bus must keep every chip healthy, or the figure lies
+    assert r["inconsistent_samples"] == 0  # and agreeing: the cycle measured is the usual one

@@ -138,8 +138,11 @@ class Transfers:
                 self.bus.i2c_rdwr(write, read)
             except OSError as exc:
                 failed[chips[i].address] = bus_error(chips[i].address, plan.command, exc)
+        decoded = plan.decoder.decode(plan.block)
+        if not failed and not any(isinstance(m, ChipError) for m in decoded):  # the usual cycle
+            return {chip.address: ChipResult(chip.address, m) for chip, m in zip(chips, decoded)}  # type: ignore[arg-type]
         out = {}
-        for chip, m in zip(chips, plan.decoder.decode(plan.block)):
+        for chip, m in zip(chips, decoded):
             a = chip.address
             e = failed.get(a)
             if e is not None:

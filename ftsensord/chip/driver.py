@@ -13,6 +13,7 @@ Every command is split into a message builder (``*_messages``) and a decoder
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -260,7 +261,26 @@ class MLX90393:
         if self.settings is None:
             raise ChipProtocolError(self.address, "not configured")
         current = self.read_configuration()
-        return current == self.settings.to_registers(current)
+        return current == _expected_registers(
+            self.settings, current[mlx.REG_CONF1], current[mlx.REG_CONF2], current[mlx.REG_CONF3])
+
+
+@functools.lru_cache(maxsize=64)
+def _expected_registers(settings: mlx.Settings, conf1: int, conf2: int, conf3: int) -> dict[int, int]:
+    """What CONF1..CONF3 must hold for ``settings``, other bits as read: the same few
+    words every read-back, worked out once (do not change the dict returned)."""
+    return settings.to_registers({mlx.REG_CONF1: conf1, mlx.REG_CONF2: conf2, mlx.REG_CONF3: conf3})
+
+
+def _hall_limit_counts(tesla_per_count: float) -> int:
+    """The least counts c >= 0 with c x ``tesla_per_count`` >= `mlx.HALL_SATURATION_FLAG_T`
+    in floating point, as the decoders compute it (the test is monotone in c)."""
+    c = int(mlx.HALL_SATURATION_FLAG_T / tesla_per_count)
+    while c > 0 and (c - 1) * tesla_per_count >= mlx.HALL_SATURATION_FLAG_T:
+        c -= 1
+    while c * tesla_per_count < mlx.HALL_SATURATION_FLAG_T:
+        c += 1
+    return c
 
 
 def _rm_reply_len(zyxt: int) -> int:
@@ -309,6 +329,15 @@ class BlockDecoder:
         self.zero = np.array([[f.zero for f in row] for row in fmts], dtype=np.int32).reshape(n, -1)
         self.span = np.array([[f.span for f in row] for row in fmts], dtype=np.int32).reshape(n, -1)
         self.scale = np.array([[c._decoding[a][1] for a in self.axes] for c in chips]).reshape(n, -1)
+        # A status byte that leaves the reply to the per-chip decoder: ERROR, or D1:D0 wrong.
+        self.bad_status = np.array([(b & mlx.STATUS_ERROR) != 0 or (b & mlx.STATUS_D_MASK) != self.d_expected
+                                    for b in range(256)])
+        self.xyz_only = self.columns == [0, 1, 2] and self.axes == [0, 1, 2]
+        self.unsigned = not self.signed.any()
+        # Saturated where |counts| reaches the span or the Hall limit: the least |counts|
+        # whose tesla (counts x scale, as decoded) reach it, found once per chip and axis.
+        self.saturates_at = np.minimum(self.span, np.array(
+            [[_hall_limit_counts(s) for s in row] for row in self.scale], dtype=np.int64).reshape(n, -1))
 
     def valid_for(self, chips: list[MLX90393]) -> bool:
         """True while ``chips`` are the ones built for, with the same settings."""
@@ -326,22 +355,30 @@ class BlockDecoder:
         ``block`` (n, L) uint8: each row one chip's reply, status byte first.
         """
         status = block[:, 0]
-        bad = ((status & mlx.STATUS_ERROR) != 0) | ((status & mlx.STATUS_D_MASK) != self.d_expected)
+        bad = self.bad_status[status]
         words = (block[:, 1::2].astype(np.int32) << 8) | block[:, 2::2]
-        n = len(self.chips)
-        field = np.full((n, 3), np.nan)
-        saturated = np.zeros((n, 3), dtype=bool)
-        if self.columns:
-            w = words[:, self.columns]
-            counts = np.where(self.signed, w - ((w & 0x8000) << 1), w - self.zero)
-            value = counts * self.scale
-            field[:, self.axes] = value
-            saturated[:, self.axes] = (np.abs(counts) >= self.span) | (np.abs(value) >= mlx.HALL_SATURATION_FLAG_T)
+        if self.xyz_only and self.unsigned:  # the usual RM: X, Y, Z and nothing else, offset words
+            counts = words - self.zero
+            field = counts * self.scale
+            saturated = np.abs(counts) >= self.saturates_at
+        else:
+            n = len(self.chips)
+            field = np.full((n, 3), np.nan)
+            saturated = np.zeros((n, 3), dtype=bool)
+            if self.columns:
+                w = words[:, self.columns]
+                counts = np.where(self.signed, w - ((w & 0x8000) << 1), w - self.zero)
+                field[:, self.axes] = counts * self.scale
+                saturated[:, self.axes] = np.abs(counts) >= self.saturates_at
         sat_any = cast("list[bool]", saturated.any(axis=1).tolist())
         rows = cast("list[list[int]]", words.tolist())
         statuses = status.tolist()
+        items, status_of = self.items, _STATUS.__getitem__
+        if self.t_column is None and not bad.any():  # the usual cycle: no error, no temperature
+            return [Measurement(status_of(s), f, sat, None, dict(zip(items, row)), a)
+                    for s, f, sat, row, a in zip(statuses, field, saturated, rows, sat_any)]
         bad_rows = cast("list[bool]", bad.tolist())
-        items, t_column, status_of = self.items, self.t_column, _STATUS.__getitem__
+        t_column = self.t_column
         out: list[Measurement | ChipError] = []
         for i, chip in enumerate(self.chips):
             if bad_rows[i]:
