@@ -15,7 +15,8 @@ import pytest
 
 from ftsensord.acquire.reader import Reader
 from ftsensord.chip import mlx90393 as mlx
-from ftsensord.chip.driver import MLX90393, BlockDecoder
+from ftsensord.chip.block import BlockDecoder
+from ftsensord.chip.driver import MLX90393
 from ftsensord.errors import ChipError
 from ftsensord.sim import StaticScene, VirtualClock, simulated_bus
 

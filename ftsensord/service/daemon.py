@@ -30,7 +30,7 @@ from .config import Calibrations, Config, SensorConfig, check_rate, reload_confi
 from .control import Control
 from .filters import WrenchFilter
 from .loop import LoopTiming, serve_until
-from .pipeline import SensorPipeline, tip_wrench, use_estimator
+from .pipeline import SensorPipeline, SensorSample, tip_wrench, use_estimator
 from .sdnotify import Notifier
 from .status import ChipLedger, status_line, status_reply
 from .tare import Tares, carry_tares
@@ -132,12 +132,13 @@ class Daemon:
         seq = self.timing.cycles + self.timing.missed
         for r in results.values():
             self.chips.count(r)
-        samples = {p.name: p.step(results, wire.FLAG_LATE if late else 0) for p in self.sensors}
-        for name, s in samples.items():
+        samples: dict[str, SensorSample] = {}
+        for p in self.sensors:
+            s = samples[p.name] = p.step(results, wire.FLAG_LATE if late else 0)
             if s.valid:
-                self.tares.feed(name, s.flux, s.flags)
-            # Wrenches first: a haptic loop waits for them; the flux streams are for debugging.
-            self._publish(f"wrench/{name}", wire.KIND_WRENCH, seq, t_mono, t_wall, s.flags, s.wrench)
+                self.tares.feed(p.name, s.flux, s.flags)
+            # Each wrench as soon as it is known: a haptic loop waits for it; flux is for debugging.
+            self._publish(f"wrench/{p.name}", wire.KIND_WRENCH, seq, t_mono, t_wall, s.flags, s.wrench)
         if self.config.tool_offsets_m:
             tip, tip_flags = tip_wrench(samples, self.config.tool_offsets_m)
             self._publish("wrench/tip", wire.KIND_WRENCH, seq, t_mono, t_wall, tip_flags, tip)
