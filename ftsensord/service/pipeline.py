@@ -126,7 +126,7 @@ class SensorPipeline:
         flags |= base_flags
         wrench, wflags = self.estimate(flux, flags, usable)
         valid = not wflags & wire.FLAG_INVALID
-        if valid and np.any(np.abs(wrench) > SENSOR_RANGE):
+        if valid and (np.abs(wrench) > SENSOR_RANGE).any():
             wflags |= wire.FLAG_OVERLOAD
         filtered, wflags = self.filter.update(wrench, wflags)  # a filtered wrench carries its inputs' flags
         return SensorSample(flux, flags, filtered, wflags, valid)
@@ -190,7 +190,7 @@ class SensorPipeline:
         """A linear estimate, flagged `extrapolated` where the load on the sensor (the
         wrench plus what a tare removed) is beyond the calibration's loads."""
         fitted = self.config.calibration.wrench_range
-        if fitted is not None and np.any(np.abs(wrench + self.tare_wrench) > EXTRAPOLATION_MARGIN * fitted):
+        if fitted is not None and (np.abs(wrench + self.tare_wrench) > EXTRAPOLATION_MARGIN * fitted).any():
             flags |= wire.FLAG_EXTRAPOLATED
         return wrench, flags
 
@@ -309,7 +309,7 @@ class RedundancyCheck:
         load2 = self._load2(p, c)
         culprit = None if self._agree(p, c, load2, n_out) else c.culprit()
         if culprit is None:
-            culprit = self._slow_culprit(p, c, out, load2)
+            culprit = self._slow_culprit(c, out, n_out, load2)
         if culprit is None:
             return out, 0 if n_out == n_usable else wire.FLAG_INCONSISTENT | wire.FLAG_DEGRADED
         self.inconsistent += 1
@@ -329,9 +329,9 @@ class RedundancyCheck:
         # The largest drop is chi2 - the smallest chi2 without (inf for a chip not to be left out).
         return c.chi2 <= whole ** 2 and c.chi2 - float(c.chi2_without.min()) <= one ** 2
 
-    def _slow_culprit(self, p: SensorPipeline, c: Consistency, chips: np.ndarray, load2: float) -> int | None:
+    def _slow_culprit(self, c: Consistency, chips: np.ndarray, n: int, load2: float) -> int | None:
         """The chip whose drop summed over the last `SLOW_WINDOW` samples (over the same
-        chips) is beyond noise and model error, or None."""
+        ``chips``, ``n`` of them) is beyond noise and model error, or None."""
         key = chips.tobytes()
         if key != self.slow_key:
             self.slow_drops = np.zeros((SLOW_WINDOW, len(chips)))
@@ -345,7 +345,6 @@ class RedundancyCheck:
             return None
         total = self.slow_drops.sum(axis=0)
         s2 = max(self.slow_loads)
-        n = int(np.count_nonzero(chips))
         limit = math.sqrt(chi2_quantile(3 * SLOW_WINDOW, CONSISTENCY_FALSE_ODDS / (4 * n))) \
             + math.sqrt(SLOW_WINDOW) * (CHIP_RESIDUAL_AT_REST + CHIP_RESIDUAL_AT_RANGE * s2)
         if float(total.max()) <= limit ** 2:
@@ -356,7 +355,7 @@ class RedundancyCheck:
     def _load2(self, p: SensorPipeline, c: Consistency) -> float:
         """The load's square, as a fraction of the calibration's largest (largest over the axes)."""
         fitted = p.config.calibration.wrench_range
-        return float(np.max(np.abs(c.wrench + p.tare_wrench) / (fitted if fitted is not None else SENSOR_RANGE)) ** 2)
+        return float((np.abs(c.wrench + p.tare_wrench) / (fitted if fitted is not None else SENSOR_RANGE)).max()) ** 2
 
     def _limits(self, p: SensorPipeline, load2: float, dof: int, chips: int, odds: float) -> tuple[float, float]:
         """The limits (whitened norms) of the whole residual (``dof``) and of one chip's
