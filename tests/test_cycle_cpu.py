@@ -160,6 +160,8 @@ def test_cycle_cpu_quick_mode_reports_the_ratio():
         assert np.isfinite(r[key]), key
     assert r["reference_us"] > 0 and r["daemon_linear_us"] > 0
     assert r["ratio"] == pytest.approx(r["daemon_linear_us"] / r["reference_us"])
+    paired = sorted(d / r for d, r in zip(r["samples"]["linear"], r["samples"]["reference"]))
+    assert r["ratio_paired"] == pytest.approx(paired[len(paired) // 2])  # an odd count of rounds: the middle one
     assert r["pi_estimate_linear_us"] == pytest.approx(r["daemon_linear_us"] * r["pi_factor"])
     assert len(r["samples"]["linear"]) == r["rounds"] == len(r["samples"]["reference"])
     assert r["failing_chips"] == 0  # the instant bus must keep every chip healthy, or the figure lies
