@@ -250,16 +250,16 @@ def tip_wrench(samples: dict[str, SensorSample], offsets_m: dict[str, np.ndarray
     good as its worst sensor."""
     tip, flags = np.zeros(6), 0
     for name, offset in offsets_m.items():
-        tip += _moved_from(*offset) @ samples[name].wrench
+        tip += _moved_from(np.asarray(offset, dtype=float).tobytes()) @ samples[name].wrench
         flags |= samples[name].flags
     return tip, flags
 
 
 @functools.lru_cache(maxsize=64)
-def _moved_from(x: float, y: float, z: float) -> np.ndarray:
-    """The wrench transform from a frame at (x, y, z) (m), parallel to the tip's: built
-    once per offset, not every cycle."""
-    X = se3.wrench_transform(se3.pose(p=np.array([x, y, z])))
+def _moved_from(offset: bytes) -> np.ndarray:
+    """The wrench transform from a frame at ``offset`` (3 float64 as bytes, m), parallel to
+    the tip's: built once per offset, not every cycle."""
+    X = se3.wrench_transform(se3.pose(p=np.frombuffer(offset)))
     X.setflags(write=False)  # shared by every cycle
     return X
 
