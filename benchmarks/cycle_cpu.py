@@ -42,8 +42,8 @@ from ftsensord.service.config import Config, builtin_path, load_config
 from ftsensord.service.daemon import Daemon
 from ftsensord.sim import NoiseModel, two_sensor_scene
 
-#: Readings a chip cycles through: at the default settings' noise (a third of an LSB
-#: of the words' 6 uT) the same words come back often, but never for the stuck test's run.
+#: Readings a chip cycles through: at the default settings' noise (a third of the words'
+#: 6 uT LSB) the same words come back often, never for as many cycles as the stuck test needs.
 READINGS = 64
 
 
