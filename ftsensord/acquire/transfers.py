@@ -179,7 +179,7 @@ class Transfers:
 
     @staticmethod
     def _decode_sm(chip: MLX90393, reply: bytes) -> None:
-        status = mlx.Status(reply[0])
+        status = mlx.status_of(reply[0])
         if status.error and status.sm_mode:
             return  # it got the SM before its batch failed, and is converting
         chip.decode_sm(reply)

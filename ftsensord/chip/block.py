@@ -17,11 +17,6 @@ from . import mlx90393 as mlx
 from .driver import MLX90393, Measurement
 
 
-#: Every status byte's `mlx.Status`, made once: it is frozen, so sharing is safe and a
-#: cycle builds none.
-_STATUS = tuple(mlx.Status(b) for b in range(256))
-
-
 class BlockDecoder:
     """RM replies of many chips decoded together: one numpy pass over an (n, L) block.
 
@@ -94,7 +89,7 @@ class BlockDecoder:
         sat_any = cast("list[bool]", saturated.any(axis=1).tolist())
         rows = cast("list[list[int]]", words.tolist())
         statuses = status.tolist()
-        items, status_of = self.items, _STATUS.__getitem__
+        items, status_of = self.items, mlx.STATUSES.__getitem__
         if self.t_column is None and not bad.any():  # the usual cycle: no error, no temperature
             return [Measurement(status_of(s), f, sat, None, dict(zip(items, row)), a)
                     for s, f, sat, row, a in zip(statuses, field, saturated, rows, sat_any)]

@@ -74,9 +74,7 @@ class MLX90393:
     def __init__(self, bus: I2CBus, address: int, *,
                  sleep: Callable[[float], None] = time.sleep):
         mlx.part_variant(address)  # refuses an address no MLX90393 can have
-        self.bus = bus
-        self.address = address
-        self.sleep = sleep
+        self.bus, self.address, self.sleep = bus, address, sleep
         self.settings = None
         self.tref = mlx.TREF_TYPICAL
         # Built once per command and reused: a new i2c_msg costs two ctypes buffers.
@@ -105,7 +103,7 @@ class MLX90393:
 
     def check_status(self, byte: int, command: str) -> mlx.Status:
         """Decode a status byte; raise `ChipRefusedError` when ERROR is set."""
-        status = mlx.Status(byte)
+        status = mlx.status_of(byte)
         if status.error:
             raise ChipRefusedError(self.address, f"{command} refused, status {status}", status,
                                    command.split()[0])
@@ -203,7 +201,9 @@ class MLX90393:
         if not 0 <= reg <= mlx.REG_MAX:
             raise ValueError(f"register address 0x{reg:02X} is out of range 0x00-0x{mlx.REG_MAX:02X}")
         reply = self.transfer(bytes([mlx.CMD_RR, reg << 2]), 3)
-        status = self.check_status(reply[0], f"RR 0x{reg:02X}")
+        status = mlx.status_of(reply[0])
+        if status.error:  # raises, naming the register (a name built only then)
+            self.check_status(reply[0], f"RR 0x{reg:02X}")
         if status.data_bytes != 2:
             raise ChipProtocolError(self.address, f"RR expects 2 data bytes, status says {status.data_bytes}")
         return (reply[1] << 8) | reply[2]

@@ -114,6 +114,16 @@ class Status:
         return f"0x{self.byte:02X} [{' '.join(flags) or 'idle'} D={self.d}]"
 
 
+#: Every status byte's `Status`, made once: it is frozen, so sharing is safe and a cycle
+#: builds none.
+STATUSES = tuple(Status(b) for b in range(256))
+
+
+def status_of(byte: int) -> Status:
+    """The `Status` of ``byte`` (0-255), from `STATUSES`."""
+    return STATUSES[byte]
+
+
 def d_for_items(n_items: int) -> int:
     """D1:D0 for a reply of ``n_items`` 16-bit words (2*D + 2 = 2*n_items)."""
     if not 1 <= n_items <= 4:
