@@ -173,8 +173,9 @@ def breakdown(daemon: Daemon, cycles: int) -> dict[str, float]:
     return out
 
 
-def measure(cycles: int, rounds: int) -> dict[str, Any]:
-    """Median CPU per cycle (us) of the daemon (linear, nonlinear) and the reference loop."""
+def measure(cycles: int, rounds: int, readback_every: int | None = None) -> dict[str, Any]:
+    """Median CPU per cycle (us) of the daemon (linear, nonlinear) and the reference loop;
+    ``readback_every`` (None: the configuration's, every cycle) for the daemons."""
     config = load_config(builtin_path("sim.toml"))
     ctx = zmq.Context()
     out: dict[str, list[float]] = {"linear": [], "nonlinear": [], "reference": []}
@@ -186,6 +187,8 @@ def measure(cycles: int, rounds: int) -> dict[str, Any]:
         daemons = {}
         for estimator in ("linear", "nonlinear"):
             cfg = load_config(builtin_path("sim.toml"))
+            if readback_every is not None:
+                cfg.readback_every = readback_every
             for s in cfg.sensors:
                 s.estimator = estimator
             d = daemons[estimator] = Daemon(cfg, InstantBus(cfg), pub, None)
@@ -227,23 +230,26 @@ def main() -> int:
     parser.add_argument("--cpu", type=int, default=None, help="pin to this core (default: the last one)")
     parser.add_argument("--pi-factor", type=float, default=4.0,
                         help="stated slow-down of a Raspberry Pi 4 against this host (an estimate; default 4)")
+    parser.add_argument("--readback-every", type=int, default=None,
+                        help="the daemon's register read-back, cycles (default: the configuration's, 1; 0: none)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     args = parser.parse_args()
     cycles, rounds = (100, 3) if args.quick else (args.cycles, args.rounds)
     cpu = args.cpu if args.cpu is not None else max(os.sched_getaffinity(0))
     os.sched_setaffinity(0, {cpu})
     load = os.getloadavg()[0]
-    r = measure(cycles, rounds)
+    r = measure(cycles, rounds, args.readback_every)
     r.update({"pinned_cpu": cpu, "load_1min": load, "pi_factor": args.pi_factor,
               "pi_estimate_linear_us": r["daemon_linear_us"] * args.pi_factor,
               "pi_estimate_nonlinear_per_sensor_us": r["nonlinear_per_sensor_us"] * args.pi_factor,
               "machine": f"{os.cpu_count()}-core {platform.machine()}, Python {platform.python_version()}",
-              "quick": args.quick})
+              "quick": args.quick, "readback_every": args.readback_every})
     if args.json:
         print(json.dumps(r, indent=2))
         return 0
     print(f"{r['machine']}, pinned to core {cpu}, load {load:.2f}; {rounds} rounds of {cycles} cycles "
-          f"(nonlinear: {max(1, cycles // 4)}), medians")
+          f"(nonlinear: {max(1, cycles // 4)}), medians"
+          + ("" if args.readback_every is None else f"; register read-back every {args.readback_every} cycles"))
     print(f"reference loop      {r['reference_us']:8.1f} us a cycle")
     print(f"daemon, linear      {r['daemon_linear_us']:8.1f} us a cycle  ({r['ratio']:.2f}x the reference; "
           f"target <= 5x; round by round {r['ratio_paired']:.2f}x)")
