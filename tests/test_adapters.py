@@ -314,3 +314,7 @@ def test_doctor_runs_each_scheduler_at_its_bound(capsys):
     for run in report["schedulers"].values():
         assert 0.9 <= run["measured_hz"] / run["bound_hz"] <= 1.02
         assert run["refused_ioctls"] == 0
+        # On the virtual clock the host spends no time: a cycle is its transfers, waits and idle.
+        t = run["cycle_us"]
+        assert t["host"] == pytest.approx(0, abs=1e-3) and t["transfers"] > 0
+        assert t["transfers"] + t["waits"] + t["idle"] == pytest.approx(1e6 / run["measured_hz"], rel=1e-9)

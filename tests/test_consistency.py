@@ -247,3 +247,53 @@ def test_a_reload_with_another_calibration_drops_the_tare_and_says_so(tmp_path):
     assert "sensor2" not in reply["result"]["tare"] or reply["result"]["tare"]["sensor2"].startswith("kept")
     assert not rig.daemon.sensors[0].tared
     rig.close()
+
+
+def _brute_force(model, b, sigma, chips):
+    """chi2 and every leave-one-out chi2 by weighted least squares on each subset, directly."""
+    H = model.H if model.room is None else np.hstack([model.H, model.room])
+
+    def chi2(use):
+        ch = np.repeat(use, 3)
+        A, x = H[ch] / sigma[ch, None], (b - model.zero)[ch] / sigma[ch]
+        if ch.sum() <= A.shape[1] or np.linalg.matrix_rank(A) < A.shape[1]:
+            return np.inf, np.full(6, np.nan)
+        theta = np.linalg.lstsq(A, x, rcond=None)[0]
+        r = x - A @ theta
+        return float(r @ r), model.K @ theta[:6]
+
+    whole, wrench = chi2(chips)
+    without = np.full(len(chips), np.inf)
+    for c in np.flatnonzero(chips):
+        rest = chips.copy()
+        rest[c] = False
+        without[c] = chi2(rest)[0] if np.isfinite(whole) else np.inf
+    return whole, wrench, without
+
+
+@pytest.mark.parametrize("room", [False, True])
+def test_the_consistency_maps_give_the_least_squares_residuals(room):
+    """One product a sample (the deletion identity) gives what fitting every subset gives:
+    chi2, the wrench, and chi2 with each chip left out, inf where the rest cannot see all
+    axes (down to 2 chips: no degrees of freedom), for all chips and for subsets."""
+    model = Calibration.load(builtin_path("sim-sensor1.json")).model
+    if room:
+        model = model.rejecting_room_field()
+    rng = np.random.default_rng(11)
+    for trial in range(60):
+        chips = np.ones(8, dtype=bool)
+        chips[rng.choice(8, trial % 7, replace=False)] = False
+        b = model.zero + SIGMA_T * rng.normal(0, 1, 24) * rng.choice([1.0, 30.0])
+        b[rng.integers(24)] += 40e-6  # one channel off: large drops, the culprit's above all
+        c = model.consistency(b, SIGMA_T, chips)
+        whole, wrench, without = _brute_force(model, b, SIGMA_T, chips)
+        assert np.array_equal(np.isfinite(c.chi2_without), np.isfinite(without))
+        if not np.isfinite(whole):
+            assert not np.isfinite(c.chi2) and np.all(np.isnan(c.wrench))
+            continue
+        # Round-off: the sums are of whitened residuals, a few to thousands of sigma^2.
+        assert c.chi2 == pytest.approx(whole, rel=1e-9, abs=1e-9)
+        np.testing.assert_allclose(c.wrench, wrench, rtol=1e-8, atol=1e-12)
+        finite = np.isfinite(without)
+        np.testing.assert_allclose(c.chi2_without[finite], without[finite], rtol=1e-9, atol=1e-9 * (1 + whole))
+        np.testing.assert_allclose(c.drop, np.where(finite, c.chi2 - c.chi2_without, 0.0), atol=1e-9 * (1 + whole))

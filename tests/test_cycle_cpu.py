@@ -15,7 +15,8 @@ import pytest
 
 from ftsensord.acquire.reader import Reader
 from ftsensord.chip import mlx90393 as mlx
-from ftsensord.chip.driver import MLX90393, BlockDecoder
+from ftsensord.chip.block import BlockDecoder
+from ftsensord.chip.driver import MLX90393
 from ftsensord.errors import ChipError
 from ftsensord.sim import StaticScene, VirtualClock, simulated_bus
 
@@ -159,6 +160,29 @@ def test_cycle_cpu_quick_mode_reports_the_ratio():
         assert np.isfinite(r[key]), key
     assert r["reference_us"] > 0 and r["daemon_linear_us"] > 0
     assert r["ratio"] == pytest.approx(r["daemon_linear_us"] / r["reference_us"])
+    paired = sorted(d / r for d, r in zip(r["samples"]["linear"], r["samples"]["reference"]))
+    assert r["ratio_paired"] == pytest.approx(paired[len(paired) // 2])  # an odd count of rounds: the middle one
     assert r["pi_estimate_linear_us"] == pytest.approx(r["daemon_linear_us"] * r["pi_factor"])
     assert len(r["samples"]["linear"]) == r["rounds"] == len(r["samples"]["reference"])
     assert r["failing_chips"] == 0  # the instant bus must keep every chip healthy, or the figure lies
+    assert r["inconsistent_samples"] == 0  # and agreeing: the cycle measured is the usual one
+
+
+def test_overlapped_read_back_in_turn_builds_each_plan_once():
+    """The chip read back is read last, so each chip in turn gives its own RM order: after
+    one round of them, the reader reuses every plan (none rebuilt between two transfers)."""
+    addresses = list(range(0x0C, 0x1C))  # 16 chips: more orders than the 8 plans once kept
+    rng = np.random.default_rng(5)
+    scene = StaticScene({a: rng.uniform(-2e-3, 2e-3, 3) for a in addresses}, dict.fromkeys(addresses, 30.0))
+    bus = simulated_bus(scene, clock=VirtualClock(), bus_hz=400e3, adapter="bcm2835", seed=1)
+    reader = Reader(bus, [MLX90393(bus, a, sleep=bus.sleep) for a in addresses], "overlapped", mlx.Settings(),
+                    readback_every=1)
+    assert reader.start() == {}
+    for _ in range(len(addresses)):
+        assert all(r.ok for r in reader.read())
+    plans = dict(reader.xfer._plans)
+    assert len(plans) == len(addresses)  # one order per chip read back
+    for _ in range(3 * len(addresses)):
+        assert all(r.ok for r in reader.read())
+    assert reader.xfer._plans.keys() == plans.keys()
+    assert all(reader.xfer._plans[k] is plans[k] for k in plans)

@@ -36,6 +36,33 @@ RUN_CYCLES = 200
 SETTLE_CYCLES = 5
 
 
+class _TimedBus:
+    """The bus as a short run's reader sees it, adding up the time spent inside transfers
+    (wire and ioctl cost; on a busy host also the wait for a core) and inside the reader's
+    waits (conversions); the rest of a cycle is the host's CPU between them."""
+
+    def __init__(self, bus: Bus):
+        self.bus, self.in_transfers, self.in_waits = bus, 0.0, 0.0
+
+    def i2c_rdwr(self, *msgs: Any) -> None:
+        t0 = self.bus.monotonic()
+        try:
+            self.bus.i2c_rdwr(*msgs)
+        finally:
+            self.in_transfers += self.bus.monotonic() - t0
+
+    def sleep(self, seconds: float) -> None:
+        t0 = self.bus.monotonic()
+        self.bus.sleep(seconds)
+        self.in_waits += self.bus.monotonic() - t0
+
+    def monotonic(self) -> float:
+        return self.bus.monotonic()
+
+    def close(self) -> None:
+        self.bus.close()
+
+
 def _register_errors(bus: Bus, address: int, expected: dict[int, int], reads: int) -> dict[str, int]:
     """Read CONF1..CONF3 ``reads`` times in all; count what went wrong."""
     chip = MLX90393(bus, address, sleep=bus.sleep)
@@ -60,18 +87,24 @@ def _short_run(bus: Bus, addresses: list[int], scheduler: str, settings: mlx.Set
         readback_every = 100  # as the daemon does: a burst read back every cycle would go stale
     bound = cycle_bound(scheduler, len(addresses), settings, bus_hz, overhead_s, readback=readback_every > 0,
                         adapter=adapter)
-    chips = [MLX90393(bus, a, sleep=bus.sleep) for a in addresses]
-    reader = Reader(bus, chips, scheduler, settings, bus_hz, overhead_s, readback_every=readback_every)
+    timed = _TimedBus(bus)
+    chips = [MLX90393(timed, a, sleep=timed.sleep) for a in addresses]
+    reader = Reader(timed, chips, scheduler, settings, bus_hz, overhead_s, readback_every=readback_every)
     failed = reader.start()
     period = bound.cycle_s
     errors = 0
     refused0 = getattr(bus, "refused", None)
     t_first = None
+    idle = 0.0
     next_at = bus.monotonic()
     for k in range(SETTLE_CYCLES + cycles + 1):
-        bus.sleep(max(0.0, next_at - bus.monotonic()))
+        t_idle = bus.monotonic()
+        bus.sleep(max(0.0, next_at - t_idle))
         if k == SETTLE_CYCLES:
             t_first = bus.monotonic()
+            timed.in_transfers = timed.in_waits = 0.0
+        elif k > SETTLE_CYCLES:
+            idle += bus.monotonic() - t_idle
         if k == SETTLE_CYCLES + cycles:
             break
         next_at = max(next_at + period, bus.monotonic())  # late: start again from now, never catch up
@@ -80,11 +113,16 @@ def _short_run(bus: Bus, addresses: list[int], scheduler: str, settings: mlx.Set
             errors += sum(not r.ok for r in results)
     assert t_first is not None
     elapsed = bus.monotonic() - t_first
+    transfers, waits = timed.in_transfers, timed.in_waits
     reader.stop()
     out: dict[str, Any] = {
         "bound_hz": bound.rate_hz, "bound": bound.describe(), "ioctls_per_cycle": bound.ioctls,
         "measured_hz": cycles / elapsed if elapsed > 0 else math.inf, "cycles": cycles,
         "chip_errors": errors, "start_failures": {f"0x{a:02X}": str(e) for a, e in failed.items()},
+        # Where a cycle's time went (us, mean): the bound counts transfers and waits only.
+        "cycle_us": {"transfers": transfers / cycles * 1e6, "waits": waits / cycles * 1e6,
+                     "host": (elapsed - idle - transfers - waits) / cycles * 1e6,
+                     "idle": idle / cycles * 1e6, "bound": bound.cycle_s * 1e6},
     }
     if refused0 is not None:  # the simulated bus counts what its adapter refused
         out["refused_ioctls"] = bus.refused - refused0  # type: ignore[attr-defined]
@@ -160,8 +198,11 @@ def format_doctor(report: dict[str, Any]) -> str:
                      f"{bad} errors in {errors.get('reads', 0)} register reads"
                      + (f"; {c['error']}" if c["error"] else ""))
     for name, run in report["schedulers"].items():
+        t = run["cycle_us"]
         lines.append(f"  {name}: bound {run['bound_hz']:.1f} Hz, measured {run['measured_hz']:.1f} Hz at it "
-                     f"({run['cycles']} cycles, {run['chip_errors']} chip errors)")
+                     f"({run['cycles']} cycles, {run['chip_errors']} chip errors; a cycle: transfers "
+                     f"{t['transfers']:.0f} us, waits {t['waits']:.0f} us, host {t['host']:.0f} us, "
+                     f"bound {t['bound']:.0f} us)")
     if not report["chips"]:
         lines.append("  no MLX90393 answered (0x0C-0x1B)")
     return "\n".join(lines)

@@ -25,7 +25,7 @@ from ..errors import (
 log = logging.getLogger("ftsensord")
 
 
-@dataclass
+@dataclass(slots=True)
 class ChipResult:
     """What one cycle got from one chip: a measurement, or why not."""
 
@@ -196,13 +196,19 @@ class ChipCare:
     def judge(self, r: ChipResult, now: float) -> ChipResult:
         """Update a healthy chip's health from its result; a stuck chip's data become an error."""
         h = self.health[r.address]
-        if r.measurement is not None:
+        m = r.measurement
+        if m is not None:
             h.stale_run = 0
-            raw = r.measurement.raw
+            raw = m.raw
             words = (raw.get("x", -1), raw.get("y", -1), raw.get("z", -1))
-            moved = h.last_words is not None and words != h.last_words
-            h.same_words = h.same_words + 1 if words == h.last_words else 0
-            h.last_words = words
+            last, h.last_words = h.last_words, words
+            if words != last:
+                h.same_words = 0
+                if h.stuck_words is None:
+                    return r  # the usual cycle: new words from a chip in good standing
+            else:
+                h.same_words += 1
+            moved = last is not None and words != last
             if self.stuck_cycles and h.same_words >= self.stuck_cycles:
                 h.stuck_detections += 1
                 self.fail(r.address, now, reset=True, why=f"stuck ({self.stuck_cycles + 1} identical readings)")

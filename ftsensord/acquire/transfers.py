@@ -4,7 +4,7 @@
 `Transfers` sends SM and RM to many chips in as few ioctls as that allows. The RM of a
 set of chips is planned once (`RMPlan`): its messages are built once and reused every
 cycle, each chip's reply lands in one shared block, and the block is decoded in one numpy
-pass (`chip.driver.BlockDecoder`), so a cycle spends no per-chip Python on messages and
+pass (`chip.block.BlockDecoder`), so a cycle spends no per-chip Python on messages and
 little on decoding.
 """
 
@@ -19,13 +19,18 @@ import numpy as np
 from smbus2 import i2c_msg
 
 from ..chip import mlx90393 as mlx
-from ..chip.driver import MLX90393, BlockDecoder, bus_error
+from ..chip.block import BlockDecoder
+from ..chip.driver import MLX90393, bus_error
 from ..chip.i2c import I2C_M_RD, I2C_RDWR_MAX_MSGS, SHAPE_REFUSED, Bus
 from ..errors import ChipError
 from .bound import Shapes
 from .health import ChipResult
 
 log = logging.getLogger("ftsensord")
+#: RM plans kept: the overlapped scheduler reads the chip read back last, so each chip in
+#: turn makes its own order (16 chips: 16 plans, 32 with the temperature's cycles); fewer
+#: would rebuild a plan (0.5 ms, between two transfers) every cycle.
+PLANS_KEPT = 64
 
 
 def _rr_tref(chip: MLX90393) -> tuple[i2c_msg, i2c_msg]:
@@ -138,8 +143,11 @@ class Transfers:
                 self.bus.i2c_rdwr(write, read)
             except OSError as exc:
                 failed[chips[i].address] = bus_error(chips[i].address, plan.command, exc)
+        decoded = plan.decoder.decode(plan.block)
+        if not failed and not any(isinstance(m, ChipError) for m in decoded):  # the usual cycle
+            return {chip.address: ChipResult(chip.address, m) for chip, m in zip(chips, decoded)}  # type: ignore[arg-type]
         out = {}
-        for chip, m in zip(chips, plan.decoder.decode(plan.block)):
+        for chip, m in zip(chips, decoded):
             a = chip.address
             e = failed.get(a)
             if e is not None:
@@ -157,7 +165,7 @@ class Transfers:
         key = (tuple(c.address for c in chips), zyxt, per)
         plan = self._plans.get(key)
         if plan is None or not plan.decoder.valid_for(chips):
-            if len(self._plans) >= 8:  # healthy sets come and go with faults: keep a few
+            if len(self._plans) >= PLANS_KEPT:  # healthy sets come and go with faults: keep a few
                 self._plans.clear()
             plan = self._plans[key] = RMPlan(chips, zyxt, per)
         return plan
@@ -171,7 +179,7 @@ class Transfers:
 
     @staticmethod
     def _decode_sm(chip: MLX90393, reply: bytes) -> None:
-        status = mlx.Status(reply[0])
+        status = mlx.status_of(reply[0])
         if status.error and status.sm_mode:
             return  # it got the SM before its batch failed, and is converting
         chip.decode_sm(reply)

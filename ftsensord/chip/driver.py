@@ -13,10 +13,11 @@ Every command is split into a message builder (``*_messages``) and a decoder
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol, cast
+from typing import Protocol
 
 import numpy as np
 from smbus2 import i2c_msg
@@ -73,9 +74,7 @@ class MLX90393:
     def __init__(self, bus: I2CBus, address: int, *,
                  sleep: Callable[[float], None] = time.sleep):
         mlx.part_variant(address)  # refuses an address no MLX90393 can have
-        self.bus = bus
-        self.address = address
-        self.sleep = sleep
+        self.bus, self.address, self.sleep = bus, address, sleep
         self.settings = None
         self.tref = mlx.TREF_TYPICAL
         # Built once per command and reused: a new i2c_msg costs two ctypes buffers.
@@ -104,7 +103,7 @@ class MLX90393:
 
     def check_status(self, byte: int, command: str) -> mlx.Status:
         """Decode a status byte; raise `ChipRefusedError` when ERROR is set."""
-        status = mlx.Status(byte)
+        status = mlx.status_of(byte)
         if status.error:
             raise ChipRefusedError(self.address, f"{command} refused, status {status}", status,
                                    command.split()[0])
@@ -202,7 +201,9 @@ class MLX90393:
         if not 0 <= reg <= mlx.REG_MAX:
             raise ValueError(f"register address 0x{reg:02X} is out of range 0x00-0x{mlx.REG_MAX:02X}")
         reply = self.transfer(bytes([mlx.CMD_RR, reg << 2]), 3)
-        status = self.check_status(reply[0], f"RR 0x{reg:02X}")
+        status = mlx.status_of(reply[0])
+        if status.error:  # raises, naming the register (a name built only then)
+            self.check_status(reply[0], f"RR 0x{reg:02X}")
         if status.data_bytes != 2:
             raise ChipProtocolError(self.address, f"RR expects 2 data bytes, status says {status.data_bytes}")
         return (reply[1] << 8) | reply[2]
@@ -260,7 +261,15 @@ class MLX90393:
         if self.settings is None:
             raise ChipProtocolError(self.address, "not configured")
         current = self.read_configuration()
-        return current == self.settings.to_registers(current)
+        return current == _expected_registers(
+            self.settings, current[mlx.REG_CONF1], current[mlx.REG_CONF2], current[mlx.REG_CONF3])
+
+
+@functools.lru_cache(maxsize=64)
+def _expected_registers(settings: mlx.Settings, conf1: int, conf2: int, conf3: int) -> dict[int, int]:
+    """What CONF1..CONF3 must hold for ``settings``, other bits as read: the same few
+    words every read-back, worked out once (do not change the dict returned)."""
+    return settings.to_registers({mlx.REG_CONF1: conf1, mlx.REG_CONF2: conf2, mlx.REG_CONF3: conf3})
 
 
 def _rm_reply_len(zyxt: int) -> int:
@@ -272,86 +281,3 @@ def bus_error(address: int, command: bytes, exc: OSError) -> ChipNotRespondingEr
     """The error of ``command`` to ``address`` failing on the bus with ``exc`` (a NACK, an I/O error)."""
     name = mlx.COMMAND_NAMES.get(command[0] & 0xF0, f"0x{command[0]:02X}")
     return ChipNotRespondingError(address, f"{name} failed on the bus: {exc.strerror or exc}", exc.errno)
-
-
-#: Every status byte's `mlx.Status`, made once: it is frozen, so sharing is safe and a
-#: cycle builds none.
-_STATUS = tuple(mlx.Status(b) for b in range(256))
-
-
-class BlockDecoder:
-    """RM replies of many chips decoded together: one numpy pass over an (n, L) block.
-
-    Built for one list of chips and one zyxt; per chip and axis the word's coding
-    and tesla per count are fixed by `MLX90393.configure`, so the decoder holds them
-    as arrays and is valid while every chip keeps the settings it was built with
-    (`valid_for`). A reply whose status byte has ERROR set, or whose D1:D0 does not
-    announce the words asked for, is left to `MLX90393.decode_measurement` (the
-    same error, raised the same way); the rest need no per-chip decoding.
-    """
-
-    def __init__(self, chips: list[MLX90393], zyxt: int):
-        self.chips, self.zyxt = chips, zyxt
-        self.items = mlx.zyxt_items(zyxt)
-        self.reply_len = 1 + 2 * len(self.items)
-        self.settings = [c.settings for c in chips]
-        self.changes = MLX90393.settings_changes
-        if any(s is None for s in self.settings):
-            raise ChipProtocolError(chips[0].address, "a block decoder built before configure()")
-        n = len(chips)
-        self.columns = [self.items.index(a) for a in "xyz" if a in self.items]
-        self.axes = [i for i, a in enumerate("xyz") if a in self.items]
-        self.t_column = self.items.index("t") if "t" in self.items else None
-        # D1:D0 as it must read for these items: 2 * D + 2 data bytes (`Status.data_bytes`).
-        self.d_expected = len(self.items) - 1
-        fmts = [[c._decoding[a][0] for a in self.axes] for c in chips]
-        self.signed = np.array([[f.signed for f in row] for row in fmts], dtype=bool).reshape(n, -1)
-        self.zero = np.array([[f.zero for f in row] for row in fmts], dtype=np.int32).reshape(n, -1)
-        self.span = np.array([[f.span for f in row] for row in fmts], dtype=np.int32).reshape(n, -1)
-        self.scale = np.array([[c._decoding[a][1] for a in self.axes] for c in chips]).reshape(n, -1)
-
-    def valid_for(self, chips: list[MLX90393]) -> bool:
-        """True while ``chips`` are the ones built for, with the same settings."""
-        if self.changes == MLX90393.settings_changes and chips == self.chips:
-            return True  # no chip's settings changed since: no need to ask each
-        valid = len(chips) == len(self.chips) and all(
-            c is d and c.settings is s for c, d, s in zip(chips, self.chips, self.settings))
-        if valid:
-            self.changes = MLX90393.settings_changes
-        return valid
-
-    def decode(self, block: np.ndarray) -> list[Measurement | ChipError]:
-        """Per chip, in order: its `Measurement`, or the `ChipError` its reply gives.
-
-        ``block`` (n, L) uint8: each row one chip's reply, status byte first.
-        """
-        status = block[:, 0]
-        bad = ((status & mlx.STATUS_ERROR) != 0) | ((status & mlx.STATUS_D_MASK) != self.d_expected)
-        words = (block[:, 1::2].astype(np.int32) << 8) | block[:, 2::2]
-        n = len(self.chips)
-        field = np.full((n, 3), np.nan)
-        saturated = np.zeros((n, 3), dtype=bool)
-        if self.columns:
-            w = words[:, self.columns]
-            counts = np.where(self.signed, w - ((w & 0x8000) << 1), w - self.zero)
-            value = counts * self.scale
-            field[:, self.axes] = value
-            saturated[:, self.axes] = (np.abs(counts) >= self.span) | (np.abs(value) >= mlx.HALL_SATURATION_FLAG_T)
-        sat_any = cast("list[bool]", saturated.any(axis=1).tolist())
-        rows = cast("list[list[int]]", words.tolist())
-        statuses = status.tolist()
-        bad_rows = cast("list[bool]", bad.tolist())
-        items, t_column, status_of = self.items, self.t_column, _STATUS.__getitem__
-        out: list[Measurement | ChipError] = []
-        for i, chip in enumerate(self.chips):
-            if bad_rows[i]:
-                try:  # the per-chip decoder raises the error it always raised
-                    out.append(chip.decode_measurement(bytes(block[i]), self.zyxt))
-                except ChipError as exc:
-                    out.append(exc)
-                continue
-            row = rows[i]
-            temp = None if t_column is None else mlx.raw_to_celsius(row[t_column], chip.tref)
-            out.append(Measurement(status_of(statuses[i]), field[i], saturated[i], temp, dict(zip(items, row)),
-                                   sat_any[i]))
-        return out

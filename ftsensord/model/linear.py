@@ -168,46 +168,80 @@ class LinearModel:
         |S| - 6 (- 3) degrees of freedom. Beside it, for each chip in use, the same
         squared norm with that chip left out: the chip whose leaving drops it most is the
         one that disagrees with the others. Needs H.
+
+        One product a sample (`ConsistencyMaps`, built once for these chips and noise).
         """
         if self.H is None:
             raise ValueError("this calibration has no flux model H: no redundancy to check")
         chips = np.asarray(chips, dtype=bool)
-        x = (b - self.zero) / sigma
-        chi2, xi = self._residual(x, sigma, chips, twist=True)
-        without = np.full(len(chips), np.inf)
-        for c in np.flatnonzero(chips):
-            rest = chips.copy()
-            rest[c] = False
-            without[c] = self._residual(x, sigma, rest)[0]
-        return Consistency(chi2, self._dof(chips), self.K @ xi, without, self._dof(chips) - 3)
+        key = b"c" + chips.tobytes() + sigma.tobytes()
+        maps = self._subsets.get(key)
+        if maps is None:
+            maps = self._subsets[key] = ConsistencyMaps(
+                self.H if self.room is None else np.hstack([self.H, self.room]), self.K, sigma, chips)
+        return maps.apply(b - self.zero)
 
-    def _dof(self, chips: np.ndarray) -> int:
-        return 3 * int(np.count_nonzero(chips)) - 6 - (0 if self.room is None else self.room.shape[1])
 
-    def _residual(self, x: np.ndarray, sigma: np.ndarray, chips: np.ndarray,
-                  twist: bool = False) -> tuple[float, np.ndarray]:
-        """Squared whitened residual over ``chips`` (inf where they do not see all six
-        axes, or none is left over), and the least-squares twist (m, rad) if asked."""
-        channels = np.repeat(chips, 3)
-        key = b"c" + channels.tobytes() + sigma.tobytes()
-        cached = self._subsets.get(key)
-        if cached is None:
-            H = self.H
-            assert H is not None  # consistency() checked
-            H_S = (H if self.room is None else np.hstack([H, self.room]))[channels]
-            WH = H_S / sigma[channels, None]
-            if self._dof(chips) <= 0 or np.linalg.matrix_rank(WH) < WH.shape[1]:
-                cached = np.zeros((0, 0))
-            else:
-                pinv = np.linalg.pinv(WH)
-                cached = np.vstack([np.eye(len(WH)) - WH @ pinv, pinv[:6]])
-            self._subsets[key] = cached
-        if cached.size == 0:
-            return np.inf, np.full(6, np.nan)
-        n = int(np.count_nonzero(channels))
-        xs = x[channels]
-        r = cached[:n] @ xs
-        return float(r @ r), (cached[n:] @ xs if twist else np.zeros(6))
+class ConsistencyMaps:
+    """`LinearModel.consistency`'s sums for one set of chips and channel noise, folded into
+    one matrix at build so that a sample costs one (2 |S| + 6) x |S| product.
+
+    With A = W_S H_S (whitened, room columns included), the residual is r = P x with the
+    projector P = I - A pinv(A), x = W_S (b_S - b0_S), and leaving chip c (channels c) out
+    lowers |r|^2 by r_c^T (P_cc)^-1 r_c (the deletion identity of least squares, exact when
+    the rest still see every column of A: P_cc is then invertible). So the rows are P,
+    K pinv(A)[:6] (the wrench) and G P, G block-diagonal of the (P_cc)^-1; the whitening
+    1/sigma is folded into the columns.
+    """
+
+    def __init__(self, H: np.ndarray, K: np.ndarray, sigma: np.ndarray, chips: np.ndarray):
+        n_chips, unknowns = len(chips), H.shape[1]
+        self.channels = np.repeat(chips, 3)
+        self.all = bool(chips.all())
+        self.used = np.flatnonzero(chips)
+        self.dof = 3 * len(self.used) - unknowns
+        self.dof_without = self.dof - 3
+        self.n = 3 * len(self.used)
+        self.none_left = np.full(n_chips, np.inf)
+        A = H[self.channels] / sigma[self.channels, None]
+        self.maps: np.ndarray | None = None
+        if self.dof <= 0 or np.linalg.matrix_rank(A) < unknowns:
+            return  # too few chips, or they do not see every axis: nothing to test
+        pinv = np.linalg.pinv(A)
+        P = np.eye(self.n) - A @ pinv
+        G = np.zeros((self.n, self.n))
+        can_leave = np.zeros(len(self.used), dtype=bool)
+        for k in range(len(self.used)):
+            part = slice(3 * k, 3 * k + 3)
+            rest = np.ones(self.n, dtype=bool)
+            rest[part] = False
+            # The same rank test the chips as a whole pass: the rest must still see every column.
+            if self.dof_without > 0 and np.linalg.matrix_rank(A[rest]) == unknowns:
+                G[part, part] = np.linalg.inv(P[part, part])
+                can_leave[k] = True
+        self.stays = np.ones(n_chips, dtype=bool)  # not in use, or the rest would not see every column
+        self.stays[self.used[can_leave]] = False
+        self.maps = np.vstack([P, K @ pinv[:6], G @ P]) / sigma[self.channels]
+
+    def apply(self, d: np.ndarray) -> Consistency:
+        """The check of one sample from its flux minus the zero ``d`` (T, every channel)."""
+        if self.maps is None:
+            return Consistency(np.inf, self.dof, np.full(6, np.nan), self.none_left.copy(), self.dof_without,
+                               np.zeros(len(self.none_left)))
+        n = self.n
+        y = self.maps @ (d if self.all else d[self.channels])
+        r = y[:n]
+        chi2 = float(r @ r)
+        # G's rows are 0 for a chip that cannot be left out: its drop is 0.
+        drops = (r * y[n + 6:]).reshape(-1, 3).sum(axis=1)
+        if self.all:
+            drop = drops
+        else:
+            drop = np.zeros(len(self.none_left))
+            drop[self.used] = drops
+        without = chi2 - drop
+        without[self.stays] = np.inf
+        return Consistency(chi2, self.dof, y[n:n + 6], without, self.dof_without, drop)
 
 
 @dataclass(frozen=True)
@@ -217,7 +251,8 @@ class Consistency:
     ``chi2``: the squared whitened residual over the chips used, ``dof`` its degrees
     of freedom; ``wrench`` K xi_hat (N, Nm) from the same weighted fit; ``chi2_without``
     (one per chip): the same with that chip left out (inf for a chip not in use or
-    when the rest do not see all six axes), ``dof_without`` its degrees of freedom.
+    when the rest do not see all six axes), ``dof_without`` its degrees of freedom;
+    ``drop`` (one per chip) chi2 minus chi2_without, 0 where the chip cannot be left out.
     """
 
     chi2: float
@@ -225,6 +260,7 @@ class Consistency:
     wrench: np.ndarray
     chi2_without: np.ndarray
     dof_without: int
+    drop: np.ndarray
 
     def culprit(self) -> int:
         """The chip whose leaving lowers the residual most (its index in the sensor)."""

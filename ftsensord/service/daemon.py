@@ -33,7 +33,7 @@ from .frames import TIP
 from .gravity import Gravity
 from .loop import LoopTiming, serve_until
 from .orientation import OrientationReceiver
-from .pipeline import SensorPipeline, tip_wrench, use_estimator
+from .pipeline import SensorPipeline, SensorSample, tip_wrench, use_estimator
 from .sdnotify import Notifier
 from .status import ChipLedger, status_line, status_reply
 from .tare import Tares, carry_tares
@@ -143,13 +143,14 @@ class Daemon:
         for r in results.values():
             self.chips.count(r)
         self.orientations.drain(start)
-        samples = {p.name: p.step(results, wire.FLAG_LATE if late else 0) for p in self.sensors}
-        for name, s in samples.items():
+        samples: dict[str, SensorSample] = {}
+        for p in self.sensors:
+            s = samples[p.name] = p.step(results, wire.FLAG_LATE if late else 0)
             if s.valid:
-                flags, gravity = self.gravity.tare_input(name, start) if self.gravity else (0, None)
-                self.tares.feed(name, s.flux, s.flags | flags, gravity)
-            # Wrenches first: a haptic loop waits for them; the flux streams are for debugging.
-            self._publish(f"wrench/{name}", wire.KIND_WRENCH, seq, t_mono, t_wall, s.flags, s.wrench)
+                flags, gravity = self.gravity.tare_input(p.name, start) if self.gravity else (0, None)
+                self.tares.feed(p.name, s.flux, s.flags | flags, gravity)
+            # Each wrench as soon as it is known: a haptic loop waits for it; flux is for debugging.
+            self._publish(f"wrench/{p.name}", wire.KIND_WRENCH, seq, t_mono, t_wall, s.flags, s.wrench)
         tip = tip_wrench(samples, self.config.tool_poses) if self.config.tool_poses else None
         if tip is not None:
             self._publish("wrench/tip", wire.KIND_WRENCH, seq, t_mono, t_wall, tip[1], tip[0])

@@ -53,13 +53,14 @@ class WrenchFilter:
     def update(self, w: np.ndarray, flags: int = 0) -> tuple[np.ndarray, int]:
         """The filtered wrench and its flags: ``flags`` (this input's) and those of the
         inputs it still contains."""
-        if not np.all(np.isfinite(w)):
+        if not np.isfinite(w).all():
             self.reset()
             return w, flags
         self._window.append(w)
         self._flags.append(flags & ~NOT_CARRIED)
         x = w if self.averaging == 1 else np.mean(self._window, axis=0)
-        self._y = x if self._y is None else self._y + self.alpha * (x - self._y)
+        # No low-pass (alpha 1) keeps nothing of the past: the output is x itself, not y + (x - y).
+        self._y = x if self._y is None or self.alpha >= 1.0 else self._y + self.alpha * (x - self._y)
         carried = 0
         for f in self._flags:
             carried |= f

@@ -10,6 +10,8 @@ missing), a saturated chip its reading (flagged, not used).
 
 from __future__ import annotations
 
+import functools
+import math
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -109,7 +111,7 @@ class SensorPipeline:
               settings: mlx.Settings | None = None) -> SensorPipeline:
         nl = s.calibration.nonlinear
         sigma_t = channel_sigma_t(settings or mlx.Settings(), len(s.addresses))
-        if s.calibration.model.H is not None:  # the check's 9 projections (1.4 ms) now, not in a cycle
+        if s.calibration.model.H is not None:  # the check's maps (ms) built now, not in a cycle
             s.calibration.model.consistency(s.calibration.model.zero, sigma_t, np.ones(len(s.addresses), bool))
         return cls(s, s.calibration.model, smoothing, max_missing_chips, np.full(3 * len(s.addresses), np.nan),
                    estimator=s.estimator, nonlinear=nl.estimator() if nl is not None else None,
@@ -126,7 +128,7 @@ class SensorPipeline:
         flags |= base_flags
         wrench, wflags = self.estimate(flux, flags, usable)
         valid = not wflags & wire.FLAG_INVALID
-        if valid and np.any(np.abs(wrench) > SENSOR_RANGE):
+        if valid and (np.abs(wrench) > SENSOR_RANGE).any():
             wflags |= wire.FLAG_OVERLOAD
         filtered, wflags = self.filter.update(wrench, wflags)  # a filtered wrench carries its inputs' flags
         return SensorSample(flux, flags, filtered, wflags, valid)
@@ -138,7 +140,7 @@ class SensorPipeline:
         if all(m is not None and not m.any_saturated for m in ms):  # the usual cycle: one stack, no loop
             flux = np.concatenate([m.field_t for m in ms])  # type: ignore[union-attr]
             self.last_flux[:] = flux
-            return flux, 0, np.ones(len(ms), dtype=bool)
+            return flux, 0, _every_chip(len(ms))
         flux = np.full(3 * len(self.config.addresses), np.nan)
         usable = np.zeros(len(self.config.addresses), dtype=bool)
         flags = 0
@@ -165,7 +167,8 @@ class SensorPipeline:
         else NaN, flagged invalid."""
         usable, checked = self.check.chips(self, flux, usable)
         flags |= checked
-        few_missing = (~usable).sum() <= self.max_missing_chips
+        missing = len(usable) - int(np.count_nonzero(usable))
+        few_missing = missing <= self.max_missing_chips
         if self.estimator == "nonlinear" and self.nonlinear is not None and self.zero_twist is not None:
             if few_missing:
                 t0 = time.process_time()
@@ -176,7 +179,7 @@ class SensorPipeline:
                     return w, flags | (0 if usable.all() else wire.FLAG_DEGRADED)
             self.fallbacks += 1
             flags |= wire.FLAG_FALLBACK
-        if usable.all():
+        if not missing:
             return self._linear(self.model.wrench(flux), flags)
         if few_missing and self.model.H is not None:
             try:
@@ -189,7 +192,7 @@ class SensorPipeline:
         """A linear estimate, flagged `extrapolated` where the load on the sensor (the
         wrench plus what a tare removed) is beyond the calibration's loads."""
         fitted = self.config.calibration.wrench_range
-        if fitted is not None and np.any(np.abs(wrench + self.tare_wrench) > EXTRAPOLATION_MARGIN * fitted):
+        if fitted is not None and (np.abs(wrench + self.tare_wrench) > EXTRAPOLATION_MARGIN * fitted).any():
             flags |= wire.FLAG_EXTRAPOLATED
         return wrench, flags
 
@@ -225,6 +228,14 @@ class SensorPipeline:
         }
 
 
+@functools.lru_cache(maxsize=8)
+def _every_chip(n: int) -> np.ndarray:
+    """``n`` chips all usable (read-only: shared by every cycle that has them all)."""
+    every = np.ones(n, dtype=bool)
+    every.setflags(write=False)
+    return every
+
+
 def use_estimator(pipelines: list[SensorPipeline], estimator: str, sensor: str | None) -> dict[str, str]:
     """Switch ``sensor``'s (None: every) estimator; ValueError where a nonlinear one lacks
     its calibration. Returns each sensor's estimator."""
@@ -243,9 +254,18 @@ def tip_wrench(samples: dict[str, SensorSample], poses: dict[str, np.ndarray]) -
     every sensor's flags: the tip is as good as its worst sensor."""
     tip, flags = np.zeros(6), 0
     for name, T in poses.items():
-        tip += se3.wrench_transform(T) @ samples[name].wrench
+        tip += _moved_from(np.asarray(T, dtype=float).tobytes()) @ samples[name].wrench
         flags |= samples[name].flags
     return tip, flags
+
+
+@functools.lru_cache(maxsize=64)
+def _moved_from(pose: bytes) -> np.ndarray:
+    """The wrench transform from a sensor at ``pose`` in the tip frame (4 x 4 float64 as
+    bytes, m): built once per pose, not every cycle."""
+    X = se3.wrench_transform(np.frombuffer(pose).reshape(4, 4))
+    X.setflags(write=False)  # shared by every cycle
+    return X
 
 
 class RedundancyCheck:
@@ -255,86 +275,97 @@ class RedundancyCheck:
     def __init__(self) -> None:
         self.inconsistent = 0  # samples flagged
         self.suspects: dict[int, int] = {}  # chip index: samples it has agreed since found out
-        self.slow: deque[tuple[np.ndarray, float]] = deque(maxlen=SLOW_WINDOW)
-        self.slow_key = b""  # the chips the drops in `slow` were computed over
+        # The slow test's window: each sample's drops (one row a sample, in turn) and load.
+        self.slow_drops = np.zeros((SLOW_WINDOW, 0))
+        self.slow_loads = [0.0] * SLOW_WINDOW
+        self.slow_count = 0  # samples in the window since it was last cleared
+        self.slow_key = b""  # the chips the drops in the window were computed over
 
     def chips(self, p: SensorPipeline, flux: np.ndarray, usable: np.ndarray) -> tuple[np.ndarray, int]:
         """The chips to estimate from, and `inconsistent` (+ `degraded`) when the usable
         chips' residual is beyond noise and model error: the chip whose leaving explains
         it is left out if the rest then agree, else the sample is flagged as it stands."""
-        if p.model.H is None or p.sigma_t is None or usable.sum() * 3 <= 6 + (
+        n_usable = int(np.count_nonzero(usable))
+        if p.model.H is None or p.sigma_t is None or n_usable * 3 <= 6 + (
                 0 if p.model.room is None else p.model.room.shape[1]):
             return usable, 0  # no flux model or no redundancy left: nothing to check against
         c = p.model.consistency(flux, p.sigma_t, usable)
-        out = usable.copy()
-        for chip in list(self.suspects):
-            if not usable[chip]:
-                continue  # missing or saturated this cycle: no news of it
-            drop = c.chi2 - c.chi2_without[chip]
-            self.suspects[chip] = self.suspects[chip] + 1 if drop <= self._limits(p, c, 1, REJOIN_ODDS)[1] ** 2 else 0
-            if self.suspects[chip] >= REJOIN_SAMPLES:
-                del self.suspects[chip]
-            else:
-                out[chip] = False
-        if not out.all() and out.sum() < usable.sum():
-            if (~out).sum() > p.max_missing_chips:
-                return usable, wire.FLAG_INCONSISTENT  # too many out to estimate without them
-            c = p.model.consistency(flux, p.sigma_t, out)
-        if not np.isfinite(c.chi2):
+        out, n_out = usable, n_usable
+        if self.suspects:
+            out = usable.copy()
+            rejoin = self._limits(p, self._load2(p, c), c.dof, 1, REJOIN_ODDS)[1] ** 2
+            for chip in list(self.suspects):
+                if not usable[chip]:
+                    continue  # missing or saturated this cycle: no news of it
+                drop = c.chi2 - c.chi2_without[chip]
+                self.suspects[chip] = self.suspects[chip] + 1 if drop <= rejoin else 0
+                if self.suspects[chip] >= REJOIN_SAMPLES:
+                    del self.suspects[chip]
+                else:
+                    out[chip] = False
+            n_out = int(np.count_nonzero(out))
+            if n_out < n_usable:
+                if len(out) - n_out > p.max_missing_chips:
+                    return usable, wire.FLAG_INCONSISTENT  # too many out to estimate without them
+                c = p.model.consistency(flux, p.sigma_t, out)
+        if not math.isfinite(c.chi2):
             return out, 0
-        culprit = None if self._agree(p, c, int(out.sum())) else c.culprit()
+        load2 = self._load2(p, c)
+        culprit = None if self._agree(p, c, load2, n_out) else c.culprit()
         if culprit is None:
-            culprit = self._slow_culprit(p, c, out)
+            culprit = self._slow_culprit(c, out, n_out, load2)
         if culprit is None:
-            return out, 0 if out.sum() == usable.sum() else wire.FLAG_INCONSISTENT | wire.FLAG_DEGRADED
+            return out, 0 if n_out == n_usable else wire.FLAG_INCONSISTENT | wire.FLAG_DEGRADED
         self.inconsistent += 1
         rest = out.copy()
         rest[culprit] = False
         if (~rest).sum() <= p.max_missing_chips and np.isfinite(c.chi2_without[culprit]):
             again = p.model.consistency(flux, p.sigma_t, rest)
-            if self._agree(p, again, int(rest.sum())):
+            if self._agree(p, again, self._load2(p, again), n_out - 1):
                 self.suspects[culprit] = 0
                 return rest, wire.FLAG_INCONSISTENT | wire.FLAG_DEGRADED
         return out, wire.FLAG_INCONSISTENT
 
-    def _agree(self, p: SensorPipeline, c: Consistency, chips: int) -> bool:
+    def _agree(self, p: SensorPipeline, c: Consistency, load2: float, chips: int) -> bool:
         """Both tests within their limits. |noise + model| <= |noise| + |model|, so the
         false-alarm odds stay within CONSISTENCY_FALSE_ODDS."""
-        whole, one = self._limits(p, c, chips, CONSISTENCY_FALSE_ODDS)
-        drop = c.chi2 - c.chi2_without  # -inf for a chip not in use or not to be left out
-        return bool(c.chi2 <= whole ** 2 and np.max(drop) <= one ** 2)
+        whole, one = self._limits(p, load2, c.dof, chips, CONSISTENCY_FALSE_ODDS)
+        # The largest drop is chi2 - the smallest chi2 without (inf for a chip not to be left out).
+        return c.chi2 <= whole ** 2 and c.chi2 - float(c.chi2_without.min()) <= one ** 2
 
-    def _slow_culprit(self, p: SensorPipeline, c: Consistency, chips: np.ndarray) -> int | None:
+    def _slow_culprit(self, c: Consistency, chips: np.ndarray, n: int, load2: float) -> int | None:
         """The chip whose drop summed over the last `SLOW_WINDOW` samples (over the same
-        chips) is beyond noise and model error, or None."""
+        ``chips``, ``n`` of them) is beyond noise and model error, or None."""
         key = chips.tobytes()
         if key != self.slow_key:
-            self.slow.clear()
+            self.slow_drops = np.zeros((SLOW_WINDOW, len(chips)))
+            self.slow_count = 0
             self.slow_key = key
-        drop = c.chi2 - c.chi2_without
-        self.slow.append((np.where(np.isfinite(drop), drop, 0.0), self._load2(p, c)))
-        if len(self.slow) < SLOW_WINDOW:
+        turn = self.slow_count % SLOW_WINDOW
+        self.slow_drops[turn] = c.drop
+        self.slow_loads[turn] = load2
+        self.slow_count += 1
+        if self.slow_count < SLOW_WINDOW:
             return None
-        total = np.sum([d for d, _ in self.slow], axis=0)
-        s2 = max(s for _, s in self.slow)
-        n = int(chips.sum())
-        limit = np.sqrt(chi2_quantile(3 * SLOW_WINDOW, CONSISTENCY_FALSE_ODDS / (4 * n))) \
-            + np.sqrt(SLOW_WINDOW) * (CHIP_RESIDUAL_AT_REST + CHIP_RESIDUAL_AT_RANGE * s2)
-        if np.max(total) <= limit ** 2:
+        total = self.slow_drops.sum(axis=0)
+        s2 = max(self.slow_loads)
+        limit = math.sqrt(chi2_quantile(3 * SLOW_WINDOW, CONSISTENCY_FALSE_ODDS / (4 * n))) \
+            + math.sqrt(SLOW_WINDOW) * (CHIP_RESIDUAL_AT_REST + CHIP_RESIDUAL_AT_RANGE * s2)
+        if float(total.max()) <= limit ** 2:
             return None
-        self.slow.clear()
+        self.slow_count = 0
         return int(np.argmax(total))
 
     def _load2(self, p: SensorPipeline, c: Consistency) -> float:
         """The load's square, as a fraction of the calibration's largest (largest over the axes)."""
         fitted = p.config.calibration.wrench_range
-        return float(np.max(np.abs(c.wrench + p.tare_wrench) / (fitted if fitted is not None else SENSOR_RANGE)) ** 2)
+        return float((np.abs(c.wrench + p.tare_wrench) / (fitted if fitted is not None else SENSOR_RANGE)).max()) ** 2
 
-    def _limits(self, p: SensorPipeline, c: Consistency, chips: int, odds: float) -> tuple[float, float]:
-        """The limits (whitened norms) of the whole residual and of one chip's drop: the
-        noise's at ``odds`` (half to the whole, a quarter to one chip's, split among
-        ``chips``; the last quarter is the slow test's) plus the model's own error at this load."""
-        s2 = self._load2(p, c)
-        whole = np.sqrt(chi2_quantile(c.dof, odds / 2)) + MODEL_RESIDUAL_AT_REST + MODEL_RESIDUAL_AT_RANGE * s2
-        one = np.sqrt(chi2_quantile(3, odds / (4 * chips))) + CHIP_RESIDUAL_AT_REST + CHIP_RESIDUAL_AT_RANGE * s2
-        return float(whole), float(one)
+    def _limits(self, p: SensorPipeline, load2: float, dof: int, chips: int, odds: float) -> tuple[float, float]:
+        """The limits (whitened norms) of the whole residual (``dof``) and of one chip's
+        drop at the load ``load2`` (`_load2`): the noise's at ``odds`` (half to the whole,
+        a quarter to one chip's, split among ``chips``; the last quarter is the slow
+        test's) plus the model's own error at this load."""
+        whole = math.sqrt(chi2_quantile(dof, odds / 2)) + MODEL_RESIDUAL_AT_REST + MODEL_RESIDUAL_AT_RANGE * load2
+        one = math.sqrt(chi2_quantile(3, odds / (4 * chips))) + CHIP_RESIDUAL_AT_REST + CHIP_RESIDUAL_AT_RANGE * load2
+        return whole, one

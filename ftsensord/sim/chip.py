@@ -14,6 +14,7 @@ says so in a comment.
 from __future__ import annotations
 
 import enum
+import functools
 import math
 from dataclasses import dataclass
 from typing import Protocol
@@ -186,8 +187,8 @@ class EmulatedMLX90393(RegisterCommands):
         self._stuck_words: dict[str, int] | None = None
 
     def settings(self) -> mlx.Settings:
-        return mlx.Settings.from_registers({r: self.registers[r] for r in
-                                            (mlx.REG_CONF1, mlx.REG_CONF2, mlx.REG_CONF3)})
+        return _settings_of(self.registers[mlx.REG_CONF1], self.registers[mlx.REG_CONF2],
+                            self.registers[mlx.REG_CONF3])
 
     def acks(self, now: float, reading: bool = False) -> bool:
         """Whether the chip acknowledges its address.
@@ -258,9 +259,7 @@ class EmulatedMLX90393(RegisterCommands):
         # is undefined, and refusing shows the missing configure at once).
         if self.mode is not Mode.IDLE or not items or len(data) != 1:
             return self._status(error=True)
-        try:
-            s.validate()
-        except ValueError:
+        if not _permitted(s):
             return self._status(error=True)
         self.mode = _MODE_OF_OPCODE[opcode]
         zyxt_eff = mlx.items_zyxt(items)
@@ -304,14 +303,13 @@ class EmulatedMLX90393(RegisterCommands):
         field = self.field_override if self.field_override is not None else np.asarray(
             self.scene.field_t(self.address, t), dtype=float)
         words: dict[str, int] = {}
-        for i, axis in enumerate("xyz"):
+        for i, (axis, sigma, sensitivity, fmt) in enumerate(_axes(s, self.noise)):
             # The Hall element saturates near 50 mT whatever the gain.
-            b_ut = float(np.clip(field[i], -mlx.HALL_SATURATION_T, mlx.HALL_SATURATION_T)) * 1e6
-            sigma = self.noise.sigma_ut(axis, s.tconvm_us())
+            b_ut = min(max(float(field[i]), -mlx.HALL_SATURATION_T), mlx.HALL_SATURATION_T) * 1e6
             if sigma > 0:
                 b_ut += self.rng.normal(0.0, sigma)
-            counts = round(b_ut / s.sensitivity_ut(axis))
-            words[axis] = mlx.counts_to_raw(counts, s.raw_format(axis))
+            counts = round(b_ut / sensitivity)
+            words[axis] = mlx.counts_to_raw(counts, fmt)
         temp = self.scene.temperature_c(self.address, t)
         if self.noise.temperature_sigma_c > 0:
             temp += self.rng.normal(0.0, self.noise.temperature_sigma_c)
@@ -333,3 +331,27 @@ class EmulatedMLX90393(RegisterCommands):
             self.mode, self._conv_first, self._conv_interval = Mode.BURST, first, interval
         self.busy_until = now + mlx.T_AFTER_RT_US * 1e-6
         return self._status(rs=True)
+
+
+@functools.lru_cache(maxsize=256)
+def _settings_of(conf1: int, conf2: int, conf3: int) -> mlx.Settings:
+    """The settings CONF1..CONF3 hold: parsed once per register words (the emulator asks
+    at every conversion, and its CPU is spent inside the simulated transfers)."""
+    return mlx.Settings.from_registers({mlx.REG_CONF1: conf1, mlx.REG_CONF2: conf2, mlx.REG_CONF3: conf3})
+
+
+@functools.lru_cache(maxsize=256)
+def _permitted(settings: mlx.Settings) -> bool:
+    """Whether the datasheet permits ``settings`` (`mlx.Settings.validate`)."""
+    try:
+        settings.validate()
+    except ValueError:
+        return False
+    return True
+
+
+@functools.lru_cache(maxsize=256)
+def _axes(settings: mlx.Settings, noise: NoiseModel) -> tuple[tuple[str, float, float, mlx.RawFormat], ...]:
+    """Per axis X, Y, Z at ``settings``: its noise (uT), uT per count and word coding."""
+    return tuple((a, noise.sigma_ut(a, settings.tconvm_us()), settings.sensitivity_ut(a), settings.raw_format(a))
+                 for a in "xyz")

@@ -210,14 +210,16 @@ class PhysicalScene:
         s, i = self._chip_of[address]
         sensor = self.sensors[s]
         t = math.floor(t / self.time_step_s) * self.time_step_s
-        xi = sensor.deflection(sensor.wrench(t))
+        w = np.asarray(sensor.wrench(t), dtype=float)
         scale = 1.0 + NDFEB_BR_TEMPCO_PER_K * (self.temperature_c(address, t) - 25.0)
         # The room's field in {0}: only the turning sensor makes it change (and a field-free
         # room needs no orientation at all: the common case stays as cheap as before).
         room = (sensor.orientation.rotation(t).T @ self.external_field_t if self._room_on else _NO_FIELD)
-        key = np.concatenate([xi, [scale], room]).tobytes()
+        # Keyed on the load, not the deflection: the deflection (a solve) only when it changed.
+        key = np.concatenate([w, [scale], room]).tobytes()
         cached = self._cache.get(s)
         if cached is None or cached[0] != key:
+            xi = sensor.deflection(w)
             # One vectorised evaluation serves every chip of the sensor read in this step.
             fields = self.chip_fields(sensor.geometry, se3.exp_se3(xi), magnet_scale=scale,
                                       room_t=room if self._room_on else None)

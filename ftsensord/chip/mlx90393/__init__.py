@@ -98,7 +98,9 @@ from .protocol import (  # noqa: F401
     axis_count,
     d_for_items,
     items_zyxt,
+    STATUSES,
     part_variant,
+    status_of,
     zyxt_items,
 )
 from .settings import (  # noqa: F401

@@ -33,13 +33,15 @@ ZYXT_XYZT = ZYXT_XYZ | ZYXT_T
 #: Order in which RM returns the selected items (and the chip converts them).
 ITEM_ORDER = ("t", "x", "y", "z")
 _ITEM_BIT = {"t": ZYXT_T, "x": ZYXT_X, "y": ZYXT_Y, "z": ZYXT_Z}
+#: Each nibble's items, worked out once: every command of every cycle asks.
+_ITEMS = tuple(tuple(item for item in ITEM_ORDER if zyxt & _ITEM_BIT[item]) for zyxt in range(16))
 
 
 def zyxt_items(zyxt: int) -> tuple[str, ...]:
     """The items a zyxt nibble selects, in the order RM returns them (T, X, Y, Z)."""
     if not 0 <= zyxt <= 0xF:
         raise ValueError(f"zyxt must be a 4-bit nibble, got {zyxt!r}")
-    return tuple(item for item in ITEM_ORDER if zyxt & _ITEM_BIT[item])
+    return _ITEMS[zyxt]
 
 
 def items_zyxt(items: tuple[str, ...]) -> int:
@@ -110,6 +112,16 @@ class Status:
             ("SM_MODE", self.sm_mode), ("ERROR", self.error), ("SED", self.sed),
             ("RS", self.rs)) if on]
         return f"0x{self.byte:02X} [{' '.join(flags) or 'idle'} D={self.d}]"
+
+
+#: Every status byte's `Status`, made once: it is frozen, so sharing is safe and a cycle
+#: builds none.
+STATUSES = tuple(Status(b) for b in range(256))
+
+
+def status_of(byte: int) -> Status:
+    """The `Status` of ``byte`` (0-255), from `STATUSES`."""
+    return STATUSES[byte]
 
 
 def d_for_items(n_items: int) -> int:
