@@ -100,7 +100,13 @@ def client(endpoint: str, seconds: float, seed: int, count: int, mode: str, out:
     ctx.term()
 
 
-def run(mode: str, seconds: float, clients: int, count: int, nice: int = 0) -> dict:
+def cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) a process has used so far."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def run(mode: str, seconds: float, clients: int, count: int, nice: int = 0, fifo: int = 0) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         tmp_path = Path(tmp)
         notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
@@ -111,7 +117,9 @@ def run(mode: str, seconds: float, clients: int, count: int, nice: int = 0) -> d
         env = {**os.environ, "XDG_RUNTIME_DIR": tmp, "NOTIFY_SOCKET": str(tmp_path / "notify"),
                "WATCHDOG_USEC": str(WATCHDOG_USEC)}
         env.pop("RUNTIME_DIRECTORY", None)
-        proc = subprocess.Popen([sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=env,
+        # fifo: the daemon under SCHED_FIFO at that priority, as the unit's CPUSchedulingPolicy=fifo would run it.
+        prefix = ["chrt", "-f", str(fifo)] if fifo else []
+        proc = subprocess.Popen([*prefix, sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=env,
                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         folder = tmp_path / "ftsensord"
         for _ in range(200):
@@ -143,9 +151,10 @@ def run(mode: str, seconds: float, clients: int, count: int, nice: int = 0) -> d
         pings.clear()
         out: mp.Queue = mp.Queue()
         per_client = count // clients if count else 0
-        procs = [mp.Process(target=client, args=(f"ipc://{folder / 'control'}", seconds, i, per_client, mode, out, nice))
+        endpoint = f"ipc://{folder / 'control'}"
+        procs = [mp.Process(target=client, args=(endpoint, seconds, i, per_client, mode, out, nice))
                  for i in range(clients)]
-        t0 = time.monotonic()
+        t0, daemon_cpu0, children0, load0 = time.monotonic(), cpu_s(proc.pid), os.times(), os.getloadavg()[0]
         for p in procs:
             p.start()
         while time.monotonic() < t0 + seconds and (not procs or any(p.is_alive() for p in procs)):
@@ -155,6 +164,11 @@ def run(mode: str, seconds: float, clients: int, count: int, nice: int = 0) -> d
             p.join()
         elapsed = time.monotonic() - t0
         alive = proc.poll() is None
+        daemon_cpu = cpu_s(proc.pid) - daemon_cpu0 if alive else float("nan")
+        children = os.times()  # the clients, joined: what they took from the daemon's two cores
+        clients_cpu = children.children_user + children.children_system - children0.children_user \
+            - children0.children_system
+        load1 = os.getloadavg()[0]
         proc.send_signal(signal.SIGTERM)
         exit_code = proc.wait(timeout=10)
         sub.close(linger=0)
@@ -163,7 +177,9 @@ def run(mode: str, seconds: float, clients: int, count: int, nice: int = 0) -> d
     jumps = int(sum(np.diff(seqs) - 1)) if len(seqs) > 1 else 0
     gaps = np.diff([t0, *pings, t0 + elapsed])
     return {
-        "mode": mode, "clients": clients, "client_nice": nice, "seconds": round(elapsed, 2), "alive": alive, "exit": exit_code,
+        "mode": mode, "clients": clients, "client_nice": nice, "daemon_fifo": fifo, "seconds": round(elapsed, 2),
+        "alive": alive, "exit": exit_code, "load_average_1min": [round(load0, 2), round(load1, 2)],
+        "cpu_share_daemon": round(daemon_cpu / elapsed, 3), "cpu_share_clients": round(clients_cpu / elapsed, 3),
         "samples": len(seqs), "rate_hz": round(len(seqs) / elapsed, 2),
         "rate_share": round((seqs[-1] - seqs[0] + 1 and len(seqs) / (seqs[-1] - seqs[0] + 1)) if seqs else 0, 4),
         "skipped_cycles": jumps, "watchdog_pings": len(pings), "max_ping_gap_s": round(float(gaps.max()), 3),
@@ -180,8 +196,10 @@ def main() -> None:
     parser.add_argument("--clients", type=int, default=4)
     parser.add_argument("--count", type=int, default=0, help="messages in all (0: as many as fit the time)")
     parser.add_argument("--nice", type=int, default=0, help="the clients' niceness (0: the daemon's)")
+    parser.add_argument("--fifo", type=int, default=0,
+                        help="run the daemon SCHED_FIFO at this priority (0: not; the unit's commented 50)")
     args = parser.parse_args()
-    print(json.dumps(run(args.mode, args.seconds, args.clients, args.count, args.nice), indent=1))
+    print(json.dumps(run(args.mode, args.seconds, args.clients, args.count, args.nice, args.fifo), indent=1))
 
 
 if __name__ == "__main__":
