@@ -206,7 +206,7 @@ def main() -> None:
     parser.add_argument("--count", type=int, default=0, help="messages in all (0: as many as fit the time)")
     parser.add_argument("--nice", type=int, default=0, help="the clients' niceness (0: the daemon's)")
     parser.add_argument("--fifo", type=int, default=0,
-                        help="run the daemon SCHED_FIFO at this priority (0: not; the unit's commented 50)")
+                        help="run the daemon SCHED_FIFO at this priority (0: not; the unit sets 50)")
     parser.add_argument("--daemon-nice", type=int, default=0, help="run the daemon at this niceness (0: not)")
     args = parser.parse_args()
     print(json.dumps(run(args.mode, args.seconds, args.clients, args.count, args.nice, args.fifo, args.daemon_nice),
