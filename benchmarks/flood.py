@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 import zmq
 
+from ftsensord.client import ControlClient
 from ftsensord.service import wire
 from ftsensord.service.config import builtin_path
 from ftsensord.service.control import MAX_REQUEST
@@ -52,8 +53,9 @@ def hostile(rng: np.random.Generator) -> bytes:
     if kind == 3:
         depth = int(rng.integers(9, 10_000))  # 6 bytes a level: under the 64 KiB limit
         return ('{"cmd":"status","x":' + '{"a":' * depth + "1" + "}" * depth + "}").encode()
-    if kind == 4:
-        return ('{"cmd":"set","rate_hz":1.' + "5" * int(rng.integers(101, 30_000)) + "}").encode()
+    if kind == 4:  # a long float the rate's range refuses: a valid one (1.555...) would really set the
+        # rate, a change that is a controller's to make (it slowed the loop to 1.56 Hz), not a flood's
+        return ('{"cmd":"set","rate_hz":0.' + "0" * int(rng.integers(101, 30_000)) + "1}").encode()
     junk = [None, True, -1, 1e308, "x", [], {}, [1, [2]], {"a": {"b": 1}}, 10**30, float("nan")]
     request: dict = {"cmd": COMMANDS[int(rng.integers(len(COMMANDS)))]}
     for _ in range(int(rng.integers(1, 4))):  # at least one argument: no real reload or tare
@@ -100,7 +102,14 @@ def client(endpoint: str, seconds: float, seed: int, count: int, mode: str, out:
     ctx.term()
 
 
-def run(mode: str, seconds: float, clients: int, count: int, nice: int = 0) -> dict:
+def cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) a process has used so far."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def run(mode: str, seconds: float, clients: int, count: int, nice: int = 0, fifo: int = 0,
+        daemon_nice: int = 0) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         tmp_path = Path(tmp)
         notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
@@ -111,7 +120,10 @@ def run(mode: str, seconds: float, clients: int, count: int, nice: int = 0) -> d
         env = {**os.environ, "XDG_RUNTIME_DIR": tmp, "NOTIFY_SOCKET": str(tmp_path / "notify"),
                "WATCHDOG_USEC": str(WATCHDOG_USEC)}
         env.pop("RUNTIME_DIRECTORY", None)
-        proc = subprocess.Popen([sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=env,
+        # The daemon's priority as the unit's CPUSchedulingPolicy=fifo (fifo) or Nice= (daemon_nice) would set it.
+        prefix = (["chrt", "-f", str(fifo)] if fifo else []) \
+            + (["nice", "-n", str(daemon_nice)] if daemon_nice else [])
+        proc = subprocess.Popen([*prefix, sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=env,
                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         folder = tmp_path / "ftsensord"
         for _ in range(200):
@@ -143,9 +155,10 @@ def run(mode: str, seconds: float, clients: int, count: int, nice: int = 0) -> d
         pings.clear()
         out: mp.Queue = mp.Queue()
         per_client = count // clients if count else 0
-        procs = [mp.Process(target=client, args=(f"ipc://{folder / 'control'}", seconds, i, per_client, mode, out, nice))
+        endpoint = f"ipc://{folder / 'control'}"
+        procs = [mp.Process(target=client, args=(endpoint, seconds, i, per_client, mode, out, nice))
                  for i in range(clients)]
-        t0 = time.monotonic()
+        t0, daemon_cpu0, children0, load0 = time.monotonic(), cpu_s(proc.pid), os.times(), os.getloadavg()[0]
         for p in procs:
             p.start()
         while time.monotonic() < t0 + seconds and (not procs or any(p.is_alive() for p in procs)):
@@ -155,6 +168,14 @@ def run(mode: str, seconds: float, clients: int, count: int, nice: int = 0) -> d
             p.join()
         elapsed = time.monotonic() - t0
         alive = proc.poll() is None
+        # The loop's own view of its last 1000 cycles (10 s, the end of the flood): how long a
+        # cycle took and how late it started, p50, p99, max in us.
+        loop = ControlClient(endpoint, timeout_s=5).status() if alive else {}
+        daemon_cpu = cpu_s(proc.pid) - daemon_cpu0 if alive else float("nan")
+        children = os.times()  # the clients, joined: what they took from the daemon's two cores
+        clients_cpu = children.children_user + children.children_system - children0.children_user \
+            - children0.children_system
+        load1 = os.getloadavg()[0]
         proc.send_signal(signal.SIGTERM)
         exit_code = proc.wait(timeout=10)
         sub.close(linger=0)
@@ -163,11 +184,15 @@ def run(mode: str, seconds: float, clients: int, count: int, nice: int = 0) -> d
     jumps = int(sum(np.diff(seqs) - 1)) if len(seqs) > 1 else 0
     gaps = np.diff([t0, *pings, t0 + elapsed])
     return {
-        "mode": mode, "clients": clients, "client_nice": nice, "seconds": round(elapsed, 2), "alive": alive, "exit": exit_code,
+        "mode": mode, "clients": clients, "client_nice": nice, "daemon_fifo": fifo, "daemon_nice": daemon_nice,
+        "seconds": round(elapsed, 2),
+        "alive": alive, "exit": exit_code, "load_average_1min": [round(load0, 2), round(load1, 2)],
+        "cpu_share_daemon": round(daemon_cpu / elapsed, 3), "cpu_share_clients": round(clients_cpu / elapsed, 3),
         "samples": len(seqs), "rate_hz": round(len(seqs) / elapsed, 2),
         "rate_share": round((seqs[-1] - seqs[0] + 1 and len(seqs) / (seqs[-1] - seqs[0] + 1)) if seqs else 0, 4),
         "skipped_cycles": jumps, "watchdog_pings": len(pings), "max_ping_gap_s": round(float(gaps.max()), 3),
         "watchdog_s": WATCHDOG_USEC / 1e6,
+        **{k: {q: round(v) for q, v in loop[k].items()} for k in ("cycle_us", "jitter_us") if k in loop},
         "sent": sum(r["sent"] for r in results), "replies": sum(r["replies"] for r in results),
         "errors": sum(r["errors"] for r in results),
     }
@@ -180,8 +205,12 @@ def main() -> None:
     parser.add_argument("--clients", type=int, default=4)
     parser.add_argument("--count", type=int, default=0, help="messages in all (0: as many as fit the time)")
     parser.add_argument("--nice", type=int, default=0, help="the clients' niceness (0: the daemon's)")
+    parser.add_argument("--fifo", type=int, default=0,
+                        help="run the daemon SCHED_FIFO at this priority (0: not; the unit sets 50)")
+    parser.add_argument("--daemon-nice", type=int, default=0, help="run the daemon at this niceness (0: not)")
     args = parser.parse_args()
-    print(json.dumps(run(args.mode, args.seconds, args.clients, args.count, args.nice), indent=1))
+    print(json.dumps(run(args.mode, args.seconds, args.clients, args.count, args.nice, args.fifo, args.daemon_nice),
+                     indent=1))
 
 
 if __name__ == "__main__":

@@ -7,9 +7,17 @@ reports: faults injected; samples flagged; sequence gaps and the longest silence
 subscriber saw; each silence over 1.5 periods and each skipped deadline, with the fault
 active then; recovery time after each fault that had no other fault near it (fault end to
 the first unflagged sample of its sensor); missed and late cycles while it watched; memory
-at start, each minute and at the end; whether the daemon was still running. Run:
+at start, each minute and at the end; whether the daemon was still running; and unflagged
+wrong samples: every sample of every wrench stream with no flag but `late` is compared with
+the truth, the stream's median over the unflagged samples of fault-free stretches (no fault
+from 50 ms before its start to 1 s after its end: the wrench the daemon's own estimate gives
+the applied static load, whose bias against that load, the model's, is reported beside), in
+sigmas of one sample's noise per axis, the spread (standard deviation) of the same samples;
+more than 5 sigma on any axis is wrong (benchmarks/faults_truth.py's criterion and code). The
+noise the calibration's K A and the chip settings predict (as the daemon's consistency check
+takes it, `channel_sigma_t`) is reported as a cross-check. Run:
 
-    python benchmarks/soak.py --minutes 30 [--scheduler burst]   # the docs' figures
+    python benchmarks/soak.py --minutes 30 [--scheduler overlapped] [--fifo 50]   # the docs' figures
     python benchmarks/soak.py --minutes 0.3       # quick mode (CI runs it as a test)
 """
 
@@ -17,7 +25,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -29,9 +39,14 @@ from pathlib import Path
 import numpy as np
 
 from ftsensord.client import ControlClient, Subscriber
+from ftsensord.model import se3
 from ftsensord.service import wire
-from ftsensord.service.config import builtin_path
+from ftsensord.service.config import Config, builtin_path, load_config
+from ftsensord.service.pipeline import channel_sigma_t
 from ftsensord.sim.faults import random_faults
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from faults_truth import WRONG_SIGMA, unflagged_error_sigma  # noqa: E402  (a sibling script: one criterion)
 
 SENSORS = {"sensor1": range(0x0C, 0x14), "sensor2": range(0x14, 0x1C)}
 RATE_HZ = 100.0  # the packaged configuration's rate
@@ -62,7 +77,73 @@ def rss_kib(pid: int) -> int:
     return 0
 
 
-def soak(minutes: float, seed: int = 1, per_minute: float = 6.0, scheduler: str = "overlapped") -> dict:
+def applied(config: Config) -> dict[str, np.ndarray]:
+    """The static load each wrench stream should show (N, Nm): LOAD on sensor1, none on
+    sensor2, and at the tip LOAD moved from sensor1's offset (as service.pipeline.tip_wrench)."""
+    tip = se3.wrench_transform(se3.pose(p=config.tool_offsets_m["sensor1"])) @ np.array(LOAD)
+    return {"wrench/sensor1": np.array(LOAD), "wrench/sensor2": np.zeros(6), "wrench/tip": tip}
+
+
+def model_sigma(config: Config) -> dict[str, np.ndarray]:
+    """One sample's noise per axis (N, Nm) that the calibrations' K A and the chip settings'
+    channel noise predict, with all chips (the tip: both sensors' moved and added, independent)."""
+    cov = {}
+    for s in config.sensors:
+        KA = s.calibration.model.KA
+        cov[s.name] = KA @ np.diag(channel_sigma_t(config.settings, len(s.addresses)) ** 2) @ KA.T
+    out = {f"wrench/{n}": np.sqrt(np.diag(c)) for n, c in cov.items()}
+    if config.tool_offsets_m:
+        moved = [se3.wrench_transform(se3.pose(p=o)) for o in config.tool_offsets_m.values()]
+        out["wrench/tip"] = np.sqrt(np.diag(sum(T @ cov[n] @ T.T for T, n in zip(moved, config.tool_offsets_m))))
+    return out
+
+
+def wrong_samples(samples: dict[str, list], values: dict[str, list], faults: list, config: Config) -> dict:
+    """Unflagged samples more than WRONG_SIGMA from the truth, per stream (see the module's doc)."""
+    truth_load, predicted = applied(config), model_sigma(config)
+    out: dict = {"per_stream": {}, "wrong": []}
+    for topic, rows in samples.items():
+        if not rows:
+            continue
+        t = np.array([r[1] for r in rows])
+        clean = np.array([r[2] & ~wire.FLAG_LATE == 0 for r in rows])  # late: timing, not value
+        v = np.array(values[topic])
+        quiet = np.ones(len(t), dtype=bool)
+        for f in faults:  # the same window as fault_near: from 50 ms before to 1 s after
+            quiet &= (t < f.at_s - 0.05) | (t > f.until_s + 1.0)
+        ref_rows = v[clean & quiet]
+        reference = np.median(ref_rows, axis=0)
+        sigma = np.std(ref_rows, axis=0)
+        err = unflagged_error_sigma(v, reference, sigma, clean)
+        bad = np.flatnonzero(err > WRONG_SIGMA)
+        # The same comparison on the flagged samples with a value: wrong ones the flags kept
+        # from the user (under a static load few: the chips left mostly give the right wrench).
+        flagged = ~clean & ~np.isnan(v).any(axis=1)
+        caught = int(np.sum(unflagged_error_sigma(v, reference, sigma, flagged) > WRONG_SIGMA))
+        out["per_stream"][topic] = {
+            "judged_unflagged": int(clean.sum()), "reference_from": len(ref_rows),
+            "reference": reference.round(5).tolist(),
+            "bias_vs_applied": (reference - truth_load[topic]).round(5).tolist(),
+            "sigma_measured": sigma.round(6).tolist(),
+            "sigma_predicted": predicted[topic].round(6).tolist() if topic in predicted else None,
+            "unflagged_wrong": len(bad), "flagged_beyond_5_sigma": caught,
+            "worst_unflagged_sigma": round(float(err.max(initial=0.0)), 2),
+            "worst_at_s": round(float(t[np.argmax(err)]), 3) if len(err) else None,
+            # Under Gaussian noise alone, over WRONG_SIGMA on one axis has odds erfc(5 / sqrt 2) = 5.7e-7.
+            "expected_by_noise_alone": round(float(clean.sum()) * 6 * math.erfc(WRONG_SIGMA / math.sqrt(2)), 3)}
+        for i in bad[:100 - len(out["wrong"])]:  # a regression would list thousands: the first 100 tell
+            active = [f"{f.kind}@{f.address:#x}" if f.address is not None else f.kind
+                      for f in faults if f.at_s - 0.5 <= t[i] <= f.until_s + 2.0]
+            out["wrong"].append({"stream": topic, "t_s": round(float(t[i]), 3), "seq": rows[i][0],
+                                 "sigma": round(float(err[i]), 2), "flags": wire.flag_names(rows[i][2]),
+                                 "faults_around": active or ["none"]})
+    out["unflagged_wrong"] = sum(s["unflagged_wrong"] for s in out["per_stream"].values())
+    out["worst_unflagged_sigma"] = max((s["worst_unflagged_sigma"] for s in out["per_stream"].values()), default=0.0)
+    return out
+
+
+def soak(minutes: float, seed: int = 1, per_minute: float = 6.0, scheduler: str = "burst", fifo: int = 0) -> dict:
+    """``fifo``: run the daemon SCHED_FIFO at this priority, as the systemd unit does (0: not)."""
     duration = minutes * 60
     rng = np.random.default_rng(seed)
     faults = [f for f in random_faults(list(range(0x0C, 0x1C)), duration, rng, per_minute=per_minute)
@@ -71,12 +152,15 @@ def soak(minutes: float, seed: int = 1, per_minute: float = 6.0, scheduler: str 
         tmp_path = Path(tmp)
         (tmp_path / "scene.toml").write_text(scene_text(faults))
         config = tmp_path / "ftsensord.toml"
-        config.write_text(builtin_path("sim.toml").read_text().replace('bus = "sim"', 'bus = "sim:scene.toml"')
-                          .replace('scheduler = "overlapped"', f'scheduler = "{scheduler}"')
+        text = builtin_path("sim.toml").read_text().replace('bus = "sim"', 'bus = "sim:scene.toml"')
+        config.write_text(re.sub(r'(?m)^scheduler = "\w+"', f'scheduler = "{scheduler}"', text)
                           .replace("builtin:", str(builtin_path("")) + "/"))
+        parsed = load_config(config)
+        assert parsed.scheduler == scheduler, "the packaged configuration's scheduler line moved"
         env = {**os.environ, "XDG_RUNTIME_DIR": tmp}
         env.pop("RUNTIME_DIRECTORY", None)
-        proc = subprocess.Popen([sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=env,
+        prefix = ["chrt", "-f", str(fifo)] if fifo else []
+        proc = subprocess.Popen([*prefix, sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=env,
                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         folder = tmp_path / "ftsensord"
         for _ in range(100):
@@ -88,6 +172,7 @@ def soak(minutes: float, seed: int = 1, per_minute: float = 6.0, scheduler: str 
         t0_daemon = time.monotonic() - status0["uptime_s"]  # the scene's clock starts with the daemon
         topics = [f"wrench/{n}" for n in SENSORS] + ["wrench/tip"]
         samples: dict[str, list[tuple[int, float, int]]] = {t: [] for t in topics}
+        values: dict[str, list[np.ndarray]] = {t: [] for t in topics}
         rss = [rss_kib(proc.pid)]  # at start, then every minute: growth shows as a trend
         with Subscriber(f"ipc://{folder / 'wrench'}", topics) as sub:
             end = time.monotonic() + duration
@@ -96,6 +181,7 @@ def soak(minutes: float, seed: int = 1, per_minute: float = 6.0, scheduler: str 
                 s = sub.receive(timeout_s=2)
                 if s is not None:
                     samples[s.topic].append((s.seq, s.t_mono - t0_daemon, s.flags))
+                    values[s.topic].append(s.values)
                 if time.monotonic() >= next_rss:
                     rss.append(rss_kib(proc.pid))
                     next_rss += 60
@@ -141,7 +227,8 @@ def soak(minutes: float, seed: int = 1, per_minute: float = 6.0, scheduler: str 
     worst = int(np.argmax(np.diff(times))) if len(s1) > 1 else 0
     t_silence = s1[worst][1] if s1 else 0.0
     return {
-        "minutes": minutes, "scheduler": scheduler, "faults_injected": len([f for f in faults if f.at_s < duration]),
+        "minutes": minutes, "scheduler": scheduler, "daemon_fifo": fifo,
+        "faults_injected": len([f for f in faults if f.at_s < duration]),
         "fault_kinds": sorted({f.kind for f in faults}),
         "samples": {t: len(v) for t, v in samples.items()}, "flagged": flagged, "sequence_gaps": gaps,
         "longest_silence_s": silences, "longest_silence_at_s": t_silence,
@@ -156,6 +243,7 @@ def soak(minutes: float, seed: int = 1, per_minute: float = 6.0, scheduler: str 
         "missed_cycles_before_watch": status0["missed_cycles"], "rss_kib_start": rss[0], "rss_kib_end": rss_end,
         "rss_kib_each_minute": rss[1:],
         "alive_at_end": alive, "exit_code": exit_code,
+        "wrong_samples": wrong_samples(samples, values, faults, parsed),
     }
 
 
@@ -164,9 +252,11 @@ def main() -> int:
     parser.add_argument("--minutes", type=float, default=30.0)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--per-minute", type=float, default=6.0, help="faults per minute on average")
-    parser.add_argument("--scheduler", choices=("overlapped", "burst"), default="overlapped")
+    parser.add_argument("--scheduler", choices=("overlapped", "burst"), default="burst")
+    parser.add_argument("--fifo", type=int, default=0,
+                        help="run the daemon SCHED_FIFO at this priority (0: not; the unit: 50)")
     args = parser.parse_args()
-    report = soak(args.minutes, args.seed, args.per_minute, args.scheduler)
+    report = soak(args.minutes, args.seed, args.per_minute, args.scheduler, args.fifo)
     print(json.dumps(report, indent=1))
     return 0 if report["alive_at_end"] and report["exit_code"] == 0 else 1
 
