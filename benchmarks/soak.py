@@ -79,8 +79,8 @@ def rss_kib(pid: int) -> int:
 
 def applied(config: Config) -> dict[str, np.ndarray]:
     """The static load each wrench stream should show (N, Nm): LOAD on sensor1, none on
-    sensor2, and at the tip LOAD moved from sensor1's offset (as service.pipeline.tip_wrench)."""
-    tip = se3.wrench_transform(se3.pose(p=config.tool_offsets_m["sensor1"])) @ np.array(LOAD)
+    sensor2, and at the tip LOAD moved from sensor1's pose (as service.pipeline.tip_wrench)."""
+    tip = se3.wrench_transform(config.tool_poses["sensor1"]) @ np.array(LOAD)
     return {"wrench/sensor1": np.array(LOAD), "wrench/sensor2": np.zeros(6), "wrench/tip": tip}
 
 
@@ -92,9 +92,9 @@ def model_sigma(config: Config) -> dict[str, np.ndarray]:
         KA = s.calibration.model.KA
         cov[s.name] = KA @ np.diag(channel_sigma_t(config.settings, len(s.addresses)) ** 2) @ KA.T
     out = {f"wrench/{n}": np.sqrt(np.diag(c)) for n, c in cov.items()}
-    if config.tool_offsets_m:
-        moved = [se3.wrench_transform(se3.pose(p=o)) for o in config.tool_offsets_m.values()]
-        out["wrench/tip"] = np.sqrt(np.diag(sum(T @ cov[n] @ T.T for T, n in zip(moved, config.tool_offsets_m))))
+    if config.tool_poses:
+        moved = [se3.wrench_transform(T) for T in config.tool_poses.values()]
+        out["wrench/tip"] = np.sqrt(np.diag(sum(X @ cov[n] @ X.T for X, n in zip(moved, config.tool_poses))))
     return out
 
 
