@@ -121,6 +121,15 @@ def mean_of(sub: Subscriber, n: int) -> tuple[np.ndarray, list[int], np.ndarray]
     return values.mean(axis=0), [s.seq for s in samples], values.std(axis=0, ddof=1)
 
 
+def assert_gaps_are_counted_misses(seqs: list[int], missed_before: int, missed_after: int) -> None:
+    """Sequence numbers count cycles: every gap must be a deadline the daemon skipped and
+    counted (a loaded host can make it skip one; that is docs/performance.md's business),
+    never a sample lost between a cycle and the subscriber."""
+    gaps = sum(b - a - 1 for a, b in zip(seqs, seqs[1:]))
+    assert all(b > a for a, b in zip(seqs, seqs[1:])), seqs
+    assert gaps <= missed_after - missed_before, (seqs, missed_before, missed_after)
+
+
 def test_end_to_end_load_rate_tare_and_clean_stop(running):
     proc, pub, ctl = running
     control = ControlClient(ctl)
@@ -131,8 +140,9 @@ def test_end_to_end_load_rate_tare_and_clean_stop(running):
         second = newest.receive(timeout_s=5)
         assert second.seq > first.seq
     with Subscriber(pub, ["wrench/sensor1"]) as sub:
+        missed_before = control.status()["missed_cycles"]
         loaded, seqs, spread = mean_of(sub, 50)
-        assert seqs == list(range(seqs[0], seqs[0] + 50))  # a reader that keeps up misses none
+        assert_gaps_are_counted_misses(seqs, missed_before, control.status()["missed_cycles"])
         assert np.allclose(loaded[:3], LOAD[:3], atol=0.3) and np.allclose(loaded[3:], LOAD[3:], atol=0.006)
         status = control.status()
         # Not a timing claim (docs/performance.md has those): the loop runs and reports it.
@@ -257,13 +267,17 @@ def test_curve_control_lets_in_only_known_clients(tmp_path):
 
 def test_sighup_storm_and_sigterm_during_a_reload(running):
     proc, pub, ctl = running
+    control = ControlClient(ctl)
     with Subscriber(pub, ["wrench/sensor2"]) as sub:
         sub.receive(timeout_s=5)
+        missed_before = control.status()["missed_cycles"]
         for _ in range(20):  # reloads land between cycles, whatever the cycle was doing
             proc.send_signal(signal.SIGHUP)
             time.sleep(0.013)
         seqs = [sub.receive(timeout_s=5).seq for _ in range(100)]
-        assert seqs == list(range(seqs[0], seqs[0] + 100))  # no cycle lost to the reloads
+        # No sample lost to the reloads (a reload of unchanged calibrations takes ~1 ms, so on
+        # a quiet host none costs a cycle either: tests/test_parts.py checks the reuse).
+        assert_gaps_are_counted_misses(seqs, missed_before, control.status()["missed_cycles"])
     assert proc.poll() is None
     proc.send_signal(signal.SIGHUP)
     proc.send_signal(signal.SIGTERM)  # while the reload is pending or running
