@@ -2,6 +2,7 @@
 
 Each cycle: the `Reader` reads every chip, each sensor's `SensorPipeline`
 turns the results into a flagged, filtered wrench, the tip wrench is summed,
+the orientation stream is read and `Gravity` makes the compensated wrenches,
 every stream is published, `Tares` take their samples; between cycles,
 `Control` answers requests until the next deadline (`LoopTiming`).
 
