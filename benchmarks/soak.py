@@ -134,9 +134,13 @@ def wrong_samples(samples: dict[str, list], values: dict[str, list], faults: lis
         for i in bad[:100 - len(out["wrong"])]:  # a regression would list thousands: the first 100 tell
             active = [f"{f.kind}@{f.address:#x}" if f.address is not None else f.kind
                       for f in faults if f.at_s - 0.5 <= t[i] <= f.until_s + 2.0]
+            axis = int(np.argmax(np.abs(v[i] - reference) / sigma))
+            off = abs(v[i, axis] - reference[axis])  # the same error in the predicted sigma, for comparison
             out["wrong"].append({"stream": topic, "t_s": round(float(t[i]), 3), "seq": rows[i][0],
-                                 "sigma": round(float(err[i]), 2), "flags": wire.flag_names(rows[i][2]),
-                                 "faults_around": active or ["none"]})
+                                 "sigma": round(float(err[i]), 2), "axis": "Fx Fy Fz Mx My Mz".split()[axis],
+                                 "predicted_sigmas": round(float(off / predicted[topic][axis]), 2)
+                                 if topic in predicted else None,
+                                 "flags": wire.flag_names(rows[i][2]), "faults_around": active or ["none"]})
     out["unflagged_wrong"] = sum(s["unflagged_wrong"] for s in out["per_stream"].values())
     out["worst_unflagged_sigma"] = max((s["worst_unflagged_sigma"] for s in out["per_stream"].values()), default=0.0)
     return out
