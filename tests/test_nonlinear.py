@@ -30,18 +30,18 @@ def flux_at(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def estimator() -> NonlinearEstimator:
-    return NonlinearEstimator(FluxModel(G, G.magnet_moment_am2), K)
+    return NonlinearEstimator(FluxModel(G, G.magnet_moment_am2, octupole=False), K)
 
 
 def test_forward_model_is_the_dipole_scene():
     T = se3.exp_se3(np.array([1e-3, -5e-4, 3e-4, 0.01, -0.005, 0.008]))
-    assert np.allclose(FluxModel(G, G.magnet_moment_am2).predict(T), SCENE.chip_fields(G, T).ravel(), rtol=1e-12)
+    assert np.allclose(FluxModel(G, G.magnet_moment_am2, octupole=False).predict(T), SCENE.chip_fields(G, T).ravel(), rtol=1e-12)
 
 
 @settings(max_examples=30, deadline=None)
 @given(st.tuples(*[st.floats(-3e-3, 3e-3)] * 3, *[st.floats(-0.03, 0.03)] * 3).map(np.array))
 def test_analytic_jacobian_matches_finite_differences(xi):
-    model = FluxModel(G, G.magnet_moment_am2)
+    model = FluxModel(G, G.magnet_moment_am2, octupole=False)
     T = se3.exp_se3(xi)
     _, J = model.predict_and_jacobian(T)
     h = 1e-7  # central differences: error ~h^2 x third derivative, far below 1e-6 here
@@ -129,7 +129,7 @@ def test_noise_gives_an_error_the_size_the_jacobian_says():
     for _ in range(50):
         e = estimator().estimate(flux + rng.normal(0, 2e-6, 24), start=np.eye(4))
         errs.append(e.xi - xi)
-    _, J = FluxModel(G, G.magnet_moment_am2).predict_and_jacobian(se3.exp_se3(xi))
+    _, J = FluxModel(G, G.magnet_moment_am2, octupole=False).predict_and_jacobian(se3.exp_se3(xi))
     predicted = np.sqrt(np.diag(np.linalg.inv(J.T @ J))) * 2e-6  # the Cramer-Rao bound at 2 uT
     measured = np.std(errs, axis=0)
     assert np.all(measured < 2 * predicted) and np.all(measured > 0.5 * predicted)
@@ -142,7 +142,7 @@ def test_the_45_degree_twin_is_refused_and_the_right_pose_found():
     w = np.array([-21.0, 9.0, 20.0, -0.16, 0.14, -0.04])
     flux, xi = flux_at(w)
     twin = se3.exp_se3(np.array([0, 0, 0, 0, 0, np.pi / 4])) @ se3.exp_se3(xi)
-    assert np.allclose(FluxModel(G, G.magnet_moment_am2).predict(twin), flux, atol=1e-12)  # the symmetry
+    assert np.allclose(FluxModel(G, G.magnet_moment_am2, octupole=False).predict(twin), flux, atol=1e-12)  # the symmetry
     est = estimator()
     at_twin = est.estimate(flux, start=twin)
     assert not at_twin.converged and at_twin.rms_residual_t < 1e-9  # perfect fit, refused
@@ -172,8 +172,8 @@ def test_turning_the_sensor_in_a_50_ut_field_gives_no_false_wrench(field_ut):
     term the same sweep gives tenths of a newton."""
     from ftsensord.sim.loads import fibonacci_directions, gravity_to_down
     u_world = np.array(field_ut) * 1e-6
-    est, plain = estimator(), NonlinearEstimator(FluxModel(G, G.magnet_moment_am2), K, background=False)
-    rest = FluxModel(G, G.magnet_moment_am2).predict(np.eye(4))
+    est, plain = estimator(), NonlinearEstimator(FluxModel(G, G.magnet_moment_am2, octupole=False), K, background=False)
+    rest = FluxModel(G, G.magnet_moment_am2, octupole=False).predict(np.eye(4))
     worst, worst_plain, xi0, xi0_plain = np.zeros(6), np.zeros(6), None, None
     for k, d in enumerate(fibonacci_directions(48)):
         R = gravity_to_down(d, 2.4 * k)  # R_w0: the sensor's orientation in the world

@@ -35,6 +35,7 @@ import numpy as np
 from ..errors import CalibrationError
 from ..model import se3
 from ..model.geometry import SensorGeometry
+from ..model.magnet import MU0_OVER_4PI, octupole_field, octupole_ratio
 from ..model.nonlinear import FluxModel, NonlinearEstimator, dipole_pairs
 from .dataset import Dataset
 
@@ -94,6 +95,9 @@ class NonlinearCalibration:
     warnings: tuple[str, ...] = ()
     magnet_p_m: np.ndarray | None = None
     magnet_strength: np.ndarray | None = None
+    #: Each chip's own magnet with its octupole (`FluxModel.octupole`); files written
+    #: before it (no ``field_model``) were fitted with dipoles alone.
+    octupole: bool = True
 
     def geometry(self) -> SensorGeometry:
         g = SensorGeometry.ring(radius_m=self.ring_radius_m, tilt_deg=self.tilt_deg, gap_m=self.gap_m)
@@ -105,7 +109,8 @@ class NonlinearCalibration:
 
     def estimator(self, background: bool = True) -> NonlinearEstimator:
         g = self.geometry()
-        return NonlinearEstimator(FluxModel(g, g.magnet_moment_am2, self.scale.copy(), self.offset_t.copy()),
+        return NonlinearEstimator(FluxModel(g, g.magnet_moment_am2, self.scale.copy(), self.offset_t.copy(),
+                                            octupole=self.octupole),
                                   self.K, background=background, zero_twist=self.zero_twist)
 
     def wrench(self, xi: np.ndarray) -> np.ndarray:
@@ -117,7 +122,8 @@ class NonlinearCalibration:
         doc: dict[str, Any] = {"gap_m": self.gap_m, "ring_radius_m": self.ring_radius_m, "tilt_deg": self.tilt_deg,
                                "scale": np.asarray(self.scale).tolist(), "offset_t": self.offset_t.tolist(),
                                "K": self.K.tolist(), "zero_twist": self.zero_twist.tolist(),
-                               "fit_rms_residual_t": self.fit_rms_residual_t}
+                               "fit_rms_residual_t": self.fit_rms_residual_t,
+                               "field_model": "dipole+octupole" if self.octupole else "dipole"}
         if self.magnet_p_m is not None:
             doc["magnet_p_m"] = self.magnet_p_m.tolist()
         if self.magnet_strength is not None:
@@ -165,6 +171,13 @@ class _Problem:
         r = p[:, :, None, :] - P["mp"][None, None, :, :]  # (N, chip, magnet, 3)
         m = self.moment * P["s"][:, None] * g.magnet_axis
         Bij, Gij = dipole_pairs(r, np.broadcast_to(m, r.shape), jacobian)
+        # Each chip's own magnet's octupole (FluxModel's `octupole`), on the diagonal pairs.
+        own = np.arange(n)
+        q = MU0_OVER_4PI * self.moment * P["s"] * octupole_ratio(g.magnet_radius_m, g.magnet_length_m)
+        B3, G3 = octupole_field(r[:, own, own], g.magnet_axis, np.broadcast_to(q, r.shape[:2]), jacobian)
+        Bij[:, own, own] += B3
+        if Gij is not None:
+            Gij[:, own, own] += G3
         B = Bij.sum(axis=2)
         SRt = P["S"][None] @ np.swapaxes(R, -1, -2)  # (N, n, 3, 3)
         raw = np.einsum("knji,knj->kni", R, B)  # the field in each chip's frame
