@@ -136,8 +136,8 @@ class NonlinearCalibration:
 class _Problem:
     """The joint fit's residual and Jacobian over all fit poses (see the module's doc)."""
 
-    def __init__(self, flux: np.ndarray, wrench: np.ndarray, geometry: SensorGeometry):
-        self.flux, self.wrench, self.g = flux, wrench, geometry
+    def __init__(self, flux: np.ndarray, wrench: np.ndarray, geometry: SensorGeometry, octupole: bool = True):
+        self.flux, self.wrench, self.g, self.octupole = flux, wrench, geometry, octupole
         self.n = geometry.n_chips
         self.moment = geometry.magnet_moment_am2
         n = self.n
@@ -171,13 +171,13 @@ class _Problem:
         r = p[:, :, None, :] - P["mp"][None, None, :, :]  # (N, chip, magnet, 3)
         m = self.moment * P["s"][:, None] * g.magnet_axis
         Bij, Gij = dipole_pairs(r, np.broadcast_to(m, r.shape), jacobian)
-        # Each chip's own magnet's octupole (FluxModel's `octupole`), on the diagonal pairs.
-        own = np.arange(n)
-        q = MU0_OVER_4PI * self.moment * P["s"] * octupole_ratio(g.magnet_radius_m, g.magnet_length_m)
-        B3, G3 = octupole_field(r[:, own, own], g.magnet_axis, np.broadcast_to(q, r.shape[:2]), jacobian)
-        Bij[:, own, own] += B3
-        if Gij is not None:
-            Gij[:, own, own] += G3
+        if self.octupole:  # each chip's own magnet's octupole (FluxModel's), on the diagonal pairs
+            own = np.arange(n)
+            q = MU0_OVER_4PI * self.moment * P["s"] * octupole_ratio(g.magnet_radius_m, g.magnet_length_m)
+            B3, G3 = octupole_field(r[:, own, own], g.magnet_axis, np.broadcast_to(q, r.shape[:2]), jacobian)
+            Bij[:, own, own] += B3
+            if Gij is not None:
+                Gij[:, own, own] += G3
         B = Bij.sum(axis=2)
         SRt = P["S"][None] @ np.swapaxes(R, -1, -2)  # (N, n, 3, 3)
         raw = np.einsum("knji,knj->kni", R, B)  # the field in each chip's frame
@@ -229,7 +229,7 @@ def _start(flux: np.ndarray, wrench: np.ndarray, problem: _Problem) -> np.ndarra
     """The nominal part; K and the zero from the deflections it estimates (background
     field estimated too), the offsets matching the mean reading at the mean pose."""
     g = problem.g
-    model = FluxModel(g, g.magnet_moment_am2)
+    model = FluxModel(g, g.magnet_moment_am2, octupole=problem.octupole)
     model.offset_t = (flux.mean(axis=0) - model.predict(np.eye(4))).reshape(-1, 3)
     estimator = NonlinearEstimator(model, np.eye(6) * 1e9)  # no plausibility limit while K is unknown
     xis = np.array([estimator.estimate(b).xi for b in flux])
@@ -240,14 +240,15 @@ def _start(flux: np.ndarray, wrench: np.ndarray, problem: _Problem) -> np.ndarra
 
 
 def fit_nonlinear(dataset: Dataset, *, progress: Callable[[FitProgress], None] | None = None,
-                  allow_poor_fit: bool = False) -> NonlinearCalibration:
+                  allow_poor_fit: bool = False, octupole: bool = True) -> NonlinearCalibration:
     """Fit on the dataset's unsaturated "fit" poses (the identifiability checks are the
     linear fit's: run `ftsensord.calibration.fit` first).
 
     ``progress`` is called after each of the `FIT_ITERATIONS` iterations. Refuses a
     fit with a magnet beyond `MAGNET_SHIFT_LIMIT_M` of its drawn place or a residual
     far above the noise, unless ``allow_poor_fit``: then it is kept, the reasons in
-    ``warnings``. Refuses a K not positive definite.
+    ``warnings``. Refuses a K not positive definite. ``octupole=False`` fits the dipole
+    model alone (the earlier one: benchmarks/accuracy.py measures what the octupole buys).
     """
     rows = (dataset.split == "fit") & ~dataset.saturated.any(axis=1)
     flux, wrench = dataset.flux_t[rows], dataset.wrench[rows]
@@ -255,7 +256,7 @@ def fit_nonlinear(dataset: Dataset, *, progress: Callable[[FitProgress], None] |
         raise CalibrationError(f"{len(flux)} usable fit poses: the nonlinear fit needs at least 13")
     begin = time.monotonic()
     geometry = SensorGeometry.ring(gap_m=GAP_M)
-    problem = _Problem(flux, wrench, geometry)
+    problem = _Problem(flux, wrench, geometry, octupole)
     theta = _start(flux, wrench, problem)
     r, J, _ = problem.evaluate(theta)
     assert J is not None
@@ -283,7 +284,7 @@ def fit_nonlinear(dataset: Dataset, *, progress: Callable[[FitProgress], None] |
     P = problem.unpack(theta)
     K = np.linalg.inv(P["C"])
     cal = NonlinearCalibration(GAP_M, P["S"].copy(), P["o"].copy(), K, P["d"].copy(), float(np.sqrt(cost / r.size)),
-                               magnet_p_m=P["mp"].copy(), magnet_strength=P["s"].copy())
+                               magnet_p_m=P["mp"].copy(), magnet_strength=P["s"].copy(), octupole=octupole)
     problems = _problems(cal, geometry, dataset.flux_sem_t[rows])
     lowest = float(np.linalg.eigvalsh(0.5 * (K + K.T))[0])
     if not lowest > 0:  # never kept: no estimator can use a stiffness that is none

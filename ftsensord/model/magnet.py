@@ -127,7 +127,7 @@ def octupole_ratio(radius: float, length: float) -> float:
     """The cylinder's octupole relative to its dipole (m^2): kappa = -(3 a^2 - 4 b^2) / 4,
     a the radius, b half the length. On its axis the field is
     mu0 m / (2 pi z^3) (1 + 2 kappa / z^2 + O(z^-4)) (the series of Derby & Olbert's
-    axial field); zero for a cylinder with L/D = sqrt(3)/2, -a^2 for the D101 (L = a)."""
+    axial field); zero for a cylinder with L/D = sqrt(3)/2, -a^2/2 for the D101 (L = a)."""
     b = length / 2
     return -(3 * radius**2 - 4 * b**2) / 4
 

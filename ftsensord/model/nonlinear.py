@@ -2,10 +2,11 @@
 24 flux values through a magnet field model, then w = K xi.
 
 Forward model: `ftsensord.model.fluxmodel.FluxModel` (dipoles, each chip's own magnet
-with its octupole, per-chip response and offset, a uniform background field). Solver: Levenberg-Marquardt on SE(3) with left perturbations
-T <- exp(delta) T, analytic Jacobian, warm-started from the previous pose; damped and
-step-limited, it reports failure rather than diverge, and the caller falls back to the
-linear estimate with a flag.
+with its octupole, per-chip response and offset, a uniform background field). Solver:
+Levenberg-Marquardt on SE(3) with left perturbations T <- exp(delta) T, analytic
+Jacobian (kept while the pose stays near where it was computed: chord steps),
+warm-started from the previous pose; damped and step-limited, it reports failure rather
+than diverge, and the caller falls back to the linear estimate with a flag.
 """
 
 from __future__ import annotations
@@ -28,14 +29,19 @@ _EYE3 = np.eye(3)
 #: model's 1/r^3 curvature from throwing the pose past a magnet.
 MAX_STEP_M = 1e-3
 MAX_STEP_RAD = 0.05
-#: Converged when a step moves the pose less than 1e-8 m and 1e-8 rad: a hundred times
-#: below what the chips resolve (a uT in 1.6 mT at 6 mm is about 1 um of motion).
+#: Converged when a step moves the pose less than 1e-8 m (and `STEP_TOL_RAD`): a hundred
+#: times below what the chips resolve (a uT in 1.6 mT at 6 mm is about 1 um of motion).
 STEP_TOL = 1e-8
+#: The same for turns: 1e-6 rad moves a chip on the 8 mm ring by 8 nm, a hundred times
+#: below what it resolves (1 um); the torque it makes (10 Nm/rad) is 1e-5 Nm, 1/300 of
+#: the torque noise of one reading. (It was 1e-8 rad, 10^4 below: a third iteration a
+#: sample for nothing.)
+STEP_TOL_RAD = 1e-6
 #: A step that shrank to a tenth or less of the one before, both of one kind (new
 #: Jacobians: Newton's quadratic convergence; one kept Jacobian: a chord's linear rate),
 #: shows the rate: the steps left then add up to size ratio / (1 - ratio), and when that
-#: is under `STEP_TOL` the fit ends without paying for another step (from a warm start the
-#: second step is about 1/400 of the first: two iterations a sample instead of three).
+#: is under the tolerances the fit ends without paying for another step (from a warm start
+#: the second step is about 1/400 of the first: two iterations a sample instead of three).
 CONTRACTION = 0.1
 #: A Jacobian is reused (a chord step, Gauss-Newton without a new derivative) while the
 #: pose is within 20 um and 2 mrad, and the background field within 10 uT, of where it was
@@ -179,25 +185,32 @@ class NonlinearEstimator:
         # The unknowns need as many channels: 6 for the pose, 9 with the background field.
         if channels.sum() < (9 if background else 6) or not np.all(np.isfinite(b[channels])):
             return Estimate(se3.log_se3(T), T, False, 0, np.inf)
-        used = int(channels.sum())
+        used, channels_all = int(channels.sum()), channels.size
         # Every chip usable (the usual case): a slice, which copies nothing.
         channels = slice(None) if used == channels.size else channels  # type: ignore[assignment]
         for k in range(1, self.max_iterations + 1):
             pred, J_full, fresh = self._linearise(T, u, background, pred)
             r = (b - pred)[channels]
-            J = J_full[channels]
             cost = float(r @ r) + _prior(u)
-            JtJ, Jtr = J.T @ J, J.T @ r
-            if u is not None:  # the prior's rows: (noise / prior) (u + du) = 0
-                JtJ[6:, 6:] += PRIOR_WEIGHT * np.eye(3)
-                Jtr[6:] -= PRIOR_WEIGHT * u
-            while True:
-                try:
-                    damped = JtJ.copy()
-                    damped.flat[::damped.shape[0] + 1] *= 1 + lam  # JtJ + lam diag(JtJ)
-                    step = np.linalg.solve(damped, Jtr)
-                except np.linalg.LinAlgError:
-                    return Estimate(se3.log_se3(T), T, False, k, np.sqrt(cost / used), _field(u))
+            if not fresh and used == channels_all:  # a chord step: the kept Jacobian's own solve
+                gain, gain_u = self._gain(J_full)
+                step = gain @ r if u is None else gain @ r - gain_u @ u
+                lam_tries: list[float | None] = [None]
+            else:
+                J = J_full[channels]
+                JtJ, Jtr = J.T @ J, J.T @ r
+                if u is not None:  # the prior's rows: (noise / prior) (u + du) = 0
+                    JtJ[6:, 6:] += PRIOR_WEIGHT * np.eye(3)
+                    Jtr[6:] -= PRIOR_WEIGHT * u
+                lam_tries = [lam]
+            while lam_tries:
+                if lam_tries.pop() is not None:
+                    try:
+                        damped = JtJ.copy()
+                        damped.flat[::damped.shape[0] + 1] *= 1 + lam  # JtJ + lam diag(JtJ)
+                        step = np.linalg.solve(damped, Jtr)
+                    except np.linalg.LinAlgError:
+                        return Estimate(se3.log_se3(T), T, False, k, np.sqrt(cost / used), _field(u))
                 # 1e-300: a zero step needs no limit (and must not divide by zero). The
                 # background field enters linearly: its step needs no limit of its own.
                 v, w = step[:6].tolist()[:3], step[:6].tolist()[3:]
@@ -212,24 +225,24 @@ class NonlinearEstimator:
                     T, u, lam, pred = T_new, u_new, max(lam / 3, 1e-9), pred_new
                     cost = float(r_new @ r_new) + _prior(u_new)
                     break
+                if _within((math.hypot(*v) * scale, math.hypot(*w) * scale)):  # at the minimum already
+                    done = True
+                    break
                 if not fresh:  # a kept Jacobian's step failed: take a new one, not more damping
                     self._jacobians.clear()
-                    break
-                if max(math.hypot(*v), math.hypot(*w)) * scale < STEP_TOL:  # at the minimum already
-                    done = True
                     break
                 lam *= 4
                 if lam > 1e8:  # no step lowers the cost: a minimum, or hopeless data
                     done = True
                     break
+                lam_tries.append(lam)
             if not fresh and not self._jacobians:
                 continue
             size = (math.hypot(*v) * scale, math.hypot(*w) * scale)
             # The rate is seen from two steps of one kind: both with new Jacobians (Newton's
             # quadratic convergence) or both with the same kept one (a chord's linear rate).
             kind = "new" if fresh else id(J_full)
-            if done or max(size) < STEP_TOL or (last is not None and last[1] == kind
-                                                 and _next_step(size, last[0]) < STEP_TOL):
+            if done or _within(size) or (last is not None and last[1] == kind and _within(_left(size, last[0]))):
                 break
             last = (size, kind) if scale == 1.0 else None  # a limited step says nothing of convergence
         rms = np.sqrt(max(cost - _prior(u), 0.0) / used)  # of the flux alone
@@ -244,8 +257,9 @@ class NonlinearEstimator:
 
     def _linearise(self, T: np.ndarray, u: np.ndarray | None, background: bool, pred: np.ndarray | None
                    ) -> tuple[np.ndarray, np.ndarray, bool]:
-        """Flux at (T, u) (``pred`` when known), a Jacobian, and whether it is new: the one kept from a pose within
-        `JACOBIAN_REUSE_M` and 2 mrad (and a field within `JACOBIAN_REUSE_T`), else a new one."""
+        """Flux at (T, u) (``pred`` when known), a Jacobian, and whether it is new: the one
+        kept from a pose within `JACOBIAN_REUSE_M` and 2 mrad (and a field within
+        `JACOBIAN_REUSE_T`), else a new one."""
         kept = self._jacobians.get(background)
         if kept is not None:
             T_J, u_J, J = kept
@@ -257,6 +271,21 @@ class NonlinearEstimator:
         pred, J = self.model.predict_and_jacobian(T, u, background)
         self._jacobians[background] = (T, None if u is None else u.copy(), J)
         return pred, J, True
+
+    def _gain(self, J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Gauss-Newton's step for a kept Jacobian J (every channel), kept with it: the step
+        is G r - G_u u, G = (J^T J + P)^-1 J^T, G_u = (J^T J + P)^-1 P (P the background's
+        prior on its 3 unknowns). Undamped: a chord step is taken only near where J was."""
+        kept = self.__dict__.get("_gain_cache")
+        if kept is None or kept[0] is not J:
+            M = J.T @ J
+            prior = np.zeros_like(M)
+            if J.shape[1] > 6:
+                prior[6:, 6:] = PRIOR_WEIGHT * np.eye(3)
+            gains = np.linalg.solve(M + prior, np.concatenate([J.T, prior[:, 6:]], axis=1))
+            kept = (J, gains[:, :J.shape[0]], gains[:, J.shape[0]:])
+            self.__dict__["_gain_cache"] = kept
+        return kept[1], kept[2]
 
     def wrench(self, estimate: Estimate) -> np.ndarray:
         """w = K xi (N, Nm), the stiffness's wrench at the estimated deflection."""
@@ -279,15 +308,22 @@ def _exp_se3(xi: np.ndarray) -> np.ndarray:
     return T
 
 
-def _next_step(size: tuple[float, float], last: tuple[float, float]) -> float:
-    """How far the fit has left to go (m and rad alike), foretold from this step and the
-    one before: where it converges (each step at most `CONTRACTION` of the
-    one before) all the steps left add up to at most size ratio / (1 - ratio), ratio =
-    size / last; inf where that is not seen."""
+def _left(size: tuple[float, float], last: tuple[float, float]) -> tuple[float, float]:
+    """How far the fit has left to go (m, rad), foretold from this step and the one
+    before: where it converges (each step at most `CONTRACTION` of the one before) all the
+    steps left add up to at most size ratio / (1 - ratio), ratio = size / last; inf where
+    that is not seen."""
     if min(last) <= 0:
-        return math.inf
+        return math.inf, math.inf
     ratio = max(size[0] / last[0], size[1] / last[1])
-    return max(size) * ratio / (1 - ratio) if ratio <= CONTRACTION else math.inf
+    if ratio > CONTRACTION:
+        return math.inf, math.inf
+    return size[0] * ratio / (1 - ratio), size[1] * ratio / (1 - ratio)
+
+
+def _within(size: tuple[float, float]) -> bool:
+    """A step (m, rad) under the tolerances: the pose is where the flux puts it."""
+    return size[0] < STEP_TOL and size[1] < STEP_TOL_RAD
 
 
 def _prior(u: np.ndarray | None) -> float:
