@@ -40,7 +40,7 @@ from ftsensord.model import se3
 from ftsensord.service import wire
 from ftsensord.service.config import Config, builtin_path, load_config
 from ftsensord.service.daemon import Daemon
-from ftsensord.sim import two_sensor_scene
+from ftsensord.sim import default_scene
 
 
 class InstantBus:
@@ -51,7 +51,7 @@ class InstantBus:
     def __init__(self, config: Config):
         settings = config.settings
         self.regs = settings.to_registers()
-        scene = two_sensor_scene()
+        scene = default_scene()  # the room and part the packaged calibrations were fitted on
         rng = np.random.default_rng(0)
         self.replies: dict[tuple[int, int], list[bytes]] = {}
         for a in config.addresses:

@@ -32,6 +32,7 @@ from ftsensord.client import ControlClient, Subscriber
 from ftsensord.service import wire
 from ftsensord.service.config import builtin_path
 from ftsensord.sim.faults import random_faults
+from ftsensord.sim.scene import default_scene_text
 
 SENSORS = {"sensor1": range(0x0C, 0x14), "sensor2": range(0x14, 0x1C)}
 RATE_HZ = 100.0  # the packaged configuration's rate
@@ -39,11 +40,8 @@ LOAD = [1.0, -0.5, 0.8, 0.02, -0.01, 0.015]
 
 
 def scene_text(faults) -> str:
-    lines = ["version = 1", 'kind = "sensors"']
-    for name, addresses in SENSORS.items():
-        lines += ["[[sensor]]", f'name = "{name}"', f"addresses = {list(addresses)}"]
-        if name == "sensor1":
-            lines += ["[sensor.load]", 'kind = "static"', f"wrench = {LOAD}"]
+    # The default scene (the room and the part the packaged calibrations were fitted on).
+    lines = [default_scene_text(LOAD)]
     for f in faults:
         lines += ["[[fault]]", f'kind = "{f.kind}"', f"at_s = {f.at_s:.4f}", f"until_s = {f.until_s:.4f}"]
         if f.address is not None:

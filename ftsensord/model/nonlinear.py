@@ -192,19 +192,18 @@ class NonlinearEstimator:
             pred, J_full, fresh = self._linearise(T, u, background, pred)
             r = (b - pred)[channels]
             cost = float(r @ r) + _prior(u)
-            if not fresh and used == channels_all:  # a chord step: the kept Jacobian's own solve
+            chord = not fresh and used == channels_all
+            if chord:  # the kept Jacobian's own Gauss-Newton solve
                 gain, gain_u = self._gain(J_full)
                 step = gain @ r if u is None else gain @ r - gain_u @ u
-                lam_tries: list[float | None] = [None]
             else:
                 J = J_full[channels]
                 JtJ, Jtr = J.T @ J, J.T @ r
                 if u is not None:  # the prior's rows: (noise / prior) (u + du) = 0
                     JtJ[6:, 6:] += PRIOR_WEIGHT * np.eye(3)
                     Jtr[6:] -= PRIOR_WEIGHT * u
-                lam_tries = [lam]
-            while lam_tries:
-                if lam_tries.pop() is not None:
+            while True:
+                if not chord:
                     try:
                         damped = JtJ.copy()
                         damped.flat[::damped.shape[0] + 1] *= 1 + lam  # JtJ + lam diag(JtJ)
@@ -217,6 +216,7 @@ class NonlinearEstimator:
                 scale = min(1.0, MAX_STEP_M / max(math.hypot(*v), 1e-300),
                             MAX_STEP_RAD / max(math.hypot(*w), 1e-300))
                 step = step * scale
+                size = (math.hypot(*v) * scale, math.hypot(*w) * scale)
                 T_new = _exp_se3(step[:6]) @ T
                 u_new = None if u is None else u + step[6:]
                 pred_new = self.model.predict(T_new, u_new)
@@ -225,7 +225,7 @@ class NonlinearEstimator:
                     T, u, lam, pred = T_new, u_new, max(lam / 3, 1e-9), pred_new
                     cost = float(r_new @ r_new) + _prior(u_new)
                     break
-                if _within((math.hypot(*v) * scale, math.hypot(*w) * scale)):  # at the minimum already
+                if _within(size):  # at the minimum already
                     done = True
                     break
                 if not fresh:  # a kept Jacobian's step failed: take a new one, not more damping
@@ -235,14 +235,12 @@ class NonlinearEstimator:
                 if lam > 1e8:  # no step lowers the cost: a minimum, or hopeless data
                     done = True
                     break
-                lam_tries.append(lam)
             if not fresh and not self._jacobians:
                 continue
-            size = (math.hypot(*v) * scale, math.hypot(*w) * scale)
             # The rate is seen from two steps of one kind: both with new Jacobians (Newton's
             # quadratic convergence) or both with the same kept one (a chord's linear rate).
-            kind = "new" if fresh else id(J_full)
-            if done or _within(size) or (last is not None and last[1] == kind and _within(_left(size, last[0]))):
+            kind = NEW if fresh else J_full
+            if done or _within(size) or (last is not None and last[1] is kind and _within(_left(size, last[0]))):
                 break
             last = (size, kind) if scale == 1.0 else None  # a limited step says nothing of convergence
         rms = np.sqrt(max(cost - _prior(u), 0.0) / used)  # of the flux alone
@@ -293,6 +291,7 @@ class NonlinearEstimator:
 
 
 PRIOR_WEIGHT = (BACKGROUND_NOISE_T / BACKGROUND_PRIOR_T) ** 2
+NEW = object()  # the kind of a step taken with a new Jacobian
 
 
 def _exp_se3(xi: np.ndarray) -> np.ndarray:

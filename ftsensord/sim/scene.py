@@ -93,6 +93,17 @@ def default_scene_path() -> Path:
     return Path(str(resources.files("ftsensord") / "data" / DEFAULT_SCENE))
 
 
+def default_scene_text(load: list[float] | None = None) -> str:
+    """The default scene's file, with sensor1 under a static ``load`` (N, Nm) when given:
+    for a scene written beside a configuration that uses the packaged calibrations (they
+    were fitted on this room and part; faults may be appended as [[fault]] tables)."""
+    text = default_scene_path().read_text()
+    if load is None:
+        return text
+    table = f'[sensor.load]\nkind = "static"\nwrench = {list(load)}\n'
+    return text.replace("[sensor.orientation]", table + "[sensor.orientation]", 1)  # sensor1's comes first
+
+
 def _address(t: Table, name: str, value: object) -> int:
     if not isinstance(value, int) or isinstance(value, bool) or not mlx.ADDRESS_MIN <= value <= mlx.ADDRESS_MAX:
         raise t.fail(name, "an address in 0x0C-0x1B", value)
