@@ -168,8 +168,8 @@ SWEEP = [se3.exp_so3(np.cross([0, 0, 1.0], d) / max(np.linalg.norm(np.cross([0, 
          for k, d in enumerate(fibonacci_directions(48))]
 
 
-def sweep_false_wrench(linear: LinearModel, nl: NonlinearCalibration, flux, tare: np.ndarray  # type: ignore[no-untyped-def]
-                       ) -> dict[str, np.ndarray]:
+def sweep_false_wrench(linear: LinearModel, nl: NonlinearCalibration, flux,  # type: ignore[no-untyped-def]
+                       tare: np.ndarray) -> dict[str, np.ndarray]:
     """No load, `SWEEP`'s orientations, tared at the first with ``tare`` (its flux): the
     largest false wrench per axis."""
     readings = [flux(np.zeros(6), R) for R in SWEEP]

@@ -45,8 +45,9 @@ from ftsensord.sim import default_scene
 
 class InstantBus:
     """Answers like healthy chips at once: RM from eight precomputed readings a chip (the
-    default scene's flux at rest plus an LSB of noise, in turn, so no chip looks stuck),
-    RR from the configured registers, the real chip's status bytes otherwise."""
+    default scene's flux at rest with the chip's own noise, quantised as the chip does, no
+    two in a row alike so that no chip looks stuck), RR from the configured registers, the
+    real chip's status bytes otherwise."""
 
     def __init__(self, config: Config):
         settings = config.settings
@@ -54,12 +55,18 @@ class InstantBus:
         scene = default_scene()  # the room and part the packaged calibrations were fitted on
         rng = np.random.default_rng(0)
         self.replies: dict[tuple[int, int], list[bytes]] = {}
+        lsb = np.array([settings.sensitivity_ut(ax) for ax in "xyz"])
+        sigma = np.array([settings.noise_ut(ax) for ax in "xyz"])
         for a in config.addresses:
-            words = [mlx.counts_to_raw(round(b * 1e6 / settings.sensitivity_ut(ax)), settings.raw_format(ax))
-                     for b, ax in zip(scene.field_t(a, 0.0), "xyz")]
-            # Eight readings an LSB of noise apart: the 8-cycle pattern never repeats a word triple.
-            data = [b"".join((w + int(rng.integers(-1, 2)) + k % 2).to_bytes(2, "big") for w in words)
-                    for k in range(8)]
+            # The nonlinear estimator's work depends on how far the pose moves between samples:
+            # real noise (2-3 uT a channel, independent), not a pattern of whole LSBs (6-10 uT).
+            counts: list[tuple[int, ...]] = []
+            while len(counts) < 8:
+                c = tuple(int(x) for x in np.round((scene.field_t(a, 0.0) * 1e6 + rng.normal(0, sigma)) / lsb))
+                if not counts or c != counts[-1]:
+                    counts.append(c)
+            data = [b"".join(mlx.counts_to_raw(n, settings.raw_format(ax)).to_bytes(2, "big")
+                             for n, ax in zip(c, "xyz", strict=True)) for c in counts]
             self.replies[(a, 7)] = [bytes([0x02]) + d for d in data]
             self.replies[(a, 9)] = [bytes([0x03]) + (46244).to_bytes(2, "big") + d for d in data]
         self.turn = dict.fromkeys(config.addresses, 0)

@@ -52,11 +52,12 @@ CONTRACTION = 0.1
 #: about 6 um and 0.7 mrad (noise, at rest): its fit needs no new Jacobian; a fast change
 #: of load computes new ones as before.
 JACOBIAN_REUSE_M = 20e-6
-JACOBIAN_REUSE_TRACE = 1 + 2 * math.cos(2e-3)
+JACOBIAN_REUSE_TRACE = 1 + 2 * math.cos(2e-3)  # tr(R_J^T R) = 1 + 2 cos(angle): the 2 mrad test
 JACOBIAN_REUSE_T = 10e-6
 #: A fit whose RMS residual exceeds 1 mT is no pose of this sensor (a chip reading wrong,
 #: or garbage), however well it converged: the dipole model's own error is about 0.2 mT RMS
-#: at the corners of the range (|F| ~70 N with 0.2 Nm) and 7 uT in the middle.
+#: at the corners of the range (|F| ~70 N with 0.2 Nm) and 7 uT in the middle (with each
+#: chip's own magnet's octupole, 2 uT RMS at 50 N, 10 uT on its worst chip).
 MAX_RESIDUAL_T = 1e-3
 #: A warm-started fit left with more than 50 uT RMS may sit in a wrong minimum after a
 #: fast change of load: a cold start from the rest pose is tried too and the better fit
@@ -129,6 +130,9 @@ class NonlinearEstimator:
         #: The last Jacobian per kind of solve (with the background field or not), its pose
         #: and field: `_linearise` reuses it near there.
         self._jacobians: dict[bool, tuple[np.ndarray, np.ndarray | None, np.ndarray]] = {}
+        #: The last converged fit's pose, field, kind (with the field or not) and predicted
+        #: flux: a warm start from that pose and field needs no prediction of its own.
+        self._end: tuple[np.ndarray, np.ndarray, bool, np.ndarray | None] | None = None
 
     @property
     def unknowns(self) -> int:
@@ -181,7 +185,9 @@ class NonlinearEstimator:
         lam = damping  # Marquardt's damping, relative to the diagonal of J^T J
         cost, done, k = np.inf, False, 0
         last: tuple[tuple[float, float], object] | None = None  # the previous step's size (m, rad), its kind
-        pred: np.ndarray | None = None  # the flux predicted at T, once known
+        # The flux predicted at T, once known: from a warm start, the last fit's at its end.
+        kept = self._end
+        pred = kept[3] if kept is not None and kept[0] is start and kept[1] is u0 and kept[2] == background else None
         # The unknowns need as many channels: 6 for the pose, 9 with the background field.
         if channels.sum() < (9 if background else 6) or not np.all(np.isfinite(b[channels])):
             return Estimate(se3.log_se3(T), T, False, 0, np.inf)
@@ -244,13 +250,14 @@ class NonlinearEstimator:
                 break
             last = (size, kind) if scale == 1.0 else None  # a limited step says nothing of convergence
         rms = np.sqrt(max(cost - _prior(u), 0.0) / used)  # of the flux alone
-        xi = se3.log_se3(T)
+        xi = _log_se3(T)
         plausible = bool(np.all(np.abs(self.stiffness @ (xi - self.zero_twist)) <= PLAUSIBLE_RANGE * SENSOR_RANGE))
         plausible = plausible and (u is None or float(np.linalg.norm(u)) <= BACKGROUND_LIMIT_T)
         converged = bool(np.isfinite(rms) and rms <= MAX_RESIDUAL_T and plausible
                          and (done or k < self.max_iterations))
         if converged:
             self.pose, self.background_t = T, _field(u)
+            self._end = (T, self.background_t, background, pred)
         return Estimate(xi, T, converged, k, float(rms), _field(u))
 
     def _linearise(self, T: np.ndarray, u: np.ndarray | None, background: bool, pred: np.ndarray | None
@@ -299,12 +306,35 @@ def _exp_se3(xi: np.ndarray) -> np.ndarray:
     same series near zero), without a dozen numpy calls on 3-vectors every step."""
     v0, v1, v2, w0, w1, w2 = xi.tolist()
     a, b, c = se3._coefficients(math.sqrt(w0 * w0 + w1 * w1 + w2 * w2))
-    W = np.array([[0.0, -w2, w1], [w2, 0.0, -w0], [-w1, w0, 0.0]])
-    WW = W @ W
-    T = np.eye(4)
-    T[:3, :3] = _EYE3 + a * W + b * WW
-    T[:3, 3] = (_EYE3 + b * W + c * WW) @ (v0, v1, v2)
-    return T
+    # W = hat(w); W^2 = w w^T - |w|^2 I.
+    ww = w0 * w0 + w1 * w1 + w2 * w2
+    S = [[w0 * w0 - ww, w0 * w1, w0 * w2], [w1 * w0, w1 * w1 - ww, w1 * w2], [w2 * w0, w2 * w1, w2 * w2 - ww]]
+    W = [[0.0, -w2, w1], [w2, 0.0, -w0], [-w1, w0, 0.0]]
+    R = [[(i == j) + a * W[i][j] + b * S[i][j] for j in range(3)] for i in range(3)]
+    V = [[(i == j) + b * W[i][j] + c * S[i][j] for j in range(3)] for i in range(3)]
+    t = [V[i][0] * v0 + V[i][1] * v1 + V[i][2] * v2 for i in range(3)]
+    return np.array([[*R[0], t[0]], [*R[1], t[1]], [*R[2], t[2]], [0.0, 0.0, 0.0, 1.0]])
+
+
+def _log_se3(T: np.ndarray) -> np.ndarray:
+    """`se3.log_se3` in Python floats, for turns short of pi (a deflection's, or a twin's);
+    within `se3.NEAR_PI` of pi, where the axis needs the symmetric part, it is the one."""
+    (r00, r01, r02, t0), (r10, r11, r12, t1), (r20, r21, r22, t2), _ = T.tolist()
+    s0, s1, s2 = 0.5 * (r21 - r12), 0.5 * (r02 - r20), 0.5 * (r10 - r01)  # sin(theta) axis
+    sin_theta = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
+    theta = math.atan2(sin_theta, 0.5 * (r00 + r11 + r22 - 1.0))
+    if math.pi - theta <= se3.NEAR_PI:
+        return se3.log_se3(T)
+    tt = theta * theta
+    if theta < se3.SMALL_ANGLE:  # theta / sin(theta) and D as series (se3's own)
+        k, d = 1 + tt / 6 + 7 * tt * tt / 360, 1 / 12 + tt / 720 + tt * tt / 30240
+    else:
+        k, d = theta / sin_theta, 1 / tt - 1 / (2 * theta * math.tan(theta / 2))
+    w0, w1, w2 = k * s0, k * s1, k * s2
+    # J_l(w)^-1 t = t - (w x t) / 2 + D w x (w x t).
+    c0, c1, c2 = w1 * t2 - w2 * t1, w2 * t0 - w0 * t2, w0 * t1 - w1 * t0
+    cc0, cc1, cc2 = w1 * c2 - w2 * c1, w2 * c0 - w0 * c2, w0 * c1 - w1 * c0
+    return np.array([t0 - 0.5 * c0 + d * cc0, t1 - 0.5 * c1 + d * cc1, t2 - 0.5 * c2 + d * cc2, w0, w1, w2])
 
 
 def _left(size: tuple[float, float], last: tuple[float, float]) -> tuple[float, float]:
