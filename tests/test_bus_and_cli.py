@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -66,6 +67,10 @@ def test_the_nominal_scene_is_two_symmetric_sensors_at_rest():
     # Every chip sees the same field at rest (the ring is symmetric): its magnet
     # 6 mm away plus its neighbours' crosstalk, inside GAIN_SEL 0 RES 3's range.
     assert np.allclose(bz, bz[0]) and 1.0e-3 < bz[0] < 2.0e-3
+    # config/scene-nominal.toml is the same scene, for the command line.
+    from_file = load_scene(Path(__file__).resolve().parent.parent / "config" / "scene-nominal.toml")
+    assert np.array_equal([from_file.field_t(a, 0.0) for a in scene.addresses],
+                          [scene.field_t(a, 0.0) for a in scene.addresses])
 
 
 def test_the_default_scene_is_two_as_built_sensors_at_rest_in_the_earths_field():
@@ -169,7 +174,6 @@ def test_console_entry_point_runs_as_a_module():
 
 
 def test_the_example_scene_in_config_loads_and_shows_a_saturated_chip():
-    from pathlib import Path
     path = Path(__file__).resolve().parent.parent / "config" / "scene-static.toml"
     reports = {r.address: r for r in scan(open_bus(f"sim:{path}"))}
     assert sorted(reports) == [0x0C, 0x0D, 0x14]
