@@ -290,3 +290,32 @@ def test_the_estimators_float_exp_and_log_are_se3s(angle):
     T = se3.exp_se3(xi)
     assert np.allclose(_exp_se3(xi), T, rtol=0, atol=1e-15)
     assert np.allclose(_log_se3(T), se3.log_se3(T), rtol=0, atol=1e-12)
+
+
+def test_a_calibration_file_says_which_field_model_it_was_fitted_with(tmp_path):
+    """The packaged files say "dipole+octupole"; a file without the key was fitted with dipoles
+    alone and is evaluated so; any other model names the file and key."""
+    import json
+
+    from ftsensord.calibration.calfile import Calibration, checksum
+    from ftsensord.service.config import builtin_path
+
+    from .conftest import assert_names_file_and_key
+    packaged = Calibration.load(builtin_path("sim-sensor1.json"))
+    assert packaged.nonlinear is not None and packaged.nonlinear.octupole
+    assert packaged.nonlinear.estimator().model.octupole
+    doc = packaged.document()
+    path = tmp_path / "old.json"
+    for value, octupole in ((None, False), ("dipole", False), ("dipole+octupole", True)):
+        if value is None:
+            doc["nonlinear"].pop("field_model")
+        else:
+            doc["nonlinear"]["field_model"] = value
+        doc["checksum"] = checksum(doc)
+        path.write_text(json.dumps(doc))
+        loaded = Calibration.load(path).nonlinear
+        assert loaded is not None and loaded.octupole == octupole and loaded.estimator().model.octupole == octupole
+    doc["nonlinear"]["field_model"] = "quadrupole"
+    doc["checksum"] = checksum(doc)
+    path.write_text(json.dumps(doc))
+    assert_names_file_and_key(Calibration.load, path, "nonlinear.field_model", '"dipole+octupole"')

@@ -6,7 +6,8 @@ drawing. Unknowns, fitted together by Levenberg-Marquardt on all fit poses:
 - each chip's response matrix S_i (3 x 3: gain per axis, cross-axis, and its tilt on
   the part) and offset o_i (72 + 24);
 - each magnet's position (24, frame {0}) and moment (8, relative to the D101's): the
-  hand-placed magnets and their remanence spread;
+  hand-placed magnets and their remanence spread; each a dipole, and for its own chip
+  with its octupole too (the estimator's model, `FluxModel.octupole`);
 - the compliance C = K^-1 and zero twist d: each pose's deflection is xi = C w + d
   from its applied wrench w (36 + 6);
 - per pose, a uniform background field u_k (the room's field turned into {0} by the
