@@ -4,25 +4,29 @@ Earth's field, with enough loads to count fall-backs. Writes docs/accuracy-figur
     python benchmarks/accuracy.py            # the figures in docs/ (a few minutes)
     python benchmarks/accuracy.py --quick    # structure only (CI: tests/test_accuracy_bench.py)
 
-Per sensor: the paper's calibration run on the simulated bus (`record_dataset`: the
-emulated chips, the robot turning the sensor in the room), 193 fit poses (50 g, 200 g),
-24 no-load poses, 100 readings a pose; the linear fit (`fit`, room field measured) and
-the nonlinear one (`fit_nonlinear`). Then three test classes, each reading the scene's
-exact field at every chip (gains, tilts, the room's field turned by the orientation)
-plus Gaussian noise of the chips' per-reading standard deviation (measured from the
-dataset's standard errors) averaged over 16 readings:
+The room and the part are the default scene's (ftsensord/data/scene-default.toml: the
+Earth's field, 48 uT inclined; the tolerances of a hand-made part): seeds 1 and 2 are its
+sensor1 and sensor2, seed 3 a third part built the same way. Per sensor: the paper's
+calibration run on the simulated bus (`record_dataset`: the emulated chips, the robot
+turning the sensor in the room), 193 fit poses (50 g, 200 g), 24 no-load poses, 100
+readings a pose; the linear fit (`fit`, room field measured) and the nonlinear one
+(`fit_nonlinear`). Then three test classes, each reading the scene's exact field at every
+chip (gains, tilts, the room's field turned by the orientation) plus Gaussian noise of the
+chips' per-reading standard deviation (measured from the dataset's standard errors)
+averaged over the readings a sample takes:
 
 - "100 g": the validation poses of the same run (100 g on the four lever arms, their
   own orientations), `--loads` of them, 100 readings averaged as the paper's Table II;
 - "large": `--loads` random wrenches, |F| 10-50 N, torques to the sensor's range, each
-  at a random orientation in the room;
-- "sweep": no load, the sensor turned through 48 orientations, tared at the first: the
-  largest false wrench.
+  at a random orientation in the room, 16 readings;
+- "sweep": no load, the sensor turned through 48 orientations after a tare at the first
+  (100 readings, the daemon's default tare): the largest false wrench, each orientation
+  read with 100 readings (held still there), with 16, and without noise.
 
 A nonlinear estimate that does not converge falls back to the linear one (as in the
-daemon) and is counted. Sensors: the as-built parts of seeds 1, 2, 3 (the tolerances of
-config/scene-room.toml) in its Earth's field; and the ablation on seed 1 (nominal
-field-free, + room field, + tolerances, + both).
+daemon) and is counted. The ablation on seed 1: nominal field-free, + room field, +
+tolerances, + both; the nonlinear model without its octupole term (dipoles alone); and
+the test readings without noise.
 """
 
 from __future__ import annotations
@@ -30,7 +34,8 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from dataclasses import dataclass
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +44,7 @@ from ftsensord.calibration.fit import fit
 from ftsensord.calibration.nlfit import NonlinearCalibration, fit_nonlinear
 from ftsensord.calibration.rig import record_dataset, simulate_sweeps, simulated_robot
 from ftsensord.chip.mlx90393 import HALL_SATURATION_T
+from ftsensord.docfile import load_toml
 from ftsensord.model import se3
 from ftsensord.model.geometry import SensorGeometry
 from ftsensord.model.linear import SENSOR_RANGE, LinearModel
@@ -50,8 +56,10 @@ from ftsensord.sim.loads import (
     paper_plan,
 )
 from ftsensord.sim.physics import Tolerances
+from ftsensord.sim.scene import default_scene_path
 
-EARTH_T = np.array([22.3, 1.4, -42.6]) * 1e-6  # config/scene-room.toml
+SCENE = load_toml(default_scene_path())
+EARTH_T = np.array(SCENE["external_field_ut"]) * 1e-6  # the default scene's room
 ADDRS = tuple(range(0x0C, 0x14))
 #: The paper's Table II (real sensor, 100 g validation), N and Nm.
 PAPER = np.array([0.2338, 0.1136, 0.3775, 4.1e-3, 10.6e-3, 8.5e-3])
@@ -59,11 +67,16 @@ PAPER = np.array([0.2338, 0.1136, 0.3775, 4.1e-3, 10.6e-3, 8.5e-3])
 #: loads and the sweep; the paper's 100 for its 100 g validation, as Table II was measured.
 AVERAGING = 16
 PAPER_AVERAGING = 100
+#: Readings a tare averages: the daemon's default (`ftsensord tare`, 100 samples).
+TARE_READINGS = 100
 
 
 def part(seed: int) -> Tolerances:
-    """The tolerances of config/scene-room.toml, one part per seed."""
-    return Tolerances(0.15e-3, 0.03, np.radians(1.5), 0.02, 0.1e-3, seed=seed)
+    """The tolerances of the default scene's sensor1, one part per seed (seed 1 is its
+    sensor1, seed 2 its sensor2: the same figures)."""
+    t = SCENE["sensor"][0]["tolerances"]
+    return Tolerances(t["magnet_position_mm"] * 1e-3, t["magnet_remanence_pct"] / 100, np.radians(t["chip_tilt_deg"]),
+                      t["chip_gain_pct"] / 100, t["ring_radius_mm"] * 1e-3, seed=seed)
 
 
 @dataclass
@@ -84,7 +97,10 @@ def make_sensor(tol: Tolerances | None) -> SimSensor:
     return SimSensor("s", ADDRS, geometry, chip_gain=gains)
 
 
-def evaluate(name: str, tol: Tolerances | None, field_t: np.ndarray, args: argparse.Namespace, seed: int) -> Result:
+def evaluate(name: str, tol: Tolerances | None, field_t: np.ndarray, args: argparse.Namespace, seed: int,
+             octupole: bool = True, noise: bool = True) -> Result:
+    """One sensor's calibration run, fits and test classes (``octupole``: the nonlinear
+    model's; ``noise``: in the test readings, not the calibration's)."""
     sensor = make_sensor(tol)
     scene = PhysicalScene([sensor], external_field_t=field_t)
     plan = paper_plan(n_fit=args.fit_poses, n_validation=args.loads, n_no_load=args.no_load_poses)
@@ -92,14 +108,14 @@ def evaluate(name: str, tol: Tolerances | None, field_t: np.ndarray, args: argpa
                         **simulated_robot(scene, "s"))
     ds.sweeps = simulate_sweeps(ADDRS, SensorGeometry.ring(), samples=args.samples)
     linear = fit(ds).model
-    nl = fit_nonlinear(ds, allow_poor_fit=True)
+    nl = fit_nonlinear(ds, allow_poor_fit=True, octupole=octupole)
     reading_sigma = float(np.median(ds.flux_sem_t)) * np.sqrt(args.samples)  # one reading's, T
     rng = np.random.default_rng(seed + 1000)
 
-    def flux(w: np.ndarray, R: np.ndarray, noise: bool = True, averaging: int = AVERAGING) -> np.ndarray:
+    def flux(w: np.ndarray, R: np.ndarray, averaging: int = AVERAGING) -> np.ndarray:
         sensor.load, sensor.orientation = StaticLoad(w), FixedOrientation(R)
         exact = np.concatenate([scene.field_t(a, 0.0) for a in ADDRS])
-        return exact + rng.normal(0, reading_sigma / np.sqrt(averaging) if noise else 0.0, exact.shape)
+        return exact + rng.normal(0, reading_sigma / np.sqrt(averaging) if averaging else 0.0, exact.shape)
 
     cases = {"100 g": [(p.wrench(), p.orientation()) for p, s in plan if s == "validation"]}
     large = []
@@ -115,7 +131,7 @@ def evaluate(name: str, tol: Tolerances | None, field_t: np.ndarray, args: argpa
         est = nl.estimator()
         err_l, err_n, err_c, fb, sat, bad = [], [], [], 0, 0, 0
         for w, R in pairs:
-            b = flux(w, R, averaging=PAPER_AVERAGING if kind == "100 g" else AVERAGING)
+            b = flux(w, R, averaging=(PAPER_AVERAGING if kind == "100 g" else AVERAGING) if noise else 0)
             # A chip beyond the Hall element's 50 mT reads clipped and is flagged saturated:
             # left out, as the daemon does (degraded mode); a sample whose chips left cannot
             # give all six axes is published invalid and is left out of the RMSE (counted).
@@ -137,21 +153,29 @@ def evaluate(name: str, tol: Tolerances | None, field_t: np.ndarray, args: argpa
         rmse[(kind, "nonlinear")] = np.sqrt(np.mean(np.square(err_n), axis=0))
         rmse[(kind, "nonlinear, converged")] = np.sqrt(np.mean(np.square(err_c), axis=0))
         fallbacks[kind], loads[kind], saturated[kind], invalid[kind] = fb, len(pairs), sat, bad
-    sweep = sweep_false_wrench(linear, nl, flux)
-    exact = sweep_false_wrench(linear, nl, lambda w, R: flux(w, R, noise=False))
-    sweep.update({f"{k}, noiseless": v for k, v in exact.items()})
+    sweep = {}
+    for label, averaging in ((f"{PAPER_AVERAGING} readings", PAPER_AVERAGING), (f"{AVERAGING} readings", AVERAGING),
+                             ("noiseless", 0)):
+        found = sweep_false_wrench(linear, nl, lambda w, R, n=averaging: flux(w, R, n),
+                                   flux(np.zeros(6), SWEEP[0], TARE_READINGS if averaging else 0))
+        sweep.update({f"{k}, {label}": v for k, v in found.items()})
     return Result(name, rmse, fallbacks, loads, sweep, nl.fit_rms_residual_t * 1e6, nl.warnings, saturated, invalid)
 
 
-def sweep_false_wrench(linear: LinearModel, nl: NonlinearCalibration, flux) -> dict[str, np.ndarray]:  # type: ignore[no-untyped-def]
-    """No load, 48 orientations, tare at the first: the largest false wrench per axis."""
-    rots = [se3.exp_so3(np.cross([0, 0, 1.0], d) / max(np.linalg.norm(np.cross([0, 0, 1.0], d)), 1e-12)
-                        * np.arccos(np.clip(d[2], -1, 1))) @ se3.exp_so3(np.array([0, 0, 2.4 * k]))
-            for k, d in enumerate(fibonacci_directions(48))]
-    readings = [flux(np.zeros(6), R) for R in rots]
-    lin = linear.with_zero(readings[0])
+#: The sweep's 48 orientations: the shaft along Fibonacci directions, turned about itself.
+SWEEP = [se3.exp_so3(np.cross([0, 0, 1.0], d) / max(np.linalg.norm(np.cross([0, 0, 1.0], d)), 1e-12)
+                     * np.arccos(np.clip(d[2], -1, 1))) @ se3.exp_so3(np.array([0, 0, 2.4 * k]))
+         for k, d in enumerate(fibonacci_directions(48))]
+
+
+def sweep_false_wrench(linear: LinearModel, nl: NonlinearCalibration, flux,  # type: ignore[no-untyped-def]
+                       tare: np.ndarray) -> dict[str, np.ndarray]:
+    """No load, `SWEEP`'s orientations, tared at the first with ``tare`` (its flux): the
+    largest false wrench per axis."""
+    readings = [flux(np.zeros(6), R) for R in SWEEP]
+    lin = linear.with_zero(tare)
     est = nl.estimator()
-    xi0 = est.estimate(readings[0]).xi
+    xi0 = est.estimate(tare).xi
     out_l, out_n = [], []
     for b in readings:
         out_l.append(np.abs(lin.wrench(b)))
@@ -169,14 +193,19 @@ def row(values: np.ndarray, spread: np.ndarray | None = None) -> str:
     return " | ".join(cells)
 
 
+SWEEP_ROWS = [f"{e}, {label}" for label in (f"{PAPER_AVERAGING} readings", f"{AVERAGING} readings", "noiseless")
+              for e in ("linear", "nonlinear")]
+
+
 def render(results: list[Result], ablation: list[Result], args: argparse.Namespace, elapsed: float) -> str:
     head = "| Fx (N) | Fy (N) | Fz (N) | Mx (mNm) | My (mNm) | Mz (mNm) |"
     out = ["# Accuracy figures (generated by benchmarks/accuracy.py)", "",
-           (f"Command: `python benchmarks/accuracy.py{' --quick' if args.quick else ''}`; {elapsed:.0f} s. "
-           f"Per sensor: {args.fit_poses} fit poses, {args.no_load_poses} no-load poses, {args.samples} readings "
-           f"a pose; {results[0].loads['100 g']} loads of 100 g ({PAPER_AVERAGING} readings averaged, as the "
-           f"paper's) and {results[0].loads['large']} large loads (|F| 10-50 N, {AVERAGING} readings); a no-load "
-           f"sweep of 48 orientations ({AVERAGING} readings)."), "",
+           (f"Command: `python benchmarks/accuracy.py{' --quick' if args.quick else ''}`; {elapsed:.0f} s "
+            f"({args.workers} processes). Scene: the default's room and part (ftsensord/data/scene-default.toml). "
+            f"Per sensor: {args.fit_poses} fit poses, {args.no_load_poses} no-load poses, {args.samples} readings "
+            f"a pose; {results[0].loads['100 g']} loads of 100 g ({PAPER_AVERAGING} readings averaged, as the "
+            f"paper's) and {results[0].loads['large']} large loads (|F| 10-50 N, {AVERAGING} readings); a no-load "
+            f"sweep of 48 orientations after a tare of {TARE_READINGS} readings."), "",
            "## As-built sensors in the Earth's field", "",
            (f"Sensors: seeds {', '.join(r.name for r in results)}. RMSE per axis, mean +- standard deviation "
             "across sensors."), "",
@@ -192,10 +221,15 @@ def render(results: list[Result], ablation: list[Result], args: argparse.Namespa
         out.append(f"| seed {r.name} | {r.residual_ut:.3g} | {r.fallbacks['100 g']} of {r.loads['100 g']} | "
                    f"{r.fallbacks['large']} of {r.loads['large']} | {r.saturated['large']} | {r.invalid['large']} | "
                    f"{'; '.join(r.warnings) or 'none'} |")
-    out += ["", "No-load sweep, largest false wrench after a tare at the first orientation (mean across sensors):", "",
-            "| estimator " + head, "|---" + "|---" * 6 + "|"]
-    for estimator in ("linear", "nonlinear", "linear, noiseless", "nonlinear, noiseless"):
-        out.append(f"| {estimator} | " + row(np.mean([r.sweep[estimator] for r in results], axis=0)) + " |")
+    out += ["", ("No-load sweep, largest false wrench of the 48 orientations after a tare at the first, each "
+                 "orientation read with the readings named (mean across sensors; largest sensor in brackets):"), "",
+            "| estimator, readings a sample " + head, "|---" + "|---" * 6 + "|"]
+    for estimator in SWEEP_ROWS:
+        values = np.array([r.sweep[estimator] for r in results])
+        scale = np.array([1, 1, 1, 1e3, 1e3, 1e3])
+        cells = [f"{m * k:.3g} ({x * k:.3g})" for m, x, k in zip(values.mean(axis=0), values.max(axis=0), scale,
+                                                                    strict=True)]
+        out.append(f"| {estimator} | " + " | ".join(cells) + " |")
     out += ["", "## Ablation (seed 1): which effect costs what", "",
             "| sensor | class | estimator " + head, "|---|---|---" + "|---" * 6 + "|"]
     for r in ablation:
@@ -209,9 +243,15 @@ def render(results: list[Result], ablation: list[Result], args: argparse.Namespa
     return "\n".join(out) + "\n"
 
 
+def _run(job: tuple) -> Result:  # type: ignore[type-arg]
+    name, tol, field_t, args, seed, options = job
+    return evaluate(name, tol, field_t, args, seed, **options)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="few poses and loads, one extra seed: structure only")
+    parser.add_argument("--workers", type=int, default=2, help="processes (default 2)")
     parser.add_argument("--out", default=str(Path(__file__).parent.parent / "docs" / "accuracy-figures.md"))
     args = parser.parse_args(argv)
     seeds: tuple[int, ...]
@@ -220,14 +260,19 @@ def main(argv: list[str] | None = None) -> int:
     else:
         args.fit_poses, args.no_load_poses, args.samples, args.loads, seeds = 193, 24, 100, 200, (1, 2, 3)
     start = time.monotonic()
-    results = [evaluate(str(s), part(s), EARTH_T, args, seed=s) for s in seeds]
-    ablation = [evaluate("nominal, field-free", None, np.zeros(3), args, seed=1),
-                evaluate("nominal, Earth's field", None, EARTH_T, args, seed=1),
-                evaluate("as-built, field-free", part(1), np.zeros(3), args, seed=1),
-                results[0]]
-    ablation[-1] = Result("as-built, Earth's field", *[getattr(results[0], f) for f in
-                                                      ("rmse", "fallbacks", "loads", "sweep", "residual_ut", "warnings",
-                                                       "saturated", "invalid")])
+    jobs = [(str(s), part(s), EARTH_T, args, s, {}) for s in seeds]
+    jobs += [("nominal, field-free", None, np.zeros(3), args, 1, {}),
+             ("nominal, Earth's field", None, EARTH_T, args, 1, {}),
+             ("as-built, field-free", part(1), np.zeros(3), args, 1, {}),
+             ("as-built, Earth's field, dipole model", part(1), EARTH_T, args, 1, {"octupole": False}),
+             ("as-built, Earth's field, test readings noiseless", part(1), EARTH_T, args, 1, {"noise": False})]
+    if args.workers > 1:
+        with ProcessPoolExecutor(args.workers) as pool:
+            done = list(pool.map(_run, jobs))
+    else:
+        done = [_run(job) for job in jobs]
+    results, ablation = done[:len(seeds)], done[len(seeds):]
+    ablation.insert(3, replace(results[0], name="as-built, Earth's field"))
     text = render(results, ablation, args, time.monotonic() - start)
     Path(args.out).write_text(text)
     print(text)

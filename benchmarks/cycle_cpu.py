@@ -40,7 +40,7 @@ from ftsensord.model import se3
 from ftsensord.service import wire
 from ftsensord.service.config import Config, builtin_path, load_config
 from ftsensord.service.daemon import Daemon
-from ftsensord.sim import NoiseModel, two_sensor_scene
+from ftsensord.sim import NoiseModel, default_scene
 
 #: Readings a chip cycles through: at the default settings' noise (a third of the words'
 #: 6 uT LSB) the same words come back often, never for as many cycles as the stuck test needs.
@@ -57,7 +57,7 @@ class InstantBus:
     def __init__(self, config: Config):
         settings = config.settings
         self.regs = settings.to_registers()
-        scene = two_sensor_scene()
+        scene = default_scene()  # the room and part the packaged calibrations were fitted on
         rng = np.random.default_rng(0)
         noise = NoiseModel()
         self.replies: dict[tuple[int, int], list[bytes]] = {}

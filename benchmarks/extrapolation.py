@@ -20,7 +20,7 @@ from ftsensord.calibration.calfile import Calibration
 from ftsensord.calibration.fit import AXES
 from ftsensord.service.config import builtin_path
 from ftsensord.sim.loads import StaticLoad
-from ftsensord.sim.physics import two_sensor_scene
+from ftsensord.sim.scene import default_scene
 
 SCALES = (0.5, 1.0, 1.5, 2.0, 3.0, 5.0, 10.0)
 
@@ -31,7 +31,7 @@ def main() -> int:
     args = parser.parse_args()
     cal = Calibration.load(builtin_path("sim-sensor1.json"))
     assert cal.wrench_range is not None
-    scene = two_sensor_scene()
+    scene = default_scene()  # the room and part the calibration was fitted on
     rng = np.random.default_rng(0)
     relative = {}
     for s in SCALES:

@@ -44,6 +44,7 @@ from ftsensord.service import wire
 from ftsensord.service.config import Config, builtin_path, load_config
 from ftsensord.service.pipeline import channel_sigma_t
 from ftsensord.sim.faults import random_faults
+from ftsensord.sim.scene import default_scene_text
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from faults_truth import WRONG_SIGMA, unflagged_error_sigma  # noqa: E402  (a sibling script: one criterion)
@@ -54,11 +55,8 @@ LOAD = [1.0, -0.5, 0.8, 0.02, -0.01, 0.015]
 
 
 def scene_text(faults) -> str:
-    lines = ["version = 1", 'kind = "sensors"']
-    for name, addresses in SENSORS.items():
-        lines += ["[[sensor]]", f'name = "{name}"', f"addresses = {list(addresses)}"]
-        if name == "sensor1":
-            lines += ["[sensor.load]", 'kind = "static"', f"wrench = {LOAD}"]
+    # The default scene (the room and the part the packaged calibrations were fitted on).
+    lines = [default_scene_text(LOAD)]
     for f in faults:
         lines += ["[[fault]]", f'kind = "{f.kind}"', f"at_s = {f.at_s:.4f}", f"until_s = {f.until_s:.4f}"]
         if f.address is not None:

@@ -94,6 +94,14 @@ class Row:
         return mlx.tconvm_us(self.osr, self.dig_filt)
 
 
+def scene_name(config: Config) -> str:
+    """What the simulated bus's scene is, for the docs: the default (the room and the part)
+    or the file the configuration names."""
+    _, arg = parse_bus_spec(config.bus)
+    return f"`{arg}`" if arg else ("the default (ftsensord/data/scene-default.toml: two as-built sensors in the "
+                                   "Earth's field, calibrated on it by the packaged procedure)")
+
+
 def bench_bus(config: Config, clock: VirtualClock | MonotonicClock, seed: int = 0) -> tuple[Bus, PhysicalScene | None]:
     """The configured bus, and the scene behind it when it is simulated with loads to set."""
     kind, arg = parse_bus_spec(config.bus)
@@ -322,7 +330,8 @@ def render(config: Config, chip, rates, rows, cpu, lat, quick, elapsed) -> str:
     error_name = "RMSE inside the calibration range (N)" if truth else "noise F at rest (N)"
     out = ["# Speed against accuracy", "",
            f"Made by `python benchmarks/tradeoff.py` ({'quick mode' if quick else 'full run'}, {elapsed:.0f} s) "
-           f"on a {machine()}; {n_chips} chips on `{config.bus}` at {config.bus_hz / 1e3:.0f} kHz.", "",
+           f"on a {machine()}; {n_chips} chips on `{config.bus}` at {config.bus_hz / 1e3:.0f} kHz"
+           + (f"; scene: {scene_name(config)}." if truth else "."), "",
            "## Rate: the computed bound and what the loop achieves in real time", "",
            "| OSR, DIG_FILT | TCONVM (us) | naive bound / achieved (Hz) | overlapped bound / achieved (Hz) | "
            "overlapped ratio | burst bound / achieved (Hz) |", "|---|---|---|---|---|---|"]

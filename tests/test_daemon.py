@@ -19,25 +19,16 @@ from ftsensord.service.config import load_config
 from ftsensord.service.daemon import Daemon
 from ftsensord.service.sdnotify import Notifier
 from ftsensord.sim import VirtualClock, load_scene, simulated_bus
+from ftsensord.sim.scene import default_scene_text
 
 from .conftest import assert_names_file_and_key
 
 LOAD = [1.0, -0.5, 0.8, 0.02, -0.01, 0.015]
 _ids = itertools.count()
 
-SCENE = f"""
-version = 1
-kind = "sensors"
-[[sensor]]
-name = "sensor1"
-addresses = [0x0C, 0x0D, 0x0E, 0x0F, 0x10, 0x11, 0x12, 0x13]
-[sensor.load]
-kind = "static"
-wrench = {LOAD}
-[[sensor]]
-name = "sensor2"
-addresses = [0x14, 0x15, 0x16, 0x17, 0x18, 0x19, 0x1A, 0x1B]
-"""
+#: The default scene (the room and the part the packaged calibrations were fitted on),
+#: sensor1 under LOAD.
+SCENE = default_scene_text(LOAD)
 
 
 TOOL = """

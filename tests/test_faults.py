@@ -72,7 +72,11 @@ def test_a_stuck_chip_is_detected_flagged_and_reinitialised(tmp_path):
     rig, out = run(tmp_path, fault("stuck", 0.2, 3.0, address=0x0F), 3.5, extra="stuck_cycles = 50")
     w = out["wrench/sensor1"]
     first = next(s for s in w if s.flags & wire.FLAG_CHIP_MISSING)
-    assert 0.2 + 0.5 <= first.t_mono < 0.2 + 0.6  # after 50 identical cycles
+    # After 50 identical cycles. The chip's noise (2-3 uT) is under its LSB (6-10 uT), so
+    # the readings just before the fault may already be the frozen one (two in a row alike:
+    # about one in five here): the run of identical readings may begin a cycle or two early
+    # (this scene: one).
+    assert 0.2 + 0.5 - 0.03 <= first.t_mono < 0.2 + 0.6
     assert rig.daemon.reader.health[0x0F].stuck_detections >= 1
     assert w[-1].flags == 0  # after the fault, fresh data again
     rig.close()

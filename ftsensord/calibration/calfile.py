@@ -137,7 +137,7 @@ def _nonlinear(doc: Table, chips: int) -> NonlinearCalibration:
     """The ``nonlinear`` section (`NonlinearCalibration.document` writes it)."""
     t = doc.table("nonlinear")
     t.only({"gap_m", "ring_radius_m", "tilt_deg", "scale", "offset_t", "K", "zero_twist", "fit_rms_residual_t",
-            "magnet_p_m", "magnet_strength", "warnings"})
+            "magnet_p_m", "magnet_strength", "warnings", "field_model"})
     warnings = t.get("warnings", [])
     if not isinstance(warnings, list) or not all(isinstance(w, str) for w in warnings):
         raise t.fail("warnings", "a list of strings", warnings)
@@ -161,7 +161,8 @@ def _nonlinear(doc: Table, chips: int) -> NonlinearCalibration:
         np.array(t.matrix("offset_t", chips, 3, unit="T")), np.array(t.matrix("K", 6, 6, unit="N/m, Nm/rad")),
         np.array(t.numbers("zero_twist", 6, unit="m, rad")), t.number("fit_rms_residual_t", low=0, unit="T"),
         t.number("ring_radius_m", low=1e-3, high=0.1, unit="m"), t.number("tilt_deg", low=-90, high=90),
-        tuple(warnings), magnet_p, strength)
+        tuple(warnings), magnet_p, strength,
+        t.string("field_model", "dipole", choices=("dipole", "dipole+octupole")) == "dipole+octupole")
 
 
 def checksum(doc: dict[str, Any]) -> str:

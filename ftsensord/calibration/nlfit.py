@@ -6,7 +6,8 @@ drawing. Unknowns, fitted together by Levenberg-Marquardt on all fit poses:
 - each chip's response matrix S_i (3 x 3: gain per axis, cross-axis, and its tilt on
   the part) and offset o_i (72 + 24);
 - each magnet's position (24, frame {0}) and moment (8, relative to the D101's): the
-  hand-placed magnets and their remanence spread;
+  hand-placed magnets and their remanence spread; each a dipole, and for its own chip
+  with its octupole too (the estimator's model, `FluxModel.octupole`);
 - the compliance C = K^-1 and zero twist d: each pose's deflection is xi = C w + d
   from its applied wrench w (36 + 6);
 - per pose, a uniform background field u_k (the room's field turned into {0} by the
@@ -35,6 +36,7 @@ import numpy as np
 from ..errors import CalibrationError
 from ..model import se3
 from ..model.geometry import SensorGeometry
+from ..model.magnet import MU0_OVER_4PI, octupole_field, octupole_ratio
 from ..model.nonlinear import FluxModel, NonlinearEstimator, dipole_pairs
 from .dataset import Dataset
 
@@ -94,6 +96,9 @@ class NonlinearCalibration:
     warnings: tuple[str, ...] = ()
     magnet_p_m: np.ndarray | None = None
     magnet_strength: np.ndarray | None = None
+    #: Each chip's own magnet with its octupole (`FluxModel.octupole`); files written
+    #: before it (no ``field_model``) were fitted with dipoles alone.
+    octupole: bool = True
 
     def geometry(self) -> SensorGeometry:
         g = SensorGeometry.ring(radius_m=self.ring_radius_m, tilt_deg=self.tilt_deg, gap_m=self.gap_m)
@@ -105,7 +110,8 @@ class NonlinearCalibration:
 
     def estimator(self, background: bool = True) -> NonlinearEstimator:
         g = self.geometry()
-        return NonlinearEstimator(FluxModel(g, g.magnet_moment_am2, self.scale.copy(), self.offset_t.copy()),
+        return NonlinearEstimator(FluxModel(g, g.magnet_moment_am2, self.scale.copy(), self.offset_t.copy(),
+                                            octupole=self.octupole),
                                   self.K, background=background, zero_twist=self.zero_twist)
 
     def wrench(self, xi: np.ndarray) -> np.ndarray:
@@ -117,7 +123,8 @@ class NonlinearCalibration:
         doc: dict[str, Any] = {"gap_m": self.gap_m, "ring_radius_m": self.ring_radius_m, "tilt_deg": self.tilt_deg,
                                "scale": np.asarray(self.scale).tolist(), "offset_t": self.offset_t.tolist(),
                                "K": self.K.tolist(), "zero_twist": self.zero_twist.tolist(),
-                               "fit_rms_residual_t": self.fit_rms_residual_t}
+                               "fit_rms_residual_t": self.fit_rms_residual_t,
+                               "field_model": "dipole+octupole" if self.octupole else "dipole"}
         if self.magnet_p_m is not None:
             doc["magnet_p_m"] = self.magnet_p_m.tolist()
         if self.magnet_strength is not None:
@@ -130,8 +137,8 @@ class NonlinearCalibration:
 class _Problem:
     """The joint fit's residual and Jacobian over all fit poses (see the module's doc)."""
 
-    def __init__(self, flux: np.ndarray, wrench: np.ndarray, geometry: SensorGeometry):
-        self.flux, self.wrench, self.g = flux, wrench, geometry
+    def __init__(self, flux: np.ndarray, wrench: np.ndarray, geometry: SensorGeometry, octupole: bool = True):
+        self.flux, self.wrench, self.g, self.octupole = flux, wrench, geometry, octupole
         self.n = geometry.n_chips
         self.moment = geometry.magnet_moment_am2
         n = self.n
@@ -165,6 +172,13 @@ class _Problem:
         r = p[:, :, None, :] - P["mp"][None, None, :, :]  # (N, chip, magnet, 3)
         m = self.moment * P["s"][:, None] * g.magnet_axis
         Bij, Gij = dipole_pairs(r, np.broadcast_to(m, r.shape), jacobian)
+        if self.octupole:  # each chip's own magnet's octupole (FluxModel's), on the diagonal pairs
+            own = np.arange(n)
+            q = MU0_OVER_4PI * self.moment * P["s"] * octupole_ratio(g.magnet_radius_m, g.magnet_length_m)
+            B3, G3 = octupole_field(r[:, own, own], g.magnet_axis, np.broadcast_to(q, r.shape[:2]), jacobian)
+            Bij[:, own, own] += B3
+            if Gij is not None:
+                Gij[:, own, own] += G3
         B = Bij.sum(axis=2)
         SRt = P["S"][None] @ np.swapaxes(R, -1, -2)  # (N, n, 3, 3)
         raw = np.einsum("knji,knj->kni", R, B)  # the field in each chip's frame
@@ -216,7 +230,7 @@ def _start(flux: np.ndarray, wrench: np.ndarray, problem: _Problem) -> np.ndarra
     """The nominal part; K and the zero from the deflections it estimates (background
     field estimated too), the offsets matching the mean reading at the mean pose."""
     g = problem.g
-    model = FluxModel(g, g.magnet_moment_am2)
+    model = FluxModel(g, g.magnet_moment_am2, octupole=problem.octupole)
     model.offset_t = (flux.mean(axis=0) - model.predict(np.eye(4))).reshape(-1, 3)
     estimator = NonlinearEstimator(model, np.eye(6) * 1e9)  # no plausibility limit while K is unknown
     xis = np.array([estimator.estimate(b).xi for b in flux])
@@ -227,14 +241,15 @@ def _start(flux: np.ndarray, wrench: np.ndarray, problem: _Problem) -> np.ndarra
 
 
 def fit_nonlinear(dataset: Dataset, *, progress: Callable[[FitProgress], None] | None = None,
-                  allow_poor_fit: bool = False) -> NonlinearCalibration:
+                  allow_poor_fit: bool = False, octupole: bool = True) -> NonlinearCalibration:
     """Fit on the dataset's unsaturated "fit" poses (the identifiability checks are the
     linear fit's: run `ftsensord.calibration.fit` first).
 
     ``progress`` is called after each of the `FIT_ITERATIONS` iterations. Refuses a
     fit with a magnet beyond `MAGNET_SHIFT_LIMIT_M` of its drawn place or a residual
     far above the noise, unless ``allow_poor_fit``: then it is kept, the reasons in
-    ``warnings``. Refuses a K not positive definite.
+    ``warnings``. Refuses a K not positive definite. ``octupole=False`` fits the dipole
+    model alone (the earlier one: benchmarks/accuracy.py measures what the octupole buys).
     """
     rows = (dataset.split == "fit") & ~dataset.saturated.any(axis=1)
     flux, wrench = dataset.flux_t[rows], dataset.wrench[rows]
@@ -242,7 +257,7 @@ def fit_nonlinear(dataset: Dataset, *, progress: Callable[[FitProgress], None] |
         raise CalibrationError(f"{len(flux)} usable fit poses: the nonlinear fit needs at least 13")
     begin = time.monotonic()
     geometry = SensorGeometry.ring(gap_m=GAP_M)
-    problem = _Problem(flux, wrench, geometry)
+    problem = _Problem(flux, wrench, geometry, octupole)
     theta = _start(flux, wrench, problem)
     r, J, _ = problem.evaluate(theta)
     assert J is not None
@@ -270,7 +285,7 @@ def fit_nonlinear(dataset: Dataset, *, progress: Callable[[FitProgress], None] |
     P = problem.unpack(theta)
     K = np.linalg.inv(P["C"])
     cal = NonlinearCalibration(GAP_M, P["S"].copy(), P["o"].copy(), K, P["d"].copy(), float(np.sqrt(cost / r.size)),
-                               magnet_p_m=P["mp"].copy(), magnet_strength=P["s"].copy())
+                               magnet_p_m=P["mp"].copy(), magnet_strength=P["s"].copy(), octupole=octupole)
     problems = _problems(cal, geometry, dataset.flux_sem_t[rows])
     lowest = float(np.linalg.eigvalsh(0.5 * (K + K.T))[0])
     if not lowest > 0:  # never kept: no estimator can use a stiffness that is none

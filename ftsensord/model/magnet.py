@@ -121,3 +121,42 @@ def cylinder_field(r: np.ndarray, radius: float, length: float, br: float) -> np
 def cylinder_moment(radius: float, length: float, br: float) -> float:
     """Dipole moment (A m^2) of the cylinder: m = Br V / mu_0."""
     return br * math.pi * radius**2 * length / (4 * math.pi * MU0_OVER_4PI)
+
+
+def octupole_ratio(radius: float, length: float) -> float:
+    """The cylinder's octupole relative to its dipole (m^2): kappa = -(3 a^2 - 4 b^2) / 4,
+    a the radius, b half the length. On its axis the field is
+    mu0 m / (2 pi z^3) (1 + 2 kappa / z^2 + O(z^-4)) (the series of Derby & Olbert's
+    axial field); zero for a cylinder with L/D = sqrt(3)/2, -a^2/2 for the D101 (L = a)."""
+    b = length / 2
+    return -(3 * radius**2 - 4 * b**2) / 4
+
+
+def octupole_field(r: np.ndarray, axis: np.ndarray, q: np.ndarray, gradient: bool = True
+                   ) -> tuple[np.ndarray, np.ndarray | None]:
+    """Field (..., 3; T) and gradient dB/dr (..., 3, 3; T/m; None unless asked) of the
+    octupole term at offsets ``r`` (m) from magnets of unit ``axis``, strength ``q`` (...,
+    T m^5: mu0/(4 pi) |m| kappa, `octupole_ratio`). Its scalar potential q P_3(s/d) / d^4
+    gives B = q/2 (A r - C n), A = 35 s^3/d^9 - 15 s/d^7, C = 15 s^2/d^7 - 3/d^5, s = r.n:
+    the dipole's next term outside the sphere around the magnet (a cylinder has no even
+    ones). With it the D101's field is within 0.9 % of the exact one from 2 mm of its
+    centre (a chip saturates nearer), 0.006 % at 6 mm; the dipole alone is 18 % and 1.8 %
+    off (tests/test_magnet.py)."""
+    # Written as A = s d^-7 (35 c2 - 15), C = d^-5 (15 c2 - 3), c2 = s^2/d^2 (cos^2 of the
+    # angle from the axis): few operations, as the estimator calls this every iteration.
+    d2 = np.einsum("...i,...i->...", r, r)[..., None]
+    s = np.einsum("...i,...i->...", r, axis)[..., None]
+    inv2 = 1.0 / d2
+    c2 = s * s * inv2
+    hq = 0.5 * q[..., None] * inv2 * inv2 * inv2 * np.sqrt(inv2)  # q/2 d^-7
+    a = hq * s * (35 * c2 - 15)  # q/2 A
+    B = a * r - (hq * d2 * (15 * c2 - 3)) * axis
+    if not gradient:
+        return B, None
+    # dB/dr = q/2 (A I + (105 c2 - 15) d^-7 (r n^T + n r^T) + (105 - 315 c2) s d^-9 r r^T
+    # - 30 s d^-7 n n^T): symmetric, as a curl-free field's gradient is.
+    rn = r[..., :, None] * axis[..., None, :]
+    G = ((hq * (105 * c2 - 15))[..., None] * (rn + np.swapaxes(rn, -1, -2))
+         + (hq * s * inv2 * (105 - 315 * c2))[..., None] * (r[..., :, None] * r[..., None, :])
+         - (30 * hq * s)[..., None] * (axis[..., :, None] * axis[..., None, :]) + a[..., None] * np.eye(3))
+    return B, G

@@ -1,12 +1,12 @@
 """The nonlinear estimator (the paper's future work): the centre-piece pose from all
 24 flux values through a magnet field model, then w = K xi.
 
-Forward model: each magnet a point dipole (moment along its axis), the chips where the
-pose T puts them, each chip's reading scaled and offset per axis (the free parameters a
-calibration fits). Solver: Levenberg-Marquardt on SE(3) with left perturbations
-T <- exp(delta) T, analytic Jacobian, warm-started from the previous pose; damped and
-step-limited, it reports failure rather than diverge, and the caller falls back to the
-linear estimate with a flag.
+Forward model: `ftsensord.model.fluxmodel.FluxModel` (dipoles, each chip's own magnet
+with its octupole, per-chip response and offset, a uniform background field). Solver:
+Levenberg-Marquardt on SE(3) with left perturbations T <- exp(delta) T, analytic
+Jacobian (kept while the pose stays near where it was computed: chord steps),
+warm-started from the previous pose; damped and step-limited, it reports failure rather
+than diverge, and the caller falls back to the linear estimate with a flag.
 """
 
 from __future__ import annotations
@@ -17,21 +17,47 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from . import se3
-from .geometry import SensorGeometry
+from .fluxmodel import FluxModel, dipole_pairs
 from .linear import SENSOR_RANGE
-from .magnet import MU0_OVER_4PI
+
+__all__ = ["Estimate", "FluxModel", "NonlinearEstimator", "dipole_pairs"]
+
+_EYE3 = np.eye(3)
 
 #: Largest step per iteration: 1 mm and 0.05 rad. A full-range deflection is about 6 mm
 #: and 0.02 rad; steps this size reach it in a few iterations while keeping the dipole
 #: model's 1/r^3 curvature from throwing the pose past a magnet.
 MAX_STEP_M = 1e-3
 MAX_STEP_RAD = 0.05
-#: Converged when a step moves the pose less than 1e-8 m and 1e-8 rad: a hundred times
-#: below what the chips resolve (a uT in 1.6 mT at 6 mm is about 1 um of motion).
+#: Converged when a step moves the pose less than 1e-8 m (and `STEP_TOL_RAD`): a hundred
+#: times below what the chips resolve (a uT in 1.6 mT at 6 mm is about 1 um of motion).
 STEP_TOL = 1e-8
+#: The same for turns: 1e-6 rad moves a chip on the 8 mm ring by 8 nm, a hundred times
+#: below what it resolves (1 um); the torque it makes (10 Nm/rad) is 1e-5 Nm, 1/300 of
+#: the torque noise of one reading. (It was 1e-8 rad, 10^4 below: a third iteration a
+#: sample for nothing.)
+STEP_TOL_RAD = 1e-6
+#: A step that shrank to a tenth or less of the one before, both of one kind (new
+#: Jacobians: Newton's quadratic convergence; one kept Jacobian: a chord's linear rate),
+#: shows the rate: the steps left then add up to size ratio / (1 - ratio), and when that
+#: is under the tolerances the fit ends without paying for another step (from a warm start
+#: the second step is about 1/400 of the first: two iterations a sample instead of three).
+CONTRACTION = 0.1
+#: A Jacobian is reused (a chord step, Gauss-Newton without a new derivative) while the
+#: pose is within 20 um and 2 mrad, and the background field within 10 uT, of where it was
+#: computed: it changes there by under 1 % (the field's gradient varies over the 2 mm
+#: a magnet is from its nearest saturating chip; the background enters it against 1.6 mT),
+#: so each step still shrinks the error a hundredfold, and the fit's end point moves by
+#: under 1 % of the noise's own scatter. A sample 10 ms after the last moves the pose by
+#: about 6 um and 0.7 mrad (noise, at rest): its fit needs no new Jacobian; a fast change
+#: of load computes new ones as before.
+JACOBIAN_REUSE_M = 20e-6
+JACOBIAN_REUSE_TRACE = 1 + 2 * math.cos(2e-3)  # tr(R_J^T R) = 1 + 2 cos(angle): the 2 mrad test
+JACOBIAN_REUSE_T = 10e-6
 #: A fit whose RMS residual exceeds 1 mT is no pose of this sensor (a chip reading wrong,
 #: or garbage), however well it converged: the dipole model's own error is about 0.2 mT RMS
-#: at the corners of the range (|F| ~70 N with 0.2 Nm) and 7 uT in the middle.
+#: at the corners of the range (|F| ~70 N with 0.2 Nm) and 7 uT in the middle (with each
+#: chip's own magnet's octupole, 2 uT RMS at 50 N, 10 uT on its worst chip).
 MAX_RESIDUAL_T = 1e-3
 #: A warm-started fit left with more than 50 uT RMS may sit in a wrong minimum after a
 #: fast change of load: a cold start from the rest pose is tried too and the better fit
@@ -44,6 +70,11 @@ RETRY_RESIDUAL_T = 50e-6
 #: wrench K xi exceeds 3 times the sensor's range on any axis (the silicone would have
 #: torn) is that twin or garbage, never an answer.
 PLAUSIBLE_RANGE = 3.0
+#: That turn, 2 pi / 8. A warm and a cold start that both fail with the centre piece
+#: turned more than half of it about the shaft have run to the twin (large loads, a chip
+#: within 2-3 mm of its magnet); a third start from their answer turned back by it lands
+#: in the true pose's basin.
+TWIN_TURN_RAD = math.pi / 4
 #: The background field is estimated with a Gaussian prior, zero mean (the room as at
 #: calibration and tare) and 50 uT per axis (the Earth's field is 25-65 uT anywhere, so
 #: turning the tool changes it by at most twice that), weighed against 1 uT of flux noise
@@ -63,142 +94,6 @@ WARM_DAMPING = 1e-6
 #: on the axial twin above (1.5 mT), or the flux is garbage. Not an answer.
 BACKGROUND_LIMIT_T = 0.5e-3
 BACKGROUND_NOISE_T = 1e-6
-
-
-_EYE3 = np.eye(3)
-
-
-def dipole_pairs(r: np.ndarray, m: np.ndarray, gradient: bool = True
-                 ) -> tuple[np.ndarray, np.ndarray | None]:
-    """Field (..., 3) and its gradient dB/dr (..., 3, 3; None unless asked) of point
-    dipoles of moment ``m`` (A m^2) at offsets ``r`` (m) from them, T and T/m, per pair:
-    the sums over magnets are the caller's (the calibration needs them one by one)."""
-    B, parts = _dipole_field(r, m)
-    return B, (_dipole_gradient(r, m, *parts) if gradient else None)
-
-
-def _dipole_field(r: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
-    """`dipole_pairs`'s field, and what its gradient reuses (d^2, r.m, k / d^5)."""
-    # As few numpy operations as the formulas allow: at 8 x 8 pairs each costs more in
-    # call overhead than in arithmetic, and the estimator runs this twice an iteration.
-    d2 = np.einsum("...i,...i->...", r, r)[..., None]
-    rm = np.einsum("...i,...i->...", r, m)[..., None]
-    k_d5 = MU0_OVER_4PI / (d2 * d2 * np.sqrt(d2))
-    return k_d5 * (3 * rm * r - d2 * m), (d2, rm, k_d5)
-
-
-def _dipole_gradient(r: np.ndarray, m: np.ndarray, d2: np.ndarray, rm: np.ndarray, k_d5: np.ndarray) -> np.ndarray:
-    """dB/dr of a dipole: k (3 (m r^T + r m^T + (r.m) I) / d^5 - 15 (r.m) r r^T / d^7)."""
-    mr = m[..., :, None] * r[..., None, :]
-    outer = mr + np.swapaxes(mr, -1, -2) + rm[..., None] * _EYE3
-    return k_d5[..., None] * (3 * outer - (15 * rm / d2)[..., None] * (r[..., :, None] * r[..., None, :]))
-
-
-@dataclass
-class FluxModel:
-    """Predicted flux (T, chip frames) for a centre-piece pose and a background field.
-
-    Chip i reads ``S_i R_i^T (B(p_i) + u) + o_i``: B the magnets' field (each a point
-    dipole at ``geometry.magnet_p``, moment ``moment_am2`` times ``geometry.strengths``,
-    along its axis; every other magnet's field too with ``crosstalk``), R_i and p_i the
-    chip's rotation and position (moved by the pose), u a uniform background field in
-    {0} (the room's; T). ``scale`` is S: per axis (n, 3) or a full response matrix per
-    chip (n, 3, 3), which also absorbs a chip's tilt on the part; ``offset_t`` (n, 3) is o.
-    """
-
-    geometry: SensorGeometry
-    moment_am2: float
-    scale: np.ndarray = field(default_factory=lambda: np.ones((8, 3)))
-    offset_t: np.ndarray = field(default_factory=lambda: np.zeros((8, 3)))
-    crosstalk: bool = True
-
-    @property
-    def response(self) -> np.ndarray:
-        """S as a matrix per chip (n, 3, 3); kept while ``scale`` is the same array."""
-        cached = self.__dict__.get("_response")
-        if cached is not None and cached[0] is self.scale and np.array_equal(cached[1], self.scale):
-            return cached[2]  # the same scale, not changed in place since
-        s = np.asarray(self.scale, dtype=float)
-        response = s if s.ndim == 3 else s[:, :, None] * np.eye(3)
-        self.__dict__["_response"] = (self.scale, s.copy(), response)
-        return response
-
-    @property
-    def _response_chip(self) -> np.ndarray:
-        """S R_chip^T (n, 3, 3), fixed while S and the geometry are: a pose's S R^T is
-        this times R_T^T, one product where two were."""
-        response = self.response
-        cached = self.__dict__.get("_response_chip_cache")
-        if cached is not None and cached[0] is response and cached[1] is self.geometry.chip_R:
-            return cached[2]
-        value = response @ np.transpose(self.geometry.chip_R, (0, 2, 1))
-        self.__dict__["_response_chip_cache"] = (response, self.geometry.chip_R, value)
-        return value
-
-    def _fields(self, T: np.ndarray, gradient: bool = True
-                ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
-        """World field B (n, 3), its gradient G (n, 3, 3; None unless asked), chip
-        positions p, chip rotations R."""
-        # The estimator asks the field at a pose (is the step better?) and then, at the
-        # same pose, its gradient too: the field's part is kept for that second call.
-        last = self.__dict__.get("_last_field")
-        key = (self.crosstalk, self.moment_am2, id(self.geometry))  # what else the field depends on
-        if last is not None and last[0] is T and last[2] == key and np.array_equal(last[1], T):
-            _, _, _, B_sum, p, R, r, m, parts = last
-        else:
-            g = self.geometry
-            R = np.einsum("ij,njk->nik", T[:3, :3], g.chip_R)
-            p = g.chip_p @ T[:3, :3].T + T[:3, 3]
-            r = p[:, None, :] - g.magnet_p[None, :, :]  # (chip, magnet, 3)
-            m = (self.moment_am2 * g.strengths[:, None] * g.magnet_axis)[None, :, :]
-            if not self.crosstalk:
-                own = np.arange(g.n_chips)
-                r, m = r[own, own][:, None, :], m[0][own][:, None, :]
-            B, parts = _dipole_field(r, m)  # m broadcasts over the chips
-            B_sum = B.sum(axis=1)
-            self.__dict__["_last_field"] = (T, T.copy(), key, B_sum, p, R, r, m, parts)
-        G = _dipole_gradient(r, m, *parts).sum(axis=1) if gradient else None
-        return B_sum, G, p, R
-
-    def raw(self, T: np.ndarray) -> np.ndarray:
-        """The magnets' field at each chip (n, 3), T, chip frames: before scale and offset."""
-        B, _, _, R = self._fields(T, gradient=False)
-        return np.einsum("nji,nj->ni", R, B)
-
-    def predict(self, T: np.ndarray, u: np.ndarray | None = None) -> np.ndarray:
-        """Stacked flux (3n,), T, each chip in its own frame; ``u`` the background field
-        in {0} (T; default none)."""
-        B, _, _, _ = self._fields(T, gradient=False)
-        if u is not None:
-            B = B + u
-        SRt = self._response_chip @ T[:3, :3].T  # S R^T, R = R_T R_chip
-        return (np.einsum("nij,nj->ni", SRt, B) + self.offset_t).ravel()
-
-    def predict_and_jacobian(self, T: np.ndarray, u: np.ndarray | None = None,
-                             background: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        """Flux (3n,) and its derivative (3n, 6) for T <- exp([v; w]) T at v = w = 0;
-        with ``background``, (3n, 9): the last 3 columns d/du, u the background field.
-
-        The chip at p in rotation R reads b = S R^T (B(p) + u); perturbed, p moves by
-        v + w x p and R turns by w, so db/dv = S R^T G, db/dw = S R^T (hat(B + u) - G hat(p))
-        and db/du = S R^T.
-        """
-        B, G, p, _ = self._fields(T)
-        assert G is not None
-        if u is not None:
-            B = B + u
-        SRt = self._response_chip @ T[:3, :3].T  # S R^T, R = R_T R_chip
-        J_v = SRt @ G
-        J_w = SRt @ (se3.hat(B) - G @ se3.hat(p))
-        blocks = [J_v, J_w, SRt] if background else [J_v, J_w]
-        J = np.concatenate(blocks, axis=2)
-        b = np.einsum("nij,nj->ni", SRt, B) + self.offset_t
-        return b.ravel(), J.reshape(-1, J.shape[2])
-
-    def background_directions(self, T: np.ndarray | None = None) -> np.ndarray:
-        """U (3n, 3): the flux a unit background field along x, y, z of {0} adds (T/T)."""
-        R = self.geometry.chip_R if T is None else np.einsum("ij,njk->nik", T[:3, :3], self.geometry.chip_R)
-        return (self.response @ np.transpose(R, (0, 2, 1))).reshape(-1, 3)
 
 
 @dataclass(frozen=True)
@@ -232,6 +127,12 @@ class NonlinearEstimator:
         self.background = background
         self.pose = np.eye(4)  # the warm start: the previous sample's pose
         self.background_t = np.zeros(3)  # and its background field
+        #: The last Jacobian per kind of solve (with the background field or not), its pose
+        #: and field: `_linearise` reuses it near there.
+        self._jacobians: dict[bool, tuple[np.ndarray, np.ndarray | None, np.ndarray]] = {}
+        #: The last converged fit's pose, field, kind (with the field or not) and predicted
+        #: flux: a warm start from that pose and field needs no prediction of its own.
+        self._end: tuple[np.ndarray, np.ndarray, bool, np.ndarray | None] | None = None
 
     @property
     def unknowns(self) -> int:
@@ -242,7 +143,8 @@ class NonlinearEstimator:
 
         Starts from ``start`` (the background field from zero); without one, from the
         previous converged pose and field, and when that fails or fits worse than
-        `RETRY_RESIDUAL_T`, from the rest pose too. Never raises on bad data: an
+        `RETRY_RESIDUAL_T`, from the rest pose too; when both fail near the ring's
+        twin (`TWIN_TURN_RAD`), from the twin turned back. Never raises on bad data: an
         estimate that did not converge says so.
         """
         if start is not None:
@@ -250,8 +152,14 @@ class NonlinearEstimator:
         warm = self._solve(b, usable, self.pose, self.background_t, self.background, WARM_DAMPING)
         if warm.converged and warm.rms_residual_t <= RETRY_RESIDUAL_T:
             return warm
-        cold = self._cold(b, usable, np.eye(4))
-        best = min((warm, cold), key=lambda e: (not e.converged, e.rms_residual_t))
+        tries = [warm, self._cold(b, usable, np.eye(4))]
+        twist = min(tries, key=lambda e: e.rms_residual_t).xi[5]
+        if not any(e.converged for e in tries) and abs(twist) > TWIN_TURN_RAD / 2:
+            # Nearer the ring's twin than the rest pose: its answer turned back by 45 deg.
+            back = np.eye(4)
+            back[:3, :3] = se3.exp_so3(np.array([0.0, 0.0, -math.copysign(TWIN_TURN_RAD, twist)]))
+            tries.append(self._cold(b, usable, back @ min(tries, key=lambda e: e.rms_residual_t).pose))
+        best = min(tries, key=lambda e: (not e.converged, e.rms_residual_t))
         if best.converged:
             self.pose, self.background_t = best.pose, best.background_t
         return best
@@ -272,60 +180,117 @@ class NonlinearEstimator:
                background: bool, damping: float = 1e-3) -> Estimate:
         n = self.model.geometry.n_chips
         channels = np.repeat(np.ones(n, dtype=bool) if usable is None else np.asarray(usable, bool), 3)
-        T = np.array(start, dtype=float)
+        T = np.asarray(start, dtype=float)  # never changed in place: the field kept for it stays right
         u = np.array(u0, dtype=float) if background else None
         lam = damping  # Marquardt's damping, relative to the diagonal of J^T J
         cost, done, k = np.inf, False, 0
+        last: tuple[tuple[float, float], object] | None = None  # the previous step's size (m, rad), its kind
+        # The flux predicted at T, once known: from a warm start, the last fit's at its end.
+        kept = self._end
+        pred = kept[3] if kept is not None and kept[0] is start and kept[1] is u0 and kept[2] == background else None
         # The unknowns need as many channels: 6 for the pose, 9 with the background field.
         if channels.sum() < (9 if background else 6) or not np.all(np.isfinite(b[channels])):
             return Estimate(se3.log_se3(T), T, False, 0, np.inf)
-        used = int(channels.sum())
+        used, channels_all = int(channels.sum()), channels.size
         # Every chip usable (the usual case): a slice, which copies nothing.
         channels = slice(None) if used == channels.size else channels  # type: ignore[assignment]
         for k in range(1, self.max_iterations + 1):
-            pred, J = self.model.predict_and_jacobian(T, u, background)
+            pred, J_full, fresh = self._linearise(T, u, background, pred)
             r = (b - pred)[channels]
-            J = J[channels]
             cost = float(r @ r) + _prior(u)
-            JtJ, Jtr = J.T @ J, J.T @ r
-            if u is not None:  # the prior's rows: (noise / prior) (u + du) = 0
-                JtJ[6:, 6:] += PRIOR_WEIGHT * np.eye(3)
-                Jtr[6:] -= PRIOR_WEIGHT * u
+            chord = not fresh and used == channels_all
+            if chord:  # the kept Jacobian's own Gauss-Newton solve
+                gain, gain_u = self._gain(J_full)
+                step = gain @ r if u is None else gain @ r - gain_u @ u
+            else:
+                J = J_full[channels]
+                JtJ, Jtr = J.T @ J, J.T @ r
+                if u is not None:  # the prior's rows: (noise / prior) (u + du) = 0
+                    JtJ[6:, 6:] += PRIOR_WEIGHT * np.eye(3)
+                    Jtr[6:] -= PRIOR_WEIGHT * u
             while True:
-                try:
-                    damped = JtJ.copy()
-                    damped.flat[::damped.shape[0] + 1] *= 1 + lam  # JtJ + lam diag(JtJ)
-                    step = np.linalg.solve(damped, Jtr)
-                except np.linalg.LinAlgError:
-                    return Estimate(se3.log_se3(T), T, False, k, np.sqrt(cost / used), _field(u))
+                if not chord:
+                    try:
+                        damped = JtJ.copy()
+                        damped.flat[::damped.shape[0] + 1] *= 1 + lam  # JtJ + lam diag(JtJ)
+                        step = np.linalg.solve(damped, Jtr)
+                    except np.linalg.LinAlgError:
+                        return Estimate(se3.log_se3(T), T, False, k, np.sqrt(cost / used), _field(u))
                 # 1e-300: a zero step needs no limit (and must not divide by zero). The
                 # background field enters linearly: its step needs no limit of its own.
                 v, w = step[:6].tolist()[:3], step[:6].tolist()[3:]
                 scale = min(1.0, MAX_STEP_M / max(math.hypot(*v), 1e-300),
                             MAX_STEP_RAD / max(math.hypot(*w), 1e-300))
                 step = step * scale
+                size = (math.hypot(*v) * scale, math.hypot(*w) * scale)
                 T_new = _exp_se3(step[:6]) @ T
                 u_new = None if u is None else u + step[6:]
-                r_new = (b - self.model.predict(T_new, u_new))[channels]
+                pred_new = self.model.predict(T_new, u_new)
+                r_new = (b - pred_new)[channels]
                 if float(r_new @ r_new) + _prior(u_new) <= cost:
-                    T, u, lam = T_new, u_new, max(lam / 3, 1e-9)
+                    T, u, lam, pred = T_new, u_new, max(lam / 3, 1e-9), pred_new
                     cost = float(r_new @ r_new) + _prior(u_new)
+                    break
+                if _within(size):  # at the minimum already
+                    done = True
+                    break
+                if not fresh:  # a kept Jacobian's step failed: take a new one, not more damping
+                    self._jacobians.clear()
                     break
                 lam *= 4
                 if lam > 1e8:  # no step lowers the cost: a minimum, or hopeless data
                     done = True
                     break
-            if done or (math.hypot(*v) * scale < STEP_TOL and math.hypot(*w) * scale < STEP_TOL):
+            if not fresh and not self._jacobians:
+                continue
+            # The rate is seen from two steps of one kind: both with new Jacobians (Newton's
+            # quadratic convergence) or both with the same kept one (a chord's linear rate).
+            kind = NEW if fresh else J_full
+            if done or _within(size) or (last is not None and last[1] is kind and _within(_left(size, last[0]))):
                 break
+            last = (size, kind) if scale == 1.0 else None  # a limited step says nothing of convergence
         rms = np.sqrt(max(cost - _prior(u), 0.0) / used)  # of the flux alone
-        xi = se3.log_se3(T)
+        xi = _log_se3(T)
         plausible = bool(np.all(np.abs(self.stiffness @ (xi - self.zero_twist)) <= PLAUSIBLE_RANGE * SENSOR_RANGE))
         plausible = plausible and (u is None or float(np.linalg.norm(u)) <= BACKGROUND_LIMIT_T)
         converged = bool(np.isfinite(rms) and rms <= MAX_RESIDUAL_T and plausible
                          and (done or k < self.max_iterations))
         if converged:
             self.pose, self.background_t = T, _field(u)
+            self._end = (T, self.background_t, background, pred)
         return Estimate(xi, T, converged, k, float(rms), _field(u))
+
+    def _linearise(self, T: np.ndarray, u: np.ndarray | None, background: bool, pred: np.ndarray | None
+                   ) -> tuple[np.ndarray, np.ndarray, bool]:
+        """Flux at (T, u) (``pred`` when known), a Jacobian, and whether it is new: the one
+        kept from a pose within `JACOBIAN_REUSE_M` and 2 mrad (and a field within
+        `JACOBIAN_REUSE_T`), else a new one."""
+        kept = self._jacobians.get(background)
+        if kept is not None:
+            T_J, u_J, J = kept
+            dR = float(np.einsum("ij,ij->", T_J[:3, :3], T[:3, :3]))  # tr(R_J^T R) = 1 + 2 cos(angle)
+            near = (dR >= JACOBIAN_REUSE_TRACE and math.dist(T_J[:3, 3], T[:3, 3]) <= JACOBIAN_REUSE_M
+                    and (u is None or math.dist(u_J, u) <= JACOBIAN_REUSE_T))
+            if near:
+                return self.model.predict(T, u) if pred is None else pred, J, False
+        pred, J = self.model.predict_and_jacobian(T, u, background)
+        self._jacobians[background] = (T, None if u is None else u.copy(), J)
+        return pred, J, True
+
+    def _gain(self, J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Gauss-Newton's step for a kept Jacobian J (every channel), kept with it: the step
+        is G r - G_u u, G = (J^T J + P)^-1 J^T, G_u = (J^T J + P)^-1 P (P the background's
+        prior on its 3 unknowns). Undamped: a chord step is taken only near where J was."""
+        kept = self.__dict__.get("_gain_cache")
+        if kept is None or kept[0] is not J:
+            M = J.T @ J
+            prior = np.zeros_like(M)
+            if J.shape[1] > 6:
+                prior[6:, 6:] = PRIOR_WEIGHT * np.eye(3)
+            gains = np.linalg.solve(M + prior, np.concatenate([J.T, prior[:, 6:]], axis=1))
+            kept = (J, gains[:, :J.shape[0]], gains[:, J.shape[0]:])
+            self.__dict__["_gain_cache"] = kept
+        return kept[1], kept[2]
 
     def wrench(self, estimate: Estimate) -> np.ndarray:
         """w = K xi (N, Nm), the stiffness's wrench at the estimated deflection."""
@@ -333,6 +298,7 @@ class NonlinearEstimator:
 
 
 PRIOR_WEIGHT = (BACKGROUND_NOISE_T / BACKGROUND_PRIOR_T) ** 2
+NEW = object()  # the kind of a step taken with a new Jacobian
 
 
 def _exp_se3(xi: np.ndarray) -> np.ndarray:
@@ -340,12 +306,53 @@ def _exp_se3(xi: np.ndarray) -> np.ndarray:
     same series near zero), without a dozen numpy calls on 3-vectors every step."""
     v0, v1, v2, w0, w1, w2 = xi.tolist()
     a, b, c = se3._coefficients(math.sqrt(w0 * w0 + w1 * w1 + w2 * w2))
-    W = np.array([[0.0, -w2, w1], [w2, 0.0, -w0], [-w1, w0, 0.0]])
-    WW = W @ W
-    T = np.eye(4)
-    T[:3, :3] = _EYE3 + a * W + b * WW
-    T[:3, 3] = (_EYE3 + b * W + c * WW) @ (v0, v1, v2)
-    return T
+    # W = hat(w); W^2 = w w^T - |w|^2 I.
+    ww = w0 * w0 + w1 * w1 + w2 * w2
+    S = [[w0 * w0 - ww, w0 * w1, w0 * w2], [w1 * w0, w1 * w1 - ww, w1 * w2], [w2 * w0, w2 * w1, w2 * w2 - ww]]
+    W = [[0.0, -w2, w1], [w2, 0.0, -w0], [-w1, w0, 0.0]]
+    R = [[(i == j) + a * W[i][j] + b * S[i][j] for j in range(3)] for i in range(3)]
+    V = [[(i == j) + b * W[i][j] + c * S[i][j] for j in range(3)] for i in range(3)]
+    t = [V[i][0] * v0 + V[i][1] * v1 + V[i][2] * v2 for i in range(3)]
+    return np.array([[*R[0], t[0]], [*R[1], t[1]], [*R[2], t[2]], [0.0, 0.0, 0.0, 1.0]])
+
+
+def _log_se3(T: np.ndarray) -> np.ndarray:
+    """`se3.log_se3` in Python floats, for turns short of pi (a deflection's, or a twin's);
+    within `se3.NEAR_PI` of pi, where the axis needs the symmetric part, it is the one."""
+    (r00, r01, r02, t0), (r10, r11, r12, t1), (r20, r21, r22, t2), _ = T.tolist()
+    s0, s1, s2 = 0.5 * (r21 - r12), 0.5 * (r02 - r20), 0.5 * (r10 - r01)  # sin(theta) axis
+    sin_theta = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
+    theta = math.atan2(sin_theta, 0.5 * (r00 + r11 + r22 - 1.0))
+    if math.pi - theta <= se3.NEAR_PI:
+        return se3.log_se3(T)
+    tt = theta * theta
+    if theta < se3.SMALL_ANGLE:  # theta / sin(theta) and D as series (se3's own)
+        k, d = 1 + tt / 6 + 7 * tt * tt / 360, 1 / 12 + tt / 720 + tt * tt / 30240
+    else:
+        k, d = theta / sin_theta, 1 / tt - 1 / (2 * theta * math.tan(theta / 2))
+    w0, w1, w2 = k * s0, k * s1, k * s2
+    # J_l(w)^-1 t = t - (w x t) / 2 + D w x (w x t).
+    c0, c1, c2 = w1 * t2 - w2 * t1, w2 * t0 - w0 * t2, w0 * t1 - w1 * t0
+    cc0, cc1, cc2 = w1 * c2 - w2 * c1, w2 * c0 - w0 * c2, w0 * c1 - w1 * c0
+    return np.array([t0 - 0.5 * c0 + d * cc0, t1 - 0.5 * c1 + d * cc1, t2 - 0.5 * c2 + d * cc2, w0, w1, w2])
+
+
+def _left(size: tuple[float, float], last: tuple[float, float]) -> tuple[float, float]:
+    """How far the fit has left to go (m, rad), foretold from this step and the one
+    before: where it converges (each step at most `CONTRACTION` of the one before) all the
+    steps left add up to at most size ratio / (1 - ratio), ratio = size / last; inf where
+    that is not seen."""
+    if min(last) <= 0:
+        return math.inf, math.inf
+    ratio = max(size[0] / last[0], size[1] / last[1])
+    if ratio > CONTRACTION:
+        return math.inf, math.inf
+    return size[0] * ratio / (1 - ratio), size[1] * ratio / (1 - ratio)
+
+
+def _within(size: tuple[float, float]) -> bool:
+    """A step (m, rad) under the tolerances: the pose is where the flux puts it."""
+    return size[0] < STEP_TOL and size[1] < STEP_TOL_RAD
 
 
 def _prior(u: np.ndarray | None) -> float:

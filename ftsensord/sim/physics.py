@@ -276,6 +276,8 @@ def magnet_fields(geometry: SensorGeometry, points: np.ndarray, model: str) -> n
 
 
 def two_sensor_scene(**options: object) -> PhysicalScene:
-    """The default: two sensors of 8 chips, 0x0C-0x13 and 0x14-0x1B, no load."""
+    """The nominal drawing in a field-free room: two sensors of 8 chips, 0x0C-0x13 and
+    0x14-0x1B, no load (the default scene, `ftsensord.sim.default_scene`, is as built, in
+    the Earth's field)."""
     return PhysicalScene([SimSensor("sensor1", tuple(range(0x0C, 0x14))),
                           SimSensor("sensor2", tuple(range(0x14, 0x1C)))], **options)  # type: ignore[arg-type]

@@ -10,6 +10,7 @@ Scene files (TOML) are described in docs/scenes.md.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from importlib import resources
 from itertools import pairwise
 from pathlib import Path
 
@@ -74,9 +75,33 @@ class StaticScene:
         self.fields_t[address] = np.asarray(field_t, dtype=float)
 
 
+#: The default scene's file, in the package's data: two as-built sensors (0x0C-0x13 and
+#: 0x14-0x1B) in the Earth's field, at rest (docs/scenes.md).
+DEFAULT_SCENE = "scene-default.toml"
+
+
 def default_scene() -> PhysicalScene:
-    """Two sensors of 8 chips (0x0C-0x13 and 0x14-0x1B), no load."""
-    return two_sensor_scene()
+    """The default scene: a real room with a real part, no load (`DEFAULT_SCENE`).
+    `two_sensor_scene` is the nominal drawing in a field-free room."""
+    scene = load_scene(default_scene_path())
+    assert isinstance(scene, PhysicalScene)  # the packaged file is of kind "sensors"
+    return scene
+
+
+def default_scene_path() -> Path:
+    """Where the default scene's file is (in the installed package)."""
+    return Path(str(resources.files("ftsensord") / "data" / DEFAULT_SCENE))
+
+
+def default_scene_text(load: list[float] | None = None) -> str:
+    """The default scene's file, with sensor1 under a static ``load`` (N, Nm) when given:
+    for a scene written beside a configuration that uses the packaged calibrations (they
+    were fitted on this room and part; faults may be appended as [[fault]] tables)."""
+    text = default_scene_path().read_text()
+    if load is None:
+        return text
+    table = f'[sensor.load]\nkind = "static"\nwrench = {list(load)}\n'
+    return text.replace("[sensor.orientation]", table + "[sensor.orientation]", 1)  # sensor1's comes first
 
 
 def _address(t: Table, name: str, value: object) -> int:
