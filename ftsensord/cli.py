@@ -307,7 +307,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_plot)
 
     add_bridge_parser(sub)
-
     p = sub.add_parser("scan", help="find MLX90393 chips on a bus and read each once",
                        description="Probe 0x0C-0x1B and print each chip's part variant, "
                                    "configuration registers (as found) and one reading. "
@@ -341,8 +340,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "the chips' readings; also simulate each chip's position-map sweep. The "
                                    "file has the format a real calibration run records (docs/calibration.md).")
     p.add_argument("-o", "--output", required=True, help="dataset file to write (JSON)")
-    p.add_argument("--scene", help="scene file of kind \"sensors\" (default: the default scene, two as-built "
-                   "sensors in the Earth's field)")
+    p.add_argument("--scene", help="scene file of kind \"sensors\" (default: two as-built sensors in the room)")
     p.add_argument("--sensor", default="sensor1", help="which sensor of the scene (default: sensor1)")
     p.add_argument("--plan", default="six-axis", choices=sorted(PLANS),
                    help="lever arms: four that excite all six axes (default), or the paper's single rod")

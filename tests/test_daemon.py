@@ -39,6 +39,7 @@ sensor2 = [0.0, 0.0, -0.1]
 
 
 def write_config(folder: Path, extra: str = "", sensor1_cal: str = "builtin:sim-sensor1.json",
+                 sensor2_cal: str = "builtin:sim-sensor2.json",
                  rate_hz: float = 100, chip: str = "", scene_extra: str = "", scheduler: str | None = None,
                  scene: str = SCENE, tool: str = TOOL) -> Path:
     (folder / "scene.toml").write_text(scene + scene_extra)
@@ -58,7 +59,7 @@ calibration = "{sensor1_cal}"
 [[sensor]]
 name = "sensor2"
 addresses = [0x14, 0x15, 0x16, 0x17, 0x18, 0x19, 0x1A, 0x1B]
-calibration = "builtin:sim-sensor2.json"
+calibration = "{sensor2_cal}"
 {tool}
 """)
     return path
@@ -84,6 +85,7 @@ class Rig:
         self.router, self.req = ctx.socket(zmq.ROUTER), ctx.socket(zmq.REQ)
         self.router.bind(f"inproc://ctl{n}")
         self.req.connect(f"inproc://ctl{n}")
+        self.req.setsockopt(zmq.RCVTIMEO, 5000)  # a reply that never comes fails the test, never hangs the suite
         self.daemon = Daemon(self.config, self.bus, self.pub, self.router, notifier=notifier,
                              clock=self.clock.now, wall=lambda: 1.7e9 + self.clock.now(), orientation=orientation)
         self.daemon.start()
