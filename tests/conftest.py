@@ -2,6 +2,13 @@
 
 from __future__ import annotations
 
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -47,3 +54,23 @@ def chip(bus: SimulatedBus) -> MLX90393:
     drv.reset()
     drv.configure(mlx.Settings())
     return drv
+
+
+def start_daemon(config: Path, folder: Path, **popen: Any) -> tuple[subprocess.Popen, socket.socket]:
+    """`ftsensord run --config CONFIG` in a subprocess, its runtime folder in ``folder``,
+    returned once it said READY=1 to a notify socket of its own (the caller stops it and
+    closes the socket); ``popen``: the output's routing (subprocess.Popen's keywords)."""
+    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    notify.bind(str(folder / "notify"))
+    notify.settimeout(30)
+    env = {**os.environ, "XDG_RUNTIME_DIR": str(folder), "NOTIFY_SOCKET": str(folder / "notify")}
+    env.pop("RUNTIME_DIRECTORY", None)
+    proc = subprocess.Popen([sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=env,
+                            text=True, **popen)
+    try:
+        assert notify.recv(4096).startswith(b"READY=1"), "no READY=1 from the daemon"
+    except BaseException:
+        proc.kill()
+        notify.close()
+        raise
+    return proc, notify

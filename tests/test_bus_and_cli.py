@@ -15,7 +15,13 @@ from ftsensord.acquire.scan import scan
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.cli import main
 from ftsensord.errors import ConfigError
-from ftsensord.sim import PhysicalScene, SimulatedBus, default_scene, load_scene, two_sensor_scene
+from ftsensord.sim import (
+    PhysicalScene,
+    SimulatedBus,
+    default_scene,
+    load_scene,
+    two_sensor_scene,
+)
 
 from .conftest import assert_names_file_and_key
 

@@ -8,7 +8,6 @@ from __future__ import annotations
 import importlib.util
 import itertools
 import math
-import os
 import re
 import signal
 import socket
@@ -29,6 +28,8 @@ from .test_daemon import LOAD, write_config
 ROOT = Path(__file__).resolve().parent.parent
 CDIR = ROOT / "clients" / "c"
 PROTOCOL = ROOT / "docs" / "protocol.md"
+
+from .conftest import start_daemon
 
 
 def _load_build():
@@ -306,15 +307,8 @@ def daemon(tmp_path):
     """`ftsensord run` at 100 Hz on the simulated bus, ipc and loopback tcp publishers."""
     tcp = f"tcp://127.0.0.1:{free_port()}"
     config = write_config(tmp_path, extra=f'publish_tcp = "{tcp}"')
-    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-    notify.bind(str(tmp_path / "notify"))
-    notify.settimeout(30)
-    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path), "NOTIFY_SOCKET": str(tmp_path / "notify")}
-    env.pop("RUNTIME_DIRECTORY", None)
-    proc = subprocess.Popen([sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc, notify = start_daemon(config, tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     try:
-        assert notify.recv(4096).startswith(b"READY=1"), "no READY=1 from the daemon"
         folder = tmp_path / "ftsensord"
         yield proc, f"ipc://{folder / 'wrench'}", tcp, f"ipc://{folder / 'control'}"
     finally:

@@ -12,13 +12,10 @@ from __future__ import annotations
 
 import functools
 import json
-import os
 import re
 import signal
-import socket
 import struct
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -40,7 +37,7 @@ from ftsensord.service.status import describe
 from ftsensord.sim import load_scene
 from ftsensord.sim.loads import FixedOrientation, fibonacci_directions, gravity_to_down
 
-from .conftest import assert_names_file_and_key
+from .conftest import assert_names_file_and_key, start_daemon
 from .test_daemon import LOAD, Rig, write_config
 from .test_room import ADDRS as ROOM_ADDRS
 from .test_room import EARTH_T, calibration_run
@@ -482,16 +479,9 @@ def test_a_scene_tool_is_read_and_refused_beside_a_robot(tmp_path):
 def test_ftsensord_run_compensates_with_orientations_from_the_python_publisher(tmp_path):
     nominal = nominal_calibrations()
     config = write_config(tmp_path, gravity(), scene=scene(), tool=TOOL, sensor1_cal=nominal[0], sensor2_cal=nominal[1])
-    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-    notify.bind(str(tmp_path / "notify"))
-    notify.settimeout(30)
-    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path), "NOTIFY_SOCKET": str(tmp_path / "notify")}
-    env.pop("RUNTIME_DIRECTORY", None)
-    proc = subprocess.Popen([sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    proc, notify = start_daemon(config, tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     rt = tmp_path / "ftsensord"
     try:
-        assert notify.recv(4096).startswith(b"READY=1")
         assert (rt / "orientation").exists() and oct((rt / "orientation").stat().st_mode & 0o777) == "0o660"
         streams = ["wrench/sensor1", "wrench/sensor1/compensated"]
         got: dict[str, list] = {s: [] for s in streams}

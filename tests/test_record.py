@@ -4,9 +4,7 @@ ends cleanly on Ctrl-C and on a closed pipe."""
 
 from __future__ import annotations
 
-import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -38,21 +36,16 @@ KILL_LOSS_S = 1.0
 #: A sample published this long before a stop signal has surely reached the recorder's queue.
 DELIVERED_S = 0.3
 
+from .conftest import start_daemon
+
 
 @pytest.fixture(scope="module")
 def daemon(tmp_path_factory):
     """`ftsensord run` on the simulated bus (sensor1 loaded, static), shared by this module's tests."""
     tmp = tmp_path_factory.mktemp("daemon")
     config = write_config(tmp)
-    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-    notify.bind(str(tmp / "notify"))
-    notify.settimeout(30)
-    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp), "NOTIFY_SOCKET": str(tmp / "notify")}
-    env.pop("RUNTIME_DIRECTORY", None)
-    proc = subprocess.Popen([sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc, notify = start_daemon(config, tmp, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        assert notify.recv(4096).startswith(b"READY=1"), "no READY=1 from the daemon"
         yield f"ipc://{tmp / 'ftsensord' / 'wrench'}", f"ipc://{tmp / 'ftsensord' / 'control'}"
     finally:
         proc.send_signal(signal.SIGTERM)

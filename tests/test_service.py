@@ -24,6 +24,8 @@ from .test_daemon import LOAD, SCENE, write_config
 ROOT = Path(__file__).resolve().parent.parent
 UNIT = ROOT / "systemd" / "ftsensord.service"
 
+from .conftest import start_daemon
+
 
 # --- sd_notify --------------------------------------------------------------------------
 def test_notify_sends_datagrams_to_a_path_socket(tmp_path):
@@ -96,15 +98,8 @@ def running(tmp_path):
     config = write_config(tmp_path)
     (tmp_path / "scene.toml").write_text(SCENE.replace(
         f'kind = "static"\nwrench = {LOAD}', f'kind = "step"\nat_s = 1.5\nbefore = [0, 0, 0, 0, 0, 0]\nafter = {LOAD}'))
-    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-    notify.bind(str(tmp_path / "notify"))
-    notify.settimeout(30)
-    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path), "NOTIFY_SOCKET": str(tmp_path / "notify")}
-    env.pop("RUNTIME_DIRECTORY", None)
-    proc = subprocess.Popen([sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc, notify = start_daemon(config, tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     try:
-        assert notify.recv(4096).startswith(b"READY=1"), "no READY=1 from the daemon"
         folder = tmp_path / "ftsensord"
         yield proc, f"ipc://{folder / 'wrench'}", f"ipc://{folder / 'control'}"
     finally:
