@@ -15,8 +15,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from ftsensord.calibration.calfile import Calibration
+from ftsensord.calibration.fit import AXES
 from ftsensord.client import ControlClient, Subscriber
 from ftsensord.errors import ControlError, DaemonNotAnswering
+from ftsensord.service.config import builtin_path
 from ftsensord.service.sdnotify import Notifier
 
 from .test_daemon import LOAD, SCENE, write_config
@@ -138,7 +141,10 @@ def test_end_to_end_load_rate_tare_and_clean_stop(running):
         missed_before = control.status()["missed_cycles"]
         loaded, seqs, spread = mean_of(sub, 50)
         assert_gaps_are_counted_misses(seqs, missed_before, control.status()["missed_cycles"])
-        assert np.allclose(loaded[:3], LOAD[:3], atol=0.3) and np.allclose(loaded[3:], LOAD[3:], atol=0.006)
+        # The packaged calibration's own accuracy (its 100 g validation RMSE per axis) sets the
+        # bound: one load of about that size, 50 samples averaged (noise /7), is within 4 RMSE.
+        rmse = Calibration.load(builtin_path("sim-sensor1.json")).report["validation_rmse"]
+        assert np.all(np.abs(loaded - LOAD) < 4 * np.array([rmse[a] for a in AXES])), (loaded, rmse)
         status = control.status()
         # Not a timing claim (docs/performance.md has those): the loop runs and reports it.
         assert status["rate_hz"] == 100 and status["achieved_rate_hz"] > 50
