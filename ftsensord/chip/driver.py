@@ -23,7 +23,6 @@ import numpy as np
 from smbus2 import i2c_msg
 
 from ..errors import (
-    ChipError,
     ChipNotRespondingError,
     ChipProtocolError,
     ChipRefusedError,

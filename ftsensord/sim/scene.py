@@ -43,7 +43,6 @@ from .physics import (
     PhysicalScene,
     SimSensor,
     Tolerances,
-    two_sensor_scene,
 )
 
 SCENE_VERSION = 1
