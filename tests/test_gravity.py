@@ -10,9 +10,11 @@ its LSB's quantisation, `pipeline.channel_sigma_t`); for the tip, sum_i X_i C_i 
 
 from __future__ import annotations
 
+import atexit
 import functools
 import json
 import re
+import shutil
 import signal
 import struct
 import subprocess
@@ -65,6 +67,7 @@ def nominal_calibrations() -> tuple[str, str]:
     procedure a user runs (the packaged ones are fitted on the default scene's as-built part
     in the room: a different sensor). Fitted once per test session, a second each."""
     folder = Path(tempfile.mkdtemp(prefix="ftsensord-nominal-"))
+    atexit.register(shutil.rmtree, folder, ignore_errors=True)  # cached for the session, removed after it
     paths = []
     for i, name in enumerate(("sensor1", "sensor2")):
         dataset = simulate_dataset(NOMINAL_SCENE, name, "six-axis", poses=193, validation_poses=60, samples=20,

@@ -9,12 +9,21 @@ from pathlib import Path
 
 import numpy as np
 
+from ftsensord.service.config import builtin_path, load_config
+from ftsensord.sim import load_scene
+
+
+def _load(name: str):
+    """A script of benchmarks/ as a module (it imports its siblings from its own folder)."""
+    path = Path(__file__).resolve().parent.parent / "benchmarks" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
 
 def test_quick_soak_survives_flags_and_lets_no_wrong_sample_through():
-    path = Path(__file__).resolve().parent.parent / "benchmarks" / "soak.py"
-    spec = importlib.util.spec_from_file_location("soak", path)
-    soak = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(soak)
+    soak = _load("soak")
     report = soak.soak(0.25, seed=3, per_minute=30)
     assert report["alive_at_end"] and report["exit_code"] == 0
     assert report["faults_injected"] >= 3
@@ -32,4 +41,35 @@ def test_quick_soak_survives_flags_and_lets_no_wrong_sample_through():
     # Under the static load a fault's samples are flagged and, estimated from the chips left,
     # mostly right; a chip trusted too early after a reset, a wrong subset map or a filter
     # carrying a fault's values would show here.
+    # A sample beyond 5 sigma whose chips all read within their noise is the noise's
+    # (docs/reliability.md, "Noise tails"); one with a chip beyond is wrong, never allowed.
     assert wrong["unflagged_wrong"] == 0, wrong["wrong"]
+    assert wrong["made_by_noise"] + wrong["unflagged_wrong"] == wrong["unflagged_beyond_5_sigma"]
+
+
+def test_a_wrong_sample_is_told_from_noise_by_its_chips(tmp_path):
+    """soak.wrong_samples on made-up streams: a wrench beyond 5 sigma whose chips all read
+    within their noise is the noise's; one with a chip off, or with no flux to tell, is wrong."""
+    soak = _load("soak")
+    config = load_config(builtin_path("sim.toml"))
+    (tmp_path / "scene.toml").write_text(soak.scene_text([]))
+    rng = np.random.default_rng(0)
+    n = 3000
+    samples = {t: [(i, i * 0.01, 0) for i in range(n)] for t in
+               ("wrench/sensor1", "wrench/sensor2", "wrench/tip", "flux/sensor1", "flux/sensor2")}
+    values = {t: list(rng.normal(0.0, 1.0, (n, 24 if t.startswith("flux/") else 6))) for t in samples}
+    for t in ("wrench/sensor2", "wrench/tip"):
+        values[t][1000] = values[t][1000] + [8.0, 0, 0, 0, 0, 0]  # chip 3 of sensor2 read a wrong field:
+    values["flux/sensor2"][1000][9] += 12.0
+    values["wrench/sensor2"][1500][5] += 8.0  # every chip within its noise
+    values["wrench/sensor1"][2000][0] -= 8.0  # and no flux for it at all
+    del samples["flux/sensor1"][2000], values["flux/sensor1"][2000]
+    out = soak.wrong_samples(samples, values, [], config, load_scene(tmp_path / "scene.toml"), tail_samples=1000)
+    wrong = {(w["stream"], w["seq"]): w["chips_beyond_noise"] for w in out["wrong"]}
+    assert wrong[("wrench/sensor2", 1000)] == ["sensor2/chip3"]
+    assert wrong[("wrench/tip", 1000)] == ["sensor2/chip3"]
+    assert wrong[("wrench/sensor2", 1500)] == ["none: made by noise"]
+    assert wrong[("wrench/sensor1", 2000)] == ["sensor1/chip-1"]
+    per = out["per_stream"]
+    assert (per["wrench/sensor2"]["unflagged_wrong"], per["wrench/sensor2"]["made_by_noise"]) == (1, 1)
+    assert out["unflagged_wrong"] == 3 and out["made_by_noise"] == 1
