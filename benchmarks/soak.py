@@ -48,14 +48,14 @@ from ftsensord.model import se3
 from ftsensord.service import wire
 from ftsensord.service.config import Config, builtin_path, load_config
 from ftsensord.service.pipeline import channel_sigma_t
-from ftsensord.sim.faults import random_faults
 from ftsensord.sim import load_scene
 from ftsensord.sim.chip import FieldSource
+from ftsensord.sim.faults import random_faults
 from ftsensord.sim.scene import default_scene_text
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from faults_truth import WRONG_SIGMA, unflagged_error_sigma  # noqa: E402  (a sibling script: one criterion)
-from noise_tails import tail_rate, wrench_noise  # noqa: E402
+from faults_truth import WRONG_SIGMA, unflagged_error_sigma
+from noise_tails import tail_rate, wrench_noise
 
 SENSORS = {"sensor1": range(0x0C, 0x14), "sensor2": range(0x14, 0x1C)}
 RATE_HZ = 100.0  # the packaged configuration's rate
@@ -179,7 +179,7 @@ def wrong_samples(samples: dict[str, list], values: dict[str, list], faults: lis
             axis = int(np.argmax(np.abs(v[i] - reference) / sigma))
             off = abs(v[i, axis] - reference[axis])  # the same error in the predicted sigma, for comparison
             out["wrong"].append({"stream": topic, "t_s": round(float(t[i]), 3), "seq": rows[i][0],
-                                 "sigma": round(float(err[i]), 2), "axis": "Fx Fy Fz Mx My Mz".split()[axis],
+                                 "sigma": round(float(err[i]), 2), "axis": ["Fx", "Fy", "Fz", "Mx", "My", "Mz"][axis],
                                  "predicted_sigmas": round(float(off / predicted[topic][axis]), 2)
                                  if topic in predicted else None,
                                  "chips_beyond_noise": by_chip[i] or ["none: made by noise"],
