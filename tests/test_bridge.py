@@ -1,5 +1,5 @@
-"""`ftsensord bridge` against `ftsensord run` on the simulated bus, read by the Foxglove app's
-own client libraries: tests/foxglove_client/check.mjs, node running `@foxglove/ws-protocol`'s
+"""`ftsensord bridge` against `ftsensord run` on the simulated bus, read by Foxglove's own
+client libraries: tests/foxglove_client/check.mjs, node running `@foxglove/ws-protocol`'s
 FoxgloveClient (over `ws`) and decoding with `@foxglove/rosmsg` + `@foxglove/rosmsg2-serialization`,
 the versions pinned by its package-lock.json (installed here with `npm ci` when missing).
 Checked sample by sample against a Python `Subscriber` receiving in parallel.
@@ -129,6 +129,7 @@ def bridge(tmp_path) -> Iterator[Bridge]:
 
 
 def run_client(check_mjs: list[str], *args: str) -> subprocess.CompletedProcess:
+    # 60 s: above check.mjs's own --timeout (at most 30 s here), so it reports, not this
     return subprocess.run([*check_mjs, *args], capture_output=True, text=True, timeout=60)
 
 
