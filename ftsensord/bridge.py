@@ -10,6 +10,10 @@ speak it; the server is one maintained package (``foxglove-sdk``: the ``live`` e
 Each sample is logged with ``log_time`` = its ``t_wall`` (ns), the same stamp as in its
 header: a viewer shows it at the sample's time, not at arrival. The bridge is a client of
 the daemon like any other (a `Subscriber`): a slow viewer slows the bridge, never the daemon.
+
+The SDK's server speaks the WebSocket subprotocol ``foxglove.sdk.v1`` only: a viewer offering
+just the protocol's older name, ``foxglove.websocket.v1`` (older Foxglove and Lichtblick
+releases), is refused with HTTP 400 (docs/clients.md, Bridges to live viewers).
 """
 
 from __future__ import annotations
