@@ -193,10 +193,10 @@ def fit_linear(flux: np.ndarray, twist: np.ndarray, wrench: np.ndarray, floor_t:
     z = np.column_stack([xi, np.ones(len(flux))])
     coef, *_ = np.linalg.lstsq(z, wrench, rcond=None)
     K, c = coef[:6].T, coef[6]
-    zero = b_mean - np.linalg.pinv(A) @ np.linalg.solve(K, c)
+    b0 = b_mean - np.linalg.pinv(A) @ np.linalg.solve(K, c)
     # The forward model for degraded mode: flux from twist, b - b0 = H xi.
     Ht, *_ = np.linalg.lstsq(xi, centred, rcond=None)
-    return LinearFit(LinearModel(K, A, zero, Ht.T, room=room), int(keep.sum()), float(floor_t))
+    return LinearFit(LinearModel(K, A, b0, Ht.T, room=room), int(keep.sum()), float(floor_t))
 
 
 def _fit_through_zero(flux: np.ndarray, twist: np.ndarray, wrench: np.ndarray, floor_t: float,

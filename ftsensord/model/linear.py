@@ -110,7 +110,8 @@ class LinearModel:
                     or not np.allclose(self.room.T @ self.room, np.eye(self.room.shape[1]), atol=1e-9):
                 raise ValueError(f"room must be {n} x k with orthonormal columns, got shape {self.room.shape}")
             self.KA = self.KA - (self.KA @ self.room) @ self.room.T
-        self._subsets: dict[bytes, np.ndarray] = {}
+        self._subsets: dict[bytes, np.ndarray] = {}  # degraded maps, by the chips left
+        self._checks: dict[bytes, ConsistencyMaps] = {}  # consistency maps, by chips and noise
 
     def twist(self, b: np.ndarray) -> np.ndarray:
         return self.A @ (b - self.zero)
@@ -122,7 +123,8 @@ class LinearModel:
     def with_zero(self, zero: np.ndarray) -> LinearModel:
         """The same model tared to a new no-load flux."""
         tared = LinearModel(self.K, self.A, np.asarray(zero, dtype=float), self.H, self.room)
-        tared._subsets = self._subsets  # its maps do not depend on the zero: no 1.4 ms after a tare
+        # Its maps do not depend on the zero: no 1.4 ms after a tare.
+        tared._subsets, tared._checks = self._subsets, self._checks
         return tared
 
     def rejecting_room_field(self, room: np.ndarray | None = None,
@@ -174,10 +176,10 @@ class LinearModel:
         if self.H is None:
             raise ValueError("this calibration has no flux model H: no redundancy to check")
         chips = np.asarray(chips, dtype=bool)
-        key = b"c" + chips.tobytes() + sigma.tobytes()
-        maps = self._subsets.get(key)
+        key = chips.tobytes() + sigma.tobytes()
+        maps = self._checks.get(key)
         if maps is None:
-            maps = self._subsets[key] = ConsistencyMaps(
+            maps = self._checks[key] = ConsistencyMaps(
                 self.H if self.room is None else np.hstack([self.H, self.room]), self.K, sigma, chips)
         return maps.apply(b - self.zero)
 
