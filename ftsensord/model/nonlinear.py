@@ -95,8 +95,8 @@ BACKGROUND_NOISE_T = 1e-6
 #: The step that ends a fit (the steps left foretold under the tolerances) is not checked
 #: against the field when it changes no channel by more than 0.1 uT (a tenth of the chips'
 #: noise): its flux is the Jacobian's prediction, which is off by at most the Jacobian's
-#: drift since it was computed (under 3 % of the change, `JACOBIAN_REUSE_M`: 3 nT) and the
-#: field's curvature over the step (under 1 nT for a 0.1 um step at 2 mm from a magnet).
+#: drift since it was computed (under 1 % of the change, `JACOBIAN_REUSE_M`: 1 nT) and the
+#: field's curvature over a step that small (0.1 um at 6 mm, 2 nm at 2 mm: under 1 nT).
 #: Such a step lowers the linearised cost by construction; an evaluation would only repeat
 #: it. At rest this saves one field evaluation in two (the second step moves the pose
 #: about 1/400 of the first).
