@@ -79,13 +79,13 @@ class FluxModel:
         the geometry and the moments are those it was made from (the same objects, and the
         same numbers: an array changed in place is seen)."""
         g, scale = self.geometry, self.scale
-        key = (scale, g, self.moment_am2, self.crosstalk, self.octupole)
         cached = self.__dict__.get("_constants_cache")
-        if (cached is not None and all(a is b for a, b in zip(cached[0], key))
-                and cached[1] == scale.tobytes() and cached[2] == g.strengths.tobytes()):
+        if (cached is not None and cached[0] is scale and cached[1] is g
+                and cached[2] == (self.moment_am2, self.crosstalk, self.octupole, scale.tobytes(), g.strengths.tobytes())):
             return cached[3]
         constants = _Constants.build(self)
-        self.__dict__["_constants_cache"] = (key, scale.tobytes(), g.strengths.tobytes(), constants)
+        self.__dict__["_constants_cache"] = (scale, g, (self.moment_am2, self.crosstalk, self.octupole, scale.tobytes(),
+                                                        g.strengths.tobytes()), constants)
         return constants
 
     def _fields(self, T: np.ndarray, gradient: bool = True) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
