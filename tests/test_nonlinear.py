@@ -75,6 +75,22 @@ def test_analytic_jacobian_matches_finite_differences(xi, octupole):
         assert np.allclose(J[:, k], numeric, rtol=1e-5, atol=1e-6 * np.abs(numeric).max())
 
 
+def test_the_models_kept_constants_follow_its_arrays_changed_in_place():
+    """FluxModel keeps what does not change with the pose; a scale or magnet strength
+    changed in place (a calibration's iteration may) is seen at the next prediction."""
+    g = SensorGeometry(G.chip_R, G.chip_p, G.magnet_p, G.magnet_axis, magnet_strength=np.ones(8))
+    model = FluxModel(g, g.magnet_moment_am2, octupole=True)
+    T = se3.exp_se3(np.array([1e-4, 0, 0, 0, 0.01, 0]))
+    before = model.predict(T)
+    model.scale[2] *= 2.0
+    doubled = model.predict(T)
+    assert np.allclose(doubled[6:9], 2 * before[6:9], rtol=1e-12) and np.array_equal(doubled[:6], before[:6])
+    g.strengths[0] *= 1.5  # magnet 0 stronger: every chip's flux changes, chip 0's most
+    stronger = model.predict(T)
+    change = np.linalg.norm((stronger - doubled).reshape(-1, 3), axis=1)
+    assert np.all(change > 0) and np.argmax(change) == 0 and change[0] > 1e-4, change
+
+
 EXTREMES = [np.array(w, float) for w in (
     [50, 0, 0, 0, 0, 0], [-50, 0, 0, 0, 0, 0], [0, 50, 0, 0, 0, 0], [0, -50, 0, 0, 0, 0],
     [0, 0, 20, 0, 0, 0], [0, 0, -20, 0, 0, 0], [0, 0, 0, 0.2, 0, 0], [0, 0, 0, 0, -0.2, 0],
