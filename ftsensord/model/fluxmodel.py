@@ -216,8 +216,9 @@ class _Constants:
         response = s.copy() if s.ndim == 3 else s[:, :, None] * np.eye(3)
         m = MU0_OVER_4PI * model.moment_am2 * g.strengths[:, None] * g.magnet_axis
         q = MU0_OVER_4PI * model.moment_am2 * g.strengths * octupole_ratio(g.magnet_radius_m, g.magnet_length_m)
-        return _Constants(g.n_chips, np.array(g.chip_p, float), np.array(g.magnet_p, float), m, 3 * m,
-                          np.array(g.magnet_axis, float), 0.5 * q if model.octupole else None,
+        # The geometry's own arrays, not copies: positions changed in place are used, as before.
+        return _Constants(g.n_chips, np.asarray(g.chip_p, float), np.asarray(g.magnet_p, float), m, 3 * m,
+                          np.asarray(g.magnet_axis, float), 0.5 * q if model.octupole else None,
                           None if model.crosstalk else np.eye(g.n_chips), response,
                           response @ np.transpose(g.chip_R, (0, 2, 1)), 1 / np.linalg.norm(m, axis=1),
                           g.magnet_axis[:, :, None] * g.magnet_axis[:, None, :])
