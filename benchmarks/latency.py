@@ -104,9 +104,12 @@ def listen(endpoint: str, n: int, seconds: float, out: mp.Queue) -> None:
     out.put(delays)
 
 
-def listen_c(program: Path, endpoint: str, per: list[int], seconds: float) -> tuple[list[tuple[int, float]], list[str]]:
-    """The C subscribers, ``per[i]`` in process i; (seq, delay in s) of every receipt after the settle."""
-    procs = [subprocess.Popen([str(program), endpoint, "wrench/sensor1", str(n), str(SETTLE_S), str(seconds)],
+def listen_c(program: Path, endpoint: str, per: list[int], seconds: float,
+             shared: bool = False) -> tuple[list[tuple[int, float]], list[str]]:
+    """The C subscribers, ``per[i]`` in process i (``shared``: on one context each process);
+    (seq, delay in s) of every receipt after the settle."""
+    procs = [subprocess.Popen([str(program), endpoint, "wrench/sensor1", str(n), str(SETTLE_S), str(seconds),
+                               *(["shared"] if shared else [])],
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for n in per]
     delays: list[tuple[int, float]] = []
     summaries = []
@@ -128,6 +131,9 @@ def main() -> int:
                         help="the subscribers: Python (pyzmq) or C programs on clients/c/ftsensord.h")
     parser.add_argument("--fifo", type=int, default=0,
                         help="run the daemon SCHED_FIFO at this priority (0: not; the systemd unit sets 50)")
+    parser.add_argument("--shared-context", action="store_true",
+                        help="C: a process's subscribers share one libzmq context (one I/O thread), "
+                             "instead of one each as separate programs have")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         config = Path(tmp) / "ftsensord.toml"
@@ -152,7 +158,7 @@ def main() -> int:
             load0 = os.getloadavg()[0]
             children0, daemon0, wall0 = children_cpu_s(), cpu_seconds(proc.pid), time.monotonic()
             if program is not None:
-                delays, summaries = listen_c(program, f"ipc://{endpoint_path}", per, args.seconds)
+                delays, summaries = listen_c(program, f"ipc://{endpoint_path}", per, args.seconds, args.shared_context)
             else:
                 queue: mp.Queue = mp.Queue()
                 workers = [mp.Process(target=listen, args=(f"ipc://{endpoint_path}", n, args.seconds, queue))
@@ -172,7 +178,8 @@ def main() -> int:
     d = np.array([x for _, x in delays]) * 1e6
     expected = args.subscribers * args.seconds * 100
     policy = f"SCHED_FIFO {args.fifo}" if args.fifo else "the default policy"
-    print(f"{args.subscribers} {args.kind} subscribers ({libzmq}) in {len(per)} processes to wrench/sensor1 over ipc, "
+    contexts = " sharing a context a process" if args.kind == "c" and args.shared_context else ""
+    print(f"{args.subscribers} {args.kind} subscribers{contexts} ({libzmq}) in {len(per)} processes to wrench/sensor1 over ipc, "
           f"the daemon at 100 Hz at {policy}, {args.seconds:g} s (load {load0:.2f} at start, "
           f"{os.getloadavg()[0]:.2f} at end)")
     print(f"{len(d)} receipts (of about {expected:.0f}): sample t_mono to receipt p50 {np.percentile(d, 50):.0f} us, "

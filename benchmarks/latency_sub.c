@@ -2,10 +2,11 @@
  * latency_sub.c: N subscribers of one stream in one C process, as haptic loops built on
  * clients/c/ftsensord.h would be. Built and run by benchmarks/latency.py (--kind c).
  *
- *     latency_sub ENDPOINT TOPIC N SETTLE_S SECONDS
+ *     latency_sub ENDPOINT TOPIC N SETTLE_S SECONDS [shared]
  *
  * Opens N subscriptions with fts_open (each its own libzmq context and I/O thread, as N
- * separate programs would have), waits on all of them with zmq_poll, and takes every
+ * separate programs would have; with "shared", fts_open_ctx on one context: one I/O
+ * thread for the N, as one program with N subscriptions would have), waits on all of them with zmq_poll, and takes every
  * sample as it arrives with fts_latest. After SETTLE_S seconds (connections made, the
  * first samples through), for SECONDS it records each receipt's delay: CLOCK_MONOTONIC at
  * receipt minus the sample's t_mono (the daemon's CLOCK_MONOTONIC when the chips had been
@@ -32,8 +33,8 @@ int zmq_poll(zmq_pollitem_t *items, int nitems, long timeout);
 
 int main(int argc, char **argv)
 {
-    if (argc != 6) {
-        fprintf(stderr, "usage: %s ENDPOINT TOPIC N SETTLE_S SECONDS\n", argv[0]);
+    if (argc != 6 && argc != 7) {
+        fprintf(stderr, "usage: %s ENDPOINT TOPIC N SETTLE_S SECONDS [shared]\n", argv[0]);
         return 2;
     }
     int n = atoi(argv[3]);
@@ -46,8 +47,10 @@ int main(int argc, char **argv)
     long long *delays = (long long *)malloc(cap * sizeof *delays);
     unsigned long long *seqs = (unsigned long long *)malloc(cap * sizeof *seqs);
     if (subs == NULL || items == NULL || delays == NULL || seqs == NULL) return 1;
+    void *shared = argc == 7 ? zmq_ctx_new() : NULL;
+    if (argc == 7 && shared == NULL) return 1;
     for (int i = 0; i < n; ++i) {
-        int rc = fts_open(&subs[i], argv[1], argv[2]);
+        int rc = shared ? fts_open_ctx(&subs[i], shared, argv[1], argv[2]) : fts_open(&subs[i], argv[1], argv[2]);
         if (rc != FTS_OK) {
             fprintf(stderr, "fts_open %s %s: %s\n", argv[1], argv[2], fts_strerror(rc));
             return 1;
@@ -84,6 +87,7 @@ int main(int argc, char **argv)
     for (size_t i = 0; i < count; ++i) printf("%llu %lld\n", seqs[i], delays[i]);
     fprintf(stderr, "subscribers %d receipts %zu missed %llu errors %llu\n", n, count, missed, errors);
     for (int i = 0; i < n; ++i) fts_close(&subs[i]);
+    if (shared) zmq_ctx_term(shared);
     free(delays);
     free(seqs);
     free(items);
