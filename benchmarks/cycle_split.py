@@ -13,7 +13,9 @@ real-time simulated bus, and splits every cycle into:
 
 ``spill`` is per transfer how long the simulator's CPU ran past the transfer's wire end
 (it then lengthens the transfer, which a board's would not): it should be 0. The bound
-counts transfers only; a cycle is about ``bound + host``. Run:
+counts transfers only; a cycle is about ``bound + host``. The split's own clock reads
+(two ``thread_time`` and three ``monotonic`` a transfer, about 2 us) are in its figures.
+Run:
 
     python benchmarks/cycle_split.py [--cycles 1000] [--bus 'sim?adapter=bcm2835&ioctl_us=80'] [--fifo 50]
 
