@@ -6,16 +6,27 @@ Starts `ftsensord run` with the default configuration (16 simulated chips in rea
 ZeroMQ socket, as separate client programs would have). Each receipt's delay is the
 subscriber's CLOCK_MONOTONIC at receipt minus the sample's ``t_mono`` (the daemon's
 CLOCK_MONOTONIC when the chips had been read): one clock, no synchronisation needed.
-Reports p50, p99 and max over every receipt, the count, and the host's load.
+Reports p50, p99 and max over every receipt, the count, and the host's load, and from the
+daemon's status the part that is the daemon's own: from ``t_mono`` to the return of its
+first stream's send (``publish_us``); the rest is ZeroMQ's fan-out and the subscribers'
+own scheduling.
 
-    python benchmarks/latency.py --subscribers 50 --seconds 30
+``--kind python`` (the default) runs the subscribers as Python processes (pyzmq);
+``--kind c`` as C programs on clients/c/ftsensord.h (benchmarks/latency_sub.c, built as
+clients/c/build.py builds the example, against the libzmq the pyzmq wheel ships when no
+system one is found): what the haptic loops that use the daemon are. ``--fifo PRIO`` runs
+the daemon SCHED_FIFO as the systemd unit does.
+
+    python benchmarks/latency.py --subscribers 50 --seconds 30 [--kind c] [--processes 5] [--fifo 50]
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import multiprocessing as mp
 import os
+import resource
 import signal
 import subprocess
 import sys
@@ -26,14 +37,41 @@ from pathlib import Path
 import numpy as np
 import zmq
 
+from ftsensord.client import ControlClient
 from ftsensord.service import wire
 from ftsensord.service.config import builtin_path
 
 SETTLE_S = 1.0  # connections made and the first samples through before counting
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def cpu_seconds(pid: int) -> float:
+    """User and system CPU (s) of process ``pid``, every thread."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def children_cpu_s() -> float:
+    """User and system CPU (s) of the children waited for so far (the subscribers, once joined)."""
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def build_c(folder: Path) -> tuple[Path, str]:
+    """benchmarks/latency_sub.c built into ``folder`` (clients/c/build.py's libzmq); the program and the libzmq used."""
+    spec = importlib.util.spec_from_file_location("ftsensord_c_build", ROOT / "clients" / "c" / "build.py")
+    assert spec is not None and spec.loader is not None
+    build = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = build
+    spec.loader.exec_module(build)
+    libzmq = build.find_libzmq()
+    program = folder / "latency_sub"
+    build.build([Path(__file__).with_name("latency_sub.c")], program, "c", libzmq)
+    return program, libzmq.origin
 
 
 def listen(endpoint: str, n: int, seconds: float, out: mp.Queue) -> None:
-    """``n`` subscribers in one process; put the delays (s) of every receipt after the settle."""
+    """``n`` subscribers in one process; put (seq, delay in s) of every receipt after the settle."""
     ctx = zmq.Context()
     poller = zmq.Poller()
     socks = []
@@ -44,7 +82,7 @@ def listen(endpoint: str, n: int, seconds: float, out: mp.Queue) -> None:
         s.connect(endpoint)
         poller.register(s, zmq.POLLIN)
         socks.append(s)
-    delays: list[float] = []
+    delays: list[tuple[int, float]] = []
     start = time.monotonic()
     end = start + SETTLE_S + seconds
     while time.monotonic() < end:
@@ -58,11 +96,30 @@ def listen(endpoint: str, n: int, seconds: float, out: mp.Queue) -> None:
                 received.append((time.monotonic(), frame))
         # Decoded after every ready socket is read: the next socket's receipt is not
         # delayed by this one's decoding (the benchmark's own work, not the daemon's).
-        delays += [t - wire.decode(frame).t_mono for t, frame in received if t - start >= SETTLE_S]
+        samples = [(t, wire.decode(frame)) for t, frame in received if t - start >= SETTLE_S]
+        delays += [(s.seq, t - s.t_mono) for t, s in samples]
     for s in socks:
         s.close()
     ctx.term()
     out.put(delays)
+
+
+def listen_c(program: Path, endpoint: str, per: list[int], seconds: float,
+             shared: bool = False) -> tuple[list[tuple[int, float]], list[str]]:
+    """The C subscribers, ``per[i]`` in process i (``shared``: on one context each process);
+    (seq, delay in s) of every receipt after the settle."""
+    procs = [subprocess.Popen([str(program), endpoint, "wrench/sensor1", str(n), str(SETTLE_S), str(seconds),
+                               *(["shared"] if shared else [])],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for n in per]
+    delays: list[tuple[int, float]] = []
+    summaries = []
+    for p in procs:
+        out, err = p.communicate(timeout=seconds + 60)
+        if p.returncode != 0:
+            raise RuntimeError(f"{program.name} failed ({p.returncode}): {err.strip()}")
+        delays += [(int(seq), int(ns) * 1e-9) for seq, ns in (line.split() for line in out.splitlines())]
+        summaries.append(err.strip())
+    return delays, summaries
 
 
 def main() -> int:
@@ -70,41 +127,84 @@ def main() -> int:
     parser.add_argument("--subscribers", type=int, default=50)
     parser.add_argument("--processes", type=int, default=5, help="subscriber processes (default 5)")
     parser.add_argument("--seconds", type=float, default=30.0)
+    parser.add_argument("--kind", choices=("python", "c"), default="python",
+                        help="the subscribers: Python (pyzmq) or C programs on clients/c/ftsensord.h")
+    parser.add_argument("--fifo", type=int, default=0,
+                        help="run the daemon SCHED_FIFO at this priority (0: not; the systemd unit sets 50)")
+    parser.add_argument("--shared-context", action="store_true",
+                        help="C: a process's subscribers share one libzmq context (one I/O thread), "
+                             "instead of one each as separate programs have")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         config = Path(tmp) / "ftsensord.toml"
         config.write_text(builtin_path("sim.toml").read_text().replace("builtin:", str(builtin_path("")) + "/"))
         env = {**os.environ, "XDG_RUNTIME_DIR": tmp}
         env.pop("RUNTIME_DIRECTORY", None)
-        proc = subprocess.Popen([sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=env,
+        program, libzmq = build_c(Path(tmp)) if args.kind == "c" else (None, f"pyzmq {zmq.__version__}")
+        # The daemon's policy as the unit's CPUSchedulingPolicy=fifo would set it (chrt: its threads inherit it).
+        prefix = ["chrt", "-f", str(args.fifo)] if args.fifo else []
+        proc = subprocess.Popen([*prefix, sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=env,
                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         endpoint_path = Path(tmp) / "ftsensord" / "wrench"
+        control = ControlClient(f"ipc://{Path(tmp) / 'ftsensord' / 'control'}", timeout_s=5)
         try:
             for _ in range(100):
                 if endpoint_path.exists():
                     break
                 time.sleep(0.1)
             time.sleep(0.5)
-            queue: mp.Queue = mp.Queue()
-            per = [args.subscribers // args.processes + (i < args.subscribers % args.processes)
-                   for i in range(args.processes)]
-            workers = [mp.Process(target=listen, args=(f"ipc://{endpoint_path}", n, args.seconds, queue))
-                       for n in per if n]
+            per = [n for n in (args.subscribers // args.processes + (i < args.subscribers % args.processes)
+                               for i in range(args.processes)) if n]
             load0 = os.getloadavg()[0]
-            for w in workers:
-                w.start()
-            delays = [d for _ in workers for d in queue.get(timeout=args.seconds + 60)]
-            for w in workers:
-                w.join()
+            children0, daemon0, wall0 = children_cpu_s(), cpu_seconds(proc.pid), time.monotonic()
+            if program is not None:
+                delays, summaries = listen_c(program, f"ipc://{endpoint_path}", per, args.seconds, args.shared_context)
+            else:
+                queue: mp.Queue = mp.Queue()
+                workers = [mp.Process(target=listen, args=(f"ipc://{endpoint_path}", n, args.seconds, queue))
+                           for n in per]
+                for w in workers:
+                    w.start()
+                delays = [d for _ in workers for d in queue.get(timeout=args.seconds + 60)]
+                for w in workers:
+                    w.join()
+                summaries = []
+            children1, daemon1, wall1 = children_cpu_s(), cpu_seconds(proc.pid), time.monotonic()
+            status = control.status()
         finally:
             proc.send_signal(signal.SIGTERM)
             proc.wait(timeout=10)
-    d = np.array(delays) * 1e6
+    seqs = np.array([q for q, _ in delays])
+    d = np.array([x for _, x in delays]) * 1e6
     expected = args.subscribers * args.seconds * 100
-    print(f"{args.subscribers} subscribers in {len(workers)} processes to wrench/sensor1 over ipc, the daemon at "
-          f"100 Hz, {args.seconds:g} s (load {load0:.2f} at start, {os.getloadavg()[0]:.2f} at end)")
+    policy = f"SCHED_FIFO {args.fifo}" if args.fifo else "the default policy"
+    contexts = " sharing a context a process" if args.kind == "c" and args.shared_context else ""
+    print(f"{args.subscribers} {args.kind} subscribers{contexts} ({libzmq}) in {len(per)} processes to wrench/sensor1 over ipc, "
+          f"the daemon at 100 Hz at {policy}, {args.seconds:g} s (load {load0:.2f} at start, "
+          f"{os.getloadavg()[0]:.2f} at end)")
     print(f"{len(d)} receipts (of about {expected:.0f}): sample t_mono to receipt p50 {np.percentile(d, 50):.0f} us, "
           f"p99 {np.percentile(d, 99):.0f} us, max {d.max():.0f} us")
+    publish = status.get("publish_us")
+    if publish:
+        print(f"the daemon's part (status publish_us, last {min(1000, status['cycles'])} cycles): t_mono to its "
+              f"first stream's send returned p50 {publish['p50']:.0f} us, p99 {publish['p99']:.0f} us, "
+              f"max {publish['max']:.0f} us; missed cycles {status['missed_cycles']}")
+    # Per sample: its first and its last receipt among the subscribers (samples every one got).
+    order = np.argsort(seqs, kind="stable")
+    starts = np.flatnonzero(np.diff(seqs[order], prepend=-1))
+    counts = np.diff(np.append(starts, len(order)))
+    whole = counts == args.subscribers
+    first = np.minimum.reduceat(d[order], starts)[whole]
+    last = np.maximum.reduceat(d[order], starts)[whole]
+    if len(first):
+        print(f"per sample ({len(first)} samples all {args.subscribers} received): first receipt p50 "
+              f"{np.percentile(first, 50):.0f} us, p99 {np.percentile(first, 99):.0f} us; last receipt p50 "
+              f"{np.percentile(last, 50):.0f} us, p99 {np.percentile(last, 99):.0f} us")
+    print(f"CPU: the subscribers {(children1 - children0) / max(1, len(d)) * 1e6:.1f} us a receipt "
+          f"({(children1 - children0) / (wall1 - wall0) * 100:.0f} % of a core), the daemon (ZeroMQ's I/O thread and the "
+          f"bus simulation included) {(daemon1 - daemon0) / (wall1 - wall0) * 100:.0f} % of a core")
+    for line in summaries:
+        print(f"  {line}")
     return 0
 
 

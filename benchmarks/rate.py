@@ -7,7 +7,11 @@ rate they imply (sequence numbers over the daemon's timestamps), sequence gaps, 
 the daemon's status: the bound, missed and late cycles, jitter, how long a cycle takes
 (p50, p99: what it leaves of the period), and its CPU time. Run:
 
-    python benchmarks/rate.py --seconds 60 [--rate 100] [--scheduler burst] [--adapter bcm2835 --ioctl-us 80]
+    python benchmarks/rate.py --seconds 60 [--rate 100] [--scheduler burst] [--adapter bcm2835 --ioctl-us 80] [--fifo 50]
+
+``--fifo PRIO`` runs the daemon SCHED_FIFO at that priority (through ``chrt``), as the
+systemd unit does (``CPUSchedulingPolicy=fifo``, ``CPUSchedulingPriority=50``); without
+it the daemon runs at the default policy, as a user starting it by hand would.
 
 and the figures go to docs/performance.md by hand, with the command line.
 """
@@ -40,10 +44,13 @@ def main() -> int:
     parser.add_argument("--scheduler", default=None, help="default: the configuration's (the default scheduler)")
     parser.add_argument("--adapter", default=None, help="the simulated adapter (default: the simulator's, bcm2835)")
     parser.add_argument("--ioctl-us", type=float, default=None, help="the simulated cost of one ioctl (us)")
+    parser.add_argument("--fifo", type=int, default=0,
+                        help="run the daemon SCHED_FIFO at this priority (0: not; the systemd unit sets 50)")
     args = parser.parse_args()
     options = "&".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}"
                        for k, v in (("adapter", args.adapter), ("ioctl_us", args.ioctl_us)) if v is not None)
     bus = "sim" + (f"?{options}" if options else "")
+    load0 = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:
         config = Path(tmp) / "ftsensord.toml"
         text = builtin_path("sim.toml").read_text()
@@ -54,7 +61,9 @@ def main() -> int:
         config.write_text(text.replace("builtin:", str(builtin_path("")) + "/"))
         env = {**os.environ, "XDG_RUNTIME_DIR": tmp}
         env.pop("RUNTIME_DIRECTORY", None)
-        proc = subprocess.Popen([sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=env,
+        # The daemon's policy as the unit's CPUSchedulingPolicy=fifo would set it (chrt: its threads inherit it).
+        prefix = ["chrt", "-f", str(args.fifo)] if args.fifo else []
+        proc = subprocess.Popen([*prefix, sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=env,
                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         folder = Path(tmp) / "ftsensord"
         control = ControlClient(f"ipc://{folder / 'control'}", timeout_s=5)
@@ -84,8 +93,9 @@ def main() -> int:
             proc.wait(timeout=10)
     achieved = (last.seq - first.seq) / (last.t_mono - first.t_mono)
     error = (achieved - args.rate) / args.rate
-    print(f"configured {args.rate:g} Hz, scheduler {status1['scheduler']}, 16 chips, bus {bus!r} in real time "
-          f"(load {os.getloadavg()[0]:.2f})")
+    policy = f"SCHED_FIFO {args.fifo}" if args.fifo else "the default policy (SCHED_OTHER)"
+    print(f"configured {args.rate:g} Hz, scheduler {status1['scheduler']}, 16 chips, bus {bus!r} in real time, "
+          f"daemon at {policy} (load {load0:.2f} at start, {os.getloadavg()[0]:.2f} at end)")
     print(f"bound: {status1['bound']}; the bus: adapter {status1.get('adapter')}, ioctl {status1.get('ioctl_us')} us, "
           f"clock {status1.get('clock_hz')} Hz")
     print(f"over {last.t_mono - first.t_mono:.1f} s: {received} samples received, achieved {achieved:.3f} Hz "

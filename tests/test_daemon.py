@@ -129,6 +129,20 @@ def test_every_stream_is_published_with_increasing_sequence_numbers(rig):
     assert len(out["flux/sensor1"][0].values) == 24
 
 
+def test_the_first_wrench_goes_out_first_with_no_bus_time_after_its_sample(rig):
+    # A haptic loop waits for wrench/sensor1: it is each cycle's first frame, and on the
+    # virtual clock (CPU free) no bus time passes between the sample's t_mono and its send,
+    # so no transfer (a read-back, a retry) was put between them.
+    for _ in range(20):
+        rig.daemon.cycle()
+        frames = []
+        while rig.sub.poll(0):
+            frames.append(wire.decode(rig.sub.recv()).topic)
+        assert frames[0] == "wrench/sensor1" and frames.index("wrench/sensor2") < frames.index("flux/sensor1")
+    publish = rig.request(cmd="status")["result"]["publish_us"]
+    assert publish == {"p50": 0.0, "p99": 0.0, "max": 0.0}
+
+
 def test_the_wrench_is_the_applied_one_within_the_calibrations_error(rig):
     out = rig.cycles(40)
     w1 = np.mean([s.values for s in out["wrench/sensor1"]], axis=0)

@@ -194,3 +194,14 @@ def test_real_clock_bus_spends_at_least_its_wire_time():
     for _ in range(10):
         bus.i2c_rdwr(i2c_msg.write(ADDR, [0x4E]), i2c_msg.read(ADDR, 7))
     assert clock.now() - t0 >= 10 * 93 / 100e3
+
+
+def test_real_clock_learns_its_spin_and_never_ends_a_wait_early():
+    # The spin is learnt from the sleeps' overshoots; whatever it learns, a wait ends at
+    # its time or later (a late end makes the bus slower, never faster, than its wire).
+    clock = MonotonicClock()
+    for _ in range(2 * MonotonicClock.SPIN_WINDOW):
+        t = clock.now() + 300e-6
+        clock.wait_until(t)
+        assert clock.now() >= t
+    assert clock.min_spin_s <= clock._spin <= clock.spin_s

@@ -141,17 +141,20 @@ class Daemon:
         t_mono, t_wall = self.clock(), self.wall()
         # Every stream's sequence number is the cycle's: a deadline the loop skipped is a jump.
         seq = self.timing.cycles + self.timing.missed
-        for r in results.values():
-            self.chips.count(r)
         self.orientations.drain(start)
         samples: dict[str, SensorSample] = {}
         for p in self.sensors:
             s = samples[p.name] = p.step(results, wire.FLAG_LATE if late else 0)
+            # Each wrench as soon as it is known: a haptic loop waits for it; flux is for
+            # debugging, and the tares' and counters' bookkeeping waits until after the sends.
+            self._publish(f"wrench/{p.name}", wire.KIND_WRENCH, seq, t_mono, t_wall, s.flags, s.wrench)
+            if p is self.sensors[0]:
+                self.timing.published(self.clock() - t_mono)
+        for p in self.sensors:
+            s = samples[p.name]
             if s.valid:
                 flags, gravity = self.gravity.tare_input(p.name, start) if self.gravity else (0, None)
                 self.tares.feed(p.name, s.flux, s.flags | flags, gravity)
-            # Each wrench as soon as it is known: a haptic loop waits for it; flux is for debugging.
-            self._publish(f"wrench/{p.name}", wire.KIND_WRENCH, seq, t_mono, t_wall, s.flags, s.wrench)
         tip = tip_wrench(samples, self.config.tool_poses) if self.config.tool_poses else None
         if tip is not None:
             self._publish("wrench/tip", wire.KIND_WRENCH, seq, t_mono, t_wall, tip[1], tip[0])
@@ -160,6 +163,8 @@ class Daemon:
         for name, s in samples.items():
             self._publish(f"flux/{name}", wire.KIND_FLUX, seq, t_mono, t_wall, s.flux_flags, s.flux)
         self.tares.advance(self.sensors)
+        for r in results.values():
+            self.chips.count(r)
         self.timing.end(self.clock() - start)
         if not self.ready:
             self.ready = True

@@ -30,6 +30,7 @@ class LoopTiming:
         self.starts: deque[float] = deque(maxlen=STATS_WINDOW)
         self.lateness: deque[float] = deque(maxlen=STATS_WINDOW)
         self.durations: deque[float] = deque(maxlen=STATS_WINDOW)  # a cycle's start to its last publish
+        self.publish_delays: deque[float] = deque(maxlen=STATS_WINDOW)  # t_mono to the first stream's send
 
     def skip_missed(self, deadline: float, now: float, period_s: float) -> tuple[float, float]:
         """The deadline to run now and its lateness: deadlines a whole period or more
@@ -49,6 +50,10 @@ class LoopTiming:
         late = lateness > LATE_FRACTION * period_s
         self.late += late
         return late
+
+    def published(self, delay_s: float) -> None:
+        """The first stream's send returned ``delay_s`` after the sample's ``t_mono``."""
+        self.publish_delays.append(delay_s)
 
     def end(self, duration_s: float) -> None:
         self.durations.append(duration_s)

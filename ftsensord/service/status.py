@@ -111,6 +111,8 @@ def status_reply(d: Daemon) -> dict[str, Any]:
         "jitter_us": percentiles_us(t.lateness),
         # What the loop leaves of its period: the bound counts the bus, this adds the CPU.
         "cycle_us": percentiles_us(t.durations), "period_us": d.period_s * 1e6,
+        # The daemon's part of a sample's latency: t_mono to its first stream's send.
+        "publish_us": percentiles_us(t.publish_delays),
         "cycles": t.cycles, "missed_cycles": t.missed, "late_cycles": t.late,
         "averaging": d.config.averaging, "lowpass_hz": d.config.lowpass_hz,
         "chips": d.chips.report(d.reader.health, d.reader.bus.monotonic()),
