@@ -18,9 +18,6 @@ import argparse
 import json
 import multiprocessing as mp
 import os
-import signal
-import socket
-import subprocess
 import sys
 import tempfile
 import time
@@ -31,8 +28,10 @@ import zmq
 
 from ftsensord.client import ControlClient
 from ftsensord.service import wire
-from ftsensord.service.config import builtin_path
 from ftsensord.service.control import MAX_REQUEST
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from launch import packaged_config, start_daemon, stop
 
 IN_FLIGHT = 20
 WATCHDOG_USEC = 5_000_000
@@ -112,24 +111,12 @@ def run(mode: str, seconds: float, clients: int, count: int, nice: int = 0, fifo
         daemon_nice: int = 0) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         tmp_path = Path(tmp)
-        notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-        notify.bind(str(tmp_path / "notify"))
-        notify.setblocking(False)
-        config = tmp_path / "ftsensord.toml"
-        config.write_text(builtin_path("sim.toml").read_text().replace("builtin:", str(builtin_path("")) + "/"))
-        env = {**os.environ, "XDG_RUNTIME_DIR": tmp, "NOTIFY_SOCKET": str(tmp_path / "notify"),
-               "WATCHDOG_USEC": str(WATCHDOG_USEC)}
-        env.pop("RUNTIME_DIRECTORY", None)
+        config = packaged_config(tmp_path / "ftsensord.toml")
         # The daemon's priority as the unit's CPUSchedulingPolicy=fifo (fifo) or Nice= (daemon_nice) would set it.
-        prefix = (["chrt", "-f", str(fifo)] if fifo else []) \
-            + (["nice", "-n", str(daemon_nice)] if daemon_nice else [])
-        proc = subprocess.Popen([*prefix, sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=env,
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        proc, notify = start_daemon(config, tmp_path, fifo=fifo, nice=daemon_nice,
+                                    env={"WATCHDOG_USEC": str(WATCHDOG_USEC)})
+        notify.setblocking(False)
         folder = tmp_path / "ftsensord"
-        for _ in range(200):
-            if (folder / "control").exists():
-                break
-            time.sleep(0.05)
         ctx = zmq.Context()
         sub = ctx.socket(zmq.SUB)
         sub.setsockopt(zmq.RCVHWM, 0)
@@ -176,11 +163,9 @@ def run(mode: str, seconds: float, clients: int, count: int, nice: int = 0, fifo
         clients_cpu = children.children_user + children.children_system - children0.children_user \
             - children0.children_system
         load1 = os.getloadavg()[0]
-        proc.send_signal(signal.SIGTERM)
-        exit_code = proc.wait(timeout=10)
+        exit_code = stop(proc, notify)
         sub.close(linger=0)
         ctx.term()
-        notify.close()
     jumps = int(sum(np.diff(seqs) - 1)) if len(seqs) > 1 else 0
     gaps = np.diff([t0, *pings, t0 + elapsed])
     return {

@@ -27,7 +27,6 @@ import importlib.util
 import multiprocessing as mp
 import os
 import resource
-import signal
 import subprocess
 import sys
 import tempfile
@@ -39,7 +38,9 @@ import zmq
 
 from ftsensord.client import ControlClient
 from ftsensord.service import wire
-from ftsensord.service.config import builtin_path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from launch import packaged_config, start_daemon, stop
 
 SETTLE_S = 1.0  # connections made and the first samples through before counting
 ROOT = Path(__file__).resolve().parent.parent
@@ -136,22 +137,13 @@ def main() -> int:
                              "instead of one each as separate programs have")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
-        config = Path(tmp) / "ftsensord.toml"
-        config.write_text(builtin_path("sim.toml").read_text().replace("builtin:", str(builtin_path("")) + "/"))
-        env = {**os.environ, "XDG_RUNTIME_DIR": tmp}
-        env.pop("RUNTIME_DIRECTORY", None)
+        config = packaged_config(Path(tmp) / "ftsensord.toml")
         program, libzmq = build_c(Path(tmp)) if args.kind == "c" else (None, f"pyzmq {zmq.__version__}")
-        # The daemon's policy as the unit's CPUSchedulingPolicy=fifo would set it (chrt: its threads inherit it).
-        prefix = ["chrt", "-f", str(args.fifo)] if args.fifo else []
-        proc = subprocess.Popen([*prefix, sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=env,
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        # The daemon's policy as the unit's CPUSchedulingPolicy=fifo would set it.
+        proc, notify = start_daemon(config, Path(tmp), fifo=args.fifo)
         endpoint_path = Path(tmp) / "ftsensord" / "wrench"
         control = ControlClient(f"ipc://{Path(tmp) / 'ftsensord' / 'control'}", timeout_s=5)
         try:
-            for _ in range(100):
-                if endpoint_path.exists():
-                    break
-                time.sleep(0.1)
             time.sleep(0.5)
             per = [n for n in (args.subscribers // args.processes + (i < args.subscribers % args.processes)
                                for i in range(args.processes)) if n]
@@ -172,8 +164,7 @@ def main() -> int:
             children1, daemon1, wall1 = children_cpu_s(), cpu_seconds(proc.pid), time.monotonic()
             status = control.status()
         finally:
-            proc.send_signal(signal.SIGTERM)
-            proc.wait(timeout=10)
+            stop(proc, notify)
     seqs = np.array([q for q, _ in delays])
     d = np.array([x for _, x in delays]) * 1e6
     expected = args.subscribers * args.seconds * 100

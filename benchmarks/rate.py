@@ -20,16 +20,15 @@ from __future__ import annotations
 
 import argparse
 import os
-import re
-import signal
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 from ftsensord.client import ControlClient, Subscriber
-from ftsensord.service.config import builtin_path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from launch import packaged_config, start_daemon, stop
 
 
 def cpu_seconds(pid: int) -> float:
@@ -52,26 +51,15 @@ def main() -> int:
     bus = "sim" + (f"?{options}" if options else "")
     load0 = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:
-        config = Path(tmp) / "ftsensord.toml"
-        text = builtin_path("sim.toml").read_text()
-        text = re.sub(r"(?m)^rate_hz = .*$", f"rate_hz = {args.rate:g}", text)
-        text = re.sub(r'(?m)^bus = .*$', f'bus = "{bus}"', text)
+        lines = {"rate_hz": f"{args.rate:g}", "bus": f'"{bus}"'}
         if args.scheduler:
-            text = re.sub(r'(?m)^scheduler = .*$', f'scheduler = "{args.scheduler}"', text)
-        config.write_text(text.replace("builtin:", str(builtin_path("")) + "/"))
-        env = {**os.environ, "XDG_RUNTIME_DIR": tmp}
-        env.pop("RUNTIME_DIRECTORY", None)
-        # The daemon's policy as the unit's CPUSchedulingPolicy=fifo would set it (chrt: its threads inherit it).
-        prefix = ["chrt", "-f", str(args.fifo)] if args.fifo else []
-        proc = subprocess.Popen([*prefix, sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=env,
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            lines["scheduler"] = f'"{args.scheduler}"'
+        config = packaged_config(Path(tmp) / "ftsensord.toml", **lines)
+        # The daemon's policy as the unit's CPUSchedulingPolicy=fifo would set it.
+        proc, notify = start_daemon(config, Path(tmp), fifo=args.fifo)
         folder = Path(tmp) / "ftsensord"
         control = ControlClient(f"ipc://{folder / 'control'}", timeout_s=5)
         try:
-            for _ in range(100):
-                if (folder / "control").exists():
-                    break
-                time.sleep(0.1)
             control.status()
             with Subscriber(f"ipc://{folder / 'wrench'}", ["wrench/sensor1"]) as sub:
                 first = sub.receive(timeout_s=5)
@@ -89,8 +77,7 @@ def main() -> int:
                 gaps = sub.gaps.get("wrench/sensor1", 0)
                 received = sub.received - 1
         finally:
-            proc.send_signal(signal.SIGTERM)
-            proc.wait(timeout=10)
+            stop(proc, notify)
     achieved = (last.seq - first.seq) / (last.t_mono - first.t_mono)
     error = (achieved - args.rate) / args.rate
     policy = f"SCHED_FIFO {args.fifo}" if args.fifo else "the default policy (SCHED_OTHER)"

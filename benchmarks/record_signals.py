@@ -34,6 +34,9 @@ import numpy as np
 from ftsensord.client import Subscriber
 from ftsensord.recording import load_rows, read_mcap
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from launch import packaged_config, start_daemon, stop  # noqa: E402  (a sibling script)
+
 SIGNALS = [signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGKILL]
 FORMATS = {"csv": ["wrench/sensor1"], "npz": ["wrench/sensor1"],
            "mcap": ["wrench/sensor1", "wrench/tip", "flux/sensor1"]}
@@ -47,7 +50,10 @@ def file_seqs(path: Path, streams: list[str]) -> dict[str, list[int]]:
         return {streams[0]: [int(x.split(",")[0]) for x in lines[2:]]}
     if path.suffix == ".npz":
         part = Path(f"{path}.part")
-        return {streams[0]: (load_rows(part)["seq"] if part.exists() else np.load(path)["seq"]).tolist()}
+        if not part.exists():
+            return {streams[0]: np.load(path)["seq"].tolist()}
+        # Empty: killed before the first sample arrived.
+        return {streams[0]: load_rows(part)["seq"].tolist() if part.stat().st_size else []}
     out: dict[str, list[int]] = {s: [] for s in streams}
     for topic, msg, _ in read_mcap(path):
         if topic.endswith("/status"):
@@ -63,8 +69,7 @@ def main() -> None:
     tmp = Path(tempfile.mkdtemp(prefix="ftsensord-bench-"))
     env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp)}
     env.pop("RUNTIME_DIRECTORY", None)
-    daemon = subprocess.Popen([sys.executable, "-m", "ftsensord", "run"], env=env,
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    daemon, notify = start_daemon(packaged_config(tmp / "ftsensord.toml"), tmp)
     pub = f"ipc://{tmp / 'ftsensord' / 'wrench'}"
     seen: dict[str, dict[int, float]] = {s: {} for s in FORMATS["mcap"]}
     done = threading.Event()
@@ -89,6 +94,7 @@ def main() -> None:
                 totals = {"samples": 0, "holes": 0, "end": 0, "end_s": 0.0}
                 for run in range(args.runs):
                     path = tmp / f"{fmt}-{sig.name}-{run}.{fmt}"
+                    t_start = time.monotonic()
                     proc = subprocess.Popen([sys.executable, "-m", "ftsensord", "record", *streams, str(path),
                                              "--endpoint", pub], env=env, stdout=subprocess.DEVNULL,
                                             stderr=subprocess.DEVNULL)
@@ -100,6 +106,9 @@ def main() -> None:
                     for stream, seqs in file_seqs(path, streams).items():
                         ref = seen[stream]
                         totals["samples"] += len(seqs)
+                        if not seqs:  # nothing on disk: every sample published while it ran is lost
+                            totals["end"] += sum(1 for t in ref.values() if t_start <= t <= t_stop)
+                            continue
                         totals["holes"] += sum(1 for q in ref if seqs[0] <= q <= seqs[-1]) - len(set(seqs))
                         after = [q for q, t in ref.items() if q > seqs[-1] and t <= t_stop]
                         totals["end"] += len(after)
@@ -109,8 +118,7 @@ def main() -> None:
     finally:
         done.set()
         thread.join(timeout=5)
-        daemon.send_signal(signal.SIGTERM)
-        daemon.wait(timeout=10)
+        stop(daemon, notify)
     print(f"| format | stop | samples in the files ({args.runs} runs x {args.seconds:g} s) | received, lost "
           "(holes) | lost at the end | oldest lost at the end, ms before the stop |")
     print("|---|---|---|---|---|---|")

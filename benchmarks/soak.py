@@ -31,10 +31,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import re
-import signal
-import subprocess
 import sys
 import tempfile
 import time
@@ -46,7 +42,7 @@ import numpy as np
 from ftsensord.client import ControlClient, Subscriber
 from ftsensord.model import se3
 from ftsensord.service import wire
-from ftsensord.service.config import Config, builtin_path, load_config
+from ftsensord.service.config import Config, load_config
 from ftsensord.service.pipeline import channel_sigma_t
 from ftsensord.sim import load_scene
 from ftsensord.sim.chip import FieldSource
@@ -55,6 +51,7 @@ from ftsensord.sim.scene import default_scene_text
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from faults_truth import WRONG_SIGMA, unflagged_error_sigma
+from launch import packaged_config, start_daemon, stop
 from noise_tails import tail_rate, wrench_noise
 
 SENSORS = {"sensor1": range(0x0C, 0x14), "sensor2": range(0x14, 0x1C)}
@@ -202,22 +199,10 @@ def soak(minutes: float, seed: int = 1, per_minute: float = 6.0, scheduler: str 
         tmp_path = Path(tmp)
         (tmp_path / "scene.toml").write_text(scene_text(faults))
         scene = load_scene(tmp_path / "scene.toml")  # the truth of the noise-alone expectation
-        config = tmp_path / "ftsensord.toml"
-        text = builtin_path("sim.toml").read_text().replace('bus = "sim"', 'bus = "sim:scene.toml"')
-        config.write_text(re.sub(r'(?m)^scheduler = "\w+"', f'scheduler = "{scheduler}"', text)
-                          .replace("builtin:", str(builtin_path("")) + "/"))
+        config = packaged_config(tmp_path / "ftsensord.toml", bus='"sim:scene.toml"', scheduler=f'"{scheduler}"')
         parsed = load_config(config)
-        assert parsed.scheduler == scheduler, "the packaged configuration's scheduler line moved"
-        env = {**os.environ, "XDG_RUNTIME_DIR": tmp}
-        env.pop("RUNTIME_DIRECTORY", None)
-        prefix = ["chrt", "-f", str(fifo)] if fifo else []
-        proc = subprocess.Popen([*prefix, sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=env,
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        proc, notify = start_daemon(config, tmp_path, fifo=fifo)
         folder = tmp_path / "ftsensord"
-        for _ in range(100):
-            if (folder / "control").exists():
-                break
-            time.sleep(0.1)
         control = ControlClient(f"ipc://{folder / 'control'}", timeout_s=5)
         status0 = control.status()
         t0_daemon = time.monotonic() - status0["uptime_s"]  # the scene's clock starts with the daemon
@@ -242,8 +227,7 @@ def soak(minutes: float, seed: int = 1, per_minute: float = 6.0, scheduler: str 
         alive = proc.poll() is None
         rss_end = rss_kib(proc.pid) if alive else 0
         status1 = control.status() if alive else {}
-        proc.send_signal(signal.SIGTERM)
-        exit_code = proc.wait(timeout=10)
+        exit_code = stop(proc, notify)
     if save:
         np.savez_compressed(save, fault_kind=np.array([f.kind for f in faults]),
                             fault_at_s=np.array([f.at_s for f in faults]),

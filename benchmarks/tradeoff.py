@@ -31,8 +31,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import signal
-import subprocess
 import sys
 import tempfile
 import time
@@ -67,6 +65,7 @@ from ftsensord.sim.loads import StaticLoad, paper_plan
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from cycle_cpu import InstantBus  # noqa: E402  (a sibling script: one stand-in bus for both)
+from launch import start_daemon, stop  # noqa: E402
 
 DOCS = Path(__file__).resolve().parent.parent / "docs"
 ADDRESSES = list(range(0x0C, 0x1C))  # the instant bus's chips: the default scene's
@@ -240,17 +239,12 @@ def latency_us(config: Config, seconds: float) -> tuple[float, float, float]:
     """Sample timestamp to a subscriber's receipt (us), the daemon over ipc loopback."""
     from ftsensord.client import Subscriber
     with tempfile.TemporaryDirectory() as tmp:
-        env = {**os.environ, "XDG_RUNTIME_DIR": tmp}
-        env.pop("RUNTIME_DIRECTORY", None)
-        proc = subprocess.Popen([sys.executable, "-m", "ftsensord", "run", "--config", str(config.path)], env=env,
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        proc, notify = start_daemon(config.path, Path(tmp))
         try:
-            with mock.patch.dict(os.environ, env, clear=True):  # the endpoint the daemon's environment gives
+            # The endpoint the daemon's environment gives (its runtime folder in tmp).
+            with mock.patch.dict(os.environ, {"XDG_RUNTIME_DIR": tmp}):
+                os.environ.pop("RUNTIME_DIRECTORY", None)
                 endpoint = load_config(config.path).publish[0]
-            for _ in range(100):
-                if not endpoint.startswith("ipc://") or Path(endpoint[len("ipc://"):]).exists():
-                    break
-                time.sleep(0.1)
             delays = []
             with Subscriber(endpoint, [f"wrench/{config.sensors[0].name}"]) as sub:
                 end = time.monotonic() + seconds
@@ -259,8 +253,7 @@ def latency_us(config: Config, seconds: float) -> tuple[float, float, float]:
                     if s is not None:
                         delays.append(time.monotonic() - s.t_mono)
         finally:
-            proc.send_signal(signal.SIGTERM)
-            proc.wait(timeout=10)
+            stop(proc, notify)
     d = np.array(delays[10:]) * 1e6
     return float(np.percentile(d, 50)), float(np.percentile(d, 99)), float(d.max())
 

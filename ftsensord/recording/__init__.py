@@ -128,6 +128,7 @@ class NpzWriter:
         self.dtype: np.dtype | None = None
 
     def write(self, sample: wire.Sample) -> None:
+        first = self.dtype is None
         if self.dtype is None:
             self.dtype = _rows_dtype(len(sample.values))
             head = {"format": "ftsensord-rows", "version": 1, "stream": self.stream, "frame": self.frame,
@@ -138,6 +139,8 @@ class NpzWriter:
         row["seq"], row["t_mono"], row["t_wall"], row["flags"] = sample.seq, sample.t_mono, sample.t_wall, sample.flags
         row["values"] = sample.values
         self.file.write(row.tobytes())
+        if first:  # the header on disk at once: killed before the first flush, the file still reads
+            self.file.flush()
 
     def flush(self) -> None:
         self.file.flush()

@@ -1,0 +1,62 @@
+"""`ftsensord run` for the benchmarks: in a runtime folder of its own, at the systemd unit's
+priority when asked, handed back once it said READY=1 (as tests/conftest.py's start_daemon)."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+from ftsensord.service.config import builtin_path
+
+
+def packaged_config(path: Path, **values: str) -> Path:
+    """The packaged simulated configuration written to ``path``, each ``key = value`` line
+    named in ``values`` replaced (values in TOML: ``scheduler='"burst"'``), `builtin:` files
+    made absolute (the copy is read from elsewhere)."""
+    text = builtin_path("sim.toml").read_text()
+    for key, value in values.items():
+        text, n = re.subn(rf"(?m)^{key} = .*$", f"{key} = {value}", text)
+        if n != 1:
+            raise ValueError(f"the packaged configuration has no single {key!r} line to replace")
+    path.write_text(text.replace("builtin:", str(builtin_path("")) + "/"))
+    return path
+
+
+def start_daemon(config: Path, folder: Path, *, fifo: int = 0, nice: int = 0,
+                 env: dict[str, str] | None = None) -> tuple[subprocess.Popen, socket.socket]:
+    """`ftsensord run --config CONFIG` with its runtime folder in ``folder``, SCHED_FIFO at
+    ``fifo`` (0: not) or at ``nice``, as the unit's CPUSchedulingPolicy= or Nice= would run
+    it; ``env``: more variables. Returned with its notify socket (the caller's from then on:
+    WATCHDOG=1 pings arrive there) once it said READY=1; `stop` ends both."""
+    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    notify.bind(str(folder / "notify"))
+    notify.settimeout(30)  # start-up on a loaded 2-core host takes seconds, never this long
+    full_env = {**os.environ, "XDG_RUNTIME_DIR": str(folder), "NOTIFY_SOCKET": str(folder / "notify"), **(env or {})}
+    full_env.pop("RUNTIME_DIRECTORY", None)
+    # chrt: the daemon's threads inherit the policy, as under the unit.
+    prefix = (["chrt", "-f", str(fifo)] if fifo else []) + (["nice", "-n", str(nice)] if nice else [])
+    proc = subprocess.Popen([*prefix, sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=full_env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        while not notify.recv(4096).startswith(b"READY=1"):
+            pass
+    except BaseException:
+        proc.kill()
+        notify.close()
+        raise
+    return proc, notify
+
+
+def stop(proc: subprocess.Popen, notify: socket.socket) -> int:
+    """SIGTERM, as systemctl stop; the exit code."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+    try:
+        return proc.wait(timeout=10)
+    finally:
+        notify.close()
