@@ -11,9 +11,9 @@ import sys
 from collections.abc import Sequence
 
 from . import __version__
-from .bridge import add_parser as add_bridge_parser
 from .acquire.bus import ACCEPTED_FORMS, open_bus
 from .acquire.scan import format_table, scan
+from .bridge import add_parser as add_bridge_parser
 from .errors import ConfigError, DaemonNotAnswering, FtsensordError
 from .service.config import ESTIMATORS
 from .service.status import describe

@@ -180,6 +180,21 @@ def test_a_missing_chip_degrades_its_sensor_only_and_recovers_without_restart(ri
     assert rig.daemon.status()["chips"]["0x0E"]["ok"] and rig.daemon.reader.health[0x0E].reinits == 0
 
 
+def test_chips_lost_in_any_combination_build_no_map_in_a_cycle(rig):
+    """Every map the degraded estimate and the consistency check can need is built at start:
+    a fault's cycle builds none (about 1 ms each) and the memory they take does not grow."""
+    model = rig.daemon.sensors[0].model
+    built = (len(model._subsets), len(model._checks))
+    assert built[1] == 1 + 8 + 28  # all chips, one lost, two lost (max_missing_chips = 2)
+    for lost in ((0x0E,), (0x0C, 0x13), (0x10,), (0x11, 0x12)):
+        for address in lost:
+            rig.bus.faults.nack(address)
+        rig.cycles(3)
+        rig.bus.faults.clear()
+        rig.cycles(60)
+    assert (len(model._subsets), len(model._checks)) == built
+
+
 def test_three_chips_missing_is_invalid_not_a_guess(rig):
     for address in (0x0C, 0x0E, 0x11):
         rig.bus.faults.nack(address)

@@ -26,7 +26,7 @@ from ..model import se3
 from ..model.geometry import SensorGeometry, as_built
 from ..model.linear import SENSOR_RANGE
 from ..model.magnet import cylinder_field, dipole_field
-from .loads import DOWN, G, IDENTITY, NO_LOAD, Load, Orientation
+from .loads import DOWN, IDENTITY, NO_LOAD, G, Load, Orientation
 
 #: Stiffness default: the diagonal of the paper's K, in N/m and Nm/rad (their
 #: signs dropped: a stiffness is positive definite).
