@@ -23,7 +23,6 @@ the daemon SCHED_FIFO as the systemd unit does.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import multiprocessing as mp
 import os
 import resource
@@ -40,10 +39,10 @@ from ftsensord.client import ControlClient
 from ftsensord.service import wire
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from c_client import load_build
 from launch import packaged_config, start_daemon, stop
 
 SETTLE_S = 1.0  # connections made and the first samples through before counting
-ROOT = Path(__file__).resolve().parent.parent
 
 
 def cpu_seconds(pid: int) -> float:
@@ -60,11 +59,7 @@ def children_cpu_s() -> float:
 
 def build_c(folder: Path) -> tuple[Path, str]:
     """benchmarks/latency_sub.c built into ``folder`` (clients/c/build.py's libzmq); the program and the libzmq used."""
-    spec = importlib.util.spec_from_file_location("ftsensord_c_build", ROOT / "clients" / "c" / "build.py")
-    assert spec is not None and spec.loader is not None
-    build = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = build
-    spec.loader.exec_module(build)
+    build = load_build()
     libzmq = build.find_libzmq()
     program = folder / "latency_sub"
     build.build([Path(__file__).with_name("latency_sub.c")], program, "c", libzmq)

@@ -5,9 +5,7 @@ sequence number and its age at receipt."""
 
 from __future__ import annotations
 
-import importlib.util
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -17,21 +15,13 @@ import zmq
 
 from ftsensord.service import wire
 
+from .test_c_client import build  # clients/c/build.py, loaded once
+
 ROOT = Path(__file__).resolve().parent.parent
-
-
-def _build_module():
-    spec = importlib.util.spec_from_file_location("ftsensord_c_build", ROOT / "clients" / "c" / "build.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
 
 
 @pytest.fixture(scope="module")
 def program(tmp_path_factory):
-    build = _build_module()
     if build.compiler("c") is None:
         pytest.skip("no C compiler")
     try:
