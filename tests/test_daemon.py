@@ -186,7 +186,7 @@ def test_chips_lost_in_any_combination_build_no_map_in_a_cycle(rig):
     model = rig.daemon.sensors[0].model
     built = (len(model._subsets), len(model._checks))
     assert built[1] == 1 + 8 + 28  # all chips, one lost, two lost (max_missing_chips = 2)
-    for lost in ((0x0E,), (0x0C, 0x13), (0x10,), (0x11, 0x12)):
+    for lost in ((0x0E,), (0x0C, 0x13), (0x10,), (0x11, 0x12), (0x0C, 0x0D, 0x0E), (0x0C, 0x0F, 0x10, 0x13)):
         for address in lost:
             rig.bus.faults.nack(address)
         rig.cycles(3)

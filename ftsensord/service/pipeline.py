@@ -302,6 +302,8 @@ class RedundancyCheck:
         chips' residual is beyond noise and model error: the chip whose leaving explains
         it is left out if the rest then agree, else the sample is flagged as it stands."""
         n_usable = int(np.count_nonzero(usable))
+        if len(usable) - n_usable > p.max_missing_chips:
+            return usable, 0  # too few chips for any estimate: the sample is invalid as it stands
         if p.model.H is None or p.sigma_t is None or n_usable * 3 <= 6 + (
                 0 if p.model.room is None else p.model.room.shape[1]):
             return usable, 0  # no flux model or no redundancy left: nothing to check against
