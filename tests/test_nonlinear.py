@@ -37,6 +37,19 @@ def estimator() -> NonlinearEstimator:
     return NonlinearEstimator(FluxModel(G, G.magnet_moment_am2, octupole=False), K)
 
 
+def count_calls(monkeypatch, obj: object, name: str) -> dict[str, int]:
+    """Count the calls of ``obj.name`` from now on (they still go through), in ``["calls"]``."""
+    counted = {"calls": 0}
+    original = getattr(obj, name)
+
+    def counting(*args, **kwargs):  # type: ignore[no-untyped-def]
+        counted["calls"] += 1
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(obj, name, counting)
+    return counted
+
+
 def test_forward_model_is_the_dipole_scene():
     T = se3.exp_se3(np.array([1e-3, -5e-4, 3e-4, 0.01, -0.005, 0.008]))
     assert np.allclose(FluxModel(G, G.magnet_moment_am2, octupole=False).predict(T), SCENE.chip_fields(G, T).ravel(),
@@ -215,19 +228,12 @@ def test_kept_jacobians_give_the_fresh_ones_answer_in_two_iterations(monkeypatch
     rng = np.random.default_rng(4)
     flux0, _ = flux_at(np.array([3.0, -2.0, 1.0, 0.01, 0.0, -0.01]))
     samples = [flux0 + rng.normal(0, 1e-6, flux0.shape) for _ in range(60)]
-    counted = {"jacobians": 0}
     model = FluxModel(G, G.magnet_moment_am2, octupole=False)
-    original = model.predict_and_jacobian
-
-    def counting(*args, **kwargs):  # type: ignore[no-untyped-def]
-        counted["jacobians"] += 1
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr(model, "predict_and_jacobian", counting)
+    counted = count_calls(monkeypatch, model, "predict_and_jacobian")
     kept = NonlinearEstimator(model, K)
     reused = np.array([kept.estimate(b).xi for b in samples])
     iterations = np.mean([kept.estimate(b).iterations for b in samples])
-    jacobians = counted["jacobians"]
+    jacobians = counted["calls"]
     monkeypatch.setattr(nonlinear, "JACOBIAN_REUSE_M", -1.0)  # never near: a new Jacobian every iteration
     fresh = np.array([estimator().estimate(b, start=se3.exp_se3(x)).xi for b, x in zip(samples, reused, strict=True)])
     scatter = reused.std(axis=0)
@@ -246,19 +252,12 @@ def test_the_last_steps_flux_from_the_jacobian_ends_where_evaluating_it_does(mon
 
     def run() -> tuple[np.ndarray, float]:
         model = FluxModel(G, G.magnet_moment_am2, octupole=False)
-        counted = {"fields": 0}
-        original = model.predict
-
-        def counting(*args, **kwargs):  # type: ignore[no-untyped-def]
-            counted["fields"] += 1
-            return original(*args, **kwargs)
-
-        monkeypatch.setattr(model, "predict", counting)
+        counted = count_calls(monkeypatch, model, "predict")
         est = NonlinearEstimator(model, K)
         est.estimate(samples[0])  # the cold start's evaluations are not the ones counted
-        counted["fields"] = 0
+        counted["calls"] = 0
         xi = np.array([est.estimate(b).xi for b in samples[1:]])
-        return xi, counted["fields"] / (len(samples) - 1)
+        return xi, counted["calls"] / (len(samples) - 1)
 
     linear, per_sample = run()
     monkeypatch.setattr(nonlinear, "LINEAR_STEP_T", -1.0)  # every step's flux from the field
