@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import argparse
 import os
-import re
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -36,9 +36,12 @@ from typing import Any
 import numpy as np
 import zmq
 
-from ftsensord.service.config import builtin_path, load_config
+from ftsensord.service.config import load_config
 from ftsensord.service.daemon import Daemon
 from ftsensord.service.run import make_sockets, open_configured_bus
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from launch import packaged_config  # noqa: E402  (a sibling script)
 
 SETTLE_CYCLES = 20  # chips started, plans built and caches warm before counting
 
@@ -86,10 +89,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         os.environ["XDG_RUNTIME_DIR"] = tmp
         os.environ.pop("RUNTIME_DIRECTORY", None)
-        path = Path(tmp) / "ftsensord.toml"
-        text = re.sub(r"(?m)^bus = .*$", f'bus = "{args.bus}"', builtin_path("sim.toml").read_text())
-        path.write_text(text.replace("builtin:", str(builtin_path("")) + "/"))
-        config = load_config(path)
+        config = load_config(packaged_config(Path(tmp) / "ftsensord.toml", bus=f'"{args.bus}"'))
         bus = open_configured_bus(config)
         context = zmq.Context()
         publisher, control, _ = make_sockets(context, config)

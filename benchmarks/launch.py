@@ -10,6 +10,7 @@ import socket
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 from ftsensord.service.config import builtin_path
 
@@ -28,11 +29,13 @@ def packaged_config(path: Path, **values: str) -> Path:
 
 
 def start_daemon(config: Path, folder: Path, *, fifo: int = 0, nice: int = 0,
-                 env: dict[str, str] | None = None) -> tuple[subprocess.Popen, socket.socket]:
+                 env: dict[str, str] | None = None, **popen: Any) -> tuple[subprocess.Popen, socket.socket]:
     """`ftsensord run --config CONFIG` with its runtime folder in ``folder``, SCHED_FIFO at
     ``fifo`` (0: not) or at ``nice``, as the unit's CPUSchedulingPolicy= or Nice= would run
-    it; ``env``: more variables. Returned with its notify socket (the caller's from then on:
-    WATCHDOG=1 pings arrive there) once it said READY=1; `stop` ends both."""
+    it; ``env``: more variables; ``popen``: the output's routing (subprocess.Popen's keywords,
+    default: discarded). Returned with its notify socket (the caller's from then on:
+    WATCHDOG=1 pings arrive there) once it said READY=1; `stop` ends both. The tests start
+    the daemon with this too (tests/conftest.py)."""
     notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     notify.bind(str(folder / "notify"))
     notify.settimeout(30)  # start-up on a loaded 2-core host takes seconds, never this long
@@ -40,8 +43,9 @@ def start_daemon(config: Path, folder: Path, *, fifo: int = 0, nice: int = 0,
     full_env.pop("RUNTIME_DIRECTORY", None)
     # chrt: the daemon's threads inherit the policy, as under the unit.
     prefix = (["chrt", "-f", str(fifo)] if fifo else []) + (["nice", "-n", str(nice)] if nice else [])
+    popen = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, **popen}
     proc = subprocess.Popen([*prefix, sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=full_env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                            text=True, **popen)
     try:
         while not notify.recv(4096).startswith(b"READY=1"):
             pass

@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import os
-import socket
-import subprocess
-import sys
+import importlib.util
 from pathlib import Path
 from typing import Any
 
@@ -56,21 +53,17 @@ def chip(bus: SimulatedBus) -> MLX90393:
     return drv
 
 
-def start_daemon(config: Path, folder: Path, **popen: Any) -> tuple[subprocess.Popen, socket.socket]:
-    """`ftsensord run --config CONFIG` in a subprocess, its runtime folder in ``folder``,
-    returned once it said READY=1 to a notify socket of its own (the caller stops it and
-    closes the socket); ``popen``: the output's routing (subprocess.Popen's keywords)."""
-    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-    notify.bind(str(folder / "notify"))
-    notify.settimeout(30)
-    env = {**os.environ, "XDG_RUNTIME_DIR": str(folder), "NOTIFY_SOCKET": str(folder / "notify")}
-    env.pop("RUNTIME_DIRECTORY", None)
-    proc = subprocess.Popen([sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=env,
-                            text=True, **popen)
-    try:
-        assert notify.recv(4096).startswith(b"READY=1"), "no READY=1 from the daemon"
-    except BaseException:
-        proc.kill()
-        notify.close()
-        raise
-    return proc, notify
+def _launch() -> Any:
+    """benchmarks/launch.py, the one way the project starts `ftsensord run` in a subprocess."""
+    spec = importlib.util.spec_from_file_location("launch", Path(__file__).resolve().parent.parent
+                                                  / "benchmarks" / "launch.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+#: `ftsensord run --config CONFIG` in a subprocess, its runtime folder in ``folder``,
+#: returned with its notify socket once it said READY=1 (the caller stops it and closes the
+#: socket); keywords route its output (subprocess.Popen's).
+start_daemon = _launch().start_daemon
