@@ -11,7 +11,6 @@ missing), a saturated chip its reading (flagged, not used).
 from __future__ import annotations
 
 import functools
-import itertools
 import math
 import time
 from collections import deque
@@ -112,8 +111,8 @@ class SensorPipeline:
               settings: mlx.Settings | None = None) -> SensorPipeline:
         nl = s.calibration.nonlinear
         sigma_t = channel_sigma_t(settings or mlx.Settings(), len(s.addresses))
-        if s.calibration.model.H is not None:
-            _build_maps(s.calibration.model, sigma_t, len(s.addresses), max_missing_chips)
+        if s.calibration.model.H is not None:  # no map built in the cycle of a fault
+            s.calibration.model.build_maps(sigma_t, max_missing_chips)
         return cls(s, s.calibration.model, smoothing, max_missing_chips, np.full(3 * len(s.addresses), np.nan),
                    estimator=s.estimator, nonlinear=nl.estimator() if nl is not None else None,
                    zero_twist=nl.zero_twist.copy() if nl is not None else None, sigma_t=sigma_t)
@@ -267,21 +266,6 @@ def _moved_from(pose: bytes) -> np.ndarray:
     X = se3.wrench_transform(np.frombuffer(pose).reshape(4, 4))
     X.setflags(write=False)  # shared by every cycle
     return X
-
-
-def _build_maps(model: LinearModel, sigma_t: np.ndarray, chips: int, max_missing: int) -> None:
-    """Every map a cycle can ask for, the chips left after up to ``max_missing`` losses
-    (37 for 8 chips and 2, 13 ms), built now: no build of about 1 ms in the cycle of a
-    fault, and the memory they take (about 0.4 MB a sensor) taken at start, not over hours."""
-    for k in range(max_missing + 1):
-        for lost in itertools.combinations(range(chips), k):
-            left = np.ones(chips, dtype=bool)
-            left[list(lost)] = False
-            model.consistency(model.zero, sigma_t, left)
-            try:
-                model.wrench_from(model.zero, left)
-            except ValueError:
-                pass  # these chips miss an axis: a cycle is refused the same way
 
 
 class RedundancyCheck:
