@@ -150,11 +150,6 @@ class Daemon:
             self._publish(f"wrench/{p.name}", wire.KIND_WRENCH, seq, t_mono, t_wall, s.flags, s.wrench)
             if p is self.sensors[0]:
                 self.timing.published(self.clock() - t_mono)
-        for p in self.sensors:
-            s = samples[p.name]
-            if s.valid:
-                flags, gravity = self.gravity.tare_input(p.name, start) if self.gravity else (0, None)
-                self.tares.feed(p.name, s.flux, s.flags | flags, gravity)
         tip = tip_wrench(samples, self.config.tool_poses) if self.config.tool_poses else None
         if tip is not None:
             self._publish("wrench/tip", wire.KIND_WRENCH, seq, t_mono, t_wall, tip[1], tip[0])
@@ -162,6 +157,11 @@ class Daemon:
             self._publish(topic, wire.KIND_WRENCH, seq, t_mono, t_wall, flags, values)
         for name, s in samples.items():
             self._publish(f"flux/{name}", wire.KIND_FLUX, seq, t_mono, t_wall, s.flux_flags, s.flux)
+        for p in self.sensors:
+            s = samples[p.name]
+            if s.valid:
+                flags, gravity = self.gravity.tare_input(p.name, start) if self.gravity else (0, None)
+                self.tares.feed(p.name, s.flux, s.flags | flags, gravity)
         self.tares.advance(self.sensors)
         for r in results.values():
             self.chips.count(r)
