@@ -129,7 +129,7 @@ class NpzWriter:
 
     def write(self, sample: wire.Sample) -> None:
         first = self.dtype is None
-        if self.dtype is None:
+        if first:
             self.dtype = _rows_dtype(len(sample.values))
             head = {"format": "ftsensord-rows", "version": 1, "stream": self.stream, "frame": self.frame,
                     "kind": sample.kind,
