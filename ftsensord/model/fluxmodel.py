@@ -32,7 +32,8 @@ def dipole_pairs(r: np.ndarray, m: np.ndarray, gradient: bool = True
 def _dipole_field(r: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
     """`dipole_pairs`'s field, and what its gradient reuses (d^2, r.m, k / d^5)."""
     # As few numpy operations as the formulas allow: at 8 x 8 pairs each costs more in
-    # call overhead than in arithmetic, and the estimator runs this twice an iteration.
+    # call overhead than in arithmetic, and the calibration's fit runs this every iteration
+    # (the estimator has its own, `FluxModel._fields`).
     d2 = np.einsum("...i,...i->...", r, r)[..., None]
     rm = np.einsum("...i,...i->...", r, m)[..., None]
     k_d5 = MU0_OVER_4PI / (d2 * d2 * np.sqrt(d2))
