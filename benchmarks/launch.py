@@ -1,5 +1,5 @@
 """`ftsensord run` for the benchmarks: in a runtime folder of its own, at the systemd unit's
-priority when asked, handed back once it said READY=1 (as tests/conftest.py's start_daemon)."""
+priority when asked, handed back once it said READY=1; the tests start it with this too."""
 
 from __future__ import annotations
 
