@@ -1,11 +1,13 @@
 """The transfers of one bus, as wide as its adapter takes, and what they cost in Python.
 
 `probe_shapes` asks the adapter what it takes in one ioctl (harmless register reads);
-`Transfers` sends SM and RM to many chips in as few ioctls as that allows. The RM of a
-set of chips is planned once (`RMPlan`): its messages are built once and reused every
-cycle, each chip's reply lands in one shared block, and the block is decoded in one numpy
-pass (`chip.block.BlockDecoder`), so a cycle spends no per-chip Python on messages and
-little on decoding.
+`Transfers` sends SM and RM to many chips in as few ioctls as that allows. The RM of the
+chips is planned once (`RMPlan`): its messages are built once and reused every cycle,
+whichever of the chips are read and in whichever order, each chip's reply lands in its row
+of one shared block, and the block is decoded in one numpy pass
+(`chip.block.BlockDecoder`), so a cycle spends little per-chip Python on messages and
+decoding, and faults (chips leaving and coming back) build no new plans but at a chip's
+new configuration.
 """
 
 from __future__ import annotations
@@ -27,10 +29,6 @@ from .bound import Shapes
 from .health import ChipResult
 
 log = logging.getLogger("ftsensord")
-#: RM plans kept: the overlapped scheduler reads the chip read back last, so each chip in
-#: turn makes its own order (16 chips: 16 plans, 32 with the temperature's cycles); fewer
-#: would rebuild a plan (0.5 ms, between two transfers) every cycle.
-PLANS_KEPT = 64
 
 
 def _rr_tref(chip: MLX90393) -> tuple[i2c_msg, i2c_msg]:
@@ -82,7 +80,7 @@ class Transfers:
         self.reprobe = True
         self.probe_at = 0  # the cycle of the next probe while none has answered
         self.unread_sm: set[int] = set()
-        self._plans: dict[tuple, RMPlan] = {}
+        self._plans: dict[tuple[int, int], RMPlan] = {}  # per (zyxt, pairs per transfer)
 
     def learn(self, chips: list[MLX90393], cycle: int) -> None:
         if cycle < self.probe_at:
@@ -126,10 +124,10 @@ class Transfers:
         transfer of several fails, each of its chips on its own."""
         if not chips:
             return {}
-        plan = self._rm_plan(chips, zyxt)
+        plan, rows = self._rm_plan(chips, zyxt)
         failed: dict[int, ChipError] = {}
         alone: list[int] = []
-        for members, msgs in plan.transfers:
+        for members, msgs in plan.transfers(rows):
             if len(members) > 1:
                 try:
                     self.bus.i2c_rdwr(*msgs)
@@ -142,8 +140,9 @@ class Transfers:
             try:
                 self.bus.i2c_rdwr(write, read)
             except OSError as exc:
-                failed[chips[i].address] = bus_error(chips[i].address, plan.command, exc)
-        decoded = plan.decoder.decode(plan.block)
+                a = plan.decoder.chips[i].address
+                failed[a] = bus_error(a, plan.command, exc)
+        decoded = plan.decoder.decode(plan.block, rows)
         if not failed and not any(isinstance(m, ChipError) for m in decoded):  # the usual cycle
             return {chip.address: ChipResult(chip.address, m) for chip, m in zip(chips, decoded)}  # type: ignore[arg-type]
         out = {}
@@ -158,17 +157,20 @@ class Transfers:
                 out[a] = ChipResult(a, m)
         return out
 
-    def _rm_plan(self, chips: list[MLX90393], zyxt: int) -> RMPlan:
-        """The RM transfers of ``chips`` at the learnt shapes, built once and reused
-        while the chips, their settings and the shapes stay the same."""
+    def _rm_plan(self, chips: list[MLX90393], zyxt: int) -> tuple[RMPlan, list[int]]:
+        """The RM plan at the learnt shapes that holds ``chips``, and their rows in it.
+
+        One plan per (zyxt, shapes), reused whichever of its chips are read, so a fault
+        costs no plan; rebuilt for ``chips`` when one of them is not in it or one of its
+        chips has been configured since (a reset chip coming back): one plan's memory,
+        whatever the faults."""
         per = self.shapes.pairs_per_transfer
-        key = (tuple(c.address for c in chips), zyxt, per)
-        plan = self._plans.get(key)
-        if plan is None or not plan.decoder.valid_for(chips):
-            if len(self._plans) >= PLANS_KEPT:  # healthy sets come and go with faults: keep a few
-                self._plans.clear()
-            plan = self._plans[key] = RMPlan(chips, zyxt, per)
-        return plan
+        plan = self._plans.get((zyxt, per))
+        rows = None if plan is None else plan.rows(chips)
+        if plan is None or rows is None or not plan.decoder.valid_for(plan.decoder.chips):
+            plan = self._plans[zyxt, per] = RMPlan(chips, zyxt, per)
+            rows = list(range(len(chips)))
+        return plan, rows
 
     def refused(self, exc: OSError) -> None:
         """A transfer failed: a refused shape (not a NACK) means the adapter takes less
@@ -217,11 +219,14 @@ class Transfers:
 
 
 class RMPlan:
-    """The RM of a list of chips, built once: each chip's read message points into one
-    (n, L) block (``block``, uint8), so a cycle's replies are decoded in one pass by
-    ``decoder``; ``transfers`` groups the (write, read) pairs ``per`` chips an ioctl."""
+    """The RM of a list of chips, built once: each chip's read message points into its
+    row of one (n, L) block (``block``, uint8), so a cycle's replies are decoded in one
+    pass by ``decoder``; `transfers` groups the (write, read) pairs of the rows read,
+    ``per`` chips an ioctl."""
 
     def __init__(self, chips: list[MLX90393], zyxt: int, per: int):
+        self.per = per
+        self.row = {c: i for i, c in enumerate(chips)}  # keyed by the object: MLX90393 compares by identity
         self.decoder = BlockDecoder(chips, zyxt)
         L = self.decoder.reply_len
         self.command = bytes([mlx.CMD_RM | zyxt])
@@ -231,9 +236,21 @@ class RMPlan:
                        i2c_msg(addr=c.address, flags=I2C_M_RD, len=L,
                                buf=ctypes.cast(base + i * L, ctypes.POINTER(ctypes.c_char))))
                       for i, c in enumerate(chips)]
-        self.transfers = [(list(range(k, min(k + per, len(chips)))),
-                           [m for pair in self.pairs[k:k + per] for m in pair])
-                          for k in range(0, len(chips), per)]
+        self._every = list(range(len(chips)))
+        self._every_transfers = self._grouped(self._every)  # the usual cycle: every chip, in order
+
+    def rows(self, chips: list[MLX90393]) -> list[int] | None:
+        """The rows of ``chips``, in their order; None when one is not in this plan."""
+        row = self.row
+        return [row[c] for c in chips] if all(c in row for c in chips) else None
+
+    def transfers(self, rows: list[int]) -> list[tuple[list[int], list[i2c_msg]]]:
+        """(rows, messages) of each ioctl that reads ``rows`` in their order."""
+        return self._every_transfers if rows == self._every else self._grouped(rows)
+
+    def _grouped(self, rows: list[int]) -> list[tuple[list[int], list[i2c_msg]]]:
+        per, pairs = self.per, self.pairs
+        return [(rows[k:k + per], [m for i in rows[k:k + per] for m in pairs[i]]) for k in range(0, len(rows), per)]
 
 
 def _decoded(decode: Callable, chip: MLX90393, reply: bytes) -> Any:

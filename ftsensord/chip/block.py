@@ -65,10 +65,13 @@ class BlockDecoder:
             self.changes = MLX90393.settings_changes
         return valid
 
-    def decode(self, block: np.ndarray) -> list[Measurement | ChipError]:
+    def decode(self, block: np.ndarray, rows: list[int] | None = None) -> list[Measurement | ChipError]:
         """Per chip, in order: its `Measurement`, or the `ChipError` its reply gives.
 
-        ``block`` (n, L) uint8: each row one chip's reply, status byte first.
+        ``block`` (n, L) uint8: each row one chip's reply, status byte first. ``rows``:
+        the rows read this time, in the order wanted (default: all, in order); the
+        others hold older replies, decoded with the rest (one numpy pass costs the same)
+        but never looked at.
         """
         status = block[:, 0]
         bad = self.bad_status[status]
@@ -87,23 +90,25 @@ class BlockDecoder:
                 field[:, self.axes] = counts * self.scale
                 saturated[:, self.axes] = np.abs(counts) >= self.saturates_at
         sat_any = cast("list[bool]", saturated.any(axis=1).tolist())
-        rows = cast("list[list[int]]", words.tolist())
+        raw = cast("list[list[int]]", words.tolist())
         statuses = status.tolist()
         items, status_of = self.items, mlx.STATUSES.__getitem__
-        if self.t_column is None and not bad.any():  # the usual cycle: no error, no temperature
-            return [Measurement(status_of(s), f, sat, None, dict(zip(items, row)), a)
-                    for s, f, sat, row, a in zip(statuses, field, saturated, rows, sat_any)]
         bad_rows = cast("list[bool]", bad.tolist())
+        order = range(len(self.chips)) if rows is None else rows
+        if self.t_column is None and not any(bad_rows[i] for i in order):  # the usual cycle: no error, no temperature
+            return [Measurement(status_of(statuses[i]), field[i], saturated[i], None, dict(zip(items, raw[i])),
+                                sat_any[i]) for i in order]
         t_column = self.t_column
         out: list[Measurement | ChipError] = []
-        for i, chip in enumerate(self.chips):
+        for i in order:
+            chip = self.chips[i]
             if bad_rows[i]:
                 try:  # the per-chip decoder raises the error it always raised
                     out.append(chip.decode_measurement(bytes(block[i]), self.zyxt))
                 except ChipError as exc:
                     out.append(exc)
                 continue
-            row = rows[i]
+            row = raw[i]
             temp = None if t_column is None else mlx.raw_to_celsius(row[t_column], chip.tref)
             out.append(Measurement(status_of(statuses[i]), field[i], saturated[i], temp, dict(zip(items, row)),
                                    sat_any[i]))
