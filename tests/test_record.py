@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from ftsensord.client import ControlClient, Subscriber
+from ftsensord.errors import ConfigError
 from ftsensord.recording import (
     CSV_HEAD_WIDTH,
     finish_npz,
@@ -282,6 +283,19 @@ def test_csv_and_npz_refuse_several_streams(tmp_path):
         open_writer(tmp_path / "x.csv", STREAMS)
     with pytest.raises(ValueError, match=r"\.csv, \.npz or \.mcap"):
         open_writer(tmp_path / "x.txt", STREAMS[:1])
+
+
+def test_npz_sidecar_killed_before_and_after_its_first_sample(tmp_path):
+    """Killed (never closed, never flushed) before the first sample: the sidecar says that
+    nothing was recorded; after it: the header and that sample read back."""
+    writer = open_writer(tmp_path / "x.npz", STREAMS[:1])
+    part = tmp_path / "x.npz.part"
+    with pytest.raises(ConfigError, match="x.npz.part: empty: the recording ended before its first sample"):
+        load_rows(part)
+    writer.write(wire.Sample(STREAMS[0], wire.KIND_WRENCH, 7, 1.0, 1.7e9, 0, np.arange(6.0)))
+    rows = load_rows(part)
+    assert rows["seq"].tolist() == [7] and rows["values"].tolist() == [list(np.arange(6.0))]
+    assert rows["stream"] == STREAMS[0]
 
 
 def test_echo_into_a_closed_pipe_exits_quietly(daemon):

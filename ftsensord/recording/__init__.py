@@ -169,6 +169,8 @@ def load_rows(part: str | Path) -> dict[str, Any]:
     part = Path(part)
     with open(part, "rb") as f:
         line = f.readline()
+    if not line:  # the header goes out with the first row (`NpzWriter.write`)
+        raise ConfigError(f"{part}: empty: the recording ended before its first sample")
     try:
         head = json.loads(line)
         count = int(head["count"])
