@@ -120,6 +120,30 @@ def rig(tmp_path):
     r.close()
 
 
+def test_a_sample_is_stamped_when_its_data_were_in_before_the_read_back(tmp_path):
+    """Burst reads a chip's registers back after the RM (the chip must restart its
+    conversion early): the samples' time is the RM's end, not the read-back's (1 ms on)."""
+    r = Rig(tmp_path, scheduler="burst")
+    try:
+        bound = r.config.bound(r.bus.timing)
+        assert bound.check_s > 5e-4 and r.daemon.reader.readback_every == 1
+        for _ in range(3):
+            deadline = r.clock.now() + r.daemon.period_s
+            t0 = r.clock.now()
+            r.daemon.cycle()
+            sample = wire.decode(r.sub.recv())
+            assert sample.topic == "wrench/sensor1"
+            # Virtual clock, CPU free: only bus time passes; 1 us: the clock's float sums.
+            assert sample.t_mono - t0 == pytest.approx(bound.start_s + bound.read_s, abs=1e-6)
+            assert r.clock.now() - sample.t_mono == pytest.approx(bound.check_s, abs=1e-6)
+            assert sample.t_wall - 1.7e9 == pytest.approx(sample.t_mono, abs=1e-6)
+            while r.sub.poll(0):
+                r.sub.recv()
+            r.clock.wait_until(deadline)
+    finally:
+        r.close()
+
+
 def test_every_stream_is_published_with_increasing_sequence_numbers(rig):
     out = rig.cycles(5)
     assert sorted(out) == ["flux/sensor1", "flux/sensor2", "wrench/sensor1", "wrench/sensor2", "wrench/tip"]

@@ -54,6 +54,10 @@ class Reader:
     care: ChipCare = field(init=False)
     cycle: int = 0
     xfer: Transfers = field(init=False)
+    #: Bus time the last `read` spent after its data were in, reading a chip's registers
+    #: back (``naive``, ``burst``; 0 for ``overlapped``, which reads back during its wait):
+    #: how much older the data are than the read's return, s.
+    readback_s: float = field(default=0.0, init=False)
 
     def __post_init__(self) -> None:
         if self.scheduler not in SCHEDULERS:
@@ -146,8 +150,13 @@ class Reader:
             a = chip.address
             if a in results and not health[a].failing:
                 results[a] = judge(results[a], now)
+        self.readback_s = 0.0
         if checked is not None:
+            # After the data, not after the publish: in burst the chip restarts its
+            # conversion here and needs its 3.2 ms (default settings) before the next RM.
+            t = self.bus.monotonic()
             self.care.read_back(checked, now)
+            self.readback_s = self.bus.monotonic() - t
         self.cycle += 1
         return [results[c.address] for c in self.chips]
 

@@ -138,7 +138,9 @@ class Daemon:
         every = self.config.temperature_every
         zyxt = mlx.ZYXT_XYZT if every and self.timing.cycles % every == 0 else mlx.ZYXT_XYZ
         results = {r.address: r for r in self.reader.read(zyxt)}
-        t_mono, t_wall = self.clock(), self.wall()
+        # Stamped when the data were in hand, before the register read-back that followed them.
+        age = self.reader.readback_s
+        t_mono, t_wall = self.clock() - age, self.wall() - age
         # Every stream's sequence number is the cycle's: a deadline the loop skipped is a jump.
         seq = self.timing.cycles + self.timing.missed
         self.orientations.drain(start)
