@@ -36,8 +36,8 @@ import numpy as np
 from ..errors import CalibrationError
 from ..model import se3
 from ..model.geometry import SensorGeometry
-from ..model.magnet import MU0_OVER_4PI, octupole_field, octupole_ratio
-from ..model.nonlinear import FluxModel, NonlinearEstimator, dipole_pairs
+from ..model.magnet import MU0_OVER_4PI, dipole_pairs, octupole_field, octupole_ratio
+from ..model.nonlinear import FluxModel, NonlinearEstimator
 from .dataset import Dataset
 
 #: Levenberg-Marquardt iterations of the joint fit: from the start below (the nominal

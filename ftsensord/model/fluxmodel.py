@@ -20,33 +20,6 @@ from .magnet import MU0_OVER_4PI, octupole_ratio
 _EYE3 = np.eye(3)
 
 
-def dipole_pairs(r: np.ndarray, m: np.ndarray, gradient: bool = True
-                 ) -> tuple[np.ndarray, np.ndarray | None]:
-    """Field (..., 3) and its gradient dB/dr (..., 3, 3; None unless asked) of point
-    dipoles of moment ``m`` (A m^2) at offsets ``r`` (m) from them, T and T/m, per pair:
-    the sums over magnets are the caller's (the calibration needs them one by one)."""
-    B, parts = _dipole_field(r, m)
-    return B, (_dipole_gradient(r, m, *parts) if gradient else None)
-
-
-def _dipole_field(r: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
-    """`dipole_pairs`'s field, and what its gradient reuses (d^2, r.m, k / d^5)."""
-    # As few numpy operations as the formulas allow: at 8 x 8 pairs each costs more in
-    # call overhead than in arithmetic, and the calibration's fit runs this every iteration
-    # (the estimator has its own, `FluxModel._fields`).
-    d2 = np.einsum("...i,...i->...", r, r)[..., None]
-    rm = np.einsum("...i,...i->...", r, m)[..., None]
-    k_d5 = MU0_OVER_4PI / (d2 * d2 * np.sqrt(d2))
-    return k_d5 * (3 * rm * r - d2 * m), (d2, rm, k_d5)
-
-
-def _dipole_gradient(r: np.ndarray, m: np.ndarray, d2: np.ndarray, rm: np.ndarray, k_d5: np.ndarray) -> np.ndarray:
-    """dB/dr of a dipole: k (3 (m r^T + r m^T + (r.m) I) / d^5 - 15 (r.m) r r^T / d^7)."""
-    mr = m[..., :, None] * r[..., None, :]
-    outer = mr + np.swapaxes(mr, -1, -2) + rm[..., None] * _EYE3
-    return k_d5[..., None] * (3 * outer - (15 * rm / d2)[..., None] * (r[..., :, None] * r[..., None, :]))
-
-
 @dataclass
 class FluxModel:
     """Predicted flux (T, chip frames) for a centre-piece pose and a background field.

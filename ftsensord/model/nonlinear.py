@@ -17,10 +17,10 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from . import se3
-from .fluxmodel import FluxModel, dipole_pairs
+from .fluxmodel import FluxModel
 from .linear import SENSOR_RANGE
 
-__all__ = ["Estimate", "FluxModel", "NonlinearEstimator", "dipole_pairs"]
+__all__ = ["Estimate", "FluxModel", "NonlinearEstimator"]
 
 #: Largest step per iteration: 1 mm and 0.05 rad. A full-range deflection is about 6 mm
 #: and 0.02 rad; steps this size reach it in a few iterations while keeping the dipole
