@@ -17,7 +17,6 @@ rest, 1000 samples). Reported: samples, flagged, and unflagged samples more than
 from __future__ import annotations
 
 import argparse
-import itertools
 import json
 import logging
 import tempfile
@@ -25,13 +24,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import zmq
+from launch import InProcess
 
 from ftsensord.service import wire
 from ftsensord.service.config import load_config
-from ftsensord.service.daemon import Daemon
 from ftsensord.service.filters import WrenchFilter
-from ftsensord.sim import VirtualClock, load_scene, simulated_bus
+from ftsensord.sim import load_scene
 from ftsensord.sim.scene import default_scene_text
 
 SENSOR1 = "0x0C, 0x0D, 0x0E, 0x0F, 0x10, 0x11, 0x12, 0x13"
@@ -43,7 +41,6 @@ SENSOR2 = "0x14, 0x15, 0x16, 0x17, 0x18, 0x19, 0x1A, 0x1B"
 #: not a fault's; here it stays within 1 sigma, so what the faults add shows.
 AMPLITUDE = np.array([0.175, 0.15, 0.15, 0.01, 0.014, 0.01])
 PERIOD_S = np.array([4.0, 5.3, 3.1, 4.7, 6.1, 3.7])
-_ids = itertools.count()
 #: An unflagged sample further than this from the truth on any axis, in sigmas of one
 #: sample's noise, is a wrong wrench (issue 16's criterion; under Gaussian noise alone
 #: 5.7e-7 per axis-sample).
@@ -83,7 +80,10 @@ SCENARIOS: dict[str, tuple[str, float | None, float]] = {
 FILTERS = {"raw": (1, 0.0), "avg10": (10, 0.0), "lp5Hz": (1, 5.0), "avg10+lp5Hz": (10, 5.0)}
 
 
-class Rig:
+class Rig(InProcess):
+    """The default scene with ``faults``, sensor1 under the moving load (held still until
+    ``still_until``), the daemon overlapped at 100 Hz with the filter asked."""
+
     def __init__(self, folder: Path, faults: str, averaging: int, lowpass_hz: float, still_until: float):
         # The default scene: the room and the part the packaged calibrations were fitted on.
         (folder / "scene.toml").write_text(default_scene_text() + faults)
@@ -102,25 +102,12 @@ name = "sensor2"
 addresses = [{SENSOR2}]
 calibration = "builtin:sim-sensor2.json"
 """)
-        self.config = load_config(folder / "ftsensord.toml")
-        self.clock = VirtualClock()
-        scene = load_scene(folder / "scene.toml")
         moving = MovingLoad()
         self.still_until = still_until
         self.load = _Held(moving, still_until)
+        scene = load_scene(folder / "scene.toml")
         scene.set_load("sensor1", self.load)  # type: ignore[union-attr]
-        self.bus = simulated_bus(scene, clock=self.clock, bus_hz=400e3, seed=5)
-        ctx, n = zmq.Context.instance(), next(_ids)
-        self.pub, self.sub = ctx.socket(zmq.PUB), ctx.socket(zmq.SUB)
-        self.pub.bind(f"inproc://ft{n}")
-        self.sub.connect(f"inproc://ft{n}")
-        self.sub.setsockopt(zmq.SUBSCRIBE, b"wrench/")
-        self.router, self.req = ctx.socket(zmq.ROUTER), ctx.socket(zmq.REQ)
-        self.router.bind(f"inproc://ctl{n}")
-        self.req.connect(f"inproc://ctl{n}")
-        self.daemon = Daemon(self.config, self.bus, self.pub, self.router, clock=self.clock.now,
-                             wall=lambda: 1.7e9 + self.clock.now())
-        self.daemon.start()
+        super().__init__(load_config(folder / "ftsensord.toml"), scene, subscribe=b"wrench/")
 
     def run(self, seconds: float, tare_at: float | None = None) -> tuple[dict[str, list[wire.Sample]], dict | None]:
         out: dict[str, list[wire.Sample]] = {}
@@ -140,10 +127,6 @@ calibration = "builtin:sim-sensor2.json"
             if asked and reply is None and self.req.poll(0):
                 reply = json.loads(self.req.recv())
         return out, reply
-
-    def close(self) -> None:
-        for s in (self.pub, self.sub, self.router, self.req):
-            s.close(linger=0)
 
 
 @dataclass

@@ -1,8 +1,11 @@
-"""`ftsensord run` for the benchmarks: in a runtime folder of its own, at the systemd unit's
-priority when asked, handed back once it said READY=1; the tests start it with this too."""
+"""The daemon for the benchmarks (and the tests): `ftsensord run` as a process, in a runtime
+folder of its own, at the systemd unit's priority when asked, handed back once it said
+READY=1 (`start_daemon`); or in this process on a virtual clock, stepped a cycle at a
+time (`InProcess`)."""
 
 from __future__ import annotations
 
+import itertools
 import os
 import re
 import signal
@@ -12,7 +15,14 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from ftsensord.service.config import builtin_path
+import zmq
+
+from ftsensord.service.config import Config, builtin_path
+from ftsensord.service.daemon import Daemon
+from ftsensord.sim import VirtualClock, simulated_bus
+from ftsensord.sim.chip import FieldSource
+
+_ids = itertools.count()  # inproc endpoints are per context: each rig its own names
 
 
 def packaged_config(path: Path, **values: str) -> Path:
@@ -64,3 +74,31 @@ def stop(proc: subprocess.Popen, notify: socket.socket) -> int:
         return proc.wait(timeout=10)
     finally:
         notify.close()
+
+
+class InProcess:
+    """A `Daemon` in this process on a virtual clock (CPU free, the bus's time exact) and
+    the simulated bus of ``scene`` at 400 kHz: ``sub`` receives what it publishes (topics
+    starting with ``subscribe``), ``req`` is a REQ client of its control socket. The caller
+    steps it (``daemon.cycle()``, ``daemon.handle_control()``, ``clock.wait_until``).
+    ``daemon``: the Daemon's other keywords (notifier, orientation)."""
+
+    def __init__(self, config: Config, scene: FieldSource, *, subscribe: bytes = b"", seed: int = 5, **daemon: Any):
+        self.config, self.scene, self.clock = config, scene, VirtualClock()
+        self.bus = simulated_bus(scene, clock=self.clock, bus_hz=400e3, seed=seed)
+        ctx, n = zmq.Context.instance(), next(_ids)
+        self.pub, self.sub = ctx.socket(zmq.PUB), ctx.socket(zmq.SUB)
+        self.pub.bind(f"inproc://pub{n}")
+        self.sub.connect(f"inproc://pub{n}")
+        self.sub.setsockopt(zmq.SUBSCRIBE, subscribe)
+        self.router, self.req = ctx.socket(zmq.ROUTER), ctx.socket(zmq.REQ)
+        self.router.bind(f"inproc://ctl{n}")
+        self.req.connect(f"inproc://ctl{n}")
+        self.req.setsockopt(zmq.RCVTIMEO, 5000)  # a reply that never comes fails, never hangs
+        self.daemon = Daemon(config, self.bus, self.pub, self.router, clock=self.clock.now,
+                             wall=lambda: 1.7e9 + self.clock.now(), **daemon)
+        self.daemon.start()
+
+    def close(self) -> None:
+        for s in (self.pub, self.sub, self.router, self.req):
+            s.close(linger=0)

@@ -54,7 +54,7 @@ def chip(bus: SimulatedBus) -> MLX90393:
 
 
 def _launch() -> Any:
-    """benchmarks/launch.py, the one way the project starts `ftsensord run` in a subprocess."""
+    """benchmarks/launch.py, the one way the project starts the daemon for a run."""
     spec = importlib.util.spec_from_file_location("launch", Path(__file__).resolve().parent.parent
                                                   / "benchmarks" / "launch.py")
     assert spec is not None and spec.loader is not None
@@ -66,4 +66,7 @@ def _launch() -> Any:
 #: `ftsensord run --config CONFIG` in a subprocess, its runtime folder in ``folder``,
 #: returned with its notify socket once it said READY=1 (the caller stops it and closes the
 #: socket); keywords route its output (subprocess.Popen's).
-start_daemon = _launch().start_daemon
+_LAUNCH = _launch()
+start_daemon = _LAUNCH.start_daemon
+#: A `Daemon` in this process on a virtual clock, with a subscriber and a control client.
+InProcess = _LAUNCH.InProcess

@@ -4,7 +4,6 @@ real (inproc) ZeroMQ sockets."""
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import json
 import socket
 from pathlib import Path
@@ -16,15 +15,13 @@ import zmq
 from ftsensord.errors import ConfigError
 from ftsensord.service import wire
 from ftsensord.service.config import load_config
-from ftsensord.service.daemon import Daemon
 from ftsensord.service.sdnotify import Notifier
-from ftsensord.sim import VirtualClock, load_scene, simulated_bus
+from ftsensord.sim import VirtualClock, load_scene
 from ftsensord.sim.scene import default_scene_text
 
-from .conftest import assert_names_file_and_key
+from .conftest import InProcess, assert_names_file_and_key
 
 LOAD = [1.0, -0.5, 0.8, 0.02, -0.01, 0.015]
-_ids = itertools.count()
 
 #: The default scene (the room and the part the packaged calibrations were fitted on),
 #: sensor1 under LOAD.
@@ -65,30 +62,16 @@ calibration = "{sensor2_cal}"
     return path
 
 
-class Rig:
-    """A daemon on a virtual clock, a subscriber, and a REQ client on its control socket."""
+class Rig(InProcess):
+    """A daemon on a virtual clock, a subscriber to every stream, and a REQ client on its
+    control socket, from `write_config`'s files."""
 
     def __init__(self, folder: Path, extra: str = "", notifier: Notifier | None = None,
                  orientation: zmq.Socket | None = None, **config):
         if "scheduler" not in extra:
             config.setdefault("scheduler", "overlapped")  # the cycle these tests reason about
-        self.config = load_config(write_config(folder, extra, **config))
-        self.clock = VirtualClock()
-        self.scene = load_scene(folder / "scene.toml")
-        self.bus = simulated_bus(self.scene, clock=self.clock, bus_hz=400e3, seed=5)
-        ctx = zmq.Context.instance()
-        n = next(_ids)
-        self.pub, self.sub = ctx.socket(zmq.PUB), ctx.socket(zmq.SUB)
-        self.pub.bind(f"inproc://pub{n}")
-        self.sub.connect(f"inproc://pub{n}")
-        self.sub.setsockopt(zmq.SUBSCRIBE, b"")
-        self.router, self.req = ctx.socket(zmq.ROUTER), ctx.socket(zmq.REQ)
-        self.router.bind(f"inproc://ctl{n}")
-        self.req.connect(f"inproc://ctl{n}")
-        self.req.setsockopt(zmq.RCVTIMEO, 5000)  # a reply that never comes fails the test, never hangs the suite
-        self.daemon = Daemon(self.config, self.bus, self.pub, self.router, notifier=notifier,
-                             clock=self.clock.now, wall=lambda: 1.7e9 + self.clock.now(), orientation=orientation)
-        self.daemon.start()
+        super().__init__(load_config(write_config(folder, extra, **config)), load_scene(folder / "scene.toml"),
+                         notifier=notifier, orientation=orientation)
 
     def cycles(self, n: int = 1) -> dict[str, list[wire.Sample]]:
         """Run n cycles on the deadline grid; return what was published, by topic."""
@@ -107,10 +90,6 @@ class Rig:
         self.daemon.handle_control()
         assert self.req.poll(1000), "no reply"
         return json.loads(self.req.recv())
-
-    def close(self) -> None:
-        for s in (self.pub, self.sub, self.router, self.req):
-            s.close(linger=0)
 
 
 @pytest.fixture
