@@ -126,6 +126,7 @@ def achieved_rate(config: Config, scheduler: str, settings: mlx.Settings, second
     cycles = 0
     while time.monotonic() - t0 < seconds:
         reader.read()
+        reader.upkeep()
         cycles += 1
         deadline += bound.cycle_s
         pause = deadline - time.monotonic()

@@ -99,9 +99,10 @@ def rig(tmp_path):
     r.close()
 
 
-def test_a_sample_is_stamped_when_its_data_were_in_before_the_read_back(tmp_path):
-    """Burst reads a chip's registers back after the RM (the chip must restart its
-    conversion early): the samples' time is the RM's end, not the read-back's (1 ms on)."""
+def test_burst_publishes_before_its_register_read_back(tmp_path):
+    """Burst's read-back of a chip's registers (EX, three RR, SB: about 1 ms) follows the
+    cycle's sends: the samples are stamped at the RM's end and sent with no bus time
+    between, and the read-back still fits in the cycle."""
     r = Rig(tmp_path, scheduler="burst")
     try:
         bound = r.config.bound(r.bus.timing)
@@ -119,6 +120,7 @@ def test_a_sample_is_stamped_when_its_data_were_in_before_the_read_back(tmp_path
             while r.sub.poll(0):
                 r.sub.recv()
             r.clock.wait_until(deadline)
+        assert r.request(cmd="status")["result"]["publish_us"]["max"] == 0.0
     finally:
         r.close()
 

@@ -109,6 +109,7 @@ def _short_run(bus: Bus, addresses: list[int], scheduler: str, settings: mlx.Set
             break
         next_at = max(next_at + period, bus.monotonic())  # late: start again from now, never catch up
         results = reader.read()
+        reader.upkeep()
         if k >= SETTLE_CYCLES:
             errors += sum(not r.ok for r in results)
     assert t_first is not None

@@ -8,6 +8,11 @@
 - ``burst``: the chips convert on their own clock (SB once); a cycle is one
   RM transfer. The bus itself is then the limit.
 
+But in ``overlapped``, the cycle's register read-back waits for `Reader.upkeep`, called
+once the cycle's samples are out, so no sample waits for it (about 1 ms of bus). In
+``burst`` it restarts the chip's burst (EX, RR, SB), and that chip is read last in the
+next cycle, the longest time for its new result.
+
 "One transfer" is as wide as the adapter allows (`bound.Shapes`), learnt by
 `transfers.probe_shapes` at start and again after a refusal, so a refused ioctl is paid
 once, not every cycle. How fast each can go is `bound.cycle_bound`; which
@@ -54,10 +59,8 @@ class Reader:
     care: ChipCare = field(init=False)
     cycle: int = 0
     xfer: Transfers = field(init=False)
-    #: Bus time the last `read` spent after its data were in, reading a chip's registers
-    #: back (``naive``, ``burst``; 0 for ``overlapped``, which reads back during its wait):
-    #: how much older the data are than the read's return, s.
-    readback_s: float = field(default=0.0, init=False)
+    _readback_due: MLX90393 | None = field(default=None, init=False)  # left to `upkeep`
+    _read_last: MLX90393 | None = field(default=None, init=False)  # burst: restarted by the read-back
 
     def __post_init__(self) -> None:
         if self.scheduler not in SCHEDULERS:
@@ -125,6 +128,8 @@ class Reader:
         """
         if self.scheduler == "burst":
             zyxt = mlx.ZYXT_XYZ
+        if self._readback_due is not None:  # the last read's `upkeep` was not called
+            self.upkeep()
         if self.xfer.reprobe:
             self._learn_shapes()
         now = self.bus.monotonic()
@@ -144,21 +149,26 @@ class Reader:
             results.update(self._overlapped(healthy, zyxt, checked, now))
             checked = None  # read back during the wait
         else:
-            results.update(self.xfer.read_all(healthy, zyxt))
+            last = self._read_last
+            order = healthy if last is None or last not in healthy else [c for c in healthy if c is not last] + [last]
+            results.update(self.xfer.read_all(order, zyxt))
         judge = self.care.judge
         for chip in healthy:
             a = chip.address
             if a in results and not health[a].failing:
                 results[a] = judge(results[a], now)
-        self.readback_s = 0.0
-        if checked is not None:
-            # After the data, not after the publish: in burst the chip restarts its
-            # conversion here and needs its 3.2 ms (default settings) before the next RM.
-            t = self.bus.monotonic()
-            self.care.read_back(checked, now)
-            self.readback_s = self.bus.monotonic() - t
+        self._readback_due = checked
         self.cycle += 1
         return [results[c.address] for c in self.chips]
+
+    def upkeep(self) -> None:
+        """The last `read`'s register read-back of one chip, left until its samples are
+        out (``naive``, ``burst``; ``overlapped`` reads back during its wait). A `read`
+        that finds it not done does it first."""
+        chip, self._readback_due = self._readback_due, None
+        if chip is not None:
+            self.care.read_back(chip, self.bus.monotonic())
+            self._read_last = chip if self.scheduler == "burst" else None
 
     def _overlapped(self, healthy: list[MLX90393], zyxt: int, checked: MLX90393 | None,
                     now: float) -> dict[int, ChipResult]:

@@ -138,9 +138,7 @@ class Daemon:
         every = self.config.temperature_every
         zyxt = mlx.ZYXT_XYZT if every and self.timing.cycles % every == 0 else mlx.ZYXT_XYZ
         results = {r.address: r for r in self.reader.read(zyxt)}
-        # Stamped when the data were in hand, before the register read-back that followed them.
-        age = self.reader.readback_s
-        t_mono, t_wall = self.clock() - age, self.wall() - age
+        t_mono, t_wall = self.clock(), self.wall()
         # Every stream's sequence number is the cycle's: a deadline the loop skipped is a jump.
         seq = self.timing.cycles + self.timing.missed
         self.orientations.drain(start)
@@ -159,6 +157,7 @@ class Daemon:
             self._publish(topic, wire.KIND_WRENCH, seq, t_mono, t_wall, flags, values)
         for name, s in samples.items():
             self._publish(f"flux/{name}", wire.KIND_FLUX, seq, t_mono, t_wall, s.flux_flags, s.flux)
+        self.reader.upkeep()  # the register read-back: bus time no sample waits for
         for p in self.sensors:
             s = samples[p.name]
             if s.valid:
