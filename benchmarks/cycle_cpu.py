@@ -164,6 +164,7 @@ def breakdown(daemon: Daemon, cycles: int) -> dict[str, float]:
         return wrapper
 
     daemon.reader.read = timed("read", daemon.reader.read)  # type: ignore[method-assign]
+    daemon.reader.upkeep = timed("read", daemon.reader.upkeep)  # type: ignore[method-assign]
     for p in daemon.sensors:
         p.flux = timed("flux", p.flux)  # type: ignore[method-assign]
         p.estimate = timed("estimate", p.estimate)  # type: ignore[method-assign]

@@ -5,13 +5,13 @@ time (`InProcess`)."""
 
 from __future__ import annotations
 
-import itertools
 import os
 import re
 import signal
 import socket
 import subprocess
 import sys
+import uuid
 from pathlib import Path
 from typing import Any
 
@@ -21,8 +21,6 @@ from ftsensord.service.config import Config, builtin_path
 from ftsensord.service.daemon import Daemon
 from ftsensord.sim import VirtualClock, simulated_bus
 from ftsensord.sim.chip import FieldSource
-
-_ids = itertools.count()  # inproc endpoints are per context: each rig its own names
 
 
 def packaged_config(path: Path, **values: str) -> Path:
@@ -86,7 +84,8 @@ class InProcess:
     def __init__(self, config: Config, scene: FieldSource, *, subscribe: bytes = b"", seed: int = 5, **daemon: Any):
         self.config, self.scene, self.clock = config, scene, VirtualClock()
         self.bus = simulated_bus(scene, clock=self.clock, bus_hz=400e3, seed=seed)
-        ctx, n = zmq.Context.instance(), next(_ids)
+        # inproc names are per context, and this module may be loaded twice (by path and by name)
+        ctx, n = zmq.Context.instance(), uuid.uuid4().hex
         self.pub, self.sub = ctx.socket(zmq.PUB), ctx.socket(zmq.SUB)
         self.pub.bind(f"inproc://pub{n}")
         self.sub.connect(f"inproc://pub{n}")

@@ -194,9 +194,10 @@ def burst_readback_stays_fresh(bound: CycleBound, settings: mlx.Settings, rate_h
     """Whether reading a chip's registers back in burst mode (EX, RR, SB, which restart
     its burst) leaves it time for a new result before the next cycle reads it: a period
     of at least a whole cycle plus one burst interval. The read-back follows the publish
-    and the chip is read last in the next cycle (`Reader.upkeep`), so this holds while
-    the host's work between the RM and the read-back takes less than the other chips'
-    RM transfers (4.7 ms for 16 chips on a Pi 4's adapter at 400 kHz)."""
+    and the chip is read last in the next cycle (`Reader.upkeep`) while the host's work
+    between the RM and the read-back takes less than the other chips' RM transfers (4.7
+    ms for 16 chips on a Pi 4's adapter at 400 kHz); beyond, the read-back comes right
+    after the RM (`Reader.read`). Either way this suffices."""
     return 1.0 / rate_hz >= bound.cycle_s + _burst_interval_s(settings)
 
 

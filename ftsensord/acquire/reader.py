@@ -8,10 +8,11 @@
 - ``burst``: the chips convert on their own clock (SB once); a cycle is one
   RM transfer. The bus itself is then the limit.
 
-But in ``overlapped``, the cycle's register read-back waits for `Reader.upkeep`, called
+Outside ``overlapped``, the cycle's register read-back waits for `Reader.upkeep`, called
 once the cycle's samples are out, so no sample waits for it (about 1 ms of bus). In
 ``burst`` it restarts the chip's burst (EX, RR, SB), and that chip is read last in the
-next cycle, the longest time for its new result.
+next cycle, the longest time for its new result; where the host's work on the samples
+outlasts that time, the read-back comes right after the RM instead.
 
 "One transfer" is as wide as the adapter allows (`bound.Shapes`), learnt by
 `transfers.probe_shapes` at start and again after a refusal, so a refused ioctl is paid
@@ -35,6 +36,10 @@ from .transfers import Transfers, probe_shapes
 __all__ = ["Reader", "Transfers", "probe_shapes"]
 
 log = logging.getLogger("ftsensord")
+
+#: The host's work between a read and its `Reader.upkeep` is held at its peak, forgotten by
+#: 1 % a cycle (half in 69 cycles, 0.7 s at 100 Hz): one quick cycle does not undo a slow one.
+HOST_PEAK_DECAY = 0.99
 
 
 @dataclass
@@ -61,6 +66,9 @@ class Reader:
     xfer: Transfers = field(init=False)
     _readback_due: MLX90393 | None = field(default=None, init=False)  # left to `upkeep`
     _read_last: MLX90393 | None = field(default=None, init=False)  # burst: restarted by the read-back
+    _read_end: float | None = field(default=None, init=False)  # when the last `read` returned (bus clock)
+    _host_s: float = field(default=0.0, init=False)  # the host's work from a read to its upkeep, peak-held
+    _others_s: float = field(default=0.0, init=False)  # burst: the last RM's span but one chip's
 
     def __post_init__(self) -> None:
         if self.scheduler not in SCHEDULERS:
@@ -128,8 +136,7 @@ class Reader:
         """
         if self.scheduler == "burst":
             zyxt = mlx.ZYXT_XYZ
-        if self._readback_due is not None:  # the last read's `upkeep` was not called
-            self.upkeep()
+        late, self._readback_due = self._readback_due, None  # no `upkeep` since the last read
         if self.xfer.reprobe:
             self._learn_shapes()
         now = self.bus.monotonic()
@@ -151,24 +158,38 @@ class Reader:
         else:
             last = self._read_last
             order = healthy if last is None or last not in healthy else [c for c in healthy if c is not last] + [last]
+            t = self.bus.monotonic()
             results.update(self.xfer.read_all(order, zyxt))
+            self._others_s = (self.bus.monotonic() - t) * (len(order) - 1) / max(1, len(order))
         judge = self.care.judge
         for chip in healthy:
             a = chip.address
             if a in results and not health[a].failing:
                 results[a] = judge(results[a], now)
+        if late is not None:  # read back after the reads, as it came before `upkeep` existed
+            self.care.read_back(late, now)
+        elif checked is not None and self.scheduler == "burst" and self._host_s > self._others_s:
+            # Deferred past the host's work, the restarted chip would not have its new result
+            # when read last next cycle (the other chips' RMs are all it gets): now, then.
+            self.care.read_back(checked, now)
+            checked = None
         self._readback_due = checked
         self.cycle += 1
+        self._read_end = self.bus.monotonic()
         return [results[c.address] for c in self.chips]
 
     def upkeep(self) -> None:
         """The last `read`'s register read-back of one chip, left until its samples are
-        out (``naive``, ``burst``; ``overlapped`` reads back during its wait). A `read`
-        that finds it not done does it first."""
+        out (``naive``, ``burst``; ``overlapped`` reads back during its wait). Call it
+        after each `read` once the samples are sent; a `read` finding it not called
+        reads back after its own reads, one cycle late, as before it existed."""
+        now = self.bus.monotonic()
+        if self._read_end is not None:
+            self._host_s = max(now - self._read_end, self._host_s * HOST_PEAK_DECAY)
         chip, self._readback_due = self._readback_due, None
+        self._read_last = chip if self.scheduler == "burst" else None
         if chip is not None:
-            self.care.read_back(chip, self.bus.monotonic())
-            self._read_last = chip if self.scheduler == "burst" else None
+            self.care.read_back(chip, now)
 
     def _overlapped(self, healthy: list[MLX90393], zyxt: int, checked: MLX90393 | None,
                     now: float) -> dict[int, ChipResult]:
