@@ -7,7 +7,7 @@ whichever of the chips are read and in whichever order, each chip's reply lands 
 of one shared block, and the block is decoded in one numpy pass
 (`chip.block.BlockDecoder`), so a cycle spends little per-chip Python on messages and
 decoding, and faults (chips leaving and coming back) build no new plans but at a chip's
-new configuration.
+reset and return.
 """
 
 from __future__ import annotations
@@ -161,9 +161,9 @@ class Transfers:
         """The RM plan at the learnt shapes that holds ``chips``, and their rows in it.
 
         One plan per (zyxt, shapes), reused whichever of its chips are read, so a fault
-        costs no plan; rebuilt for ``chips`` when one of them is not in it or one of its
-        chips has been configured since (a reset chip coming back): one plan's memory,
-        whatever the faults."""
+        costs no plan; rebuilt for ``chips`` when one of them is not in it (a chip back
+        from a reset) or one of its chips' settings changed (a reset clears them): one
+        plan's memory, whatever the faults."""
         per = self.shapes.pairs_per_transfer
         plan = self._plans.get((zyxt, per))
         rows = None if plan is None else plan.rows(chips)
