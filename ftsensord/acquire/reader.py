@@ -64,11 +64,7 @@ class Reader:
     care: ChipCare = field(init=False)
     cycle: int = 0
     xfer: Transfers = field(init=False)
-    _readback_due: MLX90393 | None = field(default=None, init=False)  # left to `upkeep`
-    _read_last: MLX90393 | None = field(default=None, init=False)  # burst: restarted by the read-back
-    _read_end: float | None = field(default=None, init=False)  # when the last `read` returned (bus clock)
-    _host_s: float = field(default=0.0, init=False)  # the host's work from a read to its upkeep, peak-held
-    _others_s: float = field(default=0.0, init=False)  # burst: the last RM's span but one chip's
+    turn: ReadBackTurn = field(init=False)
 
     def __post_init__(self) -> None:
         if self.scheduler not in SCHEDULERS:
@@ -76,6 +72,7 @@ class Reader:
         self.care = ChipCare(self.bus, self.chips, self.settings, burst=self.scheduler == "burst",
                              stuck_cycles=self.stuck_cycles)
         self.xfer = Transfers(self.bus)
+        self.turn = ReadBackTurn(burst=self.scheduler == "burst")
         timing = getattr(self.bus, "timing", None)
         if timing is not None:
             self.use_timing(timing)
@@ -136,7 +133,7 @@ class Reader:
         """
         if self.scheduler == "burst":
             zyxt = mlx.ZYXT_XYZ
-        late, self._readback_due = self._readback_due, None  # no `upkeep` since the last read
+        late, self.turn.due = self.turn.due, None  # no `upkeep` since the last read
         if self.xfer.reprobe:
             self._learn_shapes()
         now = self.bus.monotonic()
@@ -156,11 +153,10 @@ class Reader:
             results.update(self._overlapped(healthy, zyxt, checked, now))
             checked = None  # read back during the wait
         else:
-            last = self._read_last
-            order = healthy if last is None or last not in healthy else [c for c in healthy if c is not last] + [last]
+            order = self.turn.order(healthy)
             t = self.bus.monotonic()
             results.update(self.xfer.read_all(order, zyxt))
-            self._others_s = (self.bus.monotonic() - t) * (len(order) - 1) / max(1, len(order))
+            self.turn.others_s = (self.bus.monotonic() - t) * (len(order) - 1) / max(1, len(order))
         judge = self.care.judge
         for chip in healthy:
             a = chip.address
@@ -168,14 +164,12 @@ class Reader:
                 results[a] = judge(results[a], now)
         if late is not None:  # read back after the reads, as it came before `upkeep` existed
             self.care.read_back(late, now)
-        elif checked is not None and self.scheduler == "burst" and self._host_s > self._others_s:
-            # Deferred past the host's work, the restarted chip would not have its new result
-            # when read last next cycle (the other chips' RMs are all it gets): now, then.
+        elif checked is not None and not self.turn.may_wait():
             self.care.read_back(checked, now)
             checked = None
-        self._readback_due = checked
+        self.turn.due = checked
         self.cycle += 1
-        self._read_end = self.bus.monotonic()
+        self.turn.read_end = self.bus.monotonic()
         return [results[c.address] for c in self.chips]
 
     def upkeep(self) -> None:
@@ -184,10 +178,7 @@ class Reader:
         after each `read` once the samples are sent; a `read` finding it not called
         reads back after its own reads, one cycle late, as before it existed."""
         now = self.bus.monotonic()
-        if self._read_end is not None:
-            self._host_s = max(now - self._read_end, self._host_s * HOST_PEAK_DECAY)
-        chip, self._readback_due = self._readback_due, None
-        self._read_last = chip if self.scheduler == "burst" else None
+        chip = self.turn.upkept(now)
         if chip is not None:
             self.care.read_back(chip, now)
 
@@ -245,3 +236,34 @@ class Reader:
             return ChipResult(chip.address, chip.read_measurement(zyxt))
         except ChipError as exc:
             return ChipResult(chip.address, error=exc)
+
+
+@dataclass
+class ReadBackTurn:
+    """When the cycle's register read-back comes, outside ``overlapped``: after the samples
+    are sent (`Reader.upkeep`), the chip it restarts in burst read last the next cycle,
+    while the host's work from a read to its upkeep (``host_s``, peak-held, s) is shorter
+    than the other chips' RMs (``others_s``, s), which is all that chip then gets for its
+    new burst result; else right after the RM."""
+
+    burst: bool
+    due: MLX90393 | None = None  # this cycle's, left to `upkeep`
+    last: MLX90393 | None = None  # burst: restarted by the last read-back, read last
+    read_end: float | None = None  # when the last read returned (bus clock), s
+    host_s: float = 0.0
+    others_s: float = 0.0
+
+    def order(self, healthy: list[MLX90393]) -> list[MLX90393]:
+        last = self.last
+        return healthy if last is None or last not in healthy else [c for c in healthy if c is not last] + [last]
+
+    def may_wait(self) -> bool:
+        return not self.burst or self.host_s <= self.others_s
+
+    def upkept(self, now: float) -> MLX90393 | None:
+        """The chip to read back now (None: none due), the host's work learnt."""
+        if self.read_end is not None:
+            self.host_s = max(now - self.read_end, self.host_s * HOST_PEAK_DECAY)
+        chip, self.due = self.due, None
+        self.last = chip if self.burst else None
+        return chip
