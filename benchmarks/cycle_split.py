@@ -20,7 +20,9 @@ Run:
     python benchmarks/cycle_split.py [--cycles 1000] [--bus 'sim?adapter=bcm2835&ioctl_us=80'] [--fifo 50]
 
 ``--fifo PRIO`` runs this process SCHED_FIFO (as the systemd unit runs the daemon; needs
-the privilege to).
+the privilege to). ``--virtual-clock`` runs the same cycles on the simulated bus's virtual
+clock instead: no sleep, no wake-up, the same code and physics, so ``host_cpu`` there is
+the code's own cost and the difference to a real-time run is what waking up costs.
 """
 
 from __future__ import annotations
@@ -36,9 +38,11 @@ from typing import Any
 import numpy as np
 import zmq
 
+from ftsensord.acquire.bus import open_bus
 from ftsensord.service.config import load_config
 from ftsensord.service.daemon import Daemon
-from ftsensord.service.run import make_sockets, open_configured_bus
+from ftsensord.service.run import make_sockets
+from ftsensord.sim import MonotonicClock, VirtualClock
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from launch import packaged_config  # noqa: E402  (a sibling script)
@@ -51,25 +55,25 @@ class Split:
     the time and CPU inside transfers and the simulator's spill past a transfer's end."""
 
     def __init__(self, bus: Any):
-        self.bus, self.rdwr, self.wait = bus, bus.i2c_rdwr, bus.clock.wait_until
+        self.bus, self.rdwr, self.wait, self.now = bus, bus.i2c_rdwr, bus.clock.wait_until, bus.clock.now
         self.wall = self.cpu = 0.0
         self.spills: list[float] = []
         self.inside = False
         bus.i2c_rdwr, bus.clock.wait_until = self.i2c_rdwr, self.wait_until
 
     def i2c_rdwr(self, *msgs: Any) -> None:
-        t0, c0 = time.monotonic(), time.thread_time()
+        t0, c0 = self.now(), time.thread_time()
         self.inside = True
         try:
             self.rdwr(*msgs)
         finally:
             self.inside = False
-            self.wall += time.monotonic() - t0
+            self.wall += self.now() - t0
             self.cpu += time.thread_time() - c0
 
     def wait_until(self, t: float) -> None:
         if self.inside:  # the transfer's end: how far past it the simulator's CPU already is
-            self.spills.append(max(0.0, time.monotonic() - t))
+            self.spills.append(max(0.0, self.now() - t))
         self.wait(t)
 
 
@@ -82,6 +86,7 @@ def main() -> int:
     parser.add_argument("--cycles", type=int, default=1000)
     parser.add_argument("--bus", default="sim?adapter=bcm2835&ioctl_us=80")
     parser.add_argument("--fifo", type=int, default=0, help="run SCHED_FIFO at this priority (0: not)")
+    parser.add_argument("--virtual-clock", action="store_true", help="the simulated bus's virtual clock: no sleeps")
     args = parser.parse_args()
     if args.fifo:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.fifo))
@@ -90,24 +95,28 @@ def main() -> int:
         os.environ["XDG_RUNTIME_DIR"] = tmp
         os.environ.pop("RUNTIME_DIRECTORY", None)
         config = load_config(packaged_config(Path(tmp) / "ftsensord.toml", bus=f'"{args.bus}"'))
-        bus = open_configured_bus(config)
+        clock = VirtualClock() if args.virtual_clock else MonotonicClock()
+        bus = open_bus(config.bus, clock=clock, bus_hz=config.bus_hz, seed=None)
         context = zmq.Context()
         publisher, control, _ = make_sockets(context, config)
-        daemon = Daemon(config, bus, publisher, control)
+        daemon = Daemon(config, bus, publisher, control, clock=clock.now)
         daemon.start()
         split = Split(bus)
         rows = []
-        deadline = time.monotonic()
+        deadline = clock.now()
         for k in range(SETTLE_CYCLES + args.cycles):
             if k == SETTLE_CYCLES:
                 split.spills.clear()
-            w0, c0, xw0, xc0 = time.monotonic(), time.thread_time(), split.wall, split.cpu
+            w0, c0, xw0, xc0 = clock.now(), time.thread_time(), split.wall, split.cpu
             daemon.cycle(max(0.0, w0 - deadline))
-            w1, c1 = time.monotonic(), time.thread_time()
+            w1, c1 = clock.now(), time.thread_time()
             if k >= SETTLE_CYCLES:
                 rows.append((w1 - w0, split.wall - xw0, split.cpu - xc0, (c1 - c0) - (split.cpu - xc0)))
             deadline += daemon.period_s
-            daemon.serve_until(deadline)
+            if args.virtual_clock:
+                clock.wait_until(deadline)  # type: ignore[union-attr]
+            else:
+                daemon.serve_until(deadline)
         daemon.reader.stop()
         publisher.close()
         control.close()
@@ -116,6 +125,7 @@ def main() -> int:
     a = np.array(rows) * 1e6
     spills = np.array(split.spills) * 1e6
     policy = f"SCHED_FIFO {args.fifo}" if args.fifo else "the default policy"
+    policy += ", virtual clock" if args.virtual_clock else ""
     print(f"{args.cycles} cycles at {config.rate_hz:g} Hz, {config.scheduler}, bus {args.bus!r}, {policy} "
           f"(load {load0:.2f} at start, {os.getloadavg()[0]:.2f} at end); us a cycle:")
     print(f"  cycle       {percentiles(a[:, 0])}   (bound {bound_us:.0f})")
