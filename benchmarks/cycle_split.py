@@ -38,10 +38,9 @@ from typing import Any
 import numpy as np
 import zmq
 
-from ftsensord.acquire.bus import open_bus
 from ftsensord.service.config import load_config
 from ftsensord.service.daemon import Daemon
-from ftsensord.service.run import make_sockets
+from ftsensord.service.run import make_sockets, open_configured_bus
 from ftsensord.sim import MonotonicClock, VirtualClock
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -96,7 +95,7 @@ def main() -> int:
         os.environ.pop("RUNTIME_DIRECTORY", None)
         config = load_config(packaged_config(Path(tmp) / "ftsensord.toml", bus=f'"{args.bus}"'))
         clock = VirtualClock() if args.virtual_clock else MonotonicClock()
-        bus = open_bus(config.bus, clock=clock, bus_hz=config.bus_hz, seed=None)
+        bus = open_configured_bus(config, clock)
         context = zmq.Context()
         publisher, control, _ = make_sockets(context, config)
         daemon = Daemon(config, bus, publisher, control, clock=clock.now)

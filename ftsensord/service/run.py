@@ -11,6 +11,7 @@ import logging
 import os
 import signal
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import zmq
 
@@ -23,6 +24,9 @@ from .daemon import Daemon
 from .orientation import open_receiver
 from .sdnotify import Notifier
 
+if TYPE_CHECKING:
+    from ..sim import MonotonicClock, VirtualClock
+
 log = logging.getLogger("ftsensord")
 
 #: Samples queued per subscriber before the newest are dropped: a haptic loop
@@ -32,14 +36,15 @@ PUB_HWM = 8
 CONTROL_HWM = 100
 
 
-def open_configured_bus(config: Config) -> Bus:
-    """The configured bus; a simulated one spends real wire time at ``bus_hz``. A real
-    one is locked for the daemon alone (``scan`` and ``doctor`` then refuse it); the
-    daemon measures its costs at start (`Daemon.start`, `acquire.board.know_board`)."""
+def open_configured_bus(config: Config, clock: MonotonicClock | VirtualClock | None = None) -> Bus:
+    """The configured bus; a simulated one spends real wire time at ``bus_hz`` (or runs
+    on ``clock``, a `sim.VirtualClock` for a benchmark). A real one is locked for the
+    daemon alone (``scan`` and ``doctor`` then refuse it); the daemon measures its costs
+    at start (`Daemon.start`, `acquire.board.know_board`)."""
     kind, _ = parse_bus_spec(config.bus)
     if kind == "sim":
         from ..sim import MonotonicClock
-        return open_bus(config.bus, clock=MonotonicClock(), bus_hz=config.bus_hz, seed=None)
+        return open_bus(config.bus, clock=clock or MonotonicClock(), bus_hz=config.bus_hz, seed=None)
     return open_bus(config.bus, exclusive=True)
 
 
