@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -53,20 +54,29 @@ def chip(bus: SimulatedBus) -> MLX90393:
     return drv
 
 
-def _launch() -> Any:
-    """benchmarks/launch.py, the one way the project starts the daemon for a run."""
-    spec = importlib.util.spec_from_file_location("launch", Path(__file__).resolve().parent.parent
-                                                  / "benchmarks" / "launch.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
+
+
+def benchmark(name: str) -> Any:
+    """A script of benchmarks/ as a module, loaded once and registered under its name: its
+    dataclasses look their module up there, and its siblings' ``from launch import ...``
+    then find the same module, not a second copy."""
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, BENCHMARKS / f"{name}.py")
+        assert spec is not None and spec.loader is not None
+        sys.modules[name] = importlib.util.module_from_spec(spec)
+        try:
+            spec.loader.exec_module(sys.modules[name])
+        except BaseException:
+            del sys.modules[name]
+            raise
+    return sys.modules[name]
 
 
 #: `ftsensord run --config CONFIG` in a subprocess, its runtime folder in ``folder``,
 #: returned with its notify socket once it said READY=1 (the caller stops it and closes the
-#: socket); keywords route its output (subprocess.Popen's).
-_LAUNCH = _launch()
-start_daemon = _LAUNCH.start_daemon
+#: socket); keywords route its output (subprocess.Popen's). benchmarks/launch.py: the one
+#: way the project starts the daemon for a run.
+start_daemon = benchmark("launch").start_daemon
 #: A `Daemon` in this process on a virtual clock, with a subscriber and a control client.
-InProcess = _LAUNCH.InProcess
+InProcess = benchmark("launch").InProcess

@@ -3,20 +3,13 @@ counts of loads and fall-backs), not its figures, which docs/accuracy-figures.md
 
 from __future__ import annotations
 
-import importlib.util
 import re
-import sys
-from pathlib import Path
 
-BENCH = Path(__file__).parent.parent / "benchmarks" / "accuracy.py"
+from .conftest import benchmark
 
 
 def test_the_quick_accuracy_benchmark_reports_every_section_and_count(tmp_path):
-    spec = importlib.util.spec_from_file_location("accuracy_bench", BENCH)
-    assert spec is not None and spec.loader is not None
-    bench = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = bench  # its dataclasses look their module up there
-    spec.loader.exec_module(bench)
+    bench = benchmark("accuracy")
     out = tmp_path / "figures.md"
     assert bench.main(["--quick", "--out", str(out)]) == 0
     text = out.read_text()

@@ -4,26 +4,16 @@ live in docs/reliability.md."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 
 from ftsensord.service.config import builtin_path, load_config
 from ftsensord.sim import load_scene
 
-
-def _load(name: str):
-    """A script of benchmarks/ as a module (it imports its siblings from its own folder)."""
-    path = Path(__file__).resolve().parent.parent / "benchmarks" / f"{name}.py"
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from .conftest import benchmark
 
 
 def test_quick_soak_survives_flags_and_lets_no_wrong_sample_through():
-    soak = _load("soak")
+    soak = benchmark("soak")
     report = soak.soak(0.25, seed=3, per_minute=30)
     assert report["alive_at_end"] and report["exit_code"] == 0
     assert report["faults_injected"] >= 3
@@ -50,7 +40,7 @@ def test_quick_soak_survives_flags_and_lets_no_wrong_sample_through():
 def test_a_wrong_sample_is_told_from_noise_by_its_chips(tmp_path):
     """soak.wrong_samples on made-up streams: a wrench beyond 5 sigma whose chips all read
     within their noise is the noise's; one with a chip off, or with no flux to tell, is wrong."""
-    soak = _load("soak")
+    soak = benchmark("soak")
     config = load_config(builtin_path("sim.toml"))
     (tmp_path / "scene.toml").write_text(soak.scene_text([]))
     rng = np.random.default_rng(0)

@@ -3,27 +3,18 @@ docs/tradeoff.md), and its no-truth path (a real bus) is checked on a static sce
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import re
 import subprocess
 import sys
-from pathlib import Path
 
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.service.config import builtin_path, load_config
 from ftsensord.sim import two_sensor_scene
 
-SCRIPT = Path(__file__).resolve().parent.parent / "benchmarks" / "tradeoff.py"
+from .conftest import BENCHMARKS, benchmark
 
-
-def load_benchmark():
-    """The script as a module (registered first: its dataclasses look themselves up)."""
-    if "tradeoff" not in sys.modules:
-        spec = importlib.util.spec_from_file_location("tradeoff", SCRIPT)
-        sys.modules["tradeoff"] = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(sys.modules["tradeoff"])
-    return sys.modules["tradeoff"]
+SCRIPT = BENCHMARKS / "tradeoff.py"
 
 
 def test_quick_tradeoff_produces_every_section():
@@ -39,7 +30,7 @@ def test_quick_tradeoff_produces_every_section():
 
 
 def test_pareto_keeps_only_points_nothing_beats():
-    bench = load_benchmark()
+    bench = benchmark("tradeoff")
     points = [(100, 0.5, "a"), (50, 0.2, "b"), (100, 0.6, "beaten by a"), (40, 0.3, "beaten by b"), (200, 1, "c")]
     assert sorted(p[2] for p in bench.pareto(points)) == ["a", "b", "c"]
 
@@ -55,7 +46,7 @@ def test_a_bus_without_truth_gives_noise_and_no_rmse(tmp_path):
         f'version = 1\nbus = "sim:scene.toml"\n[[sensor]]\nname = "s"\naddresses = {list(range(0x0C, 0x14))}\n'
         f'calibration = "{builtin_path("sim-sensor1.json")}"\n')
     config = load_config(tmp_path / "cfg.toml")
-    bench = load_benchmark()
+    bench = benchmark("tradeoff")
     rows = bench.accuracy(config, mlx.Settings(), 1, 2)
     assert [r.estimator for r in rows] == ["linear", "nonlinear"]
     with_truth = bench.accuracy(load_config(builtin_path("sim.toml")), mlx.Settings(), 1, 1)
