@@ -40,15 +40,9 @@ from ftsensord.service import wire
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from c_client import load_build
-from launch import packaged_config, start_daemon, stop
+from launch import cpu_seconds, packaged_config, start_daemon, stop
 
 SETTLE_S = 1.0  # connections made and the first samples through before counting
-
-
-def cpu_seconds(pid: int) -> float:
-    """User and system CPU (s) of process ``pid``, every thread."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def children_cpu_s() -> float:

@@ -64,6 +64,12 @@ def start_daemon(config: Path, folder: Path, *, fifo: int = 0, nice: int = 0,
     return proc, notify
 
 
+def cpu_seconds(pid: int) -> float:
+    """User and system CPU (s) of process ``pid``, every thread (/proc/PID/stat)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def stop(proc: subprocess.Popen, notify: socket.socket) -> int:
     """SIGTERM, as systemctl stop; the exit code."""
     if proc.poll() is None:

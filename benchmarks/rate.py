@@ -28,12 +28,7 @@ from pathlib import Path
 from ftsensord.client import ControlClient, Subscriber
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from launch import packaged_config, start_daemon, stop
-
-
-def cpu_seconds(pid: int) -> float:
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+from launch import cpu_seconds, packaged_config, start_daemon, stop
 
 
 def main() -> int:
