@@ -1,0 +1,185 @@
+"""The systemd unit's own restrictions on a process started here, without systemd: its
+`SystemCallFilter=` installed with seccomp before exec, its resource limits with
+setrlimit, its scheduling policy. The tests run the daemon under them (tests/test_unit_sandbox.py),
+because `systemd-analyze verify` and `security` read the unit but never run the program:
+a filter that kills the daemon at start passes both.
+
+The filter is what systemd builds from the unit's lines: the first `SystemCallFilter=`
+without `~` starts an allow list (with `@default`, which systemd always adds to one), later
+lines with `~` take calls out and lines without put them back, and every other call fails
+with `SystemCallErrorNumber=`. Groups (`@system-service`, ...) are expanded by this host's
+`systemd-analyze syscall-filter`, or, where systemd is not installed, by the copy of
+systemd 252's table beside this file; names are turned into this architecture's numbers
+by libseccomp, which systemd uses too. Calls this architecture does not have are skipped,
+as systemd skips them.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import errno
+import os
+import re
+import resource
+import shutil
+import subprocess
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+GROUPS_FALLBACK = Path(__file__).resolve().parent / "systemd-syscall-groups.txt"
+
+# libseccomp's action words (seccomp.h): ALLOW, and ERRNO with the error in the low 16 bits.
+SCMP_ACT_ALLOW = 0x7FFF0000
+SCMP_ACT_ERRNO = 0x00050000
+PR_SET_NO_NEW_PRIVS = 38
+
+
+def parse_groups(text: str) -> dict[str, list[str]]:
+    """`systemd-analyze syscall-filter`'s listing: each `@group` line, then its members
+    (calls and nested `@groups`), comments (`#`) and blank lines skipped."""
+    groups: dict[str, list[str]] = {}
+    current: list[str] | None = None
+    for raw in text.splitlines():
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        if not raw[:1].isspace() and line.startswith("@"):
+            current = groups.setdefault(line, [])
+        elif current is not None:
+            current.append(line)
+    return groups
+
+
+def syscall_groups() -> dict[str, list[str]]:
+    """This host's systemd groups, or systemd 252's (the copy beside this file)."""
+    exe = shutil.which("systemd-analyze")
+    if exe is not None:
+        out = subprocess.run([exe, "syscall-filter"], capture_output=True, text=True, check=True).stdout
+        return parse_groups(out)
+    return parse_groups(GROUPS_FALLBACK.read_text())
+
+
+def expand(names: list[str], groups: dict[str, list[str]]) -> set[str]:
+    """Calls named, groups expanded recursively (an unknown group is an error: systemd
+    refuses the unit then)."""
+    out: set[str] = set()
+    for name in names:
+        if name.startswith("@"):
+            if name not in groups:
+                raise ValueError(f"unknown system call group {name}")
+            out |= expand(groups[name], groups)
+        else:
+            out.add(name)
+    return out
+
+
+@dataclass
+class UnitRestrictions:
+    """What a unit's [Service] section restricts, as read from its file."""
+
+    filters: list[str] = field(default_factory=list)  # SystemCallFilter= values, in order
+    error_number: str = "EPERM"  # SystemCallErrorNumber=
+    limit_nofile: int | None = None  # LimitNOFILE= (soft = hard)
+    memory_max: int | None = None  # MemoryMax=, bytes
+    fifo_priority: int = 0  # CPUSchedulingPriority= with CPUSchedulingPolicy=fifo; 0: none
+
+    @classmethod
+    def from_unit(cls, path: Path) -> UnitRestrictions:
+        r = cls()
+        policy, priority = "", 0
+        for line in path.read_text().splitlines():
+            m = re.match(r"^\s*([A-Za-z]+)=(.*)$", line)
+            if not m:
+                continue
+            key, value = m.group(1), m.group(2).strip()
+            if key == "SystemCallFilter":
+                r.filters.append(value)
+            elif key == "SystemCallErrorNumber":
+                r.error_number = value
+            elif key == "LimitNOFILE":
+                r.limit_nofile = int(value.split(":")[-1])
+            elif key == "MemoryMax":
+                r.memory_max = _bytes(value)
+            elif key == "CPUSchedulingPolicy":
+                policy = value
+            elif key == "CPUSchedulingPriority":
+                priority = int(value)
+        r.fifo_priority = priority if policy == "fifo" else 0
+        return r
+
+    def allowed_calls(self, groups: dict[str, list[str]]) -> set[str] | None:
+        """The calls the filter lets through (None: no allow list, nothing filtered here)."""
+        allowed: set[str] | None = None
+        for value in self.filters:
+            deny = value.startswith("~")
+            names = value.lstrip("~").split()
+            if allowed is None:
+                if deny:
+                    return None  # a deny list first: not what this unit does, not modelled
+                allowed = expand(["@default"], groups)
+            calls = expand(names, groups)
+            allowed = allowed - calls if deny else allowed | calls
+        return allowed
+
+    def preexec(self, groups: dict[str, list[str]] | None = None) -> Callable[[], None]:
+        """A `subprocess.Popen` ``preexec_fn`` that applies these restrictions in the child,
+        in systemd's order: limits and scheduling first, the system call filter last."""
+        allowed = self.allowed_calls(groups if groups is not None else syscall_groups())
+        lib = _libseccomp()
+        # Resolved here, not in the child: the child should do as little as possible.
+        numbers = sorted({n for n in (lib.seccomp_syscall_resolve_name(c.encode()) for c in allowed or ())
+                          if n >= 0})
+        err = getattr(errno, self.error_number)
+        nofile, fifo = self.limit_nofile, self.fifo_priority
+
+        def apply() -> None:
+            if nofile is not None:
+                resource.setrlimit(resource.RLIMIT_NOFILE, (nofile, nofile))
+            if fifo:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(fifo))
+            if allowed is None:
+                return
+            if lib.prctl(PR_SET_NO_NEW_PRIVS, 1, 0, 0, 0) != 0:  # NoNewPrivileges=yes
+                raise OSError(ctypes.get_errno(), "prctl(PR_SET_NO_NEW_PRIVS)")
+            ctx = lib.seccomp_init(SCMP_ACT_ERRNO | err)
+            for n in numbers:
+                if lib.seccomp_rule_add(ctx, SCMP_ACT_ALLOW, n, 0) != 0:
+                    raise OSError(f"seccomp_rule_add({n}) failed")
+            if lib.seccomp_load(ctx) != 0:
+                raise OSError("seccomp_load failed")
+
+        return apply
+
+
+def seccomp_available() -> bool:
+    """libseccomp loads and the kernel takes filters (not so in some containers)."""
+    try:
+        _libseccomp()
+    except OSError:
+        return False
+    return Path("/proc/self/status").read_text().find("Seccomp:") >= 0
+
+
+def _libseccomp() -> ctypes.CDLL:
+    name = ctypes.util.find_library("seccomp")
+    if name is None:
+        raise OSError("libseccomp is not installed")
+    lib = ctypes.CDLL(name, use_errno=True)
+    lib.seccomp_init.restype = ctypes.c_void_p
+    lib.seccomp_init.argtypes = [ctypes.c_uint32]
+    lib.seccomp_rule_add.argtypes = [ctypes.c_void_p, ctypes.c_uint32, ctypes.c_int, ctypes.c_uint]
+    lib.seccomp_load.argtypes = [ctypes.c_void_p]
+    lib.seccomp_syscall_resolve_name.argtypes = [ctypes.c_char_p]
+    libc = ctypes.CDLL(None, use_errno=True)
+    lib.prctl = libc.prctl  # type: ignore[attr-defined]
+    return lib
+
+
+def _bytes(value: str) -> int:
+    """systemd's sizes: a number with an optional K, M, G, T suffix (powers of 1024)."""
+    m = re.fullmatch(r"(\d+)([KMGT]?)", value)
+    if m is None:
+        raise ValueError(f"MemoryMax={value}: expected bytes with an optional K, M, G or T")
+    return int(m.group(1)) * 1024 ** " KMGT".index(m.group(2) or " ")
