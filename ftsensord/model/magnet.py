@@ -19,6 +19,16 @@ _EYE3 = np.eye(3)
 #: mu_0 / (4 pi), in T m / A.
 MU0_OVER_4PI = 1e-7
 
+#: NdFeB loses about 0.12 % of its remanence per kelvin (N52 grade, typical; reversible),
+#: from 25 degC: the field of a magnet scales with 1 + NDFEB_BR_TEMPCO_PER_K (T - 25 degC).
+NDFEB_BR_TEMPCO_PER_K = -1.2e-3
+
+
+def remanence_factor(delta_k: float) -> float:
+    """Br(T) / Br(25 degC) of NdFeB ``delta_k`` kelvin above 25 degC (both field models scale with it)."""
+    return 1.0 + NDFEB_BR_TEMPCO_PER_K * delta_k
+
+
 #: Relative tolerance of `cel`'s iteration. The iteration converges
 #: quadratically (an arithmetic-geometric mean), so stopping at 1e-14 costs one
 #: step more than 1e-8 and leaves the result at double precision.

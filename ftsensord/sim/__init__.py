@@ -31,7 +31,8 @@ def simulated_bus(scene: FieldSource, *, clock: VirtualClock | MonotonicClock | 
                   bus_hz: float | None = None, seed: int | None = 0,
                   noise: NoiseModel = NoiseModel(), adapter: str = DEFAULT_ADAPTER,
                   ioctl_s: float = DEFAULT_IOCTL_S, clock_hz: float | None = None) -> SimulatedBus:
-    """A bus with one emulated chip per address of ``scene``.
+    """A bus with one emulated chip per address of ``scene``, each drifting with its die
+    temperature as the scene's part says (`PhysicalScene.chip_drift`; a static scene's do not).
 
     ``seed`` makes the chips' noise repeatable (None: fresh entropy); each chip
     gets its own stream, so adding a chip does not change another's noise.
@@ -41,7 +42,9 @@ def simulated_bus(scene: FieldSource, *, clock: VirtualClock | MonotonicClock | 
     """
     addresses = scene.addresses
     streams = np.random.SeedSequence(seed).spawn(len(addresses))
-    chips = [EmulatedMLX90393(address, scene, rng=np.random.default_rng(stream), noise=noise)
+    drift = getattr(scene, "chip_drift", None)  # a physical scene's parts drift with heat
+    chips = [EmulatedMLX90393(address, scene, rng=np.random.default_rng(stream), noise=noise,
+                              drift=None if drift is None else drift(address))
              for address, stream in zip(addresses, streams)]
     faults = getattr(scene, "faults", [])
     return SimulatedBus(chips, clock=clock, bus_hz=bus_hz, script=FaultScript(faults) if faults else None,

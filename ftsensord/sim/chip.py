@@ -22,6 +22,7 @@ from typing import Protocol
 import numpy as np
 
 from ..chip import mlx90393 as mlx
+from .thermal import ChipDrift
 
 
 class FieldSource(Protocol):
@@ -141,6 +142,8 @@ class RegisterCommands:
 class EmulatedMLX90393(RegisterCommands):
     """One chip at one address. Times (``now``) are seconds on the bus's clock.
 
+    ``drift``: how it drifts with its die temperature (None: not at all), by its own TCMP_EN.
+
     Fault hooks for tests: ``stuck`` (the same data forever, DRDY always high),
     ``memory_error`` (a double-bit ECC error: every command but RT refused),
     `drift_register` (a register that changes by itself).
@@ -149,10 +152,11 @@ class EmulatedMLX90393(RegisterCommands):
     def __init__(self, address: int, scene: FieldSource, *,
                  rng: np.random.Generator | None = None,
                  noise: NoiseModel = NoiseModel(),
-                 tref: int = mlx.TREF_TYPICAL):
+                 tref: int = mlx.TREF_TYPICAL, drift: ChipDrift | None = None):
         mlx.part_variant(address)
         self.address = address
         self.scene = scene
+        self.drift = drift
         self.rng = rng if rng is not None else np.random.default_rng(address)
         # D1:D0 of replies without data vary on their own stream, so the noise a seed
         # gives stays what it was (spawning does not advance ``rng``).
@@ -302,6 +306,11 @@ class EmulatedMLX90393(RegisterCommands):
         s = self.settings()
         field = self.field_override if self.field_override is not None else np.asarray(
             self.scene.field_t(self.address, t), dtype=float)
+        temp = self.scene.temperature_c(self.address, t)
+        if self.drift is not None and temp != mlx.TEMPERATURE_REF_C:  # at 25 degC nothing drifts
+            # The element saturates first; its sensitivity and offset drift act on what it sees.
+            field = self.drift.reading(np.clip(field, -mlx.HALL_SATURATION_T, mlx.HALL_SATURATION_T),
+                                       temp - mlx.TEMPERATURE_REF_C, s.tcmp_en)
         words: dict[str, int] = {}
         for i, (axis, sigma, sensitivity, fmt) in enumerate(_axes(s, self.noise)):
             # The Hall element saturates near 50 mT whatever the gain.
@@ -310,7 +319,6 @@ class EmulatedMLX90393(RegisterCommands):
                 b_ut += self.rng.normal(0.0, sigma)
             counts = round(b_ut / sensitivity)
             words[axis] = mlx.counts_to_raw(counts, fmt)
-        temp = self.scene.temperature_c(self.address, t)
         if self.noise.temperature_sigma_c > 0:
             temp += self.rng.normal(0.0, self.noise.temperature_sigma_c)
         words["t"] = mlx.celsius_to_raw(temp, self.tref)

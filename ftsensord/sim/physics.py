@@ -22,17 +22,19 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..chip import mlx90393 as mlx
 from ..model import se3
 from ..model.geometry import SensorGeometry, as_built
 from ..model.linear import SENSOR_RANGE
-from ..model.magnet import cylinder_field, dipole_field
+from ..model.magnet import NDFEB_BR_TEMPCO_PER_K  # noqa: F401  (its old home: the name still works here)
+from ..model.magnet import cylinder_field, dipole_field, remanence_factor
+from ..model.silicone import stiffness_factor
 from .loads import DOWN, IDENTITY, NO_LOAD, G, Load, Orientation
+from .thermal import ChipDrift, TemperatureProfile
 
 #: Stiffness default: the diagonal of the paper's K, in N/m and Nm/rad (their
 #: signs dropped: a stiffness is positive definite).
 PAPER_STIFFNESS_DIAG = (8.82e3, 12.77e3, 6.50e3, 10.0, 10.0, 10.0)
-#: NdFeB loses about 0.12 % of its remanence per kelvin (N52 grade, typical).
-NDFEB_BR_TEMPCO_PER_K = -1.2e-3
 
 _NO_FIELD = np.zeros(3)
 
@@ -68,10 +70,18 @@ class Tolerances:
 
     def build(self, radius_m: float = 8e-3, tilt_deg: float = 25.0,
               gap_m: float = 6e-3) -> tuple[SensorGeometry, np.ndarray]:
-        """The as-built geometry and the chips' gains (n, 3), drawn once from ``seed``
-        in a fixed order (ring radius; magnets' positions and remanence, chips' tilts;
-        gains): every draw is made whatever its deviation, so setting one tolerance
-        to 0 leaves the others' draws of the same seed unchanged."""
+        """The as-built geometry and the chips' gains (n, 3) of `build_part`."""
+        geometry, gains, _ = self.build_part(radius_m, tilt_deg, gap_m)
+        return geometry, gains
+
+    def build_part(self, radius_m: float = 8e-3, tilt_deg: float = 25.0,
+                   gap_m: float = 6e-3) -> tuple[SensorGeometry, np.ndarray, list[ChipDrift]]:
+        """The as-built geometry, the chips' gains (n, 3) and their drifts with temperature,
+        drawn once from ``seed`` in a fixed order (ring radius; magnets' positions and
+        remanence, chips' tilts; gains; drifts, from the datasheet's spread): every draw is
+        made whatever its deviation, so setting one tolerance to 0 leaves the others' draws
+        of the same seed unchanged, and the drifts, drawn last, left every earlier draw as
+        it was before they existed."""
         rng = np.random.default_rng(self.seed)
         radius = radius_m + rng.normal() * self.ring_radius_m
         if radius <= 0:  # no ring: a tolerance written in the wrong unit
@@ -80,7 +90,7 @@ class Tolerances:
         geometry = as_built(nominal, rng, magnet_position_m=self.magnet_position_m,
                             magnet_strength_rel=self.magnet_remanence_rel, chip_tilt_rad=self.chip_tilt_rad)
         gains = 1.0 + rng.normal(0.0, 1.0, (nominal.n_chips, 3)) * self.chip_gain_rel
-        return geometry, gains
+        return geometry, gains, ChipDrift.draw(rng, nominal.n_chips)
 
 
 @dataclass
@@ -94,6 +104,9 @@ class SimSensor:
     ``stiffening`` s makes the silicone stiffer at large deflection:
     w = K (xi + s xi (xi / xi_range)^2) per axis, xi_range being the deflection
     at the sensor's range; s = 0.3 is 30 % stiffer at full range.
+
+    ``temperature`` is the sensor's own (None: the scene's); ``chip_drift`` each chip's
+    drift with it (None: every chip at the datasheet's figures, `ChipDrift.typical`).
     """
 
     name: str
@@ -106,6 +119,8 @@ class SimSensor:
     chip_gain: np.ndarray | None = None
     tool_mass_kg: float = 0.0
     tool_com_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    temperature: TemperatureProfile | None = None
+    chip_drift: list[ChipDrift] | None = None
 
     def wrench(self, t: float) -> np.ndarray:
         """The wrench on the centre piece (N, Nm, frame {0}) at ``t``: the load and the tool's weight."""
@@ -119,6 +134,8 @@ class SimSensor:
         self.stiffness = np.asarray(self.stiffness, dtype=float)
         if len(self.addresses) != self.geometry.n_chips:
             raise ValueError(f"{self.name}: {len(self.addresses)} addresses for {self.geometry.n_chips} chips")
+        if self.chip_drift is not None and len(self.chip_drift) != self.geometry.n_chips:
+            raise ValueError(f"{self.name}: {len(self.chip_drift)} chip drifts for {self.geometry.n_chips} chips")
         if self.chip_gain is not None:
             self.chip_gain = np.asarray(self.chip_gain, dtype=float)
             if self.chip_gain.shape != (self.geometry.n_chips, 3) or np.any(self.chip_gain <= 0):
@@ -145,7 +162,12 @@ class SimSensor:
 
 
 class PhysicalScene:
-    """Sensors on one bus; implements the chips' `FieldSource` (field_t, temperature_c)."""
+    """Sensors on one bus; implements the chips' `FieldSource` (field_t, temperature_c),
+    and gives each chip its drift with temperature (`chip_drift`).
+
+    ``temperature_c`` and ``temperature_drift_c_per_s`` are the temperature of every sensor
+    without its own (`SimSensor.temperature`).
+    """
 
     def __init__(self, sensors: list[SimSensor], *, field_model: str = "cylinder",
                  crosstalk: str = "dipole", temperature_c: float = 25.0,
@@ -158,8 +180,7 @@ class PhysicalScene:
         self.sensors = sensors
         self.field_model = field_model
         self.crosstalk = crosstalk
-        self.temperature_c0 = temperature_c
-        self.temperature_drift = temperature_drift_c_per_s
+        self.temperature = TemperatureProfile.linear(temperature_c, temperature_drift_c_per_s)
         self.time_step_s = time_step_s
         self.external_field_t = np.zeros(3) if external_field_t is None else external_field_t
         self._chip_of: dict[int, tuple[int, int]] = {}
@@ -189,7 +210,17 @@ class PhysicalScene:
         self._room_on = bool(np.any(field_t))
 
     def temperature_c(self, address: int, t: float) -> float:
-        return self.temperature_c0 + self.temperature_drift * t
+        """The die temperature (degC) of the chip at ``address``: its sensor's at ``t`` (s)."""
+        return self._profile(self.sensors[self._chip_of[address][0]]).at(t)
+
+    def chip_drift(self, address: int) -> ChipDrift:
+        """How the chip at ``address`` drifts with temperature (its part's, or typical)."""
+        s, i = self._chip_of[address]
+        drifts = self.sensors[s].chip_drift
+        return ChipDrift.typical() if drifts is None else drifts[i]
+
+    def _profile(self, sensor: SimSensor) -> TemperatureProfile:
+        return self.temperature if sensor.temperature is None else sensor.temperature
 
     def set_load(self, sensor: int | str, load: Load) -> None:
         self._sensor(sensor).load = load
@@ -211,7 +242,12 @@ class PhysicalScene:
         sensor = self.sensors[s]
         t = math.floor(t / self.time_step_s) * self.time_step_s
         w = np.asarray(sensor.wrench(t), dtype=float)
-        scale = 1.0 + NDFEB_BR_TEMPCO_PER_K * (self.temperature_c(address, t) - 25.0)
+        scale = 1.0
+        profile = self._profile(sensor)
+        if not profile.is_reference:  # a scene held at 25 degC pays nothing for heat
+            delta_k = profile.at(t) - mlx.TEMPERATURE_REF_C
+            scale = remanence_factor(delta_k)
+            w = w / stiffness_factor(delta_k)  # K(T) xi = w is K xi = w / factor, stiffening too
         # The room's field in {0}: only the turning sensor makes it change (and a field-free
         # room needs no orientation at all: the common case stays as cheap as before).
         room = (sensor.orientation.rotation(t).T @ self.external_field_t if self._room_on else _NO_FIELD)

@@ -44,6 +44,7 @@ from .physics import (
     SimSensor,
     Tolerances,
 )
+from .thermal import TemperatureProfile
 
 SCENE_VERSION = 1
 
@@ -181,9 +182,35 @@ def _tolerances(t: Table) -> Tolerances:
                       t.integer("seed", low=0, what="an integer >= 0 naming the part"))
 
 
+#: A sensor's temperature is the MLX90393's operating range (E code, -40 to 85 degC): the
+#: datasheet's drifts say nothing beyond, and a kelvin figure (298) or a typo falls outside.
+TEMPERATURE_RANGE_C = (-40.0, 85.0)
+
+
+def _temperature(t: Table) -> TemperatureProfile:
+    kind = t.string("kind", choices=("constant", "linear", "recorded"))
+    low, high = TEMPERATURE_RANGE_C
+    unit = "degC, the MLX90393's operating range"
+    if kind == "constant":
+        t.only({"kind", "celsius"})
+        return TemperatureProfile.constant(t.number("celsius", low=low, high=high, unit=unit))
+    if kind == "linear":
+        t.only({"kind", "celsius", "drift_c_per_s"})
+        return TemperatureProfile.linear(t.number("celsius", low=low, high=high, unit=unit),
+                                         t.number("drift_c_per_s", unit="degC/s"))
+    t.only({"kind", "times_s", "celsius"})
+    times = t.numbers("times_s", unit="s")
+    if not times or any(b <= a for a, b in pairwise(times)):
+        raise t.fail("times_s", "strictly increasing times (s), at least one", times)
+    celsius = t.numbers("celsius", len(times), unit=f"degC, one per time in times_s, {unit}")
+    if not all(low <= c <= high for c in celsius):
+        raise t.fail("celsius", f"temperatures in [{low}, {high}] ({unit})", celsius)
+    return TemperatureProfile(tuple(times), tuple(celsius))
+
+
 def _sensor(t: Table, index: int) -> SimSensor:
     t.only({"name", "addresses", "stiffness_diag", "stiffening", "ring_radius_mm", "tilt_deg",
-            "gap_mm", "load", "orientation", "tolerances", "tool"})
+            "gap_mm", "load", "orientation", "tolerances", "tool", "temperature"})
     addresses = t.get("addresses")
     if not isinstance(addresses, list) or len(addresses) != 8:
         raise t.fail("addresses", "8 chip addresses", addresses)
@@ -194,11 +221,11 @@ def _sensor(t: Table, index: int) -> SimSensor:
     shape: dict[str, float] = {"radius_m": t.number("ring_radius_mm", 8.0, low=1e-3, unit="mm") * 1e-3,
              "tilt_deg": t.number("tilt_deg", 25.0, low=-90, high=90, unit="deg"),
              "gap_m": t.number("gap_mm", 6.0, low=1e-3, unit="mm") * 1e-3}
-    gains = None
+    gains, drifts = None, None
     if "tolerances" in t.doc:
         tol = t.table("tolerances")
         try:
-            geometry, gains = _tolerances(tol).build(**shape)
+            geometry, gains, drifts = _tolerances(tol).build_part(**shape)
         except ValueError as exc:
             raise t.fail("tolerances", f"tolerances that build a sensor ({exc})", tol.doc) from exc
     else:
@@ -221,8 +248,10 @@ def _sensor(t: Table, index: int) -> SimSensor:
         tool.only({"mass_g", "com_mm"})
         mass_kg = tool.number("mass_g", low=0.0, high=5000.0, unit="g") * 1e-3  # 5 kg: 100 times the range
         com_m = np.array(tool.numbers("com_mm", 3, unit="mm, frame {0}")) * 1e-3
+    temperature = _temperature(t.table("temperature")) if "temperature" in t.doc else None
     return SimSensor(t.string("name", f"sensor{index + 1}"), addrs, geometry, np.diag(stiffness),
-                     t.number("stiffening", 0.0, low=0.0), load, orientation, gains, mass_kg, com_m)
+                     t.number("stiffening", 0.0, low=0.0), load, orientation, gains, mass_kg, com_m,
+                     temperature, drifts)
 
 
 def _faults(doc: Table, addresses: tuple[int, ...]) -> list[Fault]:

@@ -1,10 +1,11 @@
-"""MLX90393 facts, in the datasheet's names, free of I/O: one face over four modules.
+"""MLX90393 facts, in the datasheet's names, free of I/O: one face over five modules.
 
 Opcodes, the zyxt nibble, the status byte, register fields, sensitivity,
-raw-to-field conversion, temperature conversion, conversion times and the
-forbidden (OSR, DIG_FILT) combinations. Both the driver (`chip.driver`)
-and the emulated chip (`sim.chip`) are written against this module,
-so the two cannot drift apart on a fact.
+raw-to-field conversion, temperature conversion, conversion times, the
+forbidden (OSR, DIG_FILT) combinations and the drift with temperature
+(`thermal`). Both the driver (`chip.driver`) and the emulated chip
+(`sim.chip`) are written against this module, so the two cannot drift apart
+on a fact.
 
 Source: Melexis MLX90393 datasheet Rev 011, as summarised in the project's
 reference notes. Units: fields in uT where a name says ``_ut`` and in tesla
@@ -105,6 +106,13 @@ from .protocol import (  # noqa: F401
 )
 from .settings import (  # noqa: F401
     Settings,
+)
+from .thermal import (  # noqa: F401
+    OFFSET_DRIFT_UT_PER_K,
+    SENSITIVITY_TEMPCO_PER_K,
+    SENSITIVITY_TEMPCO_SPREAD_PER_K,
+    SENSITIVITY_TEMPCO_TCMP_PER_K,
+    TEMPERATURE_REF_C,
 )
 from .timing import (  # noqa: F401
     BURST_RATE_STEP_US,
