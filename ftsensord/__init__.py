@@ -13,11 +13,13 @@ imports only from its own floor or those below (tests/test_layout.py checks it):
    chip health and recovery, scanning.
 6. `calibration`: datasets, the rig, the linear and nonlinear fits, the
    calibration file, the report.
-7. `service`: configuration, the loop, the per-sensor pipeline, tare, control,
+7. `stages`: what acts on a sensor's flux before its estimator and on its
+   wrench after (the temperature's laws), apart from the service's loop.
+8. `service`: configuration, the loop, the per-sensor pipeline, tare, control,
    status, the wire format, sockets, sd_notify.
-8. `client`: subscribing to the streams, sending control requests.
-9. `recording`, `plot`: streams to CSV, NPZ or MCAP files; live plots.
-10. `cli`: the `ftsensord` command.
+9. `client`: subscribing to the streams, sending control requests.
+10. `recording`, `plot`, `bridge`: streams to CSV, NPZ or MCAP files; live plots.
+11. `cli`: the `ftsensord` command.
 
 The names below are the public face; they are imported on first use, so
 ``import ftsensord`` stays cheap and pulls in no floor it does not need.

@@ -136,6 +136,7 @@ FTS_STATIC_ASSERT_(ZMQ_PUB == FTS_ZMQ_PUB_ && ZMQ_SUB == FTS_ZMQ_SUB_ && ZMQ_SUB
 #define FTS_FLAG_EXTRAPOLATED (1u << 8)  /* a linear estimate beyond the calibration's loads */
 #define FTS_FLAG_INCONSISTENT (1u << 9)  /* the chips disagree with each other: one reads wrong */
 #define FTS_FLAG_ORIENTATION_STALE (1u << 10) /* compensated: orientation older than stale_after_s, or unknown */
+#define FTS_FLAG_TEMPERATURE (1u << 11) /* a chip's temperature is beyond the span the compensation covers */
 
 /* Sizes; define before including to change. A wrench has 6 values, flux 3 per chip. */
 #ifndef FTS_MAX_VALUES
@@ -326,6 +327,7 @@ static inline const char *fts_flag_name(uint32_t bit)
     case FTS_FLAG_EXTRAPOLATED: return "extrapolated";
     case FTS_FLAG_INCONSISTENT: return "inconsistent";
     case FTS_FLAG_ORIENTATION_STALE: return "orientation_stale";
+    case FTS_FLAG_TEMPERATURE: return "temperature";
     default: return NULL;
     }
 }

@@ -21,6 +21,7 @@ from ..errors import ConfigError
 from ..model.linear import LinearModel, PositionMap
 from .dataset import parse_addresses
 from .nlfit import NonlinearCalibration
+from .thermal import CalibrationTemperature
 
 CAL_FORMAT = "ftsensord-calibration"
 CAL_VERSION = 1
@@ -43,6 +44,9 @@ class Calibration:
     #: The largest |w| per axis over the fit poses (N, Nm): K A is a first-order fit of
     #: a 1/r^3 field there, and a linear estimate far beyond it is flagged `extrapolated`.
     wrench_range: np.ndarray | None = None
+    #: The chips' die temperature over the poses, and each channel's drift when they spanned
+    #: enough: the temperature stage compensates to it and flags beyond it (`stages.thermal`).
+    temperature: CalibrationTemperature | None = None
 
     def document(self) -> dict[str, Any]:
         doc: dict[str, Any] = {
@@ -63,6 +67,8 @@ class Calibration:
             doc["room_directions"] = self.model.room.tolist()
         if self.wrench_range is not None:
             doc["wrench_range"] = self.wrench_range.tolist()
+        if self.temperature is not None:
+            doc["temperature_c"] = self.temperature.document()
         if self.position_map is not None:
             doc["position_map"] = {"M": self.position_map.M.tolist(), "o": self.position_map.o.tolist()}
         if self.nonlinear is not None:
@@ -79,7 +85,7 @@ class Calibration:
         raw = load_json(path)
         doc = Table(raw, path)
         doc.only({"format", "version", "units", "sensor", "model", "K", "A", "H", "zero_flux", "fit_report",
-                  "wrench_range", "position_map", "nonlinear", "room_directions", "checksum"})
+                  "wrench_range", "position_map", "nonlinear", "room_directions", "temperature_c", "checksum"})
         if doc.get("format") != CAL_FORMAT:
             raise doc.fail("format", f'"{CAL_FORMAT}"', doc.get("format"))
         doc.integer("version", what=f"{CAL_VERSION} (this ftsensord reads version {CAL_VERSION})",
@@ -105,6 +111,7 @@ class Calibration:
             wrench_range = np.array(doc.numbers("wrench_range", 6, unit="N, Nm"))
             if np.any(wrench_range <= 0):
                 raise doc.fail("wrench_range", "6 numbers over 0 (N, Nm)", raw["wrench_range"])
+        temperature = _temperature(doc, n) if "temperature_c" in raw else None
         pmap = None
         if "position_map" in raw:
             pm = doc.table("position_map")
@@ -130,7 +137,19 @@ class Calibration:
                     raise ConfigError(f"{path}: {key}: expected a positive definite stiffness (x^T K x > 0), "
                                       f"got one whose symmetric part has eigenvalue {lowest:.3g}")
         return cls(LinearModel(K, A, zero, H, room), addresses, sensor.string("serial", ""),
-                   sensor.string("frame", "sensor"), pmap, report, nonlinear, wrench_range)
+                   sensor.string("frame", "sensor"), pmap, report, nonlinear, wrench_range, temperature)
+
+
+def _temperature(doc: Table, channels: int) -> CalibrationTemperature:
+    """The ``temperature_c`` section (`CalibrationTemperature.document` writes it)."""
+    t = doc.table("temperature_c")
+    t.only({"mean", "lowest", "highest", "drift_t_per_k"})
+    # An MLX90393's operating range is -20 to 85 degC.
+    mean, lowest, highest = (t.number(k, low=-20.0, high=85.0, unit="degC") for k in ("mean", "lowest", "highest"))
+    if not lowest <= mean <= highest:
+        raise doc.fail("temperature_c", "lowest <= mean <= highest (degC)", doc.get("temperature_c"))
+    drift = np.array(t.numbers("drift_t_per_k", channels, unit="T/K")) if "drift_t_per_k" in t.doc else None
+    return CalibrationTemperature(mean, lowest, highest, drift)
 
 
 def _nonlinear(doc: Table, chips: int) -> NonlinearCalibration:

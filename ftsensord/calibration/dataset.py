@@ -91,6 +91,7 @@ class Dataset:
     source: str = ""
     sweeps: dict[int, Sweep] = field(default_factory=dict)
     rotation: np.ndarray | None = None  # (n, 3, 3) R_w0 per pose, world z up; None: not recorded
+    temperature_c: np.ndarray | None = None  # (n,) the chips' mean die temperature per pose, degC; None: not recorded
     path: str = ""  # the file it was read from, for error messages (not saved)
 
     def __len__(self) -> int:
@@ -99,7 +100,13 @@ class Dataset:
     def select(self, mask: np.ndarray) -> Dataset:
         """The poses where ``mask`` is true (sweeps kept)."""
         picked = {name: getattr(self, name)[mask] for name in POSE_FIELDS}
-        return replace(self, **picked, rotation=None if self.rotation is None else self.rotation[mask])
+        return replace(self, **picked, rotation=None if self.rotation is None else self.rotation[mask],
+                       temperature_c=None if self.temperature_c is None else self.temperature_c[mask])
+
+    def temperature_range(self) -> tuple[float, float, float] | None:
+        """The die temperature over the poses (degC): mean, lowest, highest; None: not recorded."""
+        t = self.temperature_c
+        return None if t is None or not len(t) else (float(t.mean()), float(t.min()), float(t.max()))
 
     def where(self) -> str:
         """'ds.json: ' when read from a file, for messages that name it."""
@@ -117,6 +124,7 @@ class Dataset:
                 "wrench": self.wrench[k].tolist(), "flux_t": self.flux_t[k].tolist(),
                 "flux_sem_t": self.flux_sem_t[k].tolist(), "saturated": self.saturated[k].tolist(),
                 **({} if self.rotation is None else {"rotation": self.rotation[k].tolist()}),
+                **({} if self.temperature_c is None else {"temperature_c": float(self.temperature_c[k])}),
             } for k in range(len(self))],
             "position_sweeps": {f"0x{a:02X}": {"position_m": s.position_m.tolist(), "flux_t": s.flux_t.tolist()}
                                 for a, s in self.sweeps.items()},
@@ -139,10 +147,10 @@ class Dataset:
         addresses = parse_addresses(sensor, "addresses")
         chips = len(addresses)
         columns: dict[str, list] = {name: [] for name in POSE_FIELDS}
-        rotations = []
+        rotations, temperatures = [], []
         rows = doc.tables("poses")
         for row in rows:
-            row.only((*POSE_FIELDS, "rotation"))
+            row.only((*POSE_FIELDS, "rotation", "temperature_c"))
             sat = row.get("saturated")
             if not isinstance(sat, list) or len(sat) != chips or not all(isinstance(v, bool) for v in sat):
                 raise row.fail("saturated", f"{chips} booleans, one per chip", sat)
@@ -165,6 +173,11 @@ class Dataset:
                                row.doc.get("rotation", "none"))
             if "rotation" in row.doc:
                 rotations.append(_rotation(row, columns["gravity_dir"][-1]))
+            if ("temperature_c" in row.doc) != ("temperature_c" in rows[0].doc):
+                raise row.fail("temperature_c", "a temperature in every pose or in none (as poses[0])",
+                               row.doc.get("temperature_c", "none"))
+            if "temperature_c" in row.doc:  # an MLX90393's operating range, -20 to 85 degC
+                temperatures.append(row.number("temperature_c", low=-20.0, high=85.0, unit="degC"))
         sweeps = {}
         if "position_sweeps" in doc.doc:
             table = doc.table("position_sweeps")
@@ -186,7 +199,8 @@ class Dataset:
         return cls(addresses, **arrays, samples_per_pose=doc.integer("samples_per_pose", low=1,
                                                                      what="a positive integer"),
                    serial=sensor.string("serial", ""), source=doc.string("source", ""), sweeps=sweeps,
-                   rotation=np.array(rotations) if rotations else None, path=str(path))
+                   rotation=np.array(rotations) if rotations else None,
+                   temperature_c=np.array(temperatures) if temperatures else None, path=str(path))
 
 
 def _rotation(row: Table, gravity_dir: list[float]) -> np.ndarray:

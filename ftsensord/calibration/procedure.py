@@ -18,6 +18,7 @@ from .fit import AXES, CalibrationResult, fit
 from .nlfit import FitProgress, fit_nonlinear, nonlinear_rmse
 from .report import format_rmse
 from .rig import record_dataset, simulate_sweeps, simulated_robot
+from .thermal import thermal_fit
 
 #: No-load poses a dataset records by default: 24, 12 % of the 193 loaded poses' robot
 #: time, twice the 12 docs/calibration.md asks of a real run (so that the room field's
@@ -62,7 +63,8 @@ def calibrate(dataset: Dataset, *, serial: str | None = None, frame: str = "sens
     is returned: a file with the linear part alone would let a configuration that asks
     for the nonlinear estimator fail later and far from the cause; the user chooses
     (``nonlinear=False``, or ``allow_poor_fit``)."""
-    result = fit(dataset)
+    # Poses read at other temperatures are first brought to the calibration's (`thermal`).
+    dataset, temperature, result = thermal_fit(dataset, fit)
     report = result.report
     nl = None
     if nonlinear:
@@ -73,7 +75,7 @@ def calibrate(dataset: Dataset, *, serial: str | None = None, frame: str = "sens
                                "validation_rmse": (dict(zip(AXES, nonlinear_rmse(nl, validation).tolist()))
                                                    if len(validation) else None)}
     cal = Calibration(result.model, dataset.addresses, serial or dataset.serial, frame, result.position_map,
-                      report, nl, result.wrench_range)
+                      report, nl, result.wrench_range, temperature)
     return cal, result
 
 

@@ -40,30 +40,38 @@ def record_dataset(bus: Bus, addresses: Sequence[int], poses: Sequence[tuple[Cal
     for chip in chips:
         chip.reset()
         chip.configure(settings)
-    wait_s = settings.single_measurement_us() * 1.2e-6  # +20 %: the chip's oscillator tolerance
+    # +20 %: the chip's oscillator tolerance.
+    wait_s = {z: settings.single_measurement_us(z) * 1.2e-6 for z in (mlx.ZYXT_XYZ, mlx.ZYXT_XYZT)}
     n, c = len(poses), len(chips)
     mean, sem = np.zeros((n, 3 * c)), np.zeros((n, 3 * c))
     saturated = np.zeros((n, c), dtype=bool)
+    temperature = np.zeros(n)
     for k, (pose, _) in enumerate(poses):
         if turn is not None:
             turn(pose.orientation())
         apply_load(pose.wrench())
         readings = np.zeros((samples, 3 * c))
         for s in range(samples):
+            # The pose's first and last readings take the die temperature too (their mean is
+            # the pose's while it changes steadily): what temperature compensation refers to.
+            zyxt = mlx.ZYXT_XYZT if s in (0, samples - 1) else mlx.ZYXT_XYZ
             for chip in chips:
-                chip.start_single()
-            bus.sleep(wait_s)
+                chip.start_single(zyxt)
+            bus.sleep(wait_s[zyxt])
             for i, chip in enumerate(chips):
-                m = chip.read_measurement()
+                m = chip.read_measurement(zyxt)
                 readings[s, 3 * i:3 * i + 3] = m.field_t
                 saturated[k, i] |= m.any_saturated
+                if m.temperature_c is not None:
+                    temperature[k] += m.temperature_c / (c * (1 if samples == 1 else 2))
         mean[k] = readings.mean(axis=0)
         if samples > 1:
             sem[k] = readings.std(axis=0, ddof=1) / math.sqrt(samples)
     return Dataset(tuple(addresses), np.array([p.wrench() for p, _ in poses]), mean, sem, saturated,
                    np.array([s for _, s in poses]), np.array([p.mass_kg for p, _ in poses]),
                    np.array([p.lever_m for p, _ in poses]), np.array([p.gravity_dir for p, _ in poses]),
-                   samples, serial, source, rotation=np.array([p.orientation() for p, _ in poses]))
+                   samples, serial, source, rotation=np.array([p.orientation() for p, _ in poses]),
+                   temperature_c=temperature)
 
 
 def simulated_robot(scene: PhysicalScene, sensor: str) -> dict[str, Callable[[np.ndarray], None]]:

@@ -25,6 +25,8 @@ from ..errors import ChipRefusedError
 from ..model import se3
 from ..model.linear import SENSOR_RANGE, Consistency, LinearModel, chi2_quantile
 from ..model.nonlinear import NonlinearEstimator
+from ..calibration.thermal import ThermalLaws
+from ..stages.thermal import ThermalCompensation
 from . import wire
 from .config import SensorConfig
 from .filters import WrenchFilter
@@ -105,17 +107,22 @@ class SensorPipeline:
     sigma_t: np.ndarray | None = None  # each channel's noise (T); None: the default chip settings'
     check: RedundancyCheck = field(default_factory=lambda: RedundancyCheck())
     estimate_s: deque[float] = field(default_factory=lambda: deque(maxlen=STATS_WINDOW))
+    thermal: ThermalCompensation | None = None  # None: temperatures not read (temperature_every = 0)
 
     @classmethod
     def build(cls, s: SensorConfig, smoothing: WrenchFilter, max_missing_chips: int,
-              settings: mlx.Settings | None = None) -> SensorPipeline:
+              settings: mlx.Settings | None = None, thermal: bool = True) -> SensorPipeline:
+        """``thermal``: the chips' temperatures are read (`Config.temperature_every`), so
+        the temperature stage compensates and flags (`stages.thermal`)."""
         nl = s.calibration.nonlinear
         sigma_t = channel_sigma_t(settings or mlx.Settings(), len(s.addresses))
         if s.calibration.model.H is not None:  # no map built in the cycle of a fault
             s.calibration.model.build_maps(sigma_t, max_missing_chips)
         return cls(s, s.calibration.model, smoothing, max_missing_chips, np.full(3 * len(s.addresses), np.nan),
                    estimator=s.estimator, nonlinear=nl.estimator() if nl is not None else None,
-                   zero_twist=nl.zero_twist.copy() if nl is not None else None, sigma_t=sigma_t)
+                   zero_twist=nl.zero_twist.copy() if nl is not None else None, sigma_t=sigma_t,
+                   thermal=ThermalCompensation(ThermalLaws.physical(settings), len(s.addresses),
+                                               s.calibration.temperature) if thermal else None)
 
     @property
     def name(self) -> str:
@@ -126,7 +133,14 @@ class SensorPipeline:
         apply to every stream of the cycle (e.g. late)."""
         flux, flags, usable = self.flux(results)
         flags |= base_flags
-        wrench, wflags = self.estimate(flux, flags, usable)
+        thermal = self.thermal
+        if thermal is None:
+            wrench, wflags = self.estimate(flux, flags, usable)
+        else:
+            wrench, wflags = self.estimate(thermal.apply(flux), flags, usable)
+            wrench = wrench * thermal.wrench_scale
+            if thermal.beyond_span:
+                wflags |= wire.FLAG_TEMPERATURE
         valid = not wflags & wire.FLAG_INVALID
         if valid and (np.abs(wrench) > SENSOR_RANGE).any():
             wflags |= wire.FLAG_OVERLOAD
@@ -137,6 +151,8 @@ class SensorPipeline:
         """The sensor's stacked flux (T), its flags, and which chips are usable."""
         rs = [results[a] for a in self.config.addresses]
         ms = [r.measurement for r in rs]
+        if self.thermal is not None and any(m is not None and m.temperature_c is not None for m in ms):
+            self.thermal.observe([None if m is None else m.temperature_c for m in ms])
         if all(m is not None and not m.any_saturated for m in ms):  # the usual cycle: one stack, no loop
             flux = np.concatenate([m.field_t for m in ms])  # type: ignore[union-attr]
             self.last_flux[:] = flux
@@ -197,8 +213,13 @@ class SensorPipeline:
         return wrench, flags
 
     def tare(self, zero: np.ndarray, gravity: np.ndarray | None = None) -> np.ndarray:
-        """Make ``zero`` (the mean no-load flux, T) the new zero; returns the wrench it removes.
-        ``gravity``: the mean gravity (m/s^2, sensor frame) while it was measured, None if unknown."""
+        """Make ``zero`` (the mean no-load flux, T, as read) the new zero; returns the wrench it
+        removes. ``gravity``: the mean gravity (m/s^2, sensor frame) while it was measured, None if
+        unknown. With the temperature stage, the zero is taken at the tare's temperature and
+        compensated like every sample after it."""
+        if self.thermal is not None:
+            self.thermal.tared()
+            zero = self.thermal.apply(zero)
         self.tare_wrench = self.config.calibration.model.wrench(zero)
         self.tare_gravity = None if gravity is None else np.array(gravity, dtype=float)
         self.model = self.model.with_zero(zero)
@@ -225,6 +246,7 @@ class SensorPipeline:
             "estimate_cpu_us": {"mean": float(np.mean(self.estimate_s)) * 1e6,
                                 "max": float(np.max(self.estimate_s)) * 1e6} if self.estimate_s else None,
             "tare_wrench": self.tare_wrench.round(6).tolist(),
+            "temperature": None if self.thermal is None else self.thermal.status(),
         }
 
 

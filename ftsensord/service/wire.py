@@ -37,11 +37,13 @@ FLAG_FALLBACK = 1 << 7  # the nonlinear estimator did not converge: the linear e
 FLAG_EXTRAPOLATED = 1 << 8  # a linear estimate beyond the loads the calibration was fitted on
 FLAG_INCONSISTENT = 1 << 9  # the chips disagree beyond noise and model error (one stuck, drifted, or seeing a field alone)
 FLAG_ORIENTATION_STALE = 1 << 10  # a compensated wrench: the orientation is older than stale_after_s, or unknown
+FLAG_TEMPERATURE = 1 << 11  # a chip's temperature is beyond the span the temperature compensation covers
 
 FLAG_NAMES = {FLAG_CHIP_MISSING: "chip_missing", FLAG_SATURATED: "saturated", FLAG_STALE: "stale",
               FLAG_OVERLOAD: "overload", FLAG_DEGRADED: "degraded", FLAG_LATE: "late",
               FLAG_INVALID: "invalid", FLAG_FALLBACK: "fallback", FLAG_EXTRAPOLATED: "extrapolated",
-              FLAG_INCONSISTENT: "inconsistent", FLAG_ORIENTATION_STALE: "orientation_stale"}
+              FLAG_INCONSISTENT: "inconsistent", FLAG_ORIENTATION_STALE: "orientation_stale",
+              FLAG_TEMPERATURE: "temperature"}
 
 
 def flag_names(flags: int) -> list[str]:
