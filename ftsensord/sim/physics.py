@@ -211,7 +211,8 @@ class PhysicalScene:
 
     def temperature_c(self, address: int, t: float) -> float:
         """The die temperature (degC) of the chip at ``address``: its sensor's at ``t`` (s)."""
-        return self._profile(self.sensors[self._chip_of[address][0]]).at(t)
+        own = self.sensors[self._chip_of[address][0]].temperature
+        return (self.temperature if own is None else own).at(t)
 
     def chip_drift(self, address: int) -> ChipDrift:
         """How the chip at ``address`` drifts with temperature (its part's, or typical)."""
