@@ -211,8 +211,7 @@ class PhysicalScene:
 
     def temperature_c(self, address: int, t: float) -> float:
         """The die temperature (degC) of the chip at ``address``: its sensor's at ``t`` (s)."""
-        own = self.sensors[self._chip_of[address][0]].temperature
-        return (self.temperature if own is None else own).at(t)
+        return self._profile(self.sensors[self._chip_of[address][0]]).at(t)
 
     def chip_drift(self, address: int) -> ChipDrift:
         """How the chip at ``address`` drifts with temperature (its part's, or typical)."""
