@@ -201,7 +201,7 @@ def test_a_bad_temperature_table_names_file_key_and_expectation(tmp_path, edit, 
     assert_names_file_and_key(load_scene, path, key, expected)
 
 
-def test_the_scene_files_temperature_kinds():
+def test_the_warm_scene_file_warms_both_sensors_whose_chips_drift_as_their_parts():
     path = CONFIG / "scene-warm.toml"
     scene = load_scene(path)
     assert isinstance(scene, PhysicalScene)

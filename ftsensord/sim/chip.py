@@ -307,7 +307,7 @@ class EmulatedMLX90393(RegisterCommands):
         field = self.field_override if self.field_override is not None else np.asarray(
             self.scene.field_t(self.address, t), dtype=float)
         temp = self.scene.temperature_c(self.address, t)
-        if self.drift is not None and temp != mlx.TEMPERATURE_REF_C:  # at 25 degC nothing drifts
+        if temp != mlx.TEMPERATURE_REF_C and self.drift is not None:  # at 25 degC nothing drifts
             # The element saturates first; its sensitivity and offset drift act on what it sees.
             field = self.drift.reading(np.clip(field, -mlx.HALL_SATURATION_T, mlx.HALL_SATURATION_T),
                                        temp - mlx.TEMPERATURE_REF_C, s.tcmp_en)

@@ -53,6 +53,8 @@ class TemperatureProfile:
     def at(self, t: float) -> float:
         """Temperature (degC) at ``t`` (s)."""
         times, values = self.times_s, self.celsius
+        if len(times) == 1:  # constant or linear: asked at every conversion, so no search
+            return values[0] + self.drift_c_per_s * t
         i = bisect_right(times, t)
         if i == 0:
             value = values[0]
