@@ -103,7 +103,8 @@ def test_burst_publishes_before_its_register_read_back(tmp_path):
     """Burst's read-back of a chip's registers (EX, three RR, SB: about 1 ms) follows the
     cycle's sends: the samples are stamped at the RM's end and sent with no bus time
     between, and the read-back still fits in the cycle."""
-    r = Rig(tmp_path, scheduler="burst")
+    # No temperature cycles: the bound is then every cycle's, not the slowest's (with T).
+    r = Rig(tmp_path, "temperature_every = 0", scheduler="burst")
     try:
         bound = r.config.bound(r.bus.timing)
         assert bound.check_s > 5e-4 and r.daemon.reader.readback_every == 1
@@ -366,10 +367,11 @@ def test_ready_after_the_first_cycle_and_watchdog_only_as_cycles_complete(tmp_pa
     server.close()
 
 
-@pytest.mark.parametrize(("rate_hz", "every"), [(100, 1), (150, 100), (170, 100)])
+@pytest.mark.parametrize(("rate_hz", "every"), [(100, 1), (150, 100), (155, 100)])
 def test_burst_reads_registers_back_every_cycle_where_the_period_leaves_a_new_result_time(tmp_path, rate_hz, every):
-    # The burst bound is 5.67 ms on the default adapter; a result 3.82 ms after SB (with the
-    # oscillator's margin): 9.49 ms, so 100 Hz has the time and 150 Hz does not.
+    # The burst bound is 6.39 ms on the default adapter (its slowest cycle, which reads T);
+    # a result 4.13 ms after SB (X, Y, Z and T, with the oscillator's margin): 10.5 ms, so
+    # 100 Hz has the time and 150 Hz does not (the bound, 156.5 Hz, refuses more).
     config = load_config(write_config(tmp_path, 'scheduler = "burst"', rate_hz=rate_hz))
     assert config.readback_every == every
     given = load_config(write_config(tmp_path, 'scheduler = "burst"\nreadback_every = 7', rate_hz=rate_hz))
@@ -380,7 +382,8 @@ def test_config_refuses_a_rate_above_the_bound_naming_it(tmp_path):
     with pytest.raises(ConfigError) as exc:
         load_config(write_config(tmp_path, rate_hz=150, scheduler="overlapped"))
     msg = str(exc.value)
-    assert "rate_hz: 150 Hz cannot be met" in msg and "103.7 Hz at most" in msg and "burst 176 Hz" in msg
+    # burst 156 Hz: its slowest cycle reads the chips' temperatures too (temperature_every).
+    assert "rate_hz: 150 Hz cannot be met" in msg and "103.7 Hz at most" in msg and "burst 156 Hz" in msg
 
 
 @pytest.mark.parametrize(("edit", "key", "expected"), [

@@ -126,3 +126,19 @@ def test_the_files_keep_the_temperatures(tmp_path):
     ds.save(tmp_path / "d.json")
     assert np.array_equal(Dataset.load(tmp_path / "d.json").temperature_c, [24.5, 31.0])
     assert Dataset.load(tmp_path / "d.json").temperature_range() == (27.75, 24.5, 31.0)
+
+
+def test_burst_reads_temperatures_too(tmp_path):
+    """The packaged configuration's scheduler, burst, converts T with X, Y, Z when
+    temperatures are read, and the reads that ask for it take it: the stage has every
+    chip's temperature after the first cycle; with temperature_every = 0 it has none."""
+    from .test_daemon import Rig
+    for every, known in ((100, True), (0, False)):
+        rig = Rig(tmp_path, f"temperature_every = {every}", scheduler="burst")
+        try:
+            rig.cycles(3)
+            thermal = rig.daemon.sensors[0].thermal
+            assert (thermal is not None and np.isfinite(thermal.celsius).all()) == known
+            assert rig.request(cmd="status")["result"]["sensors"]["sensor1"]["temperature"] is None or known
+        finally:
+            rig.close()

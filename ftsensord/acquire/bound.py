@@ -124,11 +124,11 @@ def cycle_bound(scheduler: str, n_chips: int, settings: mlx.Settings, bus_hz: fl
     ``adapter`` (`ADAPTER_RULES`; None: unknown, counted as the narrowest)
     decides how many ioctls a cycle takes (`Shapes`). ``readback`` counts the
     cycle that also reads one chip's three registers back; ``temperature`` the
-    cycle that also converts and reads T (not in burst): the bound is that of
-    the slowest cycle, which every cycle must fit.
+    cycle that also converts and reads T (a burst then converts T every time): the
+    bound is that of the slowest cycle, which every cycle must fit.
     """
     shapes = Shapes.of(adapter)
-    zyxt = mlx.ZYXT_XYZT if temperature and scheduler != "burst" else mlx.ZYXT_XYZ
+    zyxt = mlx.ZYXT_XYZT if temperature else mlx.ZYXT_XYZ
     conversion = settings.single_measurement_us(zyxt) * 1e-6 * OSC_MARGIN
     rm_bits = RM_BITS + (BITS_PER_BYTE * 2 if zyxt & mlx.ZYXT_T else 0)
     sm_one = (SM_BITS + 1) / bus_hz + overhead_s
@@ -161,7 +161,7 @@ def cycle_bound(scheduler: str, n_chips: int, settings: mlx.Settings, bus_hz: fl
             start_ioctls += 1
         return bound(start, rm_at - start - check, read, check, start_ioctls + read_ioctls)
     if scheduler == "burst":
-        interval = _burst_interval_s(settings)
+        interval = _burst_interval_s(settings, zyxt)
         if readback:
             check += 2 * sm_one  # EX before the registers (refused in burst), SB after
         return bound(0.0, max(0.0, interval - read), read, check, read_ioctls)
@@ -190,17 +190,20 @@ def _last_offset_s(n_chips: int, rm_bits: int, per_transfer: int, bus_hz: float,
     return transfers * full + overhead_s + (k * rm_bits + 1 + BITS_PER_BYTE * 2) / bus_hz
 
 
-def burst_readback_stays_fresh(bound: CycleBound, settings: mlx.Settings, rate_hz: float) -> bool:
+def burst_readback_stays_fresh(bound: CycleBound, settings: mlx.Settings, rate_hz: float,
+                               temperature: bool = False) -> bool:
     """Whether reading a chip's registers back in burst mode (EX, RR, SB, which restart
     its burst) leaves it time for a new result before the next cycle reads it: a period
     of at least a whole cycle plus one burst interval. The read-back follows the publish
     and the chip is read last in the next cycle (`Reader.upkeep`) while the host's work
     between the RM and the read-back takes less than the other chips' RM transfers (4.7
     ms for 16 chips on a Pi 4's adapter at 400 kHz); beyond, the read-back comes right
-    after the RM (`Reader.read`). Either way this suffices."""
-    return 1.0 / rate_hz >= bound.cycle_s + _burst_interval_s(settings)
+    after the RM (`Reader.read`). Either way this suffices. ``temperature``: the burst
+    converts T too."""
+    return 1.0 / rate_hz >= bound.cycle_s + _burst_interval_s(
+        settings, mlx.ZYXT_XYZT if temperature else mlx.ZYXT_XYZ)
 
 
-def _burst_interval_s(settings: mlx.Settings) -> float:
-    """The longest interval between a chip's burst results (X, Y, Z), s: the oscillator's margin included."""
-    return settings.burst_interval_us(mlx.ZYXT_XYZ) * 1e-6 * OSC_MARGIN
+def _burst_interval_s(settings: mlx.Settings, zyxt: int = mlx.ZYXT_XYZ) -> float:
+    """The longest interval between a chip's burst results (``zyxt``), s: the oscillator's margin included."""
+    return settings.burst_interval_us(zyxt) * 1e-6 * OSC_MARGIN

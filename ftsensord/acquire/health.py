@@ -99,8 +99,9 @@ class ChipCare:
     """
 
     def __init__(self, bus: Bus, chips: list[MLX90393], settings: mlx.Settings, *, burst: bool,
-                 stuck_cycles: int | None = None):
+                 stuck_cycles: int | None = None, burst_zyxt: int = mlx.ZYXT_XYZ):
         self.bus, self.settings, self.burst = bus, settings, burst
+        self.burst_zyxt = burst_zyxt  # what a burst converts: X, Y, Z, and T when temperatures are read
         self.health = {c.address: ChipHealth() for c in chips}
         self.stuck_cycles = stuck_cycles_for(settings) if stuck_cycles is None else stuck_cycles
         self._attempted = False  # one recovery a cycle
@@ -117,7 +118,7 @@ class ChipCare:
         chip.reset()
         chip.configure(self.settings)
         if self.burst:
-            chip.start_burst(mlx.ZYXT_XYZ)
+            chip.start_burst(self.burst_zyxt)
 
     def fail(self, address: int, now: float, reset: bool = False, why: str = "") -> None:
         """Take a chip out (``reset``: only a reset mends it); logged once, as it starts failing."""
@@ -163,7 +164,7 @@ class ChipCare:
                 h.step = 0
                 chip.configure(self.settings)
                 if self.burst:
-                    chip.start_burst(mlx.ZYXT_XYZ)
+                    chip.start_burst(self.burst_zyxt)
                 h.reinits += 1
                 how = "re-initialised"
         except ChipError as exc:
@@ -188,7 +189,7 @@ class ChipCare:
             if not chip.configuration_matches():
                 return False
             if self.burst:
-                chip.start_burst(mlx.ZYXT_XYZ)
+                chip.start_burst(self.burst_zyxt)
         except ChipRefusedError:
             return False
         return True
@@ -239,7 +240,7 @@ class ChipCare:
                 chip.exit_mode()  # RR is refused in burst mode
             matches = chip.configuration_matches()
             if self.burst and matches:
-                chip.start_burst(mlx.ZYXT_XYZ)
+                chip.start_burst(self.burst_zyxt)
         except ChipNotRespondingError as exc:
             # A NACK says nothing of the registers: the chip is retried like any chip that
             # did not answer (registers checked on its return), not counted as drift, not reset.

@@ -61,6 +61,9 @@ class Reader:
     overhead_s: float = 0.0
     stuck_cycles: int | None = None  # None: `health.stuck_cycles_for` the settings
     readback_every: int = 1
+    #: Temperatures are read now and then (`read`'s zyxt with T): a burst converts T too
+    #: (TCONVT more a conversion) and the reads that want it take it.
+    temperature: bool = False
     care: ChipCare = field(init=False)
     cycle: int = 0
     xfer: Transfers = field(init=False)
@@ -70,7 +73,8 @@ class Reader:
         if self.scheduler not in SCHEDULERS:
             raise ConfigError(f"scheduler: expected one of {', '.join(SCHEDULERS)}, got {self.scheduler!r}")
         self.care = ChipCare(self.bus, self.chips, self.settings, burst=self.scheduler == "burst",
-                             stuck_cycles=self.stuck_cycles)
+                             stuck_cycles=self.stuck_cycles,
+                             burst_zyxt=mlx.ZYXT_XYZT if self.temperature else mlx.ZYXT_XYZ)
         self.xfer = Transfers(self.bus)
         self.turn = ReadBackTurn(burst=self.scheduler == "burst")
         timing = getattr(self.bus, "timing", None)
@@ -129,9 +133,9 @@ class Reader:
         """One cycle: a result for every chip, in the order of ``chips``.
 
         ``zyxt`` picks the items (add T now and then for the temperature); burst
-        mode reads what it was started with, X, Y and Z.
+        mode reads X, Y and Z, and T only if it converts it (``temperature``).
         """
-        if self.scheduler == "burst":
+        if self.scheduler == "burst" and not self.temperature:
             zyxt = mlx.ZYXT_XYZ
         late, self.turn.due = self.turn.due, None  # no `upkeep` since the last read
         if self.xfer.reprobe:

@@ -362,7 +362,7 @@ def load_config(path: str | Path | None = None, calibrations: Calibrations | Non
             config.gravity.endpoint = _endpoint(doc.table("gravity"), "endpoint", config.gravity.endpoint,
                                                 why="orientations decide the compensated wrench: this host only")
     if config.scheduler == "burst" and "readback_every" not in doc.doc and not burst_readback_stays_fresh(
-            config.bound(), config.settings, config.rate_hz):
+            config.bound(), config.settings, config.rate_hz, config.temperature_every > 0):
         # A chip read back in burst mode (EX, RR, SB) restarts its burst: with no time for
         # a new result before the next cycle, every sample would have a stale chip.
         config.readback_every = 100

@@ -55,7 +55,8 @@ class Daemon:
         self.clock, self.wall = clock, wall
         chips = [MLX90393(bus, a, sleep=bus.sleep) for a in config.addresses]
         self.reader = Reader(bus, chips, config.scheduler, config.settings, config.bus_hz, config.bus_overhead_s,
-                             stuck_cycles=config.stuck_cycles, readback_every=config.readback_every)
+                             stuck_cycles=config.stuck_cycles, readback_every=config.readback_every,
+                             temperature=config.temperature_every > 0)
         self.board_timing: BusTiming | None = getattr(bus, "timing", None)  # a real bus's: measured at start
         self.chips = ChipLedger({s.name: s.addresses for s in config.sensors})
         self.sensors = [self._pipeline(s, config) for s in config.sensors]
