@@ -74,8 +74,7 @@ class Daemon:
     @staticmethod
     def _pipeline(s: SensorConfig, config: Config) -> SensorPipeline:
         smoothing = WrenchFilter(config.averaging, config.lowpass_hz, config.rate_hz)
-        return SensorPipeline.build(s, smoothing, config.max_missing_chips, config.settings,
-                                    thermal=config.temperature_every > 0)
+        return SensorPipeline.build(s, smoothing, config.max_missing_chips, config.settings, config.temperature_every > 0)
 
     def _gravity(self, config: Config) -> Gravity | None:
         g = config.gravity
