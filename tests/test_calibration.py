@@ -86,6 +86,7 @@ def test_noisy_flux_below_the_floor_is_not_inverted():
 wrench_sets = st.integers(0, 2**32 - 1)
 
 
+@settings(deadline=None)  # what is refused is the test, not how fast: a loaded 2-core host took 362 ms
 @given(wrench_sets, st.sampled_from(["one-arm", "drop-mz", "tie-fx-fz", "few"]))
 def test_rank_deficient_data_is_refused_never_fitted(seed, kind):
     rng = np.random.default_rng(seed)
