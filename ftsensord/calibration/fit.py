@@ -45,7 +45,7 @@ from .checks import (
 from .dataset import AXES, Dataset
 from .excitation import CONDITION_WARN, check_excitation
 from .rig import simulate_sweeps
-from .screening import MAX_OUTLIER_SHARE, FluxResponse, check_chip_order, describe_outliers, screen_poses
+from .screening import check_chip_order, leave_out_outliers
 
 
 #: Parameters of one row of the affine flux-to-twist fit: 24 slopes and an offset.
@@ -262,9 +262,8 @@ def fit(dataset: Dataset, geometry: SensorGeometry | None = None, *, room_field:
     few outlier poses are left out with a warning naming each (``report["warnings"]``).
     ``room_field`` (`ROOM_FIELD_MODES`) says how a uniform room field is rejected. Raises
     `CalibrationError` when the data are wrong in a way the checks name (`check_numbers`,
-    `check_flux`),
-    the wrenches do not excite all six axes, more than a few poses do not follow their
-    loads, the chips are out of order, or K is not positive definite.
+    `check_flux`), the wrenches do not excite all six axes, more than a few poses do not
+    follow their loads, the chips are out of order, or K is not positive definite.
     """
     geometry = geometry or SensorGeometry.ring()
     check_numbers(dataset, geometry)
@@ -306,16 +305,9 @@ def fit(dataset: Dataset, geometry: SensorGeometry | None = None, *, room_field:
     def fitted(keep: np.ndarray) -> LinearFit:
         return fit_linear(raw[:n][keep], twists[:n][keep], fit_set.wrench[keep], floor, room, zero)
 
-    outliers, residual, sigma = screen_poses(lambda keep: fitted(keep).model.wrench(raw[:n]) - fit_set.wrench, n)
-    response = FluxResponse(raw[:n][~outliers], fit_set.wrench[~outliers], room)
-    if outliers.any():
-        lines = describe_outliers(dataset, fits[outliers], residual[outliers], sigma, response)
-        if outliers.sum() > MAX_OUTLIER_SHARE * n:
-            raise CalibrationError(
-                f"{dataset.where()}{int(outliers.sum())} of {n} fit poses do not follow their loads (more than the "
-                f"few, {100 * MAX_OUTLIER_SHARE:g} %, that can be left out): the log and the flux disagree (poses "
-                "misaligned, a frame or unit wrong). First ones: " + "; ".join(lines[:3]))
-        warnings.append(f"{int(outliers.sum())} outlier pose(s) left out: " + "; ".join(lines))
+    outliers, response, found = leave_out_outliers(dataset, fits, raw[:n], fit_set.wrench, room,
+                                                   lambda keep: fitted(keep).model.wrench(raw[:n]))
+    warnings += found
     result = fitted(~outliers)
     excitation = check_excitation(fit_set.wrench[~outliers])  # an outlier's load skews the plan's shape
     weak = excitation.condition > CONDITION_WARN

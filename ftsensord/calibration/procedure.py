@@ -94,6 +94,9 @@ def summary(cal: Calibration) -> str:
     if cal.nonlinear is not None and report["nonlinear"]["validation_rmse"]:
         lines.append(f"nonlinear (residual {cal.nonlinear.fit_rms_residual_t * 1e6:.2f} uT) validation RMSE: "
                      + format_rmse(report["nonlinear"]["validation_rmse"]))
+    if cal.nonlinear is None:  # the part is judged by the nonlinear fit: say that it was not
+        lines.append("nonlinear fit skipped: the part's departures from the model (silicone that stiffens, "
+                     "magnets tilted) were not judged")
     lines.append(f"sigma(KA): forces {sv['forces'][0]:.3g}..{sv['forces'][-1]:.3g} N/uT (isotropy {iso['forces']:.2f}), "
                  f"torques {sv['torques'][0]:.3g}..{sv['torques'][-1]:.3g} Nm/uT (isotropy {iso['torques']:.2f})")
     return "\n".join(lines)
