@@ -35,9 +35,12 @@ from ftsensord.calibration.dataset import Dataset
 from ftsensord.calibration.fit import rmse
 from ftsensord.calibration.nlfit import nonlinear_rmse
 from ftsensord.calibration.procedure import simulate_dataset
+from ftsensord.chip.mlx90393 import HALL_SATURATION_T
 from ftsensord.cli import main as ftsensord
 from ftsensord.model import se3
-from ftsensord.sim import default_scene
+from ftsensord.model.linear import SENSOR_RANGE
+from ftsensord.sim import PhysicalScene, SimSensor, default_scene
+from ftsensord.sim.loads import FixedOrientation, StaticLoad
 
 #: The pose spoilt where a kind spoils one (a fit pose, 200 g: index 7 of the plan), and the chips.
 POSE, CHIP, OTHER_CHIP = 7, 3, 5
@@ -45,10 +48,18 @@ POSE, CHIP, OTHER_CHIP = 7, 3, 5
 
 @dataclass
 class Source:
-    """The clean dataset, and how to record the same plan on a part built differently."""
+    """The clean dataset, and the same plan recorded again on a part built differently."""
 
     clean: Dataset
-    record: Callable[[Callable[..., None]], Dataset]
+    size: dict[str, int]
+    #: The part the last kind recorded again was built as (None: the default scene's).
+    scene: PhysicalScene | None = None
+
+    def record(self, build: Callable[[SimSensor], None]) -> Dataset:
+        """The plan recorded on the default scene with its sensor1 changed by ``build``."""
+        self.scene = default_scene()
+        build(self.scene.sensors[0])
+        return simulate_dataset(self.scene, "sensor1", "six-axis", seed=0, **self.size)  # type: ignore[arg-type]
 
 
 def copy(ds: Dataset, **arrays: np.ndarray) -> Dataset:
@@ -195,7 +206,7 @@ def _degrees(src: Source) -> Dataset:
 
 def _magnets(change: Callable[[np.ndarray, np.random.Generator], np.ndarray]) -> Callable[[Source], Dataset]:
     def make(src: Source) -> Dataset:
-        def build(sensor) -> None:  # type: ignore[no-untyped-def]
+        def build(sensor: SimSensor) -> None:
             g = sensor.geometry
             sensor.geometry = replace(g, magnet_axis=change(g.magnet_axis, np.random.default_rng(5)))
         return src.record(build)
@@ -216,7 +227,7 @@ def _tilted(axis: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 
 def _stiffening(src: Source) -> Dataset:
-    def build(sensor) -> None:  # type: ignore[no-untyped-def]
+    def build(sensor: SimSensor) -> None:
         sensor.stiffening = 0.3
     return src.record(build)
 
@@ -258,7 +269,7 @@ class Outcome:
     """What `ftsensord calibrate` did with one kind: "refused", "warned" or "silent", the
     message (the refusal, or the warnings), the same with ``--linear-only``, and where a
     file was written its validation RMSE, worst axis, as a multiple of the clean fit's
-    (linear; nonlinear where fitted)."""
+    (linear; nonlinear where fitted), and its error on large loads of the part (`large_loads`)."""
 
     kind: str
     what: str
@@ -266,6 +277,7 @@ class Outcome:
     message: str
     linear_only: str
     validation: str
+    large: str = ""
 
 
 def calibrate(path: Path, out: Path, *options: str) -> tuple[int, str, str]:
@@ -288,14 +300,15 @@ def classify(code: int, stdout: str, stderr: str) -> tuple[str, str]:
     return ("warned", " / ".join(warnings)) if warnings else ("silent", "")
 
 
-def judge(kind: str, src: Source, work: Path, baseline: dict[str, np.ndarray], options: tuple[str, ...]) -> Outcome:
+def judge(kind: str, src: Source, work: Path, baseline: dict[str, np.ndarray], options: tuple[str, ...],
+          large_count: int) -> Outcome:
     what, make = KINDS[kind]
     ds = make(src)
     path, out = work / f"{kind}.json", work / f"{kind}-cal.json"
     ds.save(path)
     outcome, message = classify(*calibrate(path, out, *options))
     message = message.replace(f"{work}/", "")  # the temporary folder: noise in a table
-    validation = ""
+    validation = large = ""
     if outcome != "refused":
         # A part recorded again is judged on its own validation poses; a spoilt file on the clean ones.
         truth = ds if kind in RECORDED else src.clean
@@ -305,8 +318,11 @@ def judge(kind: str, src: Source, work: Path, baseline: dict[str, np.ndarray], o
         validation = f"linear {lin:.2f}x"
         if cal.nonlinear is not None:
             validation += f", nonlinear {float(np.max(nonlinear_rmse(cal.nonlinear, val) / baseline['nonlinear'])):.2f}x"
+        if large_count:
+            scene = src.scene if kind in RECORDED and src.scene is not None else default_scene()
+            large = large_loads(cal, scene, large_count)
     lin_outcome = outcome if options == LINEAR_ONLY else classify(*calibrate(path, out, *LINEAR_ONLY))[0]
-    return Outcome(kind, what, outcome, message, lin_outcome, validation)
+    return Outcome(kind, what, outcome, message, lin_outcome, validation, large)
 
 
 #: The quick mode calibrates with the linear fit alone: every check of the data is made
@@ -314,30 +330,63 @@ def judge(kind: str, src: Source, work: Path, baseline: dict[str, np.ndarray], o
 LINEAR_ONLY = ("--linear-only",)
 
 
+#: Large loads each written file is judged on in the full mode (none in the quick one).
+LARGE_LOADS = 100
 #: The kinds that record the plan again on a part built differently.
 RECORDED = ("magnets-reversed", "magnets-tilted", "silicone-stiffening")
 
 
 def source(quick: bool) -> Source:
     """The real dataset (the default scene's sensor1 as `ftsensord dataset` records it),
-    smaller in the quick mode, and how to record the same plan on a changed part."""
+    smaller in the quick mode."""
     size = dict(poses=60, validation_poses=20, samples=4, no_load_poses=12) if quick else \
         dict(poses=193, validation_poses=60, samples=100, no_load_poses=24)
+    return Source(simulate_dataset(None, "sensor1", "six-axis", seed=0, **size), size)  # type: ignore[arg-type]
 
-    def record(build: Callable[..., None]) -> Dataset:
-        scene = default_scene()
-        build(scene.sensors[0])
-        return simulate_dataset(scene, "sensor1", "six-axis", seed=0, **size)  # type: ignore[arg-type]
 
-    return Source(simulate_dataset(None, "sensor1", "six-axis", seed=0, **size), record)  # type: ignore[arg-type]
+def large_loads(cal: Calibration, scene: PhysicalScene, count: int) -> str:
+    """RMS |F| and |M| error of a written calibration on ``count`` large loads of the
+    part it stands for (as benchmarks/accuracy.py's: |F| 10-50 N, torques to the range,
+    each at a random orientation in the room; the exact field, no noise), linear and
+    nonlinear (a fall-back takes the linear estimate, as the daemon does); loads that
+    saturate a chip are counted and left out."""
+    rng = np.random.default_rng(1000)
+    estimator = cal.nonlinear.estimator() if cal.nonlinear is not None else None
+    errors: dict[str, list[np.ndarray]] = {"linear": [], "nonlinear": []}
+    fell = saturated = 0
+    for _ in range(count):
+        w = rng.uniform(-1, 1, 6)
+        f = w[:3] / np.linalg.norm(w[:3]) * rng.uniform(10, 50)
+        w = np.concatenate([np.clip(f, -SENSOR_RANGE[:3], SENSOR_RANGE[:3]), w[3:] * SENSOR_RANGE[3:]])
+        scene.set_load("sensor1", StaticLoad(w))
+        scene.set_orientation("sensor1", FixedOrientation(se3.exp_so3(rng.normal(0, 1, 3) * np.pi)))
+        b = np.concatenate([scene.field_t(a, 0.0) for a in cal.addresses])
+        if np.any(np.abs(b) >= HALL_SATURATION_T):  # a chip would clip: the daemon's degraded mode, not judged here
+            saturated += 1
+            continue
+        linear = cal.model.wrench(b)
+        errors["linear"].append(linear - w)
+        if estimator is not None:
+            e = estimator.estimate(b)
+            fell += not e.converged
+            errors["nonlinear"].append((cal.nonlinear.wrench(e.xi) if e.converged else linear) - w)  # type: ignore[union-attr]
+    out = []
+    for name, err in errors.items():
+        if err:
+            e = np.array(err)
+            out.append(f"{name} {np.sqrt(np.mean(np.sum(e[:, :3] ** 2, axis=1))):.3g} N, "
+                       f"{1e3 * np.sqrt(np.mean(np.sum(e[:, 3:] ** 2, axis=1))):.3g} mNm")
+    used = count - saturated
+    return "; ".join(out) + (f" ({fell} of {used} fell back)" if estimator is not None else "") \
+        + (f"; {saturated} left out, a chip saturated" if saturated else "")
 
 
 def render(outcomes: list[Outcome], command: str, elapsed: float, samples: str) -> str:
     rows = ["| kind | what was done | outcome | `--linear-only` | message | validation RMSE if written "
-            "(worst axis / clean fit's) |", "|---|---|---|---|---|---|"]
+            "(worst axis / clean fit's) | large loads if written (RMS error) |", "|---|---|---|---|---|---|---|"]
     for o in outcomes:
         rows.append(f"| {o.kind} | {o.what} | {o.outcome} | {o.linear_only} | {o.message.replace('|', '/')} | "
-                    f"{o.validation or '-'} |")
+                    f"{o.validation or '-'} | {o.large or '-'} |")
     counts = {k: sum(o.outcome == k for o in outcomes[1:]) for k in ("refused", "warned", "silent")}
     head = (f"Command: `{command}`; {elapsed:.0f} s. {samples}. {len(outcomes) - 1} pathological kinds and the "
             f"clean control: {counts['refused']} refused, {counts['warned']} warned, {counts['silent']} silent.")
@@ -355,11 +404,16 @@ def main(argv: list[str] | None = None) -> int:
         work = Path(tmp)
         options = LINEAR_ONLY if args.quick else ()
         clean = calibrate_clean(src, work, options)
-        outcomes = [judge(k, src, work, clean, options) for k in kinds]
+        outcomes = [judge(k, src, work, clean, options, 0 if args.quick else LARGE_LOADS) for k in kinds]
     samples = (f"Source: {len(src.clean)} poses ({int((src.clean.split == 'fit').sum())} fit, "
                f"{int((src.clean.split == 'validation').sum())} validation, "
                f"{int((src.clean.split == 'no-load').sum())} no-load), {src.clean.samples_per_pose} readings a pose")
     samples += "; calibrated with `--linear-only`" if args.quick else "; calibrated as `ftsensord calibrate` does"
+    samples += (f". The clean fit: its largest pose kept at {float(clean['sigma']):.2g} sigma (outliers: beyond 8), "
+                f"its chips' responses at most {100 * float(clean['mismatch']):.0f} % off the model's (refused: beyond "
+                f"40), its plan's condition number {float(clean['condition']):.3g} (warned: above 150)"
+                + (f", its nonlinear residual {float(clean['residual']):.2g}x the noise (warned: above 2)"
+                   if "residual" in clean else ""))
     print(render(outcomes, "python benchmarks/pathological.py" + (" --quick" if args.quick else ""),
                  time.monotonic() - start, samples))
     return 0 if all(o.outcome != "silent" for o in outcomes[1:]) else 1
@@ -374,7 +428,11 @@ def calibrate_clean(src: Source, work: Path, options: tuple[str, ...]) -> dict[s
     assert code == 0, errors
     cal = Calibration.load(out)
     val = src.clean.select(src.clean.split == "validation")
-    return {"linear": rmse(cal.model, val),
+    figures = {"sigma": cal.report["largest_pose_kept_sigma"], "mismatch": cal.report["chip_response_mismatch"],
+               "condition": cal.report["wrench_excitation"]["condition"]}
+    if cal.nonlinear is not None:
+        figures["residual"] = cal.nonlinear.fit_rms_residual_t / float(np.median(src.clean.flux_sem_t))
+    return {"linear": rmse(cal.model, val), **{k: np.array(v) for k, v in figures.items()},
             **({} if cal.nonlinear is None else {"nonlinear": nonlinear_rmse(cal.nonlinear, val)})}
 
 

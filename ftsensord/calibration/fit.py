@@ -3,9 +3,11 @@
 Steps: the position map of each chip from its sweep (eq. 1); the deflection
 twist of every pose by registration (eqs. 5-11); A from twists and flux
 (eq. 15, A = Xi B^+), K from wrenches (eq. 18, K = W (A B)^+), with an explicit
-zero: w = K A (b - b0). Before fitting, the dataset is checked: the flux must
-be a chip's, the wrenches must excite all six axes independently, or K is not
-identifiable and the fit refuses, naming what the plan lacks; a K that is not
+zero: w = K A (b - b0). Before fitting, the dataset is checked (`checks`: numbers,
+units, signs, dead or stuck chips, the magnets' polarity); the wrenches must excite
+all six axes independently (`excitation`), or K is not identifiable and the fit
+refuses, naming what the plan lacks. A few outlier poses are left out, named
+(`screening`), the chips' order is checked against their places, and a K that is not
 positive definite is refused too.
 
 The room's field (the Earth's, fixed in the world) turns in the sensor's frame
@@ -47,7 +49,6 @@ from .excitation import CONDITION_WARN, check_excitation
 from .rig import simulate_sweeps
 from .screening import check_chip_order, leave_out_outliers
 
-
 #: Parameters of one row of the affine flux-to-twist fit: 24 slopes and an offset.
 MIN_FIT_POSES = 26
 #: How the fit treats the room's field: "none" (a field-free room), "geometry" (project
@@ -66,8 +67,6 @@ ROOM_SIGNAL_FACTOR = 10.0
 #: that is not uniform (steel or a motor near the sensor). 3x: pure noise stays under
 #: the floor itself (Marchenko-Pastur edge) with margin.
 ROOM_EXTRA_FACTOR = 3.0
-
-
 
 
 def noise_floor(flux_sem: np.ndarray) -> float:
@@ -305,7 +304,7 @@ def fit(dataset: Dataset, geometry: SensorGeometry | None = None, *, room_field:
     def fitted(keep: np.ndarray) -> LinearFit:
         return fit_linear(raw[:n][keep], twists[:n][keep], fit_set.wrench[keep], floor, room, zero)
 
-    outliers, response, found = leave_out_outliers(dataset, fits, raw[:n], fit_set.wrench, room,
+    outliers, response, found, largest = leave_out_outliers(dataset, fits, raw[:n], fit_set.wrench, room,
                                                    lambda keep: fitted(keep).model.wrench(raw[:n]))
     warnings += found
     result = fitted(~outliers)
@@ -321,7 +320,7 @@ def fit(dataset: Dataset, geometry: SensorGeometry | None = None, *, room_field:
     check_stiffness(result.model.K, f"{dataset.where()}the fitted stiffness"
                     + ("" if room is not None else " (the room's field was not rejected: if the sensor was turned "
                        "in it, record no-load poses, docs/calibration.md)"), excitation.explain() if weak else "")
-    check_chip_order(dataset, response, geometry)
+    mismatch = check_chip_order(dataset, response, geometry)
     used = fit_set.select(~outliers)
     validation = dataset.select((dataset.split == "validation") & clean)
     sv = singular_values_ka(result.model)
@@ -329,6 +328,7 @@ def fit(dataset: Dataset, geometry: SensorGeometry | None = None, *, room_field:
         "fit_poses": len(used), "validation_poses": len(validation),
         "left_out_saturated": int(saturated.sum()), "samples_per_pose": dataset.samples_per_pose,
         "left_out_copies": int(copies.sum()), "left_out_outliers": fits[outliers].tolist(),
+        "largest_pose_kept_sigma": largest, "chip_response_mismatch": mismatch,
         "position_map": pmap_source, "room_field": room_report,
         "wrench_excitation": {"singular_values": excitation.singular_values.tolist(),
                               "condition": excitation.condition},

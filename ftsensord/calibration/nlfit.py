@@ -329,8 +329,8 @@ def departure(cal: NonlinearCalibration, fitted: Dataset) -> tuple[str, ...]:
     masses = fitted.mass_kg[ok]
     light, heavy = masses == masses.min(), masses == masses.max()
     growth = float(np.sqrt(np.mean(scaled[heavy] ** 2) / np.mean(scaled[light] ** 2))) if light.any() else 1.0
-    why = (f"its error grows {growth:.2g}x from the {masses.min():g} kg to the {masses.max():g} kg poses, faster "
-           "than the load: the silicone stiffens with load" if growth > GROWTH_WARN
+    why = (f"its error grows {growth:.2g}x from the {masses.min():g} kg to the {masses.max():g} kg poses: the "
+           "silicone stiffens with load, which its linear compliance cannot follow" if growth > GROWTH_WARN
            else "silicone that stiffens, magnets tilted, or a field not uniform across the sensor")
     force, torque = (np.linalg.norm(fitted.wrench[:, a:a + 3], axis=1).max() for a in (0, 3))
     return (f"the nonlinear model departs from this part: it leaves {cal.fit_rms_residual_t * 1e6:.3g} uT RMS on "

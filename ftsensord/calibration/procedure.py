@@ -96,7 +96,7 @@ def summary(cal: Calibration) -> str:
                      + format_rmse(report["nonlinear"]["validation_rmse"]))
     if cal.nonlinear is None:  # the part is judged by the nonlinear fit: say that it was not
         lines.append("nonlinear fit skipped: the part's departures from the model (silicone that stiffens, "
-                     "magnets tilted) were not judged")
+                     "a field it lacks) were not judged")
     lines.append(f"sigma(KA): forces {sv['forces'][0]:.3g}..{sv['forces'][-1]:.3g} N/uT (isotropy {iso['forces']:.2f}), "
                  f"torques {sv['torques'][0]:.3g}..{sv['torques'][-1]:.3g} Nm/uT (isotropy {iso['torques']:.2f})")
     return "\n".join(lines)

@@ -170,10 +170,10 @@ def describe_outliers(dataset: Dataset, index: np.ndarray, residual: np.ndarray,
 
 def leave_out_outliers(dataset: Dataset, fits: np.ndarray, flux: np.ndarray, wrench: np.ndarray,
                        room: np.ndarray | None, estimate: Callable[[np.ndarray], np.ndarray]
-                       ) -> tuple[np.ndarray, FluxResponse, list[str]]:
+                       ) -> tuple[np.ndarray, FluxResponse, list[str], float]:
     """Screen the fit poses (``fits``: their indices in ``dataset``; their ``flux`` and
-    ``wrench``): the outlier mask, the flux's response on the poses kept, and a warning
-    naming each outlier. ``estimate(keep)`` fits on the poses kept and returns every fit
+    ``wrench``): the outlier mask, the flux's response on the poses kept, a warning
+    naming each outlier, and the largest pose kept in sigmas (for the report). ``estimate(keep)`` fits on the poses kept and returns every fit
     pose's estimated wrench. Refuses more than `MAX_OUTLIER_SHARE` of them."""
     def residuals(keep: np.ndarray) -> np.ndarray:  # the wrench's (N, Nm), and the flux's own (T)
         return np.column_stack([estimate(keep) - wrench,
@@ -181,23 +181,25 @@ def leave_out_outliers(dataset: Dataset, fits: np.ndarray, flux: np.ndarray, wre
 
     outliers, residual, sigma = screen_poses(residuals, len(fits))
     response = FluxResponse(flux[~outliers], wrench[~outliers], room)
+    largest = float((np.abs(residual[~outliers]) / sigma).max())
     if not outliers.any():
-        return outliers, response, []
+        return outliers, response, [], largest
     lines = describe_outliers(dataset, fits[outliers], residual[outliers], sigma, response)
     if outliers.sum() > MAX_OUTLIER_SHARE * len(fits):
         raise CalibrationError(
             f"{dataset.where()}{int(outliers.sum())} of {len(fits)} fit poses do not follow their loads (more than "
             f"the few, {100 * MAX_OUTLIER_SHARE:g} %, that can be left out): the log and the flux disagree (poses "
             "misaligned, a frame or unit wrong). First ones: " + "; ".join(lines[:3]))
-    return outliers, response, [f"{int(outliers.sum())} outlier pose(s) left out: " + "; ".join(lines)]
+    return outliers, response, [f"{int(outliers.sum())} outlier pose(s) left out: " + "; ".join(lines)], largest
 
 
-def check_chip_order(dataset: Dataset, response: FluxResponse, geometry: SensorGeometry) -> None:
+def check_chip_order(dataset: Dataset, response: FluxResponse, geometry: SensorGeometry) -> float:
     """Refuse chips that do not respond to the loads as their places on the ring say,
-    naming a swapped pair when swapping two makes every chip agree."""
+    naming a swapped pair when swapping two makes every chip agree; else return the
+    largest share of a chip's response the model leaves (for the report)."""
     mismatch = response.mismatch(geometry)
     if mismatch.max() <= MISMATCH_LIMIT:
-        return
+        return float(mismatch.max())
     n = geometry.n_chips
     best = None
     for i, j in combinations(range(n), 2):
