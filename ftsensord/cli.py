@@ -355,10 +355,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_dataset)
 
     p = sub.add_parser("calibrate", help="fit K, A and the zero from a dataset",
-                       description="Fit the linear model w = K A (b - b0) to the dataset's fit poses, "
-                                   "report the RMSE per axis on its validation poses, and write the "
-                                   "calibration file. Refuses (exit 2) when the dataset does not excite all "
-                                   "six axes, saying what to add to the plan.")
+                       description="Fit w = K A (b - b0) to the dataset's fit poses, report the validation "
+                                   "RMSE per axis and write the calibration file. Refuses (exit 2), naming the "
+                                   "cause and the fix, data it can tell are wrong; leaves out outlier and repeated "
+                                   "poses, and keeps a weak plan or a part off the model, with a WARNING line each.")
     p.add_argument("dataset", help="dataset file (from `ftsensord dataset` or a real calibration run)")
     p.add_argument("-o", "--output", required=True, help="calibration file to write (JSON)")
     p.add_argument("--report", help="also write a Markdown report (and a PNG plot beside it)")

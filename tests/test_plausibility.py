@@ -68,7 +68,7 @@ def test_flux_in_the_wrong_unit_is_refused_at_load_naming_the_unit(clean, tmp_pa
 def test_flux_beyond_the_hall_elements_range_is_refused_by_the_fit_naming_the_chip(clean):
     bad = copy(clean, flux_t=clean.flux_t.copy())
     bad.flux_t[7, 3 * 2 + 1] = 0.0612  # 61 mT on chip 3's y: past the 50 mT the element saturates at
-    with pytest.raises(CalibrationError, match=r"poses\[7\].flux_t: chip 0x0E \(y\) reads 0.0612: .*50 mT"):
+    with pytest.raises(CalibrationError, match=r"poses\[7\].flux_t: chip 0x0E \(index 2\) reads 0.0612 on y: .*50 mT"):
         fit(bad)
 
 
@@ -92,9 +92,12 @@ def test_a_saturated_chip_that_leaves_too_few_poses_is_named(clean):
 
 # --- a stiffness that is no stiffness ---------------------------------------------------------------
 def test_a_k_that_is_not_positive_definite_is_refused_by_the_fit(clean):
-    flipped = copy(clean, wrench=-clean.wrench)  # wrenches recorded with the wrong sign
-    with pytest.raises(CalibrationError, match="K is not positive definite"):
+    # Wrenches recorded with the wrong sign, gravity too (so the masses agree with them).
+    flipped = copy(clean, wrench=-clean.wrench, gravity_dir=-clean.gravity_dir)
+    with pytest.raises(CalibrationError, match="K is negative definite.*magnets face the other way.*gravity_dir"):
         fit(flipped)
+    with pytest.raises(CalibrationError, match=r"the sign of Fx, Fy, Fz, Mx, My, Mz is flipped"):
+        fit(copy(clean, wrench=-clean.wrench))  # the masses, lever arms and gravity say otherwise
 
 
 def test_a_calibration_file_with_a_k_not_positive_definite_names_file_and_key(clean, tmp_path):
@@ -219,7 +222,8 @@ def test_a_poor_fit_kept_on_request_carries_its_warnings_into_file_and_report(cl
     with pytest.raises(CalibrationError, match=r"refused: magnet 5 was fitted [\d.]+ mm from its drawn place"):
         fit_nonlinear(bad)
     nl = fit_nonlinear(bad, allow_poor_fit=True)
-    assert len(nl.warnings) == 1 and "magnet 5" in nl.warnings[0]
+    assert "magnet 5" in nl.warnings[0]
+    assert len(nl.warnings) == 2 and "departs from this part" in nl.warnings[1]  # its residual, 60 uT of garbage
     result = fit(clean)
     report = {**result.report, "nonlinear": {"warnings": list(nl.warnings)}}
     path = tmp_path / "cal.json"

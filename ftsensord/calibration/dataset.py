@@ -32,6 +32,9 @@ UNITS = {"flux": "T", "wrench": "N, Nm", "length": "m", "mass": "kg"}
 #: "no-load": the sensor alone (rod and mass off) at an orientation: what the room's field
 #: does to the chips (docs/calibration.md).
 SPLITS = ("fit", "validation", "no-load")
+#: The wrench's axes and their units, in the order of ``wrench``.
+AXES = ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
+AXIS_UNITS = ("N", "N", "N", "Nm", "Nm", "Nm")
 #: The per-pose arrays of a `Dataset`, as named in the file's "poses" entries.
 POSE_FIELDS = ("split", "mass_kg", "lever_m", "gravity_dir", "wrench", "flux_t", "flux_sem_t", "saturated")
 #: The largest |flux| a chip's reading can have (T): its Hall element saturates at 50 mT
@@ -212,7 +215,10 @@ def _rotation(row: Table, gravity_dir: list[float]) -> np.ndarray:
     g = np.asarray(gravity_dir)
     # 1e-3 (0.06 deg): both come from one robot pose; a larger gap is a pose written wrong.
     if np.linalg.norm(g) == 0 or not np.allclose(R.T @ [0.0, 0.0, -1.0], g / np.linalg.norm(g), atol=1e-3):
-        raise row.fail("rotation", f"R_w0 with R^T (0, 0, -1) = gravity_dir {gravity_dir}", R.tolist())
+        gap = np.degrees(np.arccos(np.clip(-R[2] @ g / max(np.linalg.norm(g), 1e-300), -1.0, 1.0)))
+        raise row.fail("rotation", f"R_w0 with R^T (0, 0, -1) = gravity_dir {gravity_dir} (they disagree by "
+                       f"{gap:.3g} deg: angles in degrees taken as radians, or another pose's rotation?)",
+                       R.tolist())
     return R
 
 

@@ -3,9 +3,11 @@
 Steps: the position map of each chip from its sweep (eq. 1); the deflection
 twist of every pose by registration (eqs. 5-11); A from twists and flux
 (eq. 15, A = Xi B^+), K from wrenches (eq. 18, K = W (A B)^+), with an explicit
-zero: w = K A (b - b0). Before fitting, the dataset is checked: the flux must
-be a chip's, the wrenches must excite all six axes independently, or K is not
-identifiable and the fit refuses, naming what the plan lacks; a K that is not
+zero: w = K A (b - b0). Before fitting, the dataset is checked (`checks`: numbers,
+units, signs, dead or stuck chips, the magnets' polarity); the wrenches must excite
+all six axes independently (`excitation`), or K is not identifiable and the fit
+refuses, naming what the plan lacks. A few outlier poses are left out, named
+(`screening`), the chips' order is checked against their places, and a K that is not
 positive definite is refused too.
 
 The room's field (the Earth's, fixed in the world) turns in the sensor's frame
@@ -26,27 +28,27 @@ import numpy as np
 from ..errors import CalibrationError
 from ..model.geometry import SensorGeometry
 from ..model.linear import (
-    SENSOR_RANGE,
     LinearModel,
     PositionMap,
     deflection_twist,
     fit_position_map,
 )
 from ..sim.chip import NOISELESS
-from .dataset import Dataset, implausible_flux
+from .checks import (
+    check_chips,
+    check_finite,
+    check_flux_scale,
+    check_loads,
+    check_plausible,
+    check_polarity,
+    check_stiffness,
+    duplicate_poses,
+)
+from .dataset import AXES, Dataset
+from .excitation import CONDITION_WARN, check_excitation
 from .rig import simulate_sweeps
+from .screening import check_chip_order, leave_out_outliers
 
-AXES = ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
-UNITS = ("N", "N", "N", "Nm", "Nm", "Nm")
-
-#: Excitation test on the wrenches, each axis scaled by the sensor's range and
-#: centred: a direction excited less than 1e-3 of the strongest is below what a
-#: calibration rig knows its loads to (masses and lever arms to about 0.1 %),
-#: so K along it would be fitted to rig error. Also the condition-number limit.
-EXCITATION_TOL = 1e-3
-#: A tied axis is explained by another axis when that one carries at least this
-#: share of its variation: enough to name a partner, not every trace of round-off.
-PARTNER_SHARE = 0.1
 #: Parameters of one row of the affine flux-to-twist fit: 24 slopes and an offset.
 MIN_FIT_POSES = 26
 #: How the fit treats the room's field: "none" (a field-free room), "geometry" (project
@@ -65,82 +67,6 @@ ROOM_SIGNAL_FACTOR = 10.0
 #: that is not uniform (steel or a motor near the sensor). 3x: pure noise stays under
 #: the floor itself (Marchenko-Pastur edge) with margin.
 ROOM_EXTRA_FACTOR = 3.0
-
-
-@dataclass(frozen=True)
-class Excitation:
-    """How well the wrenches of a dataset excite the six axes.
-
-    ``singular_values`` are those of the centred, range-scaled wrench matrix;
-    ``not_excited`` lists axes that hardly vary; ``tied`` lists groups of axes
-    that vary only together (each a linear function of the others).
-    """
-
-    singular_values: np.ndarray
-    not_excited: list[str]
-    tied: list[list[str]]
-
-    @property
-    def rank(self) -> int:
-        s = self.singular_values
-        return int(np.sum(s > EXCITATION_TOL * s[0])) if s[0] > 0 else 0
-
-    @property
-    def condition(self) -> float:
-        s = self.singular_values
-        return math.inf if s[-1] == 0 else float(s[0] / s[-1])
-
-    @property
-    def identifiable(self) -> bool:
-        return self.rank == 6 and self.condition <= 1 / EXCITATION_TOL
-
-    def describe(self) -> list[str]:
-        """Plain words: 'Mz is not excited', 'Mx and Fy always vary together'."""
-        out = [f"{a} is not excited" for a in self.not_excited]
-        for group in self.tied:
-            out.append(" and ".join(group) + " always vary together")
-        if not out and not self.identifiable:
-            out.append(f"the wrenches are nearly dependent (condition number {self.condition:.3g})")
-        return out
-
-    def advice(self) -> str:
-        forces, torques = {"Fx", "Fy", "Fz"}, {"Mx", "My", "Mz"}
-        involved = set(self.not_excited) | {a for g in self.tied for a in g}
-        force_only = set(self.not_excited) & forces or any(set(g) <= forces for g in self.tied)
-        tips = []
-        if not involved or involved & torques:
-            tips.append("add poses whose lever arm points off the shaft axis (e.g. along x and along y), "
-                        "or a torque fixture, so that every torque varies independently of the forces")
-        if not involved or force_only:
-            tips.append("add orientations that turn gravity along every axis of the sensor")
-        return "; ".join(tips)
-
-
-def check_excitation(wrench: np.ndarray) -> Excitation:
-    """Excitation of the six wrench axes by ``wrench`` (n, 6; N, Nm)."""
-    scaled = (wrench - wrench.mean(axis=0)) / SENSOR_RANGE
-    s = np.linalg.svd(scaled, compute_uv=False)
-    s = np.concatenate([s, np.zeros(6 - len(s))])  # fewer poses than axes
-    std = scaled.std(axis=0)
-    excited = std > EXCITATION_TOL * std.max() if std.max() > 0 else np.zeros(6, dtype=bool)
-    not_excited = [AXES[k] for k in range(6) if not excited[k]]
-    groups: list[set[int]] = []
-    for k in np.flatnonzero(excited):
-        others = [j for j in np.flatnonzero(excited) if j != k]
-        if not others:
-            continue
-        coef, *_ = np.linalg.lstsq(scaled[:, others], scaled[:, k], rcond=None)
-        residual = scaled[:, k] - scaled[:, others] @ coef
-        if residual.std() > EXCITATION_TOL * std[k]:
-            continue  # axis k varies on its own
-        share = np.abs(coef) * std[others] / std[k]
-        group = {int(k)} | {int(j) for j, sh in zip(others, share) if sh >= PARTNER_SHARE}
-        for g in [g for g in groups if g & group]:
-            group |= g
-            groups.remove(g)
-        groups.append(group)
-    tied = sorted([[AXES[k] for k in sorted(g)] for g in groups])
-    return Excitation(s, not_excited, tied)
 
 
 def noise_floor(flux_sem: np.ndarray) -> float:
@@ -248,34 +174,6 @@ def position_maps(dataset: Dataset, geometry: SensorGeometry) -> tuple[PositionM
     return PositionMap(np.array([f[0] for f in fits]), np.array([f[1] for f in fits])), source
 
 
-def check_plausible(dataset: Dataset) -> None:
-    """Refuse flux no MLX90393 can report, naming the chip and the pose."""
-    judged = np.repeat(~dataset.saturated, 3, axis=1)  # a saturated chip's values are no readings
-    for name, values in (("flux_t", dataset.flux_t), ("flux_sem_t", dataset.flux_sem_t)):
-        why = implausible_flux(values, dataset.saturated)
-        if why is not None:
-            k, j = np.unravel_index(int(np.argmax(np.where(judged, np.abs(values), 0.0))), values.shape)
-            raise CalibrationError(f"{dataset.where()}poses[{k}].{name}: chip 0x{dataset.addresses[j // 3]:02X} "
-                                   f"({'xyz'[j % 3]}) reads {values[k, j]:.4g}: {why}")
-    for a, sweep in dataset.sweeps.items():
-        why = implausible_flux(sweep.flux_t)
-        if why is not None:
-            raise CalibrationError(f"{dataset.where()}position_sweeps.0x{a:02X}.flux_t: {why}")
-
-
-def check_stiffness(K: np.ndarray, what: str) -> None:
-    """Refuse a K that is not positive definite: a stiffness stores energy under any
-    deflection, x^T K x > 0 (the test of the symmetric part, which a fitted, slightly
-    asymmetric K is judged by; unaffected by the mixed units N/m and Nm/rad, since
-    scaling the axes is a congruence, which keeps the signs of the eigenvalues)."""
-    lowest = float(np.linalg.eigvalsh(0.5 * (K + K.T))[0])
-    if not lowest > 0:
-        raise CalibrationError(
-            f"{what}: K is not positive definite (lowest eigenvalue of its symmetric part {lowest:.3g}): some "
-            "deflection would store no energy, or move against its load. The recorded wrenches do not match "
-            "the flux: check their signs, frame and units (N, Nm in {0})")
-
-
 def room_directions(dataset: Dataset, geometry: SensorGeometry, mode: str = "auto"
                     ) -> tuple[np.ndarray | None, dict]:
     """The 3 flux directions (24 x 3, orthonormal) a uniform room field takes, per ``mode``
@@ -327,31 +225,58 @@ class CalibrationResult:
     position_map: PositionMap
     report: dict
     wrench_range: np.ndarray  # the largest |w| per axis over the fit poses (N, Nm)
+    #: Poses left out beside the saturated ones (logged twice, outliers): a mask over the dataset.
+    excluded: np.ndarray | None = None
+
+    @property
+    def warnings(self) -> list[str]:
+        """What was kept against the data's faults, each with its figure (the report's)."""
+        return list(self.report.get("warnings", []))
+
+
+def check_numbers(dataset: Dataset, geometry: SensorGeometry) -> None:
+    """Refuse numbers that cannot be what they claim (`checks`): shapes, no numbers, flux
+    no chip reads, wrenches their own masses do not give. First: nothing else is judged on them."""
+    if dataset.flux_t.shape[1] != 3 * geometry.n_chips:
+        raise CalibrationError(f"the dataset has {dataset.flux_t.shape[1] // 3} chips, the geometry "
+                               f"{geometry.n_chips}")
+    check_finite(dataset)
+    check_plausible(dataset)
+    check_loads(dataset)
+
+
+def check_flux(dataset: Dataset, geometry: SensorGeometry) -> None:
+    """Refuse flux that is not this sensor's (`checks`): far too small, a dead or stuck chip,
+    magnets the other way round. After the plan's checks: those need only the wrenches."""
+    check_flux_scale(dataset)
+    check_chips(dataset)
+    check_polarity(dataset, geometry)
 
 
 def fit(dataset: Dataset, geometry: SensorGeometry | None = None, *, room_field: str = "auto"
         ) -> CalibrationResult:
     """Fit the linear model to the dataset's "fit" poses and validate on the rest.
 
-    Poses where any chip saturated are left out (and counted). ``room_field``
-    (`ROOM_FIELD_MODES`) says how a uniform room field is rejected. Raises
-    `CalibrationError` when the flux is no chip's, the wrenches do not excite
-    all six axes, the flux does not follow them, or K is not positive definite.
+    Poses where any chip saturated are left out (and counted); poses logged twice and a
+    few outlier poses are left out with a warning naming each (``report["warnings"]``).
+    ``room_field`` (`ROOM_FIELD_MODES`) says how a uniform room field is rejected. Raises
+    `CalibrationError` when the data are wrong in a way the checks name (`check_numbers`,
+    `check_flux`), the wrenches do not excite all six axes, more than a few poses do not
+    follow their loads, the chips are out of order, or K is not positive definite.
     """
     geometry = geometry or SensorGeometry.ring()
-    if dataset.flux_t.shape[1] != 3 * geometry.n_chips:
-        raise CalibrationError(f"the dataset has {dataset.flux_t.shape[1] // 3} chips, the geometry "
-                               f"{geometry.n_chips}")
-    check_plausible(dataset)
-    clean = np.asarray(~dataset.saturated.any(axis=1), dtype=bool)
-    fit_set = dataset.select((dataset.split == "fit") & clean)
-    validation = dataset.select((dataset.split == "validation") & clean)
+    check_numbers(dataset, geometry)
+    copies, warnings = duplicate_poses(dataset)
+    saturated = dataset.saturated.any(axis=1)
+    clean = ~saturated & ~copies
+    fits = np.flatnonzero((dataset.split == "fit") & clean)
+    fit_set = dataset.select(fits)
     if len(fit_set) < MIN_FIT_POSES:
-        fits = np.asarray(dataset.split == "fit")
-        counts = dataset.saturated[fits].sum(axis=0)
+        counts = dataset.saturated[dataset.split == "fit"].sum(axis=0)
         chips = ", ".join(f"0x{a:02X} in {n}" for a, n in zip(dataset.addresses, counts) if n)
+        left = int((saturated & (dataset.split == "fit")).sum())
         raise CalibrationError(f"{dataset.where()}{len(fit_set)} usable fit poses; at least {MIN_FIT_POSES} are "
-                               f"needed ({int((~clean[fits]).sum())} left out for saturation"
+                               f"needed ({left} left out for saturation"
                                + (f": chip {chips} poses" if chips else "") + "). A chip saturates near "
                                "50 mT: lighter masses, or a magnet further from that chip")
     excitation = check_excitation(fit_set.wrench)
@@ -361,6 +286,7 @@ def fit(dataset: Dataset, geometry: SensorGeometry | None = None, *, room_field:
             + f" (rank {excitation.rank} of 6, singular values of the range-scaled wrenches "
             + ", ".join(f"{v:.3g}" for v in excitation.singular_values) + "). To fix the plan: "
             + excitation.advice() + ".")
+    check_flux(dataset, geometry)
     room, room_report = room_directions(dataset, geometry, room_field)
     pmap, pmap_source = position_maps(dataset, geometry)
     zero_set = dataset.select((dataset.split == "no-load") & clean)
@@ -374,18 +300,35 @@ def fit(dataset: Dataset, geometry: SensorGeometry | None = None, *, room_field:
     floor = noise_floor(fit_set.flux_sem_t) if fit_set.samples_per_pose > 1 else 0.0
     n = len(fit_set)  # with the room's no-load poses (enough to measure it) the zero is measured
     zero = (raw[n:], twists[n:]) if room is not None and len(zero_set) >= MIN_NO_LOAD_POSES else None
-    result = fit_linear(raw[:n], twists[:n], fit_set.wrench, floor, room, zero)
+
+    def fitted(keep: np.ndarray) -> LinearFit:
+        return fit_linear(raw[:n][keep], twists[:n][keep], fit_set.wrench[keep], floor, room, zero)
+
+    outliers, response, found, largest = leave_out_outliers(dataset, fits, raw[:n], fit_set.wrench, room,
+                                                   lambda keep: fitted(keep).model.wrench(raw[:n]))
+    warnings += found
+    result = fitted(~outliers)
+    excitation = check_excitation(fit_set.wrench[~outliers])  # an outlier's load skews the plan's shape
+    weak = excitation.condition > CONDITION_WARN
+    if weak:
+        warnings.append(f"{excitation.explain()}: expect K's error along it amplified as much; "
+                        f"{excitation.advice()}")
     if result.flux_rank < 6:
         raise CalibrationError(
             f"the flux varies in only {result.flux_rank} directions above the noise floor "
             f"({floor * 1e6:.3g} uT): chips missing, saturated or not moving with the load")
     check_stiffness(result.model.K, f"{dataset.where()}the fitted stiffness"
                     + ("" if room is not None else " (the room's field was not rejected: if the sensor was turned "
-                       "in it, record no-load poses, docs/calibration.md)"))
+                       "in it, record no-load poses, docs/calibration.md)"), excitation.explain() if weak else "")
+    mismatch = check_chip_order(dataset, response, geometry)
+    used = fit_set.select(~outliers)
+    validation = dataset.select((dataset.split == "validation") & clean)
     sv = singular_values_ka(result.model)
     report = {
-        "fit_poses": len(fit_set), "validation_poses": len(validation),
-        "left_out_saturated": int((~clean).sum()), "samples_per_pose": dataset.samples_per_pose,
+        "fit_poses": len(used), "validation_poses": len(validation),
+        "left_out_saturated": int(saturated.sum()), "samples_per_pose": dataset.samples_per_pose,
+        "left_out_copies": int(copies.sum()), "left_out_outliers": fits[outliers].tolist(),
+        "largest_pose_kept_sigma": largest, "chip_response_mismatch": mismatch,
         "position_map": pmap_source, "room_field": room_report,
         "wrench_excitation": {"singular_values": excitation.singular_values.tolist(),
                               "condition": excitation.condition},
@@ -393,8 +336,11 @@ def fit(dataset: Dataset, geometry: SensorGeometry | None = None, *, room_field:
         "singular_values_ka": sv,
         "isotropy": {"forces": sv["forces"][-1] / sv["forces"][0],
                      "torques": sv["torques"][-1] / sv["torques"][0]},
-        "fit_rmse": dict(zip(AXES, rmse(result.model, fit_set).tolist())),
+        "fit_rmse": dict(zip(AXES, rmse(result.model, used).tolist())),
         "validation_rmse": (dict(zip(AXES, rmse(result.model, validation).tolist()))
                             if len(validation) else None),
+        "warnings": warnings,
     }
-    return CalibrationResult(result.model, pmap, report, np.abs(fit_set.wrench).max(axis=0))
+    excluded = copies.copy()
+    excluded[fits[outliers]] = True
+    return CalibrationResult(result.model, pmap, report, np.abs(used.wrench).max(axis=0), excluded)

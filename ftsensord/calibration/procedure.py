@@ -26,13 +26,16 @@ from .thermal import thermal_fit
 NO_LOAD_POSES = 24
 
 
-def simulate_dataset(scene_path: str | Path | None, sensor_name: str, plan: str, *, poses: int,
+def simulate_dataset(scene_path: str | Path | PhysicalScene | None, sensor_name: str, plan: str, *, poses: int,
                      validation_poses: int, samples: int, seed: int, sweeps: bool = True,
                      no_load_poses: int = NO_LOAD_POSES) -> Dataset:
     """Run the paper's calibration procedure (section VII-B) on a simulated sensor of a
-    scene (None: the default scene): each pose's wrench applied, ``samples`` readings
-    averaged; with ``sweeps``, each chip's position-map sweep too."""
-    scene = load_scene(scene_path) if scene_path else default_scene()
+    scene (a file, a scene already built, or None: the default scene): each pose's wrench
+    applied, ``samples`` readings averaged; with ``sweeps``, each chip's position-map sweep too."""
+    if isinstance(scene_path, PhysicalScene):
+        scene, scene_path = scene_path, "given"
+    else:
+        scene = load_scene(scene_path) if scene_path else default_scene()
     if not isinstance(scene, PhysicalScene):
         raise ConfigError(f"{scene_path}: a calibration dataset needs a scene of kind \"sensors\"")
     names = [s.name for s in scene.sensors]
@@ -68,8 +71,9 @@ def calibrate(dataset: Dataset, *, serial: str | None = None, frame: str = "sens
     report = result.report
     nl = None
     if nonlinear:
-        nl = fit_nonlinear(dataset, progress=progress, allow_poor_fit=allow_poor_fit)
-        validation = dataset.select(dataset.split == "validation")
+        used = dataset if result.excluded is None else dataset.select(~result.excluded)  # as the linear fit
+        nl = fit_nonlinear(used, progress=progress, allow_poor_fit=allow_poor_fit)
+        validation = used.select(used.split == "validation")
         report["nonlinear"] = {"gap_mm": nl.gap_m * 1e3, "fit_rms_residual_ut": nl.fit_rms_residual_t * 1e6,
                                "warnings": list(nl.warnings),
                                "validation_rmse": (dict(zip(AXES, nonlinear_rmse(nl, validation).tolist()))
@@ -83,14 +87,25 @@ def summary(cal: Calibration) -> str:
     """What `ftsensord calibrate` prints: poses used, RMSE per axis, singular values of K A."""
     report = cal.report
     sv, iso = report["singular_values_ka"], report["isotropy"]
-    lines = [f"fit on {report['fit_poses']} poses ({report['left_out_saturated']} left out: saturated), "
-             f"validated on {report['validation_poses']}"]
+    lines = [f"WARNING: {w}" for w in warnings(cal)]
+    lines.append(f"fit on {report['fit_poses']} poses ({report['left_out_saturated']} left out: saturated), "
+                 f"validated on {report['validation_poses']}")
     if report["validation_rmse"]:
         lines.append("validation RMSE: " + format_rmse(report["validation_rmse"]))
     lines.append("fit RMSE:        " + format_rmse(report["fit_rmse"]))
     if cal.nonlinear is not None and report["nonlinear"]["validation_rmse"]:
         lines.append(f"nonlinear (residual {cal.nonlinear.fit_rms_residual_t * 1e6:.2f} uT) validation RMSE: "
                      + format_rmse(report["nonlinear"]["validation_rmse"]))
+    if cal.nonlinear is None:  # the part is judged by the nonlinear fit: say that it was not
+        lines.append("nonlinear fit skipped: the part's departures from the model (silicone that stiffens, "
+                     "a field it lacks) were not judged")
     lines.append(f"sigma(KA): forces {sv['forces'][0]:.3g}..{sv['forces'][-1]:.3g} N/uT (isotropy {iso['forces']:.2f}), "
                  f"torques {sv['torques'][0]:.3g}..{sv['torques'][-1]:.3g} Nm/uT (isotropy {iso['torques']:.2f})")
     return "\n".join(lines)
+
+
+def warnings(cal: Calibration) -> list[str]:
+    """Every warning a calibration was written with: the data's (the linear fit's) and the
+    nonlinear model's (kept against its refusal, or departing from the part)."""
+    nonlinear = cal.report.get("nonlinear") or {}
+    return list(cal.report.get("warnings", [])) + list(nonlinear.get("warnings", []))

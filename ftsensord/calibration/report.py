@@ -6,8 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..model.linear import LinearModel
-from .dataset import Dataset
-from .fit import AXES, UNITS
+from .dataset import AXES, AXIS_UNITS, Dataset
 
 #: The paper's Table II, RMS error per axis (N; mNm for torques).
 PAPER_TABLE_II = (0.2338, 0.1136, 0.3775, 4.1e-3, 10.6e-3, 8.5e-3)
@@ -17,7 +16,7 @@ def format_rmse(values: dict[str, float] | list[float]) -> str:
     """'Fx 0.0269 N, ... Mz 1.39 mNm' (torques in mNm, as the paper)."""
     vals = list(values.values()) if isinstance(values, dict) else list(values)
     return ", ".join(f"{a} {v:.3g} N" if u == "N" else f"{a} {v * 1e3:.3g} mNm"
-                     for a, u, v in zip(AXES, UNITS, vals))
+                     for a, u, v in zip(AXES, AXIS_UNITS, vals))
 
 
 def rmse_table(rows: list[tuple[str, list[float] | None, str]]) -> str:
@@ -88,8 +87,11 @@ def write_report(path: str | Path, model: LinearModel, report: dict, validation:
     ]
     warnings = (report.get("nonlinear") or {}).get("warnings") or []
     if warnings:
-        lines[2:2] = ["## WARNING: the nonlinear calibration was kept against its refusal", "",
-                      *[f"- {w}" for w in warnings], ""]
+        lines[2:2] = ["## WARNING: the nonlinear calibration was kept against its refusal or departs from the part",
+                      "", *[f"- {w}" for w in warnings], ""]
+    if report.get("warnings"):
+        lines[2:2] = ["## WARNING: the data had faults, left out or kept as named", "",
+                      *[f"- {w}" for w in report["warnings"]], ""]
     if plotted:
         lines += ["## Applied against measured (validation poses)", "", f"![validation]({png.name})", ""]
     elif len(validation):
