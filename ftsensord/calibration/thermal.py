@@ -161,7 +161,8 @@ def thermal_fit(dataset: Dataset, fit_model: Any, laws: ThermalLaws = ThermalLaw
     drift = np.zeros(dataset.flux_t.shape[1])
     corrected, result = lawful, fit_model(lawful, room_field="geometry")
     for _ in range(DRIFT_PASSES):
-        drift = drift + fit_drift(corrected, result.model, temperature.mean_c)
+        used = corrected if result.excluded is None else corrected.select(~result.excluded)  # as the fit
+        drift = drift + fit_drift(used, result.model, temperature.mean_c)
         corrected = replace(lawful, flux_t=lawful.flux_t - np.outer(celsius - temperature.mean_c, drift))
         result = fit_model(corrected)
     return corrected, replace(temperature, drift_t_per_k=drift), result
