@@ -95,6 +95,7 @@ class Control:
         self.waiting: dict[bytes, deque[tuple[list[bytes], bytes]]] = {}
         self.held = 0  # requests in self.waiting
         self.answered = 0
+        self.dropped = 0  # replies not sent: the client's queue was full (it does not read) or it left
         self._status_reply: tuple[object, dict[str, Any], bytes] | None = None  # (cycle key, reply, its JSON)
         self._changes = 0  # requests other than status handled: each may change the status
 
@@ -152,7 +153,9 @@ class Control:
         try:
             self.socket.send_multipart([*envelope, encoded], zmq.NOBLOCK)
         except zmq.ZMQError:
-            pass  # the peer left: nobody to tell
+            # Its queue full (EAGAIN: ZMQ_SNDHWM replies unread) or the peer gone
+            # (EHOSTUNREACH, with ZMQ_ROUTER_MANDATORY): dropped, counted in `status`.
+            self.dropped += 1
 
     def _cycle_key(self) -> object:
         """What the status depends on beyond this process's requests: the cycles run

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import zmq
@@ -28,6 +28,7 @@ from ..chip.i2c import Bus, BusTiming
 from ..errors import ConfigError, FtsensordError
 from . import wire
 from .config import Calibrations, Config, SensorConfig, check_rate, reload_config
+from .connections import ConnectionCap, MemoryReturn
 from .control import Control
 from .filters import WrenchFilter
 from .frames import TIP
@@ -47,10 +48,13 @@ class Daemon:
 
     def __init__(self, config: Config, bus: Bus, publisher: zmq.Socket, control: zmq.Socket | None = None, *,
                  notifier: Notifier | None = None, clock: Callable[[], float] = time.monotonic,
-                 wall: Callable[[], float] = time.time, orientation: zmq.Socket | None = None):
+                 wall: Callable[[], float] = time.time, orientation: zmq.Socket | None = None,
+                 caps: Sequence[ConnectionCap] = ()):
         self.config = config
         self.bus = bus
         self.publisher = publisher
+        self.caps = caps  # on the bound sockets: drained between cycles (`loop.serve_until`)
+        self.memory = MemoryReturn(list(caps), time.monotonic)
         self.notifier = notifier or Notifier(environ={})
         self.clock, self.wall = clock, wall
         chips = [MLX90393(bus, a, sleep=bus.sleep) for a in config.addresses]
@@ -107,6 +111,7 @@ class Daemon:
             deadline, lateness = self.timing.skip_missed(deadline, self.clock(), self.period_s)
             self.cycle(lateness)
             deadline += self.period_s
+            self.memory.check()  # right after the cycle: a trim takes up to ms, in the slack
             self.serve_until(deadline)
             if self.reload_requested:  # SIGHUP, handled between cycles
                 self.reload_requested = False
@@ -119,7 +124,8 @@ class Daemon:
 
     def serve_until(self, deadline: float) -> None:
         """Answer control requests until ``deadline`` within this cycle's budget (`loop.serve_until`)."""
-        serve_until(self.control, deadline, self.period_s, self.clock, self.bus.sleep, lambda: self.stop_requested)
+        serve_until(self.control, deadline, self.period_s, self.clock, self.bus.sleep, lambda: self.stop_requested,
+                    self.caps)
 
     def handle_control(self) -> None:
         """Answer every waiting control request now (tests call this between cycles)."""

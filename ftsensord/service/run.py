@@ -19,7 +19,8 @@ from ..acquire.bus import open_bus, parse_bus_spec
 from ..chip.i2c import Bus
 from ..errors import ConfigError, FtsensordError
 from .config import Config, ensure_private_dir, is_loopback
-from .control import MAX_REQUEST
+from .connections import ConnectionCap, raise_descriptor_limit
+from .control import MAX_PER_CYCLE, MAX_REQUEST
 from .daemon import Daemon
 from .orientation import open_receiver
 from .sdnotify import Notifier
@@ -34,6 +35,15 @@ log = logging.getLogger("ftsensord")
 PUB_HWM = 8
 #: Control requests queued before more are dropped (a flood cannot eat memory).
 CONTROL_HWM = 100
+#: Replies queued per control client: four cycles' worth (MAX_PER_CYCLE each), so a client
+#: that reads, if late, loses none even when libzmq's I/O thread is slow to take them; one
+#: that does not read pins at most this many (a `status` is about 5.4 KB: 700 KB), the
+#: rest are dropped and counted (`Control.dropped`).
+REPLY_HWM = 4 * MAX_PER_CYCLE
+#: A connection that has not finished ZeroMQ's handshake by then is closed (ms; libzmq's
+#: default is 30 s): one that never speaks frees its place under the cap (`ConnectionCap`)
+#: within a second; a real client's handshake takes well under a millisecond.
+HANDSHAKE_MS = 1000
 
 
 def open_configured_bus(config: Config, clock: MonotonicClock | VirtualClock | None = None) -> Bus:
@@ -134,14 +144,18 @@ def secure_control(context: zmq.Context, control: zmq.Socket, config: Config) ->
 
 def make_sockets(context: zmq.Context, config: Config) -> tuple[zmq.Socket, zmq.Socket, object | None]:
     """The publisher, the control socket, and the CURVE authenticator (None without CURVE)."""
+    context.setsockopt(zmq.HANDSHAKE_IVL, HANDSHAKE_MS)  # every socket made from here on
     publisher = context.socket(zmq.PUB)
     publisher.setsockopt(zmq.SNDHWM, PUB_HWM)
+    publisher.setsockopt(zmq.RCVHWM, CONTROL_HWM)  # subscription messages: bounded like requests
     publisher.setsockopt(zmq.LINGER, 0)
     for endpoint in config.publish:
         bind(publisher, endpoint)
     control = context.socket(zmq.ROUTER)
     control.setsockopt(zmq.MAXMSGSIZE, MAX_REQUEST)
     control.setsockopt(zmq.RCVHWM, CONTROL_HWM)
+    control.setsockopt(zmq.SNDHWM, REPLY_HWM)
+    control.setsockopt(zmq.ROUTER_MANDATORY, 1)  # a reply that cannot go raises, so it is counted
     control.setsockopt(zmq.LINGER, 0)
     auth = secure_control(context, control, config)
     bind(control, config.control)
@@ -149,6 +163,7 @@ def make_sockets(context: zmq.Context, config: Config) -> tuple[zmq.Socket, zmq.
 
 
 def run(config: Config) -> int:
+    raise_descriptor_limit()
     notifier = Notifier()
     notifier.check_rate(config.rate_hz, f"{config.path}: rate_hz")
     locks = lock_runtime(config)  # before the bus: a second daemon must not touch the chips
@@ -168,7 +183,9 @@ def _serve(config: Config, bus: Bus, notifier: Notifier) -> int:
     publisher, control, auth = make_sockets(context, config)
     endpoint = config.orientation_endpoint
     orientation = open_receiver(context, endpoint, bind) if endpoint else None
-    daemon = Daemon(config, bus, publisher, control, notifier=notifier, orientation=orientation)
+    caps = [ConnectionCap(publisher, "publish"), ConnectionCap(control, "control"),
+            *([ConnectionCap(orientation, "orientation")] if orientation is not None else [])]
+    daemon = Daemon(config, bus, publisher, control, notifier=notifier, orientation=orientation, caps=caps)
 
     def stop(signum: int, frame: object) -> None:
         daemon.stop_requested = True
@@ -184,6 +201,8 @@ def _serve(config: Config, bus: Bus, notifier: Notifier) -> int:
     try:
         return daemon.run()
     finally:
+        for cap in caps:
+            cap.close()
         publisher.close()
         if auth is not None:
             auth.stop()  # type: ignore[attr-defined]
