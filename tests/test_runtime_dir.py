@@ -4,6 +4,7 @@ and a second daemon on the same folder refuses to start, naming the first."""
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 
@@ -146,3 +147,32 @@ def test_a_second_daemon_refuses_to_start_naming_the_first(tmp_path):
     assert (rt / LOCK_NAME).read_text().strip() == str(os.getpid())
     for f in fd:
         os.close(f)
+
+
+def test_a_deleted_folder_ends_the_daemon_and_a_second_one_keeps_its_sockets(tmp_path):
+    """The folder deleted under a running daemon (logind at logout, a /tmp cleaner): it
+    exits 1 naming what is gone (systemd restarts it), so it never runs on unreachable or
+    beside a second daemon in a new folder of the same name; and stopping, it deletes
+    only the sockets it made, not the second daemon's."""
+    rt = tmp_path / "rt"
+    config_path = write_config(tmp_path, extra=f'publish = "ipc://{rt}/pub"\ncontrol = "ipc://{rt}/ctl"')
+    run = [sys.executable, "-m", "ftsensord", "run", "--config", str(config_path)]
+    first = subprocess.Popen(run, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    second = None
+    try:
+        assert client.ControlClient(f"ipc://{rt}/ctl", timeout_s=10).status()["cycles"] >= 0
+        shutil.rmtree(rt)
+        second = subprocess.Popen(run, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        out = first.communicate(timeout=10)[0]  # a cycle sees it (10 ms); 10 s for a loaded host
+        assert first.returncode == 1, out[-2000:]
+        assert f"{rt}/" in out and "deleted" in out, out[-2000:]
+        status = client.ControlClient(f"ipc://{rt}/ctl", timeout_s=10).status()
+        assert status["cycles"] >= 0 and second.poll() is None  # the second's sockets survived the first's exit
+        assert (rt / "ctl").exists() and (rt / "pub").exists()
+    finally:
+        for proc in (first, second):
+            if proc is not None and proc.poll() is None:
+                proc.terminate()
+                proc.wait(timeout=30)
+    assert second.returncode == 0
+    assert not (rt / "ctl").exists()  # the second removed its own at its clean exit

@@ -36,6 +36,7 @@ from .gravity import Gravity
 from .loop import LoopTiming, serve_until
 from .orientation import OrientationReceiver
 from .pipeline import SensorPipeline, SensorSample, tip_wrench, use_estimator
+from .runtime import RuntimeFiles
 from .sdnotify import Notifier
 from .status import ChipLedger, status_line, status_reply
 from .tare import Tares, carry_tares
@@ -49,12 +50,13 @@ class Daemon:
     def __init__(self, config: Config, bus: Bus, publisher: zmq.Socket, control: zmq.Socket | None = None, *,
                  notifier: Notifier | None = None, clock: Callable[[], float] = time.monotonic,
                  wall: Callable[[], float] = time.time, orientation: zmq.Socket | None = None,
-                 caps: Sequence[ConnectionCap] = ()):
+                 caps: Sequence[ConnectionCap] = (), runtime: RuntimeFiles | None = None):
         self.config = config
         self.bus = bus
         self.publisher = publisher
         self.caps = caps  # on the bound sockets: drained between cycles (`loop.serve_until`)
         self.memory = MemoryReturn(list(caps), time.monotonic)
+        self.runtime = runtime  # the files in the runtime folders: gone, the daemon exits 1
         self.notifier = notifier or Notifier(environ={})
         self.clock, self.wall = clock, wall
         chips = [MLX90393(bus, a, sleep=bus.sleep) for a in config.addresses]
@@ -104,12 +106,18 @@ class Daemon:
             log.warning("chip 0x%02X failed to start: %s", address, exc)
 
     def run(self) -> int:
-        """Cycle until asked to stop; then put the chips to idle. Returns the exit status."""
+        """Cycle until asked to stop; then put the chips to idle. Returns the exit status:
+        0, or 1 when the runtime folder's files are gone (systemd restarts the service)."""
         self.start()
         deadline = self.clock()
         while not self.stop_requested:
             deadline, lateness = self.timing.skip_missed(deadline, self.clock(), self.period_s)
             self.cycle(lateness)
+            lost = self.runtime.lost() if self.runtime is not None else None
+            if lost is not None:  # a few lstat calls a cycle, about 10 us: unreachable is worse
+                log.error("%s; exiting for a restart with a new folder", lost)
+                self.shutdown()
+                return 1
             deadline += self.period_s
             self.memory.check()  # right after the cycle: a trim takes up to ms, in the slack
             self.serve_until(deadline)

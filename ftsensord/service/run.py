@@ -7,6 +7,7 @@ chips back to idle and exit 0; SIGHUP reloads calibration and configuration.
 from __future__ import annotations
 
 import fcntl
+import functools
 import logging
 import os
 import signal
@@ -23,6 +24,7 @@ from .connections import ConnectionCap, raise_descriptor_limit
 from .control import MAX_PER_CYCLE, MAX_REQUEST
 from .daemon import Daemon
 from .orientation import open_receiver
+from .runtime import RuntimeFiles
 from .sdnotify import Notifier
 
 if TYPE_CHECKING:
@@ -62,16 +64,18 @@ def _ipc_path(endpoint: str) -> Path | None:
     return Path(endpoint[len("ipc://"):]) if endpoint.startswith("ipc://") else None
 
 
-def bind(socket: zmq.Socket, endpoint: str) -> None:
+def bind(socket: zmq.Socket, endpoint: str, files: RuntimeFiles | None = None) -> None:
     """Bind, creating an ipc socket's folder (0700) and refusing one another user could
     tamper with (`ensure_private_dir`); the socket file gets mode 0660 (the service's
-    group may connect, nobody else)."""
+    group may connect, nobody else) and is recorded in ``files`` (watched, removed at exit)."""
     path = _ipc_path(endpoint)
     if path is not None:
         ensure_private_dir(path.parent)
     socket.bind(endpoint)
     if path is not None:
         os.chmod(path, 0o660)
+        if files is not None:
+            files.made(path)
 
 
 #: The lock file in each folder holding the daemon's ipc sockets.
@@ -84,17 +88,19 @@ def endpoints(config: Config) -> list[str]:
     return [*config.publish, config.control, *([orientation] if orientation else [])]
 
 
-def lock_runtime(config: Config) -> list[int]:
+def lock_runtime(config: Config, files: RuntimeFiles | None = None) -> list[int]:
     """Take the exclusive lock (flock) in every folder of the configured ipc endpoints;
     refuse, naming the first daemon's pid, when another daemon holds one. Returns the
     open descriptors: the locks last while they stay open (the kernel drops them at exit,
-    even after kill -9)."""
+    even after kill -9). Each lock file is recorded in ``files`` (watched, kept at exit)."""
     folders = sorted({p.parent for p in map(_ipc_path, endpoints(config)) if p is not None})
     held: list[int] = []
     try:
         for folder in folders:
             ensure_private_dir(folder)
             held.append(_lock(folder / LOCK_NAME))
+            if files is not None:
+                files.made(folder / LOCK_NAME, held[-1], remove=False)
     except BaseException:
         for fd in held:
             os.close(fd)
@@ -142,15 +148,17 @@ def secure_control(context: zmq.Context, control: zmq.Socket, config: Config) ->
     return None
 
 
-def make_sockets(context: zmq.Context, config: Config) -> tuple[zmq.Socket, zmq.Socket, object | None]:
-    """The publisher, the control socket, and the CURVE authenticator (None without CURVE)."""
+def make_sockets(context: zmq.Context, config: Config,
+                 files: RuntimeFiles | None = None) -> tuple[zmq.Socket, zmq.Socket, object | None]:
+    """The publisher, the control socket, and the CURVE authenticator (None without CURVE);
+    ``files``: where the ipc sockets made are recorded."""
     context.setsockopt(zmq.HANDSHAKE_IVL, HANDSHAKE_MS)  # every socket made from here on
     publisher = context.socket(zmq.PUB)
     publisher.setsockopt(zmq.SNDHWM, PUB_HWM)
     publisher.setsockopt(zmq.RCVHWM, CONTROL_HWM)  # subscription messages: bounded like requests
     publisher.setsockopt(zmq.LINGER, 0)
     for endpoint in config.publish:
-        bind(publisher, endpoint)
+        bind(publisher, endpoint, files)
     control = context.socket(zmq.ROUTER)
     control.setsockopt(zmq.MAXMSGSIZE, MAX_REQUEST)
     control.setsockopt(zmq.RCVHWM, CONTROL_HWM)
@@ -158,7 +166,7 @@ def make_sockets(context: zmq.Context, config: Config) -> tuple[zmq.Socket, zmq.
     control.setsockopt(zmq.ROUTER_MANDATORY, 1)  # a reply that cannot go raises, so it is counted
     control.setsockopt(zmq.LINGER, 0)
     auth = secure_control(context, control, config)
-    bind(control, config.control)
+    bind(control, config.control, files)
     return publisher, control, auth
 
 
@@ -166,26 +174,28 @@ def run(config: Config) -> int:
     raise_descriptor_limit()
     notifier = Notifier()
     notifier.check_rate(config.rate_hz, f"{config.path}: rate_hz")
-    locks = lock_runtime(config)  # before the bus: a second daemon must not touch the chips
+    files = RuntimeFiles()
+    locks = lock_runtime(config, files)  # before the bus: a second daemon must not touch the chips
     try:
         try:
             bus = open_configured_bus(config)
         except (OSError, FtsensordError) as exc:
             raise ConfigError(f"{config.path}: bus: cannot open {config.bus!r}: {exc}") from exc
-        return _serve(config, bus, notifier)
+        return _serve(config, bus, notifier, files)
     finally:
         for fd in locks:
             os.close(fd)
 
 
-def _serve(config: Config, bus: Bus, notifier: Notifier) -> int:
+def _serve(config: Config, bus: Bus, notifier: Notifier, files: RuntimeFiles) -> int:
     context = zmq.Context()
-    publisher, control, auth = make_sockets(context, config)
+    publisher, control, auth = make_sockets(context, config, files)
     endpoint = config.orientation_endpoint
-    orientation = open_receiver(context, endpoint, bind) if endpoint else None
+    orientation = open_receiver(context, endpoint, functools.partial(bind, files=files)) if endpoint else None
     caps = [ConnectionCap(publisher, "publish"), ConnectionCap(control, "control"),
             *([ConnectionCap(orientation, "orientation")] if orientation is not None else [])]
-    daemon = Daemon(config, bus, publisher, control, notifier=notifier, orientation=orientation, caps=caps)
+    daemon = Daemon(config, bus, publisher, control, notifier=notifier, orientation=orientation, caps=caps,
+                    runtime=files)
 
     def stop(signum: int, frame: object) -> None:
         daemon.stop_requested = True
@@ -211,7 +221,4 @@ def _serve(config: Config, bus: Bus, notifier: Notifier) -> int:
             orientation.close()
         context.term()
         bus.close()
-        for endpoint in endpoints(config):
-            path = _ipc_path(endpoint)
-            if path is not None and os.path.lexists(path):
-                path.unlink()  # ours: the folder is checked and locked
+        files.remove_own()
