@@ -74,6 +74,7 @@ class Daemon:
         self.started_at = clock()
         self.stop_requested = self.reload_requested = False
         self.ready = False
+        self._last_seq: int | None = None
         self.calibrations = Calibrations().remember(config)
 
     @staticmethod
@@ -155,6 +156,11 @@ class Daemon:
         t_mono, t_wall = self.clock(), self.wall()
         # Every stream's sequence number is the cycle's: a deadline the loop skipped is a jump.
         seq = self.timing.cycles + self.timing.missed
+        if self._last_seq is not None and seq != self._last_seq + 1:
+            # A gap in the input (a stall, skipped deadlines): the filters' memory holds only
+            # samples from before it, which say nothing of the load now; restart on this one.
+            self._restart_filters()
+        self._last_seq = seq
         self.orientations.drain(start)
         samples: dict[str, SensorSample] = {}
         for p in self.sensors:
@@ -188,6 +194,12 @@ class Daemon:
         self.notifier.watchdog()
         if self.timing.cycles % max(1, int(self.config.rate_hz)) == 0:
             self.notifier.status(self.status_line())
+
+    def _restart_filters(self) -> None:
+        for p in self.sensors:
+            p.filter.reset()
+        if self.gravity is not None:
+            self.gravity.restart()
 
     def _publish(self, topic: str, kind: int, seq: int, t_mono: float, t_wall: float, flags: int,
                  values: np.ndarray) -> None:
