@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import zmq
 
-from ftsensord.calibration.calfile import Calibration
+from ftsensord.calibration.calfile import MAX_CALIBRATION_BYTES, Calibration
 from ftsensord.docfile import MAX_DEPTH, load_toml, parse_json
 from ftsensord.errors import ConfigError
 from ftsensord.service.config import builtin_path
@@ -89,6 +89,23 @@ def test_a_sighup_with_such_a_calibration_is_a_refused_reload_not_an_exit(tmp_pa
     with pytest.raises(ConfigError, match=str(cal)):
         rig.daemon.reload()
     assert [s.seq for s in rig.cycles(2)["wrench/sensor1"]] == [2, 3]  # the running calibration stays
+
+
+def test_a_huge_calibration_file_is_refused_by_its_size_naming_file_limit_and_size(tmp_path):
+    """A 200 MB calibration file (the issue's, which stalled the loop 7.75 s on SIGHUP) is
+    refused by its size before it is read, the reload refused, the running calibration kept."""
+    cal = tmp_path / "sensor1.json"
+    shutil.copy(builtin_path("sim-sensor1.json"), cal)
+    rig = Rig(tmp_path, sensor1_cal=str(cal))
+    rig.cycles(2)
+    with cal.open("r+b") as f:
+        f.truncate(200 * 2**20)  # sparse: no disk written, and the same size to stat()
+    reply = rig.request(cmd="reload")
+    assert not reply["ok"]
+    assert str(cal) in reply["error"] and f"{200 * 2**20} bytes" in reply["error"], reply
+    assert f"{MAX_CALIBRATION_BYTES} bytes a calibration file may hold" in reply["error"], reply
+    assert [s.seq for s in rig.cycles(2)["wrench/sensor1"]] == [2, 3]  # the running calibration stays
+    rig.close()
 
 
 @pytest.mark.parametrize(("text", "expected"), [

@@ -22,6 +22,10 @@ from ..model.linear import LinearModel, PositionMap
 from .dataset import parse_addresses
 from .nlfit import NonlinearCalibration
 
+#: Largest calibration file read, bytes: the packaged ones (8 chips, nonlinear model
+#: included) are 22 KB; 256 KiB is over ten times that, and JSON of that size parses in
+#: about 9 ms (docs/reliability.md), where a 200 MB file stalled the loop for 7.75 s.
+MAX_CALIBRATION_BYTES = 256 * 1024
 CAL_FORMAT = "ftsensord-calibration"
 CAL_VERSION = 1
 CAL_UNITS = {"K": "N/m, Nm/rad", "A": "m/T, rad/T", "H": "T/m, T/rad", "zero_flux": "T", "wrench": "N, Nm",
@@ -76,7 +80,7 @@ class Calibration:
     @classmethod
     def load(cls, path: str | Path) -> Calibration:
         """Read and validate; errors name the file, the key and what was expected."""
-        raw = load_json(path)
+        raw = load_json(path, MAX_CALIBRATION_BYTES, "calibration file")
         doc = Table(raw, path)
         doc.only({"format", "version", "units", "sensor", "model", "K", "A", "H", "zero_flux", "fit_report",
                   "wrench_range", "position_map", "nonlinear", "room_directions", "checksum"})
