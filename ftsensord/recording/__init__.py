@@ -88,29 +88,66 @@ class CsvWriter:
         self.file = open(self.path, "w", encoding="ascii")
         self._head(f"# ftsensord record of {self.name}; recording (this line is replaced at a clean end)")
         self.columns_written = False
+        self.error: OSError | None = None  # the first write error (a full disk): the rows written are counted
 
     def _head(self, text: str) -> None:
         self.file.seek(0)
         self.file.write(text[:CSV_HEAD_WIDTH - 1].ljust(CSV_HEAD_WIDTH - 1) + "\n")
 
     def write(self, sample: wire.Sample) -> None:
-        if not self.columns_written:
-            names = value_columns(self.stream, len(sample.values))
-            self.file.write(",".join(["seq", "t_mono_s", "t_wall_s", "flags", *names]) + "\n")
-            self.columns_written = True
-        self.file.write(f"{sample.seq},{sample.t_mono:.6f},{sample.t_wall:.6f},{sample.flags},"
-                        + ",".join(f"{v:.9g}" for v in sample.values) + "\n")
+        try:
+            if not self.columns_written:
+                names = value_columns(self.stream, len(sample.values))
+                self.file.write(",".join(["seq", "t_mono_s", "t_wall_s", "flags", *names]) + "\n")
+                self.columns_written = True
+            self.file.write(f"{sample.seq},{sample.t_mono:.6f},{sample.t_wall:.6f},{sample.flags},"
+                            + ",".join(f"{v:.9g}" for v in sample.values) + "\n")
+        except OSError as exc:
+            self.error = self.error or exc
+            raise
 
     def flush(self) -> None:
-        self.file.flush()
+        try:
+            self.file.flush()
+        except OSError as exc:
+            self.error = self.error or exc
+            raise
 
     def close(self, tallies: dict[str, Tally]) -> None:
+        """Complete the file: the first line says how many samples it holds. After a write
+        error (a disk full) the rows are counted in the file itself, a torn last one said,
+        and the error raised again: the tally counts samples received, not written."""
         t = tallies.get(self.stream, Tally())
-        self.file.flush()
-        end = self.file.tell()
-        self._head(f"# ftsensord record of {self.name}; {t.samples} samples, {t.gaps} missed (sequence gaps)")
-        self.file.seek(end)
-        self.file.close()
+        if self.error is None:
+            try:
+                self.flush()
+                end = self.file.tell()
+                self._head(f"# ftsensord record of {self.name}; {t.samples} samples, {t.gaps} missed (sequence gaps)")
+                self.file.seek(end)
+                self.file.close()
+                return
+            except OSError:
+                pass  # self.error holds it
+        error = self.error or OSError("write failed")
+        try:
+            self.file.close()  # the fd is closed even when the flush of what is left fails again
+        except OSError:
+            pass
+        rows, torn = _csv_rows(self.path)
+        # The first line is rewritten in place: no new block, so it fits on a full disk too.
+        head = (f"# ftsensord record of {self.name}; {rows} samples of {t.samples} received, then a write "
+                f"error ({error.strerror or error})" + ("; the last row is torn" if torn else ""))
+        with open(self.path, "r+b") as f:
+            f.write(head[:CSV_HEAD_WIDTH - 1].ljust(CSV_HEAD_WIDTH - 1).encode("ascii", "replace"))
+        raise error
+
+
+def _csv_rows(path: Path) -> tuple[int, bool]:
+    """Complete data rows in a CSV record (after its first line and its column names), and
+    whether a torn row follows them."""
+    lines = path.read_bytes().split(b"\n")
+    torn = lines[-1] != b""  # a file ending in a newline splits into a last empty piece
+    return max(0, len(lines) - 1 - 2), torn
 
 
 def _rows_dtype(count: int) -> np.dtype:
