@@ -464,6 +464,14 @@ def test_endpoints_stay_on_loopback_unless_secured_or_made_public_on_purpose(tmp
         load_config(write_config(tmp_path, extra='[security]\ncurve_server_cert = "server.key_secret"'))
 
 
+@pytest.mark.parametrize("key", ["control", "publish"])
+def test_an_abstract_socket_endpoint_is_refused_naming_the_file_and_key(tmp_path, key):
+    """ipc://@name is Linux's abstract namespace: no file, so no mode or group keeps other
+    users out, and no folder to lock; refused as configured, not as `[Errno 2] '@name'`."""
+    path = write_config(tmp_path, extra=f'{key} = "ipc://@ftsensord-{key}"')
+    assert_names_file_and_key(load_config, path, key, "an ipc:// endpoint with a path")
+
+
 def test_no_control_command_takes_a_path(rig):
     for request in ({"cmd": "reload", "path": "/etc/shadow"}, {"cmd": "tare", "file": "/tmp/x"},
                     {"cmd": "status", "config": "/root/x.toml"}, {"cmd": "set", "calibration": "../x.json"}):
