@@ -6,6 +6,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import socket
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -558,3 +560,23 @@ def test_a_linear_estimate_beyond_the_calibrations_loads_is_flagged_extrapolated
     assert all(abs(s.values[0]) < EXTRAPOLATION_MARGIN * fitted[0] for s in out)  # the output is inside...
     assert all(s.flags & wire.FLAG_EXTRAPOLATED for s in out)  # ...the load is not
     rig.close()
+
+
+def test_the_first_status_imports_nothing(tmp_path):
+    """An import in the first `status` is paid inside a cycle's control budget: np.percentile
+    imported numpy.ma on its first call (50 ms, five cycles at 100 Hz). Checked in a fresh
+    interpreter, where nothing is imported yet that a test before could have imported."""
+    code = f"""
+import sys
+sys.path.insert(0, {str(Path(__file__).resolve().parents[1])!r})
+from tests.test_daemon import Rig
+from pathlib import Path
+rig = Rig(Path({str(tmp_path)!r}))
+rig.cycles(3)
+before = set(sys.modules)
+assert rig.request(cmd="status")["ok"]
+print(sorted(set(sys.modules) - before))
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "[]", out.stdout

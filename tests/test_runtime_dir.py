@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import subprocess
 import sys
+import time
 
 import pytest
 import zmq
@@ -176,3 +178,35 @@ def test_a_deleted_folder_ends_the_daemon_and_a_second_one_keeps_its_sockets(tmp
                 proc.wait(timeout=30)
     assert second.returncode == 0
     assert not (rt / "ctl").exists()  # the second removed its own at its clean exit
+
+
+def _caught(pid: int, signum: int) -> bool:
+    """Whether process ``pid`` has a handler for ``signum`` (/proc/PID/status SigCgt)."""
+    for line in open(f"/proc/{pid}/status"):
+        if line.startswith("SigCgt:"):
+            return bool(int(line.split()[1], 16) >> (signum - 1) & 1)
+    return False
+
+
+@pytest.mark.parametrize("when", ["handler", "lock", "sockets"])
+def test_a_sigterm_while_starting_is_a_clean_exit(tmp_path, when):
+    """systemctl stop right after start: as soon as the process handles SIGTERM at all
+    (while still importing), once it holds the lock, once its sockets exist: exit 0 and
+    no socket left behind, never a death by the signal."""
+    rt = tmp_path / "rt"
+    config_path = write_config(tmp_path, extra=f'publish = "ipc://{rt}/pub"\ncontrol = "ipc://{rt}/ctl"')
+    proc = subprocess.Popen([sys.executable, "-m", "ftsensord", "run", "--config", str(config_path)],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    ready = {"handler": lambda: _caught(proc.pid, signal.SIGTERM), "lock": (rt / LOCK_NAME).exists,
+             "sockets": (rt / "ctl").exists}[when]
+    try:
+        while not ready():
+            assert proc.poll() is None, proc.communicate()[0]
+            time.sleep(1e-3)  # polled at 1 ms: the start takes about a second
+        proc.send_signal(signal.SIGTERM)
+        out = proc.communicate(timeout=30)[0]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, out[-2000:]
+    assert not (rt / "ctl").exists() and not (rt / "pub").exists()

@@ -13,10 +13,9 @@ far below the limit, however many connections clients open.
 
 from __future__ import annotations
 
-import ctypes
 import resource
 import socket
-from typing import Any, Callable
+from typing import Any
 
 import zmq
 from zmq.utils.monitor import parse_monitor_message
@@ -97,39 +96,3 @@ def _shut_down(fd: int) -> None:
         sock.detach()
 
 
-
-#: After connections close, memory is given back this long after the last one (s): libzmq
-#: frees a gone peer's queues in its I/O thread after the event, and a burst of closes
-#: then costs one trim, not one each.
-TRIM_AFTER_S = 1.0
-
-
-class MemoryReturn:
-    """Gives the heap's free pages back to the system once connections have closed.
-
-    glibc keeps freed memory in its arenas (libzmq's I/O thread has its own), so the
-    queues of clients gone stay in the RSS until malloc_trim; a daemon under MemoryMax
-    must give back what departed clients held. Without glibc (musl), nothing to do.
-    """
-
-    def __init__(self, caps: list[ConnectionCap], clock: Callable[[], float]):
-        self.caps, self.clock = caps, clock
-        self._left = 0
-        self._since: float | None = None
-        self.trims = 0
-        try:
-            self._trim: Callable[[int], int] | None = ctypes.CDLL(None).malloc_trim
-        except AttributeError:
-            self._trim = None
-
-    def check(self) -> None:
-        """Called between cycles, after the caps' `drain`."""
-        left = sum(c.left for c in self.caps)
-        now = self.clock()
-        if left != self._left:
-            self._left, self._since = left, now
-        elif self._since is not None and now - self._since >= TRIM_AFTER_S:
-            self._since = None
-            if self._trim is not None:
-                self._trim(0)
-                self.trims += 1

@@ -77,7 +77,7 @@ class Controlled(Protocol):
 
     def untare(self, sensors: list[str]) -> dict[str, Any]: ...
 
-    def reload(self) -> dict[str, Any]: ...
+    def request_reload(self, envelope: list[bytes] | None) -> dict[str, Any] | None: ...
 
     def set_loop(self, rate_hz: float, averaging: int, lowpass_hz: float) -> dict[str, Any]: ...
 
@@ -232,9 +232,9 @@ class Control:
         sensors = [self._sensor(args["sensor"])] if args.get("sensor") is not None else self.target.sensor_names
         return self.target.untare(sensors)
 
-    def _reload(self, args: dict[str, Any], envelope: list[bytes]) -> dict[str, Any]:
+    def _reload(self, args: dict[str, Any], envelope: list[bytes]) -> dict[str, Any] | None:
         self._only(args, set())
-        return self.target.reload()
+        return self.target.request_reload(envelope)
 
     def _set(self, args: dict[str, Any], envelope: list[bytes]) -> dict[str, Any]:
         self._only(args, {"rate_hz", "averaging", "lowpass_hz", "estimator", "sensor"})

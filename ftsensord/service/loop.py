@@ -12,6 +12,7 @@ from collections import deque
 from typing import Callable, Sequence
 
 import numpy as np
+import numpy.ma  # noqa: F401 (np.percentile imports it on its first call: 50 ms, a whole cycle, in the first `status`)
 import zmq
 
 from .connections import ConnectionCap
@@ -32,6 +33,7 @@ class LoopTiming:
         self.lateness: deque[float] = deque(maxlen=STATS_WINDOW)
         self.durations: deque[float] = deque(maxlen=STATS_WINDOW)  # a cycle's start to its last publish
         self.publish_delays: deque[float] = deque(maxlen=STATS_WINDOW)  # t_mono to the first stream's send
+        self._last_seq: int | None = None
 
     def skip_missed(self, deadline: float, now: float, period_s: float) -> tuple[float, float]:
         """The deadline to run now and its lateness: deadlines a whole period or more
@@ -43,6 +45,12 @@ class LoopTiming:
             deadline += skipped * period_s
             lateness -= skipped * period_s
         return deadline, lateness
+
+    def jumped(self, seq: int) -> bool:
+        """Whether ``seq``, this cycle's sequence number, skips any after the last cycle's."""
+        jumped = self._last_seq is not None and seq != self._last_seq + 1
+        self._last_seq = seq
+        return jumped
 
     def begin(self, start: float, lateness: float, period_s: float) -> bool:
         """A cycle starts at ``start``, ``lateness`` after its deadline; returns whether it is late."""

@@ -11,6 +11,7 @@ import functools
 import logging
 import os
 import signal
+from collections.abc import Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -21,6 +22,7 @@ from ..chip.i2c import Bus
 from ..errors import ConfigError, FtsensordError
 from .config import Config, ensure_private_dir, is_loopback
 from .connections import ConnectionCap, raise_descriptor_limit
+from .host import HostGuard
 from .control import MAX_PER_CYCLE, MAX_REQUEST
 from .daemon import Daemon
 from .orientation import open_receiver
@@ -170,7 +172,39 @@ def make_sockets(context: zmq.Context, config: Config,
     return publisher, control, auth
 
 
-def run(config: Config) -> int:
+class Signals:
+    """SIGTERM and SIGINT ask the daemon to stop, SIGHUP to reload, from the start of `run`
+    on; one that comes before the daemon exists is kept, and handed to it (`attach`)."""
+
+    def __init__(self, early: Iterable[int] = ()) -> None:
+        self.stop = self.reload = False
+        self.daemon: Daemon | None = None
+        for signum in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
+            signal.signal(signum, self.handle)
+        for signum in early:
+            self.handle(signum, None)
+
+    def handle(self, signum: int, frame: object) -> None:
+        if signum == signal.SIGHUP:
+            self.reload = True
+        else:
+            self.stop = True
+        if self.daemon is not None:
+            self.attach(self.daemon)
+
+    def attach(self, daemon: Daemon) -> None:
+        self.daemon = daemon
+        daemon.stop_requested |= self.stop
+        daemon.reload_requested |= self.reload
+        self.reload = False  # handed over: the daemon clears its own
+
+
+def run(config: Config, early: Iterable[int] = ()) -> int:
+    """Serve ``config`` until SIGTERM; ``early``: signals that came before (`cli.EARLY_SIGNALS`)."""
+    signals = Signals(early)
+    if signals.stop:  # stopped while starting: nothing made yet, nothing to undo
+        log.info("stopped before starting")
+        return 0
     raise_descriptor_limit()
     notifier = Notifier()
     notifier.check_rate(config.rate_hz, f"{config.path}: rate_hz")
@@ -181,31 +215,23 @@ def run(config: Config) -> int:
             bus = open_configured_bus(config)
         except (OSError, FtsensordError) as exc:
             raise ConfigError(f"{config.path}: bus: cannot open {config.bus!r}: {exc}") from exc
-        return _serve(config, bus, notifier, files)
+        return _serve(config, bus, notifier, files, signals)
     finally:
         for fd in locks:
             os.close(fd)
 
 
-def _serve(config: Config, bus: Bus, notifier: Notifier, files: RuntimeFiles) -> int:
+def _serve(config: Config, bus: Bus, notifier: Notifier, files: RuntimeFiles, signals: Signals) -> int:
     context = zmq.Context()
     publisher, control, auth = make_sockets(context, config, files)
     endpoint = config.orientation_endpoint
     orientation = open_receiver(context, endpoint, functools.partial(bind, files=files)) if endpoint else None
     caps = [ConnectionCap(publisher, "publish"), ConnectionCap(control, "control"),
             *([ConnectionCap(orientation, "orientation")] if orientation is not None else [])]
-    daemon = Daemon(config, bus, publisher, control, notifier=notifier, orientation=orientation, caps=caps,
-                    runtime=files)
+    daemon = Daemon(config, bus, publisher, control, notifier=notifier, orientation=orientation,
+                    guard=HostGuard(caps, files), background_reload=True)
 
-    def stop(signum: int, frame: object) -> None:
-        daemon.stop_requested = True
-
-    def reload(signum: int, frame: object) -> None:
-        daemon.reload_requested = True
-
-    signal.signal(signal.SIGTERM, stop)
-    signal.signal(signal.SIGINT, stop)
-    signal.signal(signal.SIGHUP, reload)
+    signals.attach(daemon)
     log.info("ftsensord on %s: %s; publishing on %s, control on %s", config.bus, config.bound().describe(),
              ", ".join(config.publish), config.control)
     try:
