@@ -3,13 +3,16 @@
 
     python benchmarks/hostile.py descriptors --connections 3000   # held on control and wrench each
     python benchmarks/hostile.py unread --clients 200 --requests 1000  # clients that never read
+    python benchmarks/hostile.py calibration --runs 20   # a huge calibration file, one at the limit
 
 `descriptors` opens plain AF_UNIX connections to the control and wrench sockets as fast
 as it can and holds them (libzmq accepts them before any handshake), then asks `status`
 over a connection of its own: alive or not, the daemon's descriptors at their peak, the
 connections kept and refused. `unread` starts DEALER clients that send `status` requests
 and never read a reply, and reports the daemon's RSS before, at the peak and after the
-clients left, and the replies dropped. Both print one JSON object.
+clients left, and the replies dropped. `calibration` (in this process, no daemon) times
+`Calibration.load` refusing a 200 MB file, and reading one padded to the size limit with
+numbers (the slowest JSON to parse). Each prints one JSON object.
 """
 
 from __future__ import annotations
@@ -175,13 +178,50 @@ def unread(folder: Path, proc: subprocess.Popen, clients: int, requests: int) ->
             "alive": proc.poll() is None}
 
 
+def calibration(runs: int) -> dict[str, Any]:
+    """Median and largest time (ms) over ``runs`` of loading a 200 MB calibration file (refused
+    by its size) and one of the packaged ones padded with numbers to MAX_CALIBRATION_BYTES."""
+    from ftsensord.calibration.calfile import MAX_CALIBRATION_BYTES, Calibration
+    from ftsensord.errors import ConfigError
+    from ftsensord.service.config import builtin_path
+
+    with tempfile.TemporaryDirectory() as tmp:
+        huge = Path(tmp) / "huge.json"
+        with huge.open("wb") as f:
+            f.truncate(200 * 2**20)
+        doc = json.loads(builtin_path("sim-sensor1.json").read_text())
+        base = len(json.dumps(doc))
+        doc["fit_report"]["padding"] = [0.123456789012345] * ((MAX_CALIBRATION_BYTES - base - 64) // 19)
+        full = Path(tmp) / "full.json"
+        full.write_text(json.dumps(doc))
+        out: dict[str, Any] = {"runs": runs, "full_bytes": full.stat().st_size, "limit": MAX_CALIBRATION_BYTES}
+        raw = full.read_bytes()
+        for name, work in (("huge_refused_ms", lambda: Calibration.load(huge)),
+                           ("at_limit_ms", lambda: Calibration.load(full)),
+                           ("at_limit_json_ms", lambda: json.loads(raw))):  # one C call: the GIL held throughout
+            times = []
+            for _ in range(runs):
+                t0 = time.perf_counter()
+                try:
+                    work()
+                except ConfigError:
+                    pass  # the huge one: refused, as it should be
+                times.append((time.perf_counter() - t0) * 1e3)
+            out[name] = {"median": round(sorted(times)[runs // 2], 3), "max": round(max(times), 3)}
+        return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("mode", choices=("descriptors", "unread"))
+    parser.add_argument("mode", choices=("descriptors", "unread", "calibration"))
     parser.add_argument("--connections", type=int, default=3000, help="descriptors: held on each socket")
     parser.add_argument("--clients", type=int, default=200, help="unread: DEALER clients")
     parser.add_argument("--requests", type=int, default=1000, help="unread: requests each")
+    parser.add_argument("--runs", type=int, default=20, help="calibration: loads timed")
     args = parser.parse_args()
+    if args.mode == "calibration":
+        print(json.dumps(calibration(args.runs), indent=1))
+        return
     unit = unit_restrictions()
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)

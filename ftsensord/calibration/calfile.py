@@ -23,9 +23,10 @@ from .dataset import parse_addresses
 from .nlfit import NonlinearCalibration
 
 #: Largest calibration file read, bytes: the packaged ones (8 chips, nonlinear model
-#: included) are 22 KB; 256 KiB is over ten times that, and JSON of that size parses in
-#: about 9 ms (docs/reliability.md), where a 200 MB file stalled the loop for 7.75 s.
-MAX_CALIBRATION_BYTES = 256 * 1024
+#: included) are 22 KB; 64 KiB is three times that. A reload parses it in a worker thread,
+#: but json.loads holds the GIL throughout: at this size about 2 ms, within a cycle's slack
+#: (docs/reliability.md); a 200 MB file stalled the loop for 7.75 s.
+MAX_CALIBRATION_BYTES = 64 * 1024
 CAL_FORMAT = "ftsensord-calibration"
 CAL_VERSION = 1
 CAL_UNITS = {"K": "N/m, Nm/rad", "A": "m/T, rad/T", "H": "T/m, T/rad", "zero_flux": "T", "wrench": "N, Nm",
