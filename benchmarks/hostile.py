@@ -4,6 +4,8 @@
     python benchmarks/hostile.py descriptors --connections 3000   # held on control and wrench each
     python benchmarks/hostile.py unread --clients 200 --requests 1000  # clients that never read
     python benchmarks/hostile.py calibration --runs 20   # a huge calibration file, one at the limit
+    python benchmarks/hostile.py early-stop --delays 0.02,0.1,0.3,0.5,0.7,0.9   # SIGTERM while starting
+    python benchmarks/hostile.py first-status --runs 5   # the first `status`'s cost, fresh processes
 
 `descriptors` opens plain AF_UNIX connections to the control and wrench sockets as fast
 as it can and holds them (libzmq accepts them before any handshake), then asks `status`
@@ -12,7 +14,11 @@ connections kept and refused. `unread` starts DEALER clients that send `status` 
 and never read a reply, and reports the daemon's RSS before, at the peak and after the
 clients left, and the replies dropped. `calibration` (in this process, no daemon) times
 `Calibration.load` refusing a 200 MB file, and reading one padded to the size limit with
-numbers (the slowest JSON to parse). Each prints one JSON object.
+numbers (the slowest JSON to parse). `early-stop` sends SIGTERM to `ftsensord run` that
+long after starting it and reports its exit status and the files it left. `first-status`
+times the first and second `status` of a daemon in a fresh process (on a virtual clock,
+packaged configuration): a lazy import in the first is paid within a cycle. Each prints
+one JSON object.
 """
 
 from __future__ import annotations
@@ -21,6 +27,7 @@ import argparse
 import json
 import os
 import resource
+import signal
 import socket
 import subprocess
 import sys
@@ -211,16 +218,66 @@ def calibration(runs: int) -> dict[str, Any]:
         return out
 
 
+def early_stop(delays: list[float]) -> dict[str, Any]:
+    """SIGTERM ``delay`` s after starting `ftsensord run`: its exit status, the files left."""
+    out = []
+    for delay in delays:
+        with tempfile.TemporaryDirectory() as tmp:
+            folder = Path(tmp)
+            config = packaged_config(folder / "ftsensord.toml")
+            env = {**os.environ, "XDG_RUNTIME_DIR": str(folder)}
+            env.pop("RUNTIME_DIRECTORY", None)
+            proc = subprocess.Popen([sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=env,
+                                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            time.sleep(delay)
+            proc.send_signal(signal.SIGTERM)
+            code = proc.wait(timeout=30)
+            run = folder / "ftsensord"
+            out.append({"delay_s": delay, "exit": code, "left": sorted(os.listdir(run)) if run.exists() else []})
+    return {"runs": out}
+
+
+def first_status(runs: int) -> dict[str, Any]:
+    """The first and second `status` (ms, handled and encoded) in ``runs`` fresh processes."""
+    code = """
+import json, sys, time
+sys.path.insert(0, %r)
+from pathlib import Path
+from launch import InProcess, packaged_config
+from ftsensord.service.config import load_config
+from ftsensord.sim.scene import default_scene
+rig = InProcess(load_config(packaged_config(Path(sys.argv[1]) / "c.toml")), default_scene())
+for _ in range(3):
+    rig.daemon.cycle()
+times = []
+for _ in range(2):
+    t0 = time.perf_counter()
+    json.dumps(rig.daemon.control.handle(b'{"cmd": "status"}', [b"x"]), default=float)
+    times.append((time.perf_counter() - t0) * 1e3)
+    rig.daemon.cycle()  # a new cycle: the second is built anew, not cached
+print(json.dumps(times))
+""" % str(Path(__file__).resolve().parent)
+    out = []
+    for _ in range(runs):
+        with tempfile.TemporaryDirectory() as tmp:
+            done = subprocess.run([sys.executable, "-c", code, tmp], capture_output=True, text=True, check=True)
+            out.append([round(t, 2) for t in json.loads(done.stdout)])
+    return {"runs": runs, "first_second_ms": out}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("mode", choices=("descriptors", "unread", "calibration"))
+    parser.add_argument("mode", choices=("descriptors", "unread", "calibration", "early-stop", "first-status"))
     parser.add_argument("--connections", type=int, default=3000, help="descriptors: held on each socket")
     parser.add_argument("--clients", type=int, default=200, help="unread: DEALER clients")
     parser.add_argument("--requests", type=int, default=1000, help="unread: requests each")
-    parser.add_argument("--runs", type=int, default=20, help="calibration: loads timed")
+    parser.add_argument("--runs", type=int, default=20, help="calibration: loads timed; first-status: processes")
+    parser.add_argument("--delays", default="0.02,0.1,0.3,0.5,0.7,0.9", help="early-stop: s after the start")
     args = parser.parse_args()
-    if args.mode == "calibration":
-        print(json.dumps(calibration(args.runs), indent=1))
+    alone = {"calibration": lambda: calibration(args.runs), "first-status": lambda: first_status(args.runs),
+             "early-stop": lambda: early_stop([float(d) for d in args.delays.split(",")])}
+    if args.mode in alone:
+        print(json.dumps(alone[args.mode](), indent=1))
         return
     unit = unit_restrictions()
     with tempfile.TemporaryDirectory() as tmp:
