@@ -156,7 +156,8 @@ def test_clients_that_never_read_have_their_replies_dropped(sandboxed_daemon, un
     # 20 x 128 replies of 5.4 KB is 13.8 MB; 20 MB leaves room for the allocator's
     # granularity, against the 32 MB the default 1000-reply queues pin.
     assert out["rss_loaded_mib"] - out["rss_before_mib"] < 20, out
-    assert out["rss_after_mib"] <= out["rss_loaded_mib"], out
+    # Given back once they left (malloc_trim): at least half of what they took (before: 1 %).
+    assert out["rss_after_mib"] - out["rss_before_mib"] < 0.5 * (out["rss_loaded_mib"] - out["rss_before_mib"]), out
     # The unit's MemoryMax= is a cgroup setting this test cannot apply without systemd (and
     # this host has no cgroup v2 memory controller): the peak RSS stands in for it.
     assert unit.memory_max is not None and out["rss_peak_mib"] * 2**20 < unit.memory_max, out

@@ -125,9 +125,10 @@ class CsvWriter:
                 self.file.seek(end)
                 self.file.close()
                 return
-            except OSError:
-                pass  # self.error holds it
-        error = self.error or OSError("write failed")
+            except OSError as exc:
+                self.error = self.error or exc
+        error = self.error
+        assert error is not None  # set by whichever write, flush or seek failed
         try:
             self.file.close()  # the fd is closed even when the flush of what is left fails again
         except OSError:
@@ -144,9 +145,11 @@ class CsvWriter:
 def _csv_rows(path: Path) -> tuple[int, bool]:
     """Complete data rows in a CSV record (after its first line and its column names), and
     whether a torn row follows them."""
-    lines = path.read_bytes().split(b"\n")
-    torn = lines[-1] != b""  # a file ending in a newline splits into a last empty piece
-    return max(0, len(lines) - 1 - 2), torn
+    lines, last = 0, b"\n"
+    with path.open("rb") as f:
+        while chunk := f.read(1 << 20):  # a day's record is gigabytes: counted a megabyte at a time
+            lines, last = lines + chunk.count(b"\n"), chunk[-1:]
+    return max(0, lines - 2), last != b"\n"
 
 
 def _rows_dtype(count: int) -> np.dtype:

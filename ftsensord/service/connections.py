@@ -26,15 +26,12 @@ from zmq.utils.monitor import parse_monitor_message
 MAX_CONNECTIONS = 128
 
 
-def raise_descriptor_limit() -> int:
+def raise_descriptor_limit() -> None:
     """Raise the soft RLIMIT_NOFILE to the hard one (the unit's `LimitNOFILE=soft:hard`):
-    the headroom lets the caps answer a burst of connections before the limit is near.
-    Returns the soft limit now in force."""
+    the headroom lets the caps answer a burst of connections before the limit is near."""
     soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
-    if hard != resource.RLIM_INFINITY and soft < hard:
+    if hard != resource.RLIM_INFINITY and soft < hard:  # unlimited: nothing to raise to
         resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
-        soft = hard
-    return soft
 
 
 class ConnectionCap:

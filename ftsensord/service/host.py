@@ -30,7 +30,6 @@ class MemoryReturn:
         self.caps, self.clock = caps, clock
         self._left = 0
         self._since: float | None = None
-        self.trims = 0
         try:
             self._trim: Callable[[int], int] | None = ctypes.CDLL(None).malloc_trim
         except AttributeError:
@@ -46,7 +45,6 @@ class MemoryReturn:
             self._since = None
             if self._trim is not None:
                 self._trim(0)
-                self.trims += 1
 
 
 class HostGuard:

@@ -30,6 +30,7 @@ RELOAD_EVERY_S = 0.5
 #: worker's Python code. 0.5 ms costs the worker a few more switches, nothing to the loop.
 SWITCH_INTERVAL_S = 0.5e-3
 
+
 class Reloads:
     """Reload requests coalesced, prepared by ``prepare`` in a worker thread; ``finish``
     takes what it made, or the FtsensordError it raised, in the loop's thread (`poll`) and

@@ -22,9 +22,9 @@ from ..chip.i2c import Bus
 from ..errors import ConfigError, FtsensordError
 from .config import Config, ensure_private_dir, is_loopback
 from .connections import ConnectionCap, raise_descriptor_limit
-from .host import HostGuard
 from .control import MAX_PER_CYCLE, MAX_REQUEST
 from .daemon import Daemon
+from .host import HostGuard
 from .orientation import open_receiver
 from .runtime import RuntimeFiles
 from .sdnotify import Notifier
@@ -200,7 +200,7 @@ class Signals:
 
 
 def run(config: Config, early: Iterable[int] = ()) -> int:
-    """Serve ``config`` until SIGTERM; ``early``: signals that came before (`cli.EARLY_SIGNALS`)."""
+    """Serve ``config`` until SIGTERM; ``early``: signals that came before (`__main__.EARLY_SIGNALS`)."""
     signals = Signals(early)
     if signals.stop:  # stopped while starting: nothing made yet, nothing to undo
         log.info("stopped before starting")
