@@ -3,6 +3,7 @@
     python benchmarks/flood.py status --seconds 20    # four clients flooding `status`
     python benchmarks/flood.py hostile --count 20000  # hostile messages, oversized numbers, nesting
     python benchmarks/flood.py burn --seconds 20      # control: four processes only spinning the CPU
+    python benchmarks/flood.py reload --seconds 20 --scheduler overlapped   # four clients flooding `reload`
 
 Runs `ftsensord run` (the packaged simulated configuration: 16 chips, 100 Hz, real
 400 kHz wire time) with NOTIFY_SOCKET bound here and WATCHDOG_USEC=5 s (the unit's
@@ -88,7 +89,7 @@ def client(endpoint: str, seconds: float, seed: int, count: int, mode: str, out:
     end = time.monotonic() + seconds
     while time.monotonic() < end and (count == 0 or replies < count):
         while sent - replies < IN_FLIGHT and (count == 0 or sent < count):
-            payload = b'{"cmd":"status"}' if mode == "status" else hostile(rng)
+            payload = b'{"cmd":"%s"}' % mode.encode() if mode in ("status", "reload") else hostile(rng)
             assert len(payload) <= MAX_REQUEST
             sock.send_multipart([b"", payload])
             sent += 1
@@ -108,10 +109,10 @@ def cpu_s(pid: int) -> float:
 
 
 def run(mode: str, seconds: float, clients: int, count: int, nice: int = 0, fifo: int = 0,
-        daemon_nice: int = 0) -> dict:
+        daemon_nice: int = 0, scheduler: str = "") -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         tmp_path = Path(tmp)
-        config = packaged_config(tmp_path / "ftsensord.toml")
+        config = packaged_config(tmp_path / "ftsensord.toml", **({"scheduler": f'"{scheduler}"'} if scheduler else {}))
         # The daemon's priority as the unit's CPUSchedulingPolicy=fifo (fifo) or Nice= (daemon_nice) would set it.
         proc, notify = start_daemon(config, tmp_path, fifo=fifo, nice=daemon_nice,
                                     env={"WATCHDOG_USEC": str(WATCHDOG_USEC)})
@@ -185,7 +186,7 @@ def run(mode: str, seconds: float, clients: int, count: int, nice: int = 0, fifo
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("mode", choices=("status", "hostile", "burn"))
+    parser.add_argument("mode", choices=("status", "hostile", "burn", "reload"))
     parser.add_argument("--seconds", type=float, default=20.0)
     parser.add_argument("--clients", type=int, default=4)
     parser.add_argument("--count", type=int, default=0, help="messages in all (0: as many as fit the time)")
@@ -193,9 +194,10 @@ def main() -> None:
     parser.add_argument("--fifo", type=int, default=0,
                         help="run the daemon SCHED_FIFO at this priority (0: not; the unit sets 50)")
     parser.add_argument("--daemon-nice", type=int, default=0, help="run the daemon at this niceness (0: not)")
+    parser.add_argument("--scheduler", default="", help="the daemon's scheduler (default: the packaged one's)")
     args = parser.parse_args()
-    print(json.dumps(run(args.mode, args.seconds, args.clients, args.count, args.nice, args.fifo, args.daemon_nice),
-                     indent=1))
+    print(json.dumps(run(args.mode, args.seconds, args.clients, args.count, args.nice, args.fifo, args.daemon_nice,
+                         args.scheduler), indent=1))
 
 
 if __name__ == "__main__":

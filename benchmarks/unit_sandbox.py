@@ -34,6 +34,8 @@ GROUPS_FALLBACK = Path(__file__).resolve().parent / "systemd-syscall-groups.txt"
 SCMP_ACT_ALLOW = 0x7FFF0000
 SCMP_ACT_ERRNO = 0x00050000
 PR_SET_NO_NEW_PRIVS = 38
+#: What a service gets without LimitNOFILE= (systemd's DefaultLimitNOFILE= since v240).
+SYSTEMD_DEFAULT_NOFILE = (1024, 524288)
 
 
 def parse_groups(text: str) -> dict[str, list[str]]:
@@ -81,7 +83,7 @@ class UnitRestrictions:
 
     filters: list[str] = field(default_factory=list)  # SystemCallFilter= values, in order
     error_number: str = "EPERM"  # SystemCallErrorNumber=
-    limit_nofile: int | None = None  # LimitNOFILE= (soft = hard)
+    limit_nofile: tuple[int, int] = SYSTEMD_DEFAULT_NOFILE  # LimitNOFILE=soft:hard (one value: both)
     memory_max: int | None = None  # MemoryMax=, bytes
     fifo_priority: int = 0  # CPUSchedulingPriority= with CPUSchedulingPolicy=fifo; 0: none
 
@@ -99,7 +101,8 @@ class UnitRestrictions:
             elif key == "SystemCallErrorNumber":
                 r.error_number = value
             elif key == "LimitNOFILE":
-                r.limit_nofile = int(value.split(":")[-1])
+                soft, _, hard = value.partition(":")
+                r.limit_nofile = (int(soft), int(hard or soft))
             elif key == "MemoryMax":
                 r.memory_max = _bytes(value)
             elif key == "CPUSchedulingPolicy":
@@ -132,11 +135,13 @@ class UnitRestrictions:
         numbers = sorted({n for n in (lib.seccomp_syscall_resolve_name(c.encode()) for c in allowed or ())
                           if n >= 0})
         err = getattr(errno, self.error_number)
-        nofile, fifo = self.limit_nofile, self.fifo_priority
+        # A hard limit above this process's own cannot be raised without privilege: kept at ours.
+        hard = resource.getrlimit(resource.RLIMIT_NOFILE)[1]
+        nofile = (min(self.limit_nofile[0], hard), min(self.limit_nofile[1], hard))
+        fifo = self.fifo_priority
 
         def apply() -> None:
-            if nofile is not None:
-                resource.setrlimit(resource.RLIMIT_NOFILE, (nofile, nofile))
+            resource.setrlimit(resource.RLIMIT_NOFILE, nofile)
             if fifo:
                 os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(fifo))
             if allowed is None:

@@ -101,7 +101,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from .service.run import run
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
-    return run(load_config(args.config))
+    return run(load_config(args.config), early=args.early_signals)
 
 
 def _control(args: argparse.Namespace):
@@ -373,10 +373,11 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def main(argv: Sequence[str] | None = None, early_signals: Sequence[int] = ()) -> int:
+    """``early_signals``: what came before the handlers of `ftsensord run` (`__main__`)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
-    args.argv = argv[1:]
+    args.argv, args.early_signals = argv[1:], early_signals
     try:
         return int(args.func(args))
     except KeyboardInterrupt:  # Ctrl-C: a message, not a traceback

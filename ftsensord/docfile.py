@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 import tomllib
 from collections.abc import Iterable
@@ -85,14 +86,19 @@ def parse_json(raw: bytes | str, *, max_bytes: int = MAX_FILE_BYTES, max_depth: 
     return doc
 
 
-def _read(path: Path) -> bytes:
+def _read(path: Path, max_bytes: int = MAX_FILE_BYTES, what: str = "file") -> bytes:
+    """The file's bytes; a file over ``max_bytes`` is refused by its size before a byte is
+    read (a reload must not spend seconds on a file it will refuse)."""
     try:
         with path.open("rb") as f:
-            raw = f.read(MAX_FILE_BYTES + 1)
+            size = os.fstat(f.fileno()).st_size
+            if size > max_bytes:
+                raise ConfigError(f"{path}: {size} bytes, larger than the {max_bytes} bytes a {what} may hold")
+            raw = f.read(max_bytes + 1)  # a file growing while read (or a pipe) is bounded too
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from exc
-    if len(raw) > MAX_FILE_BYTES:
-        raise ConfigError(f"{path}: larger than the {MAX_FILE_BYTES} bytes accepted")
+    if len(raw) > max_bytes:
+        raise ConfigError(f"{path}: larger than the {max_bytes} bytes a {what} may hold")
     return raw
 
 
@@ -152,11 +158,12 @@ def _long_ints(doc: Any, where: str = "") -> Iterable[str]:
         yield where
 
 
-def load_json(path: str | Path) -> dict[str, Any]:
-    """A JSON file within the limits (`parse_json`); ConfigError naming the file and the key otherwise."""
+def load_json(path: str | Path, max_bytes: int = MAX_FILE_BYTES, what: str = "file") -> dict[str, Any]:
+    """A JSON file within the limits (`parse_json`; at most ``max_bytes``, for a ``what``);
+    ConfigError naming the file and the key otherwise."""
     path = Path(path)
     try:
-        doc = parse_json(_read(path))
+        doc = parse_json(_read(path, max_bytes, what), max_bytes=max_bytes)
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from exc
     if not isinstance(doc, dict):

@@ -7,17 +7,20 @@ from __future__ import annotations
 import json
 import logging
 import shutil
+import threading
 
 import numpy as np
 import pytest
 import zmq
 
-from ftsensord.calibration.calfile import Calibration
+from ftsensord.calibration.calfile import MAX_CALIBRATION_BYTES, Calibration
 from ftsensord.docfile import MAX_DEPTH, load_toml, parse_json
 from ftsensord.errors import ConfigError
 from ftsensord.service.config import builtin_path
 from ftsensord.service.control import Budget, Control
+from ftsensord.service import wire
 from ftsensord.service.sdnotify import Notifier
+from ftsensord.sim import load_scene
 
 from .conftest import assert_names_file_and_key
 from .test_daemon import Rig
@@ -89,6 +92,23 @@ def test_a_sighup_with_such_a_calibration_is_a_refused_reload_not_an_exit(tmp_pa
     with pytest.raises(ConfigError, match=str(cal)):
         rig.daemon.reload()
     assert [s.seq for s in rig.cycles(2)["wrench/sensor1"]] == [2, 3]  # the running calibration stays
+
+
+def test_a_huge_calibration_file_is_refused_by_its_size_naming_file_limit_and_size(tmp_path):
+    """A 200 MB calibration file (the issue's, which stalled the loop 7.75 s on SIGHUP) is
+    refused by its size before it is read, the reload refused, the running calibration kept."""
+    cal = tmp_path / "sensor1.json"
+    shutil.copy(builtin_path("sim-sensor1.json"), cal)
+    rig = Rig(tmp_path, sensor1_cal=str(cal))
+    rig.cycles(2)
+    with cal.open("r+b") as f:
+        f.truncate(200 * 2**20)  # sparse: no disk written, and the same size to stat()
+    reply = rig.request(cmd="reload")
+    assert not reply["ok"]
+    assert str(cal) in reply["error"] and f"{200 * 2**20} bytes" in reply["error"], reply
+    assert f"{MAX_CALIBRATION_BYTES} bytes a calibration file may hold" in reply["error"], reply
+    assert [s.seq for s in rig.cycles(2)["wrench/sensor1"]] == [2, 3]  # the running calibration stays
+    rig.close()
 
 
 @pytest.mark.parametrize(("text", "expected"), [
@@ -191,3 +211,63 @@ def test_a_chip_failing_and_returning_is_logged_once_per_transition(tmp_path, ca
     about = [r.getMessage() for r in caplog.records if "0x0E" in r.getMessage()]
     assert len([m for m in about if "failing" in m]) == 1, about
     assert len([m for m in about if " back" in m]) == 1, about
+
+
+def test_a_reload_reads_its_files_off_the_loop_and_a_flood_is_one_reload(tmp_path, monkeypatch):
+    """The daemon as `ftsensord run` makes it (reloads in a worker thread): while a reload's
+    file work is held up (a slow disk, a big file), the loop goes on publishing every
+    cycle; the 50 requests that came meanwhile are answered by one reload after it, and
+    the replies all say ok."""
+    from ftsensord.service import commands
+    from ftsensord.service.config import load_config
+
+    from .conftest import InProcess
+    from .test_daemon import write_config
+
+    release, reading = threading.Event(), threading.Event()
+    real = commands.reload_config
+
+    def slow_reload_config(*args, **kwargs):
+        reading.set()
+        assert release.wait(30)  # held until the test has run its cycles
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(commands, "reload_config", slow_reload_config)
+    rig = InProcess(load_config(write_config(tmp_path)), load_scene(tmp_path / "scene.toml"),
+                    subscribe=b"wrench/sensor1\0", background_reload=True)
+    d = rig.daemon
+    dealer = zmq.Context.instance().socket(zmq.DEALER)
+    dealer.connect(rig.router.getsockopt(zmq.LAST_ENDPOINT).decode())
+
+    def cycles(n: int) -> list[int]:
+        seqs = []
+        for _ in range(n):
+            deadline = rig.clock.now() + d.period_s
+            d.cycle()
+            d.handle_control()
+            d.reloads.poll()
+            rig.clock.wait_until(deadline)
+            while rig.sub.poll(0):
+                seqs.append(wire.decode(rig.sub.recv()).seq)
+        return seqs
+
+    dealer.send_multipart([b"", b'{"cmd": "reload"}'])
+    cycles(2)
+    assert reading.wait(10)  # the worker is in the file work, held
+    for _ in range(50):
+        dealer.send_multipart([b"", b'{"cmd": "reload"}'])
+    seqs = cycles(100)  # 1 s of the loop while the first reload's files are read
+    assert seqs == list(range(2, 102)) and not dealer.poll(0)  # every cycle published, no reply yet
+    release.set()
+    replies = []
+    for _ in range(500):  # the worker finishes; the loop swaps it in and answers
+        cycles(1)
+        d.reloads.wait(0.01)
+        while dealer.poll(0):
+            replies.append(json.loads(dealer.recv_multipart()[-1]))
+        if len(replies) == 51:
+            break
+    assert len(replies) == 51 and all(r["ok"] for r in replies), replies[:3]
+    assert d.reloads.done == 2  # the first, and one for the 50 that came during it
+    dealer.close(linger=0)
+    rig.close()

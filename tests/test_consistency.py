@@ -299,3 +299,27 @@ def test_the_consistency_maps_give_the_least_squares_residuals(room):
         finite = np.isfinite(without)
         np.testing.assert_allclose(c.chi2_without[finite], without[finite], rtol=1e-9, atol=1e-9 * (1 + whole))
         np.testing.assert_allclose(c.drop, np.where(finite, c.chi2 - c.chi2_without, 0.0), atol=1e-9 * (1 + whole))
+
+
+def test_filtered_streams_restart_after_a_stall(tmp_path):
+    """The loop stalled 1.5 s (SIGSTOP, a long pause) while the load changed by 2 N: the
+    averaging and low-pass memory holds only samples from before the stall, so the first
+    outputs after it would carry the old load unflagged. They restart on the fresh sample."""
+    rig = Rig(tmp_path, extra="averaging = 4\nlowpass_hz = 10")
+    rig.scene.set_load("sensor1", StaticLoad(np.zeros(6)))
+    rig.cycles(100)
+    rig.scene.set_load("sensor1", StaticLoad([2, 0, 0, 0, 0, 0]))  # within the calibrated loads
+    d = rig.daemon
+    deadline = rig.clock.now()
+    rig.clock.wait_until(deadline + 1.5)
+    deadline, lateness = d.timing.skip_missed(deadline, rig.clock.now(), d.period_s)  # as `Daemon.run`
+    assert d.timing.missed >= 149
+    after = rig.cycles(40)["wrench/sensor1"]
+    settled = np.mean([s.values[0] for s in after[-10:]])
+    assert abs(settled - 2) < 0.2  # the calibration reads the 2 N (within its error)
+    # Every output after the stall is the new load, within noise (0.1 N: 4 sigma of a single
+    # sample, the first output's, about 0.025 N), or flagged.
+    wrong = [i for i, s in enumerate(after) if abs(s.values[0] - settled) > 0.1 and not s.flags]
+    assert wrong == [], [round(after[i].values[0], 3) for i in wrong]
+    assert not any(s.flags for s in after)  # none needed flagging: nothing of the past is left
+    rig.close()

@@ -6,6 +6,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import socket
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -467,6 +469,14 @@ def test_endpoints_stay_on_loopback_unless_secured_or_made_public_on_purpose(tmp
         load_config(write_config(tmp_path, extra='[security]\ncurve_server_cert = "server.key_secret"'))
 
 
+@pytest.mark.parametrize("key", ["control", "publish"])
+def test_an_abstract_socket_endpoint_is_refused_naming_the_file_and_key(tmp_path, key):
+    """ipc://@name is Linux's abstract namespace: no file, so no mode or group keeps other
+    users out, and no folder to lock; refused as configured, not as `[Errno 2] '@name'`."""
+    path = write_config(tmp_path, extra=f'{key} = "ipc://@ftsensord-{key}"')
+    assert_names_file_and_key(load_config, path, key, "an ipc:// endpoint with a path")
+
+
 def test_no_control_command_takes_a_path(rig):
     for request in ({"cmd": "reload", "path": "/etc/shadow"}, {"cmd": "tare", "file": "/tmp/x"},
                     {"cmd": "status", "config": "/root/x.toml"}, {"cmd": "set", "calibration": "../x.json"}):
@@ -553,3 +563,23 @@ def test_a_linear_estimate_beyond_the_calibrations_loads_is_flagged_extrapolated
     assert all(abs(s.values[0]) < EXTRAPOLATION_MARGIN * fitted[0] for s in out)  # the output is inside...
     assert all(s.flags & wire.FLAG_EXTRAPOLATED for s in out)  # ...the load is not
     rig.close()
+
+
+def test_the_first_status_imports_nothing(tmp_path):
+    """An import in the first `status` is paid inside a cycle's control budget: np.percentile
+    imported numpy.ma on its first call (50 ms, five cycles at 100 Hz). Checked in a fresh
+    interpreter, where nothing is imported yet that a test before could have imported."""
+    code = f"""
+import sys
+sys.path.insert(0, {str(Path(__file__).resolve().parents[1])!r})
+from tests.test_daemon import Rig
+from pathlib import Path
+rig = Rig(Path({str(tmp_path)!r}))
+rig.cycles(3)
+before = set(sys.modules)
+assert rig.request(cmd="status")["ok"]
+print(sorted(set(sys.modules) - before))
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "[]", out.stdout

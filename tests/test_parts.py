@@ -121,7 +121,7 @@ class StandIn:
     def request_tare(self, envelope, sensors, samples):
         self.calls.append(("tare", sensors, samples))
 
-    def reload(self):
+    def request_reload(self, envelope):
         raise ValueError("the new file is bad")
 
     def loop_settings(self):

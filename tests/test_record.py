@@ -320,3 +320,42 @@ def test_ctrl_c_ends_echo_and_other_commands_without_a_traceback(daemon, tmp_pat
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=10)
     assert proc.returncode == 130 and err.strip() == "ftsensord: interrupted", err
+
+
+DISK_FULL = """
+import resource, signal
+import numpy as np
+from ftsensord.recording import CsvWriter, record
+from ftsensord.service import wire
+
+class Synthetic:  # tests/test_record.py's, without the test modules' imports
+    i = 0
+    def receive(self, timeout_s=None):
+        self.i += 1
+        return None if self.i > 2000 else wire.Sample("wrench/sensor1", wire.KIND_WRENCH, self.i, self.i * 0.01,
+                                                      1.7e9, 0, np.full(6, self.i * 1e-3))
+
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # past the limit write() fails (EFBIG), as on a full disk
+resource.setrlimit(resource.RLIMIT_FSIZE, (50_000, 50_000))
+try:
+    record(Synthetic(), CsvWriter({path!r}, "wrench/sensor1"), ["wrench/sensor1"])
+except OSError as exc:
+    print("error", exc.errno)
+"""
+
+
+def test_a_csv_record_cut_by_a_write_error_says_how_many_samples_it_holds(tmp_path):
+    """The disk fills (here: the file size limit, the same failed write) after a few hundred
+    of 2000 samples: the first line counts the rows in the file, not the samples received,
+    and says the last row is torn; the error still reaches the caller."""
+    path = tmp_path / "r.csv"
+    code = DISK_FULL.format(path=str(path))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.stdout.startswith("error"), out.stdout + out.stderr
+    text = path.read_bytes().decode("ascii")
+    lines = text.split("\n")
+    rows = len(lines) - 3  # the head, the column names, and the torn last piece
+    assert 0 < rows < 2000 and lines[-1] != ""  # cut by the limit, mid-row
+    head = lines[0]
+    assert f"; {rows} samples of " in head and "write error" in head and "the last row is torn" in head, head
+    assert len(head) == CSV_HEAD_WIDTH - 1

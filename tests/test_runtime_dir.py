@@ -4,8 +4,11 @@ and a second daemon on the same folder refuses to start, naming the first."""
 from __future__ import annotations
 
 import os
+import shutil
+import signal
 import subprocess
 import sys
+import time
 
 import pytest
 import zmq
@@ -146,3 +149,64 @@ def test_a_second_daemon_refuses_to_start_naming_the_first(tmp_path):
     assert (rt / LOCK_NAME).read_text().strip() == str(os.getpid())
     for f in fd:
         os.close(f)
+
+
+def test_a_deleted_folder_ends_the_daemon_and_a_second_one_keeps_its_sockets(tmp_path):
+    """The folder deleted under a running daemon (logind at logout, a /tmp cleaner): it
+    exits 1 naming what is gone (systemd restarts it), so it never runs on unreachable or
+    beside a second daemon in a new folder of the same name; and stopping, it deletes
+    only the sockets it made, not the second daemon's."""
+    rt = tmp_path / "rt"
+    config_path = write_config(tmp_path, extra=f'publish = "ipc://{rt}/pub"\ncontrol = "ipc://{rt}/ctl"')
+    run = [sys.executable, "-m", "ftsensord", "run", "--config", str(config_path)]
+    first = subprocess.Popen(run, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    second = None
+    try:
+        assert client.ControlClient(f"ipc://{rt}/ctl", timeout_s=10).status()["cycles"] >= 0
+        shutil.rmtree(rt)
+        second = subprocess.Popen(run, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        out = first.communicate(timeout=10)[0]  # a cycle sees it (10 ms); 10 s for a loaded host
+        assert first.returncode == 1, out[-2000:]
+        assert f"{rt}/" in out and "deleted" in out, out[-2000:]
+        status = client.ControlClient(f"ipc://{rt}/ctl", timeout_s=10).status()
+        assert status["cycles"] >= 0 and second.poll() is None  # the second's sockets survived the first's exit
+        assert (rt / "ctl").exists() and (rt / "pub").exists()
+    finally:
+        for proc in (first, second):
+            if proc is not None and proc.poll() is None:
+                proc.terminate()
+                proc.wait(timeout=30)
+    assert second.returncode == 0
+    assert not (rt / "ctl").exists()  # the second removed its own at its clean exit
+
+
+def _caught(pid: int, signum: int) -> bool:
+    """Whether process ``pid`` has a handler for ``signum`` (/proc/PID/status SigCgt)."""
+    for line in open(f"/proc/{pid}/status"):
+        if line.startswith("SigCgt:"):
+            return bool(int(line.split()[1], 16) >> (signum - 1) & 1)
+    return False
+
+
+@pytest.mark.parametrize("when", ["handler", "lock", "sockets"])
+def test_a_sigterm_while_starting_is_a_clean_exit(tmp_path, when):
+    """systemctl stop right after start: as soon as the process handles SIGTERM at all
+    (while still importing), once it holds the lock, once its sockets exist: exit 0 and
+    no socket left behind, never a death by the signal."""
+    rt = tmp_path / "rt"
+    config_path = write_config(tmp_path, extra=f'publish = "ipc://{rt}/pub"\ncontrol = "ipc://{rt}/ctl"')
+    proc = subprocess.Popen([sys.executable, "-m", "ftsensord", "run", "--config", str(config_path)],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    ready = {"handler": lambda: _caught(proc.pid, signal.SIGTERM), "lock": (rt / LOCK_NAME).exists,
+             "sockets": (rt / "ctl").exists}[when]
+    try:
+        while not ready():
+            assert proc.poll() is None, proc.communicate()[0]
+            time.sleep(1e-3)  # polled at 1 ms: the start takes about a second
+        proc.send_signal(signal.SIGTERM)
+        out = proc.communicate(timeout=30)[0]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, out[-2000:]
+    assert not (rt / "ctl").exists() and not (rt / "pub").exists()

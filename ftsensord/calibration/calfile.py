@@ -23,6 +23,11 @@ from .dataset import parse_addresses
 from .nlfit import NonlinearCalibration
 from .thermal import CalibrationTemperature
 
+#: Largest calibration file read, bytes: the packaged ones (8 chips, nonlinear model
+#: included) are 22 KB; 64 KiB is three times that. A reload parses it in a worker thread,
+#: but json.loads holds the GIL throughout: at this size about 2 ms, within a cycle's slack
+#: (docs/reliability.md); a 200 MB file stalled the loop for 7.75 s.
+MAX_CALIBRATION_BYTES = 64 * 1024
 CAL_FORMAT = "ftsensord-calibration"
 CAL_VERSION = 1
 CAL_UNITS = {"K": "N/m, Nm/rad", "A": "m/T, rad/T", "H": "T/m, T/rad", "zero_flux": "T", "wrench": "N, Nm",
@@ -82,7 +87,7 @@ class Calibration:
     @classmethod
     def load(cls, path: str | Path) -> Calibration:
         """Read and validate; errors name the file, the key and what was expected."""
-        raw = load_json(path)
+        raw = load_json(path, MAX_CALIBRATION_BYTES, "calibration file")
         doc = Table(raw, path)
         doc.only({"format", "version", "units", "sensor", "model", "K", "A", "H", "zero_flux", "fit_report",
                   "wrench_range", "position_map", "nonlinear", "room_directions", "temperature_c", "checksum"})

@@ -27,18 +27,17 @@ from __future__ import annotations
 
 import json
 import signal
-import struct
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
 
-from .. import __version__
 from ..errors import ConfigError
 from ..service import wire
+from .ros2mcap import read_mcap, recover_mcap  # noqa: F401 (the package's face)
 
 #: Longest a received sample waits in the process before it is handed to the
 #: kernel: half the one second a kill may cost, so a slow flush still meets it.
@@ -88,29 +87,69 @@ class CsvWriter:
         self.file = open(self.path, "w", encoding="ascii")
         self._head(f"# ftsensord record of {self.name}; recording (this line is replaced at a clean end)")
         self.columns_written = False
+        self.error: OSError | None = None  # the first write error (a full disk): the rows written are counted
 
     def _head(self, text: str) -> None:
         self.file.seek(0)
         self.file.write(text[:CSV_HEAD_WIDTH - 1].ljust(CSV_HEAD_WIDTH - 1) + "\n")
 
     def write(self, sample: wire.Sample) -> None:
-        if not self.columns_written:
-            names = value_columns(self.stream, len(sample.values))
-            self.file.write(",".join(["seq", "t_mono_s", "t_wall_s", "flags", *names]) + "\n")
-            self.columns_written = True
-        self.file.write(f"{sample.seq},{sample.t_mono:.6f},{sample.t_wall:.6f},{sample.flags},"
-                        + ",".join(f"{v:.9g}" for v in sample.values) + "\n")
+        try:
+            if not self.columns_written:
+                names = value_columns(self.stream, len(sample.values))
+                self.file.write(",".join(["seq", "t_mono_s", "t_wall_s", "flags", *names]) + "\n")
+                self.columns_written = True
+            self.file.write(f"{sample.seq},{sample.t_mono:.6f},{sample.t_wall:.6f},{sample.flags},"
+                            + ",".join(f"{v:.9g}" for v in sample.values) + "\n")
+        except OSError as exc:
+            self.error = self.error or exc
+            raise
 
     def flush(self) -> None:
-        self.file.flush()
+        try:
+            self.file.flush()
+        except OSError as exc:
+            self.error = self.error or exc
+            raise
 
     def close(self, tallies: dict[str, Tally]) -> None:
+        """Complete the file: the first line says how many samples it holds. After a write
+        error (a disk full) the rows are counted in the file itself, a torn last one said,
+        and the error raised again: the tally counts samples received, not written."""
         t = tallies.get(self.stream, Tally())
-        self.file.flush()
-        end = self.file.tell()
-        self._head(f"# ftsensord record of {self.name}; {t.samples} samples, {t.gaps} missed (sequence gaps)")
-        self.file.seek(end)
-        self.file.close()
+        if self.error is None:
+            try:
+                self.flush()
+                end = self.file.tell()
+                self._head(f"# ftsensord record of {self.name}; {t.samples} samples, {t.gaps} missed (sequence gaps)")
+                self.file.seek(end)
+                self.file.close()
+                return
+            except OSError as exc:
+                self.error = self.error or exc
+        error = self.error
+        assert error is not None  # set by whichever write, flush or seek failed
+        try:
+            self.file.close()  # the fd is closed even when the flush of what is left fails again
+        except OSError:
+            pass
+        rows, torn = _csv_rows(self.path)
+        # The first line is rewritten in place: no new block, so it fits on a full disk too.
+        head = (f"# ftsensord record of {self.name}; {rows} samples of {t.samples} received, then a write "
+                f"error ({error.strerror or error})" + ("; the last row is torn" if torn else ""))
+        with open(self.path, "r+b") as f:
+            f.write(head[:CSV_HEAD_WIDTH - 1].ljust(CSV_HEAD_WIDTH - 1).encode("ascii", "replace"))
+        raise error
+
+
+def _csv_rows(path: Path) -> tuple[int, bool]:
+    """Complete data rows in a CSV record (after its first line and its column names), and
+    whether a torn row follows them."""
+    lines, last = 0, b"\n"
+    with path.open("rb") as f:
+        while chunk := f.read(1 << 20):  # a day's record is gigabytes: counted a megabyte at a time
+            lines, last = lines + chunk.count(b"\n"), chunk[-1:]
+    return max(0, lines - 2), last != b"\n"
 
 
 def _rows_dtype(count: int) -> np.dtype:
@@ -345,56 +384,3 @@ def daemon_frames(streams: list[str], endpoint: str | None, control: str | None,
         print(f"ftsensord: {exc}; frame_id: the stream's name", file=sys.stderr)
         status = {}
     return frames_from_status(status, streams)
-
-
-def read_mcap(path: str | Path, decode: bool = True) -> Iterator[tuple[str, Any, int]]:
-    """``(topic, message, log_time_ns)`` of every message of an MCAP file, in file
-    order, ROS 2 messages decoded (``decode=False``: raw bytes). A file cut short
-    (a killed recorder) yields every message of its complete chunks and stops at
-    the tear; a complete file reads wholly."""
-    from mcap.exceptions import McapError
-    from mcap.reader import NonSeekingReader
-
-    factories = []
-    if decode:
-        from mcap_ros2.decoder import DecoderFactory
-        factories = [DecoderFactory()]
-    with open(path, "rb") as f:
-        reader = NonSeekingReader(f, decoder_factories=factories)
-        messages = (reader.iter_decoded_messages(log_time_order=False) if decode
-                    else ((s, c, m, m.data) for s, c, m in reader.iter_messages(log_time_order=False)))
-        try:
-            for _schema, channel, message, decoded in messages:
-                yield channel.topic, decoded, message.log_time
-        except (McapError, struct.error, EOFError, ValueError):
-            return  # the tear: a record cut by the kill
-
-
-def recover_mcap(src: str | Path, dst: str | Path) -> int:
-    """Rewrite an MCAP cut short (no summary, torn end) as a complete, indexed
-    file; return the messages kept. (The mcap CLI's ``mcap recover`` does the same.)"""
-    from mcap.exceptions import McapError
-    from mcap.records import Channel, Message, Schema
-    from mcap.stream_reader import StreamReader
-    from mcap.writer import Writer
-
-    kept = 0
-    with open(src, "rb") as f, open(dst, "wb") as out:
-        writer = Writer(out)
-        writer.start(profile="ros2", library=f"ftsensord {__version__} (recovered)")
-        schemas: dict[int, int] = {}
-        channels: dict[int, int] = {}
-        try:
-            for r in StreamReader(f, skip_magic=False, emit_chunks=False).records:
-                if isinstance(r, Schema):
-                    schemas.setdefault(r.id, writer.register_schema(r.name, r.encoding, r.data))
-                elif isinstance(r, Channel) and r.id not in channels:
-                    channels[r.id] = writer.register_channel(r.topic, r.message_encoding,
-                                                             schemas.get(r.schema_id, 0), r.metadata)
-                elif isinstance(r, Message) and r.channel_id in channels:
-                    writer.add_message(channels[r.channel_id], r.log_time, r.data, r.publish_time, r.sequence)
-                    kept += 1
-        except (McapError, struct.error, EOFError, ValueError):
-            pass  # the tear
-        writer.finish()
-    return kept

@@ -20,7 +20,7 @@ at the sample's own time. ``mcap`` (the writer) is imported only here: the
 from __future__ import annotations
 
 import struct
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -183,3 +183,55 @@ def frames_from_status(status: dict, streams: list[str]) -> dict[str, str]:
         frames[stream] = str(frame) if frame else stream
     return frames
 
+
+def read_mcap(path: str | Path, decode: bool = True) -> Iterator[tuple[str, Any, int]]:
+    """``(topic, message, log_time_ns)`` of every message of an MCAP file, in file
+    order, ROS 2 messages decoded (``decode=False``: raw bytes). A file cut short
+    (a killed recorder) yields every message of its complete chunks and stops at
+    the tear; a complete file reads wholly."""
+    from mcap.exceptions import McapError
+    from mcap.reader import NonSeekingReader
+
+    factories = []
+    if decode:
+        from mcap_ros2.decoder import DecoderFactory
+        factories = [DecoderFactory()]
+    with open(path, "rb") as f:
+        reader = NonSeekingReader(f, decoder_factories=factories)
+        messages = (reader.iter_decoded_messages(log_time_order=False) if decode
+                    else ((s, c, m, m.data) for s, c, m in reader.iter_messages(log_time_order=False)))
+        try:
+            for _schema, channel, message, decoded in messages:
+                yield channel.topic, decoded, message.log_time
+        except (McapError, struct.error, EOFError, ValueError):
+            return  # the tear: a record cut by the kill
+
+
+def recover_mcap(src: str | Path, dst: str | Path) -> int:
+    """Rewrite an MCAP cut short (no summary, torn end) as a complete, indexed
+    file; return the messages kept. (The mcap CLI's ``mcap recover`` does the same.)"""
+    from mcap.exceptions import McapError
+    from mcap.records import Channel, Message, Schema
+    from mcap.stream_reader import StreamReader
+    from mcap.writer import Writer
+
+    kept = 0
+    with open(src, "rb") as f, open(dst, "wb") as out:
+        writer = Writer(out)
+        writer.start(profile="ros2", library=f"ftsensord {__version__} (recovered)")
+        schemas: dict[int, int] = {}
+        channels: dict[int, int] = {}
+        try:
+            for r in StreamReader(f, skip_magic=False, emit_chunks=False).records:
+                if isinstance(r, Schema):
+                    schemas.setdefault(r.id, writer.register_schema(r.name, r.encoding, r.data))
+                elif isinstance(r, Channel) and r.id not in channels:
+                    channels[r.id] = writer.register_channel(r.topic, r.message_encoding,
+                                                             schemas.get(r.schema_id, 0), r.metadata)
+                elif isinstance(r, Message) and r.channel_id in channels:
+                    writer.add_message(channels[r.channel_id], r.log_time, r.data, r.publish_time, r.sequence)
+                    kept += 1
+        except (McapError, struct.error, EOFError, ValueError):
+            pass  # the tear
+        writer.finish()
+    return kept

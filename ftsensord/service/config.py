@@ -213,6 +213,9 @@ def _endpoint(table: Table, key: str, default: str, *, off_loopback: bool = Fals
     value = table.string(key, default)
     if not value.startswith(("ipc://", "tcp://")):
         raise table.fail(key, "an ipc:// or tcp:// endpoint", value)
+    if value.startswith("ipc://@"):  # Linux's abstract namespace: no file, so no mode, group or lock
+        raise table.fail(key, "an ipc:// endpoint with a path (an abstract socket, ipc://@name, has no file "
+                              "permissions: anyone on the host could connect)", value)
     if not off_loopback and not is_loopback(value):
         raise table.fail(key, f"a loopback TCP endpoint (127.0.0.1, localhost or [::1]); {why}", value)
     return value

@@ -77,7 +77,7 @@ class Controlled(Protocol):
 
     def untare(self, sensors: list[str]) -> dict[str, Any]: ...
 
-    def reload(self) -> dict[str, Any]: ...
+    def request_reload(self, envelope: list[bytes] | None) -> dict[str, Any] | None: ...
 
     def set_loop(self, rate_hz: float, averaging: int, lowpass_hz: float) -> dict[str, Any]: ...
 
@@ -95,6 +95,7 @@ class Control:
         self.waiting: dict[bytes, deque[tuple[list[bytes], bytes]]] = {}
         self.held = 0  # requests in self.waiting
         self.answered = 0
+        self.dropped = 0  # replies not sent: the client's queue was full (it does not read) or it left
         self._status_reply: tuple[object, dict[str, Any], bytes] | None = None  # (cycle key, reply, its JSON)
         self._changes = 0  # requests other than status handled: each may change the status
 
@@ -152,7 +153,9 @@ class Control:
         try:
             self.socket.send_multipart([*envelope, encoded], zmq.NOBLOCK)
         except zmq.ZMQError:
-            pass  # the peer left: nobody to tell
+            # Its queue full (EAGAIN: ZMQ_SNDHWM replies unread) or the peer gone
+            # (EHOSTUNREACH, with ZMQ_ROUTER_MANDATORY): dropped, counted in `status`.
+            self.dropped += 1
 
     def _cycle_key(self) -> object:
         """What the status depends on beyond this process's requests: the cycles run
@@ -229,9 +232,9 @@ class Control:
         sensors = [self._sensor(args["sensor"])] if args.get("sensor") is not None else self.target.sensor_names
         return self.target.untare(sensors)
 
-    def _reload(self, args: dict[str, Any], envelope: list[bytes]) -> dict[str, Any]:
+    def _reload(self, args: dict[str, Any], envelope: list[bytes]) -> dict[str, Any] | None:
         self._only(args, set())
-        return self.target.reload()
+        return self.target.request_reload(envelope)
 
     def _set(self, args: dict[str, Any], envelope: list[bytes]) -> dict[str, Any]:
         self._only(args, {"rate_hz", "averaging", "lowpass_hz", "estimator", "sensor"})

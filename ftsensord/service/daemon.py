@@ -27,30 +27,36 @@ from ..chip.driver import MLX90393
 from ..chip.i2c import Bus, BusTiming
 from ..errors import ConfigError, FtsensordError
 from . import wire
-from .config import Calibrations, Config, SensorConfig, check_rate, reload_config
+from .commands import Commands
+from .config import Calibrations, Config, SensorConfig, check_rate
 from .control import Control
 from .filters import WrenchFilter
 from .frames import TIP
 from .gravity import Gravity
+from .host import HostGuard
 from .loop import LoopTiming, serve_until
 from .orientation import OrientationReceiver
-from .pipeline import SensorPipeline, SensorSample, tip_wrench, use_estimator
+from .pipeline import SensorPipeline, SensorSample, tip_wrench
+from .reloads import Reloads
 from .sdnotify import Notifier
 from .status import ChipLedger, status_line, status_reply
-from .tare import Tares, carry_tares
+from .tare import Tares
 
 log = logging.getLogger("ftsensord")
 
 
-class Daemon:
-    """One bus, its sensors, a publisher socket and a control socket."""
+class Daemon(Commands):
+    """One bus, its sensors, a publisher socket and a control socket; what control
+    requests do is `commands.Commands`'."""
 
     def __init__(self, config: Config, bus: Bus, publisher: zmq.Socket, control: zmq.Socket | None = None, *,
                  notifier: Notifier | None = None, clock: Callable[[], float] = time.monotonic,
-                 wall: Callable[[], float] = time.time, orientation: zmq.Socket | None = None):
+                 wall: Callable[[], float] = time.time, orientation: zmq.Socket | None = None,
+                 guard: HostGuard | None = None, background_reload: bool = False):
         self.config = config
         self.bus = bus
         self.publisher = publisher
+        self.guard = guard or HostGuard()
         self.notifier = notifier or Notifier(environ={})
         self.clock, self.wall = clock, wall
         chips = [MLX90393(bus, a, sleep=bus.sleep) for a in config.addresses]
@@ -65,6 +71,7 @@ class Daemon:
         self.timing = LoopTiming()
         self.control = Control(control, self)
         self.tares = Tares(self.control.reply)
+        self.reloads = Reloads(self._prepared, self.finish_reload, self.control.reply) if background_reload else None
         self.streams: set[str] = set()
         self.started_at = clock()
         self.stop_requested = self.reload_requested = False
@@ -101,26 +108,35 @@ class Daemon:
             log.warning("chip 0x%02X failed to start: %s", address, exc)
 
     def run(self) -> int:
-        """Cycle until asked to stop; then put the chips to idle. Returns the exit status."""
+        """Cycle until asked to stop; then put the chips to idle. Returns the exit status:
+        0, or 1 when the runtime folder's files are gone (systemd restarts the service)."""
         self.start()
         deadline = self.clock()
         while not self.stop_requested:
             deadline, lateness = self.timing.skip_missed(deadline, self.clock(), self.period_s)
             self.cycle(lateness)
             deadline += self.period_s
+            lost = self.guard.between_cycles()  # right after the cycle, in its slack
+            if lost is not None:  # its files gone: unreachable, so exit, and systemd restarts it
+                log.error("%s; exiting for a restart with a new folder", lost)
+                self.shutdown()
+                return 1
             self.serve_until(deadline)
             if self.reload_requested:  # SIGHUP, handled between cycles
                 self.reload_requested = False
                 try:
-                    self.reload()
+                    self.request_reload(None)
                 except FtsensordError:
                     pass  # logged; the running configuration stays
+            if self.reloads is not None:
+                self.reloads.poll()
         self.shutdown()
         return 0
 
     def serve_until(self, deadline: float) -> None:
         """Answer control requests until ``deadline`` within this cycle's budget (`loop.serve_until`)."""
-        serve_until(self.control, deadline, self.period_s, self.clock, self.bus.sleep, lambda: self.stop_requested)
+        serve_until(self.control, deadline, self.period_s, self.clock, self.bus.sleep, lambda: self.stop_requested,
+                    self.guard.caps)
 
     def handle_control(self) -> None:
         """Answer every waiting control request now (tests call this between cycles)."""
@@ -142,6 +158,11 @@ class Daemon:
         t_mono, t_wall = self.clock(), self.wall()
         # Every stream's sequence number is the cycle's: a deadline the loop skipped is a jump.
         seq = self.timing.cycles + self.timing.missed
+        if self.timing.jumped(seq):  # a gap in the input (a stall, skipped deadlines): the
+            for p in self.sensors:  # filters' memory says nothing of the load now; restart
+                p.filter.reset()
+            if self.gravity is not None:
+                self.gravity.restart()
         self.orientations.drain(start)
         samples: dict[str, SensorSample] = {}
         for p in self.sensors:
@@ -183,58 +204,6 @@ class Daemon:
             self.publisher.send(wire.encode(topic, kind, seq, t_mono, t_wall, flags, values), zmq.NOBLOCK)
         except zmq.Again:
             pass  # no room for a slow subscriber: latest value wins, the sequence shows the gap
-
-    # --- what control requests do (`control.Controlled`) ---------------------------------
-    def request_tare(self, envelope: list[bytes], sensors: list[str], samples: int) -> None:
-        """Start a tare (answered when done); ValueError when one of ``sensors`` has one under way."""
-        self.tares.request(envelope, sensors, samples)
-
-    def untare(self, sensors: list[str]) -> dict[str, Any]:
-        """Back to the calibrations' own zeros; refused for a sensor with a tare under way."""
-        return {"removed_tare_wrench": self.tares.untare([s for s in self.sensors if s.name in sensors])}
-
-    def loop_settings(self) -> tuple[float, int, float]:
-        return self.config.rate_hz, self.config.averaging, self.config.lowpass_hz
-
-    def set_loop(self, rate_hz: float, averaging: int, lowpass_hz: float) -> dict[str, Any]:
-        check_rate(self.config, rate_hz, timing=self.board_timing)
-        self.config.rate_hz, self.config.averaging, self.config.lowpass_hz = rate_hz, averaging, lowpass_hz
-        for s in self.sensors:
-            s.filter.configure(averaging, lowpass_hz, rate_hz)
-        if self.gravity is not None:
-            self.gravity.configure(averaging, lowpass_hz, rate_hz)  # the weight lags as the wrench
-        return {"rate_hz": rate_hz, "averaging": averaging, "lowpass_hz": lowpass_hz}
-
-    def set_estimator(self, estimator: str, sensor: str | None) -> dict[str, Any]:
-        return {"estimator": use_estimator(self.sensors, estimator, sensor)}
-
-    def reload(self) -> dict[str, Any]:
-        """Re-read the configuration and calibrations; keep the old ones if the new are bad.
-
-        Calibrations, rate, averaging, low-pass, tool poses and gravity change at once;
-        a change of bus, chips, scheduler or endpoints needs a restart. Unchanged
-        calibration files are not read again (`config.Calibrations`): such a reload
-        takes about 1 ms and fits between two cycles.
-        """
-        self.notifier.reloading()
-        try:
-            new = reload_config(self.config, self.calibrations)
-            self.notifier.check_rate(new.rate_hz, f"{new.path}: rate_hz")
-        except FtsensordError as exc:
-            log.error("reload refused, the running configuration stays: %s", exc)
-            self.notifier.ready(self.status_line())
-            raise
-        self.config = new
-        # The reader's care follows the file: stuck detection and register read-back.
-        self.reader.readback_every = new.readback_every
-        self.reader.stuck_cycles = self.reader.care.stuck_cycles = new.stuck_cycles
-        old, self.sensors = self.sensors, [self._pipeline(s, new) for s in new.sensors]
-        tares = carry_tares(old, self.sensors)  # kept where the calibration is the same, else dropped, said
-        self.gravity = self._gravity(new)
-        log.info("reloaded %s", new.path)
-        self.notifier.ready(self.status_line())
-        return {"config": str(new.path), "calibrations": {s.name: str(s.calibration_path) for s in new.sensors},
-                "tare": tares}
 
     # --- status (`service.status`) ---------------------------------------------------------
     def status_line(self) -> str:

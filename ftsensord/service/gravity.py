@@ -56,6 +56,11 @@ class Gravity:
         for f in self.filters.values():
             f.configure(averaging, lowpass_hz, rate_hz)
 
+    def restart(self) -> None:
+        """Forget the weights' past (a gap in the input: `Daemon.cycle`)."""
+        for f in self.filters.values():
+            f.reset()
+
     def _R_tip(self, frame: str) -> np.ndarray:
         return np.eye(3) if frame == TIP else self.poses[frame][:3, :3]
 

@@ -9,11 +9,13 @@ never made up by a burst.
 from __future__ import annotations
 
 from collections import deque
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
+import numpy.ma  # noqa: F401 (np.percentile imports it on its first call: 50 ms, a whole cycle, in the first `status`)
 import zmq
 
+from .connections import ConnectionCap
 from .control import BUDGET_FRACTION, Budget, Control
 
 #: A cycle starting later than this fraction of a period after its deadline is late.
@@ -31,6 +33,7 @@ class LoopTiming:
         self.lateness: deque[float] = deque(maxlen=STATS_WINDOW)
         self.durations: deque[float] = deque(maxlen=STATS_WINDOW)  # a cycle's start to its last publish
         self.publish_delays: deque[float] = deque(maxlen=STATS_WINDOW)  # t_mono to the first stream's send
+        self._last_seq: int | None = None
 
     def skip_missed(self, deadline: float, now: float, period_s: float) -> tuple[float, float]:
         """The deadline to run now and its lateness: deadlines a whole period or more
@@ -42,6 +45,12 @@ class LoopTiming:
             deadline += skipped * period_s
             lateness -= skipped * period_s
         return deadline, lateness
+
+    def jumped(self, seq: int) -> bool:
+        """Whether ``seq``, this cycle's sequence number, skips any after the last cycle's."""
+        jumped = self._last_seq is not None and seq != self._last_seq + 1
+        self._last_seq = seq
+        return jumped
 
     def begin(self, start: float, lateness: float, period_s: float) -> bool:
         """A cycle starts at ``start``, ``lateness`` after its deadline; returns whether it is late."""
@@ -72,21 +81,28 @@ def percentiles_us(seconds: deque[float]) -> dict[str, float]:
 
 
 def serve_until(control: Control, deadline: float, period_s: float, clock: Callable[[], float],
-                sleep: Callable[[float], None], stopped: Callable[[], bool]) -> None:
+                sleep: Callable[[float], None], stopped: Callable[[], bool],
+                caps: Sequence[ConnectionCap] = ()) -> None:
     """Answer control requests until ``deadline`` (s on ``clock``), then return.
 
     The loop comes first: this cycle's control work has a `Budget` (MAX_PER_CYCLE
     requests, BUDGET_FRACTION of the period, at least one request), shared in turn
     among clients; what does not fit waits for the next cycle, however many clients
     flood the socket. Waiting ends with ``sleep``, the bus's: the loop's clock is the
-    bus's (virtual in tests, so a test can run this very code)."""
+    bus's (virtual in tests, so a test can run this very code). Each ``caps``' surplus
+    connections are shut down as they come (`ConnectionCap`), whatever the budget: a
+    connection costs a descriptor whether or not it is served."""
     poller = zmq.Poller()
     socket = control.socket
     if socket is not None:
         poller.register(socket, zmq.POLLIN)
+    for cap in caps:
+        poller.register(cap.monitor, zmq.POLLIN)
     budget = Budget(seconds=min(BUDGET_FRACTION * period_s, deadline - clock()))
     spent = False
     while not stopped():
+        for cap in caps:
+            cap.drain()
         if not spent:
             spent = control.serve_waiting(budget)
         remaining = deadline - clock()

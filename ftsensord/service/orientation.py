@@ -53,7 +53,9 @@ UNIT_TOLERANCE = 1e-3
 #: drops what does not fit): 1000 is 10 cycles of a 1 kHz sender naming 100 frames.
 MAX_PER_CYCLE = 1000
 #: Largest message ZeroMQ accepts: a longer one disconnects its sender (before it takes memory).
-MAX_MESSAGE = 4096
+#: The largest valid one (a matrix) is 48 + 72 bytes; with RCVHWM queued per connection and
+#: 128 connections (`connections.MAX_CONNECTIONS`), a hostile sender pins at most 33 MB.
+MAX_MESSAGE = 256
 RCVHWM = 1000
 
 

@@ -7,9 +7,11 @@ chips back to idle and exit 0; SIGHUP reloads calibration and configuration.
 from __future__ import annotations
 
 import fcntl
+import functools
 import logging
 import os
 import signal
+from collections.abc import Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -19,9 +21,12 @@ from ..acquire.bus import open_bus, parse_bus_spec
 from ..chip.i2c import Bus
 from ..errors import ConfigError, FtsensordError
 from .config import Config, ensure_private_dir, is_loopback
-from .control import MAX_REQUEST
+from .connections import ConnectionCap, raise_descriptor_limit
+from .control import MAX_PER_CYCLE, MAX_REQUEST
 from .daemon import Daemon
+from .host import HostGuard
 from .orientation import open_receiver
+from .runtime import RuntimeFiles
 from .sdnotify import Notifier
 
 if TYPE_CHECKING:
@@ -34,6 +39,15 @@ log = logging.getLogger("ftsensord")
 PUB_HWM = 8
 #: Control requests queued before more are dropped (a flood cannot eat memory).
 CONTROL_HWM = 100
+#: Replies queued per control client: four cycles' worth (MAX_PER_CYCLE each), so a client
+#: that reads, if late, loses none even when libzmq's I/O thread is slow to take them; one
+#: that does not read pins at most this many (a `status` is about 5.4 KB: 700 KB), the
+#: rest are dropped and counted (`Control.dropped`).
+REPLY_HWM = 4 * MAX_PER_CYCLE
+#: A connection that has not finished ZeroMQ's handshake by then is closed (ms; libzmq's
+#: default is 30 s): one that never speaks frees its place under the cap (`ConnectionCap`)
+#: within a second; a real client's handshake takes well under a millisecond.
+HANDSHAKE_MS = 1000
 
 
 def open_configured_bus(config: Config, clock: MonotonicClock | VirtualClock | None = None) -> Bus:
@@ -52,16 +66,18 @@ def _ipc_path(endpoint: str) -> Path | None:
     return Path(endpoint[len("ipc://"):]) if endpoint.startswith("ipc://") else None
 
 
-def bind(socket: zmq.Socket, endpoint: str) -> None:
+def bind(socket: zmq.Socket, endpoint: str, files: RuntimeFiles | None = None) -> None:
     """Bind, creating an ipc socket's folder (0700) and refusing one another user could
     tamper with (`ensure_private_dir`); the socket file gets mode 0660 (the service's
-    group may connect, nobody else)."""
+    group may connect, nobody else) and is recorded in ``files`` (watched, removed at exit)."""
     path = _ipc_path(endpoint)
     if path is not None:
         ensure_private_dir(path.parent)
     socket.bind(endpoint)
     if path is not None:
         os.chmod(path, 0o660)
+        if files is not None:
+            files.made(path)
 
 
 #: The lock file in each folder holding the daemon's ipc sockets.
@@ -74,17 +90,19 @@ def endpoints(config: Config) -> list[str]:
     return [*config.publish, config.control, *([orientation] if orientation else [])]
 
 
-def lock_runtime(config: Config) -> list[int]:
+def lock_runtime(config: Config, files: RuntimeFiles | None = None) -> list[int]:
     """Take the exclusive lock (flock) in every folder of the configured ipc endpoints;
     refuse, naming the first daemon's pid, when another daemon holds one. Returns the
     open descriptors: the locks last while they stay open (the kernel drops them at exit,
-    even after kill -9)."""
+    even after kill -9). Each lock file is recorded in ``files`` (watched, kept at exit)."""
     folders = sorted({p.parent for p in map(_ipc_path, endpoints(config)) if p is not None})
     held: list[int] = []
     try:
         for folder in folders:
             ensure_private_dir(folder)
             held.append(_lock(folder / LOCK_NAME))
+            if files is not None:
+                files.made(folder / LOCK_NAME, held[-1], remove=False)
     except BaseException:
         for fd in held:
             os.close(fd)
@@ -132,58 +150,95 @@ def secure_control(context: zmq.Context, control: zmq.Socket, config: Config) ->
     return None
 
 
-def make_sockets(context: zmq.Context, config: Config) -> tuple[zmq.Socket, zmq.Socket, object | None]:
-    """The publisher, the control socket, and the CURVE authenticator (None without CURVE)."""
+def make_sockets(context: zmq.Context, config: Config,
+                 files: RuntimeFiles | None = None) -> tuple[zmq.Socket, zmq.Socket, object | None]:
+    """The publisher, the control socket, and the CURVE authenticator (None without CURVE);
+    ``files``: where the ipc sockets made are recorded."""
+    context.setsockopt(zmq.HANDSHAKE_IVL, HANDSHAKE_MS)  # every socket made from here on
     publisher = context.socket(zmq.PUB)
     publisher.setsockopt(zmq.SNDHWM, PUB_HWM)
+    publisher.setsockopt(zmq.RCVHWM, CONTROL_HWM)  # subscription messages: bounded like requests
     publisher.setsockopt(zmq.LINGER, 0)
     for endpoint in config.publish:
-        bind(publisher, endpoint)
+        bind(publisher, endpoint, files)
     control = context.socket(zmq.ROUTER)
     control.setsockopt(zmq.MAXMSGSIZE, MAX_REQUEST)
     control.setsockopt(zmq.RCVHWM, CONTROL_HWM)
+    control.setsockopt(zmq.SNDHWM, REPLY_HWM)
+    control.setsockopt(zmq.ROUTER_MANDATORY, 1)  # a reply that cannot go raises, so it is counted
     control.setsockopt(zmq.LINGER, 0)
     auth = secure_control(context, control, config)
-    bind(control, config.control)
+    bind(control, config.control, files)
     return publisher, control, auth
 
 
-def run(config: Config) -> int:
+class Signals:
+    """SIGTERM and SIGINT ask the daemon to stop, SIGHUP to reload, from the start of `run`
+    on; one that comes before the daemon exists is kept, and handed to it (`attach`)."""
+
+    def __init__(self, early: Iterable[int] = ()) -> None:
+        self.stop = self.reload = False
+        self.daemon: Daemon | None = None
+        for signum in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
+            signal.signal(signum, self.handle)
+        for signum in early:
+            self.handle(signum, None)
+
+    def handle(self, signum: int, frame: object) -> None:
+        if signum == signal.SIGHUP:
+            self.reload = True
+        else:
+            self.stop = True
+        if self.daemon is not None:
+            self.attach(self.daemon)
+
+    def attach(self, daemon: Daemon) -> None:
+        self.daemon = daemon
+        daemon.stop_requested |= self.stop
+        daemon.reload_requested |= self.reload
+        self.reload = False  # handed over: the daemon clears its own
+
+
+def run(config: Config, early: Iterable[int] = ()) -> int:
+    """Serve ``config`` until SIGTERM; ``early``: signals that came before (`__main__.EARLY_SIGNALS`)."""
+    signals = Signals(early)
+    if signals.stop:  # stopped while starting: nothing made yet, nothing to undo
+        log.info("stopped before starting")
+        return 0
+    raise_descriptor_limit()
     notifier = Notifier()
     notifier.check_rate(config.rate_hz, f"{config.path}: rate_hz")
-    locks = lock_runtime(config)  # before the bus: a second daemon must not touch the chips
+    files = RuntimeFiles()
+    locks = lock_runtime(config, files)  # before the bus: a second daemon must not touch the chips
     try:
         try:
             bus = open_configured_bus(config)
         except (OSError, FtsensordError) as exc:
             raise ConfigError(f"{config.path}: bus: cannot open {config.bus!r}: {exc}") from exc
-        return _serve(config, bus, notifier)
+        return _serve(config, bus, notifier, files, signals)
     finally:
         for fd in locks:
             os.close(fd)
 
 
-def _serve(config: Config, bus: Bus, notifier: Notifier) -> int:
+def _serve(config: Config, bus: Bus, notifier: Notifier, files: RuntimeFiles, signals: Signals) -> int:
     context = zmq.Context()
-    publisher, control, auth = make_sockets(context, config)
+    publisher, control, auth = make_sockets(context, config, files)
     endpoint = config.orientation_endpoint
-    orientation = open_receiver(context, endpoint, bind) if endpoint else None
-    daemon = Daemon(config, bus, publisher, control, notifier=notifier, orientation=orientation)
+    orientation = open_receiver(context, endpoint, functools.partial(bind, files=files)) if endpoint else None
+    caps = [ConnectionCap(publisher, "publish"), ConnectionCap(control, "control"),
+            *([ConnectionCap(orientation, "orientation")] if orientation is not None else [])]
+    daemon = Daemon(config, bus, publisher, control, notifier=notifier, orientation=orientation,
+                    guard=HostGuard(caps, files), background_reload=True)
 
-    def stop(signum: int, frame: object) -> None:
-        daemon.stop_requested = True
-
-    def reload(signum: int, frame: object) -> None:
-        daemon.reload_requested = True
-
-    signal.signal(signal.SIGTERM, stop)
-    signal.signal(signal.SIGINT, stop)
-    signal.signal(signal.SIGHUP, reload)
+    signals.attach(daemon)
     log.info("ftsensord on %s: %s; publishing on %s, control on %s", config.bus, config.bound().describe(),
              ", ".join(config.publish), config.control)
     try:
         return daemon.run()
     finally:
+        for cap in caps:
+            cap.close()
         publisher.close()
         if auth is not None:
             auth.stop()  # type: ignore[attr-defined]
@@ -192,7 +247,4 @@ def _serve(config: Config, bus: Bus, notifier: Notifier) -> int:
             orientation.close()
         context.term()
         bus.close()
-        for endpoint in endpoints(config):
-            path = _ipc_path(endpoint)
-            if path is not None and os.path.lexists(path):
-                path.unlink()  # ours: the folder is checked and locked
+        files.remove_own()

@@ -118,6 +118,7 @@ def status_reply(d: Daemon) -> dict[str, Any]:
         "chips": d.chips.report(d.reader.health, d.reader.bus.monotonic()),
         "sensors": {s.name: s.status() for s in d.sensors},
         "streams": sorted(d.streams), "publish": d.config.publish, "control": d.config.control,
+        "connections": {c.name: c.status() for c in d.guard.caps}, "replies_dropped": d.control.dropped,
         "frames": stream_frames(d), "gravity": d.gravity.status(d.sensors, d.clock()) if d.gravity else None,
     }
 
