@@ -74,6 +74,27 @@ class SensorGeometry:
         q, _ = np.linalg.qr(stacked)
         return q
 
+    def gradient_directions(self) -> np.ndarray:
+        """The 5 directions (24 x 5, orthonormal columns) a field's first-order gradient
+        makes in the stacked flux: a field u + G p near the sensor (p in m, frame {0}; G in
+        T/m, symmetric and traceless as a curl- and divergence-free field's is) adds
+        R_0i^T G p_i to chip i. Basis G: xx - zz, yy - zz, and the symmetric xy, xz, yz.
+
+        On the drawn ring (chips in one plane, 8-fold symmetric) only the two in-plane
+        parts xx - yy and xy are apart from a load and a uniform field: G_zz's pattern is an
+        axial push's and a uniform B_z's, G_xz's and G_yz's a tilt's and a uniform B_x's,
+        B_y's (docs/physics.md, "A motor's field"). `separable_gradient` keeps those two.
+        """
+        basis = []
+        for i, j in ((0, 0), (1, 1), (0, 1), (0, 2), (1, 2)):
+            G = np.zeros((3, 3))
+            G[i, j] = G[j, i] = 1.0
+            if i == j:
+                G[2, 2] = -1.0
+            basis.append(np.concatenate([R.T @ G @ p for R, p in zip(self.chip_R, self.chip_p, strict=True)]))
+        q, _ = np.linalg.qr(np.array(basis).T)
+        return q
+
     def magnet_in_chip(self) -> np.ndarray:
         """Nominal position of each chip's own magnet in the chip's frame (n x 3)."""
         return np.einsum("nji,nj->ni", self.chip_R, self.magnet_p - self.chip_p)

@@ -32,10 +32,15 @@ from ..chip import mlx90393 as mlx
 from ..chip.i2c import BusTiming
 from ..docfile import Table, load_toml
 from ..errors import ConfigError
+from ..model.linear import LinearModel
 from .frames import TIP, GravityConfig, gravity_config, tool_poses
 
 CONFIG_VERSION = 1
 ESTIMATORS = ("linear", "nonlinear")
+#: What a sensor's run time takes out beside the deflection: "uniform", a uniform field (the
+#: room's, as calibrated); "gradient", also the part of a field's gradient across the ring
+#: that the chips tell from a load, estimated and tested (a motor nearby; docs/accuracy.md).
+STRAY_FIELDS = ("uniform", "gradient")
 BUILTIN = "builtin:"
 
 
@@ -124,6 +129,13 @@ class SensorConfig:
     calibration: Calibration
     frame: str  # the frame its wrench is expressed in (default: the calibration's)
     estimator: str = "linear"  # "linear" (K A) or "nonlinear" (the flux model, docs/tradeoff.md)
+    stray_field: str = "uniform"  # `STRAY_FIELDS`
+
+    @property
+    def model(self) -> LinearModel:
+        """The linear model the run time uses: the calibration's, with `stray_field`'s
+        directions (`LinearModel.with_gradient`, made once per calibration)."""
+        return self.calibration.model.with_gradient() if self.stray_field == "gradient" else self.calibration.model
 
 
 @dataclass
@@ -308,7 +320,7 @@ def load_config(path: str | Path | None = None, calibrations: Calibrations | Non
     sensors: list[SensorConfig] = []
     seen: set[int] = set()
     for t in doc.tables("sensor"):
-        t.only({"name", "addresses", "calibration", "frame", "estimator"})
+        t.only({"name", "addresses", "calibration", "frame", "estimator", "stray_field"})
         addresses = parse_addresses(t, "addresses")
         for a in addresses:
             if a in seen:
@@ -326,8 +338,12 @@ def load_config(path: str | Path | None = None, calibrations: Calibrations | Non
         if estimator == "nonlinear" and calibration.nonlinear is None:
             raise t.fail("estimator", f'"linear": {cal_path} has no nonlinear calibration '
                                       "(make one with `ftsensord calibrate` without --linear-only)", estimator)
+        stray_field = t.string("stray_field", "uniform", choices=STRAY_FIELDS)
+        if stray_field == "gradient" and calibration.model.H is None:
+            raise t.fail("stray_field", f'"uniform": {cal_path} has no flux model H to tell a gradient from a load',
+                         stray_field)
         sensors.append(SensorConfig(name, addresses, cal_path, calibration, t.string("frame", calibration.frame),
-                                    estimator))
+                                    estimator, stray_field))
     security = _security(doc)
     rt = runtime_dir()
     stream_why = "set [security] public_stream = true to publish the wrench stream beyond this host"

@@ -55,6 +55,10 @@ CONSISTENCY_FALSE_ODDS = 1e-9
 #: needs larger ones.
 MODEL_RESIDUAL_AT_REST, MODEL_RESIDUAL_AT_RANGE = 2.5, 26.0
 CHIP_RESIDUAL_AT_REST, CHIP_RESIDUAL_AT_RANGE = 1.5, 13.0
+#: With `stray_field = "gradient"` a third test: the estimated gradient (chi-square, 2 dof),
+#: which takes half of the whole residual's odds. Its model allowance, measured the same way
+#: (tests/test_stray.py): 0.7 sigma at rest, 1.7 at s = 0.25, 2.8 at 0.5, 8.4 at 1, 18 at 1.5.
+GRADIENT_RESIDUAL_AT_REST, GRADIENT_RESIDUAL_AT_RANGE = 1.2, 10.0
 #: A chip found disagreeing stays out (its samples flagged) until it has agreed this many
 #: samples in a row at a looser limit, the noise's 1 % point: a stuck chip under a slow
 #: load hovers at the threshold for a while, and in and out it would let samples through
@@ -111,9 +115,9 @@ class SensorPipeline:
               settings: mlx.Settings | None = None) -> SensorPipeline:
         nl = s.calibration.nonlinear
         sigma_t = channel_sigma_t(settings or mlx.Settings(), len(s.addresses))
-        if s.calibration.model.H is not None:  # no map built in the cycle of a fault
-            s.calibration.model.build_maps(sigma_t, max_missing_chips)
-        return cls(s, s.calibration.model, smoothing, max_missing_chips, np.full(3 * len(s.addresses), np.nan),
+        if s.model.H is not None:  # no map built in the cycle of a fault
+            s.model.build_maps(sigma_t, max_missing_chips)
+        return cls(s, s.model, smoothing, max_missing_chips, np.full(3 * len(s.addresses), np.nan),
                    estimator=s.estimator, nonlinear=nl.estimator() if nl is not None else None,
                    zero_twist=nl.zero_twist.copy() if nl is not None else None, sigma_t=sigma_t)
 
@@ -199,7 +203,7 @@ class SensorPipeline:
     def tare(self, zero: np.ndarray, gravity: np.ndarray | None = None) -> np.ndarray:
         """Make ``zero`` (the mean no-load flux, T) the new zero; returns the wrench it removes.
         ``gravity``: the mean gravity (m/s^2, sensor frame) while it was measured, None if unknown."""
-        self.tare_wrench = self.config.calibration.model.wrench(zero)
+        self.tare_wrench = self.config.model.wrench(zero)
         self.tare_gravity = None if gravity is None else np.array(gravity, dtype=float)
         self.model = self.model.with_zero(zero)
         if self.nonlinear is not None:
@@ -288,8 +292,7 @@ class RedundancyCheck:
         n_usable = int(np.count_nonzero(usable))
         if len(usable) - n_usable > p.max_missing_chips:
             return usable, 0  # too few chips for any estimate: the sample is invalid as it stands
-        if p.model.H is None or p.sigma_t is None or n_usable * 3 <= 6 + (
-                0 if p.model.room is None else p.model.room.shape[1]):
+        if p.model.H is None or p.sigma_t is None or n_usable * 3 <= p.model.columns.shape[1]:
             return usable, 0  # no flux model or no redundancy left: nothing to check against
         c = p.model.consistency(flux, p.sigma_t, usable)
         out, n_out = usable, n_usable
@@ -329,9 +332,14 @@ class RedundancyCheck:
         return out, wire.FLAG_INCONSISTENT
 
     def _agree(self, p: SensorPipeline, c: Consistency, load2: float, chips: int) -> bool:
-        """Both tests within their limits. |noise + model| <= |noise| + |model|, so the
-        false-alarm odds stay within CONSISTENCY_FALSE_ODDS."""
+        """Both tests (and the gradient's, when estimated) within their limits. |noise + model|
+        <= |noise| + |model|, so the false-alarm odds stay within CONSISTENCY_FALSE_ODDS."""
         whole, one = self._limits(p, load2, c.dof, chips, CONSISTENCY_FALSE_ODDS)
+        if c.gradient_dof:
+            limit = (math.sqrt(chi2_quantile(c.gradient_dof, CONSISTENCY_FALSE_ODDS / 4))
+                     + GRADIENT_RESIDUAL_AT_REST + GRADIENT_RESIDUAL_AT_RANGE * load2)
+            if c.gradient_chi2 > limit ** 2:
+                return False
         # The largest drop is chi2 - the smallest chi2 without (inf for a chip not to be left out).
         return c.chi2 <= whole ** 2 and c.chi2 - float(c.chi2_without.min()) <= one ** 2
 
@@ -368,6 +376,7 @@ class RedundancyCheck:
         drop at the load ``load2`` (`_load2`): the noise's at ``odds`` (half to the whole,
         a quarter to one chip's, split among ``chips``; the last quarter is the slow
         test's) plus the model's own error at this load."""
-        whole = math.sqrt(chi2_quantile(dof, odds / 2)) + MODEL_RESIDUAL_AT_REST + MODEL_RESIDUAL_AT_RANGE * load2
+        # With a gradient estimated, its test takes half of the whole residual's odds.
+        whole = math.sqrt(chi2_quantile(dof, odds / (4 if p.model.gradient is not None else 2))) + MODEL_RESIDUAL_AT_REST + MODEL_RESIDUAL_AT_RANGE * load2
         one = math.sqrt(chi2_quantile(3, odds / (4 * chips))) + CHIP_RESIDUAL_AT_REST + CHIP_RESIDUAL_AT_RANGE * load2
         return whole, one
