@@ -199,9 +199,9 @@ def main(argv: list[str] | None = None) -> int:
              f"{', '.join(map(str, args.seeds))} (the default scene's tolerances, the Earth's field); calibration "
              f"{args.fit_poses} fit poses, 24 no-load, {args.loads} validation (100 g), {args.samples} readings a "
              f"pose. A {MOMENT_AM2:g} A m^2 dipole fixed in the world; {args.orientations} orientations (or "
-             f"{args.loads} validation poses), each held {args.hold:g} s (about {int(round((args.hold - SETTLE_S) * 100))}"
-             " samples), 100 Hz. Per hold the median of its unflagged samples minus the truth; RMS over the holds "
-             "(N x3, mNm x3), the largest over the holds (max |.| on any axis: N, mNm), holds without an "
+             f"{args.loads} validation poses), each held {args.hold:g} s (about "
+             f"{int(round((args.hold - SETTLE_S) * 100))} samples), 100 Hz. Per hold the median of its unflagged "
+             "samples minus the truth; RMS over the holds (N x3, mNm x3), the largest over the holds (max |.| on any axis: N, mNm), holds without an "
              "unflagged sample, samples flagged.", ""]
     lines += ["| part | estimator, stray_field | scenario | distance | Fx | Fy | Fz | Mx | My | Mz | largest F, M "
               "| holds all flagged | samples flagged | tare |", "|---" * 14 + "|"]
@@ -221,7 +221,8 @@ def main(argv: list[str] | None = None) -> int:
                         r = run(seed, cal, estimator, stray, scenario, distance, folder, args)
                         worst = np.nanmax(np.abs(r.errors), axis=0) if not np.isnan(r.errors).all() else \
                             np.full(6, np.nan)
-                        lines.append(f"| {seed} | {estimator}, {stray} | {scenario} | {distance * 100:g} cm | {cells(rms(r.errors))} "
+                        lines.append(f"| {seed} | {estimator}, {stray} | {scenario} | {distance * 100:g} cm "
+                                     f"| {cells(rms(r.errors))} "
                                      f"| {np.max(worst[:3]):.3g} N, {np.max(worst[3:]) * 1e3:.3g} mNm "
                                      f"| {int(np.isnan(r.errors).any(axis=1).sum())} of {len(r.errors)} "
                                      f"| {r.flagged} of {r.samples} | {r.tare} |")

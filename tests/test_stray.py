@@ -12,8 +12,7 @@ import pytest
 from ftsensord.calibration.calfile import Calibration
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.model import se3
-from ftsensord.model.geometry import SensorGeometry
-from ftsensord.model.linear import separable_gradient
+from ftsensord.model.geometry import SensorGeometry, separable_gradient
 from ftsensord.service import wire
 from ftsensord.service.config import builtin_path
 from ftsensord.service.pipeline import GRADIENT_RESIDUAL_AT_RANGE, GRADIENT_RESIDUAL_AT_REST, channel_sigma_t

@@ -24,6 +24,24 @@ D101_RADIUS_M = 1.5875e-3 / 2
 D101_LENGTH_M = 0.79375e-3
 D101_BR_T = 1.45
 
+#: A gradient direction counts as apart from a load and a uniform field when at least half
+#: of it (0.5 of its unit length) lies outside the flux they make: on the drawn ring the
+#: in-plane parts lie wholly outside (1.0) and the other three inside (0); an as-built
+#: part's chip tilts (1.5 deg) move either by under 0.1 (tests/test_stray.py).
+SEPARABLE_GRADIENT = 0.5
+
+
+def separable_gradient(H: np.ndarray, room: np.ndarray | None, gradient: np.ndarray) -> np.ndarray:
+    """The directions (24 x k, orthonormal) of a field's gradient (``gradient``, e.g.
+    `SensorGeometry.gradient_directions`) that the chips can tell from a deflection
+    (``H``'s columns) and a uniform field (``room``'s): the part of the gradient's span
+    outside theirs, where it is at least `SEPARABLE_GRADIENT` of a direction. They are
+    orthogonal to H and room, so projecting them out costs a load nothing it is seen by."""
+    span, _ = np.linalg.qr(H if room is None else np.hstack([H, room]))
+    outside = gradient - span @ (span.T @ gradient)
+    u, s, _ = np.linalg.svd(outside, full_matrices=False)
+    return u[:, s >= SEPARABLE_GRADIENT]
+
 
 @dataclass(frozen=True)
 class SensorGeometry:

@@ -18,30 +18,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import se3
-from .geometry import SensorGeometry
+from .geometry import SensorGeometry, separable_gradient
 from .registration import Registration, register
 
 #: The sensor's range (paper): +-50 N in X and Y, +-20 N in Z, +-0.2 Nm, frame {0}.
 SENSOR_RANGE = np.array([50.0, 50.0, 20.0, 0.2, 0.2, 0.2])
-#: A gradient direction counts as apart from a load and a uniform field when at least half
-#: of it (0.5 of its unit length) lies outside the flux they make: on the drawn ring the
-#: in-plane parts lie wholly outside (1.0) and the other three inside (0); an as-built
-#: part's chip tilts (1.5 deg) move either by under 0.1 (tests/test_stray.py).
-SEPARABLE_GRADIENT = 0.5
-
-
-def separable_gradient(H: np.ndarray, room: np.ndarray | None, gradient: np.ndarray) -> np.ndarray:
-    """The directions (24 x k, orthonormal) of a field's gradient (``gradient``, e.g.
-    `SensorGeometry.gradient_directions`) that the chips can tell from a deflection
-    (``H``'s columns) and a uniform field (``room``'s): the part of the gradient's span
-    outside theirs, where it is at least `SEPARABLE_GRADIENT` of a direction. They are
-    orthogonal to H and room, so projecting them out costs a load nothing it is seen by."""
-    span, _ = np.linalg.qr(H if room is None else np.hstack([H, room]))
-    outside = gradient - span @ (span.T @ gradient)
-    u, s, _ = np.linalg.svd(outside, full_matrices=False)
-    return u[:, s >= SEPARABLE_GRADIENT]
-
-
 @dataclass(frozen=True)
 class PositionMap:
     """p = M b + o per chip (eq. 1): ``M`` (n, 3, 3) in m/T, ``o`` (n, 3) in m."""
@@ -191,9 +172,16 @@ class LinearModel:
     @property
     def columns(self) -> np.ndarray:
         """The forward model's columns, b - b0 = H xi + room u + gradient g: what the
-        degraded estimate and the consistency check fit (24 x 6 + k). Needs H."""
-        assert self.H is not None
+        degraded estimate and the consistency check fit (24 x `unknowns`). Needs H."""
+        if self.H is None:
+            raise ValueError("this calibration has no flux model H")
         return np.hstack([c for c in (self.H, self.room, self.gradient) if c is not None])
+
+    @property
+    def unknowns(self) -> int:
+        """How many unknowns those columns are: 6 of the deflection, and the room's and
+        the gradient's when set."""
+        return 6 + sum(c.shape[1] for c in (self.room, self.gradient) if c is not None)
 
     def wrench_from(self, b: np.ndarray, chips: np.ndarray) -> np.ndarray:
         """The wrench from the chips where ``chips`` (bool, one per chip) is true only.

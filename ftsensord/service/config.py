@@ -37,10 +37,7 @@ from .frames import TIP, GravityConfig, gravity_config, tool_poses
 
 CONFIG_VERSION = 1
 ESTIMATORS = ("linear", "nonlinear")
-#: What a sensor's run time takes out beside the deflection: "uniform", a uniform field (the
-#: room's, as calibrated); "gradient", also the part of a field's gradient across the ring
-#: that the chips tell from a load, estimated and tested (a motor nearby; docs/accuracy.md).
-STRAY_FIELDS = ("uniform", "gradient")
+STRAY_FIELDS = ("uniform", "gradient")  # beside the deflection: the room's field, or a gradient's too
 BUILTIN = "builtin:"
 
 
@@ -132,9 +129,7 @@ class SensorConfig:
     stray_field: str = "uniform"  # `STRAY_FIELDS`
 
     @property
-    def model(self) -> LinearModel:
-        """The linear model the run time uses: the calibration's, with `stray_field`'s
-        directions (`LinearModel.with_gradient`, made once per calibration)."""
+    def model(self) -> LinearModel:  # the run time's: the calibration's, `LinearModel.with_gradient` if asked
         return self.calibration.model.with_gradient() if self.stray_field == "gradient" else self.calibration.model
 
 
@@ -340,8 +335,7 @@ def load_config(path: str | Path | None = None, calibrations: Calibrations | Non
                                       "(make one with `ftsensord calibrate` without --linear-only)", estimator)
         stray_field = t.string("stray_field", "uniform", choices=STRAY_FIELDS)
         if stray_field == "gradient" and calibration.model.H is None:
-            raise t.fail("stray_field", f'"uniform": {cal_path} has no flux model H to tell a gradient from a load',
-                         stray_field)
+            raise t.fail("stray_field", f'"uniform": {cal_path} has no flux model H', stray_field)
         sensors.append(SensorConfig(name, addresses, cal_path, calibration, t.string("frame", calibration.frame),
                                     estimator, stray_field))
     security = _security(doc)

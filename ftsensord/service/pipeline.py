@@ -292,7 +292,7 @@ class RedundancyCheck:
         n_usable = int(np.count_nonzero(usable))
         if len(usable) - n_usable > p.max_missing_chips:
             return usable, 0  # too few chips for any estimate: the sample is invalid as it stands
-        if p.model.H is None or p.sigma_t is None or n_usable * 3 <= p.model.columns.shape[1]:
+        if p.model.H is None or p.sigma_t is None or n_usable * 3 <= p.model.unknowns:
             return usable, 0  # no flux model or no redundancy left: nothing to check against
         c = p.model.consistency(flux, p.sigma_t, usable)
         out, n_out = usable, n_usable
@@ -377,6 +377,7 @@ class RedundancyCheck:
         a quarter to one chip's, split among ``chips``; the last quarter is the slow
         test's) plus the model's own error at this load."""
         # With a gradient estimated, its test takes half of the whole residual's odds.
-        whole = math.sqrt(chi2_quantile(dof, odds / (4 if p.model.gradient is not None else 2))) + MODEL_RESIDUAL_AT_REST + MODEL_RESIDUAL_AT_RANGE * load2
+        whole_odds = odds / (4 if p.model.gradient is not None else 2)
+        whole = math.sqrt(chi2_quantile(dof, whole_odds)) + MODEL_RESIDUAL_AT_REST + MODEL_RESIDUAL_AT_RANGE * load2
         one = math.sqrt(chi2_quantile(3, odds / (4 * chips))) + CHIP_RESIDUAL_AT_REST + CHIP_RESIDUAL_AT_RANGE * load2
         return whole, one
