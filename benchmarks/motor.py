@@ -201,7 +201,8 @@ def main(argv: list[str] | None = None) -> int:
              f"pose. A {MOMENT_AM2:g} A m^2 dipole fixed in the world; {args.orientations} orientations (or "
              f"{args.loads} validation poses), each held {args.hold:g} s (about "
              f"{int(round((args.hold - SETTLE_S) * 100))} samples), 100 Hz. Per hold the median of its unflagged "
-             "samples minus the truth; RMS over the holds (N x3, mNm x3), the largest over the holds (max |.| on any axis: N, mNm), holds without an "
+             "samples minus the truth; RMS over the holds (N x3, mNm x3), the largest over the holds (max |.| "
+             "on any axis: N, mNm), holds without an "
              "unflagged sample, samples flagged.", ""]
     lines += ["| part | estimator, stray_field | scenario | distance | Fx | Fy | Fz | Mx | My | Mz | largest F, M "
               "| holds all flagged | samples flagged | tare |", "|---" * 14 + "|"]
