@@ -1,7 +1,7 @@
 """Motors nearby (issue 23): a motor's point dipole a few cm from the tool, through the
 daemon, on as-built parts the project does not otherwise use. Writes docs/motor-figures.md.
 
-    python benchmarks/motor.py            # the figures in docs/ (about 15 min on 2 cores)
+    python benchmarks/motor.py            # the figures in docs/ (2 processes)
     python benchmarks/motor.py --quick    # structure only (tests/test_motor_bench.py)
 
 Per part (seeds 11, 12, 13; the default scene's tolerances and the Earth's field): the
@@ -32,6 +32,8 @@ import json
 import sys
 import tempfile
 import time
+from concurrent.futures import ProcessPoolExecutor
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -174,6 +176,24 @@ stray_field = "{stray}"
     return Run(np.array(errors), flagged, used, tare)
 
 
+def rows_of(seed: int, cal: Path, estimator: str, folder: Path, args: argparse.Namespace) -> list[str]:
+    """Every scenario of part ``seed`` with ``estimator``, both `STRAY_FIELDS`: table rows."""
+    rows = []
+    folder = folder / f"{seed}-{estimator}"  # the daemon's files, one folder per worker
+    folder.mkdir()
+    for stray in STRAY_FIELDS:
+        for scenario in SCENARIOS:
+            for distance in (0.15, 0.25) if scenario == "on after tare" else (0.15,):
+                r = run(seed, cal, estimator, stray, scenario, distance, folder, args)
+                worst = np.nanmax(np.abs(r.errors), axis=0) if not np.isnan(r.errors).all() else np.full(6, np.nan)
+                rows.append(f"| {seed} | {estimator}, {stray} | {scenario} | {distance * 100:g} cm "
+                            f"| {cells(rms(r.errors))} | {np.max(worst[:3]):.3g} N, {np.max(worst[3:]) * 1e3:.3g} mNm "
+                            f"| {int(np.isnan(r.errors).any(axis=1).sum())} of {len(r.errors)} "
+                            f"| {r.flagged} of {r.samples} | {r.tare} |")
+                print(rows[-1], flush=True)
+    return rows
+
+
 def rms(errors: np.ndarray) -> np.ndarray:
     """RMS over the holds that have an unflagged sample (N, Nm per axis)."""
     kept = errors[~np.isnan(errors).any(axis=1)]
@@ -187,9 +207,11 @@ def cells(v: np.ndarray) -> str:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="one part, a small calibration, few holds (seconds)")
+    ap.add_argument("--jobs", type=int, default=2, help="processes (default 2; the quick mode 1)")
     ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parent.parent / "docs" / "motor-figures.md")
     args = ap.parse_args(argv)
     args.seeds = SEEDS[:1] if args.quick else SEEDS
+    args.jobs = 1 if args.quick else args.jobs
     args.fit_poses, args.samples = (40, 10) if args.quick else (193, 100)
     args.loads, args.orientations, args.hold = (4, 4, 0.3) if args.quick else (48, 48, 1.0)
     args.estimators = ("linear",) if args.quick else ("linear", "nonlinear")
@@ -211,23 +233,18 @@ def main(argv: list[str] | None = None) -> int:
              "mNm x3) with its largest ratio to Table II:", "",
              "| part | stray_field | sigma_max F | isotropy F | sigma_max M | isotropy M | Fx | Fy | Fz | Mx | My "
              "| Mz | / Table II |", "|---" * 13 + "|"]
-    with tempfile.TemporaryDirectory() as tmp:
+    # One process in the quick mode: no fork of a test process that holds ZeroMQ sockets.
+    with tempfile.TemporaryDirectory() as tmp, \
+            (ProcessPoolExecutor(args.jobs) if args.jobs > 1 else nullcontext()) as pool:
         folder = Path(tmp)
-        for seed in args.seeds:
-            cal, price = calibrate_part(seed, folder, args)
+        mapper = map if pool is None else pool.map
+        calibrated = list(mapper(calibrate_part, args.seeds, [folder] * len(args.seeds), [args] * len(args.seeds)))
+        for _, price in calibrated:
             parts += price
-            for estimator, stray in [(e, f) for e in args.estimators for f in STRAY_FIELDS]:
-                for scenario in SCENARIOS:
-                    for distance in (0.15, 0.25) if scenario == "on after tare" else (0.15,):
-                        r = run(seed, cal, estimator, stray, scenario, distance, folder, args)
-                        worst = np.nanmax(np.abs(r.errors), axis=0) if not np.isnan(r.errors).all() else \
-                            np.full(6, np.nan)
-                        lines.append(f"| {seed} | {estimator}, {stray} | {scenario} | {distance * 100:g} cm "
-                                     f"| {cells(rms(r.errors))} "
-                                     f"| {np.max(worst[:3]):.3g} N, {np.max(worst[3:]) * 1e3:.3g} mNm "
-                                     f"| {int(np.isnan(r.errors).any(axis=1).sum())} of {len(r.errors)} "
-                                     f"| {r.flagged} of {r.samples} | {r.tare} |")
-                        print(lines[-1], flush=True)
+        tasks = [(seed, cal, estimator) for seed, (cal, _) in zip(args.seeds, calibrated, strict=True)
+                 for estimator in args.estimators]
+        for rows in mapper(rows_of, *zip(*tasks, strict=True), [folder] * len(tasks), [args] * len(tasks)):
+            lines += rows
     lines += parts + ["", f"Target (issue 23): RMS within {TARGET[0]} N and {TARGET[3] * 1e3:g} mNm; at 25 cm nothing "
               f"flagged. {time.perf_counter() - began:.0f} s."]
     args.out.write_text("\n".join(lines) + "\n")
