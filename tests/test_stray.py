@@ -169,9 +169,9 @@ def test_the_gradient_allowance_covers_the_calibrations_largest_loads(name, inde
 
 def test_an_in_plane_gradient_is_flagged_where_the_whole_residual_lets_it_through(tmp_path):
     """1.3 uT/mm across the ring (about a 2 A m^2 motor at 15 cm), in plane: the whole
-    residual's test lets it through (7 sigma of its 11); with stray_field "gradient" the
-    gradient's own test (2 dof: 7.9 sigma) flags it. (Over 1.5 uT/mm both flag; under
-    1.05 neither.) K A blind to its drawn-ring directions reads a quarter of the force."""
+    residual's test lets it through (9.7 sigma of its 11.2); with stray_field "gradient" the
+    gradient's own test (2 dof: 7.0 sigma at rest) flags it. (Over 1.5 uT/mm both flag; under
+    0.95 neither.) K A blind to its drawn-ring directions reads a quarter of the force."""
     rig = Rig(tmp_path)
     try:
         p = rig.daemon.sensors[0]
