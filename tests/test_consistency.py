@@ -14,12 +14,12 @@ from ftsensord.model.linear import chi2_quantile
 from ftsensord.service import wire
 from ftsensord.service.config import builtin_path
 from ftsensord.service.filters import WrenchFilter
-from ftsensord.service.pipeline import (
+from ftsensord.service.pipeline import channel_sigma_t
+from ftsensord.service.redundancy import (
     CHIP_RESIDUAL_AT_RANGE,
     CHIP_RESIDUAL_AT_REST,
     MODEL_RESIDUAL_AT_RANGE,
     MODEL_RESIDUAL_AT_REST,
-    channel_sigma_t,
 )
 from ftsensord.sim.loads import StaticLoad
 from ftsensord.sim.scene import default_scene
@@ -253,34 +253,41 @@ def test_a_reload_with_another_calibration_drops_the_tare_and_says_so(tmp_path):
 
 def _brute_force(model, b, sigma, chips):
     """chi2 and every leave-one-out chi2 by weighted least squares on each subset, directly."""
-    H = model.H if model.room is None else np.hstack([model.H, model.room])
+    H = model.columns
 
     def chi2(use):
         ch = np.repeat(use, 3)
         A, x = H[ch] / sigma[ch, None], (b - model.zero)[ch] / sigma[ch]
         if ch.sum() <= A.shape[1] or np.linalg.matrix_rank(A) < A.shape[1]:
-            return np.inf, np.full(6, np.nan)
+            return np.inf, np.full(6, np.nan), 0.0
         theta = np.linalg.lstsq(A, x, rcond=None)[0]
         r = x - A @ theta
-        return float(r @ r), model.K @ theta[:6]
+        if model.gradient is not None:  # the gradient's estimate, whitened by its covariance
+            k = model.gradient.shape[1]
+            g = theta[-k:]
+            gradient_chi2 = float(g @ np.linalg.solve(np.linalg.inv(A.T @ A)[-k:, -k:], g))
+        return float(r @ r), model.K @ theta[:6], gradient_chi2 if model.gradient is not None else 0.0
 
-    whole, wrench = chi2(chips)
+    whole, wrench, gradient = chi2(chips)
     without = np.full(len(chips), np.inf)
     for c in np.flatnonzero(chips):
         rest = chips.copy()
         rest[c] = False
         without[c] = chi2(rest)[0] if np.isfinite(whole) else np.inf
-    return whole, wrench, without
+    return whole, wrench, without, gradient
 
 
-@pytest.mark.parametrize("room", [False, True])
+@pytest.mark.parametrize("room", [False, True, "gradient"])
 def test_the_consistency_maps_give_the_least_squares_residuals(room):
     """One product a sample (the deletion identity) gives what fitting every subset gives:
     chi2, the wrench, and chi2 with each chip left out, inf where the rest cannot see all
-    axes (down to 2 chips: no degrees of freedom), for all chips and for subsets."""
+    axes (down to 2 chips: no degrees of freedom), for all chips and for subsets; with the
+    gradient estimated, its whitened size."""
     model = Calibration.load(builtin_path("sim-sensor1.json")).model
     if room:
         model = model.rejecting_room_field()
+    if room == "gradient":
+        model = model.with_gradient()
     rng = np.random.default_rng(11)
     for trial in range(60):
         chips = np.ones(8, dtype=bool)
@@ -288,13 +295,14 @@ def test_the_consistency_maps_give_the_least_squares_residuals(room):
         b = model.zero + SIGMA_T * rng.normal(0, 1, 24) * rng.choice([1.0, 30.0])
         b[rng.integers(24)] += 40e-6  # one channel off: large drops, the culprit's above all
         c = model.consistency(b, SIGMA_T, chips)
-        whole, wrench, without = _brute_force(model, b, SIGMA_T, chips)
+        whole, wrench, without, gradient = _brute_force(model, b, SIGMA_T, chips)
         assert np.array_equal(np.isfinite(c.chi2_without), np.isfinite(without))
         if not np.isfinite(whole):
             assert not np.isfinite(c.chi2) and np.all(np.isnan(c.wrench))
             continue
         # Round-off: the sums are of whitened residuals, a few to thousands of sigma^2.
         assert c.chi2 == pytest.approx(whole, rel=1e-9, abs=1e-9)
+        assert c.gradient_chi2 == pytest.approx(gradient, rel=1e-9, abs=1e-9)
         np.testing.assert_allclose(c.wrench, wrench, rtol=1e-8, atol=1e-12)
         finite = np.isfinite(without)
         np.testing.assert_allclose(c.chi2_without[finite], without[finite], rtol=1e-9, atol=1e-9 * (1 + whole))

@@ -24,6 +24,24 @@ D101_RADIUS_M = 1.5875e-3 / 2
 D101_LENGTH_M = 0.79375e-3
 D101_BR_T = 1.45
 
+#: A gradient direction counts as apart from a load and a uniform field when at least half
+#: of it (0.5 of its unit length) lies outside the flux they make: on the drawn ring the
+#: in-plane parts lie wholly outside (1.0) and the other three inside (0); an as-built
+#: part's chip tilts (1.5 deg) move either by under 0.1 (tests/test_stray.py).
+SEPARABLE_GRADIENT = 0.5
+
+
+def separable_gradient(H: np.ndarray, room: np.ndarray | None, gradient: np.ndarray) -> np.ndarray:
+    """The directions (24 x k, orthonormal) of a field's gradient (``gradient``, e.g.
+    `SensorGeometry.gradient_directions`) that the chips can tell from a deflection
+    (``H``'s columns) and a uniform field (``room``'s): the part of the gradient's span
+    outside theirs, where it is at least `SEPARABLE_GRADIENT` of a direction. They are
+    orthogonal to H and room, so projecting them out costs a load nothing it is seen by."""
+    span, _ = np.linalg.qr(H if room is None else np.hstack([H, room]))
+    outside = gradient - span @ (span.T @ gradient)
+    u, s, _ = np.linalg.svd(outside, full_matrices=False)
+    return u[:, s >= SEPARABLE_GRADIENT]
+
 
 @dataclass(frozen=True)
 class SensorGeometry:
@@ -72,6 +90,27 @@ class SensorGeometry:
         """
         stacked = np.concatenate([R.T for R in self.chip_R], axis=0)
         q, _ = np.linalg.qr(stacked)
+        return q
+
+    def gradient_directions(self) -> np.ndarray:
+        """The 5 directions (24 x 5, orthonormal columns) a field's first-order gradient
+        makes in the stacked flux: a field u + G p near the sensor (p in m, frame {0}; G in
+        T/m, symmetric and traceless as a curl- and divergence-free field's is) adds
+        R_0i^T G p_i to chip i. Basis G: xx - zz, yy - zz, and the symmetric xy, xz, yz.
+
+        On the drawn ring (chips in one plane, 8-fold symmetric) only the two in-plane
+        parts xx - yy and xy are apart from a load and a uniform field: G_zz's pattern is an
+        axial push's and a uniform B_z's, G_xz's and G_yz's a tilt's and a uniform B_x's,
+        B_y's (docs/physics.md, "A motor's field"). `separable_gradient` keeps those two.
+        """
+        basis = []
+        for i, j in ((0, 0), (1, 1), (0, 1), (0, 2), (1, 2)):
+            G = np.zeros((3, 3))
+            G[i, j] = G[j, i] = 1.0
+            if i == j:
+                G[2, 2] = -1.0
+            basis.append(np.concatenate([R.T @ G @ p for R, p in zip(self.chip_R, self.chip_p, strict=True)]))
+        q, _ = np.linalg.qr(np.array(basis).T)
         return q
 
     def magnet_in_chip(self) -> np.ndarray:

@@ -18,13 +18,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import se3
-from .geometry import SensorGeometry
+from .geometry import SensorGeometry, separable_gradient
 from .registration import Registration, register
 
 #: The sensor's range (paper): +-50 N in X and Y, +-20 N in Z, +-0.2 Nm, frame {0}.
 SENSOR_RANGE = np.array([50.0, 50.0, 20.0, 0.2, 0.2, 0.2])
-
-
 @dataclass(frozen=True)
 class PositionMap:
     """p = M b + o per chip (eq. 1): ``M`` (n, 3, 3) in m/T, ``o`` (n, 3) in m."""
@@ -91,6 +89,11 @@ class LinearModel:
     wrench. (A fitted with those directions projected out already has A room = 0,
     and P changes nothing; for one fitted without, it costs the part of the load's
     signal along them.)
+
+    ``gradient`` (24 x k, orthonormal, orthogonal to H and room; `with_gradient`), when
+    set, are the directions of a field's gradient across the ring that the chips tell
+    from a load: projected out of K A as well, and estimated in `consistency`, whose
+    `Consistency.gradient_chi2` tells a nearby source (a motor) from noise.
     """
 
     K: np.ndarray
@@ -98,6 +101,7 @@ class LinearModel:
     zero: np.ndarray
     H: np.ndarray | None = None
     room: np.ndarray | None = None
+    gradient: np.ndarray | None = None
     KA: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -111,6 +115,18 @@ class LinearModel:
                     or not np.allclose(self.room.T @ self.room, np.eye(self.room.shape[1]), atol=1e-9):
                 raise ValueError(f"room must be {n} x k with orthonormal columns, got shape {self.room.shape}")
             self.KA = self.KA - (self.KA @ self.room) @ self.room.T
+        if self.gradient is not None:
+            self.gradient = np.asarray(self.gradient, dtype=float)
+            n = self.A.shape[1]
+            # 1e-9: orthonormal, and orthogonal to the room's directions, to round-off: the two
+            # projections then make one.
+            if self.gradient.ndim != 2 or self.gradient.shape[0] != n \
+                    or not np.allclose(self.gradient.T @ self.gradient, np.eye(self.gradient.shape[1]), atol=1e-9) \
+                    or (self.room is not None and not np.allclose(self.room.T @ self.gradient, 0.0, atol=1e-9)):
+                raise ValueError(f"gradient must be {n} x k with orthonormal columns orthogonal to room's, "
+                                 f"got shape {self.gradient.shape}")
+            self.KA = self.KA - (self.KA @ self.gradient) @ self.gradient.T
+        self._with_gradient: LinearModel | None = None
         self._subsets: dict[bytes, np.ndarray] = {}  # degraded maps, by the chips left
         self._checks: dict[bytes, ConsistencyMaps] = {}  # consistency maps, by chips and noise
 
@@ -123,7 +139,7 @@ class LinearModel:
 
     def with_zero(self, zero: np.ndarray) -> LinearModel:
         """The same model tared to a new no-load flux."""
-        tared = LinearModel(self.K, self.A, np.asarray(zero, dtype=float), self.H, self.room)
+        tared = LinearModel(self.K, self.A, np.asarray(zero, dtype=float), self.H, self.room, self.gradient)
         # Its maps do not depend on the zero: no 1.4 ms after a tare.
         tared._subsets, tared._checks = self._subsets, self._checks
         return tared
@@ -138,6 +154,35 @@ class LinearModel:
             room = (geometry or SensorGeometry.ring()).room_directions()
         return LinearModel(self.K, self.A, self.zero, self.H, room)
 
+    def with_gradient(self) -> LinearModel:
+        """The same model blind also to a field's first-order gradient across the ring, as
+        far as the chips tell it from a load (`separable_gradient` of the drawn ring's
+        `SensorGeometry.gradient_directions`: the two in-plane parts); the rest of a
+        gradient reads as a load, and no estimator can tell it from one. Made once (its
+        maps with it); a model that has it is its own. Needs H."""
+        if self.gradient is not None:
+            return self
+        if self._with_gradient is None:
+            if self.H is None:
+                raise ValueError("this calibration has no flux model H: no gradient to tell from a load")
+            gradient = separable_gradient(self.H, self.room, SensorGeometry.ring().gradient_directions())
+            self._with_gradient = LinearModel(self.K, self.A, self.zero, self.H, self.room, gradient)
+        return self._with_gradient
+
+    @property
+    def columns(self) -> np.ndarray:
+        """The forward model's columns, b - b0 = H xi + room u + gradient g: what the
+        degraded estimate and the consistency check fit (24 x `unknowns`). Needs H."""
+        if self.H is None:
+            raise ValueError("this calibration has no flux model H")
+        return np.hstack([c for c in (self.H, self.room, self.gradient) if c is not None])
+
+    @property
+    def unknowns(self) -> int:
+        """How many unknowns those columns are: 6 of the deflection, and the room's and
+        the gradient's when set."""
+        return 6 + sum(c.shape[1] for c in (self.room, self.gradient) if c is not None)
+
     def wrench_from(self, b: np.ndarray, chips: np.ndarray) -> np.ndarray:
         """The wrench from the chips where ``chips`` (bool, one per chip) is true only.
 
@@ -146,7 +191,8 @@ class LinearModel:
         left, xi = pinv(H_S) (b_S - b0_S), and w = K xi. Needs H, and the chips
         left must still see all six axes (rank 6). With ``room`` set, the uniform
         field u is estimated beside the twist, b - b0 = H xi + room u, which needs
-        the chips left to tell the two apart (rank 6 + 3).
+        the chips left to tell the two apart (rank 6 + 3); with ``gradient`` too, its
+        part g as well.
         """
         if self.H is None:
             raise ValueError("this calibration has no flux model H: no estimate from fewer chips")
@@ -154,10 +200,10 @@ class LinearModel:
         key = channels.tobytes()
         M = self._subsets.get(key)
         if M is None:
-            H_S = self.H[channels] if self.room is None else np.hstack([self.H, self.room])[channels]
+            H_S = self.columns[channels]
             if np.linalg.matrix_rank(H_S) < H_S.shape[1]:
                 raise ValueError("the chips left do not see all six axes"
-                                 + ("" if self.room is None else " apart from the room's field"))
+                                 + ("" if H_S.shape[1] == 6 else " apart from the room's field"))
             M = self._subsets[key] = self.K @ np.linalg.pinv(H_S)[:6]
         return M @ (b[channels] - self.zero[channels])
 
@@ -180,11 +226,11 @@ class LinearModel:
     def consistency(self, b: np.ndarray, sigma: np.ndarray, chips: np.ndarray) -> Consistency:
         """How well the chips where ``chips`` is true agree with one deflection.
 
-        The forward model b - b0 = H xi (+ room u with ``room`` set) over the channels S
+        The forward model b - b0 = H xi (+ room u, + gradient g, when set) over the channels S
         of those chips, each channel whitened by its noise ``sigma`` (T, one per channel):
         the weighted least-squares twist xi_hat and the residual r = W_S (b_S - b0_S) -
         W_S H_S xi_hat, whose squared norm under noise alone follows a chi-square with
-        |S| - 6 (- 3) degrees of freedom. Beside it, for each chip in use, the same
+        |S| - 6 (- 3 - k) degrees of freedom. Beside it, for each chip in use, the same
         squared norm with that chip left out: the chip whose leaving drops it most is the
         one that disagrees with the others. Needs H.
 
@@ -197,7 +243,7 @@ class LinearModel:
         maps = self._checks.get(key)
         if maps is None:
             maps = self._checks[key] = ConsistencyMaps(
-                self.H if self.room is None else np.hstack([self.H, self.room]), self.K, sigma, chips)
+                self.columns, self.K, sigma, chips, 0 if self.gradient is None else self.gradient.shape[1])
         return maps.apply(b - self.zero)
 
 
@@ -211,9 +257,13 @@ class ConsistencyMaps:
     the rest still see every column of A: P_cc is then invertible). So the rows are P,
     K pinv(A)[:6] (the wrench) and G P, G block-diagonal of the (P_cc)^-1; the whitening
     1/sigma is folded into the columns.
+
+    The last ``gradient`` columns of H, when any, are a field's gradient g: the rows L with
+    |L x|^2 = g_hat^T Cov(g_hat)^-1 g_hat (chi-square, ``gradient`` dof, under noise alone)
+    follow, L = C^T pinv(A)[-k:] with C C^T = Cov^-1 (Cholesky), Cov = (A^T A)^-1's block.
     """
 
-    def __init__(self, H: np.ndarray, K: np.ndarray, sigma: np.ndarray, chips: np.ndarray):
+    def __init__(self, H: np.ndarray, K: np.ndarray, sigma: np.ndarray, chips: np.ndarray, gradient: int = 0):
         n_chips, unknowns = len(chips), H.shape[1]
         self.channels = np.repeat(chips, 3)
         self.all = bool(chips.all())
@@ -221,6 +271,7 @@ class ConsistencyMaps:
         self.dof = 3 * len(self.used) - unknowns
         self.dof_without = self.dof - 3
         self.n = 3 * len(self.used)
+        self.gradient_dof = gradient
         self.none_left = np.full(n_chips, np.inf)
         A = H[self.channels] / sigma[self.channels, None]
         self.maps: np.ndarray | None = None
@@ -240,7 +291,11 @@ class ConsistencyMaps:
                 can_leave[k] = True
         self.stays = np.ones(n_chips, dtype=bool)  # not in use, or the rest would not see every column
         self.stays[self.used[can_leave]] = False
-        self.maps = np.vstack([P, K @ pinv[:6], G @ P]) / sigma[self.channels]
+        rows = [P, K @ pinv[:6], G @ P]
+        if gradient:
+            cov = np.linalg.inv(A.T @ A)[-gradient:, -gradient:]
+            rows.append(np.linalg.cholesky(np.linalg.inv(cov)).T @ pinv[-gradient:])
+        self.maps = np.vstack(rows) / sigma[self.channels]
 
     def apply(self, d: np.ndarray) -> Consistency:
         """The check of one sample from its flux minus the zero ``d`` (T, every channel)."""
@@ -252,7 +307,8 @@ class ConsistencyMaps:
         r = y[:n]
         chi2 = float(r @ r)
         # G's rows are 0 for a chip that cannot be left out: its drop is 0.
-        drops = (r * y[n + 6:]).reshape(-1, 3).sum(axis=1)
+        drops = (r * y[n + 6:2 * n + 6]).reshape(-1, 3).sum(axis=1)
+        g = y[2 * n + 6:]
         if self.all:
             drop = drops
         else:
@@ -260,7 +316,8 @@ class ConsistencyMaps:
             drop[self.used] = drops
         without = chi2 - drop
         without[self.stays] = np.inf
-        return Consistency(chi2, self.dof, y[n:n + 6], without, self.dof_without, drop)
+        return Consistency(chi2, self.dof, y[n:n + 6], without, self.dof_without, drop, float(g @ g),
+                           self.gradient_dof)
 
 
 @dataclass(frozen=True)
@@ -272,6 +329,8 @@ class Consistency:
     (one per chip): the same with that chip left out (inf for a chip not in use or
     when the rest do not see all six axes), ``dof_without`` its degrees of freedom;
     ``drop`` (one per chip) chi2 minus chi2_without, 0 where the chip cannot be left out.
+    ``gradient_chi2``: the estimated gradient's squared whitened size (chi-square with
+    ``gradient_dof`` under noise alone; 0 with no gradient estimated).
     """
 
     chi2: float
@@ -280,6 +339,8 @@ class Consistency:
     chi2_without: np.ndarray
     dof_without: int
     drop: np.ndarray
+    gradient_chi2: float = 0.0
+    gradient_dof: int = 0
 
     def culprit(self) -> int:
         """The chip whose leaving lowers the residual most (its index in the sensor)."""

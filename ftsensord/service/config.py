@@ -17,13 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ..acquire.board import bus_timing
-from ..acquire.bound import (
-    DEFAULT_SCHEDULER,
-    SCHEDULERS,
-    CycleBound,
-    burst_readback_stays_fresh,
-    cycle_bound,
-)
+from ..acquire.bound import DEFAULT_SCHEDULER, SCHEDULERS, CycleBound, burst_readback_stays_fresh, cycle_bound
 from ..acquire.bus import parse_bus_spec
 from ..acquire.health import stuck_cycles_for
 from ..calibration.calfile import Calibration
@@ -32,10 +26,12 @@ from ..chip import mlx90393 as mlx
 from ..chip.i2c import BusTiming
 from ..docfile import Table, load_toml
 from ..errors import ConfigError
+from ..model.linear import LinearModel
 from .frames import TIP, GravityConfig, gravity_config, tool_poses
 
 CONFIG_VERSION = 1
 ESTIMATORS = ("linear", "nonlinear")
+STRAY_FIELDS = ("uniform", "gradient")  # beside the deflection: the room's field, or a gradient's too
 BUILTIN = "builtin:"
 
 
@@ -124,6 +120,11 @@ class SensorConfig:
     calibration: Calibration
     frame: str  # the frame its wrench is expressed in (default: the calibration's)
     estimator: str = "linear"  # "linear" (K A) or "nonlinear" (the flux model, docs/tradeoff.md)
+    stray_field: str = "uniform"  # `STRAY_FIELDS`
+
+    @property
+    def model(self) -> LinearModel:  # the run time's: the calibration's, `LinearModel.with_gradient` if asked
+        return self.calibration.model.with_gradient() if self.stray_field == "gradient" else self.calibration.model
 
 
 @dataclass
@@ -311,7 +312,7 @@ def load_config(path: str | Path | None = None, calibrations: Calibrations | Non
     sensors: list[SensorConfig] = []
     seen: set[int] = set()
     for t in doc.tables("sensor"):
-        t.only({"name", "addresses", "calibration", "frame", "estimator"})
+        t.only({"name", "addresses", "calibration", "frame", "estimator", "stray_field"})
         addresses = parse_addresses(t, "addresses")
         for a in addresses:
             if a in seen:
@@ -329,8 +330,11 @@ def load_config(path: str | Path | None = None, calibrations: Calibrations | Non
         if estimator == "nonlinear" and calibration.nonlinear is None:
             raise t.fail("estimator", f'"linear": {cal_path} has no nonlinear calibration '
                                       "(make one with `ftsensord calibrate` without --linear-only)", estimator)
+        stray_field = t.string("stray_field", "uniform", choices=STRAY_FIELDS)
+        if stray_field == "gradient" and calibration.model.H is None:
+            raise t.fail("stray_field", f'"uniform": {cal_path} has no flux model H', stray_field)
         sensors.append(SensorConfig(name, addresses, cal_path, calibration, t.string("frame", calibration.frame),
-                                    estimator))
+                                    estimator, stray_field))
     security = _security(doc)
     rt = runtime_dir()
     stream_why = "set [security] public_stream = true to publish the wrench stream beyond this host"

@@ -138,9 +138,9 @@ def unsteady(p: SensorPipeline, flux: np.ndarray) -> str | None:
     if len(flux) < 2 or p.sigma_t is None:
         return None  # one sample: nothing to compare
     half = len(flux) // 2
-    w = p.config.calibration.model.wrench(flux)
+    w = p.config.model.wrench(flux)
     diff = w[half:].mean(axis=0) - w[:half].mean(axis=0)
-    KA = p.config.calibration.model.KA
+    KA = p.config.model.KA
     sigma_w = np.sqrt(np.einsum("ij,j,ij->i", KA, p.sigma_t ** 2, KA))  # one sample's noise per axis
     limit = TARE_STEADY_SIGMAS * sigma_w * math.sqrt(1 / half + 1 / (len(flux) - half))
     worst = int(np.argmax(np.abs(diff) / limit))
@@ -153,7 +153,7 @@ def unsteady(p: SensorPipeline, flux: np.ndarray) -> str | None:
 def untare(p: SensorPipeline) -> list[float]:
     """Back to the calibration's own zero; returns the wrench (N, Nm) the tare had removed."""
     removed = p.tare_wrench.round(6).tolist()
-    p.model = p.config.calibration.model
+    p.model = p.config.model
     p.tare_wrench = np.zeros(6)
     p.tare_gravity = np.zeros(3)
     nl = p.config.calibration.nonlinear

@@ -6,8 +6,9 @@ piece; the stiffness turns it into the deflection twist xi (w = K xi, plus an
 optional stiffening term); the chips move with T = exp(xi); each chip sees the
 field of its own magnet and, with crosstalk on, of the sensor's other magnets,
 plus the room's uniform field (fixed in the world) turned into its frame by the
-sensor's orientation R_w0(t) and the deflection; an as-built chip then reads
-it with its own gain per axis.
+sensor's orientation R_w0(t) and the deflection, plus any stray point dipoles
+fixed in the world (motors) at the chip's actual position; an as-built chip then
+reads it with its own gain per axis.
 
 Model only what the scene requires: the own magnet defaults to the exact
 cylinder field (the dipole errs by about 30 uT at the 6 mm gap, ten times the
@@ -121,6 +122,8 @@ class SimSensor:
     tool_com_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
     temperature: TemperatureProfile | None = None
     chip_drift: list[ChipDrift] | None = None
+    #: Where the sensor's centre is in the world (m): what a stray source's distance is from.
+    centre_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def wrench(self, t: float) -> np.ndarray:
         """The wrench on the centre piece (N, Nm, frame {0}) at ``t``: the load and the tool's weight."""
@@ -161,6 +164,31 @@ class SimSensor:
         raise RuntimeError(f"{self.name}: stiffening law did not converge for w = {w}")
 
 
+#: A stray source closer than this to a sensor's centre is refused (m): the ring's chips
+#: are 8 mm out and the shell about as far again, so nearer it would touch the part, and
+#: a motor (cm across) is no point dipole within a few of its own sizes.
+STRAY_MIN_DISTANCE_M = 20e-3
+
+
+@dataclass(frozen=True)
+class StraySource:
+    """A point dipole fixed in the world (a motor a few cm from the tool): ``position_m``
+    (m) and ``moment_am2`` (A m^2), both in the world frame; its moment is scaled by
+    ``scale`` at ``times_s`` (linear between, held at the ends) as the motor's current
+    changes; without rows, by 1 at all times."""
+
+    position_m: np.ndarray
+    moment_am2: np.ndarray
+    times_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    scale: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    def moment_at(self, t: float) -> np.ndarray:
+        """The moment at time ``t`` (A m^2, world frame)."""
+        if len(self.times_s) == 0:
+            return self.moment_am2
+        return float(np.interp(t, self.times_s, self.scale)) * self.moment_am2
+
+
 class PhysicalScene:
     """Sensors on one bus; implements the chips' `FieldSource` (field_t, temperature_c),
     and gives each chip its drift with temperature (`chip_drift`).
@@ -172,7 +200,7 @@ class PhysicalScene:
     def __init__(self, sensors: list[SimSensor], *, field_model: str = "cylinder",
                  crosstalk: str = "dipole", temperature_c: float = 25.0,
                  temperature_drift_c_per_s: float = 0.0, time_step_s: float = TIME_STEP_S,
-                 external_field_t: np.ndarray | None = None):
+                 external_field_t: np.ndarray | None = None, stray_sources: list[StraySource] | None = None):
         if field_model not in FIELD_MODELS:
             raise ValueError(f"field_model must be one of {FIELD_MODELS}, got {field_model!r}")
         if crosstalk not in CROSSTALK_MODELS:
@@ -183,6 +211,7 @@ class PhysicalScene:
         self.temperature = TemperatureProfile.linear(temperature_c, temperature_drift_c_per_s)
         self.time_step_s = time_step_s
         self.external_field_t = np.zeros(3) if external_field_t is None else external_field_t
+        self.stray_sources = list(stray_sources or [])
         self._chip_of: dict[int, tuple[int, int]] = {}
         for s, sensor in enumerate(sensors):
             for i, address in enumerate(sensor.addresses):
@@ -251,27 +280,41 @@ class PhysicalScene:
         # The room's field in {0}: only the turning sensor makes it change (and a field-free
         # room needs no orientation at all: the common case stays as cheap as before).
         room = (sensor.orientation.rotation(t).T @ self.external_field_t if self._room_on else _NO_FIELD)
+        # Stray sources in {0}: only a scene with one pays for it.
+        stray = self._stray_in_sensor(sensor, t) if self.stray_sources else None
         # Keyed on the load, not the deflection: the deflection (a solve) only when it changed.
-        key = np.concatenate([w, [scale], room]).tobytes()
+        key = np.concatenate([w, [scale], room] + ([] if stray is None else [stray.ravel()])).tobytes()
         cached = self._cache.get(s)
         if cached is None or cached[0] != key:
             xi = sensor.deflection(w)
             # One vectorised evaluation serves every chip of the sensor read in this step.
             fields = self.chip_fields(sensor.geometry, se3.exp_se3(xi), magnet_scale=scale,
-                                      room_t=room if self._room_on else None)
+                                      room_t=room if self._room_on else None, stray=stray)
             if sensor.chip_gain is not None:
                 fields = fields * sensor.chip_gain  # the chip's sensitivity, before its ADC
             cached = (key, fields)
             self._cache[s] = cached
         return cached[1][i]
 
+    def _stray_in_sensor(self, sensor: SimSensor, t: float) -> np.ndarray:
+        """The stray sources seen from ``sensor`` at ``t``: (k, 2, 3), each source's
+        position (m) and moment (A m^2) in frame {0}. The sensor turns about its centre
+        (``sensor.centre_m`` in the world), so a source fixed in the world turns the other
+        way in {0}."""
+        R = sensor.orientation.rotation(t)
+        return np.array([[R.T @ (src.position_m - sensor.centre_m), R.T @ src.moment_at(t)]
+                         for src in self.stray_sources])
+
     def chip_fields(self, geometry: SensorGeometry, T: np.ndarray, chips: list[int] | None = None, *,
-                    magnet_scale: float = 1.0, room_t: np.ndarray | None = None) -> np.ndarray:
+                    magnet_scale: float = 1.0, room_t: np.ndarray | None = None,
+                    stray: np.ndarray | None = None) -> np.ndarray:
         """Field (T) at chips (default: all), each in its own frame, centre piece at pose T.
 
         ``magnet_scale`` scales the magnets' field (their remanence against temperature);
         ``room_t`` is a uniform field in frame {0} (T) added to it: a chip turned by the
-        deflection sees it turned too.
+        deflection sees it turned too. ``stray`` (k, 2, 3): point dipoles' positions (m)
+        and moments (A m^2) in {0} (`_stray_in_sensor`), each evaluated at every chip's
+        deflected position.
         """
         idx = np.arange(geometry.n_chips) if chips is None else np.asarray(chips)
         R_chips = np.einsum("ij,njk->nik", T[:3, :3], geometry.chip_R[idx])
@@ -284,6 +327,9 @@ class PhysicalScene:
         fields = magnet_scale * fields
         if room_t is not None:
             fields = fields + room_t
+        if stray is not None:
+            for position, moment in stray:
+                fields = fields + dipole_field(p_chips - position, moment)
         return np.einsum("nji,nj->ni", R_chips, fields)
 
 

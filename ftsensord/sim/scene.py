@@ -40,8 +40,10 @@ from .physics import (
     CROSSTALK_MODELS,
     FIELD_MODELS,
     PAPER_STIFFNESS_DIAG,
+    STRAY_MIN_DISTANCE_M,
     PhysicalScene,
     SimSensor,
+    StraySource,
     Tolerances,
 )
 from .thermal import TemperatureProfile
@@ -210,7 +212,7 @@ def _temperature(t: Table) -> TemperatureProfile:
 
 def _sensor(t: Table, index: int) -> SimSensor:
     t.only({"name", "addresses", "stiffness_diag", "stiffening", "ring_radius_mm", "tilt_deg",
-            "gap_mm", "load", "orientation", "tolerances", "tool", "temperature"})
+            "gap_mm", "load", "orientation", "tolerances", "tool", "temperature", "centre_m"})
     addresses = t.get("addresses")
     if not isinstance(addresses, list) or len(addresses) != 8:
         raise t.fail("addresses", "8 chip addresses", addresses)
@@ -251,7 +253,8 @@ def _sensor(t: Table, index: int) -> SimSensor:
     temperature = _temperature(t.table("temperature")) if "temperature" in t.doc else None
     return SimSensor(t.string("name", f"sensor{index + 1}"), addrs, geometry, np.diag(stiffness),
                      t.number("stiffening", 0.0, low=0.0), load, orientation, gains, mass_kg, com_m,
-                     temperature, drifts)
+                     temperature, drifts,
+                     np.array(t.numbers("centre_m", 3, [0.0, 0.0, 0.0], unit="m, world frame")))
 
 
 def _faults(doc: Table, addresses: tuple[int, ...]) -> list[Fault]:
@@ -296,7 +299,7 @@ def _static(doc: Table) -> StaticScene:
 
 def _physical(doc: Table) -> PhysicalScene:
     doc.only({"version", "kind", "field_model", "crosstalk", "temperature_c",
-              "temperature_drift_c_per_s", "external_field_ut", "sensor", "fault"})
+              "temperature_drift_c_per_s", "external_field_ut", "sensor", "fault", "stray_source"})
     sensors = [_sensor(t, i) for i, t in enumerate(doc.tables("sensor"))]
     seen: set[int] = set()
     for i, s in enumerate(sensors):
@@ -309,7 +312,8 @@ def _physical(doc: Table) -> PhysicalScene:
                           crosstalk=doc.string("crosstalk", "dipole", choices=CROSSTALK_MODELS),
                           temperature_c=doc.number("temperature_c", 25.0, unit="degC"),
                           temperature_drift_c_per_s=doc.number("temperature_drift_c_per_s", 0.0, unit="degC/s"),
-                          external_field_t=_external_field(doc))
+                          external_field_t=_external_field(doc),
+                          stray_sources=_stray_sources(doc, sensors))
     scene.faults = _faults(doc, scene.addresses)
     return scene
 
@@ -326,6 +330,33 @@ def _external_field(doc: Table) -> np.ndarray:
         raise doc.fail("external_field_ut", f"a room's field, |B| <= {EXTERNAL_FIELD_MAX_UT:g} uT (the Earth's "
                        "is 25-65 uT)", field_ut.tolist())
     return field_ut * 1e-6
+
+
+def _stray_sources(doc: Table, sensors: list[SimSensor]) -> list[StraySource]:
+    """The `[[stray_source]]` tables: point dipoles fixed in the world (docs/scenes.md)."""
+    if "stray_source" not in doc.doc:
+        return []
+    sources = []
+    for t in doc.tables("stray_source"):
+        t.only({"position_m", "moment_am2", "times_s", "scale"})
+        position = np.array(t.numbers("position_m", 3, unit="m, world frame"))
+        for s in sensors:
+            distance = float(np.linalg.norm(position - s.centre_m))
+            if distance < STRAY_MIN_DISTANCE_M:
+                raise t.fail("position_m", f"a point at least {STRAY_MIN_DISTANCE_M * 1e3:g} mm from each sensor's "
+                             f"centre (a point dipole is no model of a source that near; {s.name} is "
+                             f"{distance * 1e3:.3g} mm away)", position.tolist())
+        moment = np.array(t.numbers("moment_am2", 3, unit="A m^2, world frame"))
+        if ("times_s" in t.doc) != ("scale" in t.doc):
+            raise t.fail("scale" if "times_s" in t.doc else "times_s", "times_s and scale given together", "missing")
+        times = np.array(t.numbers("times_s", default=[], unit="s"))
+        scale = np.array(t.numbers("scale", default=[], unit="times moment_am2"))
+        if len(scale) != len(times):
+            raise t.fail("scale", f"{len(times)} numbers, one per time in times_s", scale.tolist())
+        if "times_s" in t.doc and (len(times) == 0 or np.any(np.diff(times) <= 0)):
+            raise t.fail("times_s", "at least one time, strictly increasing (s)", times.tolist())
+        sources.append(StraySource(position, moment, times, scale))
+    return sources
 
 
 def load_scene(path: str | Path) -> StaticScene | PhysicalScene:

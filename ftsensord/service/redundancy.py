@@ -1,0 +1,168 @@
+"""The redundancy check: which of a sensor's chips agree with one deflection, sample by
+sample (`LinearModel.consistency`), which were found out, and when they may rejoin. The
+pipeline (`pipeline.SensorPipeline`) asks it for the chips to estimate from.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ..model.linear import SENSOR_RANGE, Consistency, chi2_quantile
+from . import wire
+
+if TYPE_CHECKING:
+    from .pipeline import SensorPipeline
+
+#: The redundancy check (`LinearModel.consistency`), two tests on the whitened residual:
+#: the whole residual (chi-square, 3 n - 6 dof: any disagreement, e.g. a field two chips
+#: see) and, per chip, how much it drops when that chip is left out (chi-square, 3 dof: the
+#: likelihood-ratio test for one faulty chip, far more sensitive to one, as its 3 dof hold
+#: less noise and a fifth of the model error), and the slow test below. Under noise alone a
+#: sample fails any with these odds in all (half to the whole residual's test, a quarter to
+#: each per-chip test, split among the chips): at
+#: 2 sensors x 100 Hz a false alarm once in 58 days, and it costs one flagged sample
+#: estimated from 7 chips.
+CONSISTENCY_FALSE_ODDS = 1e-9
+#: The linear model's own residual (whitened norm, in noise sigmas), which the noise
+#: threshold is raised by: at most AT_REST + AT_RANGE * s^2 for a load s times the
+#: calibration's largest (the largest ratio over the axes). Measured on the nominal scene
+#: with both shipped calibrations (600 loads at each s, tests/test_consistency.py measures
+#: it again). Whole residual: 2.0 at rest (the calibration's zero is 4 uT off the scene's),
+#: 3.6 at s = 0.25, 6.4 at 0.5, 20.3 at 1, 48.5 at 1.5. Largest one-chip drop: 1.0 at
+#: rest, 1.3 at 0.1, 1.9 at 0.25, 3.8 at 0.5, 11.3 at 1, 27.6 at 1.5. The bounds below
+#: clear each by at least 11 %. A real sensor's calibration with a larger model error
+#: needs larger ones.
+MODEL_RESIDUAL_AT_REST, MODEL_RESIDUAL_AT_RANGE = 2.5, 26.0
+CHIP_RESIDUAL_AT_REST, CHIP_RESIDUAL_AT_RANGE = 1.5, 13.0
+#: With `stray_field = "gradient"` a third test: the estimated gradient (chi-square, 2 dof),
+#: which takes half of the whole residual's odds. Its model allowance, measured the same way
+#: (tests/test_stray.py, the larger of the two calibrations): 0.08 sigma at rest, 0.2 at
+#: s = 0.1, 0.6 at 0.25, 1.9 at 0.5, 8.0 at 1, 18.4 at 1.5; the bounds clear each by 18 %.
+GRADIENT_RESIDUAL_AT_REST, GRADIENT_RESIDUAL_AT_RANGE = 0.3, 9.5
+#: A chip found disagreeing stays out (its samples flagged) until it has agreed this many
+#: samples in a row at a looser limit, the noise's 1 % point: a stuck chip under a slow
+#: load hovers at the threshold for a while, and in and out it would let samples through
+#: that are nearly as wrong as the threshold allows.
+REJOIN_SAMPLES, REJOIN_ODDS = 20, 1e-2
+#: A third test, on each chip's drop summed over this many samples (chi-square, 3 x this
+#: dof): a chip drifting off slowly (stuck under a slow load) is found at a third of the
+#: disagreement one sample needs, before its error reaches 5 sigma of the wrench (one
+#: sample's test lets through up to 0.64 sigma of wrench per unit of residual, 5.7 sigma
+#: at its limit). Minkowski: |sum (noise + model)^2|^(1/2) <= |sum noise^2|^(1/2) +
+#: sqrt(N) max|model|, so the odds hold. 10 samples: 0.1 s at 100 Hz.
+SLOW_WINDOW = 10
+
+
+
+class RedundancyCheck:
+    """Which of a sensor's chips agree with one deflection (`LinearModel.consistency`),
+    sample by sample, and which were found out and stay out until they agree again."""
+
+    def __init__(self) -> None:
+        self.inconsistent = 0  # samples flagged
+        self.suspects: dict[int, int] = {}  # chip index: samples it has agreed since found out
+        # The slow test's window: each sample's drops (one row a sample, in turn) and load.
+        self.slow_drops = np.zeros((SLOW_WINDOW, 0))
+        self.slow_loads = [0.0] * SLOW_WINDOW
+        self.slow_count = 0  # samples in the window since it was last cleared
+        self.slow_key = b""  # the chips the drops in the window were computed over
+
+    def chips(self, p: SensorPipeline, flux: np.ndarray, usable: np.ndarray) -> tuple[np.ndarray, int]:
+        """The chips to estimate from, and `inconsistent` (+ `degraded`) when the usable
+        chips' residual is beyond noise and model error: the chip whose leaving explains
+        it is left out if the rest then agree, else the sample is flagged as it stands."""
+        n_usable = int(np.count_nonzero(usable))
+        if len(usable) - n_usable > p.max_missing_chips:
+            return usable, 0  # too few chips for any estimate: the sample is invalid as it stands
+        if p.model.H is None or p.sigma_t is None or n_usable * 3 <= p.model.unknowns:
+            return usable, 0  # no flux model or no redundancy left: nothing to check against
+        c = p.model.consistency(flux, p.sigma_t, usable)
+        out, n_out = usable, n_usable
+        if self.suspects:
+            out = usable.copy()
+            rejoin = self._limits(p, self._load2(p, c), c.dof, 1, REJOIN_ODDS)[1] ** 2
+            for chip in list(self.suspects):
+                if not usable[chip]:
+                    continue  # missing or saturated this cycle: no news of it
+                drop = c.chi2 - c.chi2_without[chip]
+                self.suspects[chip] = self.suspects[chip] + 1 if drop <= rejoin else 0
+                if self.suspects[chip] >= REJOIN_SAMPLES:
+                    del self.suspects[chip]
+                else:
+                    out[chip] = False
+            n_out = int(np.count_nonzero(out))
+            if n_out < n_usable:
+                if len(out) - n_out > p.max_missing_chips:
+                    return usable, wire.FLAG_INCONSISTENT  # too many out to estimate without them
+                c = p.model.consistency(flux, p.sigma_t, out)
+        if not math.isfinite(c.chi2):
+            return out, 0
+        load2 = self._load2(p, c)
+        culprit = None if self._agree(p, c, load2, n_out) else c.culprit()
+        if culprit is None:
+            culprit = self._slow_culprit(c, out, n_out, load2)
+        if culprit is None:
+            return out, 0 if n_out == n_usable else wire.FLAG_INCONSISTENT | wire.FLAG_DEGRADED
+        self.inconsistent += 1
+        rest = out.copy()
+        rest[culprit] = False
+        if (~rest).sum() <= p.max_missing_chips and np.isfinite(c.chi2_without[culprit]):
+            again = p.model.consistency(flux, p.sigma_t, rest)
+            if self._agree(p, again, self._load2(p, again), n_out - 1):
+                self.suspects[culprit] = 0
+                return rest, wire.FLAG_INCONSISTENT | wire.FLAG_DEGRADED
+        return out, wire.FLAG_INCONSISTENT
+
+    def _agree(self, p: SensorPipeline, c: Consistency, load2: float, chips: int) -> bool:
+        """Both tests (and the gradient's, when estimated) within their limits. |noise + model|
+        <= |noise| + |model|, so the false-alarm odds stay within CONSISTENCY_FALSE_ODDS."""
+        whole, one = self._limits(p, load2, c.dof, chips, CONSISTENCY_FALSE_ODDS)
+        if c.gradient_dof:
+            limit = (math.sqrt(chi2_quantile(c.gradient_dof, CONSISTENCY_FALSE_ODDS / 4))
+                     + GRADIENT_RESIDUAL_AT_REST + GRADIENT_RESIDUAL_AT_RANGE * load2)
+            if c.gradient_chi2 > limit ** 2:
+                return False
+        # The largest drop is chi2 - the smallest chi2 without (inf for a chip not to be left out).
+        return c.chi2 <= whole ** 2 and c.chi2 - float(c.chi2_without.min()) <= one ** 2
+
+    def _slow_culprit(self, c: Consistency, chips: np.ndarray, n: int, load2: float) -> int | None:
+        """The chip whose drop summed over the last `SLOW_WINDOW` samples (over the same
+        ``chips``, ``n`` of them) is beyond noise and model error, or None."""
+        key = chips.tobytes()
+        if key != self.slow_key:
+            self.slow_drops = np.zeros((SLOW_WINDOW, len(chips)))
+            self.slow_count = 0
+            self.slow_key = key
+        turn = self.slow_count % SLOW_WINDOW
+        self.slow_drops[turn] = c.drop
+        self.slow_loads[turn] = load2
+        self.slow_count += 1
+        if self.slow_count < SLOW_WINDOW:
+            return None
+        total = self.slow_drops.sum(axis=0)
+        s2 = max(self.slow_loads)
+        limit = math.sqrt(chi2_quantile(3 * SLOW_WINDOW, CONSISTENCY_FALSE_ODDS / (4 * n))) \
+            + math.sqrt(SLOW_WINDOW) * (CHIP_RESIDUAL_AT_REST + CHIP_RESIDUAL_AT_RANGE * s2)
+        if float(total.max()) <= limit ** 2:
+            return None
+        self.slow_count = 0
+        return int(np.argmax(total))
+
+    def _load2(self, p: SensorPipeline, c: Consistency) -> float:
+        """The load's square, as a fraction of the calibration's largest (largest over the axes)."""
+        fitted = p.config.calibration.wrench_range
+        return float((np.abs(c.wrench + p.tare_wrench) / (fitted if fitted is not None else SENSOR_RANGE)).max()) ** 2
+
+    def _limits(self, p: SensorPipeline, load2: float, dof: int, chips: int, odds: float) -> tuple[float, float]:
+        """The limits (whitened norms) of the whole residual (``dof``) and of one chip's
+        drop at the load ``load2`` (`_load2`): the noise's at ``odds`` (half to the whole,
+        a quarter to one chip's, split among ``chips``; the last quarter is the slow
+        test's) plus the model's own error at this load."""
+        # With a gradient estimated, its test takes half of the whole residual's odds.
+        whole_odds = odds / (4 if p.model.gradient is not None else 2)
+        whole = math.sqrt(chi2_quantile(dof, whole_odds)) + MODEL_RESIDUAL_AT_REST + MODEL_RESIDUAL_AT_RANGE * load2
+        one = math.sqrt(chi2_quantile(3, odds / (4 * chips))) + CHIP_RESIDUAL_AT_REST + CHIP_RESIDUAL_AT_RANGE * load2
+        return whole, one
