@@ -19,6 +19,7 @@ from ftsensord.client import ControlClient, Subscriber
 from ftsensord.errors import ConfigError
 from ftsensord.recording import (
     CSV_HEAD_WIDTH,
+    Tally,
     finish_npz,
     load_rows,
     open_writer,
@@ -359,3 +360,25 @@ def test_a_csv_record_cut_by_a_write_error_says_how_many_samples_it_holds(tmp_pa
     head = lines[0]
     assert f"; {rows} samples of " in head and "write error" in head and "the last row is torn" in head, head
     assert len(head) == CSV_HEAD_WIDTH - 1
+
+
+@pytest.mark.parametrize("fmt", ["csv", "npz", "mcap"])
+def test_the_temperature_flag_reaches_every_recording(tmp_path, fmt):
+    """Bit 11 (`temperature`) as any other flag: the CSV's and NPZ's flags column and the
+    MCAP status message's flags carry it."""
+    path = tmp_path / f"x.{fmt}"
+    writer = open_writer(path, STREAMS[:1])
+    flags = wire.FLAG_TEMPERATURE | wire.FLAG_INCONSISTENT
+    writer.write(wire.Sample(STREAMS[0], wire.KIND_WRENCH, 3, 1.0, 1.7e9, flags, np.arange(6.0)))
+    tally = Tally()
+    tally.add(3)
+    writer.close({STREAMS[0]: tally})
+    if fmt == "csv":
+        row = [line for line in path.read_text().splitlines() if line.startswith("3,")][0]
+        assert int(row.split(",")[3]) == flags
+    elif fmt == "npz":
+        assert np.load(path)["flags"].tolist() == [flags]
+    else:
+        status = [m for topic, m, _ in read_mcap(path) if topic.endswith("/status")]
+        assert [m.flags for m in status] == [flags]
+    assert wire.flag_names(flags) == ["inconsistent", "temperature"]

@@ -64,6 +64,7 @@ def test_reference_from_calibration_first_reading_or_tare():
     none.observe([31.0, 31.0])
     none.tared()
     assert none.reference_c == 31.0 and none.source == "tare" and np.allclose(none.flux_scale, 1.0)
+    assert own.tare_c == 30.0 and own.status()["tare_c"] == 30.0  # kept, the reference unchanged
 
 
 def test_the_span_edge():

@@ -54,6 +54,7 @@ class ThermalCompensation:
         self.flux_shift = np.zeros(3 * chips)
         self.wrench_scale = 1.0
         self.beyond_span = False
+        self.tare_c: float | None = None  # the chips' mean temperature at the last tare (degC)
 
     @property
     def span_c(self) -> tuple[float, float] | None:
@@ -86,9 +87,13 @@ class ThermalCompensation:
         self._update()
 
     def tared(self) -> None:
-        """A tare: without a calibration temperature, its temperature becomes the reference."""
-        if self.calibration is None and np.isfinite(self.celsius).any():
-            self.reference_c = float(np.nanmean(self.celsius))
+        """A tare: its temperature is kept (`status`); without a calibration temperature it
+        becomes the reference."""
+        if not np.isfinite(self.celsius).any():
+            return
+        self.tare_c = float(np.nanmean(self.celsius))
+        if self.calibration is None:
+            self.reference_c = self.tare_c
             self.source = "tare"
             self._update()
 
@@ -110,6 +115,7 @@ class ThermalCompensation:
         span = self.span_c
         return {"reference_c": None if self.reference_c is None else round(self.reference_c, 2),
                 "reference_from": self.source, "drift_calibrated": self.drift is not None,
+                "tare_c": None if self.tare_c is None else round(self.tare_c, 2),
                 "span_c": None if span is None else [round(span[0], 2), round(span[1], 2)],
                 "mean_c": round(float(self.celsius[known].mean()), 2) if known.any() else None,
                 "beyond_span": self.beyond_span, "laws": self.laws.document()}
