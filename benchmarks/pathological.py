@@ -317,7 +317,8 @@ def judge(kind: str, src: Source, work: Path, baseline: dict[str, np.ndarray], o
         lin = float(np.max(rmse(cal.model, val) / baseline["linear"]))
         validation = f"linear {lin:.2f}x"
         if cal.nonlinear is not None:
-            validation += f", nonlinear {float(np.max(nonlinear_rmse(cal.nonlinear, val) / baseline['nonlinear'])):.2f}x"
+            nl = float(np.max(nonlinear_rmse(cal.nonlinear, val) / baseline["nonlinear"]))
+            validation += f", nonlinear {nl:.2f}x"
         if large_count:
             scene = src.scene if kind in RECORDED and src.scene is not None else default_scene()
             large = large_loads(cal, scene, large_count)
@@ -366,10 +367,10 @@ def large_loads(cal: Calibration, scene: PhysicalScene, count: int) -> str:
             continue
         linear = cal.model.wrench(b)
         errors["linear"].append(linear - w)
-        if estimator is not None:
+        if cal.nonlinear is not None and estimator is not None:
             e = estimator.estimate(b)
             fell += not e.converged
-            errors["nonlinear"].append((cal.nonlinear.wrench(e.xi) if e.converged else linear) - w)  # type: ignore[union-attr]
+            errors["nonlinear"].append((cal.nonlinear.wrench(e.xi) if e.converged else linear) - w)
     out = []
     for name, err in errors.items():
         if err:

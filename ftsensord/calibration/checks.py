@@ -197,7 +197,7 @@ def _unit_or_sign(off: list[int], ratios: list[float]) -> str:
         if all(k >= 3 for k in off):
             return head + ": torques 1000x too large, written in N mm; the file wants N m"
         return head + f": {axes} 1000x too large, a unit (mN, N mm) where the file wants N, N m"
-    if all(abs(ratios[k] + 1) < 0.1 for k in off):
+    if all(abs(ratios[k] + 1) < 0.1 for k in off):  # -1 within 10 %: a rig's loads are known far better
         return head + f": the sign of {axes} is flipped (a frame axis reversed in the log, or a sign error in " \
                       "the wrench's computation)"
     if all(ratios[k] == 0 for k in off):

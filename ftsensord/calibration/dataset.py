@@ -215,6 +215,7 @@ def _rotation(row: Table, gravity_dir: list[float]) -> np.ndarray:
     g = np.asarray(gravity_dir)
     # 1e-3 (0.06 deg): both come from one robot pose; a larger gap is a pose written wrong.
     if np.linalg.norm(g) == 0 or not np.allclose(R.T @ [0.0, 0.0, -1.0], g / np.linalg.norm(g), atol=1e-3):
+        # The angle between them, for the message (a zero gravity_dir: none, printed as 90 deg).
         gap = np.degrees(np.arccos(np.clip(-R[2] @ g / max(np.linalg.norm(g), 1e-300), -1.0, 1.0)))
         raise row.fail("rotation", f"R_w0 with R^T (0, 0, -1) = gravity_dir {gravity_dir} (they disagree by "
                        f"{gap:.3g} deg: angles in degrees taken as radians, or another pose's rotation?)",

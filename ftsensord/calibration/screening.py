@@ -173,8 +173,9 @@ def leave_out_outliers(dataset: Dataset, fits: np.ndarray, flux: np.ndarray, wre
                        ) -> tuple[np.ndarray, FluxResponse, list[str], float]:
     """Screen the fit poses (``fits``: their indices in ``dataset``; their ``flux`` and
     ``wrench``): the outlier mask, the flux's response on the poses kept, a warning
-    naming each outlier, and the largest pose kept in sigmas (for the report). ``estimate(keep)`` fits on the poses kept and returns every fit
-    pose's estimated wrench. Refuses more than `MAX_OUTLIER_SHARE` of them."""
+    naming each outlier, and the largest pose kept in sigmas (for the report).
+    ``estimate(keep)`` fits on the poses kept and returns every fit pose's estimated
+    wrench. Refuses more than `MAX_OUTLIER_SHARE` of them."""
     def residuals(keep: np.ndarray) -> np.ndarray:  # the wrench's (N, Nm), and the flux's own (T)
         return np.column_stack([estimate(keep) - wrench,
                                 FluxResponse(flux[keep], wrench[keep], room).inconsistency(flux)])
