@@ -10,9 +10,9 @@ import json
 import numpy as np
 import pytest
 
-from ftsensord.chip import mlx90393 as mlx
 from ftsensord.calibration.calfile import Calibration
 from ftsensord.calibration.thermal import CalibrationTemperature, ThermalLaws
+from ftsensord.chip import mlx90393 as mlx
 from ftsensord.stages.thermal import CALIBRATED_MARGIN_K, LAWS_MARGIN_K, ThermalCompensation
 
 from .conftest import benchmark
