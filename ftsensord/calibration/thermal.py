@@ -163,6 +163,6 @@ def thermal_fit(dataset: Dataset, fit_model: Any, laws: ThermalLaws = ThermalLaw
     for _ in range(DRIFT_PASSES):
         used = corrected if result.excluded is None else corrected.select(~result.excluded)  # as the fit
         drift = drift + fit_drift(used, result.model, temperature.mean_c)
-        corrected = replace(lawful, flux_t=lawful.flux_t - np.outer(celsius - temperature.mean_c, drift))
+        corrected = replace(dataset, flux_t=to_reference(dataset.flux_t, celsius, temperature.mean_c, laws, drift))
         result = fit_model(corrected)
     return corrected, replace(temperature, drift_t_per_k=drift), result
