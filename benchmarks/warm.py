@@ -39,6 +39,7 @@ from ftsensord.calibration.procedure import calibrate, simulate_dataset
 from ftsensord.service import wire
 from ftsensord.service.config import load_config
 from ftsensord.sim import load_scene
+from ftsensord.sim.loads import NO_LOAD, StaticLoad
 
 #: The paper's Table II RMS errors (N x3, Nm x3).
 TABLE_II = np.array([0.2338, 0.1136, 0.3775, 4.1e-3, 10.6e-3, 8.5e-3])
@@ -158,13 +159,11 @@ calibration = "{cal}"
         sensor = scene.sensors[0]
         errors = []
         for w in validation_loads():
-            from ftsensord.sim.loads import StaticLoad
             sensor.load = StaticLoad(w)
             start = len(values)
             step(rig.clock.now() + 1.0)
             held = np.array(values[start + 50:])
             errors.append(np.median(held, axis=0) - w)
-        from ftsensord.sim.loads import NO_LOAD
         sensor.load = NO_LOAD
         step(t1 + profile.hold_s + 5.0 + profile.beyond_s)
     finally:

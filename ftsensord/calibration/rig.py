@@ -47,6 +47,7 @@ def record_dataset(bus: Bus, addresses: Sequence[int], poses: Sequence[tuple[Cal
     saturated = np.zeros((n, c), dtype=bool)
     temperature = np.zeros(n)
     for k, (pose, _) in enumerate(poses):
+        celsius = []
         if turn is not None:
             turn(pose.orientation())
         apply_load(pose.wrench())
@@ -63,8 +64,9 @@ def record_dataset(bus: Bus, addresses: Sequence[int], poses: Sequence[tuple[Cal
                 readings[s, 3 * i:3 * i + 3] = m.field_t
                 saturated[k, i] |= m.any_saturated
                 if m.temperature_c is not None:
-                    temperature[k] += m.temperature_c / (c * (1 if samples == 1 else 2))
+                    celsius.append(m.temperature_c)
         mean[k] = readings.mean(axis=0)
+        temperature[k] = np.mean(celsius)
         if samples > 1:
             sem[k] = readings.std(axis=0, ddof=1) / math.sqrt(samples)
     return Dataset(tuple(addresses), np.array([p.wrench() for p, _ in poses]), mean, sem, saturated,

@@ -27,8 +27,8 @@ from ..chip import mlx90393 as mlx
 from ..errors import CalibrationError
 from ..model.geometry import SensorGeometry
 from ..model.linear import LinearModel
-from ..model.magnet import NDFEB_BR_TEMPCO_PER_K
-from ..model.silicone import STIFFNESS_TEMPCO_PER_K
+from ..model.magnet import NDFEB_BR_TEMPCO_PER_K, remanence_factor
+from ..model.silicone import STIFFNESS_TEMPCO_PER_K, stiffness_factor
 from .dataset import Dataset
 
 #: The poses must span this many kelvin for a drift to be measured: the drift's standard
@@ -44,11 +44,11 @@ DRIFT_PASSES = 2
 
 @dataclass(frozen=True)
 class ThermalLaws:
-    """The three laws' coefficients (relative change per K from `mlx.TEMPERATURE_REF_C`)."""
+    """The three laws (relative change per K from `mlx.TEMPERATURE_REF_C`): the magnets' and
+    the silicone's are the model's (`remanence_factor`, `stiffness_factor`); the chips'
+    sensitivity coefficient depends on their TCMP_EN."""
 
-    magnet_per_k: float = NDFEB_BR_TEMPCO_PER_K
     sensitivity_per_k: tuple[float, float, float] = tuple(mlx.SENSITIVITY_TEMPCO_PER_K)  # type: ignore[assignment]
-    stiffness_per_k: float = STIFFNESS_TEMPCO_PER_K
 
     @classmethod
     def physical(cls, settings: mlx.Settings | None = None) -> ThermalLaws:
@@ -60,15 +60,15 @@ class ThermalLaws:
     def flux_gain(self, celsius: np.ndarray) -> np.ndarray:
         """g(T) = (1 + a dT)(1 + s dT) per chip and axis, (n, 3), at die temperatures ``celsius`` (n,)."""
         dt = (np.asarray(celsius, dtype=float) - mlx.TEMPERATURE_REF_C)[:, None]
-        return (1.0 + self.magnet_per_k * dt) * (1.0 + np.asarray(self.sensitivity_per_k) * dt)
+        return remanence_factor(dt) * (1.0 + np.asarray(self.sensitivity_per_k) * dt)
 
     def stiffness_gain(self, celsius: float) -> float:
         """k(T): the silicone's stiffness against its stiffness at 25 degC."""
-        return 1.0 + self.stiffness_per_k * (celsius - mlx.TEMPERATURE_REF_C)
+        return stiffness_factor(celsius - mlx.TEMPERATURE_REF_C)
 
     def document(self) -> dict[str, Any]:
-        return {"magnet_per_k": self.magnet_per_k, "sensitivity_per_k": list(self.sensitivity_per_k),
-                "stiffness_per_k": self.stiffness_per_k}
+        return {"magnet_per_k": NDFEB_BR_TEMPCO_PER_K, "sensitivity_per_k": list(self.sensitivity_per_k),
+                "stiffness_per_k": STIFFNESS_TEMPCO_PER_K}
 
 
 @dataclass(frozen=True)
