@@ -29,6 +29,7 @@ import os
 import resource
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import tempfile
@@ -89,7 +90,10 @@ def hold_connections(path: Path, count: int, pid: int) -> tuple[list[socket.sock
         if i % 100 == 0 and os.path.exists(f"/proc/{pid}"):
             most = max(most, descriptor_count(pid))
         s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        s.settimeout(1.0)  # a full backlog blocks connect; a daemon that died refuses it
+        # A blocking connect waits (up to SO_SNDTIMEO) while the listener's backlog is full;
+        # settimeout() would make the socket non-blocking, and the kernel would then refuse
+        # at once with EAGAIN whenever the daemon is slower to accept than this loop connects.
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_SNDTIMEO, struct.pack("ll", 1, 0))
         try:
             s.connect(str(path))
             held.append(s)

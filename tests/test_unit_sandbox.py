@@ -137,12 +137,17 @@ def test_connections_beyond_the_unit_descriptor_limit_are_refused_not_fatal(sand
     proc, folder = sandboxed_daemon
     out = hostile.descriptors(folder, proc, 1200)
     assert out["alive"], out
-    caps = out["status_connections"]
-    assert caps["control"]["refused"] + caps["wrench" if "wrench" in caps else "publish"]["refused"] > 1000
+    # Every connection reached the daemon's accept (2400, past its soft limit of 1024):
+    # a connect waits while the backlog is full rather than being refused by the kernel.
+    assert out["refused_by_kernel"] == 0, out
+    for cap in out["status_connections"].values():
+        assert cap["peak"] <= cap["limit"] and cap["refused"] > 0, out
     # Descriptors: the caps (128 each) plus what a burst brings before the next drain,
     # far from the 1024 that abort: half of it is the margin this asserts.
     assert out["daemon_fds_most"] < 512, out
-    assert out["closed_by_daemon"] > 1000, out  # the surplus and the silent ones closed, cleanly
+    # The surplus shut down at once, the silent ones after the handshake timeout: all of
+    # them, however the split between the two fell (it depends on how fast this side connects).
+    assert out["closed_by_daemon"] == 2 * 1200, out
 
 
 def test_clients_that_never_read_have_their_replies_dropped(sandboxed_daemon, unit):
