@@ -8,6 +8,7 @@ import json
 import logging
 import shutil
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -260,7 +261,11 @@ def test_a_reload_reads_its_files_off_the_loop_and_a_flood_is_one_reload(tmp_pat
     assert seqs == list(range(2, 102)) and not dealer.poll(0)  # every cycle published, no reply yet
     release.set()
     replies = []
-    for _ in range(500):  # the worker finishes; the loop swaps it in and answers
+    # The worker finishes; the loop swaps it in and answers. The second reload may start
+    # only RELOAD_EVERY_S of real time after the first: wait in real time, not in cycles
+    # (a fast host ran 500 cycles in less).
+    deadline = time.monotonic() + 10.0
+    while time.monotonic() < deadline:
         cycles(1)
         d.reloads.wait(0.01)
         while dealer.poll(0):
