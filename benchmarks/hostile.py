@@ -48,23 +48,14 @@ from unit_sandbox import UnitRestrictions, seccomp_available
 UNIT = Path(__file__).resolve().parent.parent / "systemd" / "ftsensord.service"
 
 
-def unit_restrictions(unit: Path = UNIT) -> UnitRestrictions:
-    """The unit's restrictions as this process may apply them: real-time scheduling only
-    with the privilege systemd has (else the default policy; libzmq's call is made under either)."""
-    r = UnitRestrictions.from_unit(unit)
-    soft_rtprio, _ = resource.getrlimit(resource.RLIMIT_RTPRIO)
-    if r.fifo_priority and os.geteuid() != 0 and soft_rtprio < r.fifo_priority:
-        r.fifo_priority = 0
-    return r
-
-
 def sandboxed(config: Path, folder: Path, unit: UnitRestrictions) -> tuple[subprocess.Popen, socket.socket]:
     """`ftsensord run` under ``unit`` (the filter only where seccomp is available), its
     output in ``folder``/daemon.log."""
     if not seccomp_available():
         unit.filters = []
     with open(folder / "daemon.log", "w") as log:
-        return start_daemon(config, folder, preexec_fn=unit.preexec(), stdout=log, stderr=subprocess.STDOUT)
+        return start_daemon(config, folder, args=unit.run_args, preexec_fn=unit.preexec(), stdout=log,
+                            stderr=subprocess.STDOUT)
 
 
 def memory_kib(pid: int) -> dict[str, int]:
@@ -283,7 +274,7 @@ def main() -> None:
     if args.mode in alone:
         print(json.dumps(alone[args.mode](), indent=1))
         return
-    unit = unit_restrictions()
+    unit = UnitRestrictions.from_unit(UNIT)
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         config = packaged_config(folder / "ftsensord.toml")

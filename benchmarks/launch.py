@@ -12,6 +12,7 @@ import socket
 import subprocess
 import sys
 import uuid
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -36,11 +37,11 @@ def packaged_config(path: Path, **values: str) -> Path:
     return path
 
 
-def start_daemon(config: Path, folder: Path, *, fifo: int = 0, nice: int = 0,
+def start_daemon(config: Path, folder: Path, *, fifo: int = 0, nice: int = 0, args: Sequence[str] = (),
                  env: dict[str, str] | None = None, **popen: Any) -> tuple[subprocess.Popen, socket.socket]:
-    """`ftsensord run --config CONFIG` with its runtime folder in ``folder``, SCHED_FIFO at
-    ``fifo`` (0: not) or at ``nice``, as the unit's CPUSchedulingPolicy= or Nice= would run
-    it; ``env``: more variables; ``popen``: the output's routing (subprocess.Popen's keywords,
+    """`ftsensord run --config CONFIG [ARGS]` with its runtime folder in ``folder``, SCHED_FIFO
+    at ``fifo`` (0: not; as `--realtime` asks it, from the start) or at ``nice``;
+    ``env``: more variables; ``popen``: the output's routing (subprocess.Popen's keywords,
     default: discarded). Returned with its notify socket (the caller's from then on:
     WATCHDOG=1 pings arrive there) once it said READY=1; `stop` ends both. The tests start
     the daemon with this too (tests/conftest.py)."""
@@ -52,8 +53,8 @@ def start_daemon(config: Path, folder: Path, *, fifo: int = 0, nice: int = 0,
     # chrt: the daemon's threads inherit the policy, as under the unit.
     prefix = (["chrt", "-f", str(fifo)] if fifo else []) + (["nice", "-n", str(nice)] if nice else [])
     popen = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, **popen}
-    proc = subprocess.Popen([*prefix, sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=full_env,
-                            text=True, **popen)
+    proc = subprocess.Popen([*prefix, sys.executable, "-m", "ftsensord", "run", "--config", str(config), *args],
+                            env=full_env, text=True, **popen)
     try:
         while not notify.recv(4096).startswith(b"READY=1"):
             pass

@@ -1,6 +1,6 @@
 """The systemd unit's own restrictions on a process started here, without systemd: its
 `SystemCallFilter=` installed with seccomp before exec, its resource limits with
-setrlimit, its scheduling policy. The tests run the daemon under them (tests/test_unit_sandbox.py),
+setrlimit, the `--realtime` its ExecStart= gives the daemon. The tests run the daemon under them (tests/test_unit_sandbox.py),
 because `systemd-analyze verify` and `security` read the unit but never run the program:
 a filter that kills the daemon at start passes both.
 
@@ -85,12 +85,17 @@ class UnitRestrictions:
     error_number: str = "EPERM"  # SystemCallErrorNumber=
     limit_nofile: tuple[int, int] = SYSTEMD_DEFAULT_NOFILE  # LimitNOFILE=soft:hard (one value: both)
     memory_max: int | None = None  # MemoryMax=, bytes
-    fifo_priority: int = 0  # CPUSchedulingPriority= with CPUSchedulingPolicy=fifo; 0: none
+    limit_rtprio: int = 0  # LimitRTPRIO=: the SCHED_FIFO priority the process may take itself
+    realtime: int = 0  # ExecStart='s `--realtime N`: the priority the daemon asks for (0: none)
+
+    @property
+    def run_args(self) -> list[str]:
+        """What ExecStart= adds to `ftsensord run --config FILE`."""
+        return ["--realtime", str(self.realtime)] if self.realtime else []
 
     @classmethod
     def from_unit(cls, path: Path) -> UnitRestrictions:
         r = cls()
-        policy, priority = "", 0
         for line in path.read_text().splitlines():
             m = re.match(r"^\s*([A-Za-z]+)=(.*)$", line)
             if not m:
@@ -105,11 +110,13 @@ class UnitRestrictions:
                 r.limit_nofile = (int(soft), int(hard or soft))
             elif key == "MemoryMax":
                 r.memory_max = _bytes(value)
-            elif key == "CPUSchedulingPolicy":
-                policy = value
-            elif key == "CPUSchedulingPriority":
-                priority = int(value)
-        r.fifo_priority = priority if policy == "fifo" else 0
+            elif key == "LimitRTPRIO":
+                r.limit_rtprio = int(value)
+            elif key == "ExecStart":
+                m = re.search(r"--realtime[ =](\d+)", value)
+                r.realtime = int(m.group(1)) if m else 0
+            elif key.startswith("CPUScheduling"):
+                raise ValueError(f"{path}: {key}= is not modelled (the daemon asks for real-time itself)")
         return r
 
     def allowed_calls(self, groups: dict[str, list[str]]) -> set[str] | None:
@@ -128,7 +135,7 @@ class UnitRestrictions:
 
     def preexec(self, groups: dict[str, list[str]] | None = None) -> Callable[[], None]:
         """A `subprocess.Popen` ``preexec_fn`` that applies these restrictions in the child,
-        in systemd's order: limits and scheduling first, the system call filter last."""
+        in systemd's order: limits first, the system call filter last."""
         allowed = self.allowed_calls(groups if groups is not None else syscall_groups())
         lib = _libseccomp()
         # Resolved here, not in the child: the child should do as little as possible.
@@ -138,12 +145,12 @@ class UnitRestrictions:
         # A hard limit above this process's own cannot be raised without privilege: kept at ours.
         hard = resource.getrlimit(resource.RLIMIT_NOFILE)[1]
         nofile = (min(self.limit_nofile[0], hard), min(self.limit_nofile[1], hard))
-        fifo = self.fifo_priority
+        rtprio_hard = resource.getrlimit(resource.RLIMIT_RTPRIO)[1]
+        rtprio = min(self.limit_rtprio, rtprio_hard) if rtprio_hard != resource.RLIM_INFINITY else self.limit_rtprio
 
         def apply() -> None:
             resource.setrlimit(resource.RLIMIT_NOFILE, nofile)
-            if fifo:
-                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(fifo))
+            resource.setrlimit(resource.RLIMIT_RTPRIO, (rtprio, rtprio))
             if allowed is None:
                 return
             if lib.prctl(PR_SET_NO_NEW_PRIVS, 1, 0, 0, 0) != 0:  # NoNewPrivileges=yes

@@ -96,12 +96,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     import logging
-
     from .service.config import load_config
     from .service.run import run
-
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
-    return run(load_config(args.config), early=args.early_signals)
+    return run(load_config(args.config), early=args.early_signals, realtime=args.realtime)
 
 
 def _control(args: argparse.Namespace):
@@ -232,6 +230,8 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Read every chip in a steady loop, publish wrenches over ZeroMQ, and "
                                    "serve control requests. SIGTERM stops it cleanly, SIGHUP reloads.")
     p.add_argument("--config", help="configuration file (default: the simulated bus, default scene)")
+    p.add_argument("--realtime", type=int, default=0, metavar="PRIORITY", help="ask for SCHED_FIFO at this "
+                   "priority, 1-99 (the unit: 50); refused, it says why and runs as usual (default 0: not asked)")
     p.set_defaults(func=cmd_run)
 
     def control_options(p: argparse.ArgumentParser) -> None:

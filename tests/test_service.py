@@ -79,13 +79,21 @@ def test_unit_has_what_the_service_needs():
                        ("DevicePolicy", "closed"), ("DeviceAllow", "char-i2c rw")):
         assert s[key] == [value], key
     assert s["ExecStart"][0].split()[1:3] == ["run", "--config"]
+    # Real time asked for by the daemon, within the limit the unit grants: systemd's own
+    # CPUSchedulingPolicy= is fatal when refused (status=214, tests/test_systemd_unit.py).
+    assert not any(key.startswith("CPUScheduling") for key in s)
+    asked = s["ExecStart"][0].split()
+    assert int(s["LimitRTPRIO"][0]) >= int(asked[asked.index("--realtime") + 1]) > 0
+    # README's install puts the daemon where the unit runs it.
+    assert s["ExecStart"][0].split()[0].startswith("/opt/ftsensord/") and "/opt/ftsensord/bin/pip install ." in (
+        UNIT.parent.parent / "README.md").read_text()
 
 
 @pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze is not installed")
 def test_systemd_analyze_verifies_the_unit(tmp_path):
     exe = shutil.which("ftsensord") or sys.executable
     unit = tmp_path / "ftsensord.service"
-    unit.write_text(UNIT.read_text().replace("/usr/local/bin/ftsensord", exe))
+    unit.write_text(UNIT.read_text().replace("/opt/ftsensord/bin/ftsensord", exe))
     ok = subprocess.run(["systemd-analyze", "verify", str(unit)], capture_output=True, text=True)
     assert ok.returncode == 0 and "ftsensord.service" not in ok.stderr, ok.stderr
     broken = tmp_path / "broken.service"

@@ -1,13 +1,12 @@
 """The daemon under its own systemd unit's restrictions (benchmarks/unit_sandbox.py): the
-system call filter installed with seccomp before exec, the unit's limits and its real-time
-policy. `systemd-analyze verify` and `security` (tests/test_service.py) read the unit; only
+system call filter installed with seccomp before exec, the unit's limits, and the real-time
+priority its ExecStart= asks for. `systemd-analyze verify` and `security` (tests/test_service.py) read the unit; only
 running the program under it shows whether the program survives it: libzmq's threads call
 pthread_setschedparam at start and abort when the filter refuses it."""
 
 from __future__ import annotations
 
 import os
-import resource
 import signal
 import subprocess
 import sys
@@ -30,13 +29,7 @@ pytestmark = pytest.mark.skipif(not sandbox.seccomp_available() and not os.envir
 
 @pytest.fixture(scope="module")
 def unit():
-    r = sandbox.UnitRestrictions.from_unit(UNIT)
-    # Real-time scheduling needs the privilege systemd has when it starts the unit; a test
-    # run without it keeps the default policy (libzmq's call is made under either).
-    soft_rtprio, _ = resource.getrlimit(resource.RLIMIT_RTPRIO)
-    if r.fifo_priority and os.geteuid() != 0 and soft_rtprio < r.fifo_priority:
-        r.fifo_priority = 0
-    return r
+    return sandbox.UnitRestrictions.from_unit(UNIT)
 
 
 def run_child(code: str, preexec) -> subprocess.CompletedProcess:
@@ -75,15 +68,26 @@ def test_the_daemon_runs_under_its_own_unit(tmp_path, unit):
     """Ready, publishing, status, tare, reload (SIGHUP) and a clean stop, all under the
     unit's filter, limits and policy."""
     config = write_config(tmp_path)
-    proc, notify = start_daemon(config, tmp_path, preexec_fn=unit.preexec(),
+    proc, notify = start_daemon(config, tmp_path, args=unit.run_args, preexec_fn=unit.preexec(),
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     try:
         folder = tmp_path / "ftsensord"
         control = ControlClient(f"ipc://{folder / 'control'}")
         status = control.status()
         assert status["rate_hz"] > 0
-        if unit.fifo_priority:
-            assert os.sched_getscheduler(proc.pid) == os.SCHED_FIFO
+        # The daemon asked for SCHED_FIFO itself (the unit's `--realtime`): granted under the
+        # unit's LimitRTPRIO= (or to root), said in status; the loop's thread and libzmq's
+        # (made after the request: they inherit it) have it. numpy's BLAS worker, made at
+        # import, does not: small products never wake it.
+        assert unit.realtime and unit.limit_rtprio >= unit.realtime
+        assert status["scheduling"] == {"policy": "fifo", "priority": unit.realtime, "asked": unit.realtime,
+                                        "refused": None}, status["scheduling"]
+        tasks = {int(t): Path(f"/proc/{proc.pid}/task/{t}/comm").read_text().strip()
+                 for t in os.listdir(f"/proc/{proc.pid}/task")}
+        zmq_threads = [t for t, name in tasks.items() if name.startswith("ZMQbg/")]
+        assert len(zmq_threads) >= 2, tasks  # its I/O thread and reaper
+        for task in [proc.pid, *zmq_threads]:
+            assert os.sched_getscheduler(task) == os.SCHED_FIFO, tasks[task]
         with Subscriber(f"ipc://{folder / 'wrench'}", ["wrench/sensor2"]) as sub:
             sample = sub.receive(timeout_s=5)
             assert sample is not None and np.all(np.isfinite(sample.values))
@@ -142,9 +146,11 @@ def test_connections_beyond_the_unit_descriptor_limit_are_refused_not_fatal(sand
     assert out["refused_by_kernel"] == 0, out
     for cap in out["status_connections"].values():
         assert cap["peak"] <= cap["limit"] and cap["refused"] > 0, out
-    # Descriptors: the caps (128 each) plus what a burst brings before the next drain,
-    # far from the 1024 that abort: half of it is the margin this asserts.
-    assert out["daemon_fds_most"] < 512, out
+    # Descriptors: the caps (128 each), about 30 of the daemon's own, and what a burst brings
+    # before the next drain (this side connects about 8000 a second: 80 a cycle, more when a
+    # cycle is late; 512 was seen once in 8 runs). Below 768 keeps a quarter of the unit's
+    # soft limit (1024) spare; the daemon itself raises its limit to the hard one (16384).
+    assert out["daemon_fds_most"] < 768, out
     # The surplus shut down at once, the silent ones after the handshake timeout: all of
     # them, however the split between the two fell (it depends on how fast this side connects).
     assert out["closed_by_daemon"] == 2 * 1200, out

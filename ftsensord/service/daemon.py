@@ -37,6 +37,7 @@ from .host import HostGuard
 from .loop import LoopTiming, serve_until
 from .orientation import OrientationReceiver
 from .pipeline import SensorPipeline, SensorSample, tip_wrench
+from .realtime import Scheduling
 from .reloads import Reloads
 from .sdnotify import Notifier
 from .status import ChipLedger, status_line, status_reply
@@ -52,11 +53,13 @@ class Daemon(Commands):
     def __init__(self, config: Config, bus: Bus, publisher: zmq.Socket, control: zmq.Socket | None = None, *,
                  notifier: Notifier | None = None, clock: Callable[[], float] = time.monotonic,
                  wall: Callable[[], float] = time.time, orientation: zmq.Socket | None = None,
-                 guard: HostGuard | None = None, background_reload: bool = False):
+                 guard: HostGuard | None = None, background_reload: bool = False,
+                 scheduling: Scheduling | None = None):
         self.config = config
         self.bus = bus
         self.publisher = publisher
         self.guard = guard or HostGuard()
+        self.scheduling = scheduling or Scheduling()  # what `run` asked of the kernel, for status
         self.notifier = notifier or Notifier(environ={})
         self.clock, self.wall = clock, wall
         chips = [MLX90393(bus, a, sleep=bus.sleep) for a in config.addresses]

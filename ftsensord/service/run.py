@@ -26,6 +26,7 @@ from .control import MAX_PER_CYCLE, MAX_REQUEST
 from .daemon import Daemon
 from .host import HostGuard
 from .orientation import open_receiver
+from .realtime import Scheduling, request_fifo
 from .runtime import RuntimeFiles
 from .sdnotify import Notifier
 
@@ -199,13 +200,17 @@ class Signals:
         self.reload = False  # handed over: the daemon clears its own
 
 
-def run(config: Config, early: Iterable[int] = ()) -> int:
-    """Serve ``config`` until SIGTERM; ``early``: signals that came before (`__main__.EARLY_SIGNALS`)."""
+def run(config: Config, early: Iterable[int] = (), realtime: int = 0) -> int:
+    """Serve ``config`` until SIGTERM; ``early``: signals that came before (`__main__.EARLY_SIGNALS`);
+    ``realtime``: the SCHED_FIFO priority to ask for (0: none; a refusal is logged, not fatal)."""
     signals = Signals(early)
     if signals.stop:  # stopped while starting: nothing made yet, nothing to undo
         log.info("stopped before starting")
         return 0
     raise_descriptor_limit()
+    scheduling = request_fifo(realtime)  # before any ZeroMQ thread exists (`realtime`)
+    if scheduling.refused:
+        log.warning("real-time scheduling (SCHED_FIFO %d) refused: %s", realtime, scheduling.refused)
     notifier = Notifier()
     notifier.check_rate(config.rate_hz, f"{config.path}: rate_hz")
     files = RuntimeFiles()
@@ -215,13 +220,14 @@ def run(config: Config, early: Iterable[int] = ()) -> int:
             bus = open_configured_bus(config)
         except (OSError, FtsensordError) as exc:
             raise ConfigError(f"{config.path}: bus: cannot open {config.bus!r}: {exc}") from exc
-        return _serve(config, bus, notifier, files, signals)
+        return _serve(config, bus, notifier, files, signals, scheduling)
     finally:
         for fd in locks:
             os.close(fd)
 
 
-def _serve(config: Config, bus: Bus, notifier: Notifier, files: RuntimeFiles, signals: Signals) -> int:
+def _serve(config: Config, bus: Bus, notifier: Notifier, files: RuntimeFiles, signals: Signals,
+           scheduling: Scheduling) -> int:
     context = zmq.Context()
     publisher, control, auth = make_sockets(context, config, files)
     endpoint = config.orientation_endpoint
@@ -229,7 +235,7 @@ def _serve(config: Config, bus: Bus, notifier: Notifier, files: RuntimeFiles, si
     caps = [ConnectionCap(publisher, "publish"), ConnectionCap(control, "control"),
             *([ConnectionCap(orientation, "orientation")] if orientation is not None else [])]
     daemon = Daemon(config, bus, publisher, control, notifier=notifier, orientation=orientation,
-                    guard=HostGuard(caps, files), background_reload=True)
+                    guard=HostGuard(caps, files), background_reload=True, scheduling=scheduling)
 
     signals.attach(daemon)
     log.info("ftsensord on %s: %s; publishing on %s, control on %s", config.bus, config.bound().describe(),

@@ -120,6 +120,7 @@ def status_reply(d: Daemon) -> dict[str, Any]:
         "streams": sorted(d.streams), "publish": d.config.publish, "control": d.config.control,
         "connections": {c.name: c.status() for c in d.guard.caps}, "replies_dropped": d.control.dropped,
         "frames": stream_frames(d), "gravity": d.gravity.status(d.sensors, d.clock()) if d.gravity else None,
+        "scheduling": d.scheduling.status(),
     }
 
 
@@ -140,6 +141,10 @@ def describe(status: dict[str, Any]) -> str:
     out.append(f"cycle p50 {cycle['p50']:.0f} us, p99 {cycle['p99']:.0f} us, max {cycle['max']:.0f} us "
                f"of a {status['period_us']:.0f} us period")
     out.append(f"averaging {status['averaging']}, low-pass {status['lowpass_hz'] or 'off'}")
+    sched = status.get("scheduling")
+    if sched:
+        out.append(f"scheduling: {sched['policy']}" + (f" {sched['priority']}" if sched["priority"] else "")
+                   + (f" (SCHED_FIFO {sched['asked']} refused: {sched['refused']})" if sched["refused"] else ""))
     for name, s in status["sensors"].items():
         tare = "tared, offset " + " ".join(f"{v:+.4g}" for v in s["tare_wrench"]) if s["tared"] else "not tared"
         out.append(f"sensor {name}: frame {s['frame']}, serial {s['serial']}, {tare}; calibration {s['calibration']}")
