@@ -10,7 +10,7 @@ changes kept in that tmpfs) where the README's `useradd`, `/etc/ftsensord` and
 the interpreter running this script (a .pth file: no download, the code under test).
 The unit file is copied unchanged; one drop-in removes its default dependencies (no
 sysinit.target: it would run the host's tmpfiles and sysctl setup) and sends its output
-to a file here. systemd itself runs as PID 1 of the namespace (container mode).
+to a file in that /run. systemd itself runs as PID 1 of the namespace (container mode).
 
     python benchmarks/unit_systemd.py [--dropin 'CPUWeight=100']   # prints systemctl status
 
@@ -57,7 +57,11 @@ def why_not() -> str | None:
     return None
 
 
-def _boot_script(work: Path, config: Path, dropins: list[str]) -> str:
+#: The daemon's output, in the namespace's /run (a path of the host could be under an overlay).
+LOG = "/run/ftsensord-test.log"
+
+
+def _boot_script(config: Path, dropins: list[str]) -> str:
     site = sysconfig.get_paths()["purelib"]  # this interpreter's packages: numpy, pyzmq, smbus2
     version = f"python{sys.version_info.major}.{sys.version_info.minor}"
     units = "/run/systemd/system"
@@ -81,7 +85,7 @@ def _boot_script(work: Path, config: Path, dropins: list[str]) -> str:
         f"install -d /etc/ftsensord && cp {q(str(config))} /etc/ftsensord/ftsensord.toml",
         f"cp {q(str(UNIT))} {units}/",
         *(f"ln -s /dev/null {units}/{u}" for u in MASKED),
-        f"printf '[Unit]\\nDefaultDependencies=no\\n[Service]\\nStandardOutput=append:{work}/daemon.log\\n"
+        f"printf '[Unit]\\nDefaultDependencies=no\\n[Service]\\nStandardOutput=append:{LOG}\\n"
         f"StandardError=inherit\\n' > {units}/ftsensord.service.d/test.conf",
         *(f"printf '[Service]\\n%s\\n' {q(line)} > {units}/ftsensord.service.d/extra{i}.conf"
           for i, line in enumerate(dropins)),
@@ -102,12 +106,11 @@ class SystemdHost:
 
     def __enter__(self) -> SystemdHost:
         self.work.mkdir(parents=True, exist_ok=True)
-        (self.work / "daemon.log").write_text("")
         script = self.work / "boot.sh"
-        script.write_text(_boot_script(self.work, self.config, self.dropins))
-        self.proc = subprocess.Popen(
-            ["unshare", "--fork", "--pid", "--mount", "--net", "--uts", "--ipc", "--mount-proc", "bash", str(script)],
-            stdout=open(self.work / "systemd.log", "w"), stderr=subprocess.STDOUT)
+        script.write_text(_boot_script(self.config, self.dropins))
+        with open(self.work / "systemd.log", "w") as log:
+            self.proc = subprocess.Popen(["unshare", "--fork", "--pid", "--mount", "--net", "--uts", "--ipc",
+                                          "--mount-proc", "bash", str(script)], stdout=log, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + 30
         while time.monotonic() < deadline and self.proc.poll() is None:
             self.pid = self._namespace_init()
@@ -148,7 +151,8 @@ class SystemdHost:
             time.sleep(0.2)
 
     def daemon_log(self) -> str:
-        return (self.work / "daemon.log").read_text()
+        """What the daemon printed (stdout and stderr) so far."""
+        return self.run("cat", LOG).stdout
 
     def __exit__(self, *exc: object) -> None:
         if self.pid:  # PID 1 of the namespace: its end ends every process in it
