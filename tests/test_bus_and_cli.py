@@ -222,3 +222,29 @@ def test_dataset_refuses_a_static_scene_and_an_unknown_sensor(tmp_path, capsys):
     assert 'kind "sensors"' in capsys.readouterr().err
     assert main(["dataset", "-o", str(tmp_path / "d.json"), "--sensor", "sensor9"]) == 2
     assert "sensor1, sensor2" in capsys.readouterr().err
+
+
+# --- a board whose I2C is off: the first command a Pi user runs says what to do ------------
+@pytest.mark.parametrize("command", ["scan", "doctor"])
+def test_a_missing_i2c_device_names_the_fix(command, capsys):
+    """No /dev/i2c-N (I2C off in config.txt, or i2c-dev not loaded): the message names the
+    switches that turn it on, not only the errno."""
+    assert main([command, "--bus", "i2c:/dev/i2c-97"]) == 2
+    err = capsys.readouterr().err
+    assert "/dev/i2c-97" in err and "[Errno" not in err
+    for fix in ("raspi-config", "dtparam=i2c_arm=on", "modprobe i2c-dev"):
+        assert fix in err, err
+
+
+def test_a_forbidden_i2c_device_names_the_group(monkeypatch):
+    """Permission denied on /dev/i2c-N: the user is not in the i2c group (root is never
+    refused, so the kernel's refusal is stood in for at smbus2's open)."""
+    from ftsensord.acquire import bus as busmod
+
+    def refuse(device):
+        raise PermissionError(13, "Permission denied", "/dev/i2c-1")
+
+    monkeypatch.setattr(busmod, "SMBus", refuse)
+    with pytest.raises(busmod.BusUnavailableError, match=r"usermod -aG i2c") as info:
+        open_bus("i2c:1")
+    assert info.value.errno == 13 and isinstance(info.value, OSError)

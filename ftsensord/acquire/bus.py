@@ -41,6 +41,27 @@ class BusBusyError(FtsensordError, OSError):
     """Another process (a running daemon) holds the bus's lock."""
 
 
+class BusUnavailableError(FtsensordError, OSError):
+    """The I2C device is missing or not permitted: the message says how a board gets it."""
+
+
+def _unavailable(path: str, exc: OSError) -> BusUnavailableError:
+    """What to do about ``exc`` opening ``path``: the first thing a Pi user meets."""
+    import glob
+    if isinstance(exc, PermissionError):
+        how = ("permission denied: add the user to the device's group (`sudo usermod -aG i2c $USER`, then "
+               "log in again; the systemd unit has SupplementaryGroups=i2c)")
+    else:
+        present = sorted(glob.glob("/dev/i2c-*"))
+        how = ("it does not exist: I2C is off or the i2c-dev module is not loaded. On a Raspberry Pi: "
+               "`sudo raspi-config nonint do_i2c 0` (or dtparam=i2c_arm=on in /boot/firmware/config.txt) and "
+               "reboot; elsewhere `sudo modprobe i2c-dev` (and i2c-dev in /etc/modules). "
+               + (f"Adapters here: {', '.join(present)}" if present else "No /dev/i2c-* exists here"))
+    error = BusUnavailableError(f"{path}: {how}")  # not (errno, text): "[Errno 2]" helps no one here
+    error.errno = exc.errno
+    return error
+
+
 @dataclass(frozen=True)
 class BusSpec:
     """A parsed bus string: kind ('i2c' or 'sim'), its argument, and a simulated
@@ -78,7 +99,10 @@ class LinuxI2CBus:
     def __init__(self, device: int | str, smbus: SMBus | None = None, *,
                  exclusive: bool = False, force: bool = False):
         self.device = device
-        self.smbus = smbus if smbus is not None else SMBus(device)
+        try:
+            self.smbus = smbus if smbus is not None else SMBus(device)
+        except (FileNotFoundError, PermissionError) as exc:
+            raise _unavailable(self.path, exc) from exc
         self.timing: BusTiming | None = None
         self.locked = False
         if exclusive:
