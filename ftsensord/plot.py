@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from .client import Subscriber
+from .errors import ConfigError
 from .service import wire
 
 #: Redraw period of the live plot, s: smooth to the eye, light on the CPU.
@@ -30,6 +31,31 @@ REFRESH_S = 0.1
 MAX_RATE_HZ = 1000.0
 FLAG_BITS = sorted(wire.FLAG_NAMES)
 AXES = "xyz"
+
+
+#: matplotlib's backends that draw no window: what it falls back to with no display.
+NON_INTERACTIVE = frozenset({"agg", "cairo", "pdf", "pgf", "ps", "svg", "template"})
+
+
+def require_matplotlib() -> None:
+    """Before any data is collected: matplotlib is there, or the command that installs it."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError as exc:
+        raise ConfigError("plot needs matplotlib, the 'plot' extra: pip install 'ftsensord[plot]' "
+                          "(from a checkout: .venv/bin/pip install '.[plot]')") from exc
+
+
+def require_display() -> None:
+    """A live window needs a display: over ssh matplotlib falls back to a backend that draws
+    none, and the window would silently never open."""
+    import matplotlib.pyplot as plt
+
+    backend = plt.get_backend().lower()
+    if backend in NON_INTERACTIVE:
+        raise ConfigError(f"no display for a live plot (matplotlib's backend is {backend!r}: DISPLAY and "
+                          "WAYLAND_DISPLAY unset?). Without one: `ftsensord plot STREAM --png plot.png "
+                          "[--seconds 5]` writes a snapshot; or log in with `ssh -X`")
 
 
 @dataclass
@@ -157,6 +183,7 @@ class Snapshot:
 def snapshot(streams: list[str], seconds: float, png: str | Path | None = None, *, endpoint: str | None = None,
              timeout_s: float = 3.0) -> Snapshot:
     """Collect ``seconds`` of the streams, draw them and write ``png`` (if given); headless."""
+    require_matplotlib()
     histories = {s: History(seconds) for s in streams}
     with Subscriber(endpoint, streams) as sub:
         start = last = time.monotonic()
@@ -174,6 +201,8 @@ def snapshot(streams: list[str], seconds: float, png: str | Path | None = None, 
 
 def live(streams: list[str], window_s: float, *, endpoint: str | None = None) -> int:
     """A window that scrolls until it is closed or Ctrl-C; returns the exit status."""
+    require_matplotlib()
+    require_display()
     import matplotlib.pyplot as plt
     from matplotlib.animation import FuncAnimation
 

@@ -91,3 +91,29 @@ def test_plot_cli_writes_a_png(daemon, tmp_path):  # noqa: F811
                            "--seconds", "1", "--png", str(png)], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0 and done.stdout.startswith(f"wrote {png}: wrench/sensor1 "), done.stderr
     assert png.stat().st_size > 10_000
+
+
+def _plot(tmp_path, *args: str, blocked_matplotlib: bool = False) -> subprocess.CompletedProcess:
+    """`ftsensord plot` as a user on ssh runs it: no display, no daemon (nothing to wait for)."""
+    env = {k: v for k, v in __import__("os").environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY", "MPLBACKEND")}
+    if blocked_matplotlib:  # an install without the 'plot' extra
+        (tmp_path / "matplotlib").mkdir()
+        (tmp_path / "matplotlib" / "__init__.py").write_text("raise ImportError('no matplotlib here')\n")
+        env["PYTHONPATH"] = str(tmp_path)
+    return subprocess.run([sys.executable, "-m", "ftsensord", "plot", "wrench/sensor1", "--endpoint",
+                           f"ipc://{tmp_path}/nobody", "--timeout", "1", *args],
+                          capture_output=True, text=True, env=env, timeout=60)
+
+
+def test_a_live_plot_without_a_display_fails_naming_the_snapshot(tmp_path):
+    """Over ssh matplotlib falls back to Agg, which opens no window: the command says so
+    and gives the one that works, instead of exiting 0 after a warning."""
+    out = _plot(tmp_path)
+    assert out.returncode == 2, (out.returncode, out.stderr)
+    assert "no display" in out.stderr and "--png" in out.stderr, out.stderr
+
+
+def test_plot_without_matplotlib_names_the_extra_before_collecting(tmp_path):
+    out = _plot(tmp_path, "--png", str(tmp_path / "p.png"), blocked_matplotlib=True)
+    assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
+    assert "pip install 'ftsensord[plot]'" in out.stderr, out.stderr
