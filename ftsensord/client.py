@@ -20,9 +20,10 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import zmq
 
-from .errors import ControlError, DaemonNotAnswering
+from .errors import ControlError, DaemonNotAnswering, WireError
 from .service import wire
 from .service.config import check_private_dir, runtime_dir
 
@@ -183,7 +184,8 @@ class OrientationPublisher:
     """Tell the daemon how the tool is turned, for gravity compensation (docs/clients.md).
 
         with OrientationPublisher() as pub:
-            pub.send("sensor1", quaternion_wxyz)   # or a 3 x 3 R_world,sensor; or "tip"
+            pub.send("sensor1", R_world_sensor)        # 3 x 3, or scipy's Rotation; or "tip"
+            pub.send("sensor1", q_xyzw=rot.as_quat())  # a quaternion names its order: q_xyzw or q_wxyz
 
     A PUB socket connected to the daemon's orientation endpoint: a send never
     blocks (nothing is queued for a daemon not running), the daemon keeps the newest.
@@ -198,14 +200,36 @@ class OrientationPublisher:
         self.socket.setsockopt(zmq.LINGER, 0)
         self.socket.connect(self.endpoint)
 
-    def send(self, frame: str, rotation: Any, t_sender: float | None = None) -> None:
-        """``rotation``: a unit quaternion [w x y z] or a rotation matrix taking ``frame``'s
-        vectors into the world; ``t_sender`` (s) defaults to this host's CLOCK_MONOTONIC."""
+    def send(self, frame: str, rotation: Any = None, t_sender: float | None = None, *,
+             q_wxyz: Any = None, q_xyzw: Any = None) -> None:
+        """How ``frame`` is turned, R_world,frame (it takes the frame's vectors into the world),
+        given as exactly one of: ``rotation``, a 3 x 3 matrix or an object with ``as_matrix()``
+        (scipy's Rotation); ``q_wxyz``, a unit quaternion w first (Eigen's Quaterniond(w, x,
+        y, z) constructor); ``q_xyzw``, w last (scipy's as_quat(), Eigen's coeffs(), ROS's
+        geometry_msgs/Quaternion). A bare 4-vector as ``rotation`` is refused: sent in the
+        wrong order it is a valid rotation, wrong by up to 180 deg, and right at the identity
+        (so a check at rest passes). ``t_sender`` (s) defaults to this host's CLOCK_MONOTONIC."""
         import time
 
+        given = [x is not None for x in (rotation, q_wxyz, q_xyzw)]
+        if sum(given) != 1:
+            raise WireError("orientation: give exactly one of rotation (3 x 3), q_wxyz or q_xyzw")
+        if q_xyzw is not None:
+            x, y, z, w = np.asarray(q_xyzw, dtype=float).ravel()
+            value = np.array([w, x, y, z])
+        elif q_wxyz is not None:
+            value = np.asarray(q_wxyz, dtype=float).ravel()
+        else:
+            value = np.asarray(rotation.as_matrix() if hasattr(rotation, "as_matrix") else rotation, dtype=float)
+            if value.size == 4:
+                raise WireError("orientation: a quaternion's order is ambiguous: pass q_xyzw= (scipy's "
+                                "as_quat(), Eigen's coeffs(), ROS's geometry_msgs/Quaternion) or q_wxyz= (w first)")
+        if value.size != (4 if rotation is None else 9):
+            raise WireError(f"orientation: expected {'4 quaternion' if rotation is None else '3 x 3 matrix'} "
+                            f"values, got {value.size}")
         t = time.monotonic() if t_sender is None else t_sender
         try:
-            self.socket.send(self._encode(frame, rotation, t), zmq.NOBLOCK)
+            self.socket.send(self._encode(frame, value, t), zmq.NOBLOCK)
         except zmq.Again:
             pass  # the queue is full: latest value wins, the next send replaces it
 

@@ -492,7 +492,7 @@ def test_ftsensord_run_compensates_with_orientations_from_the_python_publisher(t
                 Subscriber(f"ipc://{rt}/wrench", streams) as sub:
             deadline = time.monotonic() + 20
             while min(len(v) for v in got.values()) < 20 and time.monotonic() < deadline:
-                pub.send("sensor1", [1.0, 0.0, 0.0, 0.0])  # upright, as the scene holds it
+                pub.send("sensor1", q_wxyz=[1.0, 0.0, 0.0, 0.0])  # upright, as the scene holds it
                 s = sub.receive(timeout_s=0.01)
                 if s is not None and (s.topic == "wrench/sensor1" or s.flags == 0):
                     got[s.topic].append(s.values)
@@ -506,6 +506,8 @@ def test_ftsensord_run_compensates_with_orientations_from_the_python_publisher(t
     raw, comp = (np.mean(got[s], axis=0) for s in streams)
     assert raw[2] < -0.35 and abs(comp[2]) < 0.15  # the 0.49 N weight taken off (untared: the zero's error)
     assert status["gravity"]["stream"]["received"] > 0 and status["frames"]["wrench/tip/compensated"] == "tool_tip"
+    # The gravity applied now, in sensor1's frame: upright, straight down its -z.
+    assert np.allclose(status["gravity"]["frames"]["sensor1"]["gravity_now_mps2"], [0, 0, -9.80665], atol=1e-6)
     assert not (rt / "orientation").exists()  # removed at exit
 
 
@@ -542,3 +544,47 @@ def test_a_reload_keeps_the_tare_and_its_gravity(tmp_path):
         w = np.mean([s.values for s in out[f"wrench/{name}/compensated"]], axis=0)
         assert np.all(np.abs(w[:3]) < 0.15), (name, w)  # right after the turn as before the reload
     t.close()
+
+
+class _Sent:
+    """A stand-in for the publisher's socket: keeps what it is given."""
+
+    def __init__(self) -> None:
+        self.messages: list[bytes] = []
+
+    def send(self, message: bytes, flags: int = 0) -> None:
+        self.messages.append(message)
+
+    def close(self, linger: int = 0) -> None:
+        pass
+
+
+def test_a_quaternion_sent_must_name_its_order(tmp_path):
+    """scipy's as_quat(), Eigen's coeffs() and ROS's Quaternion are x y z w; the wire is
+    w x y z. A bare 4-vector is refused (in the wrong order it is a valid rotation, off by
+    up to 180 deg, right at the identity); each named order gives the same rotation."""
+    from ftsensord.errors import WireError
+    from ftsensord.service.orientation import decode
+
+    R = se3.exp_so3(np.array([0.3, -1.1, 0.7]))
+    w = np.cos(np.linalg.norm([0.3, -1.1, 0.7]) / 2)
+    xyz = np.sin(np.linalg.norm([0.3, -1.1, 0.7]) / 2) * np.array([0.3, -1.1, 0.7]) / np.linalg.norm([0.3, -1.1, 0.7])
+    with OrientationPublisher(f"ipc://{tmp_path}/orientation") as pub:
+        pub.socket.close()
+        pub.socket = _Sent()  # type: ignore[assignment]
+        with pytest.raises(WireError, match=r"q_xyzw=.*as_quat"):
+            pub.send("sensor1", [w, *xyz])
+        with pytest.raises(WireError, match="exactly one"):
+            pub.send("sensor1", R, q_wxyz=[w, *xyz])
+        pub.send("sensor1", q_xyzw=[*xyz, w])
+        pub.send("sensor1", q_wxyz=[w, *xyz])
+        pub.send("sensor1", R)
+
+        class Rotation:  # scipy's Rotation, as far as the publisher looks at it
+            def as_matrix(self) -> np.ndarray:
+                return R
+
+        pub.send("sensor1", Rotation())
+        for message in pub.socket.messages:
+            assert np.allclose(decode(message).R, R, atol=1e-12)
+        assert len(pub.socket.messages) == 4

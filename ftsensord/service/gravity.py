@@ -141,8 +141,12 @@ class Gravity:
         for f, payload in self.config.payloads.items():
             R, stale = self.orientation(f, now)
             g_tare = tares[f]
+            # Gravity in the frame now (what the compensation takes off, beside the tare's),
+            # so a mis-sent orientation shows at once, not only as a wrong wrench.
+            g_now = None if R is None else R.T @ self.config.gravity_mps2
             frames[f] = {"mass_kg": payload.mass_kg, "com_m": payload.com_m.tolist(),
                          "orientation_known": R is not None, "orientation_stale": stale,
+                         "gravity_now_mps2": None if g_now is None else np.round(g_now, 6).tolist(),
                          "tare_gravity_mps2": None if g_tare is None else np.round(g_tare, 6).tolist()}
         return {"orientation": self.config.source, "endpoint": self.config.endpoint,
                 "stale_after_s": self.config.stale_after_s, "gravity_mps2": self.config.gravity_mps2.tolist(),

@@ -155,6 +155,8 @@ def describe(status: dict[str, Any]) -> str:
         stream = gravity["stream"]
         out.append(f"gravity compensation ({gravity['orientation']}): " + ", ".join(
             f"{f} {g['mass_kg'] * 1e3:.0f} g" + (" (orientation stale)" if g["orientation_stale"] else "")
+            + (" gravity now [" + " ".join(f"{v:+.2f}" for v in g["gravity_now_mps2"]) + "] m/s^2"
+               if g.get("gravity_now_mps2") else "")
             for f, g in gravity["frames"].items())
             + (f"; orientation messages {stream['received']} received, "
                f"{sum(stream['dropped'].values())} dropped" if gravity["orientation"] == "stream" else ""))
