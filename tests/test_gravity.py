@@ -588,3 +588,26 @@ def test_a_quaternion_sent_must_name_its_order(tmp_path):
         for message in pub.socket.messages:
             assert np.allclose(decode(message).R, R, atol=1e-12)
         assert len(pub.socket.messages) == 4
+
+
+def test_a_tare_whose_orientations_stop_is_refused_within_a_second_saying_why(tmp_path):
+    """The application stopped sending orientations: the tare is refused after
+    TARE_STALE_RUN stale samples (1 s at 100 Hz) with the reason, not after 10 s of
+    patience with a list of flags."""
+    from ftsensord.service.tare import TARE_STALE_RUN
+
+    t = Turning(tmp_path)
+    t.turn(orientations(5)[1])
+    t.cycles(5)
+    t.rig.req.send(json.dumps({"cmd": "tare", "samples": 100}).encode())
+    t.rig.daemon.handle_control()
+    waited = 0
+    while not t.rig.req.poll(0) and waited < 1200:
+        t.cycles(10, send=False)
+        waited += 10
+    reply = json.loads(t.rig.req.recv())
+    # stale_after_s (50 ms) of fresh samples first, then TARE_STALE_RUN stale ones (and the
+    # 10 cycles this loop steps at a time).
+    assert waited <= TARE_STALE_RUN + 20, waited
+    assert not reply["ok"] and "keep sending orientations" in reply["error"], reply
+    t.close()

@@ -28,6 +28,11 @@ log = logging.getLogger("ftsensord")
 
 #: A tare gives up when its sensor has been invalid for this many times the samples asked.
 TARE_PATIENCE = 10
+#: ...and sooner, after this many samples in a row turned away for a stale orientation
+#: (1 s at 100 Hz): an application that sends orientations sends them every servo tick,
+#: so a second without one means it stopped, and waiting TARE_PATIENCE x samples (10 s
+#: for 100) would tell the user nothing more.
+TARE_STALE_RUN = 100
 #: The halves of a tare's samples may differ by this many standard deviations of their
 #: difference (per axis, from the chips' noise): under noise alone a tare is refused
 #: with odds of 2e-9 per axis; a load that moves or drifts by more is refused.
@@ -46,6 +51,7 @@ class TareJob:
     gravity: dict[str, list[np.ndarray | None]] = field(default_factory=dict)  # m/s^2, sensor frame
     seen: dict[str, Counter[str]] = field(default_factory=dict)  # flags of the samples turned away
     turned_away: dict[str, int] = field(default_factory=dict)  # how many, by sensor
+    stale_run: dict[str, int] = field(default_factory=dict)  # stale orientations in a row, by sensor
     cycles: int = 0
 
 
@@ -84,6 +90,8 @@ class Tares:
         for job in self.jobs:
             if sensor not in job.sensors:
                 continue
+            stale = bool(flags & wire.FLAG_ORIENTATION_STALE)
+            job.stale_run[sensor] = job.stale_run.get(sensor, 0) + 1 if stale else 0
             if flags:  # a zero needs every chip fresh, agreeing and within the calibration
                 job.seen.setdefault(sensor, Counter()).update(wire.flag_names(flags))
                 job.turned_away[sensor] = job.turned_away.get(sensor, 0) + 1
@@ -111,6 +119,15 @@ class Tares:
                 self.jobs.remove(job)
                 self.reply(job.reply_to, {"ok": False, "error": f"tare refused after {job.cycles} cycles, "
                                                                 "nothing changed: " + _shortfall(job)})
+            elif any(job.stale_run.get(n, 0) >= TARE_STALE_RUN for n in job.sensors):
+                self.jobs.remove(job)
+                names = [n for n in job.sensors if job.stale_run.get(n, 0) >= TARE_STALE_RUN]
+                self.reply(job.reply_to, {"ok": False, "error": (
+                    f"tare refused after {job.cycles} cycles, nothing changed: no fresh orientation for "
+                    f"{', '.join(names)} in the last {TARE_STALE_RUN} samples (orientation_stale). With "
+                    "gravity compensation a tare keeps the tool's orientation at each sample: the "
+                    "application must keep sending orientations during it (`ftsensord status`: "
+                    "gravity.stream.frames shows the last one's age)")})
 
 
 def _mean(gravity: list[np.ndarray | None]) -> np.ndarray | None:
