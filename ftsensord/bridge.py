@@ -19,6 +19,7 @@ releases), is refused with HTTP 400 (docs/clients.md, Bridges to live viewers).
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 import sys
 from collections.abc import Mapping
@@ -28,6 +29,22 @@ from .errors import ConfigError
 
 if TYPE_CHECKING:  # cli.py imports this module for its parser: nothing heavy until it runs
     from .service import wire
+
+
+#: What a failed handshake means, added to the server's own log line ("handshake failed").
+HANDSHAKE_HINT = ("a viewer must offer the WebSocket subprotocol foxglove.sdk.v1; older Foxglove app and "
+                  "Lichtblick releases offer only foxglove.websocket.v1 and get HTTP 400: update the viewer "
+                  "(docs/clients.md, Bridges to live viewers)")
+
+
+class _HandshakeHint(logging.Filter):
+    """Says why, where the SDK's server logs only that a client's handshake failed."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        if "handshake failed" in message:
+            record.msg, record.args = f"{message}: {HANDSHAKE_HINT}", ()
+        return True
 
 
 class FoxgloveSink:
@@ -42,6 +59,9 @@ class FoxgloveSink:
         from .recording.ros2mcap import SCHEMAS, ros2_messages
 
         self._foxglove, self._messages = foxglove, ros2_messages
+        server_log = logging.getLogger("foxglove.websocket.server")
+        if not any(isinstance(f, _HandshakeHint) for f in server_log.filters):
+            server_log.addFilter(_HandshakeHint())
         self.frames = frames
         self.server = foxglove.start_server(name="ftsensord", host=host, port=port)
         self.port: int = self.server.port

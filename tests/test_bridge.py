@@ -190,3 +190,6 @@ def test_a_client_offering_only_the_old_subprotocol_is_refused_with_a_clear_erro
                       "/wrench/tip")
     assert done.returncode == 1 and done.stdout == ""
     assert "400" in done.stderr and "foxglove.websocket.v1" in done.stderr, done.stderr
+    # The bridge's own log says why (the SDK's server says only "handshake failed").
+    bridge.stop()
+    assert "handshake failed: a viewer must offer the WebSocket subprotocol foxglove.sdk.v1" in bridge.err, bridge.err
