@@ -38,6 +38,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import zmq
 from accuracy import PAPER, SWEEP
 from launch import InProcess
 
@@ -45,7 +46,7 @@ from ftsensord.calibration.fit import rmse, singular_values_ka
 from ftsensord.calibration.procedure import calibrate, simulate_dataset
 from ftsensord.docfile import load_toml
 from ftsensord.model import se3
-from ftsensord.service import wire
+from ftsensord.service import orientation, wire
 from ftsensord.service.config import STRAY_FIELDS, load_config
 from ftsensord.sim import load_scene
 from ftsensord.sim.loads import paper_plan
@@ -148,9 +149,23 @@ addresses = [{ADDRS}]
 calibration = "{cal}"
 estimator = "{estimator}"
 stray_field = "{stray}"
-""")
-    rig = InProcess(load_config(folder / "ftsensord.toml"), load_scene(folder / "scene.toml"),
-                    subscribe=b"wrench/", seed=seed)
+""" + ("" if stray != "world" else """[gravity]
+orientation = "stream"
+[gravity.sensor1]
+mass_kg = 0.0
+com_m = [0.0, 0.0, 0.0]
+"""))
+    # "world" learns from the tool's orientation, which a haptic application sends every tick:
+    # here the scene's own, each cycle, over an inproc pair.
+    ctx = zmq.Context.instance()
+    ori_sub, ori_pub = ctx.socket(zmq.SUB), ctx.socket(zmq.PUB)
+    ori_sub.setsockopt(zmq.SUBSCRIBE, b"")
+    ori_sub.bind(f"inproc://orientation-{seed}-{estimator}-{id(folder)}")
+    ori_pub.connect(f"inproc://orientation-{seed}-{estimator}-{id(folder)}")
+    scene_obj = load_scene(folder / "scene.toml")
+    rig = InProcess(load_config(folder / "ftsensord.toml"), scene_obj, subscribe=b"wrench/", seed=seed,
+                    **({"orientation": ori_sub} if stray == "world" else {}))
+    sensor = scene_obj.sensors[0]
     samples: list[wire.Sample] = []
     reply, replied_s = None, 0.0
     try:
@@ -158,6 +173,9 @@ stray_field = "{stray}"
             if k == int(TARE_AT_S * 100):
                 rig.req.send(json.dumps({"cmd": "tare", "sensor": "sensor1", "samples": TARE_SAMPLES}).encode())
             deadline = rig.clock.now() + rig.daemon.period_s
+            if stray == "world":
+                now = rig.clock.now()
+                ori_pub.send(orientation.encode("sensor1", sensor.orientation.rotation(now), now))
             rig.daemon.cycle()
             rig.daemon.handle_control()
             rig.clock.wait_until(deadline)
@@ -167,7 +185,10 @@ stray_field = "{stray}"
                 reply, replied_s = json.loads(rig.req.recv()), rig.clock.now()
     finally:
         rig.close()
+        ori_sub.close(linger=0)
+        ori_pub.close(linger=0)
     errors, flagged, used = [], 0, 0
+    samples = [s for s in samples if s.topic == "wrench/sensor1"]  # not "world"'s compensated stream
     for start, (_, truth) in zip(starts, holds, strict=True):
         hold = [s for s in samples if start + SETTLE_S <= s.t_mono < start + args.hold]
         good = [s.values for s in hold if not s.flags & ~wire.FLAG_LATE]

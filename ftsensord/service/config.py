@@ -31,7 +31,8 @@ from .frames import TIP, GravityConfig, gravity_config, tool_poses
 
 CONFIG_VERSION = 1
 ESTIMATORS = ("linear", "nonlinear")
-STRAY_FIELDS = ("uniform", "gradient")  # beside the deflection: the room's field, or a gradient's too
+#: Beside the deflection: the room's field; its gradient's parts a ring tells apart; a world-fixed gradient (`stages.stray`).
+STRAY_FIELDS = ("uniform", "gradient", "world")
 BUILTIN = "builtin:"
 
 
@@ -184,9 +185,8 @@ def check_rate(config: Config, rate_hz: float, where: str = "rate_hz", timing: B
         return
     others = ", ".join(f"{s} {replace(config, scheduler=s).bound(timing).rate_hz:.0f} Hz"
                        for s in SCHEDULERS if s != config.scheduler)
-    raise ConfigError(f"{where}: {rate_hz:g} Hz cannot be met: {bound.describe()}. Lower the rate, "
-                      f"change the scheduler ({others}), shorten the conversion (lower OSR or "
-                      f"DIG_FILT), or use a faster bus")
+    raise ConfigError(f"{where}: {rate_hz:g} Hz cannot be met: {bound.describe()}. Lower the rate, change the "
+                      f"scheduler ({others}), shorten the conversion (lower OSR or DIG_FILT), or use a faster bus")
 
 
 def _resolve(table: Table, key: str, value: str) -> Path:
@@ -197,8 +197,7 @@ def _resolve(table: Table, key: str, value: str) -> Path:
         if not path.is_absolute():
             path = table.path.parent / path
     if not path.is_file():
-        raise table.fail(key, "an existing file (relative to the configuration's folder, or builtin:NAME)",
-                         value)
+        raise table.fail(key, "an existing file (relative to the configuration's folder, or builtin:NAME)", value)
     return path
 
 
@@ -311,6 +310,7 @@ def load_config(path: str | Path | None = None, calibrations: Calibrations | Non
         raise ConfigError(f"{path}: chip: {exc}") from exc
     sensors: list[SensorConfig] = []
     seen: set[int] = set()
+    world: list[Table] = []  # the sensors whose stray field needs the orientation stream
     for t in doc.tables("sensor"):
         t.only({"name", "addresses", "calibration", "frame", "estimator", "stray_field"})
         addresses = parse_addresses(t, "addresses")
@@ -331,8 +331,9 @@ def load_config(path: str | Path | None = None, calibrations: Calibrations | Non
             raise t.fail("estimator", f'"linear": {cal_path} has no nonlinear calibration '
                                       "(make one with `ftsensord calibrate` without --linear-only)", estimator)
         stray_field = t.string("stray_field", "uniform", choices=STRAY_FIELDS)
-        if stray_field == "gradient" and calibration.model.H is None:
+        if stray_field != "uniform" and calibration.model.H is None:
             raise t.fail("stray_field", f'"uniform": {cal_path} has no flux model H', stray_field)
+        world += [t] if stray_field == "world" else []
         sensors.append(SensorConfig(name, addresses, cal_path, calibration, t.string("frame", calibration.frame),
                                     estimator, stray_field))
     security = _security(doc)
@@ -368,6 +369,8 @@ def load_config(path: str | Path | None = None, calibrations: Calibrations | Non
         if config.gravity.endpoint is not None:
             config.gravity.endpoint = _endpoint(doc.table("gravity"), "endpoint", config.gravity.endpoint,
                                                 why="orientations decide the compensated wrench: this host only")
+    if world and (config.gravity is None or config.gravity.source != "stream"):
+        raise world[0].fail("stray_field", '"uniform" or "gradient" ("world" needs [gravity] orientation = "stream")', "world")
     if config.scheduler == "burst" and "readback_every" not in doc.doc and not burst_readback_stays_fresh(
             config.bound(), config.settings, config.rate_hz, config.temperature_every > 0):
         # A chip read back in burst mode (EX, RR, SB) restarts its burst: with no time for

@@ -169,7 +169,8 @@ class Daemon(Commands):
         self.orientations.drain(start)
         samples: dict[str, SensorSample] = {}
         for p in self.sensors:
-            s = samples[p.name] = p.step(results, wire.FLAG_LATE if late else 0)
+            R = self.gravity.orientation(p.name, start)[0] if p.stray is not None and self.gravity else None
+            s = samples[p.name] = p.step(results, wire.FLAG_LATE if late else 0, R)
             # Each wrench as soon as it is known: a haptic loop waits for it; flux is for
             # debugging, and the tares' and counters' bookkeeping waits until after the sends.
             self._publish(f"wrench/{p.name}", wire.KIND_WRENCH, seq, t_mono, t_wall, s.flags, s.wrench)

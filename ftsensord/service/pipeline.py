@@ -25,6 +25,7 @@ from ..errors import ChipRefusedError
 from ..model import se3
 from ..model.linear import SENSOR_RANGE, LinearModel
 from ..model.nonlinear import NonlinearEstimator
+from ..stages.stray import WorldGradient
 from ..stages.thermal import ThermalCompensation
 from . import wire
 from .config import SensorConfig
@@ -73,6 +74,7 @@ class SensorPipeline:
     check: RedundancyCheck = field(default_factory=lambda: RedundancyCheck())
     estimate_s: deque[float] = field(default_factory=lambda: deque(maxlen=STATS_WINDOW))
     thermal: ThermalCompensation | None = None  # None: temperatures not read (temperature_every = 0)
+    stray: WorldGradient | None = None  # stray_field = "world": a motor's gradient learnt as the tool turns
 
     @classmethod
     def build(cls, s: SensorConfig, smoothing: WrenchFilter, max_missing_chips: int,
@@ -87,25 +89,29 @@ class SensorPipeline:
                    estimator=s.estimator, nonlinear=nl.estimator() if nl is not None else None,
                    zero_twist=nl.zero_twist.copy() if nl is not None else None, sigma_t=sigma_t,
                    thermal=ThermalCompensation(ThermalLaws.physical(settings), len(s.addresses),
-                                               s.calibration.temperature) if thermal else None)
+                                               s.calibration.temperature) if thermal else None,
+                   stray=WorldGradient(s.calibration.model, sigma_t) if s.stray_field == "world" else None)
 
     @property
     def name(self) -> str:
         return self.config.name
 
-    def step(self, results: dict[int, ChipResult], base_flags: int = 0) -> SensorSample:
+    def step(self, results: dict[int, ChipResult], base_flags: int = 0, R: np.ndarray | None = None) -> SensorSample:
         """This cycle's sample from the chips' ``results`` (by address); ``base_flags``
-        apply to every stream of the cycle (e.g. late)."""
+        apply to every stream of the cycle (e.g. late); ``R``: the sensor's orientation
+        (R_world,sensor; None: unknown), for the stray stage."""
         flux, flags, usable = self.flux(results)
         flags |= base_flags
         thermal = self.thermal
-        if thermal is None:
+        if thermal is None and self.stray is None:
             wrench, wflags = self.estimate(flux, flags, usable)
         else:
-            wrench, wflags = self.estimate(thermal.apply(flux), flags, usable)
-            wrench = wrench * thermal.wrench_scale
-            if thermal.beyond_span:
-                wflags |= wire.FLAG_TEMPERATURE
+            reference = flux if thermal is None else thermal.apply(flux)
+            wrench, wflags = self._staged(reference, flags, usable, R)
+            if thermal is not None:
+                wrench = wrench * thermal.wrench_scale
+                if thermal.beyond_span:
+                    wflags |= wire.FLAG_TEMPERATURE
         valid = not wflags & wire.FLAG_INVALID
         if valid and (np.abs(wrench) > SENSOR_RANGE).any():
             wflags |= wire.FLAG_OVERLOAD
@@ -141,6 +147,22 @@ class SensorPipeline:
             else:
                 flags |= wire.FLAG_CHIP_MISSING
         return flux, flags, usable
+
+    def _staged(self, flux: np.ndarray, flags: int, usable: np.ndarray, R: np.ndarray | None) -> tuple[np.ndarray, int]:
+        """`estimate` of the flux as the stray stage corrects it (when there is one), which
+        then learns from the sample: every chip read, nothing flagged that says the flux or
+        the load is off the linear model (the in-plane gradient itself may be `inconsistent`)."""
+        stray = self.stray
+        if stray is None:
+            return self.estimate(flux, flags, usable)
+        stray.observe(flux, R, learn=False)
+        corrected, changed = stray.apply(flux)
+        wrench, wflags = self.estimate(corrected, flags, usable)
+        fitted = self.config.calibration.wrench_range
+        learn = (usable.all() and not wflags & _NOT_LEARNT and np.all(np.isfinite(wrench))
+                 and (fitted is None or bool(np.all(np.abs(wrench + self.tare_wrench) <= fitted))))
+        stray.observe(flux, R, learn)
+        return wrench, wflags | (wire.FLAG_INCONSISTENT if changed else 0)
 
     def estimate(self, flux: np.ndarray, flags: int, usable: np.ndarray) -> tuple[np.ndarray, int]:
         """The wrench from every chip; from the usable ones (degraded) when one or
@@ -185,6 +207,8 @@ class SensorPipeline:
         if self.thermal is not None:
             self.thermal.tared()
             zero = self.thermal.apply(zero)
+        if self.stray is not None:
+            self.stray.tared(zero)
         self.tare_wrench = self.config.model.wrench(zero)
         self.tare_gravity = None if gravity is None else np.array(gravity, dtype=float)
         self.model = self.model.with_zero(zero)
@@ -212,7 +236,14 @@ class SensorPipeline:
                                 "max": float(np.max(self.estimate_s)) * 1e6} if self.estimate_s else None,
             "tare_wrench": self.tare_wrench.round(6).tolist(),
             "temperature": None if self.thermal is None else self.thermal.status(),
+            "stray": None if self.stray is None else self.stray.status(),
         }
+
+
+#: Flags of a sample the stray stage does not learn from: a chip not read or left out, a
+#: load beyond the linear model, a temperature beyond its span.
+_NOT_LEARNT = (wire.FLAG_CHIP_MISSING | wire.FLAG_SATURATED | wire.FLAG_STALE | wire.FLAG_DEGRADED
+               | wire.FLAG_INVALID | wire.FLAG_EXTRAPOLATED | wire.FLAG_OVERLOAD | wire.FLAG_TEMPERATURE)
 
 
 @functools.lru_cache(maxsize=8)

@@ -5,8 +5,12 @@ control. A stage owns one physical effect the calibration did not see.
 - `thermal`: the chips' temperatures against the calibration's: the magnets' remanence,
   the chips' sensitivity and the silicone's stiffness compensated by their laws (and each
   channel's drift, when the calibration measured it), samples beyond the span flagged.
+- `stray`: a motor's field gradient across the ring, fixed in the world, learnt from the
+  two parts the ring tells from a load as the tool turns; the three it cannot tell then
+  taken out of the flux (`stray_field = "world"`).
 
 May import: `calibration`, `model`, `chip` (and the floors below); never `service`.
 """
 
+from .stray import WorldGradient  # noqa: F401
 from .thermal import ThermalCompensation  # noqa: F401

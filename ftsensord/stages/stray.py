@@ -1,0 +1,196 @@
+"""A motor's field across the ring, learnt in the world as the tool turns.
+
+A field's first-order gradient G (T/m; 3 x 3, symmetric and traceless: 5 numbers) adds
+R_0i^T G p_i to chip i. Of its five parts the ring tells two from a load and a uniform field
+(the in-plane ones: `model.geometry.separable_gradient`); the other three read exactly as
+a load (docs/physics.md, "A motor's field"), so no estimator of one sample can take them
+out. But a motor is fixed in the world, and so is its gradient G_w: the sensor sees
+R^T G_w R (R = R_world,sensor), which mixes G_w's parts differently at each orientation.
+The two parts the ring sees at each orientation, over a few orientations, give all five
+of G_w; with it the three it cannot see are predicted and taken out of the flux, before
+either estimator, and the consistency check no longer sees the two it can.
+
+Each sample (unflagged, within the calibration's loads) gives y = Q^T (b - b_cal), the
+in-plane gradient's two coefficients (Q: their flux directions, orthogonal to the load's
+and the uniform field's, so no load moves y), and
+
+    y = Q^T F T(R) g_w + c
+
+with F the five gradient parts' flux (24 x 5, the drawn ring), T(R) taking G_w's five
+numbers to the sensor's, and c what the zero has gained in those two directions since the
+calibration (2 constants). [g_w, c] is estimated by recursive least squares with
+forgetting (`MEMORY_SAMPLES`: a motor's current and the tool's place change). The flux is
+corrected by F (T(R_tare) g_w,tare - T(R) g_w): the tare's zero kept the gradient of its
+time, so what is taken out is the change since. A gradient at the tare is known if the
+tool had turned before it; else it is taken as the least one that gives the tare's y
+(none, when the motor was off).
+
+Needs the tool's orientation (the orientation stream, `service.gravity`). Until the turns
+seen determine g_w well enough (`CORRECT_WITHIN`), nothing is corrected, and a sample whose
+in-plane gradient changed beyond noise since the tare is flagged `inconsistent`: its hidden
+parts may carry a false load of the same order.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import Any
+
+import numpy as np
+
+from ..model.geometry import SensorGeometry, separable_gradient
+from ..model.linear import LinearModel, chi2_quantile
+
+#: Samples the estimate remembers (the weight of older ones falls by e over this many): 30 s
+#: at 100 Hz. A motor's current and the tool's place change over seconds; a hand turning the
+#: tool visits the few orientations the estimate needs within them.
+MEMORY_SAMPLES = 3000
+#: The correction starts when the false wrench it takes out is known to within this (1 sigma,
+#: N and Nm, from the estimate's covariance: the noise's part): a quarter of issue 23's figure
+#: (0.05 N, 2 mNm), so that its own error adds 3 % to an error at the figure in quadrature.
+CORRECT_WITHIN = np.array([0.0125, 0.0125, 0.0125, 0.5e-3, 0.5e-3, 0.5e-3])
+#: Before that, an in-plane gradient changed since the tare raises an alarm that flags every
+#: sample until the gradient is learnt (or the next tare): at some orientations the in-plane
+#: parts are small while the hidden ones are large, so a sample's own in-plane part cannot
+#: tell which samples are right. The change counts when, in the mean of the last
+#: `CHANGE_SAMPLES` samples, it is beyond noise at `CHANGE_ODDS` (chi-square, 2 dof: 5.3
+#: sigma) and a gradient of its size, its hidden parts as large as at a random orientation,
+#: would make a false wrench beyond `ALARM_WRENCH`, issue 23's figure (N, Nm): a 2 A m^2
+#: motor at 25 cm does not (1.3 mNm RMS uncorrected), at 15 cm it does (8.7 mNm; docs/accuracy.md).
+CHANGE_ODDS = 1e-6
+CHANGE_SAMPLES = 10
+ALARM_WRENCH = np.array([0.05, 0.05, 0.05, 2e-3, 2e-3, 2e-3])
+#: The covariance of the five parts of a random traceless symmetric gradient (isotropic:
+#: the traceless part of (A + A^T) / 2, A's entries N(0, 1)): diagonal parts 2/3 and -1/3
+#: between them, off-diagonal parts 1/2.
+_ISOTROPIC = np.array([[2 / 3, -1 / 3, 0, 0, 0], [-1 / 3, 2 / 3, 0, 0, 0], [0, 0, 0.5, 0, 0],
+                       [0, 0, 0, 0.5, 0], [0, 0, 0, 0, 0.5]])
+#: The five parts of a traceless symmetric G: xx - zz, yy - zz, xy, xz, yz (`SensorGeometry.gradient_directions`).
+_PARTS = ((0, 0), (1, 1), (0, 1), (0, 2), (1, 2))
+
+
+def gradient_basis() -> np.ndarray:
+    """The five unit parts E_k (5, 3, 3)."""
+    E = np.zeros((5, 3, 3))
+    for k, (i, j) in enumerate(_PARTS):
+        E[k, i, j] = E[k, j, i] = 1.0
+        if i == j:
+            E[k, 2, 2] = -1.0
+    return E
+
+
+def parts(G: np.ndarray) -> np.ndarray:
+    """The five numbers of a traceless symmetric G in the basis of `gradient_basis` (..., 5)."""
+    return np.stack([G[..., i, j] for i, j in _PARTS], axis=-1)
+
+
+def turned(R: np.ndarray) -> np.ndarray:
+    """T(R) (5 x 5): the parts of R^T G R from G's, for a sensor turned by R = R_world,sensor."""
+    E = gradient_basis()
+    return parts(np.einsum("ai,kab,bj->kij", R, E, R)).T
+
+
+def gradient_flux(geometry: SensorGeometry) -> np.ndarray:
+    """F (24 x 5): each part's flux at the chips, R_0i^T E_k p_i stacked (T per T/m)."""
+    E = gradient_basis()
+    return np.einsum("nba,kbc,nc->nak", geometry.chip_R, E, geometry.chip_p).reshape(-1, 5)
+
+
+class WorldGradient:
+    """One sensor's learnt world gradient (module docstring): `observe` each sample with
+    the sensor's orientation, `apply` to correct its flux, `tared` when its zero is taken."""
+
+    def __init__(self, model: LinearModel, sigma_t: np.ndarray, geometry: SensorGeometry | None = None):
+        if model.H is None:
+            raise ValueError("the world gradient needs the calibration's flux model H")
+        ring = geometry or SensorGeometry.ring()
+        self.zero = model.zero.copy()  # the calibration's own zero: y is measured from it
+        self.F = gradient_flux(ring)
+        self.Q = separable_gradient(model.H, model.room, ring.gradient_directions())
+        self.QF = self.Q.T @ self.F
+        self.KA = model.KA
+        self.sigma_y = float(np.sqrt(np.mean(sigma_t ** 2)))  # Q's columns are unit: y's noise per part
+        self.limit = chi2_quantile(self.Q.shape[1], CHANGE_ODDS)
+        # The false wrench per unit of in-plane change, for a gradient turned at random (N/T, Nm/T).
+        seen = np.trace(self.QF @ _ISOTROPIC @ self.QF.T)
+        self.false_per_change = np.sqrt(np.diag(self.KA @ self.F @ _ISOTROPIC @ self.F.T @ self.KA.T) / seen)
+        self.forget = 1.0 - 1.0 / MEMORY_SAMPLES
+        self.restart()
+
+    def restart(self) -> None:
+        """Forget what was learnt (a new calibration, a long gap)."""
+        k = self.Q.shape[1]
+        self.info = np.zeros((5 + k, 5 + k))  # sum of M^T M / sigma^2, forgotten geometrically
+        self.moment = np.zeros(5 + k)
+        self.theta: np.ndarray | None = None  # [g_w (T/m), c (T)] once it determines the correction
+        self.R: np.ndarray | None = None  # the newest orientation seen
+        self.tare_R: np.ndarray | None = None
+        self.tare_y: np.ndarray | None = None
+        self.tare_g: np.ndarray | None = None  # g_w at the tare; None until known
+        self.samples = 0
+        self.recent: deque[np.ndarray] = deque(maxlen=CHANGE_SAMPLES)  # y - y_tare of the last samples
+        self.alarm = False  # a change since the tare, not yet learnt
+
+    def observe(self, flux: np.ndarray, R: np.ndarray | None, learn: bool) -> None:
+        """This sample's orientation; learn from its flux (T, the stage's input) when ``learn``:
+        every chip read and unflagged, the load within the calibration's."""
+        if R is None:
+            return
+        self.R = R
+        if not learn:
+            return
+        y = self.Q.T @ (flux - self.zero)
+        M = np.hstack([self.QF @ turned(R), np.eye(self.Q.shape[1])]) / self.sigma_y
+        self.info = self.forget * self.info + M.T @ M
+        self.moment = self.forget * self.moment + M.T @ (y / self.sigma_y)
+        self.samples += 1
+        self._solve()
+
+    def _solve(self) -> None:
+        try:
+            cov = np.linalg.inv(self.info)
+        except np.linalg.LinAlgError:
+            return  # too few orientations yet: singular
+        assert self.R is not None
+        J = self.KA @ self.F @ turned(self.R)  # the false wrench per unit g_w at this orientation
+        variance = np.einsum("ij,jk,ik->i", J, cov[:5, :5], J)
+        # A negative or non-finite variance is round-off of a nearly singular matrix: the
+        # orientations seen do not determine g_w yet.
+        if np.all(np.isfinite(variance)) and np.all(variance >= 0) and np.all(variance <= CORRECT_WITHIN ** 2):
+            self.theta = cov @ self.moment
+            if self.tare_g is None and self.tare_y is not None and self.tare_R is not None:
+                # The least gradient that gives the tare's y: none when the motor was off then.
+                self.tare_g = np.linalg.pinv(self.QF @ turned(self.tare_R)) @ (self.tare_y - self.theta[5:])
+
+    def tared(self, zero: np.ndarray) -> None:
+        """The pipeline took ``zero`` (T, the stage's input) as its zero at the newest orientation."""
+        self.tare_R = self.R
+        self.tare_y = self.Q.T @ (zero - self.zero)
+        self.tare_g = None if self.theta is None else self.theta[:5].copy()
+        self.recent.clear()
+        self.alarm = False
+
+    @property
+    def correcting(self) -> bool:
+        return self.theta is not None and self.tare_g is not None and self.tare_R is not None and self.R is not None
+
+    def apply(self, flux: np.ndarray) -> tuple[np.ndarray, bool]:
+        """The flux with the learnt gradient's change since the tare taken out, and whether
+        the sample is to be flagged (a gradient changed since the tare, not yet learnt)."""
+        if self.correcting:
+            assert self.theta is not None and self.tare_g is not None and self.tare_R is not None
+            change = turned(self.R) @ self.theta[:5] - turned(self.tare_R) @ self.tare_g  # type: ignore[arg-type]
+            return flux - self.F @ change, False
+        if self.tare_y is None or self.R is None:
+            return flux, False  # untared: the calibration's zero holds no gradient to compare with
+        self.recent.append(self.Q.T @ (flux - self.zero) - self.tare_y)
+        mean = np.mean(self.recent, axis=0)
+        size = float(np.linalg.norm(mean))
+        self.alarm |= (size ** 2 * len(self.recent) / self.sigma_y ** 2 > self.limit
+                       and bool(np.any(size * self.false_per_change > ALARM_WRENCH)))
+        return flux, self.alarm
+
+    def status(self) -> dict[str, Any]:
+        g = None if self.theta is None else self.theta[:5]
+        return {"samples": self.samples, "correcting": self.correcting, "alarm": self.alarm,
+                "gradient_ut_per_mm": None if g is None else round(float(np.linalg.norm(g)) * 1e3, 4)}
