@@ -5,6 +5,7 @@ ends cleanly on Ctrl-C and on a closed pipe."""
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -330,7 +331,6 @@ def test_a_csv_recording_reads_with_the_usual_readers_and_its_sidecar_says_what_
     check(frame.to_numpy().tolist())
 
     # docs/clients.md's snippet as written, in the recording's folder: the same rows.
-    import re
     doc = (Path(__file__).parent.parent / "docs" / "clients.md").read_text()
     snippet = re.search(r"```python\n( *import csv, numpy, pandas\n.*?) *```", doc, re.DOTALL).group(1)
     names_in_doc = {}
@@ -387,6 +387,37 @@ def test_npz_sidecar_killed_before_and_after_its_first_sample(tmp_path):
     rows = load_rows(part)
     assert rows["seq"].tolist() == [7] and rows["values"].tolist() == [list(np.arange(6.0))]
     assert rows["stream"] == STREAMS[0]
+
+
+@pytest.mark.parametrize("stream", ["wrench/sensor1", "flux/sensor1"])
+def test_echo_prints_a_header_naming_each_column_and_its_unit_over_it(daemon, stream):
+    pub, _ = daemon
+    done = subprocess.run([sys.executable, "-m", "ftsensord", "echo", stream, "--endpoint", pub, "--count", "3"],
+                          capture_output=True, text=True, timeout=30)
+    assert done.returncode == 0, done.stderr
+    head, *rows = done.stdout.splitlines()
+    values = ["fx_N", "fy_N", "fz_N", "mx_Nm", "my_Nm", "mz_Nm"] if stream.startswith("wrench/") else \
+        [f"b{i}{a}_uT" for i in range(8) for a in "xyz"]  # flux is printed in uT
+    assert head.startswith("#") and head[1:].split() == ["seq", "t_mono_s", *values, "flags"], head
+    assert len(rows) == 3
+    n = 2 + len(values)  # seq, t_mono_s and the values; then the flags' names, if any
+    name_ends = [m.end() for m in re.finditer(r"\S+", " " + head[1:])][:n]
+    for row in rows:  # each name ends where its numbers end
+        assert [m.end() for m in re.finditer(r"\S+", row)][:n] == name_ends, (head, row)
+        assert len([float(v) for v in row.split()[:n]]) == n  # numbers (NaN: a chip that did not answer)
+
+
+@pytest.mark.parametrize("command", ["echo", "record", "plot"])
+def test_a_stream_the_daemon_does_not_publish_is_refused_naming_those_it_does(daemon, tmp_path, command):
+    pub, ctl = daemon
+    published = ControlClient(ctl).status()["streams"]
+    assert "wrench/sensor1" in published and "flux/sensor1" in published
+    extra = {"echo": [], "record": [str(tmp_path / "x.csv")], "plot": ["--png", str(tmp_path / "x.png")]}[command]
+    done = subprocess.run([sys.executable, "-m", "ftsensord", command, "wrench/sensr1", *extra, "--endpoint", pub,
+                           "--timeout", "2"], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.strip() == (f"ftsensord: wrench/sensr1: not a stream the daemon on {ctl} publishes; "
+                                   f"it publishes: {', '.join(published)}"), done.stderr
 
 
 def test_echo_into_a_closed_pipe_exits_quietly(daemon):

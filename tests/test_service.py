@@ -189,7 +189,7 @@ def test_cli_echo_record_and_sighup(running, tmp_path):
     proc, pub, ctl = running
     echo = subprocess.run([sys.executable, "-m", "ftsensord", "echo", "wrench/sensor2", "--endpoint", pub,
                            "--count", "3"], capture_output=True, text=True, timeout=30)
-    assert echo.returncode == 0 and len(echo.stdout.splitlines()) == 3
+    assert echo.returncode == 0 and len(echo.stdout.splitlines()) == 1 + 3  # the header, 3 samples
     csv = tmp_path / "rec.csv"
     rec = subprocess.run([sys.executable, "-m", "ftsensord", "record", "flux/sensor1", str(csv), "--endpoint", pub,
                           "--count", "20"], capture_output=True, text=True, timeout=30)

@@ -269,18 +269,20 @@ class StopOnSignals:
 def daemon_frames(streams: list[str], endpoint: str | None, control: str | None, timeout_s: float) -> dict[str, str]:
     """Each stream's frame from the daemon's status (asked on ``control``, by
     default beside an ipc ``endpoint``); the stream's name, said on stderr, when
-    no daemon answers."""
+    no daemon answers. A stream that daemon does not publish is refused
+    (`ConfigError`, naming those it does)."""
     import sys
 
-    from ..client import ControlClient
+    from ..client import ControlClient, control_beside, refuse_unpublished
     from ..errors import FtsensordError
     from .ros2mcap import frames_from_status
 
-    if control is None and endpoint and endpoint.startswith("ipc://"):
-        control = endpoint.rsplit("/", 1)[0] + "/control"  # the daemon's sockets share a folder
+    publisher = control_beside(endpoint, control)  # None: the daemon asked may not be the publisher
     try:
-        status = ControlClient(control, timeout_s=timeout_s).status()
+        status = ControlClient(publisher or control, timeout_s=timeout_s).status()
     except FtsensordError as exc:
         print(f"ftsensord: {exc}; frame_id: the stream's name", file=sys.stderr)
         status = {}
+    if publisher is not None and isinstance(status, dict):
+        refuse_unpublished(streams, status, publisher)
     return frames_from_status(status, streams)
