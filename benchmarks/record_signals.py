@@ -47,7 +47,7 @@ def file_seqs(path: Path, streams: list[str]) -> dict[str, list[int]]:
         lines = path.read_text().splitlines(keepends=True)
         if lines and not lines[-1].endswith("\n"):
             lines.pop()
-        return {streams[0]: [int(x.split(",")[0]) for x in lines[2:]]}
+        return {streams[0]: [int(x.split(",")[0]) for x in lines[1:]]}
     if path.suffix == ".npz":
         part = Path(f"{path}.part")
         if not part.exists():

@@ -18,7 +18,8 @@ imports only from its own floor or those below (tests/test_layout.py checks it):
 8. `service`: configuration, the loop, the per-sensor pipeline, tare, control,
    status, the wire format, sockets, sd_notify.
 9. `client`: subscribing to the streams, sending control requests.
-10. `recording`, `plot`, `bridge`: streams to CSV, NPZ or MCAP files; live plots.
+10. `recording`, `plot`, `bridge`, `echo`: streams to CSV, NPZ or MCAP files; live
+    plots; live viewers; printed lines.
 11. `cli`: the `ftsensord` command.
 
 The names below are the public face; they are imported on first use, so

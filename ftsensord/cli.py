@@ -161,31 +161,10 @@ def cmd_reload(args: argparse.Namespace) -> int:
     return 0
 
 
-def _subscriber(args: argparse.Namespace):
-    from .client import Subscriber
-    return Subscriber(args.endpoint, [args.stream])
-
-
 def cmd_echo(args: argparse.Namespace) -> int:
-    from .service.wire import flag_names
+    from .echo import echo
 
-    n = 0
-    with _subscriber(args) as sub:
-        try:
-            while args.count is None or n < args.count:
-                sample = sub.receive(timeout_s=args.timeout)
-                if sample is None:
-                    print(f"ftsensord: no sample on {args.stream} within {args.timeout:g} s", file=sys.stderr)
-                    return 1
-                values = " ".join(f"{v:+10.4f}" if sample.kind == 1 else f"{v * 1e6:+9.1f}" for v in sample.values)
-                flags = ",".join(flag_names(sample.flags))
-                print(f"{sample.seq:8d} {sample.t_mono:14.6f} {values}  {flags}", flush=True)
-                n += 1
-        except KeyboardInterrupt:  # Ctrl-C is how one stops a live echo: its normal end
-            print(f"ftsensord: {n} samples", file=sys.stderr)
-        if sub.gaps:
-            print(f"gaps: {sub.gaps}", file=sys.stderr)
-    return 0
+    return echo(args.stream, args.endpoint, args.control, args.count, args.timeout)
 
 
 def cmd_record(args: argparse.Namespace) -> int:
@@ -211,8 +190,10 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
+    from .client import check_streams
     from .plot import live, snapshot
 
+    check_streams(args.streams, args.endpoint, args.control, timeout_s=min(args.timeout, 1.0))
     if args.png:
         shot = snapshot(args.streams, args.seconds or 5.0, args.png, endpoint=args.endpoint, timeout_s=args.timeout)
         print(f"wrote {args.png}: " + ", ".join(f"{s} {h.samples} samples, {h.missed} missed"
@@ -243,6 +224,7 @@ def build_parser() -> argparse.ArgumentParser:
     def stream_options(p: argparse.ArgumentParser) -> None:
         p.add_argument("stream", help="stream: wrench/<sensor>, wrench/tip or flux/<sensor>")
         p.add_argument("--endpoint", help="publish endpoint (default: the running daemon's ipc socket)")
+        p.add_argument("--control", help="control endpoint, asked for the streams (default: beside --endpoint)")
         p.add_argument("--count", type=int, help="stop after this many samples")
         p.add_argument("--timeout", type=float, default=3.0, help="give up after this long without a sample")
 
@@ -303,6 +285,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seconds", type=float, help="time shown (default 10; with --png: collected, default 5)")
     p.add_argument("--png", help="write a snapshot to this file and exit (headless)")
     p.add_argument("--endpoint", help="publish endpoint (default: the running daemon's ipc socket)")
+    p.add_argument("--control", help="control endpoint, asked for the streams (default: beside --endpoint)")
     p.add_argument("--timeout", type=float, default=3.0, help="with --png: give up after this long without a sample")
     p.set_defaults(func=cmd_plot)
 

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import zmq
 
-from .errors import ControlError, DaemonNotAnswering, WireError
+from .errors import ConfigError, ControlError, DaemonNotAnswering, FtsensordError, WireError
 from .service import wire
 from .service.config import check_private_dir, runtime_dir
 
@@ -108,6 +108,50 @@ class ControlClient:
 
     def set(self, **settings: Any) -> dict[str, Any]:
         return self.request("set", **settings)
+
+
+def control_beside(endpoint: str | None, control: str | None = None) -> str | None:
+    """The control endpoint of the daemon that publishes on ``endpoint``: ``control`` when
+    given, the default one beside the default endpoint, the ``control`` socket in an ipc
+    endpoint's folder (the daemon's sockets share it); None for another transport, whose
+    daemon may be on another host."""
+    if control is not None:
+        return control
+    if endpoint is None:
+        return default_endpoint("control")
+    if endpoint.startswith("ipc://"):
+        return endpoint.rsplit("/", 1)[0] + "/control"
+    return None
+
+
+def check_streams(streams: Sequence[str], endpoint: str | None, control: str | None = None,
+                  timeout_s: float = 1.0) -> dict[str, Any] | None:
+    """Refuse (`ConfigError`) a stream the daemon does not publish, naming those it does
+    (its status's ``streams``): a misspelt name is otherwise only a wait for nothing.
+    Returns the status, or None when no daemon could be asked or none answered; then,
+    and while a daemon just started has published nothing yet, nothing is refused."""
+    where = control_beside(endpoint, control)
+    if where is None:
+        return None
+    try:
+        status = ControlClient(where, timeout_s=timeout_s).status()
+    except FtsensordError:
+        return None
+    refuse_unpublished(streams, status, where)
+    return status
+
+
+def refuse_unpublished(streams: Sequence[str], status: dict[str, Any], control: str) -> None:
+    """`ConfigError` for the streams that the daemon whose ``status`` this is (asked on
+    ``control``) does not publish, naming those it does; nothing when its status names
+    none (a daemon before its first cycle)."""
+    published = status.get("streams")
+    if not isinstance(published, list) or not published:
+        return
+    unknown = [s for s in streams if s and s not in published]
+    if unknown:
+        raise ConfigError(f"{', '.join(unknown)}: not a stream the daemon on {control} publishes; "
+                          f"it publishes: {', '.join(map(str, published))}")
 
 
 class Subscriber:

@@ -4,9 +4,12 @@ ends cleanly on Ctrl-C and on a closed pipe."""
 
 from __future__ import annotations
 
+import os
+import re
 import signal
 import subprocess
 import sys
+import textwrap
 import threading
 import time
 import tracemalloc
@@ -15,10 +18,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from ftsensord import recording
 from ftsensord.client import ControlClient, Subscriber
 from ftsensord.errors import ConfigError
 from ftsensord.recording import (
-    CSV_HEAD_WIDTH,
     Tally,
     finish_npz,
     load_rows,
@@ -98,7 +101,7 @@ def seqs_in(path: Path, killed: bool) -> dict[str, list[int]]:
         lines = text.splitlines(keepends=True)
         if killed and lines and not lines[-1].endswith("\n"):
             lines.pop()  # a row torn by the kill
-        return {STREAMS[0]: [int(line.split(",")[0]) for line in lines[2:]]}
+        return {STREAMS[0]: [int(line.split(",")[0]) for line in lines[1:]]}
     if path.suffix == ".npz":
         part = Path(f"{path}.part")
         if killed:
@@ -160,17 +163,20 @@ def test_record_stopped_keeps_every_received_sample(daemon, tmp_path, fmt, how):
         assert f"(stopped by {signal.Signals(how).name})" in out
         for stream, n in counts.items():
             assert f"{stream}: {n} samples, " in out
-        if fmt == "csv":
-            head = path.read_text().splitlines()[0]
+        if fmt == "csv":  # the sidecar has the count
+            meta = recording.read_meta(path)
             frame = ControlClient(daemon[1]).status()["frames"][STREAMS[0]]
-            assert head.startswith(f"# ftsensord record of {STREAMS[0]} (frame {frame}); {counts[STREAMS[0]]} samples, ")
-            assert len(head) == CSV_HEAD_WIDTH - 1
+            assert (meta["stream"], meta["frame"], meta["state"]) == (STREAMS[0], frame, "complete")
+            assert meta["samples"] == meta["received"] == counts[STREAMS[0]]
         if fmt == "mcap":  # complete: summary and index, read by the seeking reader
             from mcap.reader import make_reader
             with open(path, "rb") as f:
                 summary = make_reader(f).get_summary()
             assert summary is not None and summary.chunk_indexes
             assert summary.statistics.message_count == 2 * sum(counts.values())
+    elif fmt == "csv":  # the sidecar as the kill left it: the rows are counted in the CSV
+        meta = recording.read_meta(path)
+        assert meta["state"] == "recording" and meta["samples"] == counts[STREAMS[0]]
     elif fmt == "mcap":  # cut short, yet recoverable into a complete file
         fixed = tmp_path / "fixed.mcap"
         assert recover_mcap(path, fixed) == 2 * sum(counts.values())
@@ -279,6 +285,90 @@ def _matches(sample: wire.Sample, msg, topic: str, log_time: int, frames: dict[s
         assert msg.header.frame_id == f"sensor1/chip{chip}"
 
 
+@pytest.mark.parametrize("stream", ["wrench/sensor1", "flux/sensor1"])
+def test_a_csv_recording_reads_with_the_usual_readers_and_its_sidecar_says_what_it_is(daemon, tmp_path, stream):
+    """A recording from the daemon read as docs/clients.md says, each reader with its
+    defaults (numpy: the delimiter, as its default is whitespace): every row, each number
+    the published sample's (to the CSV's digits: 9 significant, times to the us); the
+    sidecar names the stream, frame, columns, units and flag bits and counts the rows."""
+    import csv
+
+    import pandas
+
+    pub, ctl = daemon
+    path = tmp_path / "run.csv"
+    ref = Reference(pub, [stream])
+    ref.start()
+    try:
+        ref.wait_for(5)
+        done = subprocess.run([sys.executable, "-m", "ftsensord", "record", stream, str(path), "--endpoint", pub,
+                               "--count", "40"], capture_output=True, text=True, timeout=60)
+        time.sleep(0.3)
+    finally:
+        ref.stop()
+    assert done.returncode == 0, done.stderr
+    names = ["fx_N", "fy_N", "fz_N", "mx_Nm", "my_Nm", "mz_Nm"] if stream.startswith("wrench/") else \
+        [f"b{i}{a}_T" for i in range(8) for a in "xyz"]
+    columns = ["seq", "t_mono_s", "t_wall_s", "flags", *names]
+
+    def check(table: list[list[float]]) -> None:  # rows of the columns above, as a reader gave them
+        assert len(table) == 40
+        for row in table:
+            sample = ref.samples[stream][int(row[0])]
+            assert row[0] == sample.seq and row[3] == sample.flags
+            assert row[1] == pytest.approx(sample.t_mono, abs=1e-6) and row[2] == pytest.approx(sample.t_wall, abs=1e-6)
+            np.testing.assert_allclose(row[4:], sample.values, rtol=1e-8, atol=0)
+
+    with path.open(newline="") as f:
+        reader = csv.DictReader(f)
+        assert reader.fieldnames == columns
+        check([[float(r[c]) for c in columns] for r in reader])
+    table = np.genfromtxt(path, delimiter=",", names=True)
+    assert list(table.dtype.names) == columns
+    check([list(r) for r in table.tolist()])
+    frame = pandas.read_csv(path)
+    assert list(frame.columns) == columns and frame["seq"].dtype.kind == "i"
+    check(frame.to_numpy().tolist())
+
+    # docs/clients.md's snippet as written, in the recording's folder: the same rows.
+    doc = (Path(__file__).parent.parent / "docs" / "clients.md").read_text()
+    snippet = re.search(r"```python\n( *import csv, numpy, pandas\n.*?) *```", doc, re.DOTALL).group(1)
+    names_in_doc = {}
+    cwd = Path.cwd()
+    try:
+        os.chdir(tmp_path)
+        exec(textwrap.dedent(snippet).replace('"fz_N"', f'"{names[2]}"'), names_in_doc)
+    finally:
+        os.chdir(cwd)
+    check([[float(r[c]) for c in columns] for r in names_in_doc["rows"]])
+    check([list(r) for r in names_in_doc["table"].tolist()])
+    check(names_in_doc["frame"].to_numpy().tolist())
+
+    meta = recording.read_meta(path)
+    seqs = [int(r[0]) for r in table.tolist()]
+    assert meta["stream"] == stream and meta["frame"] == ControlClient(ctl).status()["frames"][stream]
+    assert meta["kind"] == stream.split("/")[0] and meta["columns"] == columns
+    assert {c: meta["units"][c] for c in names} == {c: c.rsplit("_", 1)[1] for c in names}
+    assert meta["units"]["t_mono_s"].startswith("s, CLOCK_MONOTONIC") and meta["units"]["t_wall_s"].startswith("s, Unix")
+    assert meta["flag_bits"] == {name: bit for bit, name in wire.FLAG_NAMES.items()}
+    assert (meta["state"], meta["samples"], meta["received"], meta["error"]) == ("complete", 40, 40, None)
+    assert (meta["first_seq"], meta["last_seq"]) == (seqs[0], seqs[-1])
+    assert meta["missed"] == seqs[-1] - seqs[0] + 1 - 40
+
+
+def test_a_csv_sidecar_that_is_missing_or_not_ours_is_refused_naming_it(tmp_path):
+    path = tmp_path / "run.csv"
+    path.write_text("seq,t_mono_s\n1,2.0\n")
+    with pytest.raises(ConfigError, match=r"run\.csv\.json: missing: `ftsensord record` writes it beside run\.csv"):
+        recording.read_meta(path)
+    (tmp_path / "run.csv.json").write_text("# not json")
+    with pytest.raises(ConfigError, match=r"run\.csv\.json: not JSON: expected the sidecar"):
+        recording.read_meta(path)
+    (tmp_path / "run.csv.json").write_text("{}")
+    with pytest.raises(ConfigError, match=r"run\.csv\.json: not an ftsensord CSV sidecar"):
+        recording.read_meta(path)
+
+
 def test_csv_and_npz_refuse_several_streams(tmp_path):
     with pytest.raises(ValueError, match="holds one stream"):
         open_writer(tmp_path / "x.csv", STREAMS)
@@ -297,6 +387,37 @@ def test_npz_sidecar_killed_before_and_after_its_first_sample(tmp_path):
     rows = load_rows(part)
     assert rows["seq"].tolist() == [7] and rows["values"].tolist() == [list(np.arange(6.0))]
     assert rows["stream"] == STREAMS[0]
+
+
+@pytest.mark.parametrize("stream", ["wrench/sensor1", "flux/sensor1"])
+def test_echo_prints_a_header_naming_each_column_and_its_unit_over_it(daemon, stream):
+    pub, _ = daemon
+    done = subprocess.run([sys.executable, "-m", "ftsensord", "echo", stream, "--endpoint", pub, "--count", "3"],
+                          capture_output=True, text=True, timeout=30)
+    assert done.returncode == 0, done.stderr
+    head, *rows = done.stdout.splitlines()
+    values = ["fx_N", "fy_N", "fz_N", "mx_Nm", "my_Nm", "mz_Nm"] if stream.startswith("wrench/") else \
+        [f"b{i}{a}_uT" for i in range(8) for a in "xyz"]  # flux is printed in uT
+    assert head.startswith("#") and head[1:].split() == ["seq", "t_mono_s", *values, "flags"], head
+    assert len(rows) == 3
+    n = 2 + len(values)  # seq, t_mono_s and the values; then the flags' names, if any
+    name_ends = [m.end() for m in re.finditer(r"\S+", " " + head[1:])][:n]
+    for row in rows:  # each name ends where its numbers end
+        assert [m.end() for m in re.finditer(r"\S+", row)][:n] == name_ends, (head, row)
+        assert len([float(v) for v in row.split()[:n]]) == n  # numbers (NaN: a chip that did not answer)
+
+
+@pytest.mark.parametrize("command", ["echo", "record", "plot"])
+def test_a_stream_the_daemon_does_not_publish_is_refused_naming_those_it_does(daemon, tmp_path, command):
+    pub, ctl = daemon
+    published = ControlClient(ctl).status()["streams"]
+    assert "wrench/sensor1" in published and "flux/sensor1" in published
+    extra = {"echo": [], "record": [str(tmp_path / "x.csv")], "plot": ["--png", str(tmp_path / "x.png")]}[command]
+    done = subprocess.run([sys.executable, "-m", "ftsensord", command, "wrench/sensr1", *extra, "--endpoint", pub,
+                           "--timeout", "2"], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.strip() == (f"ftsensord: wrench/sensr1: not a stream the daemon on {ctl} publishes; "
+                                   f"it publishes: {', '.join(published)}"), done.stderr
 
 
 def test_echo_into_a_closed_pipe_exits_quietly(daemon):
@@ -347,19 +468,26 @@ except OSError as exc:
 
 def test_a_csv_record_cut_by_a_write_error_says_how_many_samples_it_holds(tmp_path):
     """The disk fills (here: the file size limit, the same failed write) after a few hundred
-    of 2000 samples: the first line counts the rows in the file, not the samples received,
-    and says the last row is torn; the error still reaches the caller."""
+    of 2000 samples: the sidecar counts the rows in the file, not the samples received; the
+    row the error tore is cut off the CSV (every reader reads the rest) and kept in the
+    sidecar; the error still reaches the caller."""
+    import csv
+
     path = tmp_path / "r.csv"
     code = DISK_FULL.format(path=str(path))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.stdout.startswith("error"), out.stdout + out.stderr
     text = path.read_bytes().decode("ascii")
-    lines = text.split("\n")
-    rows = len(lines) - 3  # the head, the column names, and the torn last piece
-    assert 0 < rows < 2000 and lines[-1] != ""  # cut by the limit, mid-row
-    head = lines[0]
-    assert f"; {rows} samples of " in head and "write error" in head and "the last row is torn" in head, head
-    assert len(head) == CSV_HEAD_WIDTH - 1
+    assert text.endswith("\n")  # no torn row left
+    with path.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert 0 < len(rows) < 2000 and [int(r["seq"]) for r in rows] == list(range(1, len(rows) + 1))
+    meta = recording.read_meta(path)
+    assert meta["state"] == "write error" and meta["samples"] == len(rows), meta
+    assert meta["received"] >= len(rows) and meta["error"] == "File too large"
+    n = len(rows) + 1  # the torn row's sample: DISK_FULL's values
+    full = f"{n},{n * 0.01:.6f},{1.7e9:.6f},0," + ",".join([f"{n * 1e-3:.9g}"] * 6) + "\n"
+    assert meta["torn_row"] and full.startswith(meta["torn_row"]) and meta["torn_row"] != full, meta["torn_row"]
 
 
 @pytest.mark.parametrize("fmt", ["csv", "npz", "mcap"])

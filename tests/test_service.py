@@ -19,6 +19,7 @@ from ftsensord.calibration.calfile import Calibration
 from ftsensord.calibration.fit import AXES
 from ftsensord.client import ControlClient, Subscriber
 from ftsensord.errors import ControlError, DaemonNotAnswering
+from ftsensord.recording import read_meta
 from ftsensord.service.config import builtin_path
 from ftsensord.service.sdnotify import Notifier
 
@@ -188,14 +189,15 @@ def test_cli_echo_record_and_sighup(running, tmp_path):
     proc, pub, ctl = running
     echo = subprocess.run([sys.executable, "-m", "ftsensord", "echo", "wrench/sensor2", "--endpoint", pub,
                            "--count", "3"], capture_output=True, text=True, timeout=30)
-    assert echo.returncode == 0 and len(echo.stdout.splitlines()) == 3
+    assert echo.returncode == 0 and len(echo.stdout.splitlines()) == 1 + 3  # the header, 3 samples
     csv = tmp_path / "rec.csv"
     rec = subprocess.run([sys.executable, "-m", "ftsensord", "record", "flux/sensor1", str(csv), "--endpoint", pub,
                           "--count", "20"], capture_output=True, text=True, timeout=30)
     assert rec.returncode == 0, rec.stderr
     lines = csv.read_text().splitlines()
-    assert lines[0].startswith("# ftsensord record of flux/sensor1 (frame sensor1/chip<i>); 20 samples")
-    assert lines[1].split(",")[:5] == ["seq", "t_mono_s", "t_wall_s", "flags", "b0x_T"] and len(lines) == 22
+    meta = read_meta(csv)
+    assert (meta["stream"], meta["frame"], meta["samples"]) == ("flux/sensor1", "sensor1/chip<i>", 20)
+    assert lines[0].split(",")[:5] == ["seq", "t_mono_s", "t_wall_s", "flags", "b0x_T"] and len(lines) == 21
     npz = tmp_path / "rec.npz"
     subprocess.run([sys.executable, "-m", "ftsensord", "record", "wrench/sensor1", str(npz), "--endpoint", pub,
                     "--count", "10"], check=True, capture_output=True, timeout=30)

@@ -7,9 +7,9 @@ that much; what was flushed is in the kernel's page cache and reaches the disk
 without the process. Ending cleanly (count, time, SIGINT/SIGTERM/SIGHUP) makes
 the file complete and returns a per-stream summary.
 
-- **CSV** (one stream): a row per sample as it comes; the first line names the
-  stream and its frame, and is rewritten in place at a clean end with the sample
-  and gap counts.
+- **CSV** (one stream): the column names, then a row per sample as it comes, so
+  any CSV reader takes it with its defaults; the stream, frame, units and counts
+  are in the sidecar ``FILE.csv.json`` (`csvfile`, `read_meta`).
 - **NPZ** (one stream): a zip cannot be appended to safely, so rows go to a
   sidecar ``FILE.npz.part`` (a JSON line, then fixed-size binary records) and
   the ``.npz`` is built from it at a clean end, the sidecar then removed. After a
@@ -37,119 +37,19 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..service import wire
-from .ros2mcap import read_mcap, recover_mcap  # noqa: F401 (the package's face)
+from .columns import WRENCH_COLUMNS, Tally, value_columns  # noqa: F401 (the package's face)
+from .csvfile import CsvWriter, read_meta  # noqa: F401
+from .ros2mcap import read_mcap, recover_mcap  # noqa: F401
 
 #: Longest a received sample waits in the process before it is handed to the
 #: kernel: half the one second a kill may cost, so a slow flush still meets it.
 FLUSH_EVERY_S = 0.5
-WRENCH_COLUMNS = ["fx_N", "fy_N", "fz_N", "mx_Nm", "my_Nm", "mz_Nm"]
-#: Width of the CSV's first line, kept free so the summary can replace it in place.
-CSV_HEAD_WIDTH = 160
-
-
-@dataclass
-class Tally:
-    """What one stream gave a recording: samples, and sequence numbers skipped."""
-
-    samples: int = 0
-    gaps: int = 0
-    first_seq: int | None = None
-    last_seq: int | None = None
-
-    def add(self, seq: int) -> None:
-        if self.last_seq is not None and seq > self.last_seq + 1:
-            self.gaps += seq - self.last_seq - 1
-        self.first_seq = seq if self.first_seq is None else self.first_seq
-        self.last_seq = seq
-        self.samples += 1
 
 
 class SampleWriter(Protocol):
     def write(self, sample: wire.Sample) -> None: ...
     def flush(self) -> None: ...
     def close(self, tallies: dict[str, Tally]) -> None: ...
-
-
-def value_columns(stream: str, count: int) -> list[str]:
-    """Column names of a stream's values: the wrench's (N, Nm), or each chip's flux (T)."""
-    if stream.startswith("wrench/"):
-        return WRENCH_COLUMNS
-    return [f"b{i // 3}{'xyz'[i % 3]}_T" for i in range(count)]
-
-
-class CsvWriter:
-    """One stream to CSV, a row per sample; the first line names the stream's frame and
-    carries the summary at the end."""
-
-    def __init__(self, path: str | Path, stream: str, frame: str | None = None):
-        self.path, self.stream = Path(path), stream
-        self.name = f"{stream} (frame {frame or stream})"
-        self.file = open(self.path, "w", encoding="ascii")
-        self._head(f"# ftsensord record of {self.name}; recording (this line is replaced at a clean end)")
-        self.columns_written = False
-        self.error: OSError | None = None  # the first write error (a full disk): the rows written are counted
-
-    def _head(self, text: str) -> None:
-        self.file.seek(0)
-        self.file.write(text[:CSV_HEAD_WIDTH - 1].ljust(CSV_HEAD_WIDTH - 1) + "\n")
-
-    def write(self, sample: wire.Sample) -> None:
-        try:
-            if not self.columns_written:
-                names = value_columns(self.stream, len(sample.values))
-                self.file.write(",".join(["seq", "t_mono_s", "t_wall_s", "flags", *names]) + "\n")
-                self.columns_written = True
-            self.file.write(f"{sample.seq},{sample.t_mono:.6f},{sample.t_wall:.6f},{sample.flags},"
-                            + ",".join(f"{v:.9g}" for v in sample.values) + "\n")
-        except OSError as exc:
-            self.error = self.error or exc
-            raise
-
-    def flush(self) -> None:
-        try:
-            self.file.flush()
-        except OSError as exc:
-            self.error = self.error or exc
-            raise
-
-    def close(self, tallies: dict[str, Tally]) -> None:
-        """Complete the file: the first line says how many samples it holds. After a write
-        error (a disk full) the rows are counted in the file itself, a torn last one said,
-        and the error raised again: the tally counts samples received, not written."""
-        t = tallies.get(self.stream, Tally())
-        if self.error is None:
-            try:
-                self.flush()
-                end = self.file.tell()
-                self._head(f"# ftsensord record of {self.name}; {t.samples} samples, {t.gaps} missed (sequence gaps)")
-                self.file.seek(end)
-                self.file.close()
-                return
-            except OSError as exc:
-                self.error = self.error or exc
-        error = self.error
-        assert error is not None  # set by whichever write, flush or seek failed
-        try:
-            self.file.close()  # the fd is closed even when the flush of what is left fails again
-        except OSError:
-            pass
-        rows, torn = _csv_rows(self.path)
-        # The first line is rewritten in place: no new block, so it fits on a full disk too.
-        head = (f"# ftsensord record of {self.name}; {rows} samples of {t.samples} received, then a write "
-                f"error ({error.strerror or error})" + ("; the last row is torn" if torn else ""))
-        with open(self.path, "r+b") as f:
-            f.write(head[:CSV_HEAD_WIDTH - 1].ljust(CSV_HEAD_WIDTH - 1).encode("ascii", "replace"))
-        raise error
-
-
-def _csv_rows(path: Path) -> tuple[int, bool]:
-    """Complete data rows in a CSV record (after its first line and its column names), and
-    whether a torn row follows them."""
-    lines, last = 0, b"\n"
-    with path.open("rb") as f:
-        while chunk := f.read(1 << 20):  # a day's record is gigabytes: counted a megabyte at a time
-            lines, last = lines + chunk.count(b"\n"), chunk[-1:]
-    return max(0, lines - 2), last != b"\n"
 
 
 def _rows_dtype(count: int) -> np.dtype:
@@ -369,18 +269,20 @@ class StopOnSignals:
 def daemon_frames(streams: list[str], endpoint: str | None, control: str | None, timeout_s: float) -> dict[str, str]:
     """Each stream's frame from the daemon's status (asked on ``control``, by
     default beside an ipc ``endpoint``); the stream's name, said on stderr, when
-    no daemon answers."""
+    no daemon answers. A stream that daemon does not publish is refused
+    (`ConfigError`, naming those it does)."""
     import sys
 
-    from ..client import ControlClient
+    from ..client import ControlClient, control_beside, refuse_unpublished
     from ..errors import FtsensordError
     from .ros2mcap import frames_from_status
 
-    if control is None and endpoint and endpoint.startswith("ipc://"):
-        control = endpoint.rsplit("/", 1)[0] + "/control"  # the daemon's sockets share a folder
+    publisher = control_beside(endpoint, control)  # None: the daemon asked may not be the publisher
     try:
-        status = ControlClient(control, timeout_s=timeout_s).status()
+        status = ControlClient(publisher or control, timeout_s=timeout_s).status()
     except FtsensordError as exc:
         print(f"ftsensord: {exc}; frame_id: the stream's name", file=sys.stderr)
         status = {}
+    if publisher is not None and isinstance(status, dict):
+        refuse_unpublished(streams, status, publisher)
     return frames_from_status(status, streams)
