@@ -151,3 +151,13 @@ def test_the_quick_benchmark_refuses_or_warns_every_kind(capsys):
         row = next(line for line in table.splitlines() if line.startswith(f"| {kind} |"))
         assert "| refused |" in row or "| warned |" in row, row
     assert "0 silent" in table
+
+
+def test_an_as_built_part_near_the_tolerances_edge_is_not_refused_as_misordered(tmp_path):
+    """The default scene's part of seed 13 leaves 43 % of a chip's response to the nominal
+    model: an as-built part (benchmarks/chip_order.py: 0.11-0.43 over 60 parts), which the
+    chip-order check refused as "a chip mounted turned" while its limit was 40 %."""
+    from ftsensord.calibration.screening import MISMATCH_LIMIT
+
+    share = benchmark("chip_order").mismatch(13, tmp_path)
+    assert 0.4 < share < MISMATCH_LIMIT, share

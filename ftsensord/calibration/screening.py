@@ -46,9 +46,10 @@ MAX_OUTLIER_SHARE = 0.05
 BLAME_FACTOR = 5.0
 #: A chip responds to the loads as its place says when the nominal model, with one
 #: compliance for the whole sensor, explains its response to within this share: the
-#: default scene's as-built chips (tilted 1.5 deg, gains 2 %, magnets 0.15 mm off) stay
-#: under 0.18 on the benchmark's datasets; a chip with another's columns is at 0.7 and more.
-MISMATCH_LIMIT = 0.4
+#: default scene's as-built parts (chips tilted 1.5 deg, gains 2 %, magnets 0.15 mm off)
+#: leave 0.13-0.43 (median 0.22) over seeds 1-30 (0.4 refused seed 13's part, a false
+#: refusal: docs/calibration.md); two swapped chips leave 0.81 and 0.82, a chip turned more.
+MISMATCH_LIMIT = 0.6
 
 
 def screen_poses(residuals_of: Callable[[np.ndarray], np.ndarray], n: int
