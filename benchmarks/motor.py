@@ -8,7 +8,9 @@ Per part (seeds 11, 12, 13; the default scene's tolerances and the Earth's field
 paper's calibration run on the simulated bus and both fits, as `ftsensord dataset` and
 `calibrate` do (`simulate_dataset`, `calibrate`), written to a calibration file. Then the
 daemon (overlapped, 100 Hz, virtual clock, one sensor, the linear or the nonlinear
-estimator; `stray_field` "uniform" and "gradient") reads the part in a scene with one
+estimator; `stray_field` "uniform", "gradient" and "world", the last with the scene's
+orientation sent to the daemon's orientation stream every cycle, as a haptic application
+sends its kinematics) reads the part in a scene with one
 `[[stray_source]]`: 2 A m^2, 15 cm from the sensor's centre (and 25 cm for "on after
 tare"), fixed in the world, its direction and its moment's drawn from the part's seed. The tool is tared (100 samples, the daemon's
 own tare) at its first orientation, then turned through the accuracy sweep's orientations

@@ -96,7 +96,7 @@ def test_a_motor_switched_on_after_the_tare_is_learnt_as_the_tool_turns_and_take
     stage = WorldGradient(cal.model, SIGMA_T)
     turns = [se3.exp_so3(v) for v in np.random.default_rng(seed + 100).normal(size=(16, 3))]
     zero = np.mean([_flux(scene, cal, turns[0], rng) for _ in range(100)], axis=0)
-    stage.observe(zero, turns[0], learn=False)
+    stage.turn_to(turns[0])
     stage.tared(zero)
     tared = cal.model.with_zero(zero)
     scene.stray_sources = [motor]
@@ -105,12 +105,12 @@ def test_a_motor_switched_on_after_the_tare_is_learnt_as_the_tool_turns_and_take
         hold_raw, hold = [], []
         for i in range(50):
             b = _flux(scene, cal, R, rng)
-            stage.observe(b, R, learn=False)
+            stage.turn_to(R)
             fixed, flagged = stage.apply(b)
             hold_raw.append(tared.wrench(b))
             if not flagged and i >= SETTLE:
                 hold.append(tared.wrench(fixed))
-            stage.observe(b, R, learn=True)
+            stage.learn(b)
         learnt_at = k if learnt_at is None and stage.correcting else learnt_at
         raw.append(np.median(hold_raw, axis=0))
         if hold:
@@ -134,18 +134,18 @@ def test_without_a_gradient_nothing_is_flagged_or_corrected_beyond_noise():
     stage = WorldGradient(cal.model, SIGMA_T)
     turns = [se3.exp_so3(v) for v in rng.normal(size=(12, 3))]
     zero = np.mean([_flux(scene, cal, turns[0], rng) for _ in range(100)], axis=0)
-    stage.observe(zero, turns[0], learn=False)
+    stage.turn_to(turns[0])
     stage.tared(zero)
     flagged = 0
     for R in turns:
         for _ in range(40):
             b = _flux(scene, cal, R, rng)
-            stage.observe(b, R, learn=False)
+            stage.turn_to(R)
             fixed, flag = stage.apply(b)
             flagged += flag
             if stage.correcting:
                 assert np.all(np.abs(cal.model.KA @ (b - fixed)) < 3 * CORRECT_WITHIN)
-            stage.observe(b, R, learn=True)
+            stage.learn(b)
     assert stage.correcting and flagged == 0
 
 

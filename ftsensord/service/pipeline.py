@@ -155,13 +155,13 @@ class SensorPipeline:
         stray = self.stray
         if stray is None:
             return self.estimate(flux, flags, usable)
-        stray.observe(flux, R, learn=False)
+        stray.turn_to(R)
         corrected, changed = stray.apply(flux)
         wrench, wflags = self.estimate(corrected, flags, usable)
         fitted = self.config.calibration.wrench_range
-        learn = (usable.all() and not wflags & _NOT_LEARNT and np.all(np.isfinite(wrench))
-                 and (fitted is None or bool(np.all(np.abs(wrench + self.tare_wrench) <= fitted))))
-        stray.observe(flux, R, learn)
+        if (usable.all() and not wflags & _NOT_LEARNT and np.all(np.isfinite(wrench))
+                and (fitted is None or bool(np.all(np.abs(wrench + self.tare_wrench) <= fitted)))):
+            stray.learn(flux)
         return wrench, wflags | (wire.FLAG_INCONSISTENT if changed else 0)
 
     def estimate(self, flux: np.ndarray, flags: int, usable: np.ndarray) -> tuple[np.ndarray, int]:
