@@ -137,3 +137,12 @@ def test_a_killed_daemon_is_reported_stale_and_its_restart_flows_again(tools, tm
             proc.wait(timeout=10)
         notify.close()
 
+
+def test_the_example_fails_saying_so_when_no_sample_came(tools, tmp_path):
+    endpoint = f"ipc://{tmp_path}/nothing-here"
+    for args in (["-s", "0.5"], ["-w", "0.5"]):  # the run ends, or its wait for a first sample does
+        done = subprocess.run([str(tools.example), "-e", endpoint, "-t", "wrench/sensor1", *args],
+                              capture_output=True, text=True, timeout=30, check=False)
+        assert done.returncode == 1, (args, done.returncode, done.stderr)
+        assert endpoint in done.stderr and "wrench/sensor1" in done.stderr and "no sample" in done.stderr, done.stderr
+        assert "new samples 0" in done.stdout.splitlines()[-1]
