@@ -71,8 +71,12 @@ def test_a_silent_stream_turns_stale_after_its_periods_and_a_new_sample_is_live_
 
         again = publish(frame(seq=4, t_mono=t0 + 0.06))
         assert (again["rc"], again["seq"], again["silent"]) == ("1", "4", "0")
-        restarted = publish(frame(seq=0, t_mono=t0 + 0.07))  # a restart keeps the period known
-        assert (restarted["rc"], restarted["restarted"], restarted["limit"]) == ("1", "1", again["limit"])
+        assert again["period"] == got["period"]  # kept until a span is complete
+        # A span on from sample 1, its last stamp 5 ms late: averaged over the span, not the pair.
+        spanned = publish(frame(seq=1 + int(const["span"]), t_mono=t0 + 0.325))
+        assert float(spanned["period"]) == (t0 + 0.325 - t0) / const["span"]
+        restarted = publish(frame(seq=0, t_mono=t0 + 0.34))  # a restart keeps the period known
+        assert (restarted["rc"], restarted["restarted"], restarted["limit"]) == ("1", "1", spanned["limit"])
     finally:
         c.close()
         pub.close(linger=0)
@@ -109,16 +113,17 @@ def test_a_killed_daemon_is_reported_stale_and_its_restart_flows_again(tools, tm
     endpoint = f"ipc://{tmp_path / 'ftsensord' / 'wrench'}"
     c = Driven(tools.driver, endpoint, "wrench/sensor1")
     try:
-        live = c("wait 10000")
-        while int(live["seq"]) < 20:  # long enough that a restart's numbering goes back
+        live = first = c("wait 10000")
+        # Two spans: the period is an average, and a restart's numbering goes back.
+        while int(live["seq"]) < int(first["seq"]) + 2 * const["span"]:
             live = c("wait 10000")
         assert live["rc"] == "1"
         proc.kill()
         proc.wait()
         same, stale = take_until_stale(c)
         limit = float(stale["limit"])
-        # The daemon stamps each cycle on its schedule; one pair of stamps is within half a
-        # period of it (the loop's jitter is far less).
+        # The daemon stamps each cycle on its schedule; over a span a late stamp moves the
+        # average by its delay over the span, far less than half a period.
         assert 0.5 / RATE_HZ < float(stale["period"]) < 1.5 / RATE_HZ, stale
         assert limit == max(const["periods"] * float(stale["period"]), const["min"])
         assert float(stale["silent"]) > limit and all(float(r["silent"]) <= limit for r in same if r["rc"] == "0")

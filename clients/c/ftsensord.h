@@ -19,8 +19,8 @@
  *
  * `rc >= 0` is the whole check: FTS_NEW is a new sample, FTS_SAME the previous one while
  * the stream is live. When nothing new has come for longer than FTS_STALE_PERIODS of the
- * stream's periods (measured on this host's clock, so across hosts too) fts_latest
- * returns FTS_E_STALE instead: a stopped, killed or unreachable daemon never leaves the
+ * stream's periods (timed on this host's clock alone, no shared clock needed) fts_latest
+ * returns FTS_E_STALE instead: a killed or stopped (SIGSTOP) daemon never leaves the
  * loop rendering a frozen wrench. r still holds the last sample, with r.silent_s; a
  * restarted daemon's samples come back by themselves (FTS_NEW, r.restarted set).
  * fts_set_stale_after sets another limit in seconds.
@@ -52,7 +52,7 @@
  * CLOCK_MONOTONIC. That is meaningful only on the daemon's host (ipc, or tcp over
  * loopback); across hosts compare t_wall (CLOCK_REALTIME) with synchronised clocks.
  * silent_s, the time since this client first had the sample, is on this host's clock
- * alone: FTS_E_STALE is decided on it, so it holds across hosts.
+ * alone, never compared with the daemon's: FTS_E_STALE is decided on it.
  *
  * Errors are negative return codes (fts_strerror names them); the header never aborts,
  * exits, prints or allocates. libzmq errors leave their errno in fts_sub.zmq_err.
@@ -173,6 +173,9 @@ FTS_STATIC_ASSERT_(ZMQ_PUB == FTS_ZMQ_PUB_ && ZMQ_SUB == FTS_ZMQ_SUB_ && ZMQ_SUB
 #ifndef FTS_STALE_FIRST_S
 #define FTS_STALE_FIRST_S 1.0 /* until two samples give the period: the default 100 Hz has it in 10 ms */
 #endif
+#ifndef FTS_PERIOD_SPAN
+#define FTS_PERIOD_SPAN 16u /* sequence numbers the period is averaged over: a late stamp's error / 16 */
+#endif
 #define FTS_STALE_NEVER (-1.0) /* fts_set_stale_after: FTS_SAME for ever, no FTS_E_STALE */
 
 /* Return codes: >= 0 success, < 0 an error. */
@@ -212,7 +215,7 @@ typedef struct fts_sample {
 typedef struct fts_reading {
     fts_sample sample; /* the newest valid sample received so far */
     double age_s;      /* s, now - sample.t_mono (CLOCK_MONOTONIC; same host only) */
-    double silent_s;   /* s since this client first had the sample (its own clock: any host) */
+    double silent_s;   /* s since this client first had the sample (its own clock only) */
     uint64_t missed;   /* sequence numbers never seen since the previous call's sample */
     int fresh;         /* 1: sample is new since the previous call; 0: the same as then */
     int restarted;     /* 1: the sequence went back (daemon restarted); not counted missed */
@@ -242,7 +245,9 @@ typedef struct fts_sub {
     uint64_t received, rejected;      /* frames received; of them refused by the decoder */
     int last_error;                   /* the decoder's last refusal (FTS_E_*), or 0 */
     double t_got;                     /* this host's CLOCK_MONOTONIC when `last` was first reported */
-    double period_s;                  /* the stream's period from the last two samples' stamps, 0: unknown */
+    double period_s;                  /* the stream's period from its stamps (fts_ingest_), 0: unknown */
+    uint64_t span_seq;                /* the sample the period is measured from: its seq ... */
+    double span_t;                    /* ... and its t_mono */
     double stale_after_s;             /* 0: FTS_STALE_PERIODS periods; > 0: seconds; < 0: never */
     unsigned char frame[FTS_FRAME_MAX];
 } fts_sub;
@@ -432,9 +437,6 @@ static inline int fts_open(fts_sub *s, const char *endpoint, const char *topic)
 static inline int fts_ingest_(fts_sub *s, int n)
 {
     s->received++;
-    const uint64_t prev_seq = s->last.seq;
-    const double prev_t = s->last.t_mono;
-    const int had = s->have;
     int rc = (size_t)n > sizeof s->frame
                  ? FTS_E_TOOBIG
                  : fts_decode(s->frame, (size_t)n, s->topic, s->topic_len, &s->last);
@@ -444,10 +446,17 @@ static inline int fts_ingest_(fts_sub *s, int n)
         return rc;
     }
     s->pend_missed += fts_track(&s->track, s->last.seq, &s->pend_restarted);
-    /* The daemon's stamps, not arrival times: its clock's differences hold on any host,
-     * and a skipped cycle is a sequence jump the division takes out. */
-    if (had && s->last.seq > prev_seq && s->last.t_mono > prev_t)
-        s->period_s = (s->last.t_mono - prev_t) / (double)(s->last.seq - prev_seq);
+    /* The period from the daemon's stamps, not arrival times: its clock's differences hold
+     * on this host or another, and a skipped cycle is a sequence jump the division takes out. The first
+     * two samples give it; then each FTS_PERIOD_SPAN sequence numbers. A first sample or a
+     * restart (the sequence going back) begins a new span, the period kept. */
+    uint64_t span = s->have && s->last.seq > s->span_seq ? s->last.seq - s->span_seq : 0;
+    if (span > 0 && (s->period_s <= 0.0 || span >= FTS_PERIOD_SPAN) && s->last.t_mono > s->span_t)
+        s->period_s = (s->last.t_mono - s->span_t) / (double)span;
+    if (span == 0 || span >= FTS_PERIOD_SPAN) {
+        s->span_seq = s->last.seq;
+        s->span_t = s->last.t_mono;
+    }
     s->have = 1;
     s->pend_fresh = 1;
     return FTS_OK;

@@ -9,7 +9,7 @@
  *                                   "wait MS" (fts_wait), "stale SECONDS"
  *                                   (fts_set_stale_after) or "quit"; prints each result
  *                                   with the stale limit then in force
- *   test_driver staleness           FTS_STALE_PERIODS, _MIN_S, _FIRST_S as compiled
+ *   test_driver staleness           FTS_STALE_PERIODS, _MIN_S, _FIRST_S, FTS_PERIOD_SPAN as compiled
  */
 #define _POSIX_C_SOURCE 200809L
 
@@ -164,7 +164,8 @@ int main(int argc, char **argv)
     if (argc >= 2 && strcmp(argv[1], "orient") == 0) return cmd_orient(argc - 2, argv + 2);
     if (argc >= 2 && strcmp(argv[1], "constants") == 0) return cmd_constants();
     if (argc >= 2 && strcmp(argv[1], "staleness") == 0) {
-        printf("periods=%.17g min=%.17g first=%.17g\n", FTS_STALE_PERIODS, FTS_STALE_MIN_S, FTS_STALE_FIRST_S);
+        printf("periods=%.17g min=%.17g first=%.17g span=%u\n", FTS_STALE_PERIODS, FTS_STALE_MIN_S, FTS_STALE_FIRST_S,
+               (unsigned)FTS_PERIOD_SPAN);
         return 0;
     }
     if (argc == 3 && strcmp(argv[1], "decode") == 0) return cmd_decode(argv[2]);
