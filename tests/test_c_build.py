@@ -30,7 +30,7 @@ def test_the_system_libzmq_wins_and_only_pyzmqs_copy_carries_a_venv_note():
     assert build.venv_note(system) is None
     assert build.choose(None, bundled) is bundled
     note = build.venv_note(bundled)
-    assert note is not None and "/v" in note and "rebuilt" in note and INSTALL in note
+    assert note is not None and "/v" in note and "removed" in note and INSTALL in note
     with pytest.raises(LookupError) as exc:
         build.choose(None, None)
     assert INSTALL in str(exc.value) and VENV_PYTHON in str(exc.value)
@@ -111,9 +111,9 @@ def test_with_only_pyzmqs_libzmq_the_output_says_the_program_depends_on_the_venv
 FAKE_ZMQ_H = "void *zmq_ctx_new(void);\n"
 
 
-def test_a_libzmq_the_compiler_finds_is_preferred_to_pyzmqs_copy(tmp_path):
-    """libzmq3-dev without pkg-config (a fresh Raspberry Pi OS Lite has none): zmq.h and
-    libzmq.so where gcc looks. Made here of pyzmq's library under the usual names."""
+def fake_system_libzmq(tmp_path: Path) -> Path:
+    """A prefix with include/zmq.h and lib/libzmq.so, as libzmq3-dev installs them under /usr,
+    made of pyzmq's library under the usual names."""
     bundled = build._pyzmq_bundled()
     if bundled is None:
         pytest.skip("pyzmq ships no libzmq here to stand in for a system one")
@@ -125,7 +125,28 @@ def test_a_libzmq_the_compiler_finds_is_preferred_to_pyzmqs_copy(tmp_path):
     (system / "lib" / "libzmq.so").symlink_to(lib)
     for other in lib.parent.iterdir():  # libsodium, which libzmq finds next to itself ($ORIGIN)
         (system / "lib" / other.name).symlink_to(other)
+    return system
+
+
+def test_a_libzmq_the_compiler_finds_is_preferred_to_pyzmqs_copy(tmp_path):
+    """libzmq3-dev where pkg-config is not installed: zmq.h and libzmq.so where gcc looks."""
+    system = fake_system_libzmq(tmp_path)
     done = run_build(tmp_path, env={"CPATH": str(system / "include"), "LIBRARY_PATH": str(system / "lib")})
     assert done.returncode == 0, done.stderr
     assert "compiler" in done.stdout.splitlines()[0] and "note:" not in done.stdout, done.stdout
     assert " -lzmq" in done.stdout and runpath(tmp_path / "out" / "example") == ""
+
+
+def test_pkg_config_libzmq_is_preferred_to_pyzmqs_copy(tmp_path):
+    """libzmq3-dev's libzmq.pc (Debian 12's 4.3.4-6 has /usr/lib/<arch>/pkgconfig/libzmq.pc)."""
+    if build.shutil.which("pkg-config") is None:
+        pytest.skip("no pkg-config on PATH")
+    system = fake_system_libzmq(tmp_path)
+    pc = tmp_path / "pkgconfig"
+    pc.mkdir()
+    (pc / "libzmq.pc").write_text(f"Name: libzmq\nDescription: libzmq\nVersion: 4.3.5\n"
+                                  f"Cflags: -I{system / 'include'}\nLibs: -L{system / 'lib'} -lzmq\n")
+    done = run_build(tmp_path, env={"PKG_CONFIG_PATH": str(pc)})
+    assert done.returncode == 0, done.stderr
+    assert "pkg-config" in done.stdout.splitlines()[0] and "note:" not in done.stdout, done.stdout
+    assert f"-I{system / 'include'}" in done.stdout and runpath(tmp_path / "out" / "example") == ""

@@ -3,16 +3,16 @@
 The system's libzmq is preferred, in this order (first found wins):
 
 1. ``pkg-config --cflags --libs libzmq`` (Debian and Raspberry Pi OS: libzmq3-dev);
-2. zmq.h and libzmq.so where the compiler looks by itself (libzmq3-dev without
-   pkg-config, which a fresh Raspberry Pi OS Lite lacks): a test compile says;
+2. zmq.h and libzmq.so where the compiler looks by itself (libzmq3-dev where
+   pkg-config is not installed): a test compile says;
 3. a runtime libzmq the dynamic loader knows (``libzmq.so.5`` without the development
    package), linked by that name; ftsensord.h then declares the calls it makes.
 
 Only when there is none, the copy the pyzmq wheel ships inside the venv
 (``site-packages/pyzmq.libs/libzmq-<hash>.so.5``, or ``zmq/.libs``/``zmq/.dylibs``):
 linked by its path with an rpath to that folder, FTSENSORD_NO_ZMQ_H defined (the wheel has
-no zmq.h). Such a program works only while that venv stays as it is (a rebuilt venv
-brings a new hash), which the output says. With neither, it fails naming both fixes.
+no zmq.h). Such a program works only while that venv stays where and as it is, which
+the output says. With neither, it fails naming both fixes.
 
 Run it to build the example (prints where libzmq came from and the command it ran):
 
@@ -143,9 +143,10 @@ def venv_note(libzmq: Libzmq) -> str | None:
     """What a program linked to pyzmq's copy depends on, and how to be rid of it; None for the system's."""
     if libzmq.venv is None:
         return None
-    return (f"note: the program is linked to the libzmq inside {libzmq.venv} and stops working when that "
-            f"venv is removed or rebuilt (rebuild the program then); `sudo apt install libzmq3-dev` "
-            f"(Debian, Raspberry Pi OS) gives a system libzmq, which this script then prefers")
+    return (f"note: the program is linked to the libzmq inside {libzmq.venv}: it stops working when that "
+            f"venv is removed or moved, or its pyzmq replaced (the copy's name carries a hash); "
+            f"rebuild the program then, or `sudo apt install libzmq3-dev` (Debian, Raspberry Pi OS) for a "
+            f"system libzmq, which this script then prefers")
 
 
 def compiler(lang: str) -> str | None:
