@@ -1,18 +1,23 @@
 """Build C/C++ programs against clients/c/ftsensord.h, finding libzmq without root.
 
-Where libzmq is looked for, first found wins:
+The system's libzmq is preferred, in this order (first found wins):
 
-1. the system's, through ``pkg-config libzmq`` (header and library; e.g. Debian's
-   libzmq3-dev);
-2. the one the pyzmq wheel ships (``site-packages/pyzmq.libs/libzmq-<hash>.so.5``, or
-   ``zmq/.libs``/``zmq/.dylibs`` on other wheels): linked by its path with an rpath to its
-   folder. The wheel ships no zmq.h, so the build defines FTSENSORD_NO_ZMQ_H and
-   ftsensord.h declares the nine libzmq functions it calls itself;
-3. a libzmq the dynamic loader knows (``libzmq.so.5`` without its development link).
+1. ``pkg-config --cflags --libs libzmq`` (Debian and Raspberry Pi OS: libzmq3-dev);
+2. zmq.h and libzmq.so where the compiler looks by itself (libzmq3-dev where
+   pkg-config is not installed): a test compile says;
+3. a runtime libzmq the dynamic loader knows (``libzmq.so.5`` without the development
+   package), linked by that name; ftsensord.h then declares the calls it makes.
 
-Run it to build the example (prints the commands it ran):
+Only when there is none, the copy the pyzmq wheel ships inside the venv
+(``site-packages/pyzmq.libs/libzmq-<hash>.so.5``, or ``zmq/.libs``/``zmq/.dylibs``):
+linked by its path with an rpath to that folder, FTSENSORD_NO_ZMQ_H defined (the wheel has
+no zmq.h). Such a program works only while that venv stays where and as it is, which
+the output says. With neither, it fails naming both fixes.
 
-    python clients/c/build.py [--out DIR]
+Run it to build the example (prints where libzmq came from and the command it ran):
+
+    python clients/c/build.py [--out DIR]       # a system libzmq
+    .venv/bin/python clients/c/build.py         # or the venv's pyzmq
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ import ctypes.util
 import shutil
 import subprocess
 import sys
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,23 +36,66 @@ WARNINGS = ["-Wall", "-Wextra", "-Werror"]
 STANDARDS = {"c": ("gcc", "-std=c11"), "c++": ("g++", "-std=c++17")}
 
 
+# The two ways out when no libzmq is found, as the error says them.
+FIXES = ("either install the system's (Debian, Raspberry Pi OS):  sudo apt install libzmq3-dev\n"
+         "or build with the venv's python, whose pyzmq ships one:  .venv/bin/python clients/c/build.py")
+
+
 @dataclass(frozen=True)
 class Libzmq:
-    """How to compile and link against one libzmq; ``origin`` says which was found."""
+    """How to compile and link against one libzmq; ``origin`` says which was found and
+    ``venv``, for pyzmq's copy, the environment the program then depends on (None: the
+    system's, which outlives any venv)."""
 
     cflags: list[str]
     ldflags: list[str]
     origin: str
+    venv: Path | None = None
 
 
 def _pkg_config() -> Libzmq | None:
     if shutil.which("pkg-config") is None:
         return None
-    if subprocess.run(["pkg-config", "--exists", "libzmq"], check=False).returncode != 0:
+    flags = [subprocess.run(["pkg-config", which, "libzmq"], capture_output=True, text=True, check=False)
+             for which in ("--cflags", "--libs")]
+    if any(done.returncode != 0 for done in flags):
         return None
-    cflags = subprocess.run(["pkg-config", "--cflags", "libzmq"], capture_output=True, text=True, check=False).stdout.split()
-    libs = subprocess.run(["pkg-config", "--libs", "libzmq"], capture_output=True, text=True, check=False).stdout.split()
-    return Libzmq(cflags, libs, "system libzmq (pkg-config)")
+    return Libzmq(flags[0].stdout.split(), flags[1].stdout.split(), "system libzmq (pkg-config)")
+
+
+# A program making one libzmq call: whether it compiles and links says a libzmq is usable.
+_PROBE = "int main(void) { return zmq_ctx_new() == 0; }\n"
+
+
+def _links(header: str, ldflags: list[str]) -> bool:
+    cc = compiler("c")
+    if cc is None:
+        return False
+    with tempfile.TemporaryDirectory() as tmp:
+        done = subprocess.run([cc, "-x", "c", "-", "-o", str(Path(tmp) / "probe"), *ldflags], input=header + _PROBE,
+                              capture_output=True, text=True, check=False)
+    return done.returncode == 0
+
+
+def _compiler_default() -> Libzmq | None:
+    """zmq.h and -lzmq where gcc looks without being told (CPATH, LIBRARY_PATH honoured)."""
+    if not _links("#include <zmq.h>\n", ["-lzmq"]):
+        return None
+    return Libzmq([], ["-lzmq"], "system libzmq (zmq.h and -lzmq found by the compiler)")
+
+
+def _loader() -> Libzmq | None:
+    name = ctypes.util.find_library("zmq")
+    # ctypes may name a library the linker cannot find by that name: the link says.
+    if name is None or not _links("void *zmq_ctx_new(void);\n", [f"-l:{name}"]):
+        return None
+    return Libzmq(["-DFTSENSORD_NO_ZMQ_H"], [f"-l:{name}"], f"system {name} (known to the dynamic loader, no zmq.h)")
+
+
+def _environment_of(lib: Path) -> Path:
+    """The venv (or other prefix) holding ``lib``: what a rebuild replaces."""
+    prefix = Path(sys.prefix).resolve()
+    return prefix if lib.is_relative_to(prefix) else lib.parent
 
 
 def _pyzmq_bundled() -> Libzmq | None:
@@ -61,25 +110,43 @@ def _pyzmq_bundled() -> Libzmq | None:
             lib = libs[0]
             return Libzmq(["-DFTSENSORD_NO_ZMQ_H"], [str(lib), f"-Wl,-rpath,{lib.parent}"],
                           f"libzmq {zmq.zmq_version()} bundled with pyzmq {zmq.__version__} "
-                          f"({lib.parent.name}/{lib.name})")
+                          f"({lib.parent.name}/{lib.name})", venv=_environment_of(lib))
     return None
 
 
-def _loader() -> Libzmq | None:
-    name = ctypes.util.find_library("zmq")
-    if name is None:
-        return None
-    return Libzmq(["-DFTSENSORD_NO_ZMQ_H"], [f"-l:{name}"], f"{name} (known to the dynamic loader)")
+def choose(system: Libzmq | None, bundled: Libzmq | None) -> Libzmq:
+    """The system's libzmq if there is one, else pyzmq's copy; LookupError naming both fixes."""
+    if system is not None:
+        return system
+    if bundled is not None:
+        return bundled
+    raise LookupError(f"no libzmq found: `pkg-config libzmq` finds none, the compiler finds no zmq.h "
+                      f"with -lzmq, the dynamic loader knows no libzmq, and {sys.executable} has no pyzmq;\n{FIXES}")
 
 
-def find_libzmq() -> Libzmq:
-    """The first libzmq found (module docstring's order); LookupError saying where it looked."""
-    for finder in (_pkg_config, _pyzmq_bundled, _loader):
+def find_system_libzmq() -> Libzmq | None:
+    """The first system libzmq found (the module docstring's order), or None."""
+    for finder in (_pkg_config, _compiler_default, _loader):
         found = finder()
         if found is not None:
             return found
-    raise LookupError("no libzmq: `pkg-config libzmq` finds none, pyzmq ships none in its wheel "
-                      "(pyzmq.libs/, zmq/.libs/), and the dynamic loader knows no libzmq")
+    return None
+
+
+def find_libzmq() -> Libzmq:
+    """The libzmq to build with (``choose``): pyzmq is looked at only when the system has none."""
+    system = find_system_libzmq()
+    return choose(system, None if system is not None else _pyzmq_bundled())
+
+
+def venv_note(libzmq: Libzmq) -> str | None:
+    """What a program linked to pyzmq's copy depends on, and how to be rid of it; None for the system's."""
+    if libzmq.venv is None:
+        return None
+    return (f"note: the program is linked to the libzmq inside {libzmq.venv}: it stops working when that "
+            f"venv is removed or moved, or its pyzmq replaced (the copy's name carries a hash); "
+            f"rebuild the program then, or `sudo apt install libzmq3-dev` (Debian, Raspberry Pi OS) for a "
+            f"system libzmq, which this script then prefers")
 
 
 def compiler(lang: str) -> str | None:
@@ -131,6 +198,9 @@ def main() -> int:
         print(exc, file=sys.stderr)
         return 1
     print(" ".join(cmd))
+    note = venv_note(libzmq)
+    if note is not None:  # last, where it is read
+        print(note)
     return 0
 
 

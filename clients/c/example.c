@@ -2,17 +2,22 @@
  * example.c: a 1 kHz loop that reads the newest wrench of one ftsensord stream each tick
  * and prints its age and force once a second. Ctrl-C (or SIGTERM) stops it.
  *
- *     example [-e ENDPOINT] [-t TOPIC] [-n TICKS] [-s SECONDS] [--dump]
+ *     example [-e ENDPOINT] [-t TOPIC] [-n TICKS] [-s SECONDS] [-w SECONDS] [--dump]
  *
  *   -e  the daemon's publisher (default: ipc:///run/ftsensord/wrench if that socket
  *       exists, else $XDG_RUNTIME_DIR/ftsensord/wrench, else /tmp/ftsensord-<uid>/wrench:
  *       where `ftsensord run` puts it)
  *   -t  the stream (default wrench/sensor1)
  *   -n  stop after this many ticks; -s after this many seconds (default: run until Ctrl-C)
+ *   -w  give up after this many seconds without a first sample (default 5)
  *   --dump  also print every new sample: seq, flags, t_mono, missed and the six values
  *           with 17 significant digits (enough to give back the exact doubles)
  *
- * Build (clients/c/build.py finds libzmq, the system's or the pyzmq wheel's):
+ * Exit status: 0 when samples came; 1 when none came, within the -w wait or before the run
+ * ended (a message on stderr says where it listened); 2 for a bad argument. Samples that
+ * stop coming later are reported (FTS_E_STALE), not rendered, and the loop goes on.
+ *
+ * Build (clients/c/build.py finds libzmq, the system's or, failing that, the pyzmq wheel's):
  *     python clients/c/build.py            # prints the compiler command it ran
  *     cc -std=c11 -O2 example.c -o example -lzmq   # with a system libzmq
  */
@@ -29,6 +34,7 @@
 
 #define PERIOD_NS 1000000L /* 1 kHz, a haptic servo rate */
 #define NS_PER_S 1000000000L
+#define FIRST_WAIT_S 5.0 /* the daemon's start-up takes seconds on a loaded 2-core host; a wrong endpoint never answers */
 
 static volatile sig_atomic_t stop_requested = 0;
 
@@ -60,7 +66,7 @@ static void add_ns(struct timespec *t, long ns)
 
 static int usage(const char *prog)
 {
-    fprintf(stderr, "usage: %s [-e ENDPOINT] [-t TOPIC] [-n TICKS] [-s SECONDS] [--dump]\n", prog);
+    fprintf(stderr, "usage: %s [-e ENDPOINT] [-t TOPIC] [-n TICKS] [-s SECONDS] [-w SECONDS] [--dump]\n", prog);
     return 2;
 }
 
@@ -69,6 +75,7 @@ int main(int argc, char **argv)
     char endpoint[512];
     const char *topic = "wrench/sensor1";
     unsigned long long max_ticks = 0; /* 0: until a signal */
+    double first_wait_s = FIRST_WAIT_S;
     int dump = 0;
     default_endpoint(endpoint, sizeof endpoint);
     for (int i = 1; i < argc; ++i) {
@@ -81,6 +88,8 @@ int main(int argc, char **argv)
             max_ticks = strtoull(argv[++i], NULL, 10);
         } else if (strcmp(argv[i], "-s") == 0 && has_value) {
             max_ticks = (unsigned long long)(strtod(argv[++i], NULL) * 1000.0 + 0.5);
+        } else if (strcmp(argv[i], "-w") == 0 && has_value) {
+            first_wait_s = strtod(argv[++i], NULL);
         } else if (strcmp(argv[i], "--dump") == 0) {
             dump = 1;
         } else {
@@ -107,12 +116,13 @@ int main(int argc, char **argv)
     fflush(stdout);
 
     unsigned long long ticks = 0, fresh = 0, missed = 0, overruns = 0;
+    const unsigned long long wait_ticks = (unsigned long long)(first_wait_s * 1000.0 + 0.5);
     int last_error = FTS_OK;
     fts_reading r;
     memset(&r, 0, sizeof r);
     struct timespec next;
     clock_gettime(CLOCK_MONOTONIC, &next);
-    while (!stop_requested && (max_ticks == 0 || ticks < max_ticks)) {
+    while (!stop_requested && (max_ticks == 0 || ticks < max_ticks) && (fresh > 0 || ticks < wait_ticks)) {
         rc = fts_latest(&sub, &r);
         if (rc == FTS_NEW) {
             fresh++;
@@ -124,11 +134,12 @@ int main(int argc, char **argv)
                 printf("\n");
             }
         } else if (rc < 0 && rc != FTS_E_NODATA && rc != last_error) {
-            fprintf(stderr, "tick %llu: %s\n", ticks, fts_strerror(rc)); /* each new kind once */
+            fprintf(stderr, "tick %llu: %s\n", ticks, fts_strerror(rc)); /* once each time it begins */
         }
-        if (rc < 0) last_error = rc;
+        last_error = rc;
 
-        /* ... the haptic rendering would use r.sample.values here ... */
+        /* ... the haptic rendering would use r.sample.values here when rc >= 0, and render
+         * no force otherwise: rc < 0 is no sample yet, or none for too long (FTS_E_STALE) ... */
 
         ticks++;
         if (ticks % 1000 == 0) {
@@ -154,5 +165,10 @@ int main(int argc, char **argv)
     printf("ticks %llu, new samples %llu, missed cycles %llu, rejected frames %" PRIu64 ", overruns %llu\n",
            ticks, fresh, missed, sub.rejected, overruns);
     fts_close(&sub);
+    if (fresh == 0) { /* a run with nothing to show must not pass for a working one in a script */
+        fprintf(stderr, "no sample of %s from %s in %.1f s: is ftsensord running (ftsensord status), "
+                "and is this its publisher (-e)?\n", topic, endpoint, (double)ticks / 1000.0);
+        return 1;
+    }
     return 0;
 }

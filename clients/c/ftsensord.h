@@ -2,7 +2,7 @@
  * ftsensord.h: a header-only C client for ftsensord's sample streams (C11 and C++17).
  *
  * One include, libzmq as the only library. A haptic loop opens one stream and, every
- * tick, takes the newest sample without blocking:
+ * tick, takes the newest sample without blocking, and renders it only while it is live:
  *
  *     #include "ftsensord.h"
  *     fts_sub sub;                        // 1.2 KiB: one per stream, no global state
@@ -10,10 +10,20 @@
  *     if (fts_open(&sub, "ipc:///run/ftsensord/wrench", "wrench/sensor1") != FTS_OK) ...
  *     for (;;) {                          // 1 kHz
  *         int rc = fts_latest(&sub, &r);  // never blocks, never hands out a backlog
- *         if (rc >= 0 && r.age_s < 0.02 && !(r.sample.flags & FTS_FLAG_INVALID))
+ *         if (rc >= 0 && !(r.sample.flags & FTS_FLAG_INVALID))
  *             render(r.sample.values);    // fx fy fz (N) mx my mz (Nm), the stream's frame
+ *         else
+ *             render_nothing();           // rc < 0: no sample yet, or none for too long
  *     }
  *     fts_close(&sub);
+ *
+ * `rc >= 0` is the whole check: FTS_NEW is a new sample, FTS_SAME the previous one while
+ * the stream is live. When nothing new has come for longer than FTS_STALE_PERIODS of the
+ * stream's periods (timed on this host's clock alone, no shared clock needed) fts_latest
+ * returns FTS_E_STALE instead: a killed or stopped (SIGSTOP) daemon never leaves the
+ * loop rendering a frozen wrench. r still holds the last sample, with r.silent_s; a
+ * restarted daemon's samples come back by themselves (FTS_NEW, r.restarted set).
+ * fts_set_stale_after sets another limit in seconds.
  *
  * The wire format is docs/protocol.md's (ftsensord/service/wire.py writes it): one ZeroMQ
  * frame per sample, `topic NUL header(40 bytes) count*float64`, little-endian.
@@ -41,6 +51,8 @@
  * Linux) when the cycle's data were in hand; age_s = now - t_mono on this host's
  * CLOCK_MONOTONIC. That is meaningful only on the daemon's host (ipc, or tcp over
  * loopback); across hosts compare t_wall (CLOCK_REALTIME) with synchronised clocks.
+ * silent_s, the time since this client first had the sample, is on this host's clock
+ * alone, never compared with the daemon's: FTS_E_STALE is decided on it.
  *
  * Errors are negative return codes (fts_strerror names them); the header never aborts,
  * exits, prints or allocates. libzmq errors leave their errno in fts_sub.zmq_err.
@@ -150,6 +162,22 @@ FTS_STATIC_ASSERT_(ZMQ_PUB == FTS_ZMQ_PUB_ && ZMQ_SUB == FTS_ZMQ_SUB_ && ZMQ_SUB
 #endif
 #define FTS_FRAME_MAX (FTS_MAX_TOPIC + 1 + FTS_HEADER_SIZE + 8 * FTS_MAX_VALUES)
 
+/* Staleness (fts_latest's FTS_E_STALE, fts_set_stale_after): the default limit on the time
+ * without a new sample is FTS_STALE_PERIODS of the stream's period, at least FTS_STALE_MIN_S. */
+#ifndef FTS_STALE_PERIODS
+#define FTS_STALE_PERIODS 5.0 /* 4 cycles lost in a row: beyond a late or skipped cycle; 50 ms at 100 Hz */
+#endif
+#ifndef FTS_STALE_MIN_S
+#define FTS_STALE_MIN_S 0.01 /* 10 ticks of a 1 kHz loop: a fast stream's hiccup is not a dead daemon */
+#endif
+#ifndef FTS_STALE_FIRST_S
+#define FTS_STALE_FIRST_S 1.0 /* until two samples give the period: the default 100 Hz has it in 10 ms */
+#endif
+#ifndef FTS_PERIOD_SPAN
+#define FTS_PERIOD_SPAN 16u /* sequence numbers the period is averaged over: a late stamp's error / 16 */
+#endif
+#define FTS_STALE_NEVER (-1.0) /* fts_set_stale_after: FTS_SAME for ever, no FTS_E_STALE */
+
 /* Return codes: >= 0 success, < 0 an error. */
 enum {
     FTS_OK = 0,
@@ -168,7 +196,8 @@ enum {
     FTS_E_LENGTH = -11,   /* the frame's length is not header + 8 * count */
     FTS_E_TOOBIG = -12,   /* the frame is longer than FTS_FRAME_MAX */
     FTS_E_CLOCK = -13,    /* clock_gettime(CLOCK_MONOTONIC) failed */
-    FTS_E_TIMEOUT = -14   /* fts_wait: nothing arrived in time */
+    FTS_E_TIMEOUT = -14,  /* fts_wait: nothing arrived in time */
+    FTS_E_STALE = -15     /* fts_latest: nothing new for longer than the stale limit; r is filled */
 };
 
 /* One decoded sample. */
@@ -186,6 +215,7 @@ typedef struct fts_sample {
 typedef struct fts_reading {
     fts_sample sample; /* the newest valid sample received so far */
     double age_s;      /* s, now - sample.t_mono (CLOCK_MONOTONIC; same host only) */
+    double silent_s;   /* s since this client first had the sample (its own clock only) */
     uint64_t missed;   /* sequence numbers never seen since the previous call's sample */
     int fresh;         /* 1: sample is new since the previous call; 0: the same as then */
     int restarted;     /* 1: the sequence went back (daemon restarted); not counted missed */
@@ -214,6 +244,11 @@ typedef struct fts_sub {
     int pend_fresh, pend_restarted;
     uint64_t received, rejected;      /* frames received; of them refused by the decoder */
     int last_error;                   /* the decoder's last refusal (FTS_E_*), or 0 */
+    double t_got;                     /* this host's CLOCK_MONOTONIC when `last` was first reported */
+    double period_s;                  /* the stream's period from its stamps (fts_ingest_), 0: unknown */
+    uint64_t span_seq;                /* the sample the period is measured from: its seq ... */
+    double span_t;                    /* ... and its t_mono */
+    double stale_after_s;             /* 0: FTS_STALE_PERIODS periods; > 0: seconds; < 0: never */
     unsigned char frame[FTS_FRAME_MAX];
 } fts_sub;
 
@@ -308,6 +343,7 @@ static inline const char *fts_strerror(int rc)
     case FTS_E_TOOBIG: return "frame longer than FTS_FRAME_MAX";
     case FTS_E_CLOCK: return "clock_gettime(CLOCK_MONOTONIC) failed";
     case FTS_E_TIMEOUT: return "no sample within the timeout";
+    case FTS_E_STALE: return "nothing new for longer than the stale limit (is the daemon running?)";
     default: return "unknown ftsensord.h error";
     }
 }
@@ -410,18 +446,51 @@ static inline int fts_ingest_(fts_sub *s, int n)
         return rc;
     }
     s->pend_missed += fts_track(&s->track, s->last.seq, &s->pend_restarted);
+    /* The period from the daemon's stamps, not arrival times: its clock's differences hold
+     * on this host or another, and a skipped cycle is a sequence jump the division takes out. The first
+     * two samples give it; then each FTS_PERIOD_SPAN sequence numbers. A first sample or a
+     * restart (the sequence going back) begins a new span, the period kept. */
+    uint64_t span = s->have && s->last.seq > s->span_seq ? s->last.seq - s->span_seq : 0;
+    if (span > 0 && (s->period_s <= 0.0 || span >= FTS_PERIOD_SPAN) && s->last.t_mono > s->span_t)
+        s->period_s = (s->last.t_mono - s->span_t) / (double)span;
+    if (span == 0 || span >= FTS_PERIOD_SPAN) {
+        s->span_seq = s->last.seq;
+        s->span_t = s->last.t_mono;
+    }
     s->have = 1;
     s->pend_fresh = 1;
     return FTS_OK;
 }
 
+/* Set how long fts_latest goes on returning FTS_SAME without a new sample before it
+ * returns FTS_E_STALE: `seconds` > 0, that long; 0, the default, FTS_STALE_PERIODS of the
+ * stream's period (at least FTS_STALE_MIN_S; FTS_STALE_FIRST_S until two samples gave the
+ * period); FTS_STALE_NEVER (any negative), never. FTS_E_ARG for a NULL or a NaN. */
+static inline int fts_set_stale_after(fts_sub *s, double seconds)
+{
+    if (s == NULL || seconds != seconds) return FTS_E_ARG;
+    s->stale_after_s = seconds;
+    return FTS_OK;
+}
+
+/* The limit now in force (s), as fts_set_stale_after says; negative: never stale. */
+static inline double fts_stale_limit(const fts_sub *s)
+{
+    if (s->stale_after_s != 0.0) return s->stale_after_s < 0.0 ? FTS_STALE_NEVER : s->stale_after_s;
+    if (s->period_s <= 0.0) return FTS_STALE_FIRST_S;
+    double limit = FTS_STALE_PERIODS * s->period_s;
+    return limit > FTS_STALE_MIN_S ? limit : FTS_STALE_MIN_S;
+}
+
 /* The newest sample, without blocking. Reads every frame waiting (one, with CONFLATE),
  * keeps the newest valid one, and fills *r with it, its age and the cycles missed since
  * the previous call. Returns FTS_NEW (a sample not returned before), FTS_SAME (none
- * since the previous call: r->sample is the previous one, its age grown), or an error,
- * with *r untouched: FTS_E_NODATA (nothing yet), FTS_E_ZMQ, FTS_E_CLOCK, or the
- * decoder's refusal of the newest frame (counted in s->rejected; it is gone, and the
- * next call reports the last valid sample again). */
+ * since the previous call: r->sample is the previous one, its age grown), FTS_E_STALE
+ * (none for longer than fts_stale_limit: *r filled as for FTS_SAME, r->silent_s past the
+ * limit; the same until a new sample comes), or an error with *r untouched:
+ * FTS_E_NODATA (nothing yet), FTS_E_ZMQ, FTS_E_CLOCK, or the decoder's refusal of the
+ * newest frame (counted in s->rejected; it is gone, and the next call reports the last
+ * valid sample again). */
 static inline int fts_latest(fts_sub *s, fts_reading *r)
 {
     if (s == NULL || r == NULL || s->sock == NULL) return FTS_E_ARG;
@@ -440,14 +509,19 @@ static inline int fts_latest(fts_sub *s, fts_reading *r)
     if (!s->have) return FTS_E_NODATA;
     double now = fts_now();
     if (now < 0) return FTS_E_CLOCK;
+    if (s->pend_fresh) s->t_got = now; /* within a tick of its arrival: each tick drains the queue */
     memcpy(&r->sample, &s->last, offsetof(fts_sample, values) + sizeof(double) * s->last.count);
     r->age_s = now - s->last.t_mono;
+    r->silent_s = now - s->t_got;
     r->missed = s->pend_missed;
     r->fresh = s->pend_fresh;
     r->restarted = s->pend_restarted;
     s->pend_missed = 0;
     s->pend_fresh = s->pend_restarted = 0;
-    return r->fresh ? FTS_NEW : FTS_SAME;
+    if (r->fresh) return FTS_NEW;
+    double limit = fts_stale_limit(s);
+    /* Every call since t_got found the queue empty: the stream was silent at least silent_s. */
+    return limit >= 0.0 && r->silent_s > limit ? FTS_E_STALE : FTS_SAME;
 }
 
 /* Block until a sample arrives (at most timeout_ms; -1: forever), then as fts_latest.

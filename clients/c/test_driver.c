@@ -6,7 +6,10 @@
  *   test_driver decode HEX          fts_decode one frame given in hex; prints the result
  *   test_driver track SEQ...        fts_track each sequence number; prints skipped/restarted
  *   test_driver sub ENDPOINT TOPIC  subscribe; then per stdin line: "take" (fts_latest),
- *                                   "wait MS" (fts_wait) or "quit"; prints each result
+ *                                   "wait MS" (fts_wait), "stale SECONDS"
+ *                                   (fts_set_stale_after) or "quit"; prints each result
+ *                                   with the stale limit then in force
+ *   test_driver staleness           FTS_STALE_PERIODS, _MIN_S, _FIRST_S, FTS_PERIOD_SPAN as compiled
  */
 #define _POSIX_C_SOURCE 200809L
 
@@ -90,13 +93,16 @@ static int cmd_sub(const char *endpoint, const char *topic)
             rc = fts_latest(sub, &r);
         } else if (strncmp(line, "wait ", 5) == 0) {
             rc = fts_wait(sub, &r, atoi(line + 5));
+        } else if (strncmp(line, "stale ", 6) == 0) {
+            rc = fts_set_stale_after(sub, atof(line + 6));
         } else {
             break;
         }
-        printf("rc=%d (%s) fresh=%d missed=%" PRIu64 " restarted=%d age=%.9f received=%" PRIu64
-               " rejected=%" PRIu64,
-               rc, fts_strerror(rc), r.fresh, r.missed, r.restarted, r.age_s, sub->received, sub->rejected);
-        if (rc >= 0) print_sample(&r.sample);
+        printf("rc=%d (%s) fresh=%d missed=%" PRIu64 " restarted=%d age=%.9f silent=%.17g limit=%.17g"
+               " period=%.17g received=%" PRIu64 " rejected=%" PRIu64,
+               rc, fts_strerror(rc), r.fresh, r.missed, r.restarted, r.age_s, r.silent_s, fts_stale_limit(sub),
+               sub->period_s, sub->received, sub->rejected);
+        if (rc >= 0 || rc == FTS_E_STALE) print_sample(&r.sample); /* FTS_E_STALE fills r too */
         printf("\n");
         fflush(stdout);
     }
@@ -157,9 +163,15 @@ int main(int argc, char **argv)
 {
     if (argc >= 2 && strcmp(argv[1], "orient") == 0) return cmd_orient(argc - 2, argv + 2);
     if (argc >= 2 && strcmp(argv[1], "constants") == 0) return cmd_constants();
+    if (argc >= 2 && strcmp(argv[1], "staleness") == 0) {
+        printf("periods=%.17g min=%.17g first=%.17g span=%u\n", FTS_STALE_PERIODS, FTS_STALE_MIN_S, FTS_STALE_FIRST_S,
+               (unsigned)FTS_PERIOD_SPAN);
+        return 0;
+    }
     if (argc == 3 && strcmp(argv[1], "decode") == 0) return cmd_decode(argv[2]);
     if (argc >= 2 && strcmp(argv[1], "track") == 0) return cmd_track(argc - 2, argv + 2);
     if (argc == 4 && strcmp(argv[1], "sub") == 0) return cmd_sub(argv[2], argv[3]);
-    fprintf(stderr, "usage: %s constants | decode HEX | track SEQ... | sub ENDPOINT TOPIC | orient [ENDPOINT N]\n", argv[0]);
+    fprintf(stderr, "usage: %s constants | staleness | decode HEX | track SEQ... | sub ENDPOINT TOPIC | orient [ENDPOINT N]\n",
+            argv[0]);
     return 2;
 }
