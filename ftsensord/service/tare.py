@@ -192,6 +192,8 @@ def carry_tares(old: Sequence[SensorPipeline], new: Sequence[SensorPipeline]) ->
             continue
         if o.config.calibration.document() == p.config.calibration.document():
             p.tare(o.model.zero, o.tare_gravity)
+            if o.stray is not None and p.stray is not None:
+                p.stray = o.stray  # what it learnt, and the gradient at that tare, hold still
             out[p.name] = "kept (calibration unchanged)"
             log.info("reload: %s's tare %s", p.name, out[p.name])
         else:

@@ -67,6 +67,9 @@ ALARM_WRENCH = 1.5 * np.array([0.05, 0.05, 0.05, 2e-3, 2e-3, 2e-3])
 #: between them, off-diagonal parts 1/2.
 _ISOTROPIC = np.array([[2 / 3, -1 / 3, 0, 0, 0], [-1 / 3, 2 / 3, 0, 0, 0], [0, 0, 0.5, 0, 0],
                        [0, 0, 0, 0.5, 0], [0, 0, 0, 0, 0.5]])
+#: The estimate is solved again every this many samples learnt (0.1 s at 100 Hz): it moves
+#: slowly (a 30 s memory), and a 7 x 7 inverse each sample would double the stage's cost.
+SOLVE_EVERY = 10
 #: Learnt only while the tool turns slower than this (rad a sample; 0.5 rad/s at 100 Hz): the
 #: orientation and the chips' conversions are milliseconds apart, and 10 ms at 0.5 rad/s
 #: turns a motor's 60 uT by 0.3 uT, a tenth of y's noise; a fast turn would teach a bias.
@@ -90,10 +93,13 @@ def parts(G: np.ndarray) -> np.ndarray:
     return np.stack([G[..., i, j] for i, j in _PARTS], axis=-1)
 
 
+_BASIS = gradient_basis()
+_PART_INDEX = [3 * i + j for i, j in _PARTS]  # each part's place in a flattened 3 x 3
+
+
 def turned(R: np.ndarray) -> np.ndarray:
     """T(R) (5 x 5): the parts of R^T G R from G's, for a sensor turned by R = R_world,sensor."""
-    E = gradient_basis()
-    return parts(np.einsum("ai,kab,bj->kij", R, E, R)).T
+    return (R.T @ _BASIS @ R).reshape(5, 9)[:, _PART_INDEX].T
 
 
 def gradient_flux(geometry: SensorGeometry) -> np.ndarray:
@@ -128,12 +134,18 @@ class WorldGradient:
         """Forget everything: what was learnt and the tare."""
         self.forget_learnt()
         self.R: np.ndarray | None = None  # this sample's orientation
+        self.T: np.ndarray | None = None  # and its T(R)
         self.steady = False  # it turned little since the sample before
-        self.tare_R: np.ndarray | None = None
+        self.tare_T: np.ndarray | None = None  # T(R) at the tare
         self.tare_y: np.ndarray | None = None
         self.tare_g: np.ndarray | None = None  # g_w at the tare; None until known
         self.recent: deque[np.ndarray] = deque(maxlen=CHANGE_SAMPLES)  # y's departures from what is expected
+        self.recent_sum = np.zeros(self.Q.shape[1])
         self.alarm = False  # a change since the tare, not yet learnt
+
+    def _clear_recent(self) -> None:
+        self.recent.clear()
+        self.recent_sum = np.zeros(self.Q.shape[1])
 
     def forget_learnt(self) -> None:
         """Start learning afresh: the gradient changed (a motor switched on or its current
@@ -146,75 +158,81 @@ class WorldGradient:
 
     def turn_to(self, R: np.ndarray | None) -> None:
         """This sample's orientation, R_world,sensor (None: unknown: nothing is corrected)."""
-        self.steady = R is not None and self.R is not None and _angle(self.R, R) <= STEADY_RAD
+        # tr(A^T B) = 1 + 2 cos(angle between A and B): compared without the arccos.
+        self.steady = R is not None and self.R is not None and float(np.vdot(self.R, R)) >= _STEADY_TRACE
         self.R = R
+        self.T = None if R is None else turned(R)  # used up to three times a sample
 
     def learn(self, flux: np.ndarray) -> None:
         """Learn from this sample's flux (T, the stage's input): the caller says it may (every
         chip read and unflagged, the load within the calibration's); only while steady."""
-        if self.R is None or not self.steady:
+        if self.T is None or not self.steady:
             return
         y = self.Q.T @ (flux - self.zero)
-        M = np.hstack([self.QF @ turned(self.R), np.eye(self.Q.shape[1])]) / self.sigma_y
+        M = np.hstack([self.QF @ self.T, np.eye(self.Q.shape[1])]) / self.sigma_y
         self.info = self.forget * self.info + M.T @ M
         self.moment = self.forget * self.moment + M.T @ (y / self.sigma_y)
         self.samples += 1
-        self._solve()
+        if self.samples % SOLVE_EVERY == 0:
+            self._solve()
 
     def _solve(self) -> None:
         try:
             cov = np.linalg.inv(self.info)
         except np.linalg.LinAlgError:
             return  # too few orientations yet: singular
-        assert self.R is not None
-        J = self.KA @ self.F @ turned(self.R)  # the false wrench per unit g_w at this orientation
-        variance = np.einsum("ij,jk,ik->i", J, cov[:5, :5], J)
+        assert self.T is not None
+        J = self.KA @ self.F @ self.T  # the false wrench per unit g_w at this orientation
+        variance = np.sum((J @ cov[:5, :5]) * J, axis=1)
         # A negative or non-finite variance is round-off of a nearly singular matrix: the
         # orientations seen do not determine g_w yet.
         if np.all(np.isfinite(variance)) and np.all(variance >= 0) and np.all(variance <= CORRECT_WITHIN ** 2):
             if self.theta is None:
-                self.recent.clear()  # y is compared with the learnt field's from now on, not the tare's
+                self._clear_recent()  # y is compared with the learnt field's from now on, not the tare's
             self.theta = cov @ self.moment
-            if self.tare_g is None and self.tare_y is not None and self.tare_R is not None:
+            if self.tare_g is None and self.tare_y is not None and self.tare_T is not None:
                 # The least gradient that gives the tare's y: none when the motor was off then.
-                self.tare_g = np.linalg.pinv(self.QF @ turned(self.tare_R)) @ (self.tare_y - self.theta[5:])
+                self.tare_g = np.linalg.pinv(self.QF @ self.tare_T) @ (self.tare_y - self.theta[5:])
 
     def tared(self, zero: np.ndarray) -> None:
         """The pipeline took ``zero`` (T, the stage's input) as its zero at the newest orientation."""
-        self.tare_R = self.R
+        self.tare_T = self.T
         self.tare_y = self.Q.T @ (zero - self.zero)
         self.tare_g = None if self.theta is None else self.theta[:5].copy()
-        self.recent.clear()
+        self._clear_recent()
         self.alarm = False
 
     @property
     def correcting(self) -> bool:
-        return self.theta is not None and self.tare_g is not None and self.tare_R is not None and self.R is not None
+        return self.theta is not None and self.tare_g is not None and self.tare_T is not None and self.T is not None
 
     def apply(self, flux: np.ndarray) -> tuple[np.ndarray, bool]:
         """The flux with the learnt gradient's change since the tare taken out, and whether
         the sample is to be flagged (a gradient changed since the tare, not yet learnt)."""
-        if self.tare_y is None or self.R is None:
+        T = self.T
+        if self.tare_y is None or T is None:
             return flux, self.alarm  # untared, or turned we know not how: nothing to compare or correct
         # What y should be: the learnt field's at this orientation, else the tare's (no change).
-        T = turned(self.R)
         expected = self.QF @ T @ self.theta[:5] + self.theta[5:] if self.theta is not None else self.tare_y
+        if len(self.recent) == self.recent.maxlen:
+            self.recent_sum -= self.recent[0]
         self.recent.append(self.Q.T @ (flux - self.zero) - expected)
-        mean = np.mean(self.recent, axis=0)
-        size = float(np.linalg.norm(mean))
+        self.recent_sum += self.recent[-1]
+        mean = self.recent_sum / len(self.recent)
+        size = float(np.sqrt(mean @ mean))
         threat = (size ** 2 * len(self.recent) / self.sigma_y ** 2 > self.limit
                   and bool(np.any(size * self.false_per_change > ALARM_WRENCH)))
         # A change raises the alarm once: learning starts afresh from it (samples from
         # before would bias what is learnt next), and the alarm stays until it is learnt.
         if threat and (self.theta is not None or not self.alarm):
             self.forget_learnt()
-            self.recent.clear()
+            self._clear_recent()
             self.alarm = True
         if not self.correcting:
             return flux, self.alarm
-        assert self.theta is not None and self.tare_g is not None and self.tare_R is not None
+        assert self.theta is not None and self.tare_g is not None and self.tare_T is not None
         self.alarm = False
-        return flux - self.F @ (T @ self.theta[:5] - turned(self.tare_R) @ self.tare_g), False
+        return flux - self.F @ (T @ self.theta[:5] - self.tare_T @ self.tare_g), False
 
     def status(self) -> dict[str, Any]:
         g = None if self.theta is None else self.theta[:5]
@@ -222,6 +240,4 @@ class WorldGradient:
                 "gradient_ut_per_mm": None if g is None else round(float(np.linalg.norm(g)) * 1e3, 4)}
 
 
-def _angle(A: np.ndarray, B: np.ndarray) -> float:
-    """The angle (rad) of the rotation between A and B."""
-    return float(np.arccos(np.clip((np.trace(A.T @ B) - 1) / 2, -1.0, 1.0)))
+_STEADY_TRACE = 1.0 + 2.0 * float(np.cos(STEADY_RAD))
