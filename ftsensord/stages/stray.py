@@ -22,8 +22,9 @@ calibration (2 constants). [g_w, c] is estimated by recursive least squares with
 forgetting (`MEMORY_SAMPLES`: a motor's current and the tool's place change). The flux is
 corrected by F (T(R_tare) g_w,tare - T(R) g_w): the tare's zero kept the gradient of its
 time, so what is taken out is the change since. A gradient at the tare is known if the
-tool had turned before it; else it is taken as the least one that gives the tare's y
-(none, when the motor was off).
+tool had turned before it; else it is the one learnt since, when that explains the tare's
+y better than none does (a motor on throughout), or the least one that gives the tare's y
+(none, a motor switched on after the tare).
 
 Needs the tool's orientation (the orientation stream, `service.gravity`). Until the turns
 seen determine g_w well enough (`CORRECT_WITHIN`), nothing is corrected, and a sample whose
@@ -162,6 +163,8 @@ class WorldGradient:
         self.steady = R is not None and self.R is not None and float(np.vdot(self.R, R)) >= _STEADY_TRACE
         self.R = R
         self.T = None if R is None else turned(R)  # used up to three times a sample
+        if not self.steady:
+            self._clear_recent()  # a turn: the change is judged afresh at the new orientation, from its first sample
 
     def learn(self, flux: np.ndarray) -> None:
         """Learn from this sample's flux (T, the stage's input): the caller says it may (every
@@ -191,8 +194,12 @@ class WorldGradient:
                 self._clear_recent()  # y is compared with the learnt field's from now on, not the tare's
             self.theta = cov @ self.moment
             if self.tare_g is None and self.tare_y is not None and self.tare_T is not None:
-                # The least gradient that gives the tare's y: none when the motor was off then.
-                self.tare_g = np.linalg.pinv(self.QF @ self.tare_T) @ (self.tare_y - self.theta[5:])
+                # The gradient at the tare, from its y: the field learnt now, if that explains
+                # the tare's y better than no field does (a motor on throughout); else the
+                # least gradient that gives it (none, a motor switched on after the tare).
+                g, c = self.theta[:5], self.theta[5:]
+                same, off = self.tare_y - self.QF @ self.tare_T @ g - c, self.tare_y - c
+                self.tare_g = g.copy() if same @ same < off @ off else np.linalg.pinv(self.QF @ self.tare_T) @ off
 
     def tared(self, zero: np.ndarray) -> None:
         """The pipeline took ``zero`` (T, the stage's input) as its zero at the newest orientation."""
