@@ -31,6 +31,21 @@ D101_BR_T = 1.45
 SEPARABLE_GRADIENT = 0.5
 
 
+#: The five parts of a traceless symmetric gradient G: xx - zz, yy - zz, and the symmetric
+#: xy, xz, yz (each pair (i, j): the entry it sets; a diagonal one sets -1 at zz too).
+GRADIENT_PARTS = ((0, 0), (1, 1), (0, 1), (0, 2), (1, 2))
+
+
+def gradient_basis() -> np.ndarray:
+    """The five unit parts E_k (5, 3, 3) of `GRADIENT_PARTS`."""
+    E = np.zeros((5, 3, 3))
+    for k, (i, j) in enumerate(GRADIENT_PARTS):
+        E[k, i, j] = E[k, j, i] = 1.0
+        if i == j:
+            E[k, 2, 2] = -1.0
+    return E
+
+
 def separable_gradient(H: np.ndarray, room: np.ndarray | None, gradient: np.ndarray) -> np.ndarray:
     """The directions (24 x k, orthonormal) of a field's gradient (``gradient``, e.g.
     `SensorGeometry.gradient_directions`) that the chips can tell from a deflection
@@ -103,15 +118,14 @@ class SensorGeometry:
         axial push's and a uniform B_z's, G_xz's and G_yz's a tilt's and a uniform B_x's,
         B_y's (docs/physics.md, "A motor's field"). `separable_gradient` keeps those two.
         """
-        basis = []
-        for i, j in ((0, 0), (1, 1), (0, 1), (0, 2), (1, 2)):
-            G = np.zeros((3, 3))
-            G[i, j] = G[j, i] = 1.0
-            if i == j:
-                G[2, 2] = -1.0
-            basis.append(np.concatenate([R.T @ G @ p for R, p in zip(self.chip_R, self.chip_p, strict=True)]))
-        q, _ = np.linalg.qr(np.array(basis).T)
+        q, _ = np.linalg.qr(self.gradient_flux())
         return q
+
+    def gradient_flux(self) -> np.ndarray:
+        """F (24 x 5): each `gradient_basis` part's flux at the chips, R_0i^T E_k p_i
+        stacked (T per T/m); `gradient_directions` is its orthonormal span."""
+        E = gradient_basis()
+        return np.einsum("nba,kbc,nc->nak", self.chip_R, E, self.chip_p).reshape(-1, 5)
 
     def magnet_in_chip(self) -> np.ndarray:
         """Nominal position of each chip's own magnet in the chip's frame (n x 3)."""

@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from ..model.geometry import SensorGeometry, separable_gradient
+from ..model.geometry import GRADIENT_PARTS, SensorGeometry, gradient_basis, separable_gradient
 from ..model.linear import LinearModel, chi2_quantile
 
 #: Samples the estimate remembers (the weight of older ones falls by e over this many): 30 s
@@ -75,38 +75,18 @@ SOLVE_EVERY = 10
 #: orientation and the chips' conversions are milliseconds apart, and 10 ms at 0.5 rad/s
 #: turns a motor's 60 uT by 0.3 uT, a tenth of y's noise; a fast turn would teach a bias.
 STEADY_RAD = 0.005
-#: The five parts of a traceless symmetric G: xx - zz, yy - zz, xy, xz, yz (`SensorGeometry.gradient_directions`).
-_PARTS = ((0, 0), (1, 1), (0, 1), (0, 2), (1, 2))
-
-
-def gradient_basis() -> np.ndarray:
-    """The five unit parts E_k (5, 3, 3)."""
-    E = np.zeros((5, 3, 3))
-    for k, (i, j) in enumerate(_PARTS):
-        E[k, i, j] = E[k, j, i] = 1.0
-        if i == j:
-            E[k, 2, 2] = -1.0
-    return E
-
-
 def parts(G: np.ndarray) -> np.ndarray:
     """The five numbers of a traceless symmetric G in the basis of `gradient_basis` (..., 5)."""
-    return np.stack([G[..., i, j] for i, j in _PARTS], axis=-1)
+    return np.stack([G[..., i, j] for i, j in GRADIENT_PARTS], axis=-1)
 
 
 _BASIS = gradient_basis()
-_PART_INDEX = [3 * i + j for i, j in _PARTS]  # each part's place in a flattened 3 x 3
+_PART_INDEX = [3 * i + j for i, j in GRADIENT_PARTS]  # each part's place in a flattened 3 x 3
 
 
 def turned(R: np.ndarray) -> np.ndarray:
     """T(R) (5 x 5): the parts of R^T G R from G's, for a sensor turned by R = R_world,sensor."""
     return (R.T @ _BASIS @ R).reshape(5, 9)[:, _PART_INDEX].T
-
-
-def gradient_flux(geometry: SensorGeometry) -> np.ndarray:
-    """F (24 x 5): each part's flux at the chips, R_0i^T E_k p_i stacked (T per T/m)."""
-    E = gradient_basis()
-    return np.einsum("nba,kbc,nc->nak", geometry.chip_R, E, geometry.chip_p).reshape(-1, 5)
 
 
 class WorldGradient:
@@ -119,7 +99,7 @@ class WorldGradient:
             raise ValueError("the world gradient needs the calibration's flux model H")
         ring = geometry or SensorGeometry.ring()
         self.zero = model.zero.copy()  # the calibration's own zero: y is measured from it
-        self.F = gradient_flux(ring)
+        self.F = ring.gradient_flux()
         self.Q = separable_gradient(model.H, model.room, ring.gradient_directions())
         self.QF = self.Q.T @ self.F
         self.KA = model.KA
