@@ -16,13 +16,15 @@ from __future__ import annotations
 import enum
 import functools
 import math
-from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
 
 from ..chip import mlx90393 as mlx
+from .conversion import NOISELESS, Conversions, NoiseModel
 from .thermal import ChipDrift
+
+__all__ = ["NOISELESS", "EmulatedMLX90393", "FieldSource", "Mode", "NoiseModel"]
 
 
 class FieldSource(Protocol):
@@ -40,27 +42,6 @@ class FieldSource(Protocol):
     def temperature_c(self, address: int, t: float) -> float:
         """Die temperature in degC at time ``t`` (s)."""
         ...
-
-
-@dataclass(frozen=True)
-class NoiseModel:
-    """Reading noise: ``sigma = sigma_ref * sqrt(t_ref / TCONVM)`` per axis, Z noisier.
-
-    The defaults are the estimate in `ftsensord.mlx90393` (`mlx.noise_ut`);
-    a scene may scale them.
-    """
-
-    sigma_ref_xy_ut: float = mlx.NOISE_REF_XY_UT
-    t_ref_us: float = mlx.NOISE_REF_TCONVM_US
-    z_factor: float = mlx.NOISE_Z_FACTOR
-    temperature_sigma_c: float = 0.05
-
-    def sigma_ut(self, axis: str, tconvm_us: float) -> float:
-        sigma = self.sigma_ref_xy_ut * math.sqrt(self.t_ref_us / tconvm_us)
-        return sigma * self.z_factor if axis == "z" else sigma
-
-
-NOISELESS = NoiseModel(sigma_ref_xy_ut=0.0, temperature_sigma_c=0.0)
 
 
 class Mode(enum.Enum):
@@ -139,7 +120,7 @@ class RegisterCommands:
         return self._status()
 
 
-class EmulatedMLX90393(RegisterCommands):
+class EmulatedMLX90393(RegisterCommands, Conversions):
     """One chip at one address. Times (``now``) are seconds on the bus's clock.
 
     ``drift``: how it drifts with its die temperature (None: not at all), by its own TCMP_EN.
@@ -295,35 +276,6 @@ class EmulatedMLX90393(RegisterCommands):
             self._stuck_words = words
         return self._reply_words(items, words)
 
-    def _reply_words(self, items: tuple[str, ...], words: dict[str, int]) -> bytes:
-        out = bytearray(self._status(d=mlx.d_for_items(len(items))))
-        for item in items:
-            out += words[item].to_bytes(2, "big")
-        return bytes(out)
-
-    def _convert(self, t: float) -> dict[str, int]:
-        """Quantised words of a conversion finishing at time ``t``."""
-        s = self.settings()
-        field = self.field_override if self.field_override is not None else np.asarray(
-            self.scene.field_t(self.address, t), dtype=float)
-        temp = self.scene.temperature_c(self.address, t)
-        if temp != mlx.TEMPERATURE_REF_C and self.drift is not None:  # at 25 degC nothing drifts
-            # The element saturates first; its sensitivity and offset drift act on what it sees.
-            field = self.drift.reading(np.clip(field, -mlx.HALL_SATURATION_T, mlx.HALL_SATURATION_T),
-                                       temp - mlx.TEMPERATURE_REF_C, s.tcmp_en)
-        words: dict[str, int] = {}
-        for i, (axis, sigma, sensitivity, fmt) in enumerate(_axes(s, self.noise)):
-            # The Hall element saturates near 50 mT whatever the gain.
-            b_ut = min(max(float(field[i]), -mlx.HALL_SATURATION_T), mlx.HALL_SATURATION_T) * 1e6
-            if sigma > 0:
-                b_ut += self.rng.normal(0.0, sigma)
-            counts = round(b_ut / sensitivity)
-            words[axis] = mlx.counts_to_raw(counts, fmt)
-        if self.noise.temperature_sigma_c > 0:
-            temp += self.rng.normal(0.0, self.noise.temperature_sigma_c)
-        words["t"] = mlx.celsius_to_raw(temp, self.tref)
-        return words
-
     def _ex(self, opcode: int, zyxt: int, data: bytes, now: float) -> bytes:
         self.mode = Mode.IDLE
         self._conv_first, self._conv_interval = math.inf, math.inf
@@ -356,10 +308,3 @@ def _permitted(settings: mlx.Settings) -> bool:
     except ValueError:
         return False
     return True
-
-
-@functools.lru_cache(maxsize=256)
-def _axes(settings: mlx.Settings, noise: NoiseModel) -> tuple[tuple[str, float, float, mlx.RawFormat], ...]:
-    """Per axis X, Y, Z at ``settings``: its noise (uT), uT per count and word coding."""
-    return tuple((a, noise.sigma_ut(a, settings.tconvm_us()), settings.sensitivity_ut(a), settings.raw_format(a))
-                 for a in "xyz")
