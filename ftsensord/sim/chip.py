@@ -165,6 +165,7 @@ class EmulatedMLX90393(RegisterCommands, Conversions):
         self.busy_until = -math.inf
         self.reply = b""
         self._reply_pending = False  # a command whose reply has not been read yet
+        self._sm_unread = False  # an accepted SM whose status byte has not been read yet
         self._conv_items: tuple[str, ...] = ()
         self._conv_first = math.inf  # time the first result is ready
         self._conv_interval = math.inf  # burst interval (inf: one conversion only)
@@ -210,6 +211,8 @@ class EmulatedMLX90393(RegisterCommands, Conversions):
         if not data:
             return  # a zero-length write is an address probe: ACK only
         self._advance(now)
+        if self._sm_unread:
+            self._void_single()
         self._reply_pending = True  # (set again below: RT's power-on clears it)
         opcode, zyxt = data[0] & 0xF0, data[0] & 0x0F
         if self.memory_error and opcode != mlx.CMD_RT:
@@ -230,6 +233,7 @@ class EmulatedMLX90393(RegisterCommands, Conversions):
         """A read message: the prepared reply; 0xFF (released SDA) past its end."""
         self._advance(now)
         self._reply_pending = False
+        self._sm_unread = False
         return (self.reply + b"\xff" * length)[:length]
 
     # --- commands -----------------------------------------------------------------
@@ -258,7 +262,22 @@ class EmulatedMLX90393(RegisterCommands, Conversions):
             self._conv_first = now + s.single_measurement_us(zyxt_eff) * 1e-6
             self._conv_interval = (s.burst_interval_us(zyxt_eff) * 1e-6
                                    if self.mode is Mode.BURST else math.inf)
+        self._sm_unread = self.mode is Mode.SINGLE
         return self._status()
+
+    def _void_single(self) -> None:
+        """An SM whose status byte was never read (the next command came first): its
+        measurement is as if never started, back to idle with no data, so the RM after
+        it is refused (ERROR, SM_MODE clear). The datasheet: the first SM after power-up
+        or reset "should have the status byte read back in order to get valid
+        measurement data back"; the emulator takes the safest reading, for every SM (a
+        chip may have reset unseen, so a driver cannot know which SM is the first), and
+        refuses rather than return data a real chip may get wrong without a flag."""
+        self._sm_unread = False
+        if self.mode is Mode.SINGLE:
+            self.mode = Mode.IDLE
+        self._conv_first, self._conv_interval = math.inf, math.inf
+        self._last_index = -1
 
     def _rm(self, opcode: int, zyxt: int, data: bytes, now: float) -> bytes:
         items = self._selected(zyxt)
