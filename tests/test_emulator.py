@@ -247,6 +247,52 @@ def test_noiseless_readings_are_the_field_quantised_to_the_lsb(bus, scene, setti
     assert not m.any_saturated
 
 
+TCMP = mlx.Settings(gain_sel=4, res_x=1, res_y=1, res_z=1, tcmp_en=True)
+
+
+def rm_counts(bus, settings: mlx.Settings) -> list[int]:
+    """SM and RM of X, Y, Z (status read), decoded as counts from zero field."""
+    assert not status(bus, bytes([mlx.CMD_SM | mlx.ZYXT_XYZ])).error
+    bus.sleep(settings.single_measurement_us() * 1.2e-6)
+    reply = xfer(bus, bytes([mlx.CMD_RM | mlx.ZYXT_XYZ]), 7)
+    assert not mlx.Status(reply[0]).error
+    return [mlx.raw_to_counts((reply[1 + 2 * i] << 8) | reply[2 + 2 * i], settings.raw_format(a))
+            for i, a in enumerate("xyz")]
+
+
+def test_with_tcmp_the_output_is_referenced_to_the_offset_registers(bus, scene):
+    """TCMP_EN's output reads OFFSET_X/Y/Z at zero field: at 0x8000 the field, at the
+    power-on 0 garbage (wrapped to the far side of the span, with the wrong sign)."""
+    configure_raw(bus, TCMP)
+    truth = [round(scene.fields_t[ADDR][i] * 1e6 / TCMP.sensitivity_ut(a)) for i, a in enumerate("xyz")]
+    at_zero = rm_counts(bus, TCMP)
+    assert all(abs(c - t) > 30000 for c, t in zip(at_zero, truth))  # nowhere near: garbage
+    for reg, value in zip(mlx.REG_OFFSETS, (mlx.OFFSET_TCMP_ZERO, mlx.OFFSET_TCMP_ZERO + 100, 0x8000 - 7)):
+        assert not status(bus, bytes([mlx.CMD_WR, value >> 8, value & 0xFF, reg << 2])).error
+    assert rm_counts(bus, TCMP) == [truth[0], truth[1] + 100, truth[2] - 7]
+
+
+def test_without_tcmp_the_offset_registers_change_nothing(bus, scene):
+    configure_raw(bus)
+    before = rm_counts(bus, mlx.Settings())
+    assert not status(bus, bytes([mlx.CMD_WR, 0x12, 0x34, mlx.REG_OFFSET_X << 2])).error
+    assert rm_counts(bus, mlx.Settings()) == before
+
+
+def test_the_driver_sets_the_offsets_when_it_turns_tcmp_on_and_reads_them_back(chip, bus, scene):
+    emulated = bus.chips[ADDR]
+    assert [emulated.registers[r] for r in mlx.REG_OFFSETS] == [0, 0, 0]  # the paper's settings: no TCMP
+    chip.configure(TCMP)
+    assert [emulated.registers[r] for r in mlx.REG_OFFSETS] == [mlx.OFFSET_TCMP_ZERO] * 3
+    m = chip.measure()
+    for i, axis in enumerate("xyz"):
+        lsb = TCMP.sensitivity_ut(axis) * 1e-6
+        assert m.field_t[i] == pytest.approx(round(scene.fields_t[ADDR][i] / lsb) * lsb, abs=1e-12)
+    assert chip.configuration_matches()
+    emulated.drift_register(mlx.REG_OFFSET_Y, 0)  # an offset lost: the read-back sees it
+    assert not chip.configuration_matches()
+
+
 def test_readings_past_the_span_or_the_element_limit_are_flagged(bus, scene):
     drv = MLX90393(bus, ADDR, sleep=bus.sleep)
     drv.reset()

@@ -51,6 +51,28 @@ def test_a_cycle_takes_exactly_the_computed_bound(scheduler, hz, adapter):
             clock.wait_until(t0 + bound.cycle_s)
 
 
+@pytest.mark.parametrize("scheduler", ["naive", "overlapped", "burst"])
+def test_with_tcmp_the_read_back_of_the_offsets_is_in_the_bound(scheduler):
+    """With TCMP_EN the read-back also reads OFFSET_X/Y/Z (three RRs more), as the bound counts."""
+    settings = mlx.Settings(gain_sel=4, res_x=1, res_y=1, res_z=1, tcmp_en=True)
+    clock = VirtualClock()
+    bus = simulated_bus(two_sensor_scene(), clock=clock, bus_hz=400e3, ioctl_s=80e-6)
+    reader = Reader(bus, [MLX90393(bus, a, sleep=bus.sleep) for a in range(0x0C, 0x1C)], scheduler, settings, 400e3)
+    assert reader.start() == {}
+    bound = cycle_bound(scheduler, 16, settings, 400e3, 80e-6, adapter=bus.adapter)
+    plain = cycle_bound(scheduler, 16, mlx.Settings(gain_sel=4, res_x=1, res_y=1, res_z=1), 400e3, 80e-6,
+                        adapter=bus.adapter)
+    assert bound.ioctls == plain.ioctls + 3
+    clock.sleep(0.1)
+    for _ in range(3):
+        t0, ioctls = clock.now(), bus.transfers
+        results = reader.read()
+        reader.upkeep()
+        assert clock.now() - t0 == pytest.approx(bound.cycle_s, rel=1e-9) and bus.transfers - ioctls == bound.ioctls
+        assert scheduler == "burst" or all(r.ok for r in results)
+        clock.wait_until(t0 + bound.cycle_s)
+
+
 @pytest.mark.parametrize("adapter", ["permissive", "bcm2835"])
 def test_burst_read_back_after_the_publish_leaves_no_chip_stale(adapter):
     """At 100 Hz (`burst_readback_stays_fresh`) the read-back follows the host's work on

@@ -115,7 +115,7 @@ def cycle_bound(scheduler: str, n_chips: int, settings: mlx.Settings, bus_hz: fl
     the wire time does not include; measure it on the board (`acquire.board`).
     ``adapter`` (`ADAPTER_RULES`; None: unknown, counted as the narrowest)
     decides how many ioctls a cycle takes (`Shapes`). ``readback`` counts the
-    cycle that also reads one chip's three registers back; ``temperature`` the
+    cycle that also reads one chip's three registers back (six with TCMP_EN); ``temperature`` the
     cycle that also converts and reads T (a burst then converts T every time): the
     bound is that of the slowest cycle, which every cycle must fit.
     """
@@ -125,8 +125,10 @@ def cycle_bound(scheduler: str, n_chips: int, settings: mlx.Settings, bus_hz: fl
     rm_bits = RM_BITS + (BITS_PER_BYTE * 2 if zyxt & mlx.ZYXT_T else 0)
     sm_one = (SM_BITS + 1) / bus_hz + overhead_s
     rm_one = (rm_bits + 1) / bus_hz + overhead_s
-    checks = (3 + (2 if scheduler == "burst" else 0)) if readback else 0  # RR x3 (EX before, SB after in burst)
-    check = 3 * ((RR_BITS + 1) / bus_hz + overhead_s) if readback else 0.0
+    # RR of CONF1..CONF3, and of OFFSET_X/Y/Z with TCMP_EN (`MLX90393.configuration_matches`).
+    n_rr = 6 if settings.tcmp_en else 3
+    checks = (n_rr + (2 if scheduler == "burst" else 0)) if readback else 0  # (EX before, SB after in burst)
+    check = n_rr * ((RR_BITS + 1) / bus_hz + overhead_s) if readback else 0.0
 
     def bound(start: float, wait: float, read: float, check: float, ioctls: int) -> CycleBound:
         return CycleBound(scheduler, n_chips, bus_hz, start, wait, read, check, ioctls + checks, overhead_s, adapter)

@@ -81,11 +81,24 @@ class Conversions:
             if sigma > 0:
                 b_ut += self.rng.normal(0.0, sigma)
             counts = round(b_ut / sensitivity)
-            words[axis] = mlx.counts_to_raw(counts, fmt)
+            words[axis] = _tcmp_word(counts, self.registers[mlx.REG_OFFSETS[i]]) if s.tcmp_en \
+                else mlx.counts_to_raw(counts, fmt)
         if self.noise.temperature_sigma_c > 0:
             temp += self.rng.normal(0.0, self.noise.temperature_sigma_c)
         words["t"] = mlx.celsius_to_raw(temp, self.tref)
         return words
+
+
+def _tcmp_word(counts: int, offset: int) -> int:
+    """The word of ``counts`` with TCMP_EN on: referenced to the axis's OFFSET register,
+    so zero field reads ``offset``; only at 0x8000 (`mlx.OFFSET_TCMP_ZERO`) is this the
+    unsigned coding the decoder assumes. The chip's arithmetic past 16 bits is not
+    documented: the counts clamp to the signed 16-bit range (as at 0x8000, where the word
+    then clamps to 0..0xFFFF) and the sum wraps, so at the power-on OFFSET 0 every field
+    decodes to nearly the full span with the wrong sign: garbage, flagged saturated only
+    within a count of zero field, as users see on real chips (tedyapo/arduino-MLX90393
+    issue 26, "strange results when temperature compensation enabled")."""
+    return (max(-0x8000, min(0x7FFF, counts)) + offset) & 0xFFFF
 
 
 @functools.lru_cache(maxsize=256)
