@@ -62,7 +62,25 @@ def test_register_address_out_of_range_or_malformed_is_refused(bus, command):
 
 def test_unknown_opcode_is_refused(bus):
     assert status(bus, bytes([0x70])).error  # Adafruit's wrong "HS"
-    assert status(bus, bytes([0x00])).error
+    assert status(bus, bytes([0x0F])).error and status(bus, bytes([0x00, 0x00])).error  # not NOP
+
+
+def test_nop_returns_the_status_and_changes_nothing(bus):
+    """NOP (0x00) is in the datasheet's command list (Melexis's driver: MLX90393_CMD_NOP):
+    accepted in any mode, with the mode bits as they are, a conversion under way untouched."""
+    s = status(bus, bytes([mlx.CMD_NOP]))
+    assert not s.error and not (s.sm_mode or s.burst_mode)
+    configure_raw(bus)
+    assert status(bus, bytes([mlx.CMD_SM | mlx.ZYXT_XYZ])).sm_mode
+    s = status(bus, bytes([mlx.CMD_NOP]))
+    assert not s.error and s.sm_mode
+    bus.sleep(SM_XYZ_S)
+    assert not mlx.Status(xfer(bus, bytes([mlx.CMD_RM | mlx.ZYXT_XYZ]), 7)[0]).error
+    assert status(bus, bytes([mlx.CMD_SB | mlx.ZYXT_XYZ])).burst_mode
+    s = status(bus, bytes([mlx.CMD_NOP]))
+    assert not s.error and s.burst_mode
+    bus.chips[ADDR].memory_error = True  # then only RT is accepted
+    assert status(bus, bytes([mlx.CMD_NOP])).error
 
 
 def test_memory_recall_and_store(bus):

@@ -112,6 +112,12 @@ class RegisterCommands:
         self.registers[: len(self.nonvolatile)] = self.nonvolatile
         return self._status()
 
+    def _nop(self, opcode: int, zyxt: int, data: bytes, now: float) -> bytes:
+        """NOP (0x00): the status, nothing else changes, in any mode (Melexis's own driver
+        defines MLX90393_CMD_NOP 0x00 and sends it like EX: docs/simulator.md). Only the
+        one byte 0x00: 0x01-0x0F, or more bytes, are no listed command (refused)."""
+        return self._status(error=data != bytes([mlx.CMD_NOP]))
+
     def _hs(self, opcode: int, zyxt: int, data: bytes, now: float) -> bytes:
         if self.mode is not Mode.IDLE:
             return self._status(error=True)
@@ -221,7 +227,7 @@ class EmulatedMLX90393(RegisterCommands, Conversions):
         handler = {
             mlx.CMD_SB: self._mode_start, mlx.CMD_SW: self._mode_start, mlx.CMD_SM: self._mode_start,
             mlx.CMD_RM: self._rm, mlx.CMD_RR: self._rr, mlx.CMD_WR: self._wr, mlx.CMD_EX: self._ex,
-            mlx.CMD_HR: self._hr, mlx.CMD_HS: self._hs, mlx.CMD_RT: self._rt,
+            mlx.CMD_HR: self._hr, mlx.CMD_HS: self._hs, mlx.CMD_RT: self._rt, mlx.CMD_NOP: self._nop,
         }.get(opcode)
         if handler is None:
             self.reply = self._status(error=True)  # unknown opcode: refused

@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 # --- Commands (first byte; the low nibble of SB/SW/SM/RM is zyxt) -----------------
-CMD_NOP = 0x00  # no operation: the datasheet's command list, Melexis's own driver (MLX90393_CMD_NOP)
+CMD_NOP = 0x00  # no operation: Melexis's own driver (MLX90393_CMD_NOP), status only
 CMD_SB = 0x10  # start burst mode
 CMD_SW = 0x20  # start wake-on-change mode
 CMD_SM = 0x30  # start single measurement
