@@ -62,7 +62,25 @@ def test_register_address_out_of_range_or_malformed_is_refused(bus, command):
 
 def test_unknown_opcode_is_refused(bus):
     assert status(bus, bytes([0x70])).error  # Adafruit's wrong "HS"
-    assert status(bus, bytes([0x00])).error
+    assert status(bus, bytes([0x0F])).error and status(bus, bytes([0x00, 0x00])).error  # not NOP
+
+
+def test_nop_returns_the_status_and_changes_nothing(bus):
+    """NOP (0x00) is in the datasheet's command list (Melexis's driver: MLX90393_CMD_NOP):
+    accepted in any mode, with the mode bits as they are, a conversion under way untouched."""
+    s = status(bus, bytes([mlx.CMD_NOP]))
+    assert not s.error and not (s.sm_mode or s.burst_mode)
+    configure_raw(bus)
+    assert status(bus, bytes([mlx.CMD_SM | mlx.ZYXT_XYZ])).sm_mode
+    s = status(bus, bytes([mlx.CMD_NOP]))
+    assert not s.error and s.sm_mode
+    bus.sleep(SM_XYZ_S)
+    assert not mlx.Status(xfer(bus, bytes([mlx.CMD_RM | mlx.ZYXT_XYZ]), 7)[0]).error
+    assert status(bus, bytes([mlx.CMD_SB | mlx.ZYXT_XYZ])).burst_mode
+    s = status(bus, bytes([mlx.CMD_NOP]))
+    assert not s.error and s.burst_mode
+    bus.chips[ADDR].memory_error = True  # then only RT is accepted
+    assert status(bus, bytes([mlx.CMD_NOP])).error
 
 
 def test_memory_recall_and_store(bus):
@@ -129,6 +147,35 @@ def test_single_measurement_timing_data_ready_and_return_to_idle(bus):
     assert not s.error and not s.sm_mode and s.data_bytes == 6
     again = xfer(bus, bytes([mlx.CMD_RM | mlx.ZYXT_XYZ]), 7)
     assert mlx.Status(again[0]).error  # DRDY low once read
+
+
+def test_an_sm_whose_status_is_not_read_measures_nothing(bus):
+    """The datasheet: the first SM after power-up or reset should have its status read
+    back to get valid data. The emulator starts no SM whose status the next command
+    overtakes (every SM: a chip may reset unseen): no data, the RM refused with SM_MODE
+    clear, however long after; the chip takes the next SM."""
+    configure_raw(bus)
+    bus.i2c_rdwr(i2c_msg.write(ADDR, [mlx.CMD_SM | mlx.ZYXT_XYZ]))  # a write alone: status never read
+    bus.sleep(2 * SM_XYZ_S)
+    reply = mlx.Status(xfer(bus, bytes([mlx.CMD_RM | mlx.ZYXT_XYZ]), 7)[0])
+    assert reply.error and not reply.sm_mode
+    bus.i2c_rdwr(i2c_msg.write(ADDR, [mlx.CMD_SM | mlx.ZYXT_XYZ]))
+    s = status(bus, bytes([mlx.CMD_SM | mlx.ZYXT_XYZ]))  # not refused as "SM while in SM"
+    assert s.sm_mode and not s.error
+    bus.sleep(SM_XYZ_S)
+    assert not mlx.Status(xfer(bus, bytes([mlx.CMD_RM | mlx.ZYXT_XYZ]), 7)[0]).error
+
+
+def test_an_sm_whose_status_is_read_in_an_ioctl_of_its_own_measures(bus):
+    """Write, stop, then a read of the status on its own: the status is read (the
+    reference: write+STOP then a separate read works on real chips)."""
+    configure_raw(bus)
+    bus.i2c_rdwr(i2c_msg.write(ADDR, [mlx.CMD_SM | mlx.ZYXT_XYZ]))
+    r = i2c_msg.read(ADDR, 1)
+    bus.i2c_rdwr(r)
+    assert mlx.Status(bytes(r)[0]).sm_mode
+    bus.sleep(SM_XYZ_S)
+    assert not mlx.Status(xfer(bus, bytes([mlx.CMD_RM | mlx.ZYXT_XYZ]), 7)[0]).error
 
 
 def test_rm_of_items_the_conversion_did_not_make_is_refused(bus):
@@ -216,6 +263,52 @@ def test_noiseless_readings_are_the_field_quantised_to_the_lsb(bus, scene, setti
         assert m.field_t[i] == pytest.approx(round(scene.fields_t[ADDR][i] / lsb) * lsb, abs=1e-12)
     assert m.temperature_c == pytest.approx(31.5, abs=0.5 / 45.2)
     assert not m.any_saturated
+
+
+TCMP = mlx.Settings(gain_sel=4, res_x=1, res_y=1, res_z=1, tcmp_en=True)
+
+
+def rm_counts(bus, settings: mlx.Settings) -> list[int]:
+    """SM and RM of X, Y, Z (status read), decoded as counts from zero field."""
+    assert not status(bus, bytes([mlx.CMD_SM | mlx.ZYXT_XYZ])).error
+    bus.sleep(settings.single_measurement_us() * 1.2e-6)
+    reply = xfer(bus, bytes([mlx.CMD_RM | mlx.ZYXT_XYZ]), 7)
+    assert not mlx.Status(reply[0]).error
+    return [mlx.raw_to_counts((reply[1 + 2 * i] << 8) | reply[2 + 2 * i], settings.raw_format(a))
+            for i, a in enumerate("xyz")]
+
+
+def test_with_tcmp_the_output_is_referenced_to_the_offset_registers(bus, scene):
+    """TCMP_EN's output reads OFFSET_X/Y/Z at zero field: at 0x8000 the field, at the
+    power-on 0 garbage (wrapped to the far side of the span, with the wrong sign)."""
+    configure_raw(bus, TCMP)
+    truth = [round(scene.fields_t[ADDR][i] * 1e6 / TCMP.sensitivity_ut(a)) for i, a in enumerate("xyz")]
+    at_zero = rm_counts(bus, TCMP)
+    assert all(abs(c - t) > 30000 for c, t in zip(at_zero, truth))  # nowhere near: garbage
+    for reg, value in zip(mlx.REG_OFFSETS, (mlx.OFFSET_TCMP_ZERO, mlx.OFFSET_TCMP_ZERO + 100, 0x8000 - 7)):
+        assert not status(bus, bytes([mlx.CMD_WR, value >> 8, value & 0xFF, reg << 2])).error
+    assert rm_counts(bus, TCMP) == [truth[0], truth[1] + 100, truth[2] - 7]
+
+
+def test_without_tcmp_the_offset_registers_change_nothing(bus, scene):
+    configure_raw(bus)
+    before = rm_counts(bus, mlx.Settings())
+    assert not status(bus, bytes([mlx.CMD_WR, 0x12, 0x34, mlx.REG_OFFSET_X << 2])).error
+    assert rm_counts(bus, mlx.Settings()) == before
+
+
+def test_the_driver_sets_the_offsets_when_it_turns_tcmp_on_and_reads_them_back(chip, bus, scene):
+    emulated = bus.chips[ADDR]
+    assert [emulated.registers[r] for r in mlx.REG_OFFSETS] == [0, 0, 0]  # the paper's settings: no TCMP
+    chip.configure(TCMP)
+    assert [emulated.registers[r] for r in mlx.REG_OFFSETS] == [mlx.OFFSET_TCMP_ZERO] * 3
+    m = chip.measure()
+    for i, axis in enumerate("xyz"):
+        lsb = TCMP.sensitivity_ut(axis) * 1e-6
+        assert m.field_t[i] == pytest.approx(round(scene.fields_t[ADDR][i] / lsb) * lsb, abs=1e-12)
+    assert chip.configuration_matches()
+    emulated.drift_register(mlx.REG_OFFSET_Y, 0)  # an offset lost: the read-back sees it
+    assert not chip.configuration_matches()
 
 
 def test_readings_past_the_span_or_the_element_limit_are_flagged(bus, scene):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from smbus2.smbus2 import I2C_M_RD
 import pytest
 
 from ftsensord.acquire.bound import burst_readback_stays_fresh, cycle_bound
@@ -48,6 +49,28 @@ def test_a_cycle_takes_exactly_the_computed_bound(scheduler, hz, adapter):
             assert all(r.ok for r in results)
         if scheduler == "burst":  # the chips convert on their own: wait out the cycle
             clock.wait_until(t0 + bound.cycle_s)
+
+
+@pytest.mark.parametrize("scheduler", ["naive", "overlapped", "burst"])
+def test_with_tcmp_the_read_back_of_the_offsets_is_in_the_bound(scheduler):
+    """With TCMP_EN the read-back also reads OFFSET_X/Y/Z (three RRs more), as the bound counts."""
+    settings = mlx.Settings(gain_sel=4, res_x=1, res_y=1, res_z=1, tcmp_en=True)
+    clock = VirtualClock()
+    bus = simulated_bus(two_sensor_scene(), clock=clock, bus_hz=400e3, ioctl_s=80e-6)
+    reader = Reader(bus, [MLX90393(bus, a, sleep=bus.sleep) for a in range(0x0C, 0x1C)], scheduler, settings, 400e3)
+    assert reader.start() == {}
+    bound = cycle_bound(scheduler, 16, settings, 400e3, 80e-6, adapter=bus.adapter)
+    plain = cycle_bound(scheduler, 16, mlx.Settings(gain_sel=4, res_x=1, res_y=1, res_z=1), 400e3, 80e-6,
+                        adapter=bus.adapter)
+    assert bound.ioctls == plain.ioctls + 3
+    clock.sleep(0.1)
+    for _ in range(3):
+        t0, ioctls = clock.now(), bus.transfers
+        results = reader.read()
+        reader.upkeep()
+        assert clock.now() - t0 == pytest.approx(bound.cycle_s, rel=1e-9) and bus.transfers - ioctls == bound.ioctls
+        assert scheduler == "burst" or all(r.ok for r in results)
+        clock.wait_until(t0 + bound.cycle_s)
 
 
 @pytest.mark.parametrize("adapter", ["permissive", "bcm2835"])
@@ -205,3 +228,55 @@ def test_stuck_detection_is_off_where_noise_cannot_move_a_code():
     settings = mlx.Settings(osr=3, dig_filt=7)  # 0.2 uT of noise on a 6 uT code
     assert stuck_cycles_for(settings) == 0
     assert longest_identical_run(settings, 40.0, 300) == 299  # a healthy chip repeats itself
+
+
+class StatusAudit:
+    """Wraps a bus's ``i2c_rdwr`` and records every command (but RR) whose status byte the
+    next command to the same chip overtakes (the datasheet: an SM's status is read back to
+    get valid data; the emulator starts no SM whose status is not read), and counts the
+    mode commands (SM, SB) sent."""
+
+    def __init__(self, bus):
+        self.inner, self.unread, self.overtaken = bus.i2c_rdwr, set(), []
+        self.modes = {mlx.CMD_SM: 0, mlx.CMD_SB: 0}
+        bus.i2c_rdwr = self
+
+    def __call__(self, *msgs) -> None:
+        self.inner(*msgs)  # a refused or NACKed ioctl has no reply read: not counted
+        for m in msgs:
+            data = bytes(m)
+            if m.flags & I2C_M_RD:
+                self.unread.discard(m.addr)
+            elif data:  # (a zero-length write is a probe, no command)
+                if m.addr in self.unread:
+                    self.overtaken.append((m.addr, data[0]))
+                if data[0] == mlx.CMD_RR:  # changes nothing: `probe_shapes` sends one unread by design
+                    self.unread.discard(m.addr)
+                else:
+                    self.unread.add(m.addr)
+                if data[0] & 0xF0 in self.modes:
+                    self.modes[data[0] & 0xF0] += 1
+
+
+@pytest.mark.parametrize("adapter", ["permissive", "bcm2835", "designware"])
+@pytest.mark.parametrize("scheduler", ["naive", "overlapped", "burst"])
+def test_every_command_has_its_status_read_at_start_and_after_a_recovery(scheduler, adapter):
+    """Until 2026-11-26 `overlapped` on bcm2835 sent 15 chips' SMs as writes alone."""
+    scene = two_sensor_scene()
+    scene.faults = [Fault("detach", 0.3, 0.35, address=0x0F)]  # after the start (about 0.1 s)
+    clock = VirtualClock()
+    bus = simulated_bus(scene, clock=clock, bus_hz=400e3, adapter=adapter)
+    audit = StatusAudit(bus)
+    reader = Reader(bus, [MLX90393(bus, a, sleep=bus.sleep) for a in range(0x0C, 0x1C)], scheduler,
+                    mlx.Settings(), 400e3)
+    assert reader.start() == {}
+    first = reader.read()
+    assert all(r.ok for r in first), [hex(r.address) for r in first if not r.ok]
+    while clock.now() < 0.8:
+        t0 = clock.now()
+        results = reader.read()
+        reader.upkeep()
+        clock.wait_until(t0 + 0.01)
+    assert reader.health[0x0F].reinits >= 1 and results[3].ok  # reset, and back
+    assert audit.overtaken == []
+    assert audit.modes[mlx.CMD_SB if scheduler == "burst" else mlx.CMD_SM] > 16  # so it looked at some

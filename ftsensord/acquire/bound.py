@@ -24,8 +24,6 @@ DEFAULT_SCHEDULER = "burst"
 OSC_MARGIN = 1.2
 #: Chips per transfer: two messages each, at most 42 messages an ioctl.
 CHIPS_PER_TRANSFER = I2C_RDWR_MAX_MSGS // 2
-#: SM as a write alone: start, address, command byte (its status is not read).
-SM_WRITE_BITS = 1 + BITS_PER_BYTE * 2
 
 
 @dataclass(frozen=True)
@@ -34,9 +32,10 @@ class Shapes:
 
     ``reads_inside``: a read may be followed by more messages; ``many_addresses``:
     one ioctl may reach several chips. Both (permissive): up to 21 chips' (write,
-    read) pairs an ioctl. Many addresses but reads last only (i2c-bcm2835): SM to
-    up to 42 chips as writes alone in one ioctl, every read in an ioctl of its own.
-    Neither, or one address only (i2c-designware): one chip's (write, read) an ioctl.
+    read) pairs an ioctl. Otherwise one chip's (write, read) an ioctl: i2c-bcm2835
+    takes a read only last (it would take writes to many chips then one read, but
+    every command's status is read, so each chip's SM has its read: `Transfers.start_all`),
+    i2c-designware one address only.
     """
 
     reads_inside: bool = False
@@ -54,18 +53,11 @@ class Shapes:
     def pairs_per_transfer(self) -> int:
         return CHIPS_PER_TRANSFER if self.reads_inside and self.many_addresses else 1
 
-    @property
-    def sm_writes_only(self) -> bool:
-        """SM as writes alone to many chips at once: one ioctl where (write, read)
-        pairs would take one per chip. The SM's status is then never read: a chip
-        that refused its SM is found by the following RM, refused for lack of data."""
-        return self.many_addresses and not self.reads_inside
-
     def describe(self) -> str:
         if self.pairs_per_transfer > 1:
             return f"(write, read) pairs of up to {self.pairs_per_transfer} chips in one ioctl"
-        if self.sm_writes_only:
-            return f"writes to up to {I2C_RDWR_MAX_MSGS} chips then one read in one ioctl; one read an ioctl"
+        if self.many_addresses:
+            return "one chip's (write, read) an ioctl (writes to many chips then one read taken; reads last only)"
         return "one chip an ioctl"
 #: Bits of one command on the wire: start, address, command byte; then repeated
 #: start, address, status byte (SM), or status and six data bytes (RM of X, Y, Z).
@@ -123,7 +115,7 @@ def cycle_bound(scheduler: str, n_chips: int, settings: mlx.Settings, bus_hz: fl
     the wire time does not include; measure it on the board (`acquire.board`).
     ``adapter`` (`ADAPTER_RULES`; None: unknown, counted as the narrowest)
     decides how many ioctls a cycle takes (`Shapes`). ``readback`` counts the
-    cycle that also reads one chip's three registers back; ``temperature`` the
+    cycle that also reads one chip's three registers back (six with TCMP_EN); ``temperature`` the
     cycle that also converts and reads T (a burst then converts T every time): the
     bound is that of the slowest cycle, which every cycle must fit.
     """
@@ -133,8 +125,10 @@ def cycle_bound(scheduler: str, n_chips: int, settings: mlx.Settings, bus_hz: fl
     rm_bits = RM_BITS + (BITS_PER_BYTE * 2 if zyxt & mlx.ZYXT_T else 0)
     sm_one = (SM_BITS + 1) / bus_hz + overhead_s
     rm_one = (rm_bits + 1) / bus_hz + overhead_s
-    checks = (3 + (2 if scheduler == "burst" else 0)) if readback else 0  # RR x3 (EX before, SB after in burst)
-    check = 3 * ((RR_BITS + 1) / bus_hz + overhead_s) if readback else 0.0
+    # RR of CONF1..CONF3, and of OFFSET_X/Y/Z with TCMP_EN (`MLX90393.configuration_matches`).
+    n_rr = 6 if settings.tcmp_en else 3
+    checks = (n_rr + (2 if scheduler == "burst" else 0)) if readback else 0  # (EX before, SB after in burst)
+    check = n_rr * ((RR_BITS + 1) / bus_hz + overhead_s) if readback else 0.0
 
     def bound(start: float, wait: float, read: float, check: float, ioctls: int) -> CycleBound:
         return CycleBound(scheduler, n_chips, bus_hz, start, wait, read, check, ioctls + checks, overhead_s, adapter)
@@ -146,12 +140,11 @@ def cycle_bound(scheduler: str, n_chips: int, settings: mlx.Settings, bus_hz: fl
         # The chip read back is left out of the SM transfer, read back while the others
         # convert, started then (SM with its status read) and read last (`Reader`).
         n_sm = n_chips - 1 if readback else n_chips
-        if n_sm == 0:
-            start, start_ioctls = 0.0, 0
-        elif shapes.sm_writes_only:
-            start, start_ioctls = _transfers_s(n_sm, SM_WRITE_BITS, I2C_RDWR_MAX_MSGS, bus_hz, overhead_s)
-        else:
-            start, start_ioctls = _transfers_s(n_sm, SM_BITS, shapes.pairs_per_transfer, bus_hz, overhead_s)
+        # Every SM with its status read (`Transfers.start_all`): chip k's SM ends k SMs
+        # into the transfers, its RM comes k RMs after the first, and an RM is longer,
+        # so waiting for the first chip's conversion is enough for all.
+        start, start_ioctls = _transfers_s(n_sm, SM_BITS, shapes.pairs_per_transfer, bus_hz, overhead_s) \
+            if n_sm else (0.0, 0)
         first = overhead_s + (1 + BITS_PER_BYTE * 2) / bus_hz
         rm_at = overlapped_rm_at(first + conversion, start + check, conversion, first,
                                  _last_offset_s(n_chips, rm_bits, shapes.pairs_per_transfer, bus_hz, overhead_s)

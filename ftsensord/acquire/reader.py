@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from ..chip import mlx90393 as mlx
 from ..chip.driver import MLX90393
 from ..chip.i2c import BITS_PER_BYTE, Bus, BusTiming
-from ..errors import ChipError, ChipProtocolError, ChipRefusedError, ConfigError
+from ..errors import ChipError, ChipProtocolError, ConfigError
 from .bound import OSC_MARGIN, SCHEDULERS, Shapes, overlapped_rm_at
 from .health import ChipCare, ChipHealth, ChipResult
 from .transfers import Transfers, probe_shapes
@@ -191,7 +191,6 @@ class Reader:
         """SM every chip, wait, RM every chip; ``checked`` is read back while the others
         convert, then started and read last (`bound.cycle_bound` counts the same)."""
         results: dict[int, ChipResult] = {}
-        self.xfer.unread_sm.clear()
         t0 = self.bus.monotonic()
         others = [c for c in healthy if c is not checked]
         results.update(self.xfer.start_all(others, zyxt))
@@ -221,16 +220,7 @@ class Reader:
                     self.bus.sleep(max(0.0, t0 + rm_at - self.bus.monotonic()))
         if last_offset is None:
             self.bus.sleep(max(0.0, t0 + first + conversion - self.bus.monotonic()))
-        read = self.xfer.read_all(ready, zyxt)
-        for a, r in read.items():
-            if a in self.xfer.unread_sm and isinstance(r.error, ChipRefusedError) and r.error.command == "RM" \
-                    and not r.error.status.sm_mode:  # type: ignore[attr-defined]
-                # No data and no conversion under way: its SM, sent as a write alone, was
-                # refused. A failure now, not a stale result (`health.STALE_LIMIT`).
-                read[a] = ChipResult(a, error=ChipRefusedError(
-                    a, f"SM refused (seen through RM, status {r.error.status}: no conversion under way)",
-                    r.error.status, "SM"))
-        results.update(read)
+        results.update(self.xfer.read_all(ready, zyxt))
         return results
 
     def _single(self, chip: MLX90393, zyxt: int) -> ChipResult:

@@ -23,7 +23,7 @@ from smbus2 import i2c_msg
 from ..chip import mlx90393 as mlx
 from ..chip.block import BlockDecoder
 from ..chip.driver import MLX90393, bus_error
-from ..chip.i2c import I2C_M_RD, I2C_RDWR_MAX_MSGS, SHAPE_REFUSED, Bus
+from ..chip.i2c import I2C_M_RD, SHAPE_REFUSED, Bus
 from ..errors import ChipError
 from .bound import Shapes
 from .health import ChipResult
@@ -72,14 +72,13 @@ def probe_shapes(bus: Bus, chips: list[MLX90393], tries: int = 4) -> Shapes | No
 class Transfers:
     """The transfers of one bus as wide as its adapter takes (`Shapes`), learnt by
     `probe_shapes` at start and again after a refusal, so a refused ioctl is paid
-    once, not every cycle. ``unread_sm``: chips whose last SM went without its status read."""
+    once, not every cycle."""
 
     def __init__(self, bus: Bus):
         self.bus = bus
         self.shapes = Shapes()  # the narrowest until `learn` has asked
         self.reprobe = True
         self.probe_at = 0  # the cycle of the next probe while none has answered
-        self.unread_sm: set[int] = set()
         self._plans: dict[tuple[int, int], RMPlan] = {}  # per (zyxt, pairs per transfer)
 
     def learn(self, chips: list[MLX90393], cycle: int) -> None:
@@ -92,30 +91,18 @@ class Transfers:
             self.probe_at = cycle + 100
 
     def start_all(self, chips: list[MLX90393], zyxt: int) -> dict[int, ChipResult]:
-        """SM to ``chips``; the refusals (a chip missing from the result started).
+        """SM to ``chips``, each with its status read; the refusals (a chip missing from
+        the result started).
 
-        Where the adapter takes many writes but one read (i2c-bcm2835), the SMs go
-        as writes alone, up to 42 chips an ioctl, and their status is not read: a
-        chip that refused its SM (a stray mode, lost registers) shows it in the
-        following RM, refused for lack of new data while its status shows no
-        conversion under way (SM_MODE clear): `_overlapped` turns that into the SM's
-        refusal, so the chip fails at once as if the SM's status had been read.
-        What is lost is only the reply's byte itself (never compared whole anyway).
+        The status is read for every SM, as wide as the adapter takes (on i2c-bcm2835,
+        one chip's write and read an ioctl, its read last): the datasheet asks for the
+        status of the first SM after power-up or reset "in order to get valid measurement
+        data back", and a chip that browned out and came back has reset without the
+        driver knowing, so no SM can be known not to be the first. An SM sent as a write
+        alone (the 42-a-ioctl batch bcm2835 would take) could return wrong data that
+        nothing flags; the emulator does not start it (docs/simulator.md).
         """
-        if len(chips) > 1 and self.shapes.sm_writes_only:
-            alone: list[MLX90393] = []
-            for k in range(0, len(chips), I2C_RDWR_MAX_MSGS):
-                group = chips[k:k + I2C_RDWR_MAX_MSGS]
-                try:
-                    self.bus.i2c_rdwr(*[c.sm_messages(zyxt)[0] for c in group])
-                except OSError as exc:
-                    self.refused(exc)
-                    alone.extend(group)  # which one failed? ask each with its status
-                    continue
-                self.unread_sm.update(c.address for c in group)
-            started = self.batch(alone, lambda c: c.sm_messages(zyxt), self._decode_sm)
-        else:
-            started = self.batch(chips, lambda c: c.sm_messages(zyxt), self._decode_sm)
+        started = self.batch(chips, lambda c: c.sm_messages(zyxt), self._decode_sm)
         return {a: ChipResult(a, error=e) for a, e in started.items() if isinstance(e, ChipError)}
 
     def read_all(self, chips: list[MLX90393], zyxt: int) -> dict[int, ChipResult]:

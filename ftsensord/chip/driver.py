@@ -226,13 +226,14 @@ class MLX90393:
         return {reg: self.read_register(reg) for reg in (mlx.REG_CONF1, mlx.REG_CONF2, mlx.REG_CONF3)}
 
     def configure(self, settings: mlx.Settings) -> None:
-        """Validate ``settings`` and write them, keeping reserved bits as read.
+        """Validate ``settings`` and write them (`write_tcmp_offsets` first), keeping reserved bits as read.
 
         Raises `ForbiddenSettingError` before touching the chip when the datasheet
         does not permit the combination.
         """
         settings.validate()
         current = self.read_configuration()
+        write_tcmp_offsets(self, settings)
         for reg, value in settings.to_registers(current).items():
             self.write_register(reg, value)
         self.tref = self.read_register(mlx.REG_TREF)
@@ -255,13 +256,29 @@ class MLX90393:
         """Read back CONF1..CONF3 and compare with what `configure` wrote.
 
         Registers have been seen to change after months of running; a caller
-        re-initialises the chip when this returns False.
+        re-initialises the chip when this returns False. With TCMP_EN, OFFSET_X/Y/Z too.
         """
         if self.settings is None:
             raise ChipProtocolError(self.address, "not configured")
-        current = self.read_configuration()
-        return current == _expected_registers(
-            self.settings, current[mlx.REG_CONF1], current[mlx.REG_CONF2], current[mlx.REG_CONF3])
+        current = self.read_configuration()  # CONF1, CONF2, CONF3, in this order
+        return current == _expected_registers(self.settings, *current.values()) and tcmp_offsets_hold(self)
+
+
+def write_tcmp_offsets(chip: MLX90393, settings: mlx.Settings) -> None:
+    """With TCMP_EN in ``settings``: OFFSET_X/Y/Z at `mlx.OFFSET_TCMP_ZERO`, before TCMP_EN
+    turns on. The compensated output is referenced to them, and at their power-on 0 it is
+    garbage. With TCMP_EN off the chip does not use them: left as they are."""
+    if settings.tcmp_en:
+        for reg in mlx.REG_OFFSETS:
+            chip.write_register(reg, mlx.OFFSET_TCMP_ZERO)
+
+
+def tcmp_offsets_hold(chip: MLX90393) -> bool:
+    """Whether OFFSET_X/Y/Z still hold `mlx.OFFSET_TCMP_ZERO` when the chip's settings
+    have TCMP_EN (then they are configuration too: three reads more a read-back, which
+    `bound.cycle_bound` counts); True without TCMP_EN, reading nothing."""
+    return chip.settings is None or not chip.settings.tcmp_en or all(
+        chip.read_register(reg) == mlx.OFFSET_TCMP_ZERO for reg in mlx.REG_OFFSETS)
 
 
 @functools.lru_cache(maxsize=64)

@@ -1,6 +1,6 @@
 """Floor 4, the simulator: emulated MLX90393s fed by a scene, behind smbus2's ``i2c_rdwr``.
 
-Owns the emulated chip (`chip`), the simulated bus with the kernel's
+Owns the emulated chip (`chip`, its conversions in `conversion`), the simulated bus with the kernel's
 semantics, wire time and fault hooks (`bus`), clocks (`clock`), the physics
 of magnets and stiffness (`physics`), loads over time (`loads`), scripted
 faults (`faults`) and scene files (`scene`). `simulated_bus` builds a ready

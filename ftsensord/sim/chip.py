@@ -16,13 +16,15 @@ from __future__ import annotations
 import enum
 import functools
 import math
-from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
 
 from ..chip import mlx90393 as mlx
+from .conversion import NOISELESS, Conversions, NoiseModel
 from .thermal import ChipDrift
+
+__all__ = ["NOISELESS", "EmulatedMLX90393", "FieldSource", "Mode", "NoiseModel"]
 
 
 class FieldSource(Protocol):
@@ -40,27 +42,6 @@ class FieldSource(Protocol):
     def temperature_c(self, address: int, t: float) -> float:
         """Die temperature in degC at time ``t`` (s)."""
         ...
-
-
-@dataclass(frozen=True)
-class NoiseModel:
-    """Reading noise: ``sigma = sigma_ref * sqrt(t_ref / TCONVM)`` per axis, Z noisier.
-
-    The defaults are the estimate in `ftsensord.mlx90393` (`mlx.noise_ut`);
-    a scene may scale them.
-    """
-
-    sigma_ref_xy_ut: float = mlx.NOISE_REF_XY_UT
-    t_ref_us: float = mlx.NOISE_REF_TCONVM_US
-    z_factor: float = mlx.NOISE_Z_FACTOR
-    temperature_sigma_c: float = 0.05
-
-    def sigma_ut(self, axis: str, tconvm_us: float) -> float:
-        sigma = self.sigma_ref_xy_ut * math.sqrt(self.t_ref_us / tconvm_us)
-        return sigma * self.z_factor if axis == "z" else sigma
-
-
-NOISELESS = NoiseModel(sigma_ref_xy_ut=0.0, temperature_sigma_c=0.0)
 
 
 class Mode(enum.Enum):
@@ -131,6 +112,12 @@ class RegisterCommands:
         self.registers[: len(self.nonvolatile)] = self.nonvolatile
         return self._status()
 
+    def _nop(self, opcode: int, zyxt: int, data: bytes, now: float) -> bytes:
+        """NOP (0x00): the status, nothing else changes, in any mode (Melexis's own driver
+        defines MLX90393_CMD_NOP 0x00 and sends it like EX: docs/simulator.md). Only the
+        one byte 0x00: 0x01-0x0F, or more bytes, are no listed command (refused)."""
+        return self._status(error=data != bytes([mlx.CMD_NOP]))
+
     def _hs(self, opcode: int, zyxt: int, data: bytes, now: float) -> bytes:
         if self.mode is not Mode.IDLE:
             return self._status(error=True)
@@ -139,7 +126,7 @@ class RegisterCommands:
         return self._status()
 
 
-class EmulatedMLX90393(RegisterCommands):
+class EmulatedMLX90393(RegisterCommands, Conversions):
     """One chip at one address. Times (``now``) are seconds on the bus's clock.
 
     ``drift``: how it drifts with its die temperature (None: not at all), by its own TCMP_EN.
@@ -184,6 +171,7 @@ class EmulatedMLX90393(RegisterCommands):
         self.busy_until = -math.inf
         self.reply = b""
         self._reply_pending = False  # a command whose reply has not been read yet
+        self._sm_unread = False  # an accepted SM whose status byte has not been read yet
         self._conv_items: tuple[str, ...] = ()
         self._conv_first = math.inf  # time the first result is ready
         self._conv_interval = math.inf  # burst interval (inf: one conversion only)
@@ -229,6 +217,8 @@ class EmulatedMLX90393(RegisterCommands):
         if not data:
             return  # a zero-length write is an address probe: ACK only
         self._advance(now)
+        if self._sm_unread:
+            self._void_single()
         self._reply_pending = True  # (set again below: RT's power-on clears it)
         opcode, zyxt = data[0] & 0xF0, data[0] & 0x0F
         if self.memory_error and opcode != mlx.CMD_RT:
@@ -237,7 +227,7 @@ class EmulatedMLX90393(RegisterCommands):
         handler = {
             mlx.CMD_SB: self._mode_start, mlx.CMD_SW: self._mode_start, mlx.CMD_SM: self._mode_start,
             mlx.CMD_RM: self._rm, mlx.CMD_RR: self._rr, mlx.CMD_WR: self._wr, mlx.CMD_EX: self._ex,
-            mlx.CMD_HR: self._hr, mlx.CMD_HS: self._hs, mlx.CMD_RT: self._rt,
+            mlx.CMD_HR: self._hr, mlx.CMD_HS: self._hs, mlx.CMD_RT: self._rt, mlx.CMD_NOP: self._nop,
         }.get(opcode)
         if handler is None:
             self.reply = self._status(error=True)  # unknown opcode: refused
@@ -249,6 +239,7 @@ class EmulatedMLX90393(RegisterCommands):
         """A read message: the prepared reply; 0xFF (released SDA) past its end."""
         self._advance(now)
         self._reply_pending = False
+        self._sm_unread = False
         return (self.reply + b"\xff" * length)[:length]
 
     # --- commands -----------------------------------------------------------------
@@ -277,7 +268,22 @@ class EmulatedMLX90393(RegisterCommands):
             self._conv_first = now + s.single_measurement_us(zyxt_eff) * 1e-6
             self._conv_interval = (s.burst_interval_us(zyxt_eff) * 1e-6
                                    if self.mode is Mode.BURST else math.inf)
+        self._sm_unread = self.mode is Mode.SINGLE
         return self._status()
+
+    def _void_single(self) -> None:
+        """An SM whose status byte was never read (the next command came first): its
+        measurement is as if never started, back to idle with no data, so the RM after
+        it is refused (ERROR, SM_MODE clear). The datasheet: the first SM after power-up
+        or reset "should have the status byte read back in order to get valid
+        measurement data back"; the emulator takes the safest reading, for every SM (a
+        chip may have reset unseen, so a driver cannot know which SM is the first), and
+        refuses rather than return data a real chip may get wrong without a flag."""
+        self._sm_unread = False
+        if self.mode is Mode.SINGLE:
+            self.mode = Mode.IDLE
+        self._conv_first, self._conv_interval = math.inf, math.inf
+        self._last_index = -1
 
     def _rm(self, opcode: int, zyxt: int, data: bytes, now: float) -> bytes:
         items = self._selected(zyxt)
@@ -294,35 +300,6 @@ class EmulatedMLX90393(RegisterCommands):
         if self.stuck:
             self._stuck_words = words
         return self._reply_words(items, words)
-
-    def _reply_words(self, items: tuple[str, ...], words: dict[str, int]) -> bytes:
-        out = bytearray(self._status(d=mlx.d_for_items(len(items))))
-        for item in items:
-            out += words[item].to_bytes(2, "big")
-        return bytes(out)
-
-    def _convert(self, t: float) -> dict[str, int]:
-        """Quantised words of a conversion finishing at time ``t``."""
-        s = self.settings()
-        field = self.field_override if self.field_override is not None else np.asarray(
-            self.scene.field_t(self.address, t), dtype=float)
-        temp = self.scene.temperature_c(self.address, t)
-        if temp != mlx.TEMPERATURE_REF_C and self.drift is not None:  # at 25 degC nothing drifts
-            # The element saturates first; its sensitivity and offset drift act on what it sees.
-            field = self.drift.reading(np.clip(field, -mlx.HALL_SATURATION_T, mlx.HALL_SATURATION_T),
-                                       temp - mlx.TEMPERATURE_REF_C, s.tcmp_en)
-        words: dict[str, int] = {}
-        for i, (axis, sigma, sensitivity, fmt) in enumerate(_axes(s, self.noise)):
-            # The Hall element saturates near 50 mT whatever the gain.
-            b_ut = min(max(float(field[i]), -mlx.HALL_SATURATION_T), mlx.HALL_SATURATION_T) * 1e6
-            if sigma > 0:
-                b_ut += self.rng.normal(0.0, sigma)
-            counts = round(b_ut / sensitivity)
-            words[axis] = mlx.counts_to_raw(counts, fmt)
-        if self.noise.temperature_sigma_c > 0:
-            temp += self.rng.normal(0.0, self.noise.temperature_sigma_c)
-        words["t"] = mlx.celsius_to_raw(temp, self.tref)
-        return words
 
     def _ex(self, opcode: int, zyxt: int, data: bytes, now: float) -> bytes:
         self.mode = Mode.IDLE
@@ -356,10 +333,3 @@ def _permitted(settings: mlx.Settings) -> bool:
     except ValueError:
         return False
     return True
-
-
-@functools.lru_cache(maxsize=256)
-def _axes(settings: mlx.Settings, noise: NoiseModel) -> tuple[tuple[str, float, float, mlx.RawFormat], ...]:
-    """Per axis X, Y, Z at ``settings``: its noise (uT), uT per count and word coding."""
-    return tuple((a, noise.sigma_ut(a, settings.tconvm_us()), settings.sensitivity_ut(a), settings.raw_format(a))
-                 for a in "xyz")

@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 # --- Commands (first byte; the low nibble of SB/SW/SM/RM is zyxt) -----------------
+CMD_NOP = 0x00  # no operation: Melexis's own driver (MLX90393_CMD_NOP), status only
 CMD_SB = 0x10  # start burst mode
 CMD_SW = 0x20  # start wake-on-change mode
 CMD_SM = 0x30  # start single measurement
@@ -18,7 +19,7 @@ CMD_HS = 0xE0  # memory store (RAM -> non-volatile)
 CMD_RT = 0xF0  # reset
 
 COMMAND_NAMES = {
-    CMD_SB: "SB", CMD_SW: "SW", CMD_SM: "SM", CMD_RM: "RM", CMD_RR: "RR",
+    CMD_NOP: "NOP", CMD_SB: "SB", CMD_SW: "SW", CMD_SM: "SM", CMD_RM: "RM", CMD_RR: "RR",
     CMD_WR: "WR", CMD_EX: "EX", CMD_HR: "HR", CMD_HS: "HS", CMD_RT: "RT",
 }
 
@@ -143,6 +144,13 @@ REG_WOXY_THRESHOLD = 0x07
 REG_WOZ_THRESHOLD = 0x08
 REG_WOT_THRESHOLD = 0x09
 REG_TREF = 0x24
+
+REG_OFFSETS = (REG_OFFSET_X, REG_OFFSET_Y, REG_OFFSET_Z)
+#: OFFSET_X/Y/Z for TCMP_EN = 1: the compensated output is referenced to these registers,
+#: so zero field reads 0x8000 (the coding `raw_format` assumes) only when they hold 0x8000;
+#: their power-on 0 gives garbage (Melexis's application note on TCMP; tedyapo/
+#: arduino-MLX90393 issue 26: "offsets have to be programmed relative to 0x8000").
+OFFSET_TCMP_ZERO = 0x8000
 
 #: Largest register address: RR/WR send ``reg << 2`` in one byte.
 REG_MAX = 0x3F
