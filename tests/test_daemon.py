@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import socket
 import subprocess
 import sys
@@ -386,6 +387,9 @@ def test_config_refuses_a_rate_above_the_bound_naming_it(tmp_path):
     msg = str(exc.value)
     # burst 156 Hz: its slowest cycle reads the chips' temperatures too (temperature_every).
     assert "rate_hz: 150 Hz cannot be met" in msg and "103.7 Hz at most" in msg and "burst 156 Hz" in msg
+    # Every lever with its bound (issue 26): the register read-back's too.
+    bare = re.search(r"readback_every = 0: (\d+) Hz", msg)
+    assert bare is not None and 103.7 < float(bare.group(1)) < 150, msg
 
 
 @pytest.mark.parametrize(("edit", "key", "expected"), [

@@ -185,8 +185,10 @@ def check_rate(config: Config, rate_hz: float, where: str = "rate_hz", timing: B
         return
     others = ", ".join(f"{s} {replace(config, scheduler=s).bound(timing).rate_hz:.0f} Hz"
                        for s in SCHEDULERS if s != config.scheduler)
+    bare = replace(config, readback_every=0).bound(timing).rate_hz  # the register read-back's part of the cycle
     raise ConfigError(f"{where}: {rate_hz:g} Hz cannot be met: {bound.describe()}. Lower the rate, change the "
-                      f"scheduler ({others}), shorten the conversion (lower OSR or DIG_FILT), or use a faster bus")
+                      f"scheduler ({others}), read no register back (readback_every = 0: {bare:.0f} Hz), shorten "
+                      f"the conversion (lower OSR or DIG_FILT), or use a faster bus")
 
 
 def _resolve(table: Table, key: str, value: str) -> Path:
@@ -349,15 +351,13 @@ def load_config(path: str | Path | None = None, calibrations: Calibrations | Non
         scheduler=doc.string("scheduler", DEFAULT_SCHEDULER, choices=SCHEDULERS),
         averaging=doc.integer("averaging", 1, low=1, high=10_000, what="an integer from 1 to 10000"),
         lowpass_hz=doc.number("lowpass_hz", 0.0, low=0, unit="Hz (0: off)"),
-        settings=settings, sensors=sensors, publish=publish,
+        settings=settings, sensors=sensors, publish=publish, security=security,
         control=_endpoint(doc, "control", f"ipc://{rt}/control",
                           off_loopback=security.curve or security.allow_insecure_control,
                           why="control beyond this host needs [security] curve_server_cert and curve_clients_dir "
                               "(or allow_insecure_control = true, which is logged)"),
-        security=security,
         temperature_every=doc.integer("temperature_every", 100, low=0, what="cycles (0: never)"),
-        stuck_cycles=doc.integer("stuck_cycles", stuck_cycles_for(settings), low=0,
-                                 what="cycles (0: no stuck detection)"),
+        stuck_cycles=doc.integer("stuck_cycles", stuck_cycles_for(settings), low=0, what="cycles (0: no stuck detection)"),
         readback_every=doc.integer("readback_every", 1, low=0, what="cycles (0: no register read-back)"),
         max_missing_chips=doc.integer("max_missing_chips", 2, low=0, high=5,
                                       what="0 to 5 chips (degraded mode; 0: off)"))
