@@ -160,6 +160,7 @@ class SensorPipeline:
         wrench, wflags = self.estimate(corrected, flags, usable)
         fitted = self.config.calibration.wrench_range
         if (usable.all() and not wflags & _NOT_LEARNT and np.all(np.isfinite(wrench))
+                and not (self.thermal is not None and self.thermal.beyond_span)
                 and (fitted is None or bool(np.all(np.abs(wrench + self.tare_wrench) <= fitted)))):
             stray.learn(flux)
         return wrench, wflags | (wire.FLAG_INCONSISTENT if changed else 0)
@@ -241,9 +242,9 @@ class SensorPipeline:
 
 
 #: Flags of a sample the stray stage does not learn from: a chip not read or left out, a
-#: load beyond the linear model, a temperature beyond its span.
+#: load beyond the linear model (a temperature beyond its span is asked of the stage itself).
 _NOT_LEARNT = (wire.FLAG_CHIP_MISSING | wire.FLAG_SATURATED | wire.FLAG_STALE | wire.FLAG_DEGRADED
-               | wire.FLAG_INVALID | wire.FLAG_EXTRAPOLATED | wire.FLAG_OVERLOAD | wire.FLAG_TEMPERATURE)
+               | wire.FLAG_INVALID | wire.FLAG_EXTRAPOLATED)
 
 
 @functools.lru_cache(maxsize=8)
