@@ -62,6 +62,13 @@ CORRECT_WITHIN = np.array([0.0125, 0.0125, 0.0125, 0.5e-3, 0.5e-3, 0.5e-3])
 #: rises at 15 cm (8.7 mNm), not at 25 (benchmarks/motor.py; docs/accuracy.md).
 CHANGE_ODDS = 1e-6
 CHANGE_SAMPLES = 10
+#: A tare whose in-plane reading is further than this from the calibration's (T) was taken in
+#: a gradient: then a turn, or any change beyond noise, raises the alarm until the gradient
+#: is learnt, since the first turn can move the hidden parts far more than the in-plane ones
+#: (30 mNm against 5 uT in tests/test_world_gradient.py). Without a motor the
+#: zero's own in-plane offset stayed within 0.4 uT (parts 11-13, 1.0 s tares); 2 uT is about
+#: 0.25 uT/mm across the ring, a 2 A m^2 motor within some 25 cm.
+TARE_GRADIENT_T = 2e-6
 ALARM_WRENCH = 1.5 * np.array([0.05, 0.05, 0.05, 2e-3, 2e-3, 2e-3])
 #: The covariance of the five parts of a random traceless symmetric gradient (isotropic:
 #: the traceless part of (A + A^T) / 2, A's entries N(0, 1)): diagonal parts 2/3 and -1/3
@@ -123,6 +130,7 @@ class WorldGradient:
         self.recent: deque[np.ndarray] = deque(maxlen=CHANGE_SAMPLES)  # y's departures from what is expected
         self.recent_sum = np.zeros(self.Q.shape[1])
         self.alarm = False  # a change since the tare, not yet learnt
+        self.tare_in_gradient = False  # the tare's in-plane reading says a gradient was there
 
     def _clear_recent(self) -> None:
         self.recent.clear()
@@ -145,6 +153,8 @@ class WorldGradient:
         self.T = None if R is None else turned(R)  # used up to three times a sample
         if not self.steady:
             self._clear_recent()  # a turn: the change is judged afresh at the new orientation, from its first sample
+            if self.tare_in_gradient and self.theta is None and R is not None:
+                self.alarm = True  # tared in a gradient not yet learnt: a turn moves its hidden parts
 
     def learn(self, flux: np.ndarray) -> None:
         """Learn from this sample's flux (T, the stage's input): the caller says it may (every
@@ -185,6 +195,7 @@ class WorldGradient:
         """The pipeline took ``zero`` (T, the stage's input) as its zero at the newest orientation."""
         self.tare_T = self.T
         self.tare_y = self.Q.T @ (zero - self.zero)
+        self.tare_in_gradient = float(np.sqrt(self.tare_y @ self.tare_y)) > TARE_GRADIENT_T
         self.tare_g = None if self.theta is None else self.theta[:5].copy()
         self._clear_recent()
         self.alarm = False
@@ -208,7 +219,8 @@ class WorldGradient:
         mean = self.recent_sum / len(self.recent)
         size = float(np.sqrt(mean @ mean))
         threat = (size ** 2 * len(self.recent) / self.sigma_y ** 2 > self.limit
-                  and bool(np.any(size * self.false_per_change > ALARM_WRENCH)))
+                  and (self.tare_in_gradient and self.theta is None
+                       or bool(np.any(size * self.false_per_change > ALARM_WRENCH))))
         # A change raises the alarm once: learning starts afresh from it (samples from
         # before would bias what is learnt next), and the alarm stays until it is learnt.
         if threat and (self.theta is not None or not self.alarm):
