@@ -259,8 +259,7 @@ class OrientationPublisher:
         if sum(given) != 1:
             raise WireError("orientation: give exactly one of rotation (3 x 3), q_wxyz or q_xyzw")
         if q_xyzw is not None:
-            x, y, z, w = np.asarray(q_xyzw, dtype=float).ravel()
-            value = np.array([w, x, y, z])
+            value = np.roll(np.asarray(q_xyzw, dtype=float).ravel(), 1)  # w last to w first; its size checked below
         elif q_wxyz is not None:
             value = np.asarray(q_wxyz, dtype=float).ravel()
         else:

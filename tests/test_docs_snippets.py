@@ -39,8 +39,11 @@ def blocks() -> list[tuple[str, int, str]]:
     return out
 
 
+BLOCKS = blocks()
+
+
 def test_the_pages_have_python_blocks_to_run():
-    assert len(blocks()) >= 2  # the Subscriber/ControlClient block and the orientation one
+    assert len(BLOCKS) >= 2  # the Subscriber/ControlClient block and the orientation one
 
 
 @pytest.fixture(scope="module")
@@ -56,7 +59,7 @@ def daemon(tmp_path_factory):
         notify.close()
 
 
-@pytest.mark.parametrize(("page", "line", "code"), blocks(), ids=[f"{p}:{n}" for p, n, _ in blocks()])
+@pytest.mark.parametrize(("page", "line", "code"), BLOCKS, ids=[f"{p}:{n}" for p, n, _ in BLOCKS])
 def test_a_python_block_runs_as_written(daemon, page, line, code):
     env = {**os.environ, "XDG_RUNTIME_DIR": str(daemon)}
     env.pop("RUNTIME_DIRECTORY", None)

@@ -119,9 +119,8 @@ class Tares:
                 self.jobs.remove(job)
                 self.reply(job.reply_to, {"ok": False, "error": f"tare refused after {job.cycles} cycles, "
                                                                 "nothing changed: " + _shortfall(job)})
-            elif any(job.stale_run.get(n, 0) >= TARE_STALE_RUN for n in job.sensors):
+            elif names := [n for n in job.sensors if job.stale_run.get(n, 0) >= TARE_STALE_RUN]:
                 self.jobs.remove(job)
-                names = [n for n in job.sensors if job.stale_run.get(n, 0) >= TARE_STALE_RUN]
                 self.reply(job.reply_to, {"ok": False, "error": (
                     f"tare refused after {job.cycles} cycles, nothing changed: no fresh orientation for "
                     f"{', '.join(names)} in the last {TARE_STALE_RUN} samples (orientation_stale). With "

@@ -82,6 +82,7 @@ SOLVE_EVERY = 10
 #: orientation and the chips' conversions are milliseconds apart, and 10 ms at 0.5 rad/s
 #: turns a motor's 60 uT by 0.3 uT, a tenth of y's noise; a fast turn would teach a bias.
 STEADY_RAD = 0.005
+_STEADY_TRACE = 1.0 + 2.0 * float(np.cos(STEADY_RAD))  # tr(A^T B) of two rotations STEADY_RAD apart
 def parts(G: np.ndarray) -> np.ndarray:
     """The five numbers of a traceless symmetric G in the basis of `gradient_basis` (..., 5)."""
     return np.stack([G[..., i, j] for i, j in GRADIENT_PARTS], axis=-1)
@@ -238,5 +239,3 @@ class WorldGradient:
         return {"samples": self.samples, "correcting": self.correcting, "alarm": self.alarm,
                 "gradient_ut_per_mm": None if g is None else round(float(np.linalg.norm(g)) * 1e3, 4)}
 
-
-_STEADY_TRACE = 1.0 + 2.0 * float(np.cos(STEADY_RAD))
