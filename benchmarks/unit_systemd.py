@@ -6,8 +6,9 @@ namespaces, devices, cgroups, scheduling, limits) is what the daemon meets.
 
 Inside, on top of the host's files: /run a fresh tmpfs; /etc and /opt overlays (their
 changes kept in that tmpfs) where the README's `useradd`, `/etc/ftsensord` and
-/opt/ftsensord are made, the last a virtual environment of the system's python3 that sees this checkout and the packages of
-the interpreter running this script (a .pth file: no download, the code under test).
+/opt/ftsensord are made, the last a virtual environment of the system's python3 that sees
+this checkout and the packages of the interpreter running this script (a .pth file to
+both, bound into /run: no download, the code under test, wherever the checkout is).
 The unit file is copied unchanged; one drop-in removes its default dependencies (no
 sysinit.target: it would run the host's tmpfiles and sysctl setup) and sends its output
 to a file in that /run. systemd itself runs as PID 1 of the namespace (container mode).
@@ -51,9 +52,6 @@ def why_not() -> str | None:
     for tool in ("unshare", "nsenter", "useradd"):
         if shutil.which(tool) is None:
             return f"{tool} is missing"
-    for hidden in ("/home", "/root", "/tmp", "/var/tmp"):
-        if REPO.is_relative_to(hidden):
-            return f"this checkout is under {hidden}, which the unit hides (ProtectHome=, PrivateTmp=)"
     return None
 
 
@@ -79,7 +77,11 @@ def _boot_script(config: Path, dropins: list[str]) -> str:
         "useradd --system --no-create-home --groups i2c ftsensord",
         "rm -rf /opt/ftsensord",
         f"{SYSTEM_PYTHON} -m venv --without-pip /opt/ftsensord",
-        f"printf '%s\\n' {q(str(REPO))} {q(site)} > /opt/ftsensord/lib/{version}/site-packages/checkout.pth",
+        # The checkout and the packages are bound into /run: where they are (/tmp, /home) the
+        # unit may hide (PrivateTmp=, ProtectHome=).
+        f"mkdir -p /run/checkout/src /run/checkout/site && mount --bind {q(str(REPO))} /run/checkout/src "
+        f"&& mount --bind {q(site)} /run/checkout/site",
+        f"printf '%s\\n' /run/checkout/src /run/checkout/site > /opt/ftsensord/lib/{version}/site-packages/checkout.pth",
         "printf '#!/opt/ftsensord/bin/python3\\nimport sys\\nfrom ftsensord.__main__ import main\\n"
         "sys.exit(main())\\n' > /opt/ftsensord/bin/ftsensord && chmod 755 /opt/ftsensord/bin/ftsensord",
         f"install -d /etc/ftsensord && cp {q(str(config))} /etc/ftsensord/ftsensord.toml",

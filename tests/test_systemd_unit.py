@@ -17,7 +17,7 @@ from .conftest import benchmark
 
 units = benchmark("unit_systemd")
 CONFIG = units.REPO / "ftsensord" / "data" / "sim.toml"
-WORK = units.REPO / "build" / "test-systemd-unit"  # not /tmp: the unit's PrivateTmp= hides it
+WORK = units.REPO / "build" / "test-systemd-unit"  # the boot script and systemd's own log
 
 _reason = units.why_not()
 pytestmark = pytest.mark.skipif(_reason is not None and not os.environ.get("CI"),
