@@ -49,7 +49,8 @@ from ftsensord.calibration.procedure import calibrate, simulate_dataset
 from ftsensord.docfile import load_toml
 from ftsensord.model import se3
 from ftsensord.service import orientation, wire
-from ftsensord.service.config import STRAY_FIELDS, load_config
+from ftsensord.service.config import load_config
+from ftsensord.service.sensorconf import STRAY_FIELDS
 from ftsensord.sim import load_scene
 from ftsensord.sim.loads import paper_plan
 from ftsensord.sim.scene import default_scene_path

@@ -15,7 +15,7 @@ from .acquire.bus import ACCEPTED_FORMS, open_bus
 from .acquire.scan import format_table, scan
 from .bridge import add_parser as add_bridge_parser
 from .errors import ConfigError, DaemonNotAnswering, FtsensordError
-from .service.config import ESTIMATORS
+from .service.sensorconf import ESTIMATORS
 from .service.status import describe
 from .sim.loads import PLANS
 

@@ -9,7 +9,7 @@
     ControlClient().tare(samples=100)
 
 Endpoints default to the daemon's: the service's /run/ftsensord, else the
-user's runtime folder (see `ftsensord.config.runtime_dir`).
+user's runtime folder (see `ftsensord.service.paths.runtime_dir`).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import zmq
 
 from .errors import ConfigError, ControlError, DaemonNotAnswering, FtsensordError, WireError
 from .service import wire
-from .service.config import check_private_dir, runtime_dir
+from .service.paths import check_private_dir, runtime_dir
 
 #: Samples a recording subscriber may queue: 10 s of five streams at 100 Hz.
 QUEUE_HWM = 5000

@@ -170,7 +170,8 @@ def test_a_reload_reuses_an_unchanged_calibration_and_reads_a_changed_one(tmp_pa
     from pathlib import Path
 
     from ftsensord.errors import ConfigError
-    from ftsensord.service.config import Calibrations, load_config
+    from ftsensord.service.config import load_config
+    from ftsensord.service.sensorconf import Calibrations
 
     packaged = Path(__file__).resolve().parent.parent / "ftsensord" / "data" / "sim-sensor1.json"
     path = tmp_path / "cal.json"

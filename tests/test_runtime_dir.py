@@ -16,7 +16,8 @@ import zmq
 from ftsensord import client
 from ftsensord.errors import ConfigError
 from ftsensord.service import config as config_module
-from ftsensord.service.config import check_private_dir, ensure_private_dir, load_config
+from ftsensord.service.config import load_config
+from ftsensord.service.paths import check_private_dir, ensure_private_dir
 from ftsensord.service.run import LOCK_NAME, bind, lock_runtime
 
 from .test_daemon import write_config

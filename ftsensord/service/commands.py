@@ -10,7 +10,8 @@ from typing import Any
 from ..acquire.reader import Reader
 from ..chip.i2c import BusTiming
 from ..errors import FtsensordError
-from .config import Calibrations, Config, check_rate, reload_config
+from .config import Config, check_rate, reload_config
+from .sensorconf import Calibrations
 from .gravity import Gravity
 from .pipeline import SensorPipeline, use_estimator
 from .reloads import Reloads

@@ -28,7 +28,8 @@ from ..chip.i2c import Bus, BusTiming
 from ..errors import ConfigError, FtsensordError
 from . import wire
 from .commands import Commands
-from .config import Calibrations, Config, SensorConfig, check_rate
+from .config import Config, check_rate
+from .sensorconf import Calibrations, SensorConfig
 from .control import Control
 from .filters import WrenchFilter
 from .frames import TIP

@@ -28,7 +28,7 @@ from ..model.nonlinear import NonlinearEstimator
 from ..stages.stray import WorldGradient
 from ..stages.thermal import ThermalCompensation
 from . import wire
-from .config import SensorConfig
+from .sensorconf import SensorConfig
 from .filters import WrenchFilter
 from .loop import STATS_WINDOW
 from .redundancy import RedundancyCheck

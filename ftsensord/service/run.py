@@ -20,7 +20,9 @@ import zmq
 from ..acquire.bus import open_bus, parse_bus_spec
 from ..chip.i2c import Bus
 from ..errors import ConfigError, FtsensordError
-from .config import Config, ensure_private_dir, is_loopback
+from .config import Config
+from .endpoints import is_loopback
+from .paths import ensure_private_dir
 from .connections import ConnectionCap, raise_descriptor_limit
 from .control import MAX_PER_CYCLE, MAX_REQUEST
 from .daemon import Daemon

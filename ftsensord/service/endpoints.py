@@ -1,0 +1,71 @@
+"""Who may reach the daemon's endpoints: ipc:// and loopback TCP by default; beyond
+this host only with ``[security]`` (CURVE for control, `public_stream` for the wrenches).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..docfile import Table
+from .paths import resolve_file
+
+
+@dataclass
+class Security:
+    """Who may reach the endpoints when they leave loopback (docs/protocol.md)."""
+
+    curve_server_cert: Path | None = None  # zmq certificate with the server's secret key
+    curve_clients_dir: Path | None = None  # public certificates of the clients allowed to control
+    allow_insecure_control: bool = False  # control off loopback without CURVE: logged loudly
+    public_stream: bool = False  # the (read-only) wrench stream may leave loopback
+
+    @property
+    def curve(self) -> bool:
+        return self.curve_server_cert is not None
+
+
+LOOPBACK = ("127.0.0.1", "localhost", "[::1]")
+
+
+def is_loopback(endpoint: str) -> bool:
+    return not endpoint.startswith("tcp://") or endpoint[len("tcp://"):].rsplit(":", 1)[0] in LOOPBACK
+
+
+def endpoint(table: Table, key: str, default: str, *, off_loopback: bool = False, why: str = "") -> str:
+    """An ipc:// or tcp:// endpoint; TCP only on loopback unless ``off_loopback``."""
+    value = table.string(key, default)
+    if not value.startswith(("ipc://", "tcp://")):
+        raise table.fail(key, "an ipc:// or tcp:// endpoint", value)
+    if value.startswith("ipc://@"):  # Linux's abstract namespace: no file, so no mode, group or lock
+        raise table.fail(key, "an ipc:// endpoint with a path (an abstract socket, ipc://@name, has no file "
+                              "permissions: anyone on the host could connect)", value)
+    if not off_loopback and not is_loopback(value):
+        raise table.fail(key, f"a loopback TCP endpoint (127.0.0.1, localhost or [::1]); {why}", value)
+    return value
+
+
+def security_table(doc: Table) -> Security:
+    """The ``[security]`` table of ``doc`` (none: everything on this host only)."""
+    if "security" not in doc.doc:
+        return Security()
+    t = doc.table("security")
+    t.only({"curve_server_cert", "curve_clients_dir", "allow_insecure_control", "public_stream"})
+    cert = resolve_file(t, "curve_server_cert", t.string("curve_server_cert")) if "curve_server_cert" in t.doc else None
+    clients = None
+    if "curve_clients_dir" in t.doc:
+        clients = Path(t.string("curve_clients_dir")).expanduser()
+        clients = clients if clients.is_absolute() else t.path.parent / clients
+        if not clients.is_dir():
+            raise t.fail("curve_clients_dir", "a folder of the allowed clients' public certificates",
+                         t.get("curve_clients_dir"))
+    if (cert is None) != (clients is None):
+        raise t.fail("curve_server_cert" if cert is None else "curve_clients_dir",
+                     "both curve_server_cert and curve_clients_dir, or neither", "only one of them")
+    flags = {}
+    for key in ("allow_insecure_control", "public_stream"):
+        value = t.get(key, False)
+        if not isinstance(value, bool):
+            raise t.fail(key, "true or false", value)
+        flags[key] = value
+    return Security(cert, clients, **flags)
