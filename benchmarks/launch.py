@@ -26,11 +26,11 @@ from ftsensord.sim.chip import FieldSource
 
 def packaged_config(path: Path, **values: str) -> Path:
     """The packaged simulated configuration written to ``path``, each ``key = value`` line
-    named in ``values`` replaced (values in TOML: ``scheduler='"burst"'``), `builtin:` files
+    named in ``values`` replaced, or a commented-out one put in (values in TOML: ``scheduler='"burst"'``), `builtin:` files
     made absolute (the copy is read from elsewhere)."""
     text = builtin_path("sim.toml").read_text()
     for key, value in values.items():
-        text, n = re.subn(rf"(?m)^{key} = .*$", f"{key} = {value}", text)
+        text, n = re.subn(rf"(?m)^(# )?{key} = .*$", f"{key} = {value}", text)
         if n != 1:
             raise ValueError(f"the packaged configuration has no single {key!r} line to replace")
     path.write_text(text.replace("builtin:", str(builtin_path("")) + "/"))

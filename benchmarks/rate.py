@@ -7,11 +7,12 @@ rate they imply (sequence numbers over the daemon's timestamps), sequence gaps, 
 the daemon's status: the bound, missed and late cycles, jitter, how long a cycle takes
 (p50, p99: what it leaves of the period), and its CPU time. Run:
 
-    python benchmarks/rate.py --seconds 60 [--rate 100] [--scheduler burst] [--adapter bcm2835 --ioctl-us 80] [--fifo 50]
+    python benchmarks/rate.py --seconds 60 [--rate 100] [--scheduler burst] [--adapter bcm2835 --ioctl-us 80 --clock-hz 250000] [--fifo 50]
 
+With no ``--scheduler`` the daemon chooses the scheduler and read-back (`acquire.choice`).
 ``--fifo PRIO`` runs the daemon SCHED_FIFO at that priority (through ``chrt``), as the
-systemd unit does (``CPUSchedulingPolicy=fifo``, ``CPUSchedulingPriority=50``); without
-it the daemon runs at the default policy, as a user starting it by hand would.
+systemd unit's ``--realtime 50`` asks; without it the daemon runs at the default policy,
+as a user starting it by hand would.
 
 and the figures go to docs/performance.md by hand, with the command line.
 """
@@ -38,11 +39,13 @@ def main() -> int:
     parser.add_argument("--scheduler", default=None, help="default: the configuration's (the default scheduler)")
     parser.add_argument("--adapter", default=None, help="the simulated adapter (default: the simulator's, bcm2835)")
     parser.add_argument("--ioctl-us", type=float, default=None, help="the simulated cost of one ioctl (us)")
+    parser.add_argument("--clock-hz", type=float, default=None, help="the simulated wire's real clock (Hz)")
     parser.add_argument("--fifo", type=int, default=0,
                         help="run the daemon SCHED_FIFO at this priority (0: not; the systemd unit sets 50)")
     args = parser.parse_args()
     options = "&".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}"
-                       for k, v in (("adapter", args.adapter), ("ioctl_us", args.ioctl_us)) if v is not None)
+                       for k, v in (("adapter", args.adapter), ("ioctl_us", args.ioctl_us), ("clock_hz", args.clock_hz))
+                       if v is not None)
     bus = "sim" + (f"?{options}" if options else "")
     load0 = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:
@@ -50,7 +53,6 @@ def main() -> int:
         if args.scheduler:
             lines["scheduler"] = f'"{args.scheduler}"'
         config = packaged_config(Path(tmp) / "ftsensord.toml", **lines)
-        # The daemon's policy as the unit's CPUSchedulingPolicy=fifo would set it.
         proc, notify = start_daemon(config, Path(tmp), fifo=args.fifo)
         folder = Path(tmp) / "ftsensord"
         control = ControlClient(f"ipc://{folder / 'control'}", timeout_s=5)
@@ -80,6 +82,7 @@ def main() -> int:
           f"daemon at {policy} (load {load0:.2f} at start, {os.getloadavg()[0]:.2f} at end)")
     print(f"bound: {status1['bound']}; the bus: adapter {status1.get('adapter')}, ioctl {status1.get('ioctl_us')} us, "
           f"clock {status1.get('clock_hz')} Hz")
+    print(f"schedule: {status1['schedule']}")
     print(f"over {last.t_mono - first.t_mono:.1f} s: {received} samples received, achieved {achieved:.3f} Hz "
           f"({error * 100:+.3f} % of configured), {gaps} sequence gaps")
     print(f"daemon: missed cycles {status1['missed_cycles'] - status0['missed_cycles']}, late cycles "

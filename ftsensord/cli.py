@@ -41,7 +41,7 @@ def cmd_doctor(args: argparse.Namespace) -> int:
     from .acquire.doctor import doctor, format_doctor
 
     report = doctor(args.bus, (args.scheduler,) if args.scheduler else SCHEDULERS, bus_hz=args.bus_hz,
-                    force=args.force, real_time=args.real_time)
+                    force=args.force, real_time=args.real_time, rate_hz=args.rate)
     print(json.dumps(report, indent=2) if args.json else format_doctor(report))
     if not report["chips"]:
         print(f"no MLX90393 answered on {args.bus} (0x0C-0x1B)", file=sys.stderr)
@@ -311,6 +311,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--bus", default="sim", help=f"bus: {ACCEPTED_FORMS} (default: sim)")
     p.add_argument("--scheduler", choices=("naive", "overlapped", "burst"), help="only this scheduler (default: all)")
     p.add_argument("--bus-hz", type=float, default=400e3, help="the clock ftsensord is configured with, Hz (default 400000)")
+    p.add_argument("--rate", type=float, default=100.0,
+                   help="the rate whose scheduler and read-back `run` would choose, Hz (default 100)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--force", action="store_true", help="go on when another process (a daemon) holds the bus")
     p.add_argument("--real-time", action="store_true",

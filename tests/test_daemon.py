@@ -370,13 +370,15 @@ def test_ready_after_the_first_cycle_and_watchdog_only_as_cycles_complete(tmp_pa
     server.close()
 
 
-@pytest.mark.parametrize(("rate_hz", "every"), [(100, 1), (150, 100), (155, 100)])
+@pytest.mark.parametrize(("rate_hz", "every"), [(100, 1), (120, 100), (150, 0)])
 def test_burst_reads_registers_back_every_cycle_where_the_period_leaves_a_new_result_time(tmp_path, rate_hz, every):
     # The burst bound is 6.39 ms on the default adapter (its slowest cycle, which reads T);
     # a result 4.13 ms after SB (X, Y, Z and T, with the oscillator's margin): 10.5 ms, so
-    # 100 Hz has the time and 150 Hz does not (the bound, 156.5 Hz, refuses more).
+    # 100 Hz has the time and 120 Hz does not. Beyond 125 Hz the read-back leaves less than
+    # 20 % of the period spare (bound 156.5 Hz; 185.2 Hz without): the daemon drops it.
     config = load_config(write_config(tmp_path, 'scheduler = "burst"', rate_hz=rate_hz))
     assert config.readback_every == every
+    assert ("no register read-back" in config.choice) == (every == 0) and "chosen: readback_every" in config.choice
     given = load_config(write_config(tmp_path, 'scheduler = "burst"\nreadback_every = 7', rate_hz=rate_hz))
     assert given.readback_every == 7  # what the file says wins
 
@@ -388,7 +390,7 @@ def test_config_refuses_a_rate_above_the_bound_naming_it(tmp_path):
     # burst 156 Hz: its slowest cycle reads the chips' temperatures too (temperature_every).
     assert "rate_hz: 150 Hz cannot be met" in msg and "103.7 Hz at most" in msg and "burst 156 Hz" in msg
     # Every lever with its bound (issue 26): the register read-back's too.
-    bare = re.search(r"readback_every = 0: (\d+) Hz", msg)
+    bare = re.search(r"readback_every = 0 \(naive \d+, overlapped (\d+), burst \d+ Hz\)", msg)
     assert bare is not None and 103.7 < float(bare.group(1)) < 150, msg
 
 

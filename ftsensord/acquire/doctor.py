@@ -22,9 +22,10 @@ from typing import Any
 from ..chip import mlx90393 as mlx
 from ..chip.driver import MLX90393
 from ..chip.i2c import Bus
-from ..errors import ChipError
+from ..errors import ChipError, ConfigError
 from .board import know_board
-from .bound import SCHEDULERS, Shapes, burst_readback_stays_fresh, cycle_bound
+from . import choice
+from .bound import SCHEDULERS, Shapes, cycle_bound
 from .bus import open_bus, parse_bus
 from .reader import Reader, probe_shapes
 from .scan import scan
@@ -82,11 +83,9 @@ def _short_run(bus: Bus, addresses: list[int], scheduler: str, settings: mlx.Set
                overhead_s: float, adapter: str | None, cycles: int) -> dict[str, Any]:
     """Run ``scheduler`` at its bound's rate for ``cycles``; the measured rate and errors."""
     probe = cycle_bound(scheduler, len(addresses), settings, bus_hz, overhead_s, adapter=adapter)
-    readback_every = 1
-    if scheduler == "burst" and not burst_readback_stays_fresh(probe, settings, probe.rate_hz):
-        readback_every = 100  # as the daemon does: a burst read back every cycle would go stale
-    bound = cycle_bound(scheduler, len(addresses), settings, bus_hz, overhead_s, readback=readback_every > 0,
-                        adapter=adapter)
+    run = choice.option(choice.Bus(len(addresses), settings, bus_hz, overhead_s, adapter, temperature=False),
+                        scheduler, True, probe.rate_hz)  # the read-back's cadence as the daemon would run it
+    bound, readback_every = run.bound, run.readback_every
     timed = _TimedBus(bus)
     chips = [MLX90393(timed, a, sleep=timed.sleep) for a in addresses]
     reader = Reader(timed, chips, scheduler, settings, bus_hz, overhead_s, readback_every=readback_every)
@@ -132,10 +131,12 @@ def _short_run(bus: Bus, addresses: list[int], scheduler: str, settings: mlx.Set
 
 def doctor(spec: str, schedulers: tuple[str, ...] = SCHEDULERS, *, bus_hz: float = 400e3, force: bool = False,
            settings: mlx.Settings | None = None, error_reads: int = ERROR_READS, cycles: int = RUN_CYCLES,
-           real_time: bool = False) -> dict[str, Any]:
+           real_time: bool = False, rate_hz: float = 100.0) -> dict[str, Any]:
     """Everything `ftsensord doctor` reports, as a plain dict (see the module's doc).
 
-    ``bus_hz`` is the clock ftsensord would be configured with (Hz); ``force``
+    ``bus_hz`` is the clock ftsensord would be configured with (Hz); ``rate_hz`` the
+    rate whose schedule the daemon would choose (`choice.choose`; temperatures read,
+    as by default); ``force``
     goes on when another process holds the bus. Raises `BusBusyError` (held
     and not forced), `ConfigError` (a bad spec), ``OSError`` (no device).
     """
@@ -165,6 +166,8 @@ def doctor(spec: str, schedulers: tuple[str, ...] = SCHEDULERS, *, bus_hz: float
             chips.append(entry)
         runs = {s: _short_run(bus, addresses, s, settings, clock_hz, ioctl_s, board.adapter, cycles)
                 for s in schedulers} if addresses else {}
+        chosen = _choice(choice.Bus(len(addresses), settings, clock_hz, ioctl_s, board.adapter, temperature=True),
+                         rate_hz) if addresses else None
     finally:
         bus.close()
     return {
@@ -177,8 +180,17 @@ def doctor(spec: str, schedulers: tuple[str, ...] = SCHEDULERS, *, bus_hz: float
         "clock_hz": clock_hz, "clock_measured": timing.clock_hz is not None,
         "ioctl_us": ioctl_s * 1e6, "warnings": board.warnings,
         "clock": "virtual" if options and not real_time else "real",
-        "chips": chips, "schedulers": runs,
+        "chips": chips, "schedulers": runs, "rate_hz": rate_hz, "choice": chosen,
     }
+
+
+def _choice(bus: choice.Bus, rate_hz: float) -> str:
+    """What `ftsensord run` would choose at ``rate_hz`` with no scheduler or read-back named."""
+    try:
+        picked = choice.choose(bus, rate_hz)
+    except ConfigError as exc:
+        return f"nothing holds: {exc}"
+    return choice.explain(bus, picked, rate_hz)
 
 
 def format_doctor(report: dict[str, Any]) -> str:
@@ -204,6 +216,8 @@ def format_doctor(report: dict[str, Any]) -> str:
                      f"({run['cycles']} cycles, {run['chip_errors']} chip errors; a cycle: transfers "
                      f"{t['transfers']:.0f} us, waits {t['waits']:.0f} us, host {t['host']:.0f} us, "
                      f"bound {t['bound']:.0f} us)")
+    if report["choice"]:
+        lines.append(f"  ftsensord run at {report['rate_hz']:g} Hz, no scheduler named: {report['choice']}")
     if not report["chips"]:
         lines.append("  no MLX90393 answered (0x0C-0x1B)")
     return "\n".join(lines)

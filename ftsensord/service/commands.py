@@ -84,7 +84,7 @@ class Commands:
         configuration and its pipelines, or why they were refused."""
         self.notifier.reloading()
         try:
-            new = reload_config(self.config, self.calibrations)
+            new = reload_config(self.config, self.calibrations, self.board_timing)
             self.notifier.check_rate(new.rate_hz, f"{new.path}: rate_hz")
         except FtsensordError as exc:
             return exc

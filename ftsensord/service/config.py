@@ -8,13 +8,14 @@ calibrations). `config/ftsensord.toml` is a commented example.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from ..acquire.board import bus_timing
-from ..acquire.bound import DEFAULT_SCHEDULER, SCHEDULERS, CycleBound, burst_readback_stays_fresh, cycle_bound
+from ..acquire import choice
+from ..acquire.bound import SCHEDULERS, CycleBound
 from ..acquire.bus import parse_bus_spec
 from ..acquire.health import stuck_cycles_for
 from ..chip import mlx90393 as mlx
@@ -56,6 +57,9 @@ class Config:
     stuck_cycles: int = 0  # load_config's default: stuck_cycles_for(settings)
     readback_every: int = 1
     max_missing_chips: int = 2
+    #: What the file names of ``scheduler`` and ``readback_every``; the daemon chooses the rest (`choose`).
+    named: frozenset[str] = frozenset({"scheduler", "readback_every"})
+    choice: str = ""  # how ``scheduler`` and ``readback_every`` were decided, for the log and `status`
 
     @property
     def orientation_endpoint(self) -> str | None:
@@ -66,33 +70,48 @@ class Config:
     def addresses(self) -> list[int]:
         return [a for s in self.sensors for a in s.addresses]
 
-    def bound(self, timing: BusTiming | None = None) -> CycleBound:
-        """The scheduler's bound on this bus: ``timing`` is what was measured on the
-        board (`acquire.board`); else what the bus string says (a simulated board),
-        else the configured ``bus_hz`` and ``bus_overhead_us``, counted with the
-        adapter's rules where the system names its driver (unknown: the narrowest)."""
+    def bus_levers(self, timing: BusTiming | None = None) -> choice.Bus:
+        """What the bound depends on: ``timing`` is what was measured on the board
+        (`acquire.board`); else what the bus string says (a simulated board), else the
+        configured ``bus_hz`` and ``bus_overhead_us``, counted with the adapter's rules
+        where the system names its driver (unknown: the narrowest)."""
         known = bus_timing(self.bus)
         if timing is not None:
             known = BusTiming(timing.adapter or known.adapter,
                               timing.ioctl_s if timing.ioctl_s is not None else known.ioctl_s,
                               timing.clock_hz or known.clock_hz)
-        return cycle_bound(self.scheduler, len(self.addresses), self.settings, known.clock_hz or self.bus_hz,
-                           self.bus_overhead_s if known.ioctl_s is None else known.ioctl_s,
-                           readback=self.readback_every > 0, temperature=self.temperature_every > 0,
-                           adapter=known.adapter)
+        return choice.Bus(len(self.addresses), self.settings, known.clock_hz or self.bus_hz,
+                          self.bus_overhead_s if known.ioctl_s is None else known.ioctl_s, known.adapter,
+                          self.temperature_every > 0)
 
+    def bound(self, timing: BusTiming | None = None) -> CycleBound:
+        """The configured scheduler's bound on this bus (`bus_levers`)."""
+        return self.bus_levers(timing).bound(self.scheduler, self.readback_every > 0)
+
+    def choose(self, timing: BusTiming | None = None, where: str = "rate_hz", running: str | None = None) -> None:
+        """Set what the file leaves unnamed of ``scheduler`` and ``readback_every`` to what
+        holds ``rate_hz`` with the most margin (`acquire.choice.choose`; keeping the
+        read-back while it can); ``running``: the scheduler a reload keeps (a restart
+        chooses again). ConfigError, naming every lever, when nothing holds."""
+        levers = self.bus_levers(timing)
+        try:
+            picked = choice.choose(levers, self.rate_hz, self.scheduler if "scheduler" in self.named else running,
+                                   self.readback_every if "readback_every" in self.named else None)
+        except ConfigError as exc:
+            raise ConfigError(f"{where}: {exc}") from exc
+        self.scheduler, self.readback_every = picked.scheduler, picked.readback_every
+        unnamed = sorted({"scheduler", "readback_every"} - self.named)
+        self.choice = (choice.explain(levers, picked, self.rate_hz) +
+                       (f" (chosen: {', '.join(unnamed)} not in the file)" if unnamed else " (as configured)"))
 
 def check_rate(config: Config, rate_hz: float, where: str = "rate_hz", timing: BusTiming | None = None) -> None:
-    """Refuse a rate above what the scheduler can achieve, naming the bound and the fixes."""
-    bound = config.bound(timing)
-    if rate_hz <= bound.rate_hz:
-        return
-    others = ", ".join(f"{s} {replace(config, scheduler=s).bound(timing).rate_hz:.0f} Hz"
-                       for s in SCHEDULERS if s != config.scheduler)
-    bare = replace(config, readback_every=0).bound(timing).rate_hz  # the register read-back's part of the cycle
-    raise ConfigError(f"{where}: {rate_hz:g} Hz cannot be met: {bound.describe()}. Lower the rate, change the "
-                      f"scheduler ({others}), read no register back (readback_every = 0: {bare:.0f} Hz), shorten "
-                      f"the conversion (lower OSR or DIG_FILT), or use a faster bus")
+    """Refuse a rate above what the running scheduler and read-back can achieve, naming
+    the bound and every lever (`acquire.choice.levers`)."""
+    levers = config.bus_levers(timing)
+    bound = levers.bound(config.scheduler, config.readback_every > 0)
+    if rate_hz > bound.rate_hz:
+        raise ConfigError(f"{where}: {rate_hz:g} Hz cannot be met: {bound.describe()}. "
+                          f"Levers: {choice.levers(levers, rate_hz)}")
 
 
 def load_config(path: str | Path | None = None, calibrations: Calibrations | None = None) -> Config:
@@ -134,7 +153,7 @@ def load_config(path: str | Path | None = None, calibrations: Calibrations | Non
         path=path, bus=bus, bus_hz=doc.number("bus_hz", 400e3, low=1e3, high=3.4e6, unit="Hz"),
         bus_overhead_s=doc.number("bus_overhead_us", 0.0, low=0, high=1e5, unit="us") * 1e-6,
         rate_hz=doc.number("rate_hz", 100.0, low=0.1, high=10e3, unit="Hz"),
-        scheduler=doc.string("scheduler", DEFAULT_SCHEDULER, choices=SCHEDULERS),
+        scheduler=doc.string("scheduler", SCHEDULERS[-1], choices=SCHEDULERS),
         averaging=doc.integer("averaging", 1, low=1, high=10_000, what="an integer from 1 to 10000"),
         lowpass_hz=doc.number("lowpass_hz", 0.0, low=0, unit="Hz (0: off)"),
         settings=settings, sensors=sensors, publish=publish, security=security,
@@ -145,6 +164,7 @@ def load_config(path: str | Path | None = None, calibrations: Calibrations | Non
         temperature_every=doc.integer("temperature_every", 100, low=0, what="cycles (0: never)"),
         stuck_cycles=doc.integer("stuck_cycles", stuck_cycles_for(settings), low=0, what="cycles (0: no stuck detection)"),
         readback_every=doc.integer("readback_every", 1, low=0, what="cycles (0: no register read-back)"),
+        named=frozenset({"scheduler", "readback_every"} & doc.doc.keys()),
         max_missing_chips=doc.integer("max_missing_chips", 2, low=0, high=5,
                                       what="0 to 5 chips (degraded mode; 0: off)"))
     names = [s.name for s in sensors]
@@ -158,12 +178,7 @@ def load_config(path: str | Path | None = None, calibrations: Calibrations | Non
     world = [s.table for s in sensors if s.stray_field == "world" and s.table is not None]
     if world and (config.gravity is None or config.gravity.source != "stream"):
         raise world[0].fail("stray_field", '"uniform" or "gradient" ("world" needs [gravity] orientation = "stream")', "world")
-    if config.scheduler == "burst" and "readback_every" not in doc.doc and not burst_readback_stays_fresh(
-            config.bound(), config.settings, config.rate_hz, config.temperature_every > 0):
-        # A chip read back in burst mode (EX, RR, SB) restarts its burst: with no time for
-        # a new result before the next cycle, every sample would have a stale chip.
-        config.readback_every = 100
-    check_rate(config, config.rate_hz, f"{path}: rate_hz")
+    config.choose(where=f"{path}: rate_hz")
     return config
 
 
@@ -178,9 +193,13 @@ def needs_restart(old: Config, new: Config) -> list[str]:
          (old.publish, old.control, old.orientation_endpoint))) if a != b]
 
 
-def reload_config(old: Config, calibrations: Calibrations | None = None) -> Config:
-    """Re-read ``old``'s file; ConfigError when it is bad or changes what needs a restart."""
+def reload_config(old: Config, calibrations: Calibrations | None = None, timing: BusTiming | None = None) -> Config:
+    """Re-read ``old``'s file; ConfigError when it is bad or changes what needs a restart.
+    What the file leaves unnamed is chosen again on the board's ``timing``, keeping the
+    running scheduler (a reload cannot change it)."""
     new = load_config(old.path, calibrations)
+    if new.named != {"scheduler", "readback_every"}:
+        new.choose(timing, f"{new.path}: rate_hz", running=old.scheduler)
     fixed = needs_restart(old, new)
     if fixed:
         raise ConfigError(f"{new.path}: changing {', '.join(fixed)} needs a restart; nothing was changed")

@@ -20,6 +20,7 @@ from typing import Any, Callable
 import numpy as np
 import zmq
 
+from ..acquire import choice
 from ..acquire.board import know_board
 from ..acquire.reader import Reader
 from ..chip import mlx90393 as mlx
@@ -28,8 +29,7 @@ from ..chip.i2c import Bus, BusTiming
 from ..errors import ConfigError, FtsensordError
 from . import wire
 from .commands import Commands
-from .config import Config, check_rate
-from .sensorconf import Calibrations, SensorConfig
+from .config import Config
 from .control import Control
 from .filters import WrenchFilter
 from .frames import TIP
@@ -41,6 +41,7 @@ from .pipeline import SensorPipeline, SensorSample, tip_wrench
 from .realtime import Scheduling
 from .reloads import Reloads
 from .sdnotify import Notifier
+from .sensorconf import Calibrations, SensorConfig
 from .status import ChipLedger, status_line, status_reply
 from .tare import Tares
 
@@ -63,10 +64,7 @@ class Daemon(Commands):
         self.scheduling = scheduling or Scheduling()  # what `run` asked of the kernel, for status
         self.notifier = notifier or Notifier(environ={})
         self.clock, self.wall = clock, wall
-        chips = [MLX90393(bus, a, sleep=bus.sleep) for a in config.addresses]
-        self.reader = Reader(bus, chips, config.scheduler, config.settings, config.bus_hz, config.bus_overhead_s,
-                             stuck_cycles=config.stuck_cycles, readback_every=config.readback_every,
-                             temperature=config.temperature_every > 0)
+        self.reader = self._reader(config)
         self.board_timing: BusTiming | None = getattr(bus, "timing", None)  # a real bus's: measured at start
         self.chips = ChipLedger({s.name: s.addresses for s in config.sensors})
         self.sensors = [self._pipeline(s, config) for s in config.sensors]
@@ -81,6 +79,12 @@ class Daemon(Commands):
         self.stop_requested = self.reload_requested = False
         self.ready = False
         self.calibrations = Calibrations().remember(config)
+
+    def _reader(self, config: Config) -> Reader:
+        chips = [MLX90393(self.bus, a, sleep=self.bus.sleep) for a in config.addresses]
+        return Reader(self.bus, chips, config.scheduler, config.settings, config.bus_hz, config.bus_overhead_s,
+                      stuck_cycles=config.stuck_cycles, readback_every=config.readback_every,
+                      temperature=config.temperature_every > 0)
 
     @staticmethod
     def _pipeline(s: SensorConfig, config: Config) -> SensorPipeline:
@@ -105,11 +109,26 @@ class Daemon(Commands):
         """Know the board (a real adapter: driver, clock and ioctl cost measured), start every chip."""
         if getattr(self.bus, "number", None) is not None:
             self.board_timing = measure_board(self.bus, self.config)
+            self._choose_on_board()
+        thin = self.config.bound(self.board_timing).cycle_s * self.config.rate_hz > 1 - choice.TARGET_SPARE
+        log.log(logging.WARNING if thin else logging.INFO, "schedule: %s", self.config.choice)
         if self.board_timing is not None:
             self.reader.use_timing(self.board_timing)
         for address, exc in self.reader.start().items():
             self.chips.failed_to_start(address, exc)
             log.warning("chip 0x%02X failed to start: %s", address, exc)
+
+    def _choose_on_board(self) -> None:
+        """Choose again what the file leaves unnamed, from the measured bound (a new reader
+        if the choice changes: nothing has used the first yet); a named one is checked."""
+        before = self.config.scheduler, self.config.readback_every
+        try:
+            self.config.choose(self.board_timing, "rate_hz on this board")
+        except ConfigError as slow:
+            log.warning("%s: cycles will run late", slow)
+            return
+        if (self.config.scheduler, self.config.readback_every) != before:
+            self.reader = self._reader(self.config)
 
     def run(self) -> int:
         """Cycle until asked to stop; then put the chips to idle. Returns the exit status:
@@ -220,8 +239,7 @@ class Daemon(Commands):
 
 def measure_board(bus: Bus, config: Config) -> BusTiming:
     """A real adapter's rules, ioctl cost and clock, measured through the first chip that
-    answers (`acquire.board.know_board`); logs its warnings, and one when the configured
-    rate is beyond the bound at the measured figures (checked before at the configured clock)."""
+    answers (`acquire.board.know_board`); logs its warnings."""
     report = None
     for address in config.addresses[:4]:
         report = know_board(bus, address, config.bus_hz)
@@ -234,8 +252,4 @@ def measure_board(bus: Bus, config: Config) -> BusTiming:
     log.info("I2C adapter %s (%s): %s", report.driver or "unknown", report.adapter or "rules unknown",
              "not measured (no chip answered)" if m is None else
              f"ioctl {m.ioctl_s * 1e6:.0f} us, clock {m.clock_hz / 1e3:.0f} kHz measured")
-    try:
-        check_rate(config, config.rate_hz, "rate_hz on this board", timing=report.timing)
-    except ConfigError as slow:
-        log.warning("%s: cycles will run late", slow)
     return report.timing

@@ -104,6 +104,7 @@ def status_reply(d: Daemon) -> dict[str, Any]:
     return {
         "version": __version__, "uptime_s": round(d.clock() - d.started_at, 3),
         "config": str(d.config.path), "bus": d.config.bus, "scheduler": d.config.scheduler,
+        "readback_every": d.config.readback_every, "schedule": d.config.choice,
         "rate_hz": d.config.rate_hz, "achieved_rate_hz": t.achieved_rate_hz(),
         "bound_hz": bound.rate_hz, "bound": bound.describe(),  # the bus as measured at start, or simulated:
         "adapter": board and board.adapter, "clock_hz": board and board.clock_hz,
@@ -135,6 +136,7 @@ def describe(status: dict[str, Any]) -> str:
     out.append(f"rate: {rate:.2f} Hz achieved of {status['rate_hz']:g} Hz configured" if rate else
                f"rate: - of {status['rate_hz']:g} Hz configured")
     out.append(f"bound: {status['bound']}")
+    out.append(f"schedule: {status['schedule']}")
     out.append(f"cycles {status['cycles']}, missed {status['missed_cycles']}, late {status['late_cycles']}; "
                f"jitter p50 {jitter['p50']:.0f} us, p99 {jitter['p99']:.0f} us")
     cycle = status["cycle_us"]
