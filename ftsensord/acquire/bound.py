@@ -16,10 +16,6 @@ from ..chip.i2c import ADAPTER_RULES, BITS_PER_BYTE, I2C_RDWR_MAX_MSGS
 from ..errors import ConfigError
 
 SCHEDULERS = ("naive", "overlapped", "burst")
-#: The scheduler a configuration gets when it names none: on a Pi 4 (bcm2835, 60 us an
-#: ioctl) burst reads 16 chips at up to 176 Hz, so 100 Hz keeps 43 % of the period spare;
-#: overlapped's 104 Hz would keep 4 % (docs/performance.md).
-DEFAULT_SCHEDULER = "burst"
 #: The chip's oscillator runs within +-20 % of nominal: wait for the slowest.
 OSC_MARGIN = 1.2
 #: Chips per transfer: two messages each, at most 42 messages an ioctl.

@@ -153,7 +153,7 @@ def load_config(path: str | Path | None = None, calibrations: Calibrations | Non
         path=path, bus=bus, bus_hz=doc.number("bus_hz", 400e3, low=1e3, high=3.4e6, unit="Hz"),
         bus_overhead_s=doc.number("bus_overhead_us", 0.0, low=0, high=1e5, unit="us") * 1e-6,
         rate_hz=doc.number("rate_hz", 100.0, low=0.1, high=10e3, unit="Hz"),
-        scheduler=doc.string("scheduler", SCHEDULERS[-1], choices=SCHEDULERS),
+        scheduler=doc.string("scheduler", SCHEDULERS[-1], choices=SCHEDULERS),  # unnamed: `choose` below decides
         averaging=doc.integer("averaging", 1, low=1, high=10_000, what="an integer from 1 to 10000"),
         lowpass_hz=doc.number("lowpass_hz", 0.0, low=0, unit="Hz (0: off)"),
         settings=settings, sensors=sensors, publish=publish, security=security,
