@@ -82,7 +82,7 @@ def choose(bus: Bus, rate_hz: float, scheduler: str | None = None, readback_ever
     options = [option(bus, s, r, rate_hz) for s in schedulers for r in readbacks]
     if readback_every is not None:
         options = [Option(o.scheduler, readback_every, o.bound) for o in options]
-    holding = [o for o in options if o.spare(rate_hz) >= 0.0]
+    holding = [o for o in options if o.spare(rate_hz) >= 0.0]  # at the bound itself: the loop holds 0.955-1.000 of it (doctor)
     if not holding:
         fastest = max(options, key=lambda o: o.bound.rate_hz)
         raise ConfigError(f"{rate_hz:g} Hz cannot be met on this bus: {fastest.bound.describe()}. "
