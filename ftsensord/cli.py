@@ -54,7 +54,8 @@ def cmd_dataset(args: argparse.Namespace) -> int:
 
     dataset = simulate_dataset(args.scene, args.sensor, args.plan, poses=args.poses,
                                validation_poses=args.validation_poses, samples=args.samples, seed=args.seed,
-                               sweeps=not args.no_sweep, no_load_poses=args.no_load_poses)
+                               sweeps=not args.no_sweep, no_load_poses=args.no_load_poses,
+                               check_poses=args.check_poses)
     dataset.save(args.output)
     print(f"wrote {args.output}: {len(dataset)} poses ({args.plan}), {args.samples} samples each, "
           f"{int(dataset.saturated.any(axis=1).sum())} with a saturated chip")
@@ -337,6 +338,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-load-poses", type=int, default=24,
                    help="poses with the rod and masses off, to measure the room's field (default: 24; "
                         "at least 6 for the fit to use them, 12 or more advised)")
+    p.add_argument("--check-poses", type=int, default=24,
+                   help="poses with 1, 2 and 4 kg at the flange's centre, on which the model is judged at large "
+                        "loads (default: 24; 0: none)")
     p.set_defaults(func=cmd_dataset)
 
     p = sub.add_parser("calibrate", help="fit K, A and the zero from a dataset",

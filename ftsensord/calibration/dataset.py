@@ -30,8 +30,9 @@ DATASET_FORMAT = "ftsensord-calibration-dataset"
 DATASET_VERSION = 1
 UNITS = {"flux": "T", "wrench": "N, Nm", "length": "m", "mass": "kg"}
 #: "no-load": the sensor alone (rod and mass off) at an orientation: what the room's field
-#: does to the chips (docs/calibration.md).
-SPLITS = ("fit", "validation", "no-load")
+#: does to the chips; "check": a large load (kilograms at the flange's centre), fitted on by
+#: nothing, on which the flux model is judged beyond the fit's loads (docs/calibration.md).
+SPLITS = ("fit", "validation", "no-load", "check")
 #: The wrench's axes and their units, in the order of ``wrench``.
 AXES = ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
 AXIS_UNITS = ("N", "N", "N", "Nm", "Nm", "Nm")

@@ -12,6 +12,7 @@ from ..errors import ConfigError
 from ..model.geometry import SensorGeometry
 from ..sim import PhysicalScene, default_scene, load_scene, simulated_bus
 from ..sim.loads import paper_plan
+from . import largeloads
 from .calfile import Calibration
 from .dataset import Dataset
 from .fit import AXES, CalibrationResult, fit
@@ -28,10 +29,11 @@ NO_LOAD_POSES = 24
 
 def simulate_dataset(scene_path: str | Path | PhysicalScene | None, sensor_name: str, plan: str, *, poses: int,
                      validation_poses: int, samples: int, seed: int, sweeps: bool = True,
-                     no_load_poses: int = NO_LOAD_POSES) -> Dataset:
+                     no_load_poses: int = NO_LOAD_POSES, check_poses: int = 0) -> Dataset:
     """Run the paper's calibration procedure (section VII-B) on a simulated sensor of a
     scene (a file, a scene already built, or None: the default scene): each pose's wrench
-    applied, ``samples`` readings averaged; with ``sweeps``, each chip's position-map sweep too."""
+    applied, ``samples`` readings averaged; with ``sweeps``, each chip's position-map sweep
+    too; ``check_poses`` at large loads (`largeloads`)."""
     if isinstance(scene_path, PhysicalScene):
         scene, scene_path = scene_path, "given"
     else:
@@ -45,7 +47,7 @@ def simulate_dataset(scene_path: str | Path | PhysicalScene | None, sensor_name:
     bus = simulated_bus(scene, seed=seed)
     robot = simulated_robot(scene, sensor.name)
     dataset = record_dataset(bus, sensor.addresses, paper_plan(plan, n_fit=poses, n_validation=validation_poses,
-                                                                  n_no_load=no_load_poses),
+                                                                  n_no_load=no_load_poses, n_check=check_poses),
                              robot["apply_load"], turn=robot["turn"], samples=samples,
                              serial=f"sim-{sensor.name}",
                              source=f"simulated: scene {scene_path or 'default'}, sensor {sensor.name}, "
@@ -78,6 +80,11 @@ def calibrate(dataset: Dataset, *, serial: str | None = None, frame: str = "sens
                                "warnings": list(nl.warnings),
                                "validation_rmse": (dict(zip(AXES, nonlinear_rmse(nl, validation).tolist()))
                                                    if len(validation) else None)}
+    report["large_loads"], found = largeloads.judge(dataset if result.excluded is None else
+                                                    dataset.select(~result.excluded), result.model, nl)
+    if nl is not None:
+        nl.warnings += tuple(found)
+        report["nonlinear"]["warnings"] += found
     cal = Calibration(result.model, dataset.addresses, serial or dataset.serial, frame, result.position_map,
                       report, nl, result.wrench_range, temperature)
     return cal, result
@@ -96,6 +103,14 @@ def summary(cal: Calibration) -> str:
     if cal.nonlinear is not None and report["nonlinear"]["validation_rmse"]:
         lines.append(f"nonlinear (residual {cal.nonlinear.fit_rms_residual_t * 1e6:.2f} uT) validation RMSE: "
                      + format_rmse(report["nonlinear"]["validation_rmse"]))
+    large = report.get("large_loads")
+    if large is not None:
+        lines.append(f"large loads ({large['poses']} check poses, |F| to {large['largest_force_n']:.3g} N) RMSE: "
+                     f"linear {format_rmse(list(large['linear_rmse'].values()))}"
+                     + (f"; nonlinear {format_rmse(list(large['nonlinear_rmse'].values()))}"
+                        if large.get("nonlinear_rmse") else ""))
+    else:
+        lines.append(largeloads.NOT_JUDGED)
     if cal.nonlinear is None:  # the part is judged by the nonlinear fit: say that it was not
         lines.append("nonlinear fit skipped: the part's departures from the model (silicone that stiffens, "
                      "a field it lacks) were not judged")

@@ -113,7 +113,7 @@ def fit_drift(dataset: Dataset, model: LinearModel, reference_c: float,
     them anyway: a drift there changes no wrench)."""
     if model.H is None or dataset.temperature_c is None:
         raise CalibrationError("a drift needs the flux model H and the poses' temperatures")
-    poses = dataset.select(np.asarray(dataset.split != "validation") & ~dataset.saturated.any(axis=1))
+    poses = dataset.select(np.isin(dataset.split, ("fit", "no-load")) & ~dataset.saturated.any(axis=1))
     predicted = model.zero + np.linalg.solve(model.K, poses.wrench.T).T @ model.H.T
     residual = poses.flux_t - predicted
     dt = poses.temperature_c - reference_c  # type: ignore[operator]
