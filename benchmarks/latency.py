@@ -1,7 +1,7 @@
 """Sample-to-subscriber latency with many subscribers over ipc.
 
 Starts `ftsensord run` with the default configuration (16 simulated chips in real time,
-100 Hz, the default scheduler) in a subprocess, and ``--subscribers`` subscribers to
+100 Hz, the scheduler the daemon chooses) in a subprocess, and ``--subscribers`` subscribers to
 ``wrench/sensor1`` spread over ``--processes`` processes (a subscriber in each its own
 ZeroMQ socket, as separate client programs would have). Each receipt's delay is the
 subscriber's CLOCK_MONOTONIC at receipt minus the sample's ``t_mono`` (the daemon's

@@ -1,7 +1,7 @@
 """Achieved rate of the daemon: 16 simulated chips on a bus that spends real wire time.
 
 Starts `ftsensord run` with the default configuration (the simulated bus standing for a
-Pi 4's adapter, 400 kHz, the default scheduler, 100 Hz) in a subprocess, subscribes to one
+Pi 4's adapter, 400 kHz, the scheduler the daemon chooses, 100 Hz) in a subprocess, subscribes to one
 stream, and after ``--seconds`` reports from the subscriber's side: samples received, the
 rate they imply (sequence numbers over the daemon's timestamps), sequence gaps, and from
 the daemon's status: the bound, missed and late cycles, jitter, how long a cycle takes
@@ -36,7 +36,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--rate", type=float, default=100.0)
-    parser.add_argument("--scheduler", default=None, help="default: the configuration's (the default scheduler)")
+    parser.add_argument("--scheduler", default=None, help="default: the daemon chooses")
     parser.add_argument("--adapter", default=None, help="the simulated adapter (default: the simulator's, bcm2835)")
     parser.add_argument("--ioctl-us", type=float, default=None, help="the simulated cost of one ioctl (us)")
     parser.add_argument("--clock-hz", type=float, default=None, help="the simulated wire's real clock (Hz)")

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from collections.abc import Sequence
 
@@ -34,6 +35,17 @@ def cmd_scan(args: argparse.Namespace) -> int:
         print(f"no MLX90393 answered on {args.bus} (0x0C-0x1B)", file=sys.stderr)
         return 1
     return 2 if any(r.error for r in reports) else 0
+
+
+def _rate_hz(text: str) -> float:
+    """An argparse type: a finite rate above 0 Hz."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a positive number of Hz, got {text!r}")
+    return value
 
 
 def cmd_doctor(args: argparse.Namespace) -> int:
@@ -251,7 +263,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("set", help="change the rate, averaging, low-pass or estimator of the running daemon",
                        description="Changes last until the next restart or reload; a rate above the "
                                    "computed bound is refused, and nothing changes.")
-    p.add_argument("--rate", type=float, help="loop rate, Hz")
+    p.add_argument("--rate", type=_rate_hz, help="loop rate, Hz")
     p.add_argument("--averaging", type=int, help="samples in the moving average (1: off)")
     p.add_argument("--lowpass", type=float, help="first-order low-pass cutoff, Hz (0: off)")
     p.add_argument("--estimator", choices=ESTIMATORS, help="K A, or the flux model (docs/nonlinear.md)")
@@ -312,8 +324,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--bus", default="sim", help=f"bus: {ACCEPTED_FORMS} (default: sim)")
     p.add_argument("--scheduler", choices=("naive", "overlapped", "burst"), help="only this scheduler (default: all)")
     p.add_argument("--bus-hz", type=float, default=400e3, help="the clock ftsensord is configured with, Hz (default 400000)")
-    p.add_argument("--rate", type=float, default=100.0,
-                   help="the rate whose scheduler and read-back `run` would choose, Hz (default 100)")
+    p.add_argument("--rate", type=_rate_hz, default=100.0, help="the rate `run` would choose for, Hz (default 100)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--force", action="store_true", help="go on when another process (a daemon) holds the bus")
     p.add_argument("--real-time", action="store_true",
@@ -338,9 +349,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-load-poses", type=int, default=24,
                    help="poses with the rod and masses off, to measure the room's field (default: 24; "
                         "at least 6 for the fit to use them, 12 or more advised)")
-    p.add_argument("--check-poses", type=int, default=24,
-                   help="poses with 1, 2 and 4 kg at the flange's centre, on which the model is judged at large "
-                        "loads (default: 24; 0: none)")
+    p.add_argument("--check-poses", type=int, default=24, help="poses with 1, 2 and 4 kg at the flange's centre, "
+                   "on which the model is judged at large loads (default: 24; 0: none)")
     p.set_defaults(func=cmd_dataset)
 
     p = sub.add_parser("calibrate", help="fit K, A and the zero from a dataset",

@@ -193,7 +193,7 @@ def test_dataset_and_calibrate_commands(tmp_path, capsys):
     # enough readings a pose that their noise floor is seen (2 often quantise alike).
     assert main(["dataset", "-o", str(ds), "--poses", "40", "--validation-poses", "10", "--samples", "5",
                  "--no-load-poses", "12"]) == 0
-    assert "62 poses (six-axis)" in capsys.readouterr().out
+    assert "86 poses (six-axis)" in capsys.readouterr().out  # 40 fit, 10 validation, 12 no-load, 24 check
     assert main(["calibrate", str(ds), "-o", str(cal), "--report", str(rep), "--serial", "SN-1"]) == 0
     out = capsys.readouterr().out
     assert "validation RMSE: Fx" in out and "isotropy" in out

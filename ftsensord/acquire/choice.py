@@ -4,9 +4,10 @@ The daemon chooses what a configuration leaves unnamed (`choose`): ``scheduler``
 ``readback_every``. The read-back (one chip's registers a cycle, docs/reliability.md)
 is what catches a chip that reset or lost its settings, so it is kept while some
 scheduler holds the rate with `TARGET_SPARE` of the period left; only when none does
-is it given up, for the option with the most spare. When nothing holds, the error
-names every lever with the bound it would give (`levers`). docs/performance.md, "The
-daemon's choice", has the figures.
+is it given up, for the option with the most spare (a near tie keeps it). When nothing
+holds, the error names every lever with the bound it would give (`levers`); where the
+daemon runs anyway (a board measured slower than its file said), it runs the fastest
+option (`fastest`). docs/performance.md, "The daemon's choice", has the figures.
 """
 
 from __future__ import annotations
@@ -25,6 +26,9 @@ TARGET_SPARE = 0.2
 SPARSE_READBACK_EVERY = 100
 #: The MLX90393's fastest clock: fast mode (the datasheet has no fast-mode plus).
 CHIP_MAX_CLOCK_HZ = 400e3
+#: Options whose spares differ by less than 1 % of the period are a tie (the loop's own
+#: jitter is larger: docs/performance.md), which the read-back wins.
+TIE_SPARE = 0.01
 
 
 @dataclass(frozen=True)
@@ -73,54 +77,98 @@ def option(bus: Bus, scheduler: str, readback: bool, rate_hz: float) -> Option:
     return Option(scheduler, every, bound)
 
 
+def options(bus: Bus, rate_hz: float, scheduler: str | None = None, readback_every: int | None = None) -> list[Option]:
+    """The options a configuration leaves open: a named lever (not None) is kept as named."""
+    if not rate_hz > 0:  # also NaN: a rate is a positive number of Hz
+        raise ConfigError(f"rate: expected a positive number of Hz, got {rate_hz!r}")
+    out = [option(bus, s, r, rate_hz) for s in (SCHEDULERS if scheduler is None else (scheduler,))
+           for r in ((True, False) if readback_every is None else (readback_every > 0,))]
+    return out if readback_every is None else [Option(o.scheduler, readback_every, o.bound) for o in out]
+
+
 def choose(bus: Bus, rate_hz: float, scheduler: str | None = None, readback_every: int | None = None) -> Option:
     """The option that holds ``rate_hz`` among those the configuration leaves open (None:
-    unnamed): with the read-back if one holds with `TARGET_SPARE`, else the most spare.
-    A named lever is kept as named. ConfigError, naming every lever, when none holds."""
-    schedulers = SCHEDULERS if scheduler is None else (scheduler,)
-    readbacks = (True, False) if readback_every is None else (readback_every > 0,)
-    options = [option(bus, s, r, rate_hz) for s in schedulers for r in readbacks]
-    if readback_every is not None:
-        options = [Option(o.scheduler, readback_every, o.bound) for o in options]
-    holding = [o for o in options if o.spare(rate_hz) >= 0.0]  # at the bound itself: the loop holds 0.955-1.000 of it (doctor)
+    unnamed): with the read-back if one holds with `TARGET_SPARE`, else the most spare (a
+    tie, `TIE_SPARE`, to the read-back). ConfigError, naming every lever, when none holds."""
+    open_ = options(bus, rate_hz, scheduler, readback_every)
+    holding = [o for o in open_ if o.spare(rate_hz) >= 0.0]  # at the bound itself: the loop holds 0.955-1.000 of it (doctor)
     if not holding:
-        fastest = max(options, key=lambda o: o.bound.rate_hz)
-        raise ConfigError(f"{rate_hz:g} Hz cannot be met on this bus: {fastest.bound.describe()}. "
-                          f"Levers: {levers(bus, rate_hz)}")
+        raise ConfigError(f"{rate_hz:g} Hz cannot be met: {fastest(open_).bound.describe()}. "
+                          f"Levers: {levers(bus, rate_hz, scheduler, readback_every)}")
     checked = [o for o in holding if o.readback_every and o.spare(rate_hz) >= TARGET_SPARE]
-    return max(checked or holding, key=lambda o: o.spare(rate_hz))
+    if checked:
+        return max(checked, key=lambda o: o.spare(rate_hz))
+    most = max(o.spare(rate_hz) for o in holding)
+    return max((o for o in holding if o.spare(rate_hz) >= most - TIE_SPARE),
+               key=lambda o: (o.readback_every > 0, o.spare(rate_hz)))
 
 
-def explain(bus: Bus, picked: Option, rate_hz: float) -> str:
-    """``picked`` described; with every lever when it leaves less than `TARGET_SPARE`."""
-    if picked.spare(rate_hz) >= TARGET_SPARE:
+def fastest(candidates: list[Option]) -> Option:
+    """The option with the highest bound (where nothing holds and the loop runs anyway)."""
+    return max(candidates, key=lambda o: o.bound.rate_hz)
+
+
+def explain(bus: Bus, picked: Option, rate_hz: float, scheduler: str | None = None,
+            readback_every: int | None = None) -> str:
+    """``picked`` described; with every lever when it leaves less than `TARGET_SPARE`
+    (``scheduler``, ``readback_every``: what the configuration names, kept)."""
+    spare = picked.spare(rate_hz)
+    if spare >= TARGET_SPARE:
         return picked.describe(rate_hz)
-    return (f"{picked.describe(rate_hz)}, under the {TARGET_SPARE:.0%} target (the host's work may make cycles "
-            f"late). Levers: {levers(bus, rate_hz)}")
+    what = ("nothing holds the rate, the fastest runs: " if spare < 0 else "") + picked.describe(rate_hz)
+    return (f"{what}, under the {TARGET_SPARE:.0%} target (the host's work may make cycles late). "
+            f"Levers: {levers(bus, rate_hz, scheduler, readback_every, picked)}")
 
 
-def levers(bus: Bus, rate_hz: float) -> str:
-    """Every change that moves the bound, each with the best bound it gives (Hz)."""
-    def best(b: Bus) -> str:  # the fastest scheduler's bound, with and without the read-back
-        fastest = [max(b.bound(s, readback).rate_hz for s in SCHEDULERS) for readback in (True, False)]
-        return f"{fastest[0]:.0f} Hz with the read-back, {fastest[1]:.0f} without"
+def levers(bus: Bus, rate_hz: float, scheduler: str | None = None, readback_every: int | None = None,
+           current: Option | None = None) -> str:
+    """Every change that raises the bound above ``current``'s (None: the fastest option the
+    configuration leaves open), each with the bound it gives (Hz, the read-back as now)."""
+    current = current or fastest(options(bus, rate_hz, scheduler, readback_every))
+    readback = current.readback_every > 0
+    now = current.bound.rate_hz
+    named = f"named {scheduler}; " if scheduler is not None else ""
+    out = [f"the scheduler ({named}{'with' if readback else 'without'} the read-back: "
+           + ", ".join(f"{s} {bus.bound(s, readback).rate_hz:.1f}" for s in SCHEDULERS) + " Hz)"]
+    if readback:
+        out.append("no register read-back, readback_every = 0 ("
+                   + ", ".join(f"{s} {bus.bound(s, False).rate_hz:.1f}" for s in SCHEDULERS) + " Hz)")
 
-    out = ["the scheduler (" + ", ".join(f"{s} {bus.bound(s, True).rate_hz:.0f}" for s in SCHEDULERS) + " Hz)",
-           "no register read-back, readback_every = 0 (" +
-           ", ".join(f"{s} {bus.bound(s, False).rate_hz:.0f}" for s in SCHEDULERS) + " Hz)"]
+    def better(what: str, changed: Bus) -> None:
+        rate = changed.bound(current.scheduler, readback).rate_hz
+        if rate > now:
+            out.append(f"{what} ({current.scheduler} {rate:.1f} Hz)")
+
     if bus.temperature:
-        out.append(f"no temperatures, temperature_every = 0 ({best(replace(bus, temperature=False))})")
-    for name, key in (("OSR", "osr"), ("DIG_FILT", "dig_filt")):
-        value = getattr(bus.settings, key)
-        lower = replace(bus.settings, **{key: value - 1})
-        try:
-            lower.validate()  # 0 is the lowest, and some pairs are forbidden at HALLCONF 0xC
-        except ConfigError:
-            continue
-        out.append(f"a shorter conversion, {name} {value - 1} ({best(replace(bus, settings=lower))})")
+        better("no temperatures, temperature_every = 0", replace(bus, temperature=False))
+    shorter = _shorter_conversion(bus.settings)
+    if shorter is not None:
+        better(f"a shorter conversion, OSR {shorter.osr} and DIG_FILT {shorter.dig_filt}", replace(bus, settings=shorter))
     if bus.clock_hz < CHIP_MAX_CLOCK_HZ * 0.99:  # 1 %: a measured clock is never exact
-        out.append(f"the bus clock at {CHIP_MAX_CLOCK_HZ / 1e3:.0f} kHz, now {bus.clock_hz / 1e3:.0f} kHz "
-                   f"({best(replace(bus, clock_hz=CHIP_MAX_CLOCK_HZ))})")
-    top = max(bus.bound(s, False).rate_hz for s in SCHEDULERS)
-    out.append(f"a lower rate (at most {top:.0f} Hz, now {rate_hz:g} Hz)")
+        better(f"the bus clock at {CHIP_MAX_CLOCK_HZ / 1e3:.0f} kHz, now {bus.clock_hz / 1e3:.0f} kHz",
+               replace(bus, clock_hz=CHIP_MAX_CLOCK_HZ))
+    # Rounded down: a rate the text names must hold.
+    out.append(f"a lower rate (at most {_floor(now * (1 - TARGET_SPARE))} Hz for {TARGET_SPARE:.0%} spare, "
+               f"{_floor(now)} Hz at the bound; now {rate_hz:g} Hz)")
     return "; ".join(out)
+
+
+def _floor(hz: float) -> str:
+    return f"{int(hz * 10) / 10:g}"
+
+
+def _shorter_conversion(settings: mlx.Settings) -> mlx.Settings | None:
+    """The permitted OSR and DIG_FILT whose conversion is the next shorter than today's
+    (the least noise given up); None: already the shortest."""
+    now = settings.tconvm_us()
+    shorter = []
+    for osr in range(mlx.OSR.max + 1):
+        for dig_filt in range(mlx.DIG_FILT.max + 1):
+            candidate = replace(settings, osr=osr, dig_filt=dig_filt)
+            try:
+                candidate.validate()  # some pairs are forbidden at HALLCONF 0xC
+            except ConfigError:
+                continue
+            if candidate.tconvm_us() < now:
+                shorter.append(candidate)
+    return max(shorter, key=lambda c: c.tconvm_us()) if shorter else None

@@ -184,13 +184,16 @@ def doctor(spec: str, schedulers: tuple[str, ...] = SCHEDULERS, *, bus_hz: float
     }
 
 
-def _choice(bus: choice.Bus, rate_hz: float) -> str:
-    """What `ftsensord run` would choose at ``rate_hz`` with no scheduler or read-back named."""
+def _choice(bus: choice.Bus, rate_hz: float) -> dict[str, Any]:
+    """What `ftsensord run` would choose at ``rate_hz`` with no scheduler or read-back named:
+    ``scheduler``, ``readback_every``, ``bound_hz``, ``spare`` and ``text``; or ``error``."""
     try:
         picked = choice.choose(bus, rate_hz)
     except ConfigError as exc:
-        return f"nothing holds: {exc}"
-    return choice.explain(bus, picked, rate_hz)
+        return {"error": f"nothing holds: {exc}"}
+    return {"scheduler": picked.scheduler, "readback_every": picked.readback_every,
+            "bound_hz": picked.bound.rate_hz, "spare": picked.spare(rate_hz),
+            "text": choice.explain(bus, picked, rate_hz)}
 
 
 def format_doctor(report: dict[str, Any]) -> str:
@@ -210,6 +213,8 @@ def format_doctor(report: dict[str, Any]) -> str:
         lines.append(f"  {c['address']} {c['part']}: B = {c['field_ut']} uT, T = {c['temperature_c']} degC, "
                      f"{bad} errors in {errors.get('reads', 0)} register reads"
                      + (f"; {c['error']}" if c["error"] else ""))
+    if report["schedulers"]:
+        lines.append("  each scheduler run at its bound, with the register read-back and no temperatures:")
     for name, run in report["schedulers"].items():
         t = run["cycle_us"]
         lines.append(f"  {name}: bound {run['bound_hz']:.1f} Hz, measured {run['measured_hz']:.1f} Hz at it "
@@ -217,7 +222,9 @@ def format_doctor(report: dict[str, Any]) -> str:
                      f"{t['transfers']:.0f} us, waits {t['waits']:.0f} us, host {t['host']:.0f} us, "
                      f"bound {t['bound']:.0f} us)")
     if report["choice"]:
-        lines.append(f"  ftsensord run at {report['rate_hz']:g} Hz, no scheduler named: {report['choice']}")
+        chosen = report["choice"]
+        lines.append(f"  ftsensord run at {report['rate_hz']:g} Hz, no scheduler named (temperatures read): "
+                     f"{chosen.get('text') or chosen['error']}")
     if not report["chips"]:
         lines.append("  no MLX90393 answered (0x0C-0x1B)")
     return "\n".join(lines)

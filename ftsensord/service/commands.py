@@ -9,13 +9,13 @@ from typing import Any
 
 from ..acquire.reader import Reader
 from ..chip.i2c import BusTiming
-from ..errors import FtsensordError
-from .config import Config, check_rate, reload_config
-from .sensorconf import Calibrations
+from ..errors import ConfigError, FtsensordError
+from .config import Config, reload_config
 from .gravity import Gravity
 from .pipeline import SensorPipeline, use_estimator
 from .reloads import Reloads
 from .sdnotify import Notifier
+from .sensorconf import Calibrations
 from .tare import Tares, carry_tares
 
 log = logging.getLogger("ftsensord")
@@ -47,8 +47,15 @@ class Commands:
         return self.config.rate_hz, self.config.averaging, self.config.lowpass_hz
 
     def set_loop(self, rate_hz: float, averaging: int, lowpass_hz: float) -> dict[str, Any]:
-        check_rate(self.config, rate_hz, timing=self.board_timing)
-        self.config.rate_hz, self.config.averaging, self.config.lowpass_hz = rate_hz, averaging, lowpass_hz
+        before = self.config.rate_hz
+        self.config.rate_hz = rate_hz
+        try:  # what the file leaves unnamed follows the rate; the scheduler stays (a restart chooses it)
+            self.config.choose(self.board_timing, running=self.config.scheduler)
+        except ConfigError:
+            self.config.rate_hz = before
+            raise
+        self.reader.readback_every = self.config.readback_every
+        self.config.averaging, self.config.lowpass_hz = averaging, lowpass_hz
         for s in self.sensors:
             s.filter.configure(averaging, lowpass_hz, rate_hz)
         if self.gravity is not None:
@@ -104,7 +111,7 @@ class Commands:
         old, self.sensors = self.sensors, pipelines
         tares = carry_tares(old, self.sensors)  # kept where the calibration is the same, else dropped, said
         self.gravity = self._gravity(new)
-        log.info("reloaded %s", new.path)
+        log.info("reloaded %s; schedule: %s", new.path, new.choice)
         self.notifier.ready(self.status_line())
         return {"ok": True, "result": {"config": str(new.path), "tare": tares,
                                        "calibrations": {s.name: str(s.calibration_path) for s in new.sensors}}}

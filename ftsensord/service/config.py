@@ -88,30 +88,27 @@ class Config:
         """The configured scheduler's bound on this bus (`bus_levers`)."""
         return self.bus_levers(timing).bound(self.scheduler, self.readback_every > 0)
 
-    def choose(self, timing: BusTiming | None = None, where: str = "rate_hz", running: str | None = None) -> None:
+    def choose(self, timing: BusTiming | None = None, where: str = "rate_hz", running: str | None = None,
+               strict: bool = True) -> None:
         """Set what the file leaves unnamed of ``scheduler`` and ``readback_every`` to what
         holds ``rate_hz`` with the most margin (`acquire.choice.choose`; keeping the
-        read-back while it can); ``running``: the scheduler a reload keeps (a restart
-        chooses again). ConfigError, naming every lever, when nothing holds."""
+        read-back while it can); a named one is checked. ``running``: the scheduler a
+        running daemon keeps (only a restart chooses it again). When nothing holds:
+        ConfigError naming every lever, or with ``strict`` off (a board measured slower
+        than the file says, where the loop runs anyway), the fastest option."""
         levers = self.bus_levers(timing)
+        named = (self.scheduler if "scheduler" in self.named else running,
+                 self.readback_every if "readback_every" in self.named else None)
         try:
-            picked = choice.choose(levers, self.rate_hz, self.scheduler if "scheduler" in self.named else running,
-                                   self.readback_every if "readback_every" in self.named else None)
+            picked = choice.choose(levers, self.rate_hz, *named)
         except ConfigError as exc:
-            raise ConfigError(f"{where}: {exc}") from exc
+            if strict:
+                raise ConfigError(f"{where}: {exc}") from exc
+            picked = choice.fastest(choice.options(levers, self.rate_hz, *named))
         self.scheduler, self.readback_every = picked.scheduler, picked.readback_every
         unnamed = sorted({"scheduler", "readback_every"} - self.named)
-        self.choice = (choice.explain(levers, picked, self.rate_hz) +
+        self.choice = (choice.explain(levers, picked, self.rate_hz, *named) +
                        (f" (chosen: {', '.join(unnamed)} not in the file)" if unnamed else " (as configured)"))
-
-def check_rate(config: Config, rate_hz: float, where: str = "rate_hz", timing: BusTiming | None = None) -> None:
-    """Refuse a rate above what the running scheduler and read-back can achieve, naming
-    the bound and every lever (`acquire.choice.levers`)."""
-    levers = config.bus_levers(timing)
-    bound = levers.bound(config.scheduler, config.readback_every > 0)
-    if rate_hz > bound.rate_hz:
-        raise ConfigError(f"{where}: {rate_hz:g} Hz cannot be met: {bound.describe()}. "
-                          f"Levers: {choice.levers(levers, rate_hz)}")
 
 
 def load_config(path: str | Path | None = None, calibrations: Calibrations | None = None) -> Config:
@@ -198,8 +195,8 @@ def reload_config(old: Config, calibrations: Calibrations | None = None, timing:
     What the file leaves unnamed is chosen again on the board's ``timing``, keeping the
     running scheduler (a reload cannot change it)."""
     new = load_config(old.path, calibrations)
-    if new.named != {"scheduler", "readback_every"}:
-        new.choose(timing, f"{new.path}: rate_hz", running=old.scheduler)
+    if new.named != {"scheduler", "readback_every"}:  # as at start: a slow board runs late, not refused
+        new.choose(timing, f"{new.path}: rate_hz", running=old.scheduler, strict=False)
     fixed = needs_restart(old, new)
     if fixed:
         raise ConfigError(f"{new.path}: changing {', '.join(fixed)} needs a restart; nothing was changed")

@@ -26,7 +26,7 @@ from ..acquire.reader import Reader
 from ..chip import mlx90393 as mlx
 from ..chip.driver import MLX90393
 from ..chip.i2c import Bus, BusTiming
-from ..errors import ConfigError, FtsensordError
+from ..errors import FtsensordError
 from . import wire
 from .commands import Commands
 from .config import Config
@@ -120,13 +120,10 @@ class Daemon(Commands):
 
     def _choose_on_board(self) -> None:
         """Choose again what the file leaves unnamed, from the measured bound (a new reader
-        if the choice changes: nothing has used the first yet); a named one is checked."""
+        if the choice changes: nothing has used the first yet); a named one is checked.
+        Where nothing holds, the loop runs late with the fastest option, said in the log."""
         before = self.config.scheduler, self.config.readback_every
-        try:
-            self.config.choose(self.board_timing, "rate_hz on this board")
-        except ConfigError as slow:
-            log.warning("%s: cycles will run late", slow)
-            return
+        self.config.choose(self.board_timing, strict=False)
         if (self.config.scheduler, self.config.readback_every) != before:
             self.reader = self._reader(self.config)
 
