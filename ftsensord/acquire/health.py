@@ -200,8 +200,7 @@ class ChipCare:
         m = r.measurement
         if m is not None:
             h.stale_run = 0
-            raw = m.raw
-            words = (raw.get("x", -1), raw.get("y", -1), raw.get("z", -1))
+            words = m.xyz_words()
             last, h.last_words = h.last_words, words
             if words != last:
                 h.same_words = 0
