@@ -228,8 +228,9 @@ class RMPlan:
 
     def rows(self, chips: list[MLX90393]) -> list[int] | None:
         """The rows of ``chips``, in their order; None when one is not in this plan."""
-        row = self.row
-        return [row[c] for c in chips] if all(c in row for c in chips) else None
+        get = self.row.get
+        rows = [get(c) for c in chips]
+        return None if None in rows else rows  # type: ignore[return-value]
 
     def transfers(self, rows: list[int]) -> list[tuple[list[int], list[i2c_msg]]]:
         """(rows, messages) of each ioctl that reads ``rows`` in their order."""

@@ -93,14 +93,14 @@ WARM_DAMPING = 1e-6
 BACKGROUND_LIMIT_T = 0.5e-3
 BACKGROUND_NOISE_T = 1e-6
 #: The step that ends a fit (the steps left foretold under the tolerances) is not checked
-#: against the field when it changes no channel by more than 0.1 uT (a tenth of the chips'
+#: against the field when it changes no channel by more than 1 uT (a third of the chips'
 #: noise): its flux is the Jacobian's prediction, which is off by at most the Jacobian's
-#: drift since it was computed (under 1 % of the change, `JACOBIAN_REUSE_M`: 1 nT) and the
-#: field's curvature over a step that small (0.1 um at 6 mm, 2 nm at 2 mm: under 1 nT).
-#: Such a step lowers the linearised cost by construction; an evaluation would only repeat
-#: it. At rest this saves one field evaluation in two (the second step moves the pose
-#: about 1/400 of the first).
-LINEAR_STEP_T = 0.1e-6
+#: drift since it was computed (1-2 % of the change within `JACOBIAN_REUSE_M`, measured at
+#: loads to 40 % of range: 20 nT, a hundredth of the noise) and the field's curvature over
+#: a step that small (0.4 um at 2 mm from a magnet: under 1 nT). Such a step lowers the
+#: linearised cost by construction; an evaluation would only repeat it. (It was 0.1 uT: a
+#: moving load's fit then paid a field evaluation for its last step, a third of its work.)
+LINEAR_STEP_T = 1e-6
 
 
 @dataclass(frozen=True)
@@ -140,6 +140,9 @@ class NonlinearEstimator:
         #: The last converged fit's pose, field, kind (with the field or not) and predicted
         #: flux: a warm start from that pose and field needs no prediction of its own.
         self._end: tuple[np.ndarray, np.ndarray, bool, np.ndarray | None] | None = None
+        #: The poses before and after the last sample's fit (None after a failed one): the
+        #: warm start follows the motion between them (`_ahead`).
+        self._motion: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
     def unknowns(self) -> int:
@@ -156,8 +159,10 @@ class NonlinearEstimator:
         """
         if start is not None:
             return self._cold(b, usable, start)
-        warm = self._solve(b, usable, self.pose, self.background_t, self.background, WARM_DAMPING)
+        before = self.pose
+        warm = self._solve(b, usable, self._ahead(before), self.background_t, self.background, WARM_DAMPING)
         if warm.converged and warm.rms_residual_t <= RETRY_RESIDUAL_T:
+            self._motion = (before, warm.pose)
             return warm
         tries = [warm, self._cold(b, usable, np.eye(4))]
         twist = min(tries, key=lambda e: e.rms_residual_t).xi[5]
@@ -169,7 +174,33 @@ class NonlinearEstimator:
         best = min(tries, key=lambda e: (not e.converged, e.rms_residual_t))
         if best.converged:
             self.pose, self.background_t = best.pose, best.background_t
+        self._motion = (before, best.pose) if best.converged else None
         return best
+
+    def _ahead(self, pose: np.ndarray) -> np.ndarray:
+        """Where the warm start begins: ``pose`` (the last fit's) moved on by the last
+        sample's motion, T_k (T_k-1)^-1 T_k, when the last two samples moved it beyond
+        `JACOBIAN_REUSE_M` or 2 mrad (a moving load: the next pose is that much further,
+        its second difference some 40 times less at 1.3 Hz and 100 Hz) and within one
+        step's limits (`MAX_STEP_M`, `MAX_STEP_RAD`: beyond is a jump, not a motion to
+        go on with); else ``pose`` itself (at rest the noise would only be doubled)."""
+        motion = self._motion
+        if motion is None or motion[1] is not pose:  # none yet, or the pose was set since
+            return pose
+        before = motion[0]
+        if _near(pose, before.tolist(), None, None):
+            return pose
+        R0, t0 = before[:3, :3], before[:3, 3]
+        D = np.eye(4)  # T_k (T_k-1)^-1
+        D[:3, :3] = pose[:3, :3] @ R0.T
+        D[:3, 3] = pose[:3, 3] - D[:3, :3] @ t0
+        # As a twist, taken by the same exp as the solver's steps: the start is a rigid motion
+        # to round-off (R_k R_k-1^T R_k multiplied as matrices would compound their round-off).
+        step = _log_se3(D)
+        v0, v1, v2, w0, w1, w2 = step.tolist()
+        if math.sqrt(v0 * v0 + v1 * v1 + v2 * v2) > MAX_STEP_M or math.sqrt(w0 * w0 + w1 * w1 + w2 * w2) > MAX_STEP_RAD:
+            return pose
+        return _exp_se3(step) @ pose
 
     def _cold(self, b: np.ndarray, usable: np.ndarray | None, start: np.ndarray) -> Estimate:
         """From ``start`` with no background field: the pose alone first, then with the
@@ -199,7 +230,8 @@ class NonlinearEstimator:
             return Estimate(se3.log_se3(T), T, False, 0, np.inf)
         lam = damping  # Marquardt's damping, relative to the diagonal of J^T J
         cost, done, k = np.inf, False, 0
-        last: tuple[tuple[float, float], object] | None = None  # the previous step's size (m, rad), its kind
+        # The previous step's size (m, rad), its kind and the Jacobian it was taken with.
+        last: tuple[tuple[float, float], object, np.ndarray] | None = None
         # The flux predicted at T, once known: from a warm start, the last fit's at its end.
         kept = self._end
         pred = kept[3] if kept is not None and kept[0] is start and kept[1] is u0 and kept[2] == background else None
@@ -217,10 +249,11 @@ class NonlinearEstimator:
                 J = J_full[channels]
                 JtJ, Jtr = J.T @ J, J.T @ r
                 if u is not None:  # the prior's rows: (noise / prior) (u + du) = 0
-                    JtJ[6:, 6:] += PRIOR_WEIGHT * np.eye(3)
+                    JtJ[6:, 6:] += PRIOR_EYE
                     Jtr[6:] -= PRIOR_WEIGHT * u
             # The rate is seen from two steps of one kind: both with new Jacobians (Newton's
-            # quadratic convergence) or both with the same kept one (a chord's linear rate).
+            # quadratic convergence) or both with the same one (a chord's linear rate: the
+            # step that made a Jacobian, then a step with it kept, are two of the same chord).
             kind = NEW if fresh else J_full
             while True:
                 if not chord:
@@ -239,7 +272,8 @@ class NonlinearEstimator:
                     step, size = step * scale, (size[0] * scale, size[1] * scale)
                 T_new = _exp_se3(step) @ T
                 u_new = None if u is None else u + step[6:]
-                final = _within(size) or (last is not None and last[1] is kind and _within(_left(size, last[0])))
+                final = _within(size) or (last is not None and (last[1] is kind or last[2] is J_full)
+                                          and _within(_left(size, last[0])))
                 change = J_full @ step if final else None
                 if change is not None and np.abs(change).max() <= LINEAR_STEP_T:
                     pred_new = pred + change  # the last step, too small to need the field (`LINEAR_STEP_T`)
@@ -265,7 +299,7 @@ class NonlinearEstimator:
                 continue
             if done or final:
                 break
-            last = (size, kind) if scale == 1.0 else None  # a limited step says nothing of convergence
+            last = (size, kind, J_full) if scale == 1.0 else None  # a limited step says nothing of convergence
         rms = math.sqrt(max(cost - _prior(u), 0.0) / used)  # of the flux alone
         xi = _log_se3(T)
         plausible = bool((np.abs(self.stiffness @ (xi - self.zero_twist)) <= PLAUSIBLE_WRENCH).all())
@@ -310,6 +344,8 @@ class NonlinearEstimator:
 
 
 PRIOR_WEIGHT = (BACKGROUND_NOISE_T / BACKGROUND_PRIOR_T) ** 2
+PRIOR_EYE = PRIOR_WEIGHT * np.eye(3)
+PRIOR_EYE.setflags(write=False)
 PLAUSIBLE_WRENCH = PLAUSIBLE_RANGE * SENSOR_RANGE
 NEW = object()  # the kind of a step taken with a new Jacobian
 
