@@ -50,9 +50,9 @@ class BlockDecoder:
         self.bad_status = _bad_status(self.d_expected)
         self.xyz_only = self.columns == [0, 1, 2] and self.axes == [0, 1, 2]
         self.unsigned = not self.signed.any()
+        self.clean = False  # the last `decode` found no error and no temperature: every entry a Measurement
         # Saturated where |counts| reaches the span or the Hall limit: the least |counts|
         # whose tesla (counts x scale, as decoded) reach it, found once per chip and axis.
-        self.clean = False  # the last `decode` found no error and no temperature: every entry a Measurement
         self.saturates_at = np.minimum(self.span, np.array(
             [[_hall_limit_counts(s) for s in row] for row in self.scale], dtype=np.int64).reshape(n, -1))
 
@@ -79,7 +79,7 @@ class BlockDecoder:
         # The words big-endian after the status byte: a view, no arithmetic (uint16, as read).
         words = block[:, 1:].view(">u2")
         if self.xyz_only and self.unsigned:  # the usual RM: X, Y, Z and nothing else, offset words
-            counts = words - self.zero  # int32: the zero is
+            counts = words - self.zero  # int32, the zero's type: no uint16 wrap below the zero
             field = counts * self.scale
             saturated = np.abs(counts) >= self.saturates_at
         else:

@@ -13,7 +13,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import se3
 from .geometry import SensorGeometry
 from .magnet import MU0_OVER_4PI, octupole_ratio
 

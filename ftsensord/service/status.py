@@ -5,8 +5,8 @@ The keys of the `status` reply are documented in docs/protocol.md.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from collections.abc import Iterable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from .. import __version__
