@@ -122,7 +122,7 @@ class Reference:
         replies = [bus.replies[(a, 7)] for a in config.addresses]
         self.blocks = [np.frombuffer(b"".join(r[k] for r in replies), dtype=np.uint8).reshape(n, 7)
                        for k in range(READINGS)]
-        self.zero = config.settings.raw_format("x").zero
+        self.zero = np.int32(config.settings.raw_format("x").zero)  # a numpy int32: the words' difference is one
         self.scale = np.array([config.settings.sensitivity_ut(a) * 1e-6 for a in "xyz"])
         self.error_bit = mlx.STATUS_ERROR
         self.models = [(s.calibration.model.KA, s.calibration.model.zero) for s in config.sensors]
@@ -136,7 +136,7 @@ class Reference:
         self.turn = (self.turn + 1) % READINGS
         if np.any(block[:, 0] & self.error_bit):
             raise RuntimeError("a chip refused")  # never with these replies: only the check's cost
-        words = (block[:, 1::2].astype(np.int32) << 8) | block[:, 2::2]
+        words = block[:, 1:].view(">u2")  # the big-endian words after the status byte
         flux = ((words - self.zero) * self.scale).reshape(len(self.models), -1)
         t_mono, t_wall = time.monotonic(), time.time()
         wrenches = [(b - zero) @ KA.T for (KA, zero), b in zip(self.models, flux)]
@@ -148,8 +148,8 @@ class Reference:
 
 
 class Recorded:
-    """The ioctls a daemon made (``record`` a few cycles), replayed on a bus of their own:
-    the stand-in bus's own Python a cycle, measured apart from the daemon."""
+    """The ioctls a daemon made over ``cycles`` cycles, replayed on its stand-in bus alone:
+    the stand-in's own Python a cycle, measured apart from the daemon."""
 
     def __init__(self, daemon: Daemon, cycles: int):
         self.calls: list[tuple[Any, ...]] = []
@@ -298,7 +298,8 @@ def main() -> int:
     print(f"  less the bus      {r['daemon_own_us']:8.1f} us a cycle  ({r['ratio']:.2f}x the reference; "
           f"target <= 5x; round by round {r['ratio_paired']:.2f}x)")
     parts = r["linear_breakdown_us"]
-    print("  of which " + ", ".join(f"{k} {v:.0f} us" for k, v in parts.items()) + " (another run, wrapped)")
+    print("  of which " + ", ".join(f"{k} {v:.0f} us" for k, v in parts.items())
+          + " (another run, wrapped; read with the stand-in bus)")
     print(f"daemon, nonlinear   {r['daemon_nonlinear_us']:8.1f} us a cycle  "
           f"({r['nonlinear_per_sensor_us']:.0f} us a sensor more than linear; the estimate alone "
           f"{r['estimate_per_sensor_us']:.0f} us; at rest: a moving load is benchmarks/nonlinear_cpu.py's)")
