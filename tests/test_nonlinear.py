@@ -270,9 +270,11 @@ def test_the_last_steps_flux_from_the_jacobian_ends_where_evaluating_it_does(mon
 
 def test_a_moving_load_is_followed_to_the_same_end_in_fewer_iterations(monkeypatch):
     """A load moving on every axis (40 % of the range, 1.3 Hz, 100 Hz samples, 1 uT of
-    noise a channel): the warm start that follows the motion ends within 3 % of the
+    noise a channel): the warm start that follows the motion ends within 5 % of the
     estimate's own noise of the exact least-squares pose (new Jacobians every step, tight
-    tolerances; from the last pose instead: within 1.7 %), in fewer iterations."""
+    tolerances), in fewer iterations. Measured: 2.6 % (from the last pose instead: 1.7 %);
+    5 % adds 0.1 % to the error's RMS in quadrature, and leaves room for another BLAS's
+    round-off to take another path."""
     import ftsensord.model.nonlinear as nonlinear
     from ftsensord.model.linear import SENSOR_RANGE
     rng = np.random.default_rng(6)
@@ -297,7 +299,7 @@ def test_a_moving_load_is_followed_to_the_same_end_in_fewer_iterations(monkeypat
         monkeypatch.setattr(nonlinear, name, value)  # the exact fit: new Jacobians, every step evaluated
     exact = np.array([estimator().estimate(b, start=se3.exp_se3(x)).xi for b, x in zip(samples[1:], followed)])
     scatter = (exact - np.array([xi for _, xi in truth[1:]])).std(axis=0)  # the noise's part of the error
-    assert np.all(np.abs(followed - exact).max(axis=0) < 0.03 * scatter), (np.abs(followed - exact).max(axis=0),
+    assert np.all(np.abs(followed - exact).max(axis=0) < 0.05 * scatter), (np.abs(followed - exact).max(axis=0),
                                                                             scatter)
     assert iterations < 0.8 * iterations_plain, (iterations, iterations_plain)
 
