@@ -162,15 +162,22 @@ def test_cycle_cpu_quick_mode_reports_the_ratio():
     out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "cycle_cpu.py"), "--quick", "--json"],
                          capture_output=True, text=True, timeout=300, check=True).stdout
     r = json.loads(out)
-    for key in ("reference_us", "daemon_linear_us", "daemon_nonlinear_us", "nonlinear_per_sensor_us",
-                "estimate_per_sensor_us", "pi_factor", "pi_estimate_linear_us", "pinned_cpu", "load_1min"):
+    for key in ("reference_us", "daemon_linear_us", "bus_us", "daemon_own_us", "daemon_nonlinear_us",
+                "nonlinear_per_sensor_us", "estimate_per_sensor_us", "pi_factor", "pi_estimate_linear_us",
+                "pinned_cpu", "load_1min"):
         assert np.isfinite(r[key]), key
     assert r["reference_us"] > 0 and r["daemon_linear_us"] > 0
-    assert r["ratio"] == pytest.approx(r["daemon_linear_us"] / r["reference_us"])
-    paired = sorted(d / r for d, r in zip(r["samples"]["linear"], r["samples"]["reference"]))
-    assert r["ratio_paired"] == pytest.approx(paired[len(paired) // 2])  # an odd count of rounds: the middle one
-    assert r["pi_estimate_linear_us"] == pytest.approx(r["daemon_linear_us"] * r["pi_factor"])
-    assert len(r["samples"]["linear"]) == r["rounds"] == len(r["samples"]["reference"])
+    # The stand-in bus is measured apart and taken out of the daemon's side only: the
+    # reference has no bus, so the ratio is of the daemon's own work.
+    assert 0 < r["bus_us"] < r["daemon_linear_us"]
+    s = r["samples"]
+    own = sorted(d - b for d, b in zip(s["linear"], s["bus"]))
+    assert r["daemon_own_us"] == pytest.approx(own[len(own) // 2])  # an odd count of rounds: the middle one
+    assert r["ratio"] == pytest.approx(r["daemon_own_us"] / r["reference_us"])
+    paired = sorted((d - b) / ref for d, b, ref in zip(s["linear"], s["bus"], s["reference"]))
+    assert r["ratio_paired"] == pytest.approx(paired[len(paired) // 2])
+    assert r["pi_estimate_linear_us"] == pytest.approx(r["daemon_own_us"] * r["pi_factor"])
+    assert len(s["linear"]) == r["rounds"] == len(s["reference"]) == len(s["bus"])
     assert r["failing_chips"] == 0  # the instant bus must keep every chip healthy, or the figure lies
     assert r["inconsistent_samples"] == 0  # and agreeing: the cycle measured is the usual one
 
@@ -202,3 +209,39 @@ def test_one_plan_reads_every_order_and_every_subset(adapter):
             # 50 uT: the noise is a few uT; another chip's reply is mT away (fields drawn over +-2 mT).
             assert r.ok and np.allclose(r.measurement.field_t, scene.field_t(a, 0.0), atol=50e-6)
     assert list(reader.xfer._plans.values()) == [plan]
+
+
+def test_nonlinear_cpu_quick_mode_reports_moving_and_rest():
+    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "nonlinear_cpu.py"), "--quick", "--json"],
+                         capture_output=True, text=True, timeout=300, check=True).stdout
+    r = json.loads(out)
+    assert r["samples"] == round(2 * 100 / 1.3) and r["fraction"] == 0.4 and r["hz"] == 1.3
+    for name in ("moving", "rest"):
+        s = r[name]["cpu_us"]
+        assert 0 < s["p50"] <= s["p99"] <= s["max"] and np.isfinite(s["mean"]), name
+        assert r[name]["not_converged"] == 0 and r[name]["iterations_per_sample"] >= 1
+    # The moving load is followed: the estimates stay near it (the noise's and the model's
+    # error, about 0.05 N and 6 mNm here, not a load's worth: 20 N, 0.08 Nm).
+    assert np.all(np.array(r["moving"]["rms_error"]) < [0.5, 0.5, 0.5, 0.02, 0.02, 0.02])
+
+
+def test_board_mode_adds_bus_and_scaled_cpu_per_configuration(tmp_path):
+    from ftsensord.acquire.bound import cycle_bound
+    path = tmp_path / "board.json"
+    subprocess.run([sys.executable, str(ROOT / "benchmarks" / "board.py"), "--quick", "--pi-factor", "5",
+                    "--out", str(path)], capture_output=True, text=True, timeout=300, check=True)
+    r = json.loads(path.read_text())
+    assert r["facts"]["python"] and r["pi_factor"] == 5 and "doctor" not in r
+    own = r["cycle_cpu"]["daemon_own_us"]
+    p99 = {k: r["nonlinear"][k]["cpu_us"]["p99"] for k in ("moving", "rest")}
+    extra = {"linear (default)": 0.0, "nonlinear, one sensor, load moving": p99["moving"],
+             "nonlinear, both sensors, at rest": 2 * p99["rest"], "nonlinear, both sensors, load moving": 2 * p99["moving"]}
+    rows = r["table"]
+    assert len(rows) == 3 * 3 * 4  # boards x bus levers x configurations
+    for row in rows:
+        assert row["cpu_ms"] == pytest.approx((own + extra[row["configuration"]]) * 5 * 1e-3)
+        assert row["cycle_ms"] == pytest.approx(row["bus_ms"] + row["cpu_ms"])
+        assert row["holds"] == (row["cycle_ms"] <= 8.0)  # 20 % of a 10 ms period spare
+    pessimistic = [x for x in rows if x["board"].startswith("pessimistic") and not x["readback"] and not x["temperature"]]
+    bound = cycle_bound("burst", 16, mlx.Settings(), 250e3, 150e-6, readback=False, temperature=False, adapter="bcm2835")
+    assert pessimistic[0]["bus_ms"] == pytest.approx(bound.cycle_s * 1e3)

@@ -46,7 +46,7 @@ def test_no_rate_before_two_cycles():
 
 # --- chip health ------------------------------------------------------------------------------
 def _measurement(words: tuple[int, int, int]) -> Measurement:
-    return Measurement(mlx.Status(0x02), np.zeros(3), np.zeros(3, dtype=bool), None, dict(zip("xyz", words)))
+    return Measurement(mlx.Status(0x02), np.zeros(3), np.zeros(3, dtype=bool), None, tuple(words))
 
 
 def _care(stuck_cycles: int) -> tuple[ChipCare, VirtualClock]:

@@ -194,14 +194,33 @@ class ChipCare:
             return False
         return True
 
+    def judge_all(self, results: dict[int, ChipResult], chips: list[MLX90393], now: float) -> None:
+        """`judge` the results of ``chips`` (by address) that are healthy, in place; the
+        usual one (new words from a chip in good standing) without a call of its own."""
+        health, judge = self.health, self.judge
+        for chip in chips:
+            a = chip.address
+            r = results.get(a)
+            if r is None:
+                continue
+            h = health[a]
+            if h.failing:
+                continue
+            m = r.measurement
+            if m is not None and h.stuck_words is None:
+                words = m.xyz_words()
+                if words != h.last_words:  # `judge`'s usual cycle, as it does it
+                    h.stale_run, h.last_words, h.same_words = 0, words, 0
+                    continue
+            results[a] = judge(r, now)
+
     def judge(self, r: ChipResult, now: float) -> ChipResult:
         """Update a healthy chip's health from its result; a stuck chip's data become an error."""
         h = self.health[r.address]
         m = r.measurement
         if m is not None:
             h.stale_run = 0
-            raw = m.raw
-            words = (raw.get("x", -1), raw.get("y", -1), raw.get("z", -1))
+            words = m.xyz_words()
             last, h.last_words = h.last_words, words
             if words != last:
                 h.same_words = 0

@@ -161,11 +161,7 @@ class Reader:
             t = self.bus.monotonic()
             results.update(self.xfer.read_all(order, zyxt))
             self.turn.others_s = (self.bus.monotonic() - t) * (len(order) - 1) / max(1, len(order))
-        judge = self.care.judge
-        for chip in healthy:
-            a = chip.address
-            if a in results and not health[a].failing:
-                results[a] = judge(results[a], now)
+        self.care.judge_all(results, healthy, now)
         if late is not None:  # read back after the reads, as it came before `upkeep` existed
             self.care.read_back(late, now)
         elif checked is not None and not self.turn.may_wait():

@@ -130,7 +130,7 @@ class Transfers:
                 a = plan.decoder.chips[i].address
                 failed[a] = bus_error(a, plan.command, exc)
         decoded = plan.decoder.decode(plan.block, rows)
-        if not failed and not any(isinstance(m, ChipError) for m in decoded):  # the usual cycle
+        if not failed and plan.decoder.clean:  # the usual cycle: every reply a measurement
             return {chip.address: ChipResult(chip.address, m) for chip, m in zip(chips, decoded)}  # type: ignore[arg-type]
         out = {}
         for chip, m in zip(chips, decoded):
@@ -228,8 +228,9 @@ class RMPlan:
 
     def rows(self, chips: list[MLX90393]) -> list[int] | None:
         """The rows of ``chips``, in their order; None when one is not in this plan."""
-        row = self.row
-        return [row[c] for c in chips] if all(c in row for c in chips) else None
+        get = self.row.get
+        rows = [get(c) for c in chips]
+        return None if None in rows else rows  # type: ignore[return-value]
 
     def transfers(self, rows: list[int]) -> list[tuple[list[int], list[i2c_msg]]]:
         """(rows, messages) of each ioctl that reads ``rows`` in their order."""

@@ -50,6 +50,7 @@ class BlockDecoder:
         self.bad_status = _bad_status(self.d_expected)
         self.xyz_only = self.columns == [0, 1, 2] and self.axes == [0, 1, 2]
         self.unsigned = not self.signed.any()
+        self.clean = False  # the last `decode` found no error and no temperature: every entry a Measurement
         # Saturated where |counts| reaches the span or the Hall limit: the least |counts|
         # whose tesla (counts x scale, as decoded) reach it, found once per chip and axis.
         self.saturates_at = np.minimum(self.span, np.array(
@@ -75,9 +76,10 @@ class BlockDecoder:
         """
         status = block[:, 0]
         bad = self.bad_status[status]
-        words = (block[:, 1::2].astype(np.int32) << 8) | block[:, 2::2]
+        # The words big-endian after the status byte: a view, no arithmetic (uint16, as read).
+        words = block[:, 1:].view(">u2")
         if self.xyz_only and self.unsigned:  # the usual RM: X, Y, Z and nothing else, offset words
-            counts = words - self.zero
+            counts = words - self.zero  # int32, the zero's type: no uint16 wrap below the zero
             field = counts * self.scale
             saturated = np.abs(counts) >= self.saturates_at
         else:
@@ -85,24 +87,27 @@ class BlockDecoder:
             field = np.full((n, 3), np.nan)
             saturated = np.zeros((n, 3), dtype=bool)
             if self.columns:
-                w = words[:, self.columns]
+                w = words[:, self.columns].astype(np.int32)
                 counts = np.where(self.signed, w - ((w & 0x8000) << 1), w - self.zero)
                 field[:, self.axes] = counts * self.scale
                 saturated[:, self.axes] = np.abs(counts) >= self.saturates_at
-        sat_any = cast("list[bool]", saturated.any(axis=1).tolist())
-        raw = cast("list[list[int]]", words.tolist())
+        # Per row, as Python objects, each in one call (row views, lists): no per-chip numpy.
+        sat_any = saturated.any(axis=1).tolist() if saturated.any() else [False] * len(self.chips)
+        raw = list(map(tuple, words.tolist()))
         statuses = status.tolist()
+        fields, sats = list(field), list(saturated)
         items, status_of = self.items, mlx.STATUSES.__getitem__
-        bad_rows = cast("list[bool]", bad.tolist())
         order = range(len(self.chips)) if rows is None else rows
-        if self.t_column is None and not any(bad_rows[i] for i in order):  # the usual cycle: no error, no temperature
-            return [Measurement(status_of(statuses[i]), field[i], saturated[i], None, dict(zip(items, raw[i])),
-                                sat_any[i]) for i in order]
+        bad_rows = cast("list[bool]", bad.tolist()) if bad.any() else None
+        self.clean = self.t_column is None and (bad_rows is None or not any(bad_rows[i] for i in order))
+        if self.clean:  # the usual cycle: no error, no temperature
+            return [Measurement(status_of(statuses[i]), fields[i], sats[i], None, raw[i], items, sat_any[i])
+                    for i in order]
         t_column = self.t_column
         out: list[Measurement | ChipError] = []
         for i in order:
             chip = self.chips[i]
-            if bad_rows[i]:
+            if bad_rows is not None and bad_rows[i]:
                 try:  # the per-chip decoder raises the error it always raised
                     out.append(chip.decode_measurement(bytes(block[i]), self.zyxt))
                 except ChipError as exc:
@@ -110,8 +115,7 @@ class BlockDecoder:
                 continue
             row = raw[i]
             temp = None if t_column is None else mlx.raw_to_celsius(row[t_column], chip.tref)
-            out.append(Measurement(status_of(statuses[i]), field[i], saturated[i], temp, dict(zip(items, row)),
-                                   sat_any[i]))
+            out.append(Measurement(status_of(statuses[i]), fields[i], sats[i], temp, row, items, sat_any[i]))
         return out
 
 

@@ -47,19 +47,37 @@ class Measurement:
     ``field_t`` is (Bx, By, Bz) in tesla, NaN for an axis that was not read;
     ``saturated`` flags per axis a word at or past the valid span, or a field at
     the Hall element's limit: such an axis is never a valid reading.
-    ``saturated_any``: ``saturated.any()`` when the decoder already knows it.
+    ``words``: the reply's 16-bit words, one per item of ``items`` in RM's order
+    (``raw`` has them by item). ``saturated_any``: ``saturated.any()`` when the
+    decoder already knows it.
     """
 
     status: mlx.Status
     field_t: np.ndarray
     saturated: np.ndarray
     temperature_c: float | None
-    raw: dict[str, int]
+    words: tuple[int, ...]
+    items: tuple[str, ...] = mlx.zyxt_items(mlx.ZYXT_XYZ)
     saturated_any: bool | None = None
+
+    @property
+    def raw(self) -> dict[str, int]:
+        """The words by item ("x", "y", "z", "t"); built when asked, not every cycle."""
+        return dict(zip(self.items, self.words))
+
+    def xyz_words(self) -> tuple[int, int, int]:
+        """The X, Y, Z words, -1 for an axis not read (the stuck test compares them)."""
+        if self.items is _XYZ:
+            return self.words  # type: ignore[return-value]  # the usual RM: these three, in order
+        raw = self.raw
+        return raw.get("x", -1), raw.get("y", -1), raw.get("z", -1)
 
     @property
     def any_saturated(self) -> bool:
         return bool(self.saturated.any()) if self.saturated_any is None else self.saturated_any
+
+
+_XYZ = mlx.zyxt_items(mlx.ZYXT_XYZ)
 
 
 class MLX90393:
@@ -180,7 +198,7 @@ class MLX90393:
                 field[i] = value = counts * tesla_per_count
                 saturated[i] = mlx.is_saturated(counts, fmt) or abs(value) >= mlx.HALL_SATURATION_FLAG_T
         temp = mlx.raw_to_celsius(words["t"], self.tref) if "t" in words else None
-        return Measurement(status, field, saturated, temp, words)
+        return Measurement(status, field, saturated, temp, tuple(words.values()), items)
 
     def read_measurement(self, zyxt: int = mlx.ZYXT_XYZ) -> Measurement:
         """RM: read the selected items of the last conversion."""

@@ -5,7 +5,7 @@ fields (`magnet`: dipole, exact cylinder, the cylinder's octupole, remanence
 against temperature), the silicone's laws (`silicone`), the sensor's
 chip and magnet layout (`geometry`), the linear `K A` estimator with its degraded
 form and the tip wrench (`linear`), and the nonlinear flux-model estimator
-(`nonlinear`) with its forward model (`fluxmodel`). Units are SI: tesla,
+(`nonlinear`) with its forward model (`fluxmodel`) and its steps' exp and log in floats (`se3floats`). Units are SI: tesla,
 metres, newtons, newton-metres.
 
 May import: numpy and `ftsensord.errors`. Nothing of the package above.

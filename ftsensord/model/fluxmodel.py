@@ -13,11 +13,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import se3
 from .geometry import SensorGeometry
 from .magnet import MU0_OVER_4PI, octupole_ratio
 
 _EYE3 = np.eye(3)
+#: hat(x) = (x @ _HAT).reshape(3, 3), so rows of vectors give their skew matrices in one
+#: product: hat(x)_jk = -eps_jkl x_l (`se3.hat`).
+_HAT = np.zeros((3, 9))
+_HAT[2, 1], _HAT[1, 2], _HAT[0, 5] = -1.0, 1.0, -1.0
+_HAT[2, 3], _HAT[1, 6], _HAT[0, 7] = 1.0, -1.0, 1.0
 
 
 @dataclass
@@ -130,13 +134,14 @@ class FluxModel:
         assert G is not None
         if u is not None:
             B = B + u
-        SRt = self._constants.response_chip @ T[:3, :3].T  # S R^T, R = R_T R_chip
-        J_v = SRt @ G
-        J_w = SRt @ (se3.hat(B) - G @ se3.hat(p))
-        blocks = [J_v, J_w, SRt] if background else [J_v, J_w]
-        J = np.concatenate(blocks, axis=2)
-        b = np.einsum("nij,nj->ni", SRt, B) + self.offset_t
-        return b.ravel(), J.reshape(-1, J.shape[2])
+        c = self._constants
+        SRt = c.response_chip @ T[:3, :3].T  # S R^T, R = R_T R_chip
+        hats = (np.concatenate([B, p]) @ _HAT).reshape(2, c.n, 3, 3)  # hat(B), hat(p): one product
+        # [db/dv, db/dw, (db/du), b] as one product of S R^T with their columns side by side.
+        columns = [G, hats[0] - G @ hats[1], *([c.eye] if background else []), B[:, :, None]]
+        full = SRt @ np.concatenate(columns, axis=2)
+        b = full[:, :, -1] + self.offset_t
+        return b.ravel(), full[:, :, :-1].reshape(3 * c.n, -1)
 
     def background_directions(self, T: np.ndarray | None = None) -> np.ndarray:
         """U (3n, 3): the flux a unit background field along x, y, z of {0} adds (T/T)."""
@@ -182,6 +187,7 @@ class _Constants:
     response_chip: np.ndarray  # S R_chip^T (n, 3, 3): a pose's S R^T is this times R_T^T
     inv_m: np.ndarray  # (n,) 1 / |m|
     axis_outer: np.ndarray  # (n, 3, 3) n n^T
+    eye: np.ndarray  # (n, 3, 3) identities (read-only views): db/du's columns before S R^T
 
     @staticmethod
     def build(model: FluxModel) -> _Constants:
@@ -195,4 +201,5 @@ class _Constants:
                           np.asarray(g.magnet_axis, float), 0.5 * q if model.octupole else None,
                           None if model.crosstalk else np.eye(g.n_chips), response,
                           response @ np.transpose(g.chip_R, (0, 2, 1)), 1 / np.linalg.norm(m, axis=1),
-                          g.magnet_axis[:, :, None] * g.magnet_axis[:, None, :])
+                          g.magnet_axis[:, :, None] * g.magnet_axis[:, None, :],
+                          np.broadcast_to(_EYE3, (g.n_chips, 3, 3)))

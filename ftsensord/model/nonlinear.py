@@ -18,6 +18,9 @@ import numpy as np
 
 from . import se3
 from .fluxmodel import FluxModel
+from .se3floats import continued
+from .se3floats import exp_se3 as _exp_se3
+from .se3floats import log_se3 as _log_se3
 from .linear import SENSOR_RANGE
 
 __all__ = ["Estimate", "FluxModel", "NonlinearEstimator"]
@@ -93,14 +96,14 @@ WARM_DAMPING = 1e-6
 BACKGROUND_LIMIT_T = 0.5e-3
 BACKGROUND_NOISE_T = 1e-6
 #: The step that ends a fit (the steps left foretold under the tolerances) is not checked
-#: against the field when it changes no channel by more than 0.1 uT (a tenth of the chips'
+#: against the field when it changes no channel by more than 1 uT (a third of the chips'
 #: noise): its flux is the Jacobian's prediction, which is off by at most the Jacobian's
-#: drift since it was computed (under 1 % of the change, `JACOBIAN_REUSE_M`: 1 nT) and the
-#: field's curvature over a step that small (0.1 um at 6 mm, 2 nm at 2 mm: under 1 nT).
-#: Such a step lowers the linearised cost by construction; an evaluation would only repeat
-#: it. At rest this saves one field evaluation in two (the second step moves the pose
-#: about 1/400 of the first).
-LINEAR_STEP_T = 0.1e-6
+#: drift since it was computed (1-2 % of the change within `JACOBIAN_REUSE_M`, measured at
+#: loads to 40 % of range: 20 nT, a hundredth of the noise) and the field's curvature over
+#: a step that small (0.4 um at 2 mm from a magnet: under 1 nT). Such a step lowers the
+#: linearised cost by construction; an evaluation would only repeat it. (It was 0.1 uT: a
+#: moving load's fit then paid a field evaluation for its last step, a third of its work.)
+LINEAR_STEP_T = 1e-6
 
 
 @dataclass(frozen=True)
@@ -140,6 +143,10 @@ class NonlinearEstimator:
         #: The last converged fit's pose, field, kind (with the field or not) and predicted
         #: flux: a warm start from that pose and field needs no prediction of its own.
         self._end: tuple[np.ndarray, np.ndarray, bool, np.ndarray | None] | None = None
+        #: The poses before and after the last sample's fit (None after a failed one): the
+        #: warm start follows the motion between them (`_ahead`).
+        self._motion: tuple[np.ndarray, np.ndarray] | None = None
+        self._gains: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # `_chord_gains`' last
 
     @property
     def unknowns(self) -> int:
@@ -156,8 +163,10 @@ class NonlinearEstimator:
         """
         if start is not None:
             return self._cold(b, usable, start)
-        warm = self._solve(b, usable, self.pose, self.background_t, self.background, WARM_DAMPING)
+        before = self.pose
+        warm = self._solve(b, usable, self._ahead(before), self.background_t, self.background, WARM_DAMPING)
         if warm.converged and warm.rms_residual_t <= RETRY_RESIDUAL_T:
+            self._motion = (before, warm.pose)
             return warm
         tries = [warm, self._cold(b, usable, np.eye(4))]
         twist = min(tries, key=lambda e: e.rms_residual_t).xi[5]
@@ -169,7 +178,20 @@ class NonlinearEstimator:
         best = min(tries, key=lambda e: (not e.converged, e.rms_residual_t))
         if best.converged:
             self.pose, self.background_t = best.pose, best.background_t
+        self._motion = (before, best.pose) if best.converged else None
         return best
+
+    def _ahead(self, pose: np.ndarray) -> np.ndarray:
+        """Where the warm start begins: ``pose`` (the last fit's) moved on by the last
+        sample's motion (`se3floats.continued`) when it moved beyond `JACOBIAN_REUSE_M` or
+        2 mrad (a moving load: the next pose is that much further, its second difference
+        some 40 times less at 1.3 Hz and 100 Hz) and within one step's limits (beyond is a
+        jump, not a motion to go on with); else ``pose`` (at rest: the noise, doubled)."""
+        motion = self._motion
+        if motion is None or motion[1] is not pose or _near(pose, motion[0].tolist(), None, None):
+            return pose  # none yet, the pose set since, or at rest
+        ahead, moved_m, turned_rad = continued(motion[0], pose)
+        return pose if moved_m > MAX_STEP_M or turned_rad > MAX_STEP_RAD else ahead
 
     def _cold(self, b: np.ndarray, usable: np.ndarray | None, start: np.ndarray) -> Estimate:
         """From ``start`` with no background field: the pose alone first, then with the
@@ -199,7 +221,8 @@ class NonlinearEstimator:
             return Estimate(se3.log_se3(T), T, False, 0, np.inf)
         lam = damping  # Marquardt's damping, relative to the diagonal of J^T J
         cost, done, k = np.inf, False, 0
-        last: tuple[tuple[float, float], object] | None = None  # the previous step's size (m, rad), its kind
+        # The previous step's size (m, rad), its kind and the Jacobian it was taken with.
+        last: tuple[tuple[float, float], object, np.ndarray] | None = None
         # The flux predicted at T, once known: from a warm start, the last fit's at its end.
         kept = self._end
         pred = kept[3] if kept is not None and kept[0] is start and kept[1] is u0 and kept[2] == background else None
@@ -211,16 +234,18 @@ class NonlinearEstimator:
                 cost = float(r @ r) + _prior(u)
             chord = not fresh and used == b.size
             if chord:  # the kept Jacobian's own Gauss-Newton solve
-                gain, gain_u = self._gain(J_full)
+                self._gains = _chord_gains(J_full, self._gains)
+                gain, gain_u = self._gains[1], self._gains[2]
                 step = gain @ r if u is None else gain @ r - gain_u @ u
             else:
                 J = J_full[channels]
                 JtJ, Jtr = J.T @ J, J.T @ r
                 if u is not None:  # the prior's rows: (noise / prior) (u + du) = 0
-                    JtJ[6:, 6:] += PRIOR_WEIGHT * np.eye(3)
+                    JtJ[6:, 6:] += PRIOR_EYE
                     Jtr[6:] -= PRIOR_WEIGHT * u
             # The rate is seen from two steps of one kind: both with new Jacobians (Newton's
-            # quadratic convergence) or both with the same kept one (a chord's linear rate).
+            # quadratic convergence) or both with the same one (a chord's linear rate: the
+            # step that made a Jacobian, then a step with it kept, are two of the same chord).
             kind = NEW if fresh else J_full
             while True:
                 if not chord:
@@ -239,7 +264,8 @@ class NonlinearEstimator:
                     step, size = step * scale, (size[0] * scale, size[1] * scale)
                 T_new = _exp_se3(step) @ T
                 u_new = None if u is None else u + step[6:]
-                final = _within(size) or (last is not None and last[1] is kind and _within(_left(size, last[0])))
+                final = _within(size) or (last is not None and (last[1] is kind or last[2] is J_full)
+                                          and _within(_left(size, last[0])))
                 change = J_full @ step if final else None
                 if change is not None and np.abs(change).max() <= LINEAR_STEP_T:
                     pred_new = pred + change  # the last step, too small to need the field (`LINEAR_STEP_T`)
@@ -265,7 +291,7 @@ class NonlinearEstimator:
                 continue
             if done or final:
                 break
-            last = (size, kind) if scale == 1.0 else None  # a limited step says nothing of convergence
+            last = (size, kind, J_full) if scale == 1.0 else None  # a limited step says nothing of convergence
         rms = math.sqrt(max(cost - _prior(u), 0.0) / used)  # of the flux alone
         xi = _log_se3(T)
         plausible = bool((np.abs(self.stiffness @ (xi - self.zero_twist)) <= PLAUSIBLE_WRENCH).all())
@@ -289,66 +315,16 @@ class NonlinearEstimator:
         self._jacobians[background] = (T.tolist(), None if u is None else u.tolist(), J)
         return pred, J, True
 
-    def _gain(self, J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Gauss-Newton's step for a kept Jacobian J (every channel), kept with it: the step
-        is G r - G_u u, G = (J^T J + P)^-1 J^T, G_u = (J^T J + P)^-1 P (P the background's
-        prior on its 3 unknowns). Undamped: a chord step is taken only near where J was."""
-        kept = self.__dict__.get("_gain_cache")
-        if kept is None or kept[0] is not J:
-            M = J.T @ J
-            prior = np.zeros_like(M)
-            if J.shape[1] > 6:
-                prior[6:, 6:] = PRIOR_WEIGHT * np.eye(3)
-            gains = np.linalg.solve(M + prior, np.concatenate([J.T, prior[:, 6:]], axis=1))
-            kept = (J, gains[:, :J.shape[0]], gains[:, J.shape[0]:])
-            self.__dict__["_gain_cache"] = kept
-        return kept[1], kept[2]
-
     def wrench(self, estimate: Estimate) -> np.ndarray:
         """w = K xi (N, Nm), the stiffness's wrench at the estimated deflection."""
         return self.stiffness @ estimate.xi
 
 
 PRIOR_WEIGHT = (BACKGROUND_NOISE_T / BACKGROUND_PRIOR_T) ** 2
+PRIOR_EYE = PRIOR_WEIGHT * np.eye(3)
+PRIOR_EYE.setflags(write=False)
 PLAUSIBLE_WRENCH = PLAUSIBLE_RANGE * SENSOR_RANGE
 NEW = object()  # the kind of a step taken with a new Jacobian
-
-
-def _exp_se3(xi: np.ndarray) -> np.ndarray:
-    """`se3.exp_se3` of ``xi[:6]`` in Python floats: the same formulas (Rodrigues, the left
-    Jacobian, the same series near zero), without a dozen numpy calls on 3-vectors every step."""
-    v0, v1, v2, w0, w1, w2 = xi.tolist()[:6]
-    ww = w0 * w0 + w1 * w1 + w2 * w2
-    a, b, c = se3._coefficients(math.sqrt(ww))
-    # R = I + a W + b W^2 and t = (I + b W + c W^2) v, W = hat(w), W^2 = w w^T - |w|^2 I.
-    bw0, bw1, bw2, aw0, aw1, aw2 = b * w0, b * w1, b * w2, a * w0, a * w1, a * w2
-    wv = w0 * v0 + w1 * v1 + w2 * v2
-    x0, x1, x2 = w1 * v2 - w2 * v1, w2 * v0 - w0 * v2, w0 * v1 - w1 * v0  # W v
-    return np.array([1.0 + bw0 * w0 - b * ww, bw0 * w1 - aw2, bw0 * w2 + aw1, v0 + b * x0 + c * (w0 * wv - ww * v0),
-                     bw1 * w0 + aw2, 1.0 + bw1 * w1 - b * ww, bw1 * w2 - aw0, v1 + b * x1 + c * (w1 * wv - ww * v1),
-                     bw2 * w0 - aw1, bw2 * w1 + aw0, 1.0 + bw2 * w2 - b * ww, v2 + b * x2 + c * (w2 * wv - ww * v2),
-                     0.0, 0.0, 0.0, 1.0]).reshape(4, 4)
-
-
-def _log_se3(T: np.ndarray) -> np.ndarray:
-    """`se3.log_se3` in Python floats, for turns short of pi (a deflection's, or a twin's);
-    within `se3.NEAR_PI` of pi, where the axis needs the symmetric part, it is the one."""
-    (r00, r01, r02, t0), (r10, r11, r12, t1), (r20, r21, r22, t2), _ = T.tolist()
-    s0, s1, s2 = 0.5 * (r21 - r12), 0.5 * (r02 - r20), 0.5 * (r10 - r01)  # sin(theta) axis
-    sin_theta = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
-    theta = math.atan2(sin_theta, 0.5 * (r00 + r11 + r22 - 1.0))
-    if math.pi - theta <= se3.NEAR_PI:
-        return se3.log_se3(T)
-    tt = theta * theta
-    if theta < se3.SMALL_ANGLE:  # theta / sin(theta) and D as series (se3's own)
-        k, d = 1 + tt / 6 + 7 * tt * tt / 360, 1 / 12 + tt / 720 + tt * tt / 30240
-    else:
-        k, d = theta / sin_theta, 1 / tt - 1 / (2 * theta * math.tan(theta / 2))
-    w0, w1, w2 = k * s0, k * s1, k * s2
-    # J_l(w)^-1 t = t - (w x t) / 2 + D w x (w x t).
-    c0, c1, c2 = w1 * t2 - w2 * t1, w2 * t0 - w0 * t2, w0 * t1 - w1 * t0
-    cc0, cc1, cc2 = w1 * c2 - w2 * c1, w2 * c0 - w0 * c2, w0 * c1 - w1 * c0
-    return np.array([t0 - 0.5 * c0 + d * cc0, t1 - 0.5 * c1 + d * cc1, t2 - 0.5 * c2 + d * cc2, w0, w1, w2])
 
 
 def _near(T: np.ndarray, rows_J: list[list[float]], u: np.ndarray | None, u_J: list[float] | None) -> bool:
@@ -361,6 +337,22 @@ def _near(T: np.ndarray, rows_J: list[list[float]], u: np.ndarray | None, u_J: l
     return (trace >= JACOBIAN_REUSE_TRACE  # tr(R_J^T R) = 1 + 2 cos(angle)
             and math.dist((a3, b3, c3), (d3, e3, f3)) <= JACOBIAN_REUSE_M
             and (u is None or (u_J is not None and math.dist(u_J, u.tolist()) <= JACOBIAN_REUSE_T)))
+
+
+def _chord_gains(J: np.ndarray, kept: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Gauss-Newton's step for a kept Jacobian J (every channel), (J, G, G_u) with the step
+    G r - G_u u, G = (J^T J + P)^-1 J^T, G_u = (J^T J + P)^-1 P (P the background's prior
+    on its 3 unknowns); ``kept`` when it is J's. Undamped: a chord step is taken only near
+    where J was."""
+    if kept is not None and kept[0] is J:
+        return kept
+    M = J.T @ J
+    prior = np.zeros_like(M)
+    if J.shape[1] > 6:
+        prior[6:, 6:] = PRIOR_EYE
+    gains = np.linalg.solve(M + prior, np.concatenate([J.T, prior[:, 6:]], axis=1))
+    return J, gains[:, :J.shape[0]], gains[:, J.shape[0]:]
 
 
 def _left(size: tuple[float, float], last: tuple[float, float]) -> tuple[float, float]:

@@ -207,8 +207,7 @@ class Daemon(Commands):
                 flags, gravity = self.gravity.tare_input(p.name, start) if self.gravity else (0, None)
                 self.tares.feed(p.name, s.flux, s.flags | flags, gravity)
         self.tares.advance(self.sensors)
-        for r in results.values():
-            self.chips.count(r)
+        self.chips.count_all(results.values())
         self.timing.end(self.clock() - start)
         if not self.ready:
             self.ready = True

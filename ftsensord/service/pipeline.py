@@ -41,7 +41,9 @@ def channel_sigma_t(settings: mlx.Settings, chips: int) -> np.ndarray:
     """Each channel's reading noise (T, chips x 3): the chip's noise and its LSB's
     quantisation (LSB^2 / 12), which at the paper's settings is as large."""
     per_axis = [np.hypot(settings.noise_ut(a), settings.sensitivity_ut(a) / np.sqrt(12)) * 1e-6 for a in "xyz"]
-    return np.tile(per_axis, chips)
+    sigma = np.tile(per_axis, chips)
+    sigma.setflags(write=False)  # shared by every sample's check, which keeps its maps by identity
+    return sigma
 
 
 @dataclass
@@ -75,6 +77,7 @@ class SensorPipeline:
     estimate_s: deque[float] = field(default_factory=lambda: deque(maxlen=STATS_WINDOW))
     thermal: ThermalCompensation | None = None  # None: temperatures not read (temperature_every = 0)
     stray: WorldGradient | None = None  # stray_field = "world": a motor's gradient learnt as the tool turns
+    _extrapolation: tuple[np.ndarray | None, np.ndarray | None] | None = field(default=None, repr=False)
 
     @classmethod
     def build(cls, s: SensorConfig, smoothing: WrenchFilter, max_missing_chips: int,
@@ -109,7 +112,8 @@ class SensorPipeline:
             reference = flux if thermal is None else thermal.apply(flux)
             wrench, wflags = self._staged(reference, flags, usable, R)
             if thermal is not None:
-                wrench = wrench * thermal.wrench_scale
+                if thermal.wrench_scale != 1.0:  # (x 1.0 changes no number)
+                    wrench = wrench * thermal.wrench_scale
                 if thermal.beyond_span:
                     wflags |= wire.FLAG_TEMPERATURE
         valid = not wflags & wire.FLAG_INVALID
@@ -120,11 +124,17 @@ class SensorPipeline:
 
     def flux(self, results: dict[int, ChipResult]) -> tuple[np.ndarray, int, np.ndarray]:
         """The sensor's stacked flux (T), its flags, and which chips are usable."""
-        rs = [results[a] for a in self.config.addresses]
-        ms = [r.measurement for r in rs]
+        ms = [results[a].measurement for a in self.config.addresses]
+        for m in ms:
+            if m is None or m.temperature_c is not None or m.any_saturated:
+                break
+        else:  # the usual cycle, each chip read, none saturated, no temperature: one stack
+            flux = np.concatenate([m.field_t for m in ms])  # type: ignore[union-attr]
+            self.last_flux[:] = flux
+            return flux, 0, _every_chip(len(ms))
         if self.thermal is not None and any(m is not None and m.temperature_c is not None for m in ms):
             self.thermal.observe([None if m is None else m.temperature_c for m in ms])
-        if all(m is not None and not m.any_saturated for m in ms):  # the usual cycle: one stack, no loop
+        if all(m is not None and not m.any_saturated for m in ms):  # a temperature cycle: one stack, no loop
             flux = np.concatenate([m.field_t for m in ms])  # type: ignore[union-attr]
             self.last_flux[:] = flux
             return flux, 0, _every_chip(len(ms))
@@ -196,7 +206,10 @@ class SensorPipeline:
         """A linear estimate, flagged `extrapolated` where the load on the sensor (the
         wrench plus what a tare removed) is beyond the calibration's loads."""
         fitted = self.config.calibration.wrench_range
-        if fitted is not None and (np.abs(wrench + self.tare_wrench) > EXTRAPOLATION_MARGIN * fitted).any():
+        kept = self._extrapolation
+        if kept is None or kept[0] is not fitted:  # worked out once per calibration, not every sample
+            kept = self._extrapolation = (fitted, None if fitted is None else EXTRAPOLATION_MARGIN * fitted)
+        if kept[1] is not None and (np.abs(wrench + self.tare_wrench) > kept[1]).any():
             flags |= wire.FLAG_EXTRAPOLATED
         return wrench, flags
 

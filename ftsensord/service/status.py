@@ -5,6 +5,7 @@ The keys of the `status` reply are documented in docs/protocol.md.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -54,6 +55,17 @@ class ChipLedger:
             stats.stale += 1
         else:
             stats.ok = False
+
+    def count_all(self, results: Iterable[ChipResult]) -> None:
+        """`count` every result of a cycle; the usual one (a reading, unsaturated, no
+        temperature) without a call of its own."""
+        chips, count = self.chips, self.count
+        for r in results:
+            m = r.measurement
+            if m is not None and m.saturated_any is False and m.temperature_c is None:
+                chips[r.address].ok = True
+            else:
+                count(r)
 
     @property
     def failing(self) -> int:
