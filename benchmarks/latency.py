@@ -17,7 +17,7 @@ clients/c/build.py builds the example, against the libzmq the pyzmq wheel ships 
 system one is found): what the haptic loops that use the daemon are. ``--fifo PRIO`` runs
 the daemon SCHED_FIFO as the systemd unit does.
 
-    python benchmarks/latency.py --subscribers 50 --seconds 30 [--kind c] [--processes 5] [--fifo 50]
+    python benchmarks/latency.py --subscribers 50 --seconds 30 [--kind c] [--processes 5] [--fifo 50] [--cpus 1]
 """
 
 from __future__ import annotations
@@ -124,11 +124,15 @@ def main() -> int:
     parser.add_argument("--shared-context", action="store_true",
                         help="C: a process's subscribers share one libzmq context (one I/O thread), "
                              "instead of one each as separate programs have")
+    parser.add_argument("--cpus", type=int, default=0,
+                        help="run the daemon and the subscribers on this many cores (0: all), to see how the "
+                             "fan-out scales with cores")
     args = parser.parse_args()
+    if args.cpus:  # inherited by the daemon and every subscriber process
+        os.sched_setaffinity(0, set(sorted(os.sched_getaffinity(0))[:args.cpus]))
     with tempfile.TemporaryDirectory() as tmp:
         config = packaged_config(Path(tmp) / "ftsensord.toml")
         program, libzmq = build_c(Path(tmp)) if args.kind == "c" else (None, f"pyzmq {zmq.__version__}")
-        # The daemon's policy as the unit's CPUSchedulingPolicy=fifo would set it.
         proc, notify = start_daemon(config, Path(tmp), fifo=args.fifo)
         endpoint_path = Path(tmp) / "ftsensord" / "wrench"
         control = ControlClient(f"ipc://{Path(tmp) / 'ftsensord' / 'control'}", timeout_s=5)
@@ -160,7 +164,8 @@ def main() -> int:
     policy = f"SCHED_FIFO {args.fifo}" if args.fifo else "the default policy"
     contexts = " sharing a context a process" if args.kind == "c" and args.shared_context else ""
     print(f"{args.subscribers} {args.kind} subscribers{contexts} ({libzmq}) in {len(per)} processes to wrench/sensor1 over ipc, "
-          f"the daemon at 100 Hz at {policy}, {args.seconds:g} s (load {load0:.2f} at start, "
+          f"the daemon at 100 Hz at {policy}, {args.seconds:g} s, {len(os.sched_getaffinity(0))} cores "
+          f"(load {load0:.2f} at start, "
           f"{os.getloadavg()[0]:.2f} at end)")
     print(f"{len(d)} receipts (of about {expected:.0f}): sample t_mono to receipt p50 {np.percentile(d, 50):.0f} us, "
           f"p99 {np.percentile(d, 99):.0f} us, max {d.max():.0f} us")
