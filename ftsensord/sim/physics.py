@@ -30,7 +30,9 @@ from ..model.linear import SENSOR_RANGE
 from ..model.magnet import NDFEB_BR_TEMPCO_PER_K  # noqa: F401  (its old home: the name still works here)
 from ..model.magnet import cylinder_field, dipole_field, remanence_factor
 from ..model.silicone import stiffness_factor
-from .loads import DOWN, IDENTITY, NO_LOAD, G, Load, Orientation
+from ..model.viscoelastic import Relaxation
+from .loads import DOWN, IDENTITY, NO_LOAD, G, FixedOrientation, Load, Orientation, StaticLoad
+from .silicone import SiliconeMemory
 from .thermal import ChipDrift, TemperatureProfile
 
 #: Stiffness default: the diagonal of the paper's K, in N/m and Nm/rad (their
@@ -108,6 +110,10 @@ class SimSensor:
 
     ``temperature`` is the sensor's own (None: the scene's); ``chip_drift`` each chip's
     drift with it (None: every chip at the datasheet's figures, `ChipDrift.typical`).
+
+    ``relaxation``: the silicone's Prony series (None: a perfect spring); ``stiffness`` is
+    then the long-term stiffness K_inf, and the load's history drives the deflection
+    (`sim.silicone`, docs/physics.md "The silicone's memory").
     """
 
     name: str
@@ -124,6 +130,7 @@ class SimSensor:
     chip_drift: list[ChipDrift] | None = None
     #: Where the sensor's centre is in the world (m): what a stray source's distance is from.
     centre_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    relaxation: Relaxation | None = None
 
     def wrench(self, t: float) -> np.ndarray:
         """The wrench on the centre piece (N, Nm, frame {0}) at ``t``: the load and the tool's weight."""
@@ -147,6 +154,13 @@ class SimSensor:
         if K.shape != (6, 6) or not np.allclose(K, K.T) or np.any(np.linalg.eigvalsh(K) <= 0):
             raise ValueError(f"{self.name}: stiffness must be a 6x6 symmetric positive definite matrix")
         self.xi_range = np.abs(np.linalg.solve(K, SENSOR_RANGE))
+        self.memory: SiliconeMemory | None = None  # the scene gives it its time step
+
+    @property
+    def constant_load(self) -> bool:
+        """The wrench never changes: a static load, and no tool's weight turning with the sensor."""
+        return isinstance(self.load, StaticLoad) and (self.tool_mass_kg == 0.0
+                                                       or isinstance(self.orientation, FixedOrientation))
 
     def deflection(self, w: np.ndarray) -> np.ndarray:
         """The deflection twist xi (m, rad) under wrench ``w`` (N, Nm)."""
@@ -212,6 +226,8 @@ class PhysicalScene:
         self.time_step_s = time_step_s
         self.external_field_t = np.zeros(3) if external_field_t is None else external_field_t
         self.stray_sources = list(stray_sources or [])
+        for sensor in sensors:  # only a sensor whose silicone has a memory pays for one
+            sensor.memory = None if sensor.relaxation is None else SiliconeMemory(sensor.relaxation, time_step_s)
         self._chip_of: dict[int, tuple[int, int]] = {}
         for s, sensor in enumerate(sensors):
             for i, address in enumerate(sensor.addresses):
@@ -269,8 +285,12 @@ class PhysicalScene:
     def field_t(self, address: int, t: float) -> np.ndarray:
         s, i = self._chip_of[address]
         sensor = self.sensors[s]
-        t = math.floor(t / self.time_step_s) * self.time_step_s
-        w = np.asarray(sensor.wrench(t), dtype=float)
+        k = math.floor(t / self.time_step_s)
+        t = k * self.time_step_s
+        if sensor.memory is None:
+            w = np.asarray(sensor.wrench(t), dtype=float)
+        else:  # the load's history, through the silicone's creep: K_inf xi = w_eff
+            w = sensor.memory.effective(k, sensor.wrench, sensor.constant_load)
         scale = 1.0
         profile = self._profile(sensor)
         if not profile.is_reference:  # a scene held at 25 degC pays nothing for heat

@@ -46,6 +46,7 @@ from .physics import (
     StraySource,
     Tolerances,
 )
+from .silicone import parse_silicone
 from .thermal import TemperatureProfile
 
 SCENE_VERSION = 1
@@ -212,7 +213,7 @@ def _temperature(t: Table) -> TemperatureProfile:
 
 def _sensor(t: Table, index: int) -> SimSensor:
     t.only({"name", "addresses", "stiffness_diag", "stiffening", "ring_radius_mm", "tilt_deg",
-            "gap_mm", "load", "orientation", "tolerances", "tool", "temperature", "centre_m"})
+            "gap_mm", "load", "orientation", "tolerances", "tool", "temperature", "centre_m", "silicone"})
     addresses = t.get("addresses")
     if not isinstance(addresses, list) or len(addresses) != 8:
         raise t.fail("addresses", "8 chip addresses", addresses)
@@ -254,7 +255,8 @@ def _sensor(t: Table, index: int) -> SimSensor:
     return SimSensor(t.string("name", f"sensor{index + 1}"), addrs, geometry, np.diag(stiffness),
                      t.number("stiffening", 0.0, low=0.0), load, orientation, gains, mass_kg, com_m,
                      temperature, drifts,
-                     np.array(t.numbers("centre_m", 3, [0.0, 0.0, 0.0], unit="m, world frame")))
+                     np.array(t.numbers("centre_m", 3, [0.0, 0.0, 0.0], unit="m, world frame")),
+                     parse_silicone(t.table("silicone")) if "silicone" in t.doc else None)
 
 
 def _faults(doc: Table, addresses: tuple[int, ...]) -> list[Fault]:
