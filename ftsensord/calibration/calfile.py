@@ -19,6 +19,7 @@ import numpy as np
 from ..docfile import Table, load_json
 from ..errors import ConfigError
 from ..model.linear import LinearModel, PositionMap
+from .creep import SiliconeCalibration
 from .dataset import parse_addresses
 from .nlfit import NonlinearCalibration
 from .thermal import CalibrationTemperature
@@ -52,6 +53,9 @@ class Calibration:
     #: The chips' die temperature over the poses, and each channel's drift when they spanned
     #: enough: the temperature stage compensates to it and flags beyond it (`stages.thermal`).
     temperature: CalibrationTemperature | None = None
+    #: The silicone's relaxation, when the dataset had a step-and-hold to identify it from:
+    #: the daemon undoes its creep (`stages.silicone`); None: it runs as a perfect spring.
+    silicone: SiliconeCalibration | None = None
 
     def document(self) -> dict[str, Any]:
         doc: dict[str, Any] = {
@@ -78,6 +82,8 @@ class Calibration:
             doc["position_map"] = {"M": self.position_map.M.tolist(), "o": self.position_map.o.tolist()}
         if self.nonlinear is not None:
             doc["nonlinear"] = self.nonlinear.document()
+        if self.silicone is not None:
+            doc["silicone"] = self.silicone.document()
         doc["checksum"] = checksum(doc)
         return doc
 
@@ -90,7 +96,7 @@ class Calibration:
         raw = load_json(path, MAX_CALIBRATION_BYTES, "calibration file")
         doc = Table(raw, path)
         doc.only({"format", "version", "units", "sensor", "model", "K", "A", "H", "zero_flux", "fit_report",
-                  "wrench_range", "position_map", "nonlinear", "room_directions", "temperature_c", "checksum"})
+                  "wrench_range", "position_map", "nonlinear", "room_directions", "temperature_c", "silicone", "checksum"})
         if doc.get("format") != CAL_FORMAT:
             raise doc.fail("format", f'"{CAL_FORMAT}"', doc.get("format"))
         doc.integer("version", what=f"{CAL_VERSION} (this ftsensord reads version {CAL_VERSION})",
@@ -127,6 +133,7 @@ class Calibration:
             Ms = [Table({"M": m}, path, f"{pm.key('M')}[{i}]").matrix("M", 3, 3) for i, m in enumerate(M)]
             pmap = PositionMap(np.array(Ms), np.array(pm.matrix("o", len(addresses), 3, unit="m")))
         nonlinear = _nonlinear(doc, len(addresses)) if "nonlinear" in raw else None
+        silicone = SiliconeCalibration.parse(doc.table("silicone")) if "silicone" in raw else None
         report = doc.get("fit_report", {})
         if not isinstance(report, dict):
             raise doc.fail("fit_report", "a table", report)
@@ -142,7 +149,7 @@ class Calibration:
                     raise ConfigError(f"{path}: {key}: expected a positive definite stiffness (x^T K x > 0), "
                                       f"got one whose symmetric part has eigenvalue {lowest:.3g}")
         return cls(LinearModel(K, A, zero, H, room), addresses, sensor.string("serial", ""),
-                   sensor.string("frame", "sensor"), pmap, report, nonlinear, wrench_range, temperature)
+                   sensor.string("frame", "sensor"), pmap, report, nonlinear, wrench_range, temperature, silicone)
 
 
 def _temperature(doc: Table, channels: int) -> CalibrationTemperature:

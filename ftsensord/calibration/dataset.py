@@ -78,6 +78,39 @@ class Sweep:
 
 
 @dataclass
+class Hold:
+    """A step-and-hold segment (`rig.record_hold`): the loads the robot applied, each from
+    ``load_times_s`` (s) on (``loads``, (k, 6) N, Nm in {0}), and every reading in between:
+    ``times_s`` (m,) and ``flux_t`` (m, 3 * chips) T. What the silicone's relaxation is
+    identified from (`calibration.creep`)."""
+
+    load_times_s: np.ndarray
+    loads: np.ndarray
+    times_s: np.ndarray
+    flux_t: np.ndarray
+
+    def document(self) -> dict:
+        return {"load_times_s": self.load_times_s.tolist(), "loads": self.loads.tolist(),
+                "times_s": self.times_s.tolist(), "flux_t": self.flux_t.tolist()}
+
+    @classmethod
+    def parse(cls, t: Table, channels: int) -> Hold:
+        t.only({"load_times_s", "loads", "times_s", "flux_t"})
+        load_times = np.array(t.numbers("load_times_s", unit="s"))
+        times = np.array(t.numbers("times_s", unit="s"))
+        for key, v in (("load_times_s", load_times), ("times_s", times)):
+            if len(v) < 2 or np.any(np.diff(v) <= 0):
+                raise t.fail(key, "at least two strictly increasing times (s)", v.tolist())
+        if times[0] < load_times[0]:
+            raise t.fail("times_s", f"readings from the first load's time on ({load_times[0]} s)", times[0])
+        flux = np.array(t.matrix("flux_t", len(times), channels, unit="T"))
+        why = implausible_flux(flux)
+        if why is not None:
+            raise t.fail("flux_t", f"readings an MLX90393 can make: {why}", "out of range")
+        return cls(load_times, np.array(t.matrix("loads", len(load_times), 6, unit="N, Nm")), times, flux)
+
+
+@dataclass
 class Dataset:
     """n poses of one sensor of ``len(addresses)`` chips (arrays indexed by pose)."""
 
@@ -96,6 +129,7 @@ class Dataset:
     sweeps: dict[int, Sweep] = field(default_factory=dict)
     rotation: np.ndarray | None = None  # (n, 3, 3) R_w0 per pose, world z up; None: not recorded
     temperature_c: np.ndarray | None = None  # (n,) the chips' mean die temperature per pose, degC; None: not recorded
+    hold: Hold | None = None  # the step-and-hold segment; None: not recorded
     path: str = ""  # the file it was read from, for error messages (not saved)
 
     def __len__(self) -> int:
@@ -132,6 +166,7 @@ class Dataset:
             } for k in range(len(self))],
             "position_sweeps": {f"0x{a:02X}": {"position_m": s.position_m.tolist(), "flux_t": s.flux_t.tolist()}
                                 for a, s in self.sweeps.items()},
+            **({} if self.hold is None else {"hold": self.hold.document()}),
         }
         Path(path).write_text(json.dumps(doc, indent=1) + "\n")
 
@@ -140,7 +175,7 @@ class Dataset:
         """Read and validate a dataset; errors name the file, the key and what was expected."""
         doc = Table(load_json(path), path)
         doc.only({"format", "version", "units", "frame", "sensor", "samples_per_pose", "source", "poses",
-                  "position_sweeps"})
+                  "position_sweeps", "hold"})
         if doc.get("format") != DATASET_FORMAT:
             raise doc.fail("format", f'"{DATASET_FORMAT}"', doc.get("format"))
         doc.integer("version", what=f"{DATASET_VERSION}", low=DATASET_VERSION, high=DATASET_VERSION)
@@ -204,7 +239,8 @@ class Dataset:
                                                                      what="a positive integer"),
                    serial=sensor.string("serial", ""), source=doc.string("source", ""), sweeps=sweeps,
                    rotation=np.array(rotations) if rotations else None,
-                   temperature_c=np.array(temperatures) if temperatures else None, path=str(path))
+                   temperature_c=np.array(temperatures) if temperatures else None, path=str(path),
+                   hold=Hold.parse(doc.table("hold"), 3 * chips) if "hold" in doc.doc else None)
 
 
 def _rotation(row: Table, gravity_dir: list[float]) -> np.ndarray:

@@ -11,29 +11,42 @@ import numpy as np
 from ..errors import ConfigError
 from ..model.geometry import SensorGeometry
 from ..sim import PhysicalScene, default_scene, load_scene, simulated_bus
-from ..sim.loads import paper_plan
+from ..sim.loads import CalibrationPose, gravity_to_down, paper_plan
 from . import largeloads
 from .calfile import Calibration
+from .creep import identify
 from .dataset import Dataset
 from .fit import AXES, CalibrationResult, fit
 from .nlfit import FitProgress, fit_nonlinear, nonlinear_rmse
 from .report import format_rmse
-from .rig import record_dataset, simulate_sweeps, simulated_robot
+from .rig import record_dataset, record_hold, simulate_sweeps, simulated_robot
 from .thermal import thermal_fit
 
 #: No-load poses a dataset records by default: 24, 12 % of the 193 loaded poses' robot
 #: time, twice the 12 docs/calibration.md asks of a real run (so that the room field's
 #: 3 directions are measured with spare poses to test that no 4th varies).
 NO_LOAD_POSES = 24
+#: The step-and-hold segment's mass (kg) and lever arm (m, {0}): the plan's heavier mass on
+#: its off-axis arm, so the step loads forces and torques alike.
+HOLD_MASS_KG, HOLD_LEVER_M = 0.2, (0.07, 0.0, 0.07)
+
+
+def hold_poses() -> list[CalibrationPose]:
+    """The step-and-hold segment's two poses (docs/calibration.md): 200 g on the off-axis arm
+    with gravity along (1, 1, 1) in {0}, then turned to the opposite: a step of twice the
+    weight on every force and on Mx, My."""
+    d = np.ones(3) / np.sqrt(3.0)
+    return [CalibrationPose(g, HOLD_MASS_KG, np.array(HOLD_LEVER_M), gravity_to_down(g)) for g in (d, -d)]
 
 
 def simulate_dataset(scene_path: str | Path | PhysicalScene | None, sensor_name: str, plan: str, *, poses: int,
                      validation_poses: int, samples: int, seed: int, sweeps: bool = True,
-                     no_load_poses: int = NO_LOAD_POSES, check_poses: int = 0) -> Dataset:
+                     no_load_poses: int = NO_LOAD_POSES, check_poses: int = 0, hold_s: float = 0.0) -> Dataset:
     """Run the paper's calibration procedure (section VII-B) on a simulated sensor of a
     scene (a file, a scene already built, or None: the default scene): each pose's wrench
     applied, ``samples`` readings averaged; with ``sweeps``, each chip's position-map sweep
-    too; ``check_poses`` at large loads (`largeloads`)."""
+    too; ``check_poses`` at large loads (`largeloads`); with ``hold_s``, the step-and-hold
+    segment after the poses (`hold_poses`, each held that long)."""
     if isinstance(scene_path, PhysicalScene):
         scene, scene_path = scene_path, "given"
     else:
@@ -46,12 +59,18 @@ def simulate_dataset(scene_path: str | Path | PhysicalScene | None, sensor_name:
     sensor = next(s for s in scene.sensors if s.name == sensor_name)
     bus = simulated_bus(scene, seed=seed)
     robot = simulated_robot(scene, sensor.name)
-    dataset = record_dataset(bus, sensor.addresses, paper_plan(plan, n_fit=poses, n_validation=validation_poses,
-                                                                  n_no_load=no_load_poses, n_check=check_poses),
+    ordered = paper_plan(plan, n_fit=poses, n_validation=validation_poses, n_no_load=no_load_poses,
+                         n_check=check_poses)
+    if hold_s > 0:  # a silicone with a memory: the no-load poses first, before any load (docs/calibration.md)
+        ordered = [p for p in ordered if p[1] == "no-load"] + [p for p in ordered if p[1] != "no-load"]
+    dataset = record_dataset(bus, sensor.addresses, ordered,
                              robot["apply_load"], turn=robot["turn"], samples=samples,
                              serial=f"sim-{sensor.name}",
                              source=f"simulated: scene {scene_path or 'default'}, sensor {sensor.name}, "
                                     f"plan {plan}, seed {seed}")
+    if hold_s > 0:
+        dataset.hold = record_hold(bus, sensor.addresses, hold_poses(), robot["apply_load"], hold_s=hold_s,
+                                   turn=robot["turn"])
     if sweeps:
         dataset.sweeps = simulate_sweeps(sensor.addresses, SensorGeometry.ring(), field_model=scene.field_model,
                                          samples=samples, rng=np.random.default_rng(seed))
@@ -85,8 +104,14 @@ def calibrate(dataset: Dataset, *, serial: str | None = None, frame: str = "sens
     if nl is not None:
         nl.warnings += tuple(found)
         report["nonlinear"]["warnings"] += found
+    silicone = None
+    if dataset.hold is None:
+        report["silicone"] = ("not identified: the dataset has no step-and-hold segment (docs/calibration.md); "
+                              "the daemon runs without creep compensation")
+    else:
+        silicone, report["silicone"] = identify(dataset.hold, result.model.wrench)
     cal = Calibration(result.model, dataset.addresses, serial or dataset.serial, frame, result.position_map,
-                      report, nl, result.wrench_range, temperature)
+                      report, nl, result.wrench_range, temperature, silicone)
     return cal, result
 
 

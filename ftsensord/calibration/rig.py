@@ -20,7 +20,7 @@ from ..model.magnet import cylinder_field, dipole_field
 from ..sim.chip import NoiseModel
 from ..sim.loads import CalibrationPose, FixedOrientation, StaticLoad
 from ..sim.physics import PhysicalScene
-from .dataset import Dataset, Sweep
+from .dataset import Dataset, Hold, Sweep
 
 
 def record_dataset(bus: Bus, addresses: Sequence[int], poses: Sequence[tuple[CalibrationPose, str]],
@@ -56,15 +56,7 @@ def record_dataset(bus: Bus, addresses: Sequence[int], poses: Sequence[tuple[Cal
             # The pose's first and last readings take the die temperature too (their mean is
             # the pose's while it changes steadily): what temperature compensation refers to.
             zyxt = mlx.ZYXT_XYZT if s in (0, samples - 1) else mlx.ZYXT_XYZ
-            for chip in chips:
-                chip.start_single(zyxt)
-            bus.sleep(wait_s[zyxt])
-            for i, chip in enumerate(chips):
-                m = chip.read_measurement(zyxt)
-                readings[s, 3 * i:3 * i + 3] = m.field_t
-                saturated[k, i] |= m.any_saturated
-                if m.temperature_c is not None:
-                    celsius.append(m.temperature_c)
+            saturated[k] |= _read(bus, chips, zyxt, wait_s[zyxt], readings[s], celsius)
         mean[k] = readings.mean(axis=0)
         temperature[k] = np.mean(celsius)
         if samples > 1:
@@ -74,6 +66,51 @@ def record_dataset(bus: Bus, addresses: Sequence[int], poses: Sequence[tuple[Cal
                    np.array([p.lever_m for p, _ in poses]), np.array([p.gravity_dir for p, _ in poses]),
                    samples, serial, source, rotation=np.array([p.orientation() for p, _ in poses]),
                    temperature_c=temperature)
+
+
+def _read(bus: Bus, chips: list[MLX90393], zyxt: int, wait_s: float, out: np.ndarray,
+          celsius: list[float]) -> np.ndarray:
+    """One reading of every chip into ``out`` (T, stacked): an SM to each, the conversion
+    time, an RM to each; die temperatures appended to ``celsius``. Returns which saturated."""
+    for chip in chips:
+        chip.start_single(zyxt)
+    bus.sleep(wait_s)
+    saturated = np.zeros(len(chips), dtype=bool)
+    for i, chip in enumerate(chips):
+        m = chip.read_measurement(zyxt)
+        out[3 * i:3 * i + 3] = m.field_t
+        saturated[i] = m.any_saturated
+        if m.temperature_c is not None:
+            celsius.append(m.temperature_c)
+    return saturated
+
+
+def record_hold(bus: Bus, addresses: Sequence[int], poses: Sequence[CalibrationPose],
+                apply_load: Callable[[np.ndarray], None], *, hold_s: float, settings: mlx.Settings = mlx.Settings(),
+                turn: Callable[[np.ndarray], None] | None = None) -> Hold:
+    """The step-and-hold segment (docs/calibration.md): each of ``poses`` in turn, held
+    ``hold_s`` while every chip is read as fast as the bus allows, each reading stamped
+    with the bus's clock (s, from the first pose's start): the creep the silicone's
+    relaxation is identified from (`calibration.creep`)."""
+    chips = [MLX90393(bus, a, sleep=bus.sleep) for a in addresses]
+    for chip in chips:
+        chip.configure(settings)
+    wait_s = settings.single_measurement_us(mlx.ZYXT_XYZ) * 1.2e-6  # +20 %: the oscillator's tolerance
+    start = bus.monotonic()
+    load_times, times, rows, celsius = [], [], [], []
+    for pose in poses:
+        if turn is not None:
+            turn(pose.orientation())
+        apply_load(pose.wrench())
+        load_times.append(bus.monotonic() - start)
+        end = load_times[-1] + hold_s
+        while (now := bus.monotonic() - start) < end:
+            row = np.zeros(3 * len(chips))
+            if _read(bus, chips, mlx.ZYXT_XYZ, wait_s, row, celsius).any():
+                continue  # a clipped reading is no deflection: left out
+            times.append(now + wait_s)  # the conversions' end: when the field was sampled
+            rows.append(row)
+    return Hold(np.array(load_times), np.array([p.wrench() for p in poses]), np.array(times), np.array(rows))
 
 
 def simulated_robot(scene: PhysicalScene, sensor: str) -> dict[str, Callable[[np.ndarray], None]]:

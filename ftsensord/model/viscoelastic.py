@@ -65,6 +65,28 @@ class Relaxation:
         rows.sort(key=lambda r: r[1])
         return cls(tuple(r[0] for r in rows), tuple(r[1] for r in rows))
 
+    @classmethod
+    def from_creep(cls, g_inf: float, c: np.ndarray, rho: np.ndarray) -> Relaxation:
+        """The series whose creep is w_eff / w = g_inf + sum c_k (1 - exp(-t/rho_k)) (`creep`'s
+        inverse): G~(s) = g_inf / H(s), whose poles -1/tau_i are the roots of H's numerator
+        M(s) and residues g_i = -g_inf E(s_i) tau_i / M'(s_i), E = prod(1 + s rho_k)."""
+        P = np.polynomial.polynomial
+        E = np.array([1.0])
+        for r in rho:
+            E = P.polymul(E, [1.0, r])
+        M = g_inf * E
+        for k, r in enumerate(rho):
+            rest = np.array([1.0])
+            for j, u in enumerate(rho):
+                if j != k:
+                    rest = P.polymul(rest, [1.0, u])
+            M = P.polyadd(M, c[k] * rest)
+        roots = np.sort(P.polyroots(M).real)  # real and negative for positive c (interlacing)
+        tau = -1.0 / roots
+        g = -g_inf * P.polyval(roots, E) * tau / P.polyval(roots, P.polyder(M))
+        order = np.argsort(tau)
+        return cls(tuple(float(v) for v in g[order]), tuple(float(v) for v in tau[order]))
+
     def pairs(self) -> list[list[float]]:
         return [[g, t] for g, t in zip(self.fractions, self.times_s)]
 

@@ -89,7 +89,8 @@ class Daemon(Commands):
     @staticmethod
     def _pipeline(s: SensorConfig, config: Config) -> SensorPipeline:
         smoothing = WrenchFilter(config.averaging, config.lowpass_hz, config.rate_hz)
-        return SensorPipeline.build(s, smoothing, config.max_missing_chips, config.settings, config.temperature_every > 0)
+        return SensorPipeline.build(s, smoothing, config.max_missing_chips, config.settings, config.temperature_every > 0,
+                                    config.rate_hz)
 
     def _gravity(self, config: Config) -> Gravity | None:
         g = config.gravity

@@ -25,6 +25,7 @@ from ..errors import ChipRefusedError
 from ..model import se3
 from ..model.linear import SENSOR_RANGE, LinearModel
 from ..model.nonlinear import NonlinearEstimator
+from ..stages.silicone import CreepCompensation
 from ..stages.stray import WorldGradient
 from ..stages.thermal import ThermalCompensation
 from . import wire
@@ -77,13 +78,15 @@ class SensorPipeline:
     estimate_s: deque[float] = field(default_factory=lambda: deque(maxlen=STATS_WINDOW))
     thermal: ThermalCompensation | None = None  # None: temperatures not read (temperature_every = 0)
     stray: WorldGradient | None = None  # stray_field = "world": a motor's gradient learnt as the tool turns
+    creep: CreepCompensation | None = None  # the silicone's creep undone, when the calibration identified it
     _extrapolation: tuple[np.ndarray | None, np.ndarray | None] | None = field(default=None, repr=False)
 
     @classmethod
     def build(cls, s: SensorConfig, smoothing: WrenchFilter, max_missing_chips: int,
-              settings: mlx.Settings | None = None, thermal: bool = True) -> SensorPipeline:
+              settings: mlx.Settings | None = None, thermal: bool = True, rate_hz: float = 100.0) -> SensorPipeline:
         """``thermal``: the chips' temperatures are read (`Config.temperature_every`), so
-        the temperature stage compensates and flags (`stages.thermal`)."""
+        the temperature stage compensates and flags (`stages.thermal`); ``rate_hz``: the
+        loop's, the silicone stage's period (`stages.silicone`)."""
         nl = s.calibration.nonlinear
         sigma_t = channel_sigma_t(settings or mlx.Settings(), len(s.addresses))
         if s.model.H is not None:  # no map built in the cycle of a fault
@@ -93,7 +96,8 @@ class SensorPipeline:
                    zero_twist=nl.zero_twist.copy() if nl is not None else None, sigma_t=sigma_t,
                    thermal=ThermalCompensation(ThermalLaws.physical(settings), len(s.addresses),
                                                s.calibration.temperature) if thermal else None,
-                   stray=WorldGradient(s.calibration.model, sigma_t) if s.stray_field == "world" else None)
+                   stray=WorldGradient(s.calibration.model, sigma_t) if s.stray_field == "world" else None,
+                   creep=None if s.calibration.silicone is None else CreepCompensation(s.calibration.silicone, rate_hz))
 
     @property
     def name(self) -> str:
@@ -116,6 +120,8 @@ class SensorPipeline:
                     wrench = wrench * thermal.wrench_scale
                 if thermal.beyond_span:
                     wflags |= wire.FLAG_TEMPERATURE
+        if self.creep is not None:
+            wrench = self.creep.apply(wrench, not wflags & _BREAKS_MEMORY)
         valid = not wflags & wire.FLAG_INVALID
         if valid and (np.abs(wrench) > SENSOR_RANGE).any():
             wflags |= wire.FLAG_OVERLOAD
@@ -231,6 +237,8 @@ class SensorPipeline:
             if e.converged:
                 self.zero_twist = e.xi
         self.filter.reset()
+        if self.creep is not None:
+            self.creep.reset()  # the zero moved: the history it holds is of the old one
         self.tared = True
         return self.tare_wrench
 
@@ -240,6 +248,8 @@ class SensorPipeline:
             raise ValueError(f"no nonlinear calibration for {self.name}")
         self.estimator = estimator
         self.filter.reset()
+        if self.creep is not None:
+            self.creep.reset()
 
     def status(self) -> dict[str, Any]:
         return {
@@ -251,6 +261,7 @@ class SensorPipeline:
             "tare_wrench": self.tare_wrench.round(6).tolist(),
             "temperature": None if self.thermal is None else self.thermal.status(),
             "stray": None if self.stray is None else self.stray.status(),
+            "silicone": None if self.creep is None else self.creep.status(),
         }
 
 
@@ -258,6 +269,12 @@ class SensorPipeline:
 #: load beyond the linear model (a temperature beyond its span is asked of the stage itself).
 _NOT_LEARNT = (wire.FLAG_CHIP_MISSING | wire.FLAG_SATURATED | wire.FLAG_STALE | wire.FLAG_DEGRADED
                | wire.FLAG_INVALID | wire.FLAG_EXTRAPOLATED)
+
+
+#: Flags of a sample kept out of the silicone stage's history (it passes through, the state
+#: dropped): a chip not read, stale or left out, no estimate, a fallback to the other estimator.
+_BREAKS_MEMORY = (wire.FLAG_CHIP_MISSING | wire.FLAG_SATURATED | wire.FLAG_STALE | wire.FLAG_DEGRADED
+                  | wire.FLAG_INVALID | wire.FLAG_FALLBACK | wire.FLAG_INCONSISTENT)
 
 
 @functools.lru_cache(maxsize=8)
