@@ -138,3 +138,112 @@ def test_a_moving_load_is_integrated_step_by_step():
         forward.advance(np.array([2.0 * k / 2000, 0, 0, 0, 0, 0]))
     scene.field_t(0x0C, 2.0)
     assert np.allclose(memory.filter.p, forward.p, atol=1e-12)
+
+
+# --- identification and the daemon's stage ---------------------------------------------------
+def _part_with_memory(relaxation: Relaxation) -> PhysicalScene:
+    """The default scene's sensor1 (the part the packaged calibration was fitted on), its silicone
+    given ``relaxation``."""
+    from ftsensord.sim.scene import default_scene
+    scene = default_scene()
+    sensor = scene.sensors[0]
+    sensor.relaxation = relaxation
+    return PhysicalScene(scene.sensors, field_model=scene.field_model, crosstalk=scene.crosstalk,
+                         external_field_t=scene.external_field_t)
+
+
+def _packaged_calibration():
+    from ftsensord.calibration.calfile import Calibration
+    from ftsensord.service.paths import builtin_path
+    return Calibration.load(builtin_path("sim-sensor1.json"))
+
+
+def test_the_relaxation_is_identified_from_a_simulated_step_and_hold():
+    from ftsensord.calibration.creep import identify
+    from ftsensord.calibration.procedure import hold_poses
+    from ftsensord.calibration.rig import record_hold, simulated_robot
+    from ftsensord.sim import simulated_bus
+    # A faster series than the default, so that a short hold shows both terms (the benchmark
+    # identifies the default from the full procedure: docs/accuracy.md).
+    truth = Relaxation.from_pairs([[0.10, 0.3], [0.05, 4.0]])
+    scene = _part_with_memory(truth)
+    bus = simulated_bus(scene, seed=3)
+    hold = record_hold(bus, ADDRESSES, hold_poses(), simulated_robot(scene, "sensor1")["apply_load"],
+                       hold_s=12.0, period_s=0.01)
+    found, line = identify(hold, _packaged_calibration().model.wrench)
+    assert found is not None, line
+    got = found.relaxation
+    # 20 %: what the issue asks of the identification, for each fraction and time.
+    assert np.allclose(got.fractions, truth.fractions, rtol=0.2), line
+    assert np.allclose(got.times_s, truth.times_s, rtol=0.2), line
+
+
+def test_a_hold_without_a_step_identifies_nothing_and_says_why():
+    from ftsensord.calibration.creep import identify
+    from ftsensord.calibration.dataset import Hold
+    w = np.array([1.0, 0, 0, 0, 0, 0])
+    hold = Hold(np.array([0.0, 1.0]), np.array([w, w]), np.linspace(0, 2, 50), np.zeros((50, 6)))
+    found, line = identify(hold, lambda b: b)
+    assert found is None and "do not change" in line
+
+
+def _pipeline(silicone_scale: float = 1.0):
+    from dataclasses import replace
+
+    from ftsensord.calibration.creep import SiliconeCalibration
+    from ftsensord.service.filters import WrenchFilter
+    from ftsensord.service.pipeline import SensorPipeline
+    from ftsensord.service.sensorconf import SensorConfig
+    cal = replace(_packaged_calibration(), silicone=SiliconeCalibration(SERIES, silicone_scale, 0.0))
+    config = SensorConfig("sensor1", ADDRESSES, __import__("pathlib").Path("sim-sensor1.json"), cal, "sensor")
+    return SensorPipeline.build(config, WrenchFilter(), 2, thermal=False, rate_hz=100.0)
+
+
+def _results(flux: np.ndarray, missing: int | None = None) -> dict:
+    from ftsensord.acquire.health import ChipResult
+    from ftsensord.chip import mlx90393 as mlx
+    from ftsensord.chip.driver import Measurement
+    from ftsensord.errors import ChipNotRespondingError
+    out = {}
+    for i, a in enumerate(ADDRESSES):
+        if i == missing:
+            out[a] = ChipResult(a, error=ChipNotRespondingError(a, "no answer"))
+        else:
+            out[a] = ChipResult(a, Measurement(mlx.Status(0x02), flux[3 * i:3 * i + 3], np.zeros(3, dtype=bool),
+                                               None, {}))
+    return out
+
+
+def _fluxes(scene: PhysicalScene, times: np.ndarray) -> np.ndarray:
+    return np.array([np.concatenate([scene.field_t(a, t) for a in ADDRESSES]) for t in times])
+
+
+def test_the_daemon_stage_undoes_a_held_steps_creep_and_restarts_on_a_tare_and_a_fault():
+    from ftsensord.service import wire
+    w = np.array([2.0, 0, 0, 0, 0, 0])
+    scene = _part_with_memory(SERIES)
+    scene.set_load("sensor1", StepLoad(1.0, np.zeros(6), w))
+    times = np.arange(0.0, 6.0, 0.01)
+    fluxes = _fluxes(scene, times)
+    plain = _pipeline()
+    plain.creep = None
+    compensated = _pipeline()
+    raw = np.array([plain.step(_results(b)).wrench for b in fluxes])
+    out = np.array([compensated.step(_results(b)).wrench for b in fluxes])
+    after = times >= 1.5  # from 0.5 s after the step on
+    creep = raw[after, 0] - raw[-1, 0]
+    assert np.abs(creep).max() > 0.1  # the calibration's static estimate creeps by more than 5 % of the step
+    # The compensated one stays within 2 % of its own final value (the packaged calibration's
+    # static error on Fx is the same with or without it).
+    assert np.abs(out[after, 0] - out[-1, 0]).max() < 0.04
+    # A fault: a chip missing passes through as it is, flagged; the next clean sample starts
+    # afresh (a load long held: the estimate itself), nothing of the flagged one carried.
+    y = plain.step(_results(fluxes[-1])).wrench
+    s = compensated.step(_results(fluxes[-1], missing=3))
+    assert s.flags & wire.FLAG_DEGRADED and compensated.creep is not None and compensated.creep.restarts == 1
+    assert np.allclose(compensated.step(_results(fluxes[-1])).wrench, y, atol=1e-12)
+    # A tare: the history of the old zero is dropped too.
+    compensated.tare(fluxes[-1])
+    assert compensated.creep.restarts == 2
+    assert np.allclose(compensated.step(_results(fluxes[-1])).wrench, 0.0, atol=1e-9)
+    assert compensated.status()["silicone"]["restarts"] == 2

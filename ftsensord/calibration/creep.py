@@ -24,19 +24,20 @@ from typing import Any, Callable
 import numpy as np
 
 from ..docfile import Table
-from ..model.linear import SENSOR_RANGE
 from ..model.viscoelastic import MAX_TOTAL_FRACTION, Relaxation
 from .dataset import Hold
 
-#: An axis takes part when the segment changes its load by at least this share of the most
-#: changed axis's (each relative to its range): a smaller step is mostly noise and offset.
-AXIS_SHARE = 0.25
+#: An axis takes part when the segment's step on it is at least this many times its reading
+#: noise: below, its creep (a few % of the step) is under the noise of a single reading and
+#: the axis adds more noise than creep to the shared fit.
+MIN_STEP_TO_NOISE = 20.0
 #: The search's grid points per decade of time, and its zoom rounds (each halves the span):
 #: 6 a decade puts a point within 20 % of any time, three rounds within 3 %.
 POINTS_PER_DECADE, ZOOM_ROUNDS = 6, 3
-#: The shortest time searched, as a multiple of the readings' mean interval (a faster term
-#: is not sampled), and the longest as a share of the hold (a slower one has not shown).
-SHORTEST_INTERVALS, LONGEST_HOLD_SHARE = 3.0, 1.0
+#: The shortest time searched, as a multiple of the readings' mean interval (a faster term is
+#: seen by a handful of readings, and the noise makes one of the instantaneous part), and the
+#: longest as a share of the hold (a slower one has not shown).
+SHORTEST_INTERVALS, LONGEST_HOLD_SHARE = 10.0, 1.0
 #: The fit takes every reading of the first seconds after each load (the fast terms live
 #: there) and an even pick of the rest up to this many: the least squares' cost is linear
 #: in the readings, and 2000 over a minute's hold still resolve a 1 % creep (the readings'
@@ -76,21 +77,33 @@ def identify(hold: Hold, wrench_of: Callable[[np.ndarray], np.ndarray],
     None, with a line for the report saying what was found or why nothing was."""
     t = hold.times_s - hold.load_times_s[0]
     starts = hold.load_times_s - hold.load_times_s[0]
+    interval = float(np.median(np.diff(t)))
+    y = wrench_of(hold.flux_t)
+    # Each axis's reading noise, from successive readings' differences (their median absolute
+    # deviation: robust to the step itself; the creep between two readings is far below it).
+    diff = np.diff(y, axis=0)
+    noise = 1.4826 * np.median(np.abs(diff - np.median(diff, axis=0)), axis=0) / np.sqrt(2.0)
+    noise = np.where(noise > 0, noise, np.inf)  # an axis that never moves resolves nothing
     early = np.any((t[:, None] >= starts) & (t[:, None] < starts + FIRST_S), axis=1)
     picked = early | (np.arange(len(t)) % max(1, len(t) // MAX_READINGS) == 0)
-    t, flux = t[picked], hold.flux_t[picked]
-    w = hold.loads[np.searchsorted(starts, t, side="right") - 1] / SENSOR_RANGE
-    y = wrench_of(flux) / SENSOR_RANGE
-    change = np.ptp(hold.loads / SENSOR_RANGE, axis=0)
+    t, y = t[picked], y[picked]
+    # A reading stamped at a load's very time was taken before it (the robot moves after a
+    # reading ends): "left" puts it in the segment before.
+    w = hold.loads[np.clip(np.searchsorted(starts, t, side="left") - 1, 0, None)]
+    change = np.ptp(hold.loads, axis=0)
     if not change.max() > 0:  # one load throughout: no step to see creep in
         return None, "the step-and-hold segment's loads do not change: nothing to identify"
-    axes = np.flatnonzero(change >= AXIS_SHARE * change.max())
-    jumps = np.diff(np.vstack([np.zeros(6), hold.loads / SENSOR_RANGE]), axis=0)[:, axes]
-    w, y = w[:, axes], y[:, axes]
-    step = float(change[axes].mean())
-    low = SHORTEST_INTERVALS * float(np.mean(np.diff(t)))
+    axes = np.flatnonzero(change / noise >= MIN_STEP_TO_NOISE)
+    if not len(axes):
+        return None, (f"the step-and-hold segment's step is below {MIN_STEP_TO_NOISE:g} times the readings' "
+                      "noise on every axis: nothing to identify")
+    jumps = np.diff(np.vstack([np.zeros(6), hold.loads]), axis=0)[:, axes] / noise[axes]
+    w, y = w[:, axes] / noise[axes], y[:, axes] / noise[axes]
+    step = float(np.mean(change[axes] / noise[axes]))
+    low = SHORTEST_INTERVALS * interval
     high = LONGEST_HOLD_SHARE * float(np.min(np.diff(np.append(starts, t[-1]))))
-    weight = change[axes] ** 2 / np.sum(change[axes] ** 2)  # the larger an axis's step, the more it says
+    snr = change[axes] / noise[axes]
+    weight = snr ** 2 / np.sum(snr ** 2)  # the better an axis resolves its step, the more it says
     for n in range(terms, 0, -1):
         rho, theta, rms = _search(t, starts, jumps, w, y, n, low, high)
         # Each axis's own scale (its static error is its own); the creep's shape, c_k / g_inf, shared.
@@ -141,7 +154,7 @@ def _solve(t: np.ndarray, starts: np.ndarray, jumps: np.ndarray, w: np.ndarray, 
     n = len(rho)
     # F_k of the piecewise-constant load from rest: each jump's exponential rise, summed.
     since = np.clip(t[:, None] - starts[None, :], 0.0, None)  # (m, jumps)
-    on = (t[:, None] >= starts[None, :]).astype(float)
+    on = (t[:, None] > starts[None, :]).astype(float)  # as `identify`'s segments: a load acts after its time
     rises = [(on * (1.0 - np.exp(-since / r))) @ jumps for r in rho]  # each (m, axes)
     decay = np.exp(-t[:, None] / rho[None, :])  # (m, n)
     theta = np.zeros((axes, 2 * n + 2))

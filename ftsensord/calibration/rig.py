@@ -87,9 +87,9 @@ def _read(bus: Bus, chips: list[MLX90393], zyxt: int, wait_s: float, out: np.nda
 
 def record_hold(bus: Bus, addresses: Sequence[int], poses: Sequence[CalibrationPose],
                 apply_load: Callable[[np.ndarray], None], *, hold_s: float, settings: mlx.Settings = mlx.Settings(),
-                turn: Callable[[np.ndarray], None] | None = None) -> Hold:
+                turn: Callable[[np.ndarray], None] | None = None, period_s: float = 0.0) -> Hold:
     """The step-and-hold segment (docs/calibration.md): each of ``poses`` in turn, held
-    ``hold_s`` while every chip is read as fast as the bus allows, each reading stamped
+    ``hold_s`` while every chip is read every ``period_s`` (0: as fast as the bus allows), each reading stamped
     with the bus's clock (s, from the first pose's start): the creep the silicone's
     relaxation is identified from (`calibration.creep`)."""
     chips = [MLX90393(bus, a, sleep=bus.sleep) for a in addresses]
@@ -105,6 +105,9 @@ def record_hold(bus: Bus, addresses: Sequence[int], poses: Sequence[CalibrationP
         load_times.append(bus.monotonic() - start)
         end = load_times[-1] + hold_s
         while (now := bus.monotonic() - start) < end:
+            if period_s > 0 and times:
+                bus.sleep(max(0.0, times[-1] - wait_s + period_s - now))
+                now = bus.monotonic() - start
             row = np.zeros(3 * len(chips))
             if _read(bus, chips, mlx.ZYXT_XYZ, wait_s, row, celsius).any():
                 continue  # a clipped reading is no deflection: left out
