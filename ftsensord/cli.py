@@ -67,7 +67,7 @@ def cmd_dataset(args: argparse.Namespace) -> int:
     dataset = simulate_dataset(args.scene, args.sensor, args.plan, poses=args.poses,
                                validation_poses=args.validation_poses, samples=args.samples, seed=args.seed,
                                sweeps=not args.no_sweep, no_load_poses=args.no_load_poses,
-                               check_poses=args.check_poses)
+                               check_poses=args.check_poses, hold_s=args.hold_s)
     dataset.save(args.output)
     print(f"wrote {args.output}: {len(dataset)} poses ({args.plan}), {args.samples} samples each, "
           f"{int(dataset.saturated.any(axis=1).sum())} with a saturated chip")
@@ -351,6 +351,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "at least 6 for the fit to use them, 12 or more advised)")
     p.add_argument("--check-poses", type=int, default=24, help="poses with 1, 2 and 4 kg at the flange's centre, "
                    "on which the model is judged at large loads (default: 24; 0: none)")
+    p.add_argument("--hold-s", type=float, default=0.0,
+                   help="hold each of the step-and-hold segment's two poses this long (s), to identify the "
+                        "silicone's relaxation; 60 or more for minutes-long creep (default: 0, no segment)")
     p.set_defaults(func=cmd_dataset)
 
     p = sub.add_parser("calibrate", help="fit K, A and the zero from a dataset",

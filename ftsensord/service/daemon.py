@@ -182,6 +182,8 @@ class Daemon(Commands):
         if self.timing.jumped(seq):  # a gap in the input (a stall, skipped deadlines): the
             for p in self.sensors:  # filters' memory says nothing of the load now; restart
                 p.filter.reset()
+                if p.creep is not None:  # its period is no longer the samples'
+                    p.creep.reset()
             if self.gravity is not None:
                 self.gravity.restart()
         self.orientations.drain(start)

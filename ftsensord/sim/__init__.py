@@ -2,7 +2,7 @@
 
 Owns the emulated chip (`chip`, its conversions in `conversion`), the simulated bus with the kernel's
 semantics, wire time and fault hooks (`bus`), clocks (`clock`), the physics
-of magnets and stiffness (`physics`), loads over time (`loads`), scripted
+of magnets and stiffness (`physics`), the silicone's memory (`silicone`), loads over time (`loads`), scripted
 faults (`faults`) and scene files (`scene`). `simulated_bus` builds a ready
 bus from a scene; `ftsensord.acquire.bus.open_bus` calls it for the ``sim``
 and ``sim:<scene file>`` specifications.
