@@ -247,3 +247,39 @@ def test_the_daemon_stage_undoes_a_held_steps_creep_and_restarts_on_a_tare_and_a
     assert compensated.creep.restarts == 2
     assert np.allclose(compensated.step(_results(fluxes[-1])).wrench, 0.0, atol=1e-9)
     assert compensated.status()["silicone"]["restarts"] == 2
+
+
+def test_a_rate_change_restarts_the_stage_with_the_new_period():
+    from ftsensord.calibration.creep import SiliconeCalibration
+    from ftsensord.stages.silicone import CreepCompensation
+    stage = CreepCompensation(SiliconeCalibration(SERIES, 1.1, 0.0), 100.0)
+    for _ in range(10):
+        stage.apply(np.zeros(6), True)
+    first_of_a_step = stage.apply(np.full(6, 1.1), True)
+    assert first_of_a_step[0] > 1.0 + 1e-3  # the inverse reads the step's creep to come
+    stage.configure(200.0)
+    assert stage.apply(np.full(6, 1.1), True) == pytest.approx(np.ones(6))  # afresh: held, divided by the scale
+    assert stage.inverse.a[0, 0] == pytest.approx(np.exp(-0.005 / SERIES.creep[1][0]))
+
+
+def test_the_hold_and_the_series_survive_their_files(tmp_path):
+    from dataclasses import replace
+
+    from ftsensord.calibration.calfile import Calibration
+    from ftsensord.calibration.creep import SiliconeCalibration
+    from ftsensord.calibration.dataset import Dataset, Hold
+    cal = replace(_packaged_calibration(), silicone=SiliconeCalibration(SERIES, 1.05, 0.01))
+    cal.save(tmp_path / "cal.json")
+    assert Calibration.load(tmp_path / "cal.json").silicone == cal.silicone
+    from ftsensord.calibration.procedure import simulate_dataset
+    ds = simulate_dataset(_part_with_memory(SERIES), "sensor1", "six-axis", poses=12, validation_poses=2, samples=2,
+                          seed=0, sweeps=False, no_load_poses=0, hold_s=0.05)
+    assert ds.hold is not None and len(ds.hold.times_s) > 5
+    ds.save(tmp_path / "ds.json")
+    back = Dataset.load(tmp_path / "ds.json").hold
+    assert isinstance(back, Hold) and np.allclose(back.flux_t, ds.hold.flux_t) and np.allclose(back.loads, ds.hold.loads)
+    import json
+    doc = json.loads((tmp_path / "ds.json").read_text())
+    doc["hold"]["load_times_s"][0] = doc["hold"]["times_s"][0] + 1e-3  # a reading before any load
+    (tmp_path / "bad.json").write_text(json.dumps(doc))
+    assert_names_file_and_key(Dataset.load, tmp_path / "bad.json", "times_s", "readings from the first load's time on")

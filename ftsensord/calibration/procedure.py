@@ -34,7 +34,7 @@ HOLD_MASS_KG, HOLD_LEVER_M = 0.2, (0.07, 0.0, 0.07)
 def hold_poses() -> list[CalibrationPose]:
     """The step-and-hold segment's two poses (docs/calibration.md): 200 g on the off-axis arm
     with gravity along (1, 1, 1) in {0}, then turned to the opposite: a step of twice the
-    weight on every force and on Mx, My."""
+    weight on every force and on Mx, Mz."""
     d = np.ones(3) / np.sqrt(3.0)
     return [CalibrationPose(g, HOLD_MASS_KG, np.array(HOLD_LEVER_M), gravity_to_down(g)) for g in (d, -d)]
 

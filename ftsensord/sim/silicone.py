@@ -23,6 +23,11 @@ from ..model.viscoelastic import MAX_TERMS, CreepFilter, Relaxation
 DEFAULT_RELAXATION = ((0.10, 1.0), (0.05, 30.0))
 
 
+#: A reading asked this many steps (1 s) before the state is a scene read again by a new
+#: clock (a bus built afresh starts its time at 0): the memory starts afresh too.
+RESTART_STEPS = 1000
+
+
 class SiliconeMemory:
     """One sensor's creep state on the scene's time grid (``step_s``): `effective` gives
     w_eff at grid step ``k`` from the load's history, each step's load held over it.
@@ -30,7 +35,8 @@ class SiliconeMemory:
     The state moves forwards only: a chip's reading asked for an earlier step than the last
     (chips of one cycle finish within a step or two of each other) gets the latest state,
     at most one step's creep (tens of ppm of the load at a 1 s time) away. The first step
-    asked starts from its load long in place (`CreepFilter.settle`)."""
+    asked, and one asked more than `RESTART_STEPS` back, starts from its load long in place
+    (`CreepFilter.settle`)."""
 
     def __init__(self, relaxation: Relaxation, step_s: float):
         self.filter = CreepFilter(relaxation, step_s)
@@ -45,7 +51,7 @@ class SiliconeMemory:
         """w_eff (N, Nm) at grid step ``k``; ``wrench(t)`` is the load, ``constant`` says it
         never changes (one exact update however long the gap)."""
         h = self.step_s
-        if self.k is None:
+        if self.k is None or k < self.k - RESTART_STEPS:  # the first reading, or a new clock from 0
             self.filter.settle(wrench(k * h))
             self.k = k
         elif k > self.k:
