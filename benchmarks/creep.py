@@ -149,14 +149,24 @@ def run(config: Config, cal: Calibration, sc: PhysicalScene, load, seconds: floa
     return np.array(t), np.array(w), np.array(truth)
 
 
-def step_figures(t, w, truth, at_s: float) -> tuple[float, float]:
-    """(largest |error| on Fx from 0.5 s after the step on, % of the step, the wrench at rest in
-    the second before it taken as zero (a tare); time to half the step, ms)."""
+#: The step's error is judged on means over this long (s): a single sample's noise is 0.03-0.06 N
+#: on Fx at the loop settings here, 1.5-3 % of the step, so the issue's 2 % is a figure of the
+#: estimate, not of one reading; 0.25 s divides the noise by 5 and is shorter than any creep.
+STEP_WINDOW_S = 0.25
+
+
+def step_figures(t, w, truth, at_s: float) -> tuple[float, float, float]:
+    """On Fx, from 0.5 s after the step on, the wrench at rest in the second before it taken as
+    zero (a tare): the largest |error| of `STEP_WINDOW_S` means and of single samples (% of the
+    step); the time to half the step (ms)."""
     after = t >= at_s + 0.5
     rest = float(np.nanmean(w[(t > at_s - 1.0) & (t < at_s), 0]))
-    err = float(np.nanmax(np.abs(w[after, 0] - rest - truth[after, 0]))) / STEP_N * 100
+    error = w[after, 0] - rest - truth[after, 0]
+    windows = np.floor((t[after] - at_s - 0.5) / STEP_WINDOW_S)
+    means = [np.nanmean(error[windows == k]) for k in np.unique(windows)]
     half = t[(t >= at_s) & (w[:, 0] - rest >= STEP_N / 2)]
-    return err, (float(half[0]) - at_s) * 1e3 if len(half) else float("nan")
+    return (float(np.max(np.abs(means))) / STEP_N * 100, float(np.nanmax(np.abs(error))) / STEP_N * 100,
+            (float(half[0]) - at_s) * 1e3 if len(half) else float("nan"))
 
 
 def sine_figures(t, w, f_hz: float, start_s: float) -> tuple[float, float]:
@@ -229,6 +239,7 @@ def main() -> int:
             settings += [Setting("faster (OSR 0, DIG_FILT 2, 140 Hz)", 0, 2, 140.0),
                          Setting("default, averaging 4", config.settings.osr, config.settings.dig_filt, 100.0, 4)]
         rows = []
+        traces: dict = {}
         hold = 8.0 if quick else 32.0
         spring = Calibration.load(builtin_path("sim-sensor1.json"))  # the packaged one: fitted on this part, a spring
         for i, st in enumerate(settings):
@@ -237,17 +248,21 @@ def main() -> int:
                 part = cal if memory else spring
                 t, w, truth = run(config, part, scene(memory, tmp), StepLoad(2.0, np.zeros(6),
                                   np.array([STEP_N, 0, 0, 0, 0, 0])), hold, st, comp)
-                step_err, half_ms = step_figures(t, w, truth, 2.0)
+                step_err, step_single, half_ms = step_figures(t, w, truth, 2.0)
+                if i == 0:
+                    traces[("step", label)] = (t, w[:, 0], truth[:, 0])
                 sines = []
                 for f in (FREQUENCIES_HZ[:2] if quick else FREQUENCIES_HZ):
                     t, w, truth = run(config, part, scene(memory, tmp), Sine(np.array([STEP_N, 0, 0, 0, 0, 0]), f, 1.0),
                                       1.0 + max(3.0, 4 / f) if quick else 1.0 + max(6.0, 10 / f), st, comp)
                     sines.append(sine_figures(t, w, f, 1.0))
+                    if i == 0 and f == 2.0:
+                        traces[("sine", label)] = (t, w[:, 0], truth[:, 0])
                 t, w, truth = run(config, part, scene(memory, tmp), Training(1.0), 6.0 if quick else 21.0, st, comp)
                 sel = t >= 2.0
                 training = float(np.sqrt(np.nanmean(np.square(w[sel, :3] - truth[sel, :3]))))
                 val = validation(config, part, scene(memory, tmp), dataset, st, comp)
-                rows.append((st.name, label, step_err, half_ms, sines, training, val))
+                rows.append((st.name, label, step_err, step_single, half_ms, sines, training, val))
         lines += report_rows(rows, quick)
     c = cost(quick)
     lines += ["", "## Cost", "",
@@ -262,7 +277,38 @@ def main() -> int:
     print(text)
     if not quick:
         (args.out / "silicone-figures.md").write_text(text)
+        plot(traces, args.out / "silicone.png")
     return 0
+
+
+def plot(traces: dict, path: Path) -> None:
+    """The held step and the 2 Hz sine at the default loop: published Fx against the truth."""
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("matplotlib is missing (pip install 'ftsensord[plot]'): no plot", file=sys.stderr)
+        return
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    for ax, kind, span in ((axes[0], "step", (1.0, 32.0)), (axes[1], "sine", (4.0, 5.5))):
+        truth_drawn = False
+        for (k, label), (t, w, truth) in traces.items():
+            if k != kind:
+                continue
+            sel = (t >= span[0]) & (t <= span[1])
+            if not truth_drawn:
+                ax.plot(t[sel], truth[sel], "k", lw=2, label="applied (the scene's truth)")
+                truth_drawn = True
+            ax.plot(t[sel], w[sel], lw=1, label=label)
+        ax.set_xlabel("time (s)")
+        ax.set_ylabel("Fx (N)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    axes[0].set_title("2 N held 30 s (default loop, 100 Hz)")
+    axes[1].set_title("2 N at 2 Hz")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
 
 
 def report_header(quick: bool, n: dict, cal: Calibration, result) -> list[str]:
@@ -293,18 +339,19 @@ def report_header(quick: bool, n: dict, cal: Calibration, result) -> list[str]:
 def report_rows(rows: list, quick: bool) -> list[str]:
     freqs = FREQUENCIES_HZ[:2] if quick else FREQUENCIES_HZ
     out = ["", "## Moving loads", "",
-           "Step: 2 N on Fx at 2 s, held; the largest |error| from 0.5 s after it on (% of the step, "
-           "the issue asks 2 %) and the time to half the step. Sines: 2 N on Fx; amplitude (published / "
+           "Step: 2 N on Fx at 2 s, held 30 s, tared at rest before it; the largest |error| from 0.5 s "
+           f"after it on (% of the step, the issue asks 2 %) of {STEP_WINDOW_S:g} s means and of single samples "
+           "(their noise alone is 1.5-3 % of the step), and the time to half the step. Sines: 2 N on Fx; amplitude (published / "
            "applied, the issue asks within 3 %) and lag (ms). Training: RMSE over the force axes (N). "
            "Validation: the 100 g poses' means through the daemon, RMSE per axis (N, mNm); Table II "
            "is 0.234, 0.114, 0.378 N, 4.1, 10.6, 8.5 mNm.", "",
-           "| loop | silicone | step error (%) | step to half (ms) | "
+           "| loop | silicone | step error, means (%) | single samples (%) | step to half (ms) | "
            + " | ".join(f"{f:g} Hz amplitude / lag (ms)" for f in freqs)
            + " | training RMSE (N) | 100 g validation RMSE (N x3, mNm x3) | within Table II |",
-           "|---|---|---|---|" + "---|" * len(freqs) + "---|---|---|"]
-    for name, label, err, half, sines, training, val in rows:
+           "|---|---|---|---|---|" + "---|" * len(freqs) + "---|---|---|"]
+    for name, label, err, single, half, sines, training, val in rows:
         val_text = ", ".join([f"{v:.3f}" for v in val[:3]] + [f"{v * 1e3:.2f}" for v in val[3:]])
-        out.append(f"| {name} | {label} | {err:.2f} | {half:.0f} | "
+        out.append(f"| {name} | {label} | {err:.2f} | {single:.2f} | {half:.0f} | "
                    + " | ".join(f"{a:.4f} / {lag:.1f}" for a, lag in sines)
                    + f" | {training:.4f} | {val_text} | {'yes' if np.all(val <= TABLE_II) else 'no'} |")
     return out

@@ -236,11 +236,24 @@ def test_the_daemon_stage_undoes_a_held_steps_creep_and_restarts_on_a_tare_and_a
     # The compensated one stays within 2 % of its own final value (the packaged calibration's
     # static error on Fx is the same with or without it).
     assert np.abs(out[after, 0] - out[-1, 0]).max() < 0.04
-    # A fault: a chip missing passes through as it is, flagged; the next clean sample starts
-    # afresh (a load long held: the estimate itself), nothing of the flagged one carried.
+    # A fault: a chip missing for a sample is flagged, and nothing of it enters the state: two
+    # pipelines whose flagged samples differ (another chip missing) go on alike.
+    twin = _pipeline()
+    for b in fluxes:
+        twin.step(_results(b))
+    a_flagged = compensated.step(_results(fluxes[-1], missing=3))
+    b_flagged = twin.step(_results(fluxes[-1], missing=5))
+    assert a_flagged.flags & wire.FLAG_DEGRADED and b_flagged.flags & wire.FLAG_DEGRADED
+    assert not np.allclose(a_flagged.wrench, b_flagged.wrench, rtol=0, atol=1e-9)
+    for b in fluxes[-5:]:
+        assert np.array_equal(compensated.step(_results(b)).wrench, twin.step(_results(b)).wrench)
+    # A fault longer than MAX_COAST_S: the state is dropped, the next clean sample starts afresh
+    # (a load long held: the estimate itself, the scale being 1 here).
+    assert compensated.creep is not None and compensated.creep.restarts == 0
+    for _ in range(60):  # 0.6 s at 100 Hz
+        assert compensated.step(_results(fluxes[-1], missing=3)).flags & wire.FLAG_DEGRADED
+    assert compensated.creep.restarts == 1
     y = plain.step(_results(fluxes[-1])).wrench
-    s = compensated.step(_results(fluxes[-1], missing=3))
-    assert s.flags & wire.FLAG_DEGRADED and compensated.creep is not None and compensated.creep.restarts == 1
     assert np.allclose(compensated.step(_results(fluxes[-1])).wrench, y, atol=1e-12)
     # A tare: the history of the old zero is dropped too.
     compensated.tare(fluxes[-1])

@@ -197,3 +197,16 @@ class CreepInverse:
         self.p = carried + self.new * w
         self.last = w
         return w
+
+    def peek(self, y: np.ndarray) -> np.ndarray:
+        """What `apply` would give for ``y``, the state left as it is (a sample kept out of it)."""
+        y = np.asarray(y, dtype=float) / self.scale
+        if self.last is None:
+            return y
+        return (y - (self.a * self.p + self.old * self.last).sum(axis=0)) / self.denominator
+
+    def coast(self) -> None:
+        """One period without a sample: the last load taken as held through it (exact for a
+        held load: the state relaxes towards its equilibrium)."""
+        if self.last is not None:
+            self.p = self.a * self.p + (self.c * (1.0 - self.a)) * self.last

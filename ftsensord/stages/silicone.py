@@ -2,11 +2,13 @@
 from the series the calibration identified (`calibration.creep`), on the estimated wrench
 behind either estimator, before the overload check and the smoothing filter.
 
-Its state spans seconds to minutes of samples, so what enters it must be clean: a sample
+Its state spans seconds to minutes of samples, so nothing flagged may enter it: a sample
 flagged as off the sensor's model (a chip missing, stale, saturated or left out, an invalid
-or fallen-back estimate) passes through as it is, flagged, and the state is dropped; the next
-clean sample starts afresh, taken as a load long held. A tare, an estimator switch and a
-rate change start afresh too (the period is part of the filter).
+or fallen-back estimate) is compensated from the state without changing it, and the state
+coasts through its period on the last clean load, as if held. A fault longer than
+`MAX_COAST_S` drops the state: the next clean sample starts afresh, taken as a load long
+held. A tare, an estimator switch, a rate change and a jump in the cycles start afresh too
+(the zero, the estimate or the period changed).
 """
 
 from __future__ import annotations
@@ -17,6 +19,12 @@ import numpy as np
 
 from ..calibration.creep import SiliconeCalibration
 from ..model.viscoelastic import CreepInverse
+
+#: The longest run of flagged samples the state coasts through (s): a chip's brief dropout
+#: keeps the history (a restart mid-creep costs up to the series' whole fraction of the last
+#: load change, 15 % by default, until it has crept); a fault longer than the fast term's
+#: second is a load history the state no longer knows.
+MAX_COAST_S = 0.5
 
 
 class CreepCompensation:
@@ -32,19 +40,29 @@ class CreepCompensation:
         """A new loop rate: the filter's coefficients for its period, its state dropped."""
         self.rate_hz = rate_hz
         self.inverse = CreepInverse(self.calibration.relaxation, 1.0 / rate_hz, self.calibration.scale)
+        self.max_coast = max(1, round(MAX_COAST_S * rate_hz))
+        self.coasted = 0
 
     def reset(self) -> None:
+        if self.inverse.last is not None:
+            self.restarts += 1
         self.inverse.reset()
-        self.restarts += 1
+        self.coasted = 0
 
     def apply(self, wrench: np.ndarray, clean: bool) -> np.ndarray:
         """The load (N, Nm) behind this sample's estimated ``wrench``; ``clean``: nothing
         flagged that puts the sample off the sensor's model (the caller's flags decide)."""
-        if not clean or not np.all(np.isfinite(wrench)):
-            if self.inverse.last is not None:
-                self.reset()
-            return wrench
-        return self.inverse.apply(wrench)
+        finite = bool(np.all(np.isfinite(wrench)))
+        if clean and finite:
+            self.coasted = 0
+            return self.inverse.apply(wrench)
+        out = self.inverse.peek(wrench) if finite else wrench
+        self.coasted += 1
+        if self.coasted > self.max_coast:
+            self.reset()
+        else:
+            self.inverse.coast()
+        return out
 
     def status(self) -> dict[str, Any]:
         return {"relaxation": self.calibration.relaxation.pairs(), "scale": round(self.calibration.scale, 5),
