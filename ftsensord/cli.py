@@ -351,9 +351,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "at least 6 for the fit to use them, 12 or more advised)")
     p.add_argument("--check-poses", type=int, default=24, help="poses with 1, 2 and 4 kg at the flange's centre, "
                    "on which the model is judged at large loads (default: 24; 0: none)")
-    p.add_argument("--hold-s", type=float, default=0.0,
-                   help="hold each of the step-and-hold segment's two poses this long (s), to identify the "
-                        "silicone's relaxation; 60 or more for minutes-long creep (default: 0, no segment)")
+    p.add_argument("--hold-s", type=float, default=0.0, help="s a step-and-hold pose is held (0: none; docs/calibration.md)")
     p.set_defaults(func=cmd_dataset)
 
     p = sub.add_parser("calibrate", help="fit K, A and the zero from a dataset",
