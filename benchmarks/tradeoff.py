@@ -70,6 +70,23 @@ from launch import start_daemon, stop  # noqa: E402
 DOCS = Path(__file__).resolve().parent.parent / "docs"
 ADDRESSES = list(range(0x0C, 0x1C))  # the instant bus's chips: the default scene's
 NAN = float("nan")
+#: What benchmarks/creep.py measured of moving loads on a silicone with a memory (the loops
+#: of this file's rows; its own figures in docs/silicone-figures.md).
+SILICONE = """## Moving loads: the silicone's memory
+
+Every row above holds its load still. A silicone that relaxes (docs/physics.md, "The
+silicone's memory") makes a moving load and a held one read differently:
+`python benchmarks/creep.py` measures it at three of these loops on a part with the default
+series, with and without the compensation (docs/silicone-figures.md, docs/silicone.png;
+summary in docs/accuracy.md). What decides the trade there:
+
+- The compensation, not the rate: without it a 2 N step held 30 s reads 12 % high and a sine
+  3 % low at every loop; with it 1.4-1.5 % and within 0.5 %.
+- A faster loop (OSR 0, DIG_FILT 2 at 140 Hz against OSR 1, DIG_FILT 2 at 100 Hz) wins lag:
+  4.7-4.9 ms against 4.9-5.2 ms on 0.5-5 Hz sines, 5 against 7 ms to half a step; its noise
+  costs the held step's single samples 6.7 % against 5.7 % (0.25 s means alike, 1.4-1.5 %).
+- Averaging wins noise (single samples of the held step 3.2 %) and loses the moving load:
+  4 readings add 15 ms of lag and take 5.9 % off a 5 Hz sine, the window's own response."""
 
 
 @dataclass
@@ -386,6 +403,7 @@ def render(config: Config, chip, rates, rows, cpu, lat, quick, elapsed) -> str:
         out += ["", f"No setting measured reaches 100 Hz with {n_chips} chips on this bus."]
     n_sensors = len(config.sensors)
     per_sensor = (cpu["nonlinear"] - cpu["linear"]) / 2  # the CPU run has the default two sensors
+    out += ["", *SILICONE.splitlines()]  # creep.py's figures: their trade, kept with this file's
     out += ["", "## Cost and latency", "",
             f"- daemon CPU per cycle (the default two sensors of 8 chips: decode, estimate, tip, publish; a bus "
             f"that answers at once): linear {cpu['linear']:.0f} us, nonlinear {cpu['nonlinear']:.0f} us; at 100 Hz "
