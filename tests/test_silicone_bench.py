@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import re
 import subprocess
 import sys
@@ -10,8 +11,9 @@ from .conftest import BENCHMARKS
 
 
 def test_quick_creep_benchmark_identifies_and_compensates():
+    env = {**os.environ, "PYTHONPATH": str(BENCHMARKS.parent)}  # this checkout's package, as the other tests
     out = subprocess.run([sys.executable, str(BENCHMARKS / "creep.py"), "--quick"], capture_output=True,
-                         text=True, timeout=600)
+                         text=True, timeout=600, env=env, cwd=BENCHMARKS.parent)
     assert out.returncode == 0, out.stderr
     text = out.stdout
     for heading in ("## Identification", "## Moving loads", "## Cost"):

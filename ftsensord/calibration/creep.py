@@ -2,17 +2,19 @@
 
 The robot holds one pose, turns to another and holds it (`rig.record_hold`), every chip read
 throughout. The static calibration's wrench y(t) = K A (b(t) - zero) then follows the known
-load w(t) through the creep of `model.viscoelastic`, times a scale s (K was fitted on readings
-averaged while the silicone still crept, so it reads a held load s times over):
+load w(t) through the creep of `model.viscoelastic`, times a scale s_d per axis (K was fitted
+on readings averaged while the silicone still crept, so it reads a held load s times over;
+and each axis has its own static error):
 
-    y_d(t) = s g_inf w_d(t) + sum_k s c_k F_k[w_d](t) + sum_k q_kd exp(-(t - t0)/rho_k) + o_d
+    y_d(t) = s_d g_inf (w_d(t) + sum_k r_k F_k[w_d](t)) + sum_k q_kd exp(-(t - t0)/rho_k) + o_d
 
-with F_k the response of 1/(1 + s rho_k) to the piecewise-constant load from rest, q_kd what
-the poses before the segment left in each term, o_d each axis's offset. For given times rho_k
-it is linear in everything else (variable projection): the times are searched on a grid in
-log time, refined by zooming in, the rest solved by least squares. The same series acts on
-every axis, so the axes the segment loads share s, g_inf and c_k. The creep's (c_k, rho_k)
-are turned back into the relaxation's (`Relaxation.from_creep`).
+with r_k = c_k / g_inf, F_k the response of 1/(1 + s rho_k) to the piecewise-constant load
+from rest, q_kd what the poses before the segment left in each term, o_d each axis's offset.
+For given times rho_k it is linear in the rest, axis by axis (variable projection): the times
+are searched on a grid in log time, refined by zooming in. The same series acts on every axis:
+r_k is each axis's ratio, averaged with the weight of what the axis resolves, and s the same
+average of the s_d. The creep's (c_k, rho_k) are turned back into the relaxation's
+(`Relaxation.from_creep`).
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ MIN_STEP_TO_NOISE = 20.0
 #: The search's grid points per decade of time, and its zoom rounds (each halves the span):
 #: 6 a decade puts a point within 20 % of any time, three rounds within 3 %.
 POINTS_PER_DECADE, ZOOM_ROUNDS = 6, 3
-#: The shortest time searched, as a multiple of the readings' mean interval (a faster term is
+#: The shortest time searched, as a multiple of the readings' median interval (a faster term is
 #: seen by a handful of readings, and the noise makes one of the instantaneous part), and the
 #: longest as a share of the hold (a slower one has not shown).
 SHORTEST_INTERVALS, LONGEST_HOLD_SHARE = 10.0, 1.0
@@ -102,6 +104,9 @@ def identify(hold: Hold, wrench_of: Callable[[np.ndarray], np.ndarray],
     step = float(np.mean(change[axes] / noise[axes]))
     low = SHORTEST_INTERVALS * interval
     high = LONGEST_HOLD_SHARE * float(np.min(np.diff(np.append(starts, t[-1]))))
+    if high < 10 * low:  # under a decade between the fastest term seen and the hold: no creep to fit
+        return None, (f"the step-and-hold segment's holds ({high:.3g} s) are under ten times "
+                      f"{SHORTEST_INTERVALS:g} reading intervals ({low:.3g} s): hold each pose longer")
     snr = change[axes] / noise[axes]
     weight = snr ** 2 / np.sum(snr ** 2)  # the better an axis resolves its step, the more it says
     for n in range(terms, 0, -1):
@@ -126,7 +131,7 @@ def identify(hold: Hold, wrench_of: Callable[[np.ndarray], np.ndarray],
 def _search(t: np.ndarray, starts: np.ndarray, jumps: np.ndarray, w: np.ndarray, y: np.ndarray, n: int,
             low: float, high: float) -> tuple[np.ndarray, np.ndarray, float]:
     """The ``n`` times (s, ascending) within [low, high] that fit best, the linear
-    parameters there and the RMS residual (share of range): a grid, then zoomed in."""
+    parameters there and the RMS residual (in each axis's noise): a grid, then zoomed in."""
     logs = np.linspace(np.log10(low), np.log10(high), max(2, round(POINTS_PER_DECADE * np.log10(high / low))))
     best: tuple[float, tuple[float, ...]] = (np.inf, ())
     candidates = list(itertools.combinations(logs, n))

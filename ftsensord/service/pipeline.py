@@ -271,8 +271,8 @@ _NOT_LEARNT = (wire.FLAG_CHIP_MISSING | wire.FLAG_SATURATED | wire.FLAG_STALE | 
                | wire.FLAG_INVALID | wire.FLAG_EXTRAPOLATED)
 
 
-#: Flags of a sample kept out of the silicone stage's history (it passes through, the state
-#: dropped): a chip not read, stale or left out, no estimate, a fallback to the other estimator.
+#: Flags of a sample kept out of the silicone stage's history (compensated from it without
+#: entering it): a chip not read, stale or left out, no estimate, a fallback to the other estimator.
 _BREAKS_MEMORY = (wire.FLAG_CHIP_MISSING | wire.FLAG_SATURATED | wire.FLAG_STALE | wire.FLAG_DEGRADED
                   | wire.FLAG_INVALID | wire.FLAG_FALLBACK | wire.FLAG_INCONSISTENT)
 

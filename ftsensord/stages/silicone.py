@@ -28,8 +28,8 @@ MAX_COAST_S = 0.5
 
 
 class CreepCompensation:
-    """One sensor's inverse at ``rate_hz``; ``restarts`` counts the times it started afresh
-    (tares, rate changes and flagged samples)."""
+    """One sensor's inverse at ``rate_hz``; ``restarts`` counts the times its state was
+    dropped (tares, estimator switches, jumps in the cycles, faults longer than `MAX_COAST_S`)."""
 
     def __init__(self, calibration: SiliconeCalibration, rate_hz: float):
         self.calibration = calibration
