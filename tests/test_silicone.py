@@ -296,3 +296,22 @@ def test_the_hold_and_the_series_survive_their_files(tmp_path):
     doc["hold"]["load_times_s"][0] = doc["hold"]["times_s"][0] + 1e-3  # a reading before any load
     (tmp_path / "bad.json").write_text(json.dumps(doc))
     assert_names_file_and_key(Dataset.load, tmp_path / "bad.json", "times_s", "readings from the first load's time on")
+
+
+def test_a_calibration_without_a_hold_says_so_and_the_daemon_runs_as_before():
+    from ftsensord.calibration.procedure import calibrate
+    from ftsensord.calibration.rig import record_dataset
+    from ftsensord.service.filters import WrenchFilter
+    from ftsensord.service.pipeline import SensorPipeline
+    from ftsensord.service.sensorconf import SensorConfig
+    from ftsensord.sim import VirtualClock, simulated_bus, two_sensor_scene
+    from ftsensord.sim.loads import paper_plan
+    scene = two_sensor_scene()
+    bus = simulated_bus(scene, clock=VirtualClock(), seed=3)
+    ds = record_dataset(bus, ADDRESSES, paper_plan("six-axis", n_fit=60, n_validation=10),
+                        lambda w: scene.set_load(0, StaticLoad(w)), samples=4, serial="sim-1")
+    cal, _ = calibrate(ds, nonlinear=False)
+    assert cal.silicone is None and "no step-and-hold segment" in cal.report["silicone"]
+    config = SensorConfig("sensor1", ADDRESSES, __import__("pathlib").Path("cal.json"), cal, "sensor")
+    pipeline = SensorPipeline.build(config, WrenchFilter(), 2, thermal=False)
+    assert pipeline.creep is None and pipeline.status()["silicone"] is None
