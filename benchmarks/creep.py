@@ -116,6 +116,7 @@ class Setting:
     dig_filt: int
     rate_hz: float
     averaging: int = 1
+    estimator: str = "linear"
 
 
 def run(config: Config, cal: Calibration, sc: PhysicalScene, load, seconds: float, setting: Setting,
@@ -125,7 +126,8 @@ def run(config: Config, cal: Calibration, sc: PhysicalScene, load, seconds: floa
     sc.set_load(0, load)
     bus = simulated_bus(sc, clock=VirtualClock(), bus_hz=config.bus_hz, seed=11)
     settings = replace(config.settings, osr=setting.osr, dig_filt=setting.dig_filt)
-    sensors = [replace(s, calibration=cal) if i == 0 else s for i, s in enumerate(config.sensors)]
+    sensors = [replace(s, calibration=cal, estimator=setting.estimator) if i == 0 else s
+               for i, s in enumerate(config.sensors)]
     cfg = replace(config, settings=settings, averaging=setting.averaging, rate_hz=setting.rate_hz,
                   temperature_every=0, readback_every=0, tool_poses={}, sensors=sensors)
     out = Capture()
@@ -232,12 +234,16 @@ def main() -> int:
         n = dict(poses=40, validation_poses=12, samples=20, hold_s=20.0) if quick else \
             dict(poses=193, validation_poses=60, samples=100, hold_s=60.0)
         dataset = simulate_dataset(scene(True, tmp), "sensor1", "six-axis", seed=1, sweeps=False, **n)
-        cal, result = calibrate(dataset, nonlinear=False, allow_poor_fit=True)
+        # The nonlinear fit warns that the part departs from its model (the creep's flux): kept, as
+        # a user would with allow_poor_fit, to measure the stage behind that estimator too.
+        cal, result = calibrate(dataset, nonlinear=not quick, allow_poor_fit=True)
         lines = report_header(quick, n, cal, result)
         settings = [Setting("default (burst, 100 Hz)", config.settings.osr, config.settings.dig_filt, 100.0)]
         if not quick:
             settings += [Setting("faster (OSR 0, DIG_FILT 2, 140 Hz)", 0, 2, 140.0),
-                         Setting("default, averaging 4", config.settings.osr, config.settings.dig_filt, 100.0, 4)]
+                         Setting("default, averaging 4", config.settings.osr, config.settings.dig_filt, 100.0, 4),
+                         Setting("default, nonlinear estimator", config.settings.osr, config.settings.dig_filt, 100.0,
+                                 1, "nonlinear")]
         rows = []
         traces: dict = {}
         hold = 8.0 if quick else 32.0
@@ -318,7 +324,8 @@ def report_header(quick: bool, n: dict, cal: Calibration, result) -> list[str]:
              f"sensor1 with `[sensor.silicone]` (the default series {list(map(list, DEFAULT_RELAXATION))}), "
              f"calibrated by the simulated procedure ({n['poses']} poses and {n['validation_poses']} validation "
              f"poses of {n['samples']} readings, the robot's 1 s dwell; the step-and-hold segment "
-             f"{n['hold_s']:.0f} s a pose), linear estimator.", "", "## Identification", ""]
+             f"{n['hold_s']:.0f} s a pose); the linear estimator, and the nonlinear one where a row says so "
+             "(the series identified on the linear one's wrench serves both).", "", "## Identification", ""]
     if found is None:
         lines.append(f"Not identified: {cal.report['silicone']}")
         return lines
