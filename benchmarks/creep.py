@@ -34,6 +34,7 @@ import math
 import os
 import platform
 import sys
+import tempfile
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -42,13 +43,12 @@ import numpy as np
 
 from ftsensord.calibration.calfile import Calibration
 from ftsensord.calibration.procedure import calibrate, simulate_dataset
-from ftsensord.chip import mlx90393 as mlx
 from ftsensord.model.viscoelastic import CreepInverse, Relaxation
 from ftsensord.service import wire
 from ftsensord.service.config import Config, builtin_path, load_config
 from ftsensord.service.daemon import Daemon
 from ftsensord.sim import PhysicalScene, VirtualClock, load_scene, simulated_bus
-from ftsensord.sim.loads import StaticLoad, StepLoad
+from ftsensord.sim.loads import StepLoad
 from ftsensord.sim.scene import default_scene_path
 from ftsensord.sim.silicone import DEFAULT_RELAXATION
 
@@ -208,7 +208,6 @@ def cost(quick: bool) -> dict[str, float]:
     stage_us = (time.perf_counter() - t0) / n * 1e6
     out = {"stage_us": stage_us}
     for memory in (False, True):
-        import tempfile
         with tempfile.TemporaryDirectory() as tmp:
             sc = scene(memory, Path(tmp))
         sc.set_load(0, Sine(np.array([2.0, 0, 0, 0, 0, 0]), 1.0, 0.0))
@@ -226,7 +225,6 @@ def main() -> int:
     parser.add_argument("--out", type=Path, default=DOCS)
     args = parser.parse_args()
     quick = args.quick
-    import tempfile
     t_start = time.monotonic()
     config = load_config(builtin_path("sim.toml"))
     with tempfile.TemporaryDirectory() as tmp_name:
