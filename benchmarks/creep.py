@@ -51,6 +51,7 @@ from ftsensord.sim import PhysicalScene, VirtualClock, load_scene, simulated_bus
 from ftsensord.sim.loads import StepLoad
 from ftsensord.sim.scene import default_scene_path
 from ftsensord.sim.silicone import DEFAULT_RELAXATION
+from ftsensord.stages.silicone import CreepCompensation
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from tradeoff import Capture  # noqa: E402  (a sibling script: the publisher stand-in)
@@ -134,7 +135,7 @@ def run(config: Config, cal: Calibration, sc: PhysicalScene, load, seconds: floa
     daemon = Daemon(cfg, bus, out, None, clock=bus.monotonic)  # type: ignore[arg-type]
     daemon.start()
     if not compensate:
-        daemon.sensors[0].creep = None
+        daemon.sensors[0].creep = CreepCompensation(None, setting.rate_hz)  # the daemon as without it
     period = 1.0 / setting.rate_hz
     t, w, truth = [], [], []
     deadline = bus.monotonic()

@@ -225,8 +225,9 @@ def test_the_daemon_stage_undoes_a_held_steps_creep_and_restarts_on_a_tare_and_a
     scene.set_load("sensor1", StepLoad(1.0, np.zeros(6), w))
     times = np.arange(0.0, 6.0, 0.01)
     fluxes = _fluxes(scene, times)
+    from ftsensord.stages.silicone import CreepCompensation
     plain = _pipeline()
-    plain.creep = None
+    plain.creep = CreepCompensation(None, 100.0)  # the daemon as without the stage
     compensated = _pipeline()
     raw = np.array([plain.step(_results(b)).wrench for b in fluxes])
     out = np.array([compensated.step(_results(b)).wrench for b in fluxes])
@@ -249,7 +250,7 @@ def test_the_daemon_stage_undoes_a_held_steps_creep_and_restarts_on_a_tare_and_a
         assert np.array_equal(compensated.step(_results(b)).wrench, twin.step(_results(b)).wrench)
     # A fault longer than MAX_COAST_S: the state is dropped, the next clean sample starts afresh
     # (a load long held: the estimate itself, the scale being 1 here).
-    assert compensated.creep is not None and compensated.creep.restarts == 0
+    assert compensated.creep.restarts == 0
     for _ in range(60):  # 0.6 s at 100 Hz
         assert compensated.step(_results(fluxes[-1], missing=3)).flags & wire.FLAG_DEGRADED
     assert compensated.creep.restarts == 1
@@ -314,4 +315,6 @@ def test_a_calibration_without_a_hold_says_so_and_the_daemon_runs_as_before():
     assert cal.silicone is None and "no step-and-hold segment" in cal.report["silicone"]
     config = SensorConfig("sensor1", ADDRESSES, __import__("pathlib").Path("cal.json"), cal, "sensor")
     pipeline = SensorPipeline.build(config, WrenchFilter(), 2, thermal=False)
-    assert pipeline.creep is None and pipeline.status()["silicone"] is None
+    assert pipeline.creep.inverse is None and pipeline.status()["silicone"] is None
+    w = np.array([1.0, 2, 3, 0.1, 0.2, 0.3])
+    assert pipeline.creep.apply(w, True) is w  # passed through as it is

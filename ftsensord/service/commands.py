@@ -58,8 +58,7 @@ class Commands:
         self.config.averaging, self.config.lowpass_hz = averaging, lowpass_hz
         for s in self.sensors:
             s.filter.configure(averaging, lowpass_hz, rate_hz)
-            if s.creep is not None:
-                s.creep.configure(rate_hz)  # its coefficients are the period's: it starts afresh
+            s.creep.configure(rate_hz)  # the silicone stage's coefficients are the period's: afresh
         if self.gravity is not None:
             self.gravity.configure(averaging, lowpass_hz, rate_hz)  # the weight lags as the wrench
         return {"rate_hz": rate_hz, "averaging": averaging, "lowpass_hz": lowpass_hz}

@@ -182,8 +182,7 @@ class Daemon(Commands):
         if self.timing.jumped(seq):  # a gap in the input (a stall, skipped deadlines): the
             for p in self.sensors:  # filters' memory says nothing of the load now; restart
                 p.filter.reset()
-                if p.creep is not None:  # its period is no longer the samples'
-                    p.creep.reset()
+                p.creep.reset()  # the silicone stage's period is no longer the samples'
             if self.gravity is not None:
                 self.gravity.restart()
         self.orientations.drain(start)

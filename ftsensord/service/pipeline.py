@@ -78,15 +78,14 @@ class SensorPipeline:
     estimate_s: deque[float] = field(default_factory=lambda: deque(maxlen=STATS_WINDOW))
     thermal: ThermalCompensation | None = None  # None: temperatures not read (temperature_every = 0)
     stray: WorldGradient | None = None  # stray_field = "world": a motor's gradient learnt as the tool turns
-    creep: CreepCompensation | None = None  # the silicone's creep undone, when the calibration identified it
+    creep: CreepCompensation = field(default_factory=lambda: CreepCompensation(None, 100.0))  # the silicone's (`build`)
     _extrapolation: tuple[np.ndarray | None, np.ndarray | None] | None = field(default=None, repr=False)
 
     @classmethod
     def build(cls, s: SensorConfig, smoothing: WrenchFilter, max_missing_chips: int,
               settings: mlx.Settings | None = None, thermal: bool = True, rate_hz: float = 100.0) -> SensorPipeline:
         """``thermal``: the chips' temperatures are read (`Config.temperature_every`), so
-        the temperature stage compensates and flags (`stages.thermal`); ``rate_hz``: the
-        loop's, the silicone stage's period (`stages.silicone`)."""
+        the temperature stage compensates and flags (`stages.thermal`); ``rate_hz``: the loop's."""
         nl = s.calibration.nonlinear
         sigma_t = channel_sigma_t(settings or mlx.Settings(), len(s.addresses))
         if s.model.H is not None:  # no map built in the cycle of a fault
@@ -97,7 +96,7 @@ class SensorPipeline:
                    thermal=ThermalCompensation(ThermalLaws.physical(settings), len(s.addresses),
                                                s.calibration.temperature) if thermal else None,
                    stray=WorldGradient(s.calibration.model, sigma_t) if s.stray_field == "world" else None,
-                   creep=None if s.calibration.silicone is None else CreepCompensation(s.calibration.silicone, rate_hz))
+                   creep=CreepCompensation(s.calibration.silicone, rate_hz))
 
     @property
     def name(self) -> str:
@@ -120,8 +119,7 @@ class SensorPipeline:
                     wrench = wrench * thermal.wrench_scale
                 if thermal.beyond_span:
                     wflags |= wire.FLAG_TEMPERATURE
-        if self.creep is not None:
-            wrench = self.creep.apply(wrench, not wflags & _BREAKS_MEMORY)
+        wrench = self.creep.apply(wrench, not wflags & _BREAKS_MEMORY)  # the silicone's creep undone
         valid = not wflags & wire.FLAG_INVALID
         if valid and (np.abs(wrench) > SENSOR_RANGE).any():
             wflags |= wire.FLAG_OVERLOAD
@@ -237,8 +235,7 @@ class SensorPipeline:
             if e.converged:
                 self.zero_twist = e.xi
         self.filter.reset()
-        if self.creep is not None:
-            self.creep.reset()  # the zero moved: the history it holds is of the old one
+        self.creep.reset()  # the zero moved: the history the silicone stage holds is of the old one
         self.tared = True
         return self.tare_wrench
 
@@ -248,8 +245,7 @@ class SensorPipeline:
             raise ValueError(f"no nonlinear calibration for {self.name}")
         self.estimator = estimator
         self.filter.reset()
-        if self.creep is not None:
-            self.creep.reset()
+        self.creep.reset()
 
     def status(self) -> dict[str, Any]:
         return {
@@ -261,7 +257,7 @@ class SensorPipeline:
             "tare_wrench": self.tare_wrench.round(6).tolist(),
             "temperature": None if self.thermal is None else self.thermal.status(),
             "stray": None if self.stray is None else self.stray.status(),
-            "silicone": None if self.creep is None else self.creep.status(),
+            "silicone": self.creep.status(),
         }
 
 

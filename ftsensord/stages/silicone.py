@@ -29,21 +29,26 @@ MAX_COAST_S = 0.5
 
 class CreepCompensation:
     """One sensor's inverse at ``rate_hz``; ``restarts`` counts the times its state was
-    dropped (tares, estimator switches, jumps in the cycles, faults longer than `MAX_COAST_S`)."""
+    dropped (tares, estimator switches, jumps in the cycles, faults longer than `MAX_COAST_S`).
+    Without a ``calibration`` (none identified) it passes every wrench through as it is."""
 
-    def __init__(self, calibration: SiliconeCalibration, rate_hz: float):
+    def __init__(self, calibration: SiliconeCalibration | None, rate_hz: float):
         self.calibration = calibration
         self.restarts = 0
+        self.inverse: CreepInverse | None = None
         self.configure(rate_hz)
 
     def configure(self, rate_hz: float) -> None:
         """A new loop rate: the filter's coefficients for its period, its state dropped."""
         self.rate_hz = rate_hz
-        self.inverse = CreepInverse(self.calibration.relaxation, 1.0 / rate_hz, self.calibration.scale)
+        if self.calibration is not None:
+            self.inverse = CreepInverse(self.calibration.relaxation, 1.0 / rate_hz, self.calibration.scale)
         self.max_coast = max(1, round(MAX_COAST_S * rate_hz))
         self.coasted = 0
 
     def reset(self) -> None:
+        if self.inverse is None:
+            return
         if self.inverse.last is not None:
             self.restarts += 1
         self.inverse.reset()
@@ -52,6 +57,8 @@ class CreepCompensation:
     def apply(self, wrench: np.ndarray, clean: bool) -> np.ndarray:
         """The load (N, Nm) behind this sample's estimated ``wrench``; ``clean``: nothing
         flagged that puts the sample off the sensor's model (the caller's flags decide)."""
+        if self.inverse is None:  # nothing identified: the daemon as without the stage
+            return wrench
         finite = bool(np.all(np.isfinite(wrench)))
         if clean and finite:
             self.coasted = 0
@@ -64,6 +71,8 @@ class CreepCompensation:
             self.inverse.coast()
         return out
 
-    def status(self) -> dict[str, Any]:
+    def status(self) -> dict[str, Any] | None:
+        if self.calibration is None:
+            return None
         return {"relaxation": self.calibration.relaxation.pairs(), "scale": round(self.calibration.scale, 5),
                 "rate_hz": self.rate_hz, "restarts": self.restarts}
