@@ -271,7 +271,7 @@ def main() -> int:
     parser.add_argument("--rounds", type=int, default=7, help="alternating rounds (default 7)")
     parser.add_argument("--cpu", type=int, default=None, help="pin to this core (default: the last one)")
     parser.add_argument("--pi-factor", type=float, default=5.5,
-                        help="stated slow-down of a Raspberry Pi 4 against this host (an estimate; default 5.5: docs/performance.md, 'Figures for a board')")
+                        help="stated slow-down of a Pi 4 against this host (default 5.5: docs/performance.md)")
     parser.add_argument("--readback-every", type=int, default=None,
                         help="the daemon's register read-back, cycles (default: the configuration's, 1; 0: none)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
