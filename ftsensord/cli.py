@@ -15,6 +15,7 @@ from . import __version__
 from .acquire.bus import ACCEPTED_FORMS, open_bus
 from .acquire.scan import format_table, scan
 from .bridge import add_parser as add_bridge_parser
+from .ros2.bridge import add_parser as add_ros2_parser
 from .errors import ConfigError, DaemonNotAnswering, FtsensordError
 from .service.sensorconf import ESTIMATORS
 from .service.status import describe
@@ -112,7 +113,17 @@ def cmd_run(args: argparse.Namespace) -> int:
     from .service.config import load_config
     from .service.run import run
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
-    return run(load_config(args.config), early=args.early_signals, realtime=args.realtime)
+    config = load_config(args.config)
+    bridge = None
+    if config.ros2 is not None:  # DDS in a process of its own, out of the loop's way (docs/clients.md, ROS 2)
+        from .ros2.bridge import start_bridge
+        bridge = start_bridge(config.path)
+    try:
+        return run(config, early=args.early_signals, realtime=args.realtime)
+    finally:
+        if bridge is not None:
+            bridge.terminate()
+            bridge.wait(timeout=10)
 
 
 def _control(args: argparse.Namespace):
@@ -303,6 +314,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_plot)
 
     add_bridge_parser(sub)
+    add_ros2_parser(sub)
     p = sub.add_parser("scan", help="find MLX90393 chips on a bus and read each once",
                        description="Probe 0x0C-0x1B and print each chip's part variant, "
                                    "configuration registers (as found) and one reading. "

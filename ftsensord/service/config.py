@@ -25,6 +25,7 @@ from ..errors import ConfigError
 from .endpoints import Security, endpoint, security_table
 from .frames import TIP, GravityConfig, gravity_config, tool_poses
 from .paths import builtin_path, resolve_file, runtime_dir
+from .ros2conf import Ros2Config, parse_ros2
 from .sensorconf import Calibrations, SensorConfig, sensor_tables
 
 CONFIG_VERSION = 1
@@ -59,6 +60,7 @@ class Config:
     max_missing_chips: int = 2
     #: What the file names of ``scheduler`` and ``readback_every``; the daemon chooses the rest (`choose`).
     named: frozenset[str] = frozenset({"scheduler", "readback_every"})
+    ros2: Ros2Config | None = None  # the streams on the ROS 2 graph ([ros2]), off when None
     choice: str = ""  # how ``scheduler`` and ``readback_every`` were decided, for the log and `status`
 
     @property
@@ -118,7 +120,7 @@ def load_config(path: str | Path | None = None, calibrations: Calibrations | Non
     doc = Table(load_toml(path), path)
     doc.only({"version", "bus", "bus_hz", "bus_overhead_us", "rate_hz", "scheduler", "averaging",
               "lowpass_hz", "temperature_every", "stuck_cycles", "readback_every", "max_missing_chips", "publish", "publish_tcp",
-              "control", "chip", "sensor", "tool", "gravity", "security"})
+              "control", "chip", "sensor", "tool", "gravity", "security", "ros2"})
     doc.integer("version", what=str(CONFIG_VERSION), low=CONFIG_VERSION, high=CONFIG_VERSION)
     bus = doc.string("bus")
     try:
@@ -175,6 +177,7 @@ def load_config(path: str | Path | None = None, calibrations: Calibrations | Non
     world = [s.table for s in sensors if s.stray_field == "world" and s.table is not None]
     if world and (config.gravity is None or config.gravity.source != "stream"):
         raise world[0].fail("stray_field", '"uniform" or "gradient" ("world" needs [gravity] orientation = "stream")', "world")
+    config.ros2 = parse_ros2(doc, path)
     config.choose(where=f"{path}: rate_hz")
     return config
 

@@ -1,0 +1,179 @@
+"""`ftsensord ros2`: the daemon's wrench streams on the ROS 2 graph (`node`), fed by ZeroMQ.
+
+The bridge asks the daemon's status for its wrench streams and their frames (waiting for a
+daemon still starting), subscribes to them, and writes each sample to DDS as it arrives: the
+main thread does nothing else. A second thread waits on DDS's inputs (orientations, tare
+requests) and, once a second, turns the daemon's status into ``/diagnostics``. An
+orientation from ROS goes to the daemon's orientation socket as any client's would
+(`client.OrientationPublisher`); a tare to its control socket (`client.ControlClient`).
+`ftsensord run` starts this process when the configuration has a ``[ros2]`` table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from ..errors import ConfigError, FtsensordError
+
+log = logging.getLogger("ftsensord.ros2")
+
+#: Diagnostics period (s): REP 107 and diagnostic_updater publish at about 1 Hz.
+DIAGNOSTICS_S = 1.0
+#: Samples a tare from ROS averages (the Trigger request carries none): 1 s at 100 Hz, as `ftsensord tare`.
+TARE_SAMPLES = 100
+
+
+def wait_for_status(control: Any, stop: threading.Event, timeout_s: float) -> dict[str, Any]:
+    """The daemon's status, asked until it answers (a daemon starting with us) or ``timeout_s``."""
+    end = time.monotonic() + timeout_s
+    while True:
+        try:
+            status = control.status()
+            if status.get("streams"):
+                return status
+        except FtsensordError as exc:
+            if time.monotonic() > end or stop.is_set():
+                raise ConfigError(f"no daemon answered on {control.endpoint}: {exc}") from exc
+        if time.monotonic() > end or stop.is_set():
+            raise ConfigError(f"the daemon on {control.endpoint} publishes no stream yet")
+        time.sleep(0.2)
+
+
+class Bridge:
+    """The streams of the daemon on ``endpoint`` / ``control`` on DDS domain ``domain_id``."""
+
+    def __init__(self, namespace: str, domain_id: int, endpoint: str, control: str, orientation: str | None,
+                 timeout_s: float = 30.0):
+        from ..client import ControlClient, OrientationPublisher
+        from ..recording.ros2mcap import frames_from_status
+        from .node import Ros2Node
+
+        self.stop = threading.Event()
+        self.control = ControlClient(control, timeout_s=3.0)
+        status = wait_for_status(self.control, self.stop, timeout_s)
+        self.streams = [s for s in status["streams"] if s.startswith("wrench/")]
+        frames = frames_from_status(status, self.streams)
+        oriented = sorted({*status.get("sensors", {}), *(["tip"] if "wrench/tip" in self.streams else [])})
+        self.orientation = OrientationPublisher(orientation) if orientation else None
+        self.endpoint, self.namespace = endpoint, namespace
+        self.node = Ros2Node(namespace, domain_id, frames, oriented if orientation else [])
+        self.flags: dict[str, int] = {}  # each sensor's latest wrench's flags, for the diagnostics
+
+    def on_orientation(self, frame: str, q_xyzw: list[float], t: float) -> None:
+        if self.orientation is not None:
+            try:
+                self.orientation.send(frame, q_xyzw=q_xyzw, t_sender=t)
+            except FtsensordError as exc:
+                log.warning("orientation of %s from ROS refused: %s", frame, exc)
+
+    def on_tare(self) -> tuple[bool, str]:
+        from ..client import ControlClient
+
+        try:  # a client of its own: this runs in a thread of its own
+            result = ControlClient(self.control.endpoint, timeout_s=3.0).tare(samples=TARE_SAMPLES)
+        except FtsensordError as exc:
+            return False, f"tare refused: {exc}"
+        return True, "tared " + ", ".join(
+            f"{n} on {result['samples']} samples (removed " + " ".join(f"{v:+.4g}" for v in w) + " N, Nm)"
+            for n, w in result["tare_wrench"].items())
+
+    def inputs(self) -> None:
+        """The second thread: DDS inputs as they come, diagnostics once a second."""
+        from . import diagnostics
+
+        due = time.monotonic()
+        while not self.stop.is_set():
+            self.node.serve(max(0.0, due - time.monotonic()), self.on_orientation, self.on_tare)
+            if time.monotonic() >= due:
+                due += DIAGNOSTICS_S
+                try:
+                    status, why = self.control.status(), ""
+                except FtsensordError as exc:
+                    status, why = None, str(exc)
+                self.node.publish_diagnostics(diagnostics.statuses(status, self.flags, self.namespace, why),
+                                              time.time())
+
+    def run(self, seconds: float | None = None) -> int:
+        """Forward samples until `stop` (or ``seconds``); the number forwarded."""
+        from ..client import Subscriber
+
+        thread = threading.Thread(target=self.inputs, daemon=True)
+        thread.start()
+        end = None if seconds is None else time.monotonic() + seconds
+        forwarded = 0
+        with Subscriber(self.endpoint, self.streams) as sub:
+            while not self.stop.is_set() and (end is None or time.monotonic() < end):
+                sample = sub.receive(timeout_s=0.2)
+                if sample is None:
+                    continue
+                self.node.publish(sample)
+                self.flags[sample.topic.split("/")[1]] = sample.flags
+                forwarded += 1
+        self.stop.set()
+        thread.join(timeout=5)
+        return forwarded
+
+
+def cmd_ros2(args: argparse.Namespace) -> int:
+    from ..client import default_endpoint
+    from ..service.config import load_config
+    from ..service.ros2conf import Ros2Config, default_domain_id
+
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+    if args.config:
+        config = load_config(args.config)
+        ros2 = config.ros2 or Ros2Config(domain_id=default_domain_id())
+        endpoint, control, orientation = config.publish[0], config.control, config.orientation_endpoint
+    else:
+        ros2 = Ros2Config(domain_id=default_domain_id())
+        endpoint, control = default_endpoint("wrench"), default_endpoint("control")
+        orientation = args.orientation
+    namespace = (args.namespace or ros2.namespace).strip("/")
+    domain_id = ros2.domain_id if args.domain_id is None else args.domain_id
+    try:
+        import cyclonedds  # noqa: F401
+    except ImportError as exc:
+        raise ConfigError("ftsensord ros2 needs Eclipse Cyclone DDS's Python binding: "
+                          "pip install 'ftsensord[ros2]'") from exc
+    bridge = Bridge(namespace, domain_id, args.endpoint or endpoint, args.control or control,
+                    args.orientation or orientation, timeout_s=args.timeout)
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(signum, lambda *_: bridge.stop.set())
+    print(f"ftsensord: ROS 2 bridge on DDS domain {domain_id}: "
+          + ", ".join(f"/{namespace}/{s}" for s in bridge.streams) + f", /diagnostics, /{namespace}/tare",
+          flush=True)
+    forwarded = bridge.run(args.seconds)
+    print(f"ftsensord ros2: {forwarded} samples forwarded, {bridge.node.write_errors} writes failed, "
+          f"inputs {bridge.node.received}", file=sys.stderr)
+    return 0
+
+
+def start_bridge(config_path: Path) -> subprocess.Popen:
+    """`ftsensord ros2 --config CONFIG` as a child of `ftsensord run` (which stops it at exit)."""
+    return subprocess.Popen([sys.executable, "-m", "ftsensord", "ros2", "--config", str(config_path)])
+
+
+def add_parser(sub: Any) -> None:
+    """The ``ros2`` command (cli.py's parser calls this)."""
+    p = sub.add_parser("ros2", help="put the wrench streams on the ROS 2 graph (DDS, no ROS install needed)",
+                       description="The daemon's wrench streams as geometry_msgs/msg/WrenchStamped topics, "
+                                   "/diagnostics, a tare service and orientation inputs, over Eclipse Cyclone "
+                                   "DDS (the ros2 extra). docs/clients.md, ROS 2.")
+    p.add_argument("--config", help="the daemon's configuration: its endpoints and [ros2] table")
+    p.add_argument("--namespace", help="topic namespace (default: [ros2] namespace, else ftsensord)")
+    p.add_argument("--domain-id", type=int, help="DDS domain (default: [ros2] domain_id, else $ROS_DOMAIN_ID, else 0)")
+    p.add_argument("--endpoint", help="publish endpoint (default: the configuration's, else the running daemon's)")
+    p.add_argument("--control", help="control endpoint (default: the configuration's, else the running daemon's)")
+    p.add_argument("--orientation", help="the daemon's orientation endpoint (default: the configuration's; "
+                                         "none: orientations from ROS are not read)")
+    p.add_argument("--seconds", type=float, help="stop after this long (default: until SIGTERM or Ctrl-C)")
+    p.add_argument("--timeout", type=float, default=30.0, help="how long to wait for the daemon at start (s)")
+    p.set_defaults(func=cmd_ros2)

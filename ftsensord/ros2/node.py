@@ -1,0 +1,181 @@
+"""The DDS participant that is ftsensord's ROS 2 node: its writers, readers and the tare service.
+
+Topics (ROS names; the DDS topic is ``rt`` + the name):
+
+- ``/<ns>/wrench/<stream>`` (``wrench/sensor1``, ``wrench/tip``, ``wrench/tip/compensated``...):
+  ``geometry_msgs/msg/WrenchStamped``, N and Nm, stamp the sample's ``t_wall``, frame_id its frame;
+  ``/<ns>/wrench/<stream>/status``: ``ftsensord_msgs/msg/SampleStatus`` (seq, flags, missed);
+- ``/diagnostics``: ``diagnostic_msgs/msg/DiagnosticArray``, about 1 Hz;
+- in: ``/<ns>/orientation/<frame>`` (``geometry_msgs/msg/QuaternionStamped``) and ``/<ns>/imu/<frame>``
+  (``sensor_msgs/msg/Imu``, its orientation), R_world,frame for gravity compensation;
+- in: ``/<ns>/tare`` (``std_msgs/msg/Empty``: any rmw), and the service ``/<ns>/tare``
+  (``std_srvs/srv/Trigger``, as rmw_cyclonedds carries services: `msgs`).
+
+QoS of every writer: reliable, volatile, keep last 10 (ROS's default publisher profile),
+so a default subscriber (reliable) and a ``SensorDataQoS`` one (best effort) both match;
+USER_DATA ``typehash=RIHS01_...;`` (REP 2011); plain CDR (XCDR1), as the rmws read it.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable
+from typing import Any
+
+from cyclonedds.core import DDSException, InstanceState, Policy, Qos, ReadCondition, SampleState, ViewState, WaitSet
+from cyclonedds.domain import DomainParticipant
+from cyclonedds.pub import DataWriter
+from cyclonedds.sub import DataReader
+from cyclonedds.topic import Topic
+
+from ..service import wire
+from . import msgs
+from .diagnostics import Status
+
+log = logging.getLogger("ftsensord.ros2")
+
+#: ROS 2's default publisher depth ("keep last 10"): what `ros2 topic echo` and rclcpp assume.
+DEPTH = 10
+#: How long a tare reply waits for the client's reply reader to be matched (rmw_cyclonedds's own
+#: rmw_send_response waits 100 ms; a tare takes a second, so this is rarely spent).
+REPLY_MATCH_S = 1.0
+
+
+def _stamp(t_wall: float) -> msgs.Time:
+    sec, nanosec = divmod(round(t_wall * 1e9), 1_000_000_000)
+    return msgs.Time(sec, nanosec)
+
+
+def writer_qos(cls: type, extra: str = "") -> Qos:
+    """Reliable, volatile, keep last 10, XCDR1; USER_DATA ``<extra>typehash=RIHS01_...;``."""
+    return Qos(Policy.Reliability.Reliable(0), Policy.Durability.Volatile, Policy.History.KeepLast(DEPTH),
+               Policy.DataRepresentation(use_cdrv0_representation=True),
+               Policy.Userdata(f"{extra}typehash={msgs.type_hash(cls)};".encode()))
+
+
+def reader_qos(cls: type, reliable: bool, extra: str = "") -> Qos:
+    """A reader's QoS: best effort matches every writer; reliable (a command) only reliable ones."""
+    reliability = Policy.Reliability.Reliable(0) if reliable else Policy.Reliability.BestEffort
+    return Qos(reliability, Policy.Durability.Volatile, Policy.History.KeepLast(DEPTH if reliable else 1),
+               Policy.DataRepresentation(use_cdrv0_representation=True),
+               Policy.Userdata(f"{extra}typehash={msgs.type_hash(cls)};".encode()))
+
+
+class Ros2Node:
+    """ftsensord on a DDS domain: `publish` a sample, `publish_diagnostics`; `serve` (a thread)
+    reads the inputs and calls ``on_orientation(frame, q_xyzw, t)`` and ``on_tare() -> (ok, text)``."""
+
+    def __init__(self, namespace: str, domain_id: int, frames: dict[str, str], orientation_frames: list[str]):
+        self.namespace, self.frames = namespace, frames
+        self.participant = DomainParticipant(domain_id)
+        self.writers: dict[str, tuple[DataWriter, DataWriter]] = {}
+        self.last_seq: dict[str, int] = {}
+        self.write_errors = 0
+        for stream in frames:
+            self._writers(stream)
+        self.diagnostics = self._writer("rt/diagnostics", msgs.DiagnosticArray)
+        ns = f"/{namespace}"
+        self.inputs: list[tuple[DataReader, str, str]] = []  # reader, kind, frame
+        for frame in orientation_frames:
+            self.inputs.append((self._reader(f"rt{ns}/orientation/{frame}", msgs.QuaternionStamped), "quat", frame))
+            self.inputs.append((self._reader(f"rt{ns}/imu/{frame}", msgs.Imu), "imu", frame))
+        self.inputs.append((self._reader(f"rt{ns}/tare", msgs.Empty, reliable=True), "tare", ""))
+        # rmw_cyclonedds pairs a service's reader and writer by this id (check_for_service_reader_writer).
+        serviceid = "serviceid=" + ".".join(f"{b:x}" for b in self.participant.guid.bytes) + ";"
+        self.requests = DataReader(self.participant, Topic(self.participant, f"rq{ns}/tareRequest",
+                                                           msgs.TriggerRequestWire),
+                                   reader_qos(msgs.TriggerRequest, True, serviceid))
+        self.replies = DataWriter(self.participant, Topic(self.participant, f"rr{ns}/tareReply",
+                                                          msgs.TriggerResponseWire),
+                                  writer_qos(msgs.TriggerResponse, serviceid))
+        self.inputs.append((self.requests, "service", ""))
+        self.waitset = WaitSet(self.participant)
+        for reader, _, _ in self.inputs:
+            self.waitset.attach(ReadCondition(reader, SampleState.Any | ViewState.Any | InstanceState.Any))
+        self.received: dict[str, int] = {"orientation": 0, "imu_without_orientation": 0, "tare": 0}
+
+    def _writer(self, topic: str, cls: type) -> DataWriter:
+        return DataWriter(self.participant, Topic(self.participant, topic, cls), writer_qos(cls))
+
+    def _reader(self, topic: str, cls: type, reliable: bool = False) -> DataReader:
+        return DataReader(self.participant, Topic(self.participant, topic, cls), reader_qos(cls, reliable))
+
+    def _writers(self, stream: str) -> tuple[DataWriter, DataWriter]:
+        if stream not in self.writers:
+            topic = f"rt/{self.namespace}/{stream}"
+            self.writers[stream] = (self._writer(topic, msgs.WrenchStamped),
+                                    self._writer(topic + "/status", msgs.SampleStatus))
+        return self.writers[stream]
+
+    def publish(self, sample: wire.Sample) -> None:
+        """A wrench sample as its WrenchStamped and SampleStatus (a flux sample is not published)."""
+        if sample.kind != wire.KIND_WRENCH:
+            return
+        wrench, status = self._writers(sample.topic)
+        last = self.last_seq.get(sample.topic)
+        self.last_seq[sample.topic] = sample.seq
+        missed = sample.seq - last - 1 if last is not None and sample.seq > last + 1 else 0
+        header = msgs.Header(_stamp(sample.t_wall), self.frames.get(sample.topic, sample.topic))
+        v = [float(x) for x in sample.values]
+        try:
+            wrench.write(msgs.WrenchStamped(header, msgs.Wrench(msgs.Vector3(*v[:3]), msgs.Vector3(*v[3:6]))))
+            status.write(msgs.SampleStatus(header, sample.seq, sample.flags, min(missed, 2**32 - 1)))
+        except DDSException:
+            self.write_errors += 1  # counted, said at exit: the next sample is the newer one anyway
+
+    def publish_diagnostics(self, statuses: list[Status], t_wall: float) -> None:
+        self.diagnostics.write(msgs.DiagnosticArray(msgs.Header(_stamp(t_wall), ""), [
+            msgs.DiagnosticStatus(level, name, message, hardware_id, [msgs.KeyValue(k, v) for k, v in values])
+            for level, name, message, hardware_id, values in statuses]))
+
+    def serve(self, timeout_s: float, on_orientation: Callable[[str, list[float], float], None],
+              on_tare: Callable[[], tuple[bool, str]]) -> None:
+        """Wait for input up to ``timeout_s`` and handle what came: orientations at once,
+        each tare in a thread of its own (it takes the tare's samples to answer)."""
+        self.waitset.wait(int(timeout_s * 1e9))
+        for reader, kind, frame in self.inputs:
+            for msg in reader.take(N=64):
+                if not msg.sample_info.valid_data:
+                    continue  # a writer gone (unregistered, disposed): no message
+                try:
+                    self._handle(reader, kind, frame, msg, on_orientation, on_tare)
+                except (DDSException, ValueError, TypeError) as exc:
+                    log.warning("%s input on %s dropped: %s", kind, reader.topic.name, exc)
+
+    def _handle(self, reader: DataReader, kind: str, frame: str, msg: Any,
+                on_orientation: Callable[[str, list[float], float], None],
+                on_tare: Callable[[], tuple[bool, str]]) -> None:
+        if kind in ("quat", "imu"):
+            q = msg.quaternion if kind == "quat" else msg.orientation
+            # sensor_msgs/Imu: orientation_covariance[0] = -1 says the IMU gives no orientation.
+            if kind == "imu" and msg.orientation_covariance[0] == -1:
+                self.received["imu_without_orientation"] += 1
+                return
+            self.received["orientation"] += 1
+            on_orientation(frame, [q.x, q.y, q.z, q.w], msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
+        elif kind == "tare":
+            self.received["tare"] += 1
+            threading.Thread(target=on_tare, daemon=True).start()
+        else:
+            self.received["tare"] += 1
+            clientid = self._clientid(reader.get_matched_publication_data(msg.sample_info.publication_handle))
+            threading.Thread(target=self._answer, args=(msg.guid, msg.seq, clientid, on_tare), daemon=True).start()
+
+    @staticmethod
+    def _clientid(endpoint: Any) -> str | None:
+        """The ``clientid=`` of an rmw_cyclonedds endpoint's USER_DATA (None: none given)."""
+        data = endpoint.qos[Policy.Userdata].data.decode(errors="replace") if endpoint is not None else ""
+        found = [part.split("=", 1)[1] for part in data.split(";") if part.startswith("clientid=")]
+        return found[0] if found else None
+
+    def _answer(self, guid: int, seq: int, clientid: str | None, on_tare: Callable[[], tuple[bool, str]]) -> None:
+        ok, text = on_tare()
+        if clientid is not None:
+            import time
+            end = time.monotonic() + REPLY_MATCH_S
+            while time.monotonic() < end and not any(
+                    self._clientid(self.replies.get_matched_subscription_data(h)) == clientid
+                    for h in self.replies.get_matched_subscriptions()):
+                time.sleep(0.01)
+        self.replies.write(msgs.TriggerResponseWire(guid, seq, ok, text))

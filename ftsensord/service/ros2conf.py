@@ -1,0 +1,58 @@
+"""The configuration's ``[ros2]`` table: the streams on the ROS 2 graph (`ftsensord.ros2`).
+
+    [ros2]
+    namespace = "ftsensord"   # topics /<namespace>/wrench/<stream>, service /<namespace>/tare
+    domain_id = 0             # default: $ROS_DOMAIN_ID, else 0 (ROS's default)
+
+Only parsed here: the bridge (`ftsensord ros2`, started by `ftsensord run`) is a process
+of its own. A ``[ros2]`` table without the ``ros2`` extra installed is refused at load,
+naming the extra, so the daemon never starts believing it is on the graph.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..docfile import Table
+from ..errors import ConfigError
+
+#: A ROS 2 name's tokens (design.ros2.org, Topic and Service names): a letter or underscore
+#: first, then letters, digits, underscores; no empty token, no "__".
+_TOKEN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+#: DDS's RTPS port mapping leaves 0-232 for domain ids (ROS 2 docs, "The ROS_DOMAIN_ID").
+MAX_DOMAIN_ID = 232
+
+
+@dataclass(frozen=True)
+class Ros2Config:
+    namespace: str = "ftsensord"  # without slashes at either end
+    domain_id: int = 0
+
+
+def default_domain_id(environ: dict[str, str] | None = None) -> int:
+    """ROS_DOMAIN_ID when set to a number in 0-232, else 0 (what ROS 2 nodes default to)."""
+    text = (os.environ if environ is None else environ).get("ROS_DOMAIN_ID", "").strip()
+    return int(text) if text.isdigit() and int(text) <= MAX_DOMAIN_ID else 0
+
+
+def parse_ros2(doc: Table, path: Path) -> Ros2Config | None:
+    """``[ros2]`` of ``doc`` (the file ``path``), None when absent; ConfigError naming the
+    file and key for a bad value, or naming the extra when cyclonedds is not installed."""
+    if "ros2" not in doc.doc:
+        return None
+    t = doc.table("ros2")
+    t.only({"namespace", "domain_id"})
+    namespace = t.string("namespace", "ftsensord").strip("/")
+    if not all(_TOKEN.fullmatch(token) and "__" not in token for token in namespace.split("/")):
+        raise t.fail("namespace", "a ROS 2 name: tokens of letters, digits and underscores separated by /, "
+                                  "none starting with a digit", namespace)
+    domain_id = t.integer("domain_id", default_domain_id(), low=0, high=MAX_DOMAIN_ID,
+                          what=f"a DDS domain id, 0 to {MAX_DOMAIN_ID}")
+    if importlib.util.find_spec("cyclonedds") is None:
+        raise ConfigError(f"{path}: ros2: the ROS 2 bridge needs Eclipse Cyclone DDS's Python binding: "
+                          "pip install 'ftsensord[ros2]' (or remove the [ros2] table)")
+    return Ros2Config(namespace, domain_id)

@@ -1,0 +1,188 @@
+"""The streams on the ROS 2 graph: `ftsensord run` with a ``[ros2]`` table starts the bridge,
+and a separate process (tests/ros2_peer.py: Cyclone DDS with types written from ROS 2's
+message files, nothing imported from ftsensord) reads and writes as a ROS 2 node would.
+
+Isolation: every test module uses its own DDS domain (from the pid) and a CYCLONEDDS_URI
+that keeps discovery on the loopback interface, multicast off, the peers found by unicast
+on 127.0.0.1: parallel runs on one host do not see each other, nothing leaves the host.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("cyclonedds")  # the ros2 extra, which the test extra includes
+
+from ftsensord.client import ControlClient, Subscriber  # noqa: E402
+from ftsensord.service.config import load_config  # noqa: E402
+
+from .conftest import assert_names_file_and_key, start_daemon  # noqa: E402
+from .test_daemon import write_config  # noqa: E402
+
+PEER = Path(__file__).with_name("ros2_peer.py")
+DOMAIN = 100 + os.getpid() % 100  # 100-199: clear of ROS's default 0 and of other runs' domains
+NS = "fts_test"
+URI = ("<CycloneDDS><Domain Id='any'><General><Interfaces><NetworkInterface address='127.0.0.1'/></Interfaces>"
+       "<AllowMulticast>false</AllowMulticast></General><Discovery><ParticipantIndex>auto</ParticipantIndex>"
+       "<MaxAutoParticipantIndex>30</MaxAutoParticipantIndex><Peers><Peer address='127.0.0.1'/></Peers>"
+       "</Discovery></Domain></CycloneDDS>")
+ENV = {**os.environ, "CYCLONEDDS_URI": URI}
+STREAMS = ["wrench/sensor1", "wrench/tip"]
+GRAVITY = """
+[gravity]
+orientation = "stream"
+stale_after_s = 0.5
+[gravity.sensor1]
+mass_kg = 0.05
+com_m = [0.0, 0.0, 0.01]
+[gravity.tip]
+mass_kg = 0.05
+com_m = [0.0, 0.0, 0.01]
+"""
+RAW = {"WrenchStamped": "geometry_msgs/msg/WrenchStamped", "DiagnosticArray": "diagnostic_msgs/msg/DiagnosticArray"}
+
+
+def rosbags_hash(name: str) -> str:
+    """The RIHS01 hash of a ROS 2 Jazzy message by rosbags' own implementation (from .msg files)."""
+    from rosbags.typesys import Stores, get_typestore
+    return get_typestore(Stores.ROS2_JAZZY).hash_rihs01(name)
+
+
+def peer(*steps: dict, timeout_s: float = 60) -> list[dict]:
+    """Run the ROS 2 peer with ``steps``; its JSON lines."""
+    done = subprocess.run([sys.executable, str(PEER), str(DOMAIN), json.dumps(list(steps))], env=ENV,
+                          capture_output=True, text=True, timeout=timeout_s)
+    assert done.returncode == 0, done.stderr
+    return [json.loads(line) for line in done.stdout.splitlines()]
+
+
+class Reference(threading.Thread):
+    """Every sample of the streams, by (topic, stamp in ns), as the ZeroMQ client receives them."""
+
+    def __init__(self, endpoint: str):
+        super().__init__(daemon=True)
+        self.endpoint, self.samples, self.stop = endpoint, {}, threading.Event()
+
+    def run(self) -> None:
+        with Subscriber(self.endpoint, STREAMS) as sub:
+            while not self.stop.is_set():
+                s = sub.receive(timeout_s=0.05)
+                if s is not None:
+                    self.samples[(s.topic, round(s.t_wall * 1e9))] = s
+
+
+@pytest.fixture(scope="module")
+def daemon(tmp_path_factory) -> Iterator[tuple[Path, Reference]]:
+    folder = tmp_path_factory.mktemp("ros2")
+    config = write_config(folder, extra=f'[ros2]\nnamespace = "{NS}"\ndomain_id = {DOMAIN}\n' + GRAVITY)
+    proc, notify = start_daemon(config, folder, env={"CYCLONEDDS_URI": URI}, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL)
+    ref = Reference(f"ipc://{folder / 'ftsensord' / 'wrench'}")
+    ref.start()
+    try:
+        yield folder / "ftsensord", ref
+    finally:
+        ref.stop.set()
+        proc.terminate()
+        proc.wait(timeout=20)
+        notify.close()
+
+
+def test_the_type_hashes_are_those_an_independent_implementation_computes():
+    from ftsensord.ros2 import msgs
+    for cls in (msgs.WrenchStamped, msgs.DiagnosticArray, msgs.QuaternionStamped, msgs.Imu, msgs.Empty):
+        name = cls.__idl_typename__.replace("::dds_::", "::").rstrip("_").replace("::", "/")
+        assert msgs.type_hash(cls) == rosbags_hash(name), name
+
+
+@pytest.mark.parametrize("reliable", [True, False], ids=["default-qos", "sensor-data-qos"])
+def test_a_ros2_subscriber_reads_every_wrench_as_the_zeromq_stream_has_it(daemon, reliable):
+    folder, ref = daemon
+    frames = ControlClient(f"ipc://{folder / 'control'}").status()["frames"]
+    topics = {f"rt/{NS}/{s}": "WrenchStamped" for s in STREAMS}
+    lines = peer({"do": "read", "topics": topics, "count": 30, "reliable": reliable})
+    time.sleep(0.1)  # the reference's last samples in
+    for line in lines:
+        stream = line["topic"].removeprefix(f"rt/{NS}/")
+        assert line["writer"] == {"type_name": "geometry_msgs::msg::dds_::WrenchStamped_",
+                                  "user_data": f"typehash={rosbags_hash(RAW['WrenchStamped'])};"}
+        assert len(line["messages"]) == 30, line["topic"]
+        for m in line["messages"]:
+            stamp = m["header"]["stamp"]
+            sample = ref.samples[(stream, stamp["sec"] * 10**9 + stamp["nanosec"])]
+            assert m["header"]["frame_id"] == frames[stream]
+            w = m["wrench"]
+            # float64 from end to end: exactly equal
+            np.testing.assert_array_equal([w[p][a] for p in ("force", "torque") for a in "xyz"], sample.values)
+
+
+def test_diagnostics_name_the_daemon_each_sensor_and_each_chip(daemon):
+    (line,) = peer({"do": "read", "topics": {"rt/diagnostics": "DiagnosticArray"}, "count": 1, "reliable": True})
+    assert line["writer"]["type_name"] == "diagnostic_msgs::msg::dds_::DiagnosticArray_"
+    assert line["writer"]["user_data"] == f"typehash={rosbags_hash(RAW['DiagnosticArray'])};"
+    status = {s["name"]: s for s in line["messages"][0]["status"]}
+    chips = [n for n in status if " chip 0x" in n]
+    assert {f"{NS}: daemon", f"{NS}: sensor1", f"{NS}: sensor2"} <= set(status) and len(chips) == 16
+    assert all(s["level"] == 0 for n, s in status.items() if n in chips)  # the simulated chips are all well
+    values = {v["key"]: v["value"] for v in status[f"{NS}: sensor1"]["values"]}
+    assert values["serial"] == "sim-sensor1" and values["chips_ok"] == "8 of 8"
+    assert status[f"{NS}: sensor1 chip 0x0C"]["hardware_id"] == "MLX90393 0x0C"
+
+
+def test_an_orientation_from_ros_reaches_the_gravity_compensation(daemon):
+    folder, _ = daemon
+    s45 = float(np.sqrt(0.5))
+    out = peer({"do": "publish", "topic": f"rt/{NS}/orientation/tip", "type": "QuaternionStamped", "times": 10,
+                "period_s": 0.02, "message": {"stamp": [123, 456_000_000], "q_xyzw": [s45, 0.0, 0.0, s45]}},
+               {"do": "publish", "topic": f"rt/{NS}/imu/sensor1", "type": "Imu", "times": 5, "period_s": 0.02,
+                "message": {"stamp": [77, 0], "q_xyzw": [0.0, 0.0, 0.0, 1.0], "covariance0": -1.0}})
+    assert all(o["matched"] for o in out)
+    gravity = ControlClient(f"ipc://{folder / 'control'}").status()["gravity"]
+    assert gravity["stream"]["frames"]["tip"]["t_sender"] == pytest.approx(123.456)
+    # 90 deg about x: the world's gravity [0, 0, -g] is along -y in the tip frame
+    np.testing.assert_allclose(gravity["frames"]["tip"]["gravity_now_mps2"], [0.0, -9.80665, 0.0], atol=1e-5)
+    assert "sensor1" not in gravity["stream"]["frames"]  # an Imu whose covariance[0] is -1 has no orientation
+
+
+def test_the_trigger_service_and_the_tare_topic_tare_the_sensors(daemon):
+    folder, _ = daemon
+    control = ControlClient(f"ipc://{folder / 'control'}")
+    control.untare()
+    # Under gravity compensation a tare needs orientations throughout: refused without, and said
+    (reply,) = peer({"do": "trigger", "name": f"/{NS}/tare"})
+    assert reply["available"] and reply["guid"] == reply["sent_guid"] and reply["seq"] == 7
+    assert not reply["success"] and "orientation" in reply["message"], reply
+    assert not any(s["tared"] for s in control.status()["sensors"].values())
+    orient = [f"rt/{NS}/orientation/{f}" for f in ("sensor1", "sensor2", "tip")]
+    (reply,) = peer({"do": "trigger", "name": f"/{NS}/tare", "orient": orient})
+    assert reply["success"] and "tared sensor1" in reply["message"], reply
+    assert all(s["tared"] for s in control.status()["sensors"].values())
+    control.untare()
+    assert not any(s["tared"] for s in control.status()["sensors"].values())
+    (out,) = peer({"do": "trigger-topic", "topic": f"rt/{NS}/tare", "orient": orient})
+    assert out["matched"]
+    assert all(s["tared"] for s in control.status()["sensors"].values())
+
+
+def test_a_ros2_table_is_checked_and_names_the_extra_when_it_is_missing(tmp_path, monkeypatch):
+    path = write_config(tmp_path, extra='[ros2]\nnamespace = "9lives"\n')
+    assert_names_file_and_key(load_config, path, "ros2.namespace", "a ROS 2 name")
+    path = write_config(tmp_path, extra='[ros2]\ndomain_id = 300\n')
+    assert_names_file_and_key(load_config, path, "ros2.domain_id", "0 to 232")
+    monkeypatch.setenv("ROS_DOMAIN_ID", "42")
+    assert load_config(write_config(tmp_path, extra="[ros2]\n")).ros2.domain_id == 42
+    import importlib.util
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "cyclonedds" else real(name, *a))
+    with pytest.raises(Exception, match=r"ftsensord\.toml: ros2: .*pip install 'ftsensord\[ros2\]'"):
+        load_config(write_config(tmp_path, extra="[ros2]\n"))
