@@ -186,3 +186,21 @@ def test_a_ros2_table_is_checked_and_names_the_extra_when_it_is_missing(tmp_path
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "cyclonedds" else real(name, *a))
     with pytest.raises(Exception, match=r"ftsensord\.toml: ros2: .*pip install 'ftsensord\[ros2\]'"):
         load_config(write_config(tmp_path, extra="[ros2]\n"))
+
+
+def test_a_failing_chip_or_a_flagged_wrench_raises_the_level_ros_tools_show():
+    from ftsensord.ros2 import diagnostics as d
+    from ftsensord.service import wire
+    chips = {"0x0C": {"sensor": "s1", "state": "ok", "last_error": None},
+             "0x0D": {"sensor": "s1", "state": "failing", "last_error": "NACK"}}
+    status = {"rate_hz": 100.0, "achieved_rate_hz": 99.9, "bus": "sim", "chips": chips,
+              "sensors": {"s1": {"serial": "x", "temperature": {"beyond_span": False}}}}
+    levels = {name: level for level, name, *_ in d.statuses(status, {"s1": 0}, "ns")}
+    assert levels == {"ns: daemon": d.OK, "ns: s1": d.ERROR, "ns: s1 chip 0x0C": d.OK, "ns: s1 chip 0x0D": d.ERROR}
+    chips["0x0D"]["state"] = "ok"
+    for flags, level in ((0, d.OK), (wire.FLAG_LATE, d.OK), (wire.FLAG_DEGRADED, d.WARN), (wire.FLAG_INVALID, d.ERROR)):
+        (sensor,) = [s for s in d.statuses(status, {"s1": flags}, "ns") if s[1] == "ns: s1"]
+        assert sensor[0] == level, (flags, sensor)
+    status["achieved_rate_hz"] = 90.0  # below 95 % of the rate
+    assert d.statuses(status, {}, "ns")[0][0] == d.WARN
+    assert d.statuses(None, {}, "ns", "timed out") == [(d.STALE, "ns: daemon", "no answer from the daemon: timed out", "", [])]
