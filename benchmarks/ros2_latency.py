@@ -7,7 +7,8 @@ effort and reliable alternately, each its own process, as separate ROS 2 nodes w
 read ``wrench/sensor1`` for ``--seconds``. A receipt's delay is the subscriber's wall clock
 at receipt minus the sample's stamp (``t_wall``, the header.stamp on DDS): one host, one
 clock. The daemon's CPU (its own process; the bridge is another) per cycle and its missed
-cycles come from /proc and its status. DDS stays on the loopback interface (CYCLONEDDS_URI).
+cycles, its start jitter and its publish time (p99 of the last 1000 cycles) come from /proc
+and its status. DDS stays on the loopback interface (CYCLONEDDS_URI).
 
     python benchmarks/ros2_latency.py --seconds 30 [--dds 2]
 """
@@ -101,7 +102,8 @@ def run(seconds: float, dds: int, ros2: bool) -> dict:
             stop(proc, notify)
     cycles = s1["cycles"] - s0["cycles"]
     return {"results": results, "cpu_us_per_cycle": (cpu1 - cpu0) / cycles * 1e6, "cycles": cycles,
-            "missed": s1["missed_cycles"] - s0["missed_cycles"], "rate": s1["achieved_rate_hz"]}
+            "missed": s1["missed_cycles"] - s0["missed_cycles"], "rate": s1["achieved_rate_hz"],
+            "jitter_p99": s1["jitter_us"]["p99"], "publish_p99": s1["publish_us"]["p99"]}
 
 
 def in_loop_cost(streams: int = 5, cycles: int = 2000) -> float:
@@ -137,7 +139,8 @@ def main() -> int:
             r = run(args.seconds, args.dds, ros2)
             cpu[ros2].append(r["cpu_us_per_cycle"])
             print(f"{'with' if ros2 else 'without'} [ros2]: daemon CPU {r['cpu_us_per_cycle']:.0f} us a cycle over "
-                  f"{r['cycles']} cycles, missed {r['missed']}, achieved {r['rate']:.2f} Hz; load "
+                  f"{r['cycles']} cycles, missed {r['missed']}, achieved {r['rate']:.2f} Hz; last 1000 cycles' "
+                  f"start jitter p99 {r['jitter_p99']:.0f} us, publish p99 {r['publish_p99']:.0f} us; load "
                   f"{os.getloadavg()[0]:.2f}")
             for name, d in r["results"].items():
                 d = np.array(d) * 1e6

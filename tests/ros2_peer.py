@@ -121,7 +121,15 @@ class TriggerResponse(IdlStruct, typename="std_srvs::srv::dds_::Trigger_Response
     message: str = ""
 
 
-TYPES = {"WrenchStamped": WrenchStamped, "DiagnosticArray": DiagnosticArray, "QuaternionStamped": QuaternionStamped,
+@dataclass
+class SampleStatus(IdlStruct, typename="ftsensord_msgs::msg::dds_::SampleStatus_"):
+    header: Header  # ftsensord_msgs/msg/SampleStatus (docs/clients.md, Recording): Header header,
+    seq: uint64  # uint64 seq, uint32 flags, uint32 missed
+    flags: uint32
+    missed: uint32
+
+
+TYPES = {"WrenchStamped": WrenchStamped, "SampleStatus": SampleStatus, "DiagnosticArray": DiagnosticArray, "QuaternionStamped": QuaternionStamped,
          "Imu": Imu, "Empty": Empty}
 
 

@@ -113,13 +113,19 @@ class Bridge:
         with Subscriber(self.endpoint, self.streams) as sub:
             while not self.stop.is_set() and (end is None or time.monotonic() < end):
                 sample = sub.receive(timeout_s=0.2)
-                if sample is None:
-                    continue
-                self.node.publish(sample)
-                name = sample.topic.partition("/")[2]
-                if "/" not in name:  # a sensor's own stream (or the tip's), not a compensated one
-                    self.flags[name] = sample.flags
-                forwarded += 1
+                # A cycle's streams come together: their wrenches first, as each arrives, then
+                # their statuses, so no wrench waits behind another stream's status.
+                cycle = []
+                while sample is not None:
+                    if self.node.publish_wrench(sample):
+                        cycle.append(sample)
+                    sample = sub.receive(timeout_s=0)
+                for sample in cycle:
+                    self.node.publish_status(sample)
+                    name = sample.topic.partition("/")[2]
+                    if "/" not in name:  # a sensor's own stream (or the tip's), not a compensated one
+                        self.flags[name] = sample.flags
+                forwarded += len(cycle)
         self.stop.set()
         thread.join(timeout=5)
         return forwarded

@@ -110,17 +110,31 @@ class Ros2Node:
 
     def publish(self, sample: wire.Sample) -> None:
         """A wrench sample as its WrenchStamped and SampleStatus (a flux sample is not published)."""
+        if self.publish_wrench(sample):
+            self.publish_status(sample)
+
+    def publish_wrench(self, sample: wire.Sample) -> bool:
+        """A wrench sample's WrenchStamped; False for a flux sample (not published)."""
         if sample.kind != wire.KIND_WRENCH:
-            return
-        wrench, status = self._writers(sample.topic)
+            return False
+        v = [float(x) for x in sample.values]
+        header = msgs.Header(_stamp(sample.t_wall), self.frames.get(sample.topic, sample.topic))
+        self._write(self._writers(sample.topic)[0],
+                    msgs.WrenchStamped(header, msgs.Wrench(msgs.Vector3(*v[:3]), msgs.Vector3(*v[3:6]))))
+        return True
+
+    def publish_status(self, sample: wire.Sample) -> None:
+        """A wrench sample's SampleStatus: seq, flags, seqs missed since the stream's previous."""
         last = self.last_seq.get(sample.topic)
         self.last_seq[sample.topic] = sample.seq
         missed = sample.seq - last - 1 if last is not None and sample.seq > last + 1 else 0
         header = msgs.Header(_stamp(sample.t_wall), self.frames.get(sample.topic, sample.topic))
-        v = [float(x) for x in sample.values]
+        self._write(self._writers(sample.topic)[1], msgs.SampleStatus(header, sample.seq, sample.flags,
+                                                                      min(missed, 2**32 - 1)))
+
+    def _write(self, writer: DataWriter, message: Any) -> None:
         try:
-            wrench.write(msgs.WrenchStamped(header, msgs.Wrench(msgs.Vector3(*v[:3]), msgs.Vector3(*v[3:6]))))
-            status.write(msgs.SampleStatus(header, sample.seq, sample.flags, min(missed, 2**32 - 1)))
+            writer.write(message)
         except DDSException:
             self.write_errors += 1  # counted, said at exit: the next sample is the newer one anyway
 
