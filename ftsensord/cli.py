@@ -113,17 +113,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from .service.config import load_config
     from .service.run import run
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
-    config = load_config(args.config)
-    bridge = None
-    if config.ros2 is not None:  # DDS in a process of its own, out of the loop's way (docs/clients.md, ROS 2)
-        from .ros2.bridge import start_bridge
-        bridge = start_bridge(config.path)
-    try:
-        return run(config, early=args.early_signals, realtime=args.realtime)
-    finally:
-        if bridge is not None:
-            bridge.terminate()
-            bridge.wait(timeout=10)
+    return run(load_config(args.config), early=args.early_signals, realtime=args.realtime)
 
 
 def _control(args: argparse.Namespace):
@@ -136,10 +126,7 @@ def _control(args: argparse.Namespace):
 
 def cmd_status(args: argparse.Namespace) -> int:
     status = _control(args).status()
-    if args.json:
-        print(json.dumps(status, indent=2))
-        return 0
-    print(describe(status))
+    print(json.dumps(status, indent=2) if args.json else describe(status))
     return 0
 
 

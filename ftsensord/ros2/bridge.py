@@ -13,13 +13,10 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import signal
-import subprocess
 import sys
 import threading
 import time
-from pathlib import Path
 from typing import Any
 
 from ..errors import ConfigError, FtsensordError
@@ -163,23 +160,6 @@ def cmd_ros2(args: argparse.Namespace) -> int:
     print(f"ftsensord ros2: {forwarded} samples forwarded, {bridge.node.write_errors} writes failed, "
           f"inputs {bridge.node.received}", file=sys.stderr)
     return 0
-
-
-def _ordinary_scheduling() -> None:
-    """In the child before exec: the default policy, not the real-time one the unit gives the
-    daemon (CPUSchedulingPolicy=fifo, inherited): DDS must never compete with the loop."""
-    try:
-        if os.sched_getscheduler(0) != os.SCHED_OTHER:
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-    except OSError:
-        pass  # not lowered: the bridge then runs at the daemon's priority, and says nothing here
-
-
-def start_bridge(config_path: Path) -> subprocess.Popen:
-    """`ftsensord ros2 --config CONFIG` as a child of `ftsensord run` (which stops it at exit),
-    at the default scheduling policy. Called before the daemon starts a thread (preexec_fn)."""
-    return subprocess.Popen([sys.executable, "-m", "ftsensord", "ros2", "--config", str(config_path)],
-                            preexec_fn=_ordinary_scheduling)
 
 
 def add_parser(sub: Any) -> None:

@@ -4,16 +4,20 @@
     namespace = "ftsensord"   # topics /<namespace>/wrench/<stream>, service /<namespace>/tare
     domain_id = 0             # default: $ROS_DOMAIN_ID, else 0 (ROS's default)
 
-Only parsed here: the bridge (`ftsensord ros2`, started by `ftsensord run`) is a process
-of its own. A ``[ros2]`` table without the ``ros2`` extra installed is refused at load,
+Parsed here, and `ros2_beside` starts the bridge (`ftsensord ros2`) for `ftsensord run`
+as a process of its own, by its command line: nothing of the bridge is imported here. A ``[ros2]`` table without the ``ros2`` extra installed is refused at load,
 naming the extra, so the daemon never starts believing it is on the graph.
 """
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import os
 import re
+import subprocess
+import sys
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -56,3 +60,30 @@ def parse_ros2(doc: Table, path: Path) -> Ros2Config | None:
         raise ConfigError(f"{path}: ros2: the ROS 2 bridge needs Eclipse Cyclone DDS's Python binding: "
                           "pip install 'ftsensord[ros2]' (or remove the [ros2] table)")
     return Ros2Config(namespace, domain_id)
+
+
+def _ordinary_scheduling() -> None:
+    """In the child before exec: the default policy, not the real-time one the daemon has
+    (the unit's CPUSchedulingPolicy=fifo, or --realtime): DDS must never compete with the loop."""
+    try:
+        if os.sched_getscheduler(0) != os.SCHED_OTHER:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    except OSError:
+        pass  # not lowered: the bridge then runs at the daemon's policy; nothing else changes
+
+
+@contextlib.contextmanager
+def ros2_beside(ros2: Ros2Config | None, config_path: Path) -> Iterator[subprocess.Popen | None]:
+    """With a ``[ros2]`` table, ``ftsensord ros2 --config CONFIG`` as a child of the daemon at
+    the default scheduling policy, stopped (SIGTERM) when the block ends; else nothing. Entered
+    before the daemon has a thread (preexec_fn runs between fork and exec)."""
+    if ros2 is None:
+        yield None
+        return
+    child = subprocess.Popen([sys.executable, "-m", "ftsensord", "ros2", "--config", str(config_path)],
+                             preexec_fn=_ordinary_scheduling)
+    try:
+        yield child
+    finally:
+        child.terminate()
+        child.wait(timeout=10)

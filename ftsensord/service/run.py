@@ -29,6 +29,7 @@ from .daemon import Daemon
 from .host import HostGuard
 from .orientation import open_receiver
 from .realtime import Scheduling, request_fifo
+from .ros2conf import ros2_beside
 from .runtime import RuntimeFiles
 from .sdnotify import Notifier
 
@@ -222,7 +223,8 @@ def run(config: Config, early: Iterable[int] = (), realtime: int = 0) -> int:
             bus = open_configured_bus(config)
         except (OSError, FtsensordError) as exc:
             raise ConfigError(f"{config.path}: bus: cannot open {config.bus!r}: {exc}") from exc
-        return _serve(config, bus, notifier, files, signals, scheduling)
+        with ros2_beside(config.ros2, config.path):  # [ros2]: DDS in a process of its own, out of the loop's way
+            return _serve(config, bus, notifier, files, signals, scheduling)
     finally:
         for fd in locks:
             os.close(fd)
