@@ -211,17 +211,17 @@ def call_trigger(dp, step: dict) -> None:
     if step.get("orient"):  # orientations kept coming during the call, as a tare under gravity compensation needs
         threading.Thread(target=orient, args=(dp, step["orient"], keep), daemon=True).start()
     guid = writer.get_instance_handle() & (2**64 - 1)  # rmw_send_request: header.guid = the writer's instance handle
-    writer.write(TriggerRequest(guid, 7))
+    seqs = list(range(7, 7 + step.get("requests", 1)))  # back to back, as several callers would
+    for seq in seqs:
+        writer.write(TriggerRequest(guid, seq))
+    replies = []
     end = time.monotonic() + step.get("timeout_s", 20.0)
-    while time.monotonic() < end:
-        for r in reader.take(N=10):
-            if r.guid == guid:  # rmw_take_response: only replies to this client
-                print(json.dumps({"service": step["name"], "available": available, **asdict(r), "sent_guid": guid}),
-                      flush=True)
-                keep.set()
-                return
+    while time.monotonic() < end and len(replies) < len(seqs):
+        replies += [r for r in reader.take(N=10) if r.guid == guid]  # rmw_take_response: only this client's
         time.sleep(0.01)
-    print(json.dumps({"service": step["name"], "available": available, "reply": None}), flush=True)
+    keep.set()
+    for r in sorted(replies, key=lambda r: r.seq):
+        print(json.dumps({"service": step["name"], "available": available, **asdict(r), "sent_guid": guid}), flush=True)
 
 
 def tare_topic(dp, step: dict) -> None:

@@ -176,8 +176,10 @@ def test_the_trigger_service_and_the_tare_topic_tare_the_sensors(daemon):
     assert not reply["success"] and "orientation" in reply["message"], reply
     assert not any(s["tared"] for s in control.status()["sensors"].values())
     orient = [f"rt/{NS}/orientation/{f}" for f in ("sensor1", "sensor2", "tip")]
-    (reply,) = peer({"do": "trigger", "name": f"/{NS}/tare", "orient": orient})
+    reply, second = peer({"do": "trigger", "name": f"/{NS}/tare", "orient": orient, "requests": 2})
     assert reply["success"] and "tared sensor1" in reply["message"], reply
+    # one tare at a time: the second request, sent while the first runs, is answered at once
+    assert second["seq"] == 8 and not second["success"] and "under way" in second["message"], second
     assert all(s["tared"] for s in control.status()["sensors"].values())
     control.untare()
     assert not any(s["tared"] for s in control.status()["sensors"].values())

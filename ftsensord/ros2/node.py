@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -29,6 +30,7 @@ from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 
+from ..recording.ros2mcap import stamp
 from ..service import wire
 from . import msgs
 from .diagnostics import Status
@@ -43,8 +45,7 @@ REPLY_MATCH_S = 1.0
 
 
 def _stamp(t_wall: float) -> msgs.Time:
-    sec, nanosec = divmod(round(t_wall * 1e9), 1_000_000_000)
-    return msgs.Time(sec, nanosec)
+    return msgs.Time(*stamp(t_wall))  # as in MCAP recordings
 
 
 def writer_qos(cls: type, extra: str = "") -> Qos:
@@ -94,6 +95,7 @@ class Ros2Node:
         for reader, _, _ in self.inputs:
             self.waitset.attach(ReadCondition(reader, SampleState.Any | ViewState.Any | InstanceState.Any))
         self.received: dict[str, int] = {"orientation": 0, "imu_without_orientation": 0, "tare": 0}
+        self.taring = threading.Lock()
 
     def _writer(self, topic: str, cls: type) -> DataWriter:
         return DataWriter(self.participant, Topic(self.participant, topic, cls), writer_qos(cls))
@@ -168,25 +170,38 @@ class Ros2Node:
                 return
             self.received["orientation"] += 1
             on_orientation(frame, [q.x, q.y, q.z, q.w], msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
-        elif kind == "tare":
-            self.received["tare"] += 1
-            threading.Thread(target=on_tare, daemon=True).start()
         else:
             self.received["tare"] += 1
-            clientid = self._clientid(reader.get_matched_publication_data(msg.sample_info.publication_handle))
-            threading.Thread(target=self._answer, args=(msg.guid, msg.seq, clientid, on_tare), daemon=True).start()
+            clientid = None if kind == "tare" else self._clientid(
+                reader.get_matched_publication_data(msg.sample_info.publication_handle))
+            reply = None if kind == "tare" else (msg.guid, msg.seq, clientid)
+            # One tare at a time (the daemon refuses a second anyway): a flood of requests
+            # is answered at once, never a thread each.
+            if not self.taring.acquire(blocking=False):
+                if reply is not None:
+                    self._reply(*reply, False, "a tare from ROS is under way: try again when it is done")
+                return
+            threading.Thread(target=self._tare, args=(reply, on_tare), daemon=True).start()
 
     @staticmethod
     def _clientid(endpoint: Any) -> str | None:
         """The ``clientid=`` of an rmw_cyclonedds endpoint's USER_DATA (None: none given)."""
-        data = endpoint.qos[Policy.Userdata].data.decode(errors="replace") if endpoint is not None else ""
+        qos = endpoint.qos if endpoint is not None else {}
+        data = qos[Policy.Userdata].data.decode(errors="replace") if Policy.Userdata in qos else ""
         found = [part.split("=", 1)[1] for part in data.split(";") if part.startswith("clientid=")]
         return found[0] if found else None
 
-    def _answer(self, guid: int, seq: int, clientid: str | None, on_tare: Callable[[], tuple[bool, str]]) -> None:
-        ok, text = on_tare()
+    def _tare(self, reply: tuple[int, int, str | None] | None, on_tare: Callable[[], tuple[bool, str]]) -> None:
+        try:
+            ok, text = on_tare()
+        finally:
+            self.taring.release()
+        if reply is not None:
+            self._reply(*reply, ok, text)
+
+    def _reply(self, guid: int, seq: int, clientid: str | None, ok: bool, text: str) -> None:
+        """The service's response, once the client's reply reader is matched (as rmw_send_response)."""
         if clientid is not None:
-            import time
             end = time.monotonic() + REPLY_MATCH_S
             while time.monotonic() < end and not any(
                     self._clientid(self.replies.get_matched_subscription_data(h)) == clientid
