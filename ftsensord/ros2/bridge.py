@@ -2,8 +2,9 @@
 
 The bridge asks the daemon's status for its wrench streams and their frames (waiting for a
 daemon still starting), subscribes to them, and writes each sample to DDS as it arrives: the
-main thread does nothing else. A second thread waits on DDS's inputs (orientations, tare
-requests) and, once a second, turns the daemon's status into ``/diagnostics``. An
+main thread does nothing else but, once a second between two cycles, turn the daemon's
+status into ``/diagnostics``. A second thread waits on DDS's inputs (orientations, tare
+requests). An
 orientation from ROS goes to the daemon's orientation socket as any client's would
 (`client.OrientationPublisher`); a tare to its control socket (`client.ControlClient`).
 `ftsensord run` starts this process when the configuration has a ``[ros2]`` table.
@@ -25,6 +26,8 @@ log = logging.getLogger("ftsensord.ros2")
 
 #: Diagnostics period (s): REP 107 and diagnostic_updater publish at about 1 Hz.
 DIAGNOSTICS_S = 1.0
+#: How long the input thread waits in DDS before looking at `stop` (s).
+INPUT_WAIT_S = 0.2
 #: Samples a tare from ROS averages (the Trigger request carries none): 1 s at 100 Hz, as `ftsensord tare`.
 TARE_SAMPLES = 100
 
@@ -84,20 +87,20 @@ class Bridge:
             for n, w in result["tare_wrench"].items())
 
     def inputs(self) -> None:
-        """The second thread: DDS inputs as they come, diagnostics once a second."""
+        """The second thread: DDS inputs as they come (it waits in DDS, the GIL released)."""
+        while not self.stop.is_set():
+            self.node.serve(INPUT_WAIT_S, self.on_orientation, self.on_tare)
+
+    def diagnose(self) -> None:
+        """The daemon's status as /diagnostics (about 1 ms of Python: run between cycles, in
+        the forwarding thread, so no sample waits for the GIL behind it)."""
         from . import diagnostics
 
-        due = time.monotonic()
-        while not self.stop.is_set():
-            self.node.serve(max(0.0, due - time.monotonic()), self.on_orientation, self.on_tare)
-            if time.monotonic() >= due:
-                due += DIAGNOSTICS_S
-                try:
-                    status, why = self.control.status(), ""
-                except FtsensordError as exc:
-                    status, why = None, str(exc)
-                self.node.publish_diagnostics(diagnostics.statuses(status, self.flags, self.namespace, why),
-                                              time.time())
+        try:
+            status, why = self.control.status(), ""
+        except FtsensordError as exc:
+            status, why = None, str(exc)
+        self.node.publish_diagnostics(diagnostics.statuses(status, self.flags, self.namespace, why), time.time())
 
     def run(self, seconds: float | None = None) -> int:
         """Forward samples until `stop` (or ``seconds``); the number forwarded."""
@@ -106,7 +109,7 @@ class Bridge:
         thread = threading.Thread(target=self.inputs, daemon=True)
         thread.start()
         end = None if seconds is None else time.monotonic() + seconds
-        forwarded = 0
+        forwarded, due = 0, time.monotonic()
         with Subscriber(self.endpoint, self.streams) as sub:
             while not self.stop.is_set() and (end is None or time.monotonic() < end):
                 sample = sub.receive(timeout_s=0.2)
@@ -123,6 +126,9 @@ class Bridge:
                     if "/" not in name:  # a sensor's own stream (or the tip's), not a compensated one
                         self.flags[name] = sample.flags
                 forwarded += len(cycle)
+                if time.monotonic() >= due:  # right after a cycle's samples: the next is a period away
+                    due = max(due + DIAGNOSTICS_S, time.monotonic())
+                    self.diagnose()
         self.stop.set()
         thread.join(timeout=5)
         return forwarded
