@@ -12,9 +12,11 @@ naming the extra, so the daemon never starts believing it is on the graph.
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import importlib.util
 import os
 import re
+import signal
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -62,9 +64,18 @@ def parse_ros2(doc: Table, path: Path) -> Ros2Config | None:
     return Ros2Config(namespace, domain_id)
 
 
-def _ordinary_scheduling() -> None:
-    """In the child before exec: the default policy, not the real-time one the daemon has
-    (the unit's CPUSchedulingPolicy=fifo, or --realtime): DDS must never compete with the loop."""
+#: prctl(2)'s PR_SET_PDEATHSIG: the signal the child gets when its parent dies.
+PR_SET_PDEATHSIG = 1
+
+
+def _child_setup() -> None:
+    """In the child before exec: SIGTERM when the daemon dies (even by SIGKILL: no bridge left
+    serving a dead daemon's name), and the default policy, not the real-time one the daemon
+    has (the unit's CPUSchedulingPolicy=fifo, or --realtime): DDS must never compete with the loop."""
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
+    except (OSError, AttributeError):
+        pass  # no prctl (not Linux): the daemon's own exit still stops the bridge
     try:
         if os.sched_getscheduler(0) != os.SCHED_OTHER:
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
@@ -81,7 +92,7 @@ def ros2_beside(ros2: Ros2Config | None, config_path: Path) -> Iterator[subproce
         yield None
         return
     child = subprocess.Popen([sys.executable, "-m", "ftsensord", "ros2", "--config", str(config_path)],
-                             preexec_fn=_ordinary_scheduling)
+                             preexec_fn=_child_setup)
     try:
         yield child
     finally:
