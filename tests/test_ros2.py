@@ -218,3 +218,27 @@ def test_a_failing_chip_or_a_flagged_wrench_raises_the_level_ros_tools_show():
     status["achieved_rate_hz"] = 90.0  # below 95 % of the rate
     assert d.statuses(status, {}, "ns")[0][0] == d.WARN
     assert d.statuses(None, {}, "ns", "timed out") == [(d.STALE, "ns: daemon", "no answer from the daemon: timed out", "", [])]
+
+
+def test_the_bridge_stops_with_the_daemon_even_when_it_is_killed(tmp_path):
+    config = write_config(tmp_path, extra=f'[ros2]\nnamespace = "{NS}_kill"\ndomain_id = {DOMAIN}\n')
+    proc, notify = start_daemon(config, tmp_path, env={"CYCLONEDDS_URI": URI})
+    try:
+        (child,) = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()
+        assert "ros2" in Path(f"/proc/{child}/cmdline").read_text()
+    finally:
+        proc.kill()  # SIGKILL: the daemon has no say; the kernel's PR_SET_PDEATHSIG stops the bridge
+        proc.wait()
+        notify.close()
+    end = time.monotonic() + 10  # the bridge's SIGTERM handling: its loops look every 0.2 s
+    while time.monotonic() < end and process_state(child) not in ("Z", "gone"):
+        time.sleep(0.05)
+    assert process_state(child) in ("Z", "gone")  # a zombie: exited, its parent (dead) not reaping it
+
+
+def process_state(pid: str) -> str:
+    """/proc's state letter of ``pid`` ("Z": exited, not yet reaped), "gone" when there is none."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except FileNotFoundError:
+        return "gone"
