@@ -53,15 +53,24 @@ def parse_ros2(doc: Table, path: Path) -> Ros2Config | None:
     t = doc.table("ros2")
     t.only({"namespace", "domain_id"})
     namespace = t.string("namespace", "ftsensord").strip("/")
-    if not all(_TOKEN.fullmatch(token) and "__" not in token for token in namespace.split("/")):
+    if not is_ros_name(namespace):
         raise t.fail("namespace", "a ROS 2 name: tokens of letters, digits and underscores separated by /, "
                                   "none starting with a digit", namespace)
     domain_id = t.integer("domain_id", default_domain_id(), low=0, high=MAX_DOMAIN_ID,
                           what=f"a DDS domain id, 0 to {MAX_DOMAIN_ID}")
-    if importlib.util.find_spec("cyclonedds") is None:
-        raise ConfigError(f"{path}: ros2: the ROS 2 bridge needs Eclipse Cyclone DDS's Python binding: "
-                          "pip install 'ftsensord[ros2]' (or remove the [ros2] table)")
+    needs_cyclonedds(f"{path}: ros2: the ROS 2 bridge", " (or remove the [ros2] table)")
     return Ros2Config(namespace, domain_id)
+
+
+def is_ros_name(name: str) -> bool:
+    """Whether ``name`` (no slash at either end) is a ROS 2 name's tokens joined by /."""
+    return all(_TOKEN.fullmatch(token) and "__" not in token for token in name.split("/"))
+
+
+def needs_cyclonedds(who: str, hint: str = "") -> None:
+    """ConfigError naming the extra when Cyclone DDS's Python binding is not installed."""
+    if importlib.util.find_spec("cyclonedds") is None:
+        raise ConfigError(f"{who} needs Eclipse Cyclone DDS's Python binding: pip install 'ftsensord[ros2]'{hint}")
 
 
 #: prctl(2)'s PR_SET_PDEATHSIG: the signal the child gets when its parent dies.
