@@ -5,8 +5,9 @@
     domain_id = 0             # default: $ROS_DOMAIN_ID, else 0 (ROS's default)
 
 Parsed here, and `ros2_beside` starts the bridge (`ftsensord ros2`) for `ftsensord run`
-as a process of its own, by its command line: nothing of the bridge is imported here. A ``[ros2]`` table without the ``ros2`` extra installed is refused at load,
-naming the extra, so the daemon never starts believing it is on the graph.
+as a process of its own, by its command line: nothing of the bridge is imported here. A
+``[ros2]`` table without the ``ros2`` extra installed is refused at load, naming the extra,
+so the daemon never starts believing it is on the graph.
 """
 
 from __future__ import annotations
