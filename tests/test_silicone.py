@@ -318,3 +318,25 @@ def test_a_calibration_without_a_hold_says_so_and_the_daemon_runs_as_before():
     assert pipeline.creep.inverse is None and pipeline.status()["silicone"] is None
     w = np.array([1.0, 2, 3, 0.1, 0.2, 0.3])
     assert pipeline.creep.apply(w, True) is w  # passed through as it is
+
+
+def test_skipped_cycles_are_coasted_through_as_flagged_samples_not_a_restart():
+    # A missed deadline (the loop skips its sample) must not throw minutes of creep away:
+    # the state coasts as through a flagged sample, and is dropped only beyond MAX_COAST_S.
+    from ftsensord.calibration.creep import SiliconeCalibration
+    from ftsensord.service.loop import LoopTiming
+    from ftsensord.stages.silicone import MAX_COAST_S, CreepCompensation
+    step = np.array([2.0, 0, 0, 0, 0, 0])
+    skipped, flagged = (CreepCompensation(SiliconeCalibration(SERIES, 1.0, 0.0), 100.0) for _ in range(2))
+    for stage in (skipped, flagged):
+        for _ in range(300):  # 3 s into a held step: the slow term is still creeping
+            stage.apply(step, True)
+    skipped.skip(3)
+    for _ in range(3):
+        flagged.apply(step, False)
+    assert skipped.restarts == flagged.restarts == 0
+    assert np.array_equal(skipped.apply(step, True), flagged.apply(step, True))
+    skipped.skip(round(MAX_COAST_S * 100) + 1)  # longer than the state may coast: dropped
+    assert skipped.restarts == 1
+    timing = LoopTiming()  # the loop's count of what a cycle skipped
+    assert [timing.gap(s) for s in (0, 1, 5, 6, 2)] == [0, 0, 3, 0, -1]

@@ -137,19 +137,20 @@ class Bridge:
 def cmd_ros2(args: argparse.Namespace) -> int:
     from ..client import default_endpoint
     from ..service.config import load_config
-    from ..service.ros2conf import Ros2Config, default_domain_id, is_ros_name, needs_cyclonedds
+    from ..service.ros2conf import Ros2Config, check_domain_id, default_domain_id, is_ros_name, needs_cyclonedds
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
-    ros2, orientation = Ros2Config(domain_id=default_domain_id()), None
+    ros2, orientation = None, None
     endpoint, control = default_endpoint("wrench"), default_endpoint("control")
     if args.config:
         config = load_config(args.config)
-        ros2 = config.ros2 or ros2
+        ros2 = config.ros2
         endpoint, control, orientation = config.publish[0], config.control, config.orientation_endpoint
-    namespace = (args.namespace or ros2.namespace).strip("/")
+    namespace = (args.namespace or (ros2 or Ros2Config()).namespace).strip("/")
     if not is_ros_name(namespace):
         raise ConfigError(f"--namespace: expected a ROS 2 name (letters, digits, _ and /), got {namespace!r}")
-    domain_id = ros2.domain_id if args.domain_id is None else args.domain_id
+    domain_id = (check_domain_id("--domain-id", args.domain_id) if args.domain_id is not None
+                 else ros2.domain_id if ros2 is not None else default_domain_id())
     needs_cyclonedds("ftsensord ros2")
     bridge = Bridge(namespace, domain_id, args.endpoint or endpoint, args.control or control,
                     args.orientation or orientation, timeout_s=args.timeout)

@@ -40,6 +40,7 @@ from .orientation import OrientationReceiver
 from .pipeline import SensorPipeline, SensorSample, tip_wrench
 from .realtime import Scheduling
 from .reloads import Reloads
+from .ros2conf import BridgeWatch
 from .sdnotify import Notifier
 from .sensorconf import Calibrations, SensorConfig
 from .status import ChipLedger, status_line, status_reply
@@ -79,6 +80,7 @@ class Daemon(Commands):
         self.stop_requested = self.reload_requested = False
         self.ready = False
         self.calibrations = Calibrations().remember(config)
+        self.bridge = BridgeWatch()  # the ROS 2 bridge `run` started beside it, if any
 
     def _reader(self, config: Config) -> Reader:
         chips = [MLX90393(self.bus, a, sleep=self.bus.sleep) for a in config.addresses]
@@ -179,10 +181,13 @@ class Daemon(Commands):
         t_mono, t_wall = self.clock(), self.wall()
         # Every stream's sequence number is the cycle's: a deadline the loop skipped is a jump.
         seq = self.timing.cycles + self.timing.missed
-        if self.timing.jumped(seq):  # a gap in the input (a stall, skipped deadlines): the
-            for p in self.sensors:  # filters' memory says nothing of the load now; restart
+        gap = self.timing.gap(seq)
+        if gap:  # a gap in the input (a stall, skipped deadlines): the filters' memory says
+            for p in self.sensors:  # nothing of the load now; restart them
                 p.filter.reset()
-                p.creep.reset()  # the silicone stage's period is no longer the samples'
+                # The silicone's memory spans minutes: coasted through the skipped periods
+                # as through flagged samples (dropped beyond its limit), not thrown away.
+                p.creep.skip(gap) if gap > 0 else p.creep.reset()
             if self.gravity is not None:
                 self.gravity.restart()
         self.orientations.drain(start)
@@ -218,6 +223,7 @@ class Daemon(Commands):
         self.notifier.watchdog()
         if self.timing.cycles % max(1, int(self.config.rate_hz)) == 0:
             self.notifier.status(self.status_line())
+            self.bridge.check()
 
     def _publish(self, topic: str, kind: int, seq: int, t_mono: float, t_wall: float, flags: int,
                  values: np.ndarray) -> None:

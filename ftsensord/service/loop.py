@@ -46,11 +46,11 @@ class LoopTiming:
             lateness -= skipped * period_s
         return deadline, lateness
 
-    def jumped(self, seq: int) -> bool:
-        """Whether ``seq``, this cycle's sequence number, skips any after the last cycle's."""
-        jumped = self._last_seq is not None and seq != self._last_seq + 1
-        self._last_seq = seq
-        return jumped
+    def gap(self, seq: int) -> int:
+        """How many sequence numbers ``seq``, this cycle's, skips after the last cycle's (0:
+        none, the first cycle too; -1: it went back, what came before is unknown)."""
+        last, self._last_seq = self._last_seq, seq
+        return 0 if last is None else max(-1, seq - last - 1)
 
     def begin(self, start: float, lateness: float, period_s: float) -> bool:
         """A cycle starts at ``start``, ``lateness`` after its deadline; returns whether it is late."""

@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import importlib.util
+import logging
 import os
 import re
 import signal
@@ -26,6 +27,11 @@ from pathlib import Path
 
 from ..docfile import Table
 from ..errors import ConfigError
+
+log = logging.getLogger("ftsensord")
+#: How long a stopped bridge may take to exit before it is killed (s): its DDS participant's
+#: goodbye takes well under one.
+BRIDGE_EXIT_S = 10.0
 
 #: A ROS 2 name's tokens (design.ros2.org, Topic and Service names): a letter or underscore
 #: first, then letters, digits, underscores; no empty token, no "__".
@@ -41,9 +47,19 @@ class Ros2Config:
 
 
 def default_domain_id(environ: dict[str, str] | None = None) -> int:
-    """ROS_DOMAIN_ID when set to a number in 0-232, else 0 (what ROS 2 nodes default to)."""
+    """ROS_DOMAIN_ID, else 0 (what ROS 2 nodes default to); ConfigError when it is set to
+    anything but a number in 0-232 (the bridge would sit on another domain than the nodes)."""
     text = (os.environ if environ is None else environ).get("ROS_DOMAIN_ID", "").strip()
-    return int(text) if text.isdigit() and int(text) <= MAX_DOMAIN_ID else 0
+    if not text:
+        return 0
+    return check_domain_id("ROS_DOMAIN_ID (environment)", int(text) if text.isdigit() else text)
+
+
+def check_domain_id(where: str, value: object) -> int:
+    """``value`` as a DDS domain id; ConfigError naming ``where`` otherwise."""
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= MAX_DOMAIN_ID:
+        raise ConfigError(f"{where}: expected a DDS domain id, an integer from 0 to {MAX_DOMAIN_ID}, got {value!r}")
+    return value
 
 
 def parse_ros2(doc: Table, path: Path) -> Ros2Config | None:
@@ -57,7 +73,7 @@ def parse_ros2(doc: Table, path: Path) -> Ros2Config | None:
     if not is_ros_name(namespace):
         raise t.fail("namespace", "a ROS 2 name: tokens of letters, digits and underscores separated by /, "
                                   "none starting with a digit", namespace)
-    domain_id = t.integer("domain_id", default_domain_id(), low=0, high=MAX_DOMAIN_ID,
+    domain_id = t.integer("domain_id", 0 if "domain_id" in t.doc else default_domain_id(), low=0, high=MAX_DOMAIN_ID,
                           what=f"a DDS domain id, 0 to {MAX_DOMAIN_ID}")
     needs_cyclonedds(f"{path}: ros2: the ROS 2 bridge", " (or remove the [ros2] table)")
     return Ros2Config(namespace, domain_id)
@@ -107,4 +123,29 @@ def ros2_beside(ros2: Ros2Config | None, config_path: Path) -> Iterator[subproce
         yield child
     finally:
         child.terminate()
-        child.wait(timeout=10)
+        try:
+            child.wait(timeout=BRIDGE_EXIT_S)
+        except subprocess.TimeoutExpired:  # hung (stopped, or stuck in DDS): not left behind
+            log.warning("the ROS 2 bridge (pid %d) did not stop within %g s: killed", child.pid, BRIDGE_EXIT_S)
+            child.kill()
+            child.wait()
+
+
+class BridgeWatch:
+    """The bridge as the daemon sees it (None: no ``[ros2]``): `check`, once a second, logs its
+    exit once (its ROS 2 topics, /diagnostics and tare stop; the ZeroMQ side goes on);
+    `status` for the `status` reply."""
+
+    def __init__(self, child: subprocess.Popen | None = None):
+        self.child, self.reported = child, False
+
+    def check(self) -> None:
+        if self.child is None or self.reported or self.child.poll() is None:
+            return
+        self.reported = True
+        log.warning("the ROS 2 bridge (pid %d) exited with status %d: its topics, /diagnostics and the tare "
+                    "from ROS have stopped (the ZeroMQ streams go on); restart the service to start it again",
+                    self.child.pid, self.child.returncode)
+
+    def status(self) -> dict[str, int | None] | None:
+        return None if self.child is None else {"pid": self.child.pid, "exit_status": self.child.poll()}

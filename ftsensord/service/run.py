@@ -21,15 +21,15 @@ from ..acquire.bus import open_bus, parse_bus_spec
 from ..chip.i2c import Bus
 from ..errors import ConfigError, FtsensordError
 from .config import Config
-from .endpoints import is_loopback
-from .paths import ensure_private_dir
 from .connections import ConnectionCap, raise_descriptor_limit
 from .control import MAX_PER_CYCLE, MAX_REQUEST
 from .daemon import Daemon
+from .endpoints import is_loopback
 from .host import HostGuard
 from .orientation import open_receiver
+from .paths import ensure_private_dir
 from .realtime import Scheduling, request_fifo
-from .ros2conf import ros2_beside
+from .ros2conf import BridgeWatch, ros2_beside
 from .runtime import RuntimeFiles
 from .sdnotify import Notifier
 
@@ -223,15 +223,15 @@ def run(config: Config, early: Iterable[int] = (), realtime: int = 0) -> int:
             bus = open_configured_bus(config)
         except (OSError, FtsensordError) as exc:
             raise ConfigError(f"{config.path}: bus: cannot open {config.bus!r}: {exc}") from exc
-        with ros2_beside(config.ros2, config.path):  # [ros2]: DDS in a process of its own, out of the loop's way
-            return _serve(config, bus, notifier, files, signals, scheduling)
+        with ros2_beside(config.ros2, config.path) as bridge:  # [ros2]: DDS in a process of its own
+            return _serve(config, bus, notifier, files, signals, scheduling, BridgeWatch(bridge))
     finally:
         for fd in locks:
             os.close(fd)
 
 
 def _serve(config: Config, bus: Bus, notifier: Notifier, files: RuntimeFiles, signals: Signals,
-           scheduling: Scheduling) -> int:
+           scheduling: Scheduling, bridge: BridgeWatch) -> int:
     context = zmq.Context()
     publisher, control, auth = make_sockets(context, config, files)
     endpoint = config.orientation_endpoint
@@ -240,6 +240,7 @@ def _serve(config: Config, bus: Bus, notifier: Notifier, files: RuntimeFiles, si
             *([ConnectionCap(orientation, "orientation")] if orientation is not None else [])]
     daemon = Daemon(config, bus, publisher, control, notifier=notifier, orientation=orientation,
                     guard=HostGuard(caps, files), background_reload=True, scheduling=scheduling)
+    daemon.bridge = bridge
 
     signals.attach(daemon)
     log.info("ftsensord on %s: %s; publishing on %s, control on %s", config.bus, config.bound().describe(),

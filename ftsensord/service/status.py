@@ -133,7 +133,7 @@ def status_reply(d: Daemon) -> dict[str, Any]:
         "streams": sorted(d.streams), "publish": d.config.publish, "control": d.config.control,
         "connections": {c.name: c.status() for c in d.guard.caps}, "replies_dropped": d.control.dropped,
         "frames": stream_frames(d), "gravity": d.gravity.status(d.sensors, d.clock()) if d.gravity else None,
-        "scheduling": d.scheduling.status(),
+        "scheduling": d.scheduling.status(), "ros2_bridge": d.bridge.status(),
     }
 
 

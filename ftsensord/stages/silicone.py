@@ -7,8 +7,8 @@ flagged as off the sensor's model (a chip missing, stale, saturated or left out,
 or fallen-back estimate) is compensated from the state without changing it, and the state
 coasts through its period on the last clean load, as if held. A fault longer than
 `MAX_COAST_S` drops the state: the next clean sample starts afresh, taken as a load long
-held. A tare, an estimator switch, a rate change and a jump in the cycles start afresh too
-(the zero, the estimate or the period changed).
+held. Cycles the loop skipped are coasted through the same way. A tare, an estimator
+switch and a rate change start afresh (the zero, the estimate or the period changed).
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ MAX_COAST_S = 0.5
 
 class CreepCompensation:
     """One sensor's inverse at ``rate_hz``; ``restarts`` counts the times its state was
-    dropped (tares, estimator switches, jumps in the cycles, faults longer than `MAX_COAST_S`).
+    dropped (tares, estimator switches, faults and skipped cycles longer than `MAX_COAST_S`).
     Without a ``calibration`` (none identified) it passes every wrench through as it is."""
 
     def __init__(self, calibration: SiliconeCalibration | None, rate_hz: float):
@@ -54,6 +54,21 @@ class CreepCompensation:
         self.inverse.reset()
         self.coasted = 0
 
+    def skip(self, periods: int) -> None:
+        """``periods`` samples the loop skipped (missed deadlines): coasted through as flagged
+        samples are, the state dropped once the run passes `MAX_COAST_S`."""
+        for _ in range(periods):
+            if self.inverse is None or self.inverse.last is None:
+                return
+            self._coast()
+
+    def _coast(self) -> None:
+        self.coasted += 1
+        if self.coasted > self.max_coast:
+            self.reset()
+        else:
+            self.inverse.coast()  # type: ignore[union-attr]
+
     def apply(self, wrench: np.ndarray, clean: bool) -> np.ndarray:
         """The load (N, Nm) behind this sample's estimated ``wrench``; ``clean``: nothing
         flagged that puts the sample off the sensor's model (the caller's flags decide)."""
@@ -64,11 +79,7 @@ class CreepCompensation:
             self.coasted = 0
             return self.inverse.apply(wrench)
         out = self.inverse.peek(wrench) if finite else wrench
-        self.coasted += 1
-        if self.coasted > self.max_coast:
-            self.reset()
-        else:
-            self.inverse.coast()
+        self._coast()
         return out
 
     def status(self) -> dict[str, Any] | None:
