@@ -53,6 +53,7 @@ def test_without_check_poses_the_summary_says_the_model_was_not_judged_there():
     cal, _ = calibrate(ds, nonlinear=False)
     assert cal.report["large_loads"] is None
     assert largeloads.NOT_JUDGED in summary(cal)
+    assert "silicone: not identified: the dataset has no step-and-hold segment" in summary(cal)
 
 
 def test_check_poses_travel_through_the_dataset_file_and_the_calibration_file(tmp_path):
@@ -79,3 +80,10 @@ def test_an_unknown_split_names_the_accepted_ones(tmp_path):
     (tmp_path / "ds.json").write_text(json.dumps(doc))
     with pytest.raises(ConfigError, match=r"split.*check"):
         Dataset.load(tmp_path / "ds.json")
+
+
+@pytest.mark.parametrize(("key", "value"), [("hold_s", float("nan")), ("hold_s", -5.0), ("check_poses", -2)])
+def test_a_bad_hold_or_check_count_is_refused_naming_the_option(key, value):
+    with pytest.raises(ConfigError, match=f"--{key.replace('_', '-')}: expected"):
+        simulate_dataset(None, "sensor1", "six-axis", poses=30, validation_poses=3, samples=5, seed=3,
+                         sweeps=False, **{key: value})

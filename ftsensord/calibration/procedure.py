@@ -47,6 +47,10 @@ def simulate_dataset(scene_path: str | Path | PhysicalScene | None, sensor_name:
     applied, ``samples`` readings averaged; with ``sweeps``, each chip's position-map sweep
     too; ``check_poses`` at large loads (`largeloads`); with ``hold_s``, the step-and-hold
     segment after the poses (`hold_poses`, each held that long)."""
+    if not hold_s >= 0 or hold_s == float("inf"):  # NaN too
+        raise ConfigError(f"--hold-s: expected the seconds a step is held, 0 (none) or more, got {hold_s!r}")
+    if check_poses < 0:
+        raise ConfigError(f"--check-poses: expected 0 or more poses, got {check_poses}")
     if isinstance(scene_path, PhysicalScene):
         scene, scene_path = scene_path, "given"
     else:
@@ -136,6 +140,11 @@ def summary(cal: Calibration) -> str:
                         if large.get("nonlinear_rmse") else ""))
     else:
         lines.append(largeloads.NOT_JUDGED)
+    if cal.silicone is not None:
+        lines.append(f"silicone: relaxation {cal.silicone.relaxation.pairs()} (fraction, s), scale "
+                     f"{cal.silicone.scale:.4g}: the daemon undoes its creep")
+    elif isinstance(report.get("silicone"), str):  # why it was not identified
+        lines.append(f"silicone: {report['silicone']}")
     if cal.nonlinear is None:  # the part is judged by the nonlinear fit: say that it was not
         lines.append("nonlinear fit skipped: the part's departures from the model (silicone that stiffens, "
                      "a field it lacks) were not judged")

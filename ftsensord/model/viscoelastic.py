@@ -51,7 +51,7 @@ class Relaxation:
         if not all(math.isfinite(v) and v > 0 for v in (*g, *tau)):
             raise ValueError(f"fractions and times must be finite and > 0, got {list(zip(g, tau))}")
         if sum(g) >= MAX_TOTAL_FRACTION:
-            raise ValueError(f"the fractions sum to {sum(g):.3g}: below {MAX_TOTAL_FRACTION} (the stiffness "
+            raise ValueError(f"the fractions sum to {sum(g):.3g}: they must sum below {MAX_TOTAL_FRACTION} (the stiffness "
                              "left when held is 1 - sum)")
         if len(set(tau)) != len(tau):
             raise ValueError(f"the times must differ, got {list(tau)}")
