@@ -297,6 +297,10 @@ def test_the_hold_and_the_series_survive_their_files(tmp_path):
     doc["hold"]["load_times_s"][0] = doc["hold"]["times_s"][0] + 1e-3  # a reading before any load
     (tmp_path / "bad.json").write_text(json.dumps(doc))
     assert_names_file_and_key(Dataset.load, tmp_path / "bad.json", "times_s", "readings from the first load's time on")
+    doc = json.loads((tmp_path / "ds.json").read_text())
+    doc["hold"]["load_times_s"][-1] = doc["hold"]["times_s"][-1] + 1.0  # a load no reading saw
+    (tmp_path / "bad.json").write_text(json.dumps(doc))
+    assert_names_file_and_key(Dataset.load, tmp_path / "bad.json", "load_times_s", "loads applied before the last reading")
 
 
 def test_a_calibration_without_a_hold_says_so_and_the_daemon_runs_as_before():

@@ -103,6 +103,8 @@ class Hold:
                 raise t.fail(key, "at least two strictly increasing times (s)", v.tolist())
         if times[0] < load_times[0]:
             raise t.fail("times_s", f"readings from the first load's time on ({load_times[0]} s)", times[0])
+        if load_times[-1] >= times[-1]:  # a load no reading saw: a log cut short, or the wrong clock
+            raise t.fail("load_times_s", f"loads applied before the last reading ({times[-1]} s)", load_times[-1])
         flux = np.array(t.matrix("flux_t", len(times), channels, unit="T"))
         why = implausible_flux(flux)
         if why is not None:

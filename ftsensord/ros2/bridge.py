@@ -152,8 +152,12 @@ def cmd_ros2(args: argparse.Namespace) -> int:
     domain_id = (check_domain_id("--domain-id", args.domain_id) if args.domain_id is not None
                  else ros2.domain_id if ros2 is not None else default_domain_id())
     needs_cyclonedds("ftsensord ros2")
-    bridge = Bridge(namespace, domain_id, args.endpoint or endpoint, args.control or control,
-                    args.orientation or orientation, timeout_s=args.timeout)
+    signal.signal(signal.SIGTERM, signal.default_int_handler)  # stopped while it waits for the daemon: as Ctrl-C
+    try:
+        bridge = Bridge(namespace, domain_id, args.endpoint or endpoint, args.control or control,
+                        args.orientation or orientation, timeout_s=args.timeout)
+    except KeyboardInterrupt:  # stopped before it was on the graph: nothing to undo, no traceback
+        return 130
     for signum in (signal.SIGTERM, signal.SIGINT):
         signal.signal(signum, lambda *_: bridge.stop.set())
     print(f"ftsensord: ROS 2 bridge on DDS domain {domain_id}: "
