@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import importlib.util
 import sys
+import threading
+from collections.abc import Callable, Hashable
 from pathlib import Path
 from typing import Any
 
@@ -80,3 +82,22 @@ def benchmark(name: str) -> Any:
 start_daemon = benchmark("launch").start_daemon
 #: A `Daemon` in this process on a virtual clock, with a subscriber and a control client.
 InProcess = benchmark("launch").InProcess
+
+
+class StreamRecorder(threading.Thread):
+    """Every sample of ``streams`` the Python client receives on ``endpoint``, by ``key(sample)``
+    (the reference an outside reader's values are compared with)."""
+
+    def __init__(self, endpoint: str, streams: list[str], key: Callable[[Any], Hashable]):
+        super().__init__(daemon=True)
+        self.endpoint, self.streams, self.key = endpoint, streams, key
+        self.samples: dict[Hashable, Any] = {}
+        self.stop = threading.Event()
+
+    def run(self) -> None:
+        from ftsensord.client import Subscriber
+        with Subscriber(self.endpoint, self.streams) as sub:
+            while not self.stop.is_set():
+                s = sub.receive(timeout_s=0.05)
+                if s is not None:
+                    self.samples[self.key(s)] = s

@@ -15,17 +15,16 @@ import shutil
 import signal
 import subprocess
 import sys
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from ftsensord.client import ControlClient, Subscriber
+from ftsensord.client import ControlClient
 from ftsensord.recording.ros2mcap import STATUS, WRENCH, stamp
 
-from .conftest import start_daemon
+from .conftest import StreamRecorder, start_daemon
 from .test_daemon import write_config
 
 pytest.importorskip("foxglove")  # the live extra, which the test extra includes
@@ -69,19 +68,9 @@ def check_mjs() -> list[str]:
     return [node, str(CLIENT / "check.mjs")]
 
 
-class Reference(threading.Thread):
+def Reference(endpoint: str) -> StreamRecorder:  # noqa: N802 (a class's name to its callers)
     """Every sample of the streams, by (topic, seq), as the Python client receives them."""
-
-    def __init__(self, endpoint: str):
-        super().__init__(daemon=True)
-        self.endpoint, self.samples, self.stop = endpoint, {}, threading.Event()
-
-    def run(self) -> None:
-        with Subscriber(self.endpoint, STREAMS) as sub:
-            while not self.stop.is_set():
-                s = sub.receive(timeout_s=0.05)
-                if s is not None:
-                    self.samples[(s.topic, s.seq)] = s
+    return StreamRecorder(endpoint, STREAMS, lambda s: (s.topic, s.seq))
 
 
 class Bridge:

@@ -13,7 +13,6 @@ import json
 import os
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -23,10 +22,10 @@ import pytest
 
 pytest.importorskip("cyclonedds")  # the ros2 extra, which the test extra includes
 
-from ftsensord.client import ControlClient, Subscriber  # noqa: E402
+from ftsensord.client import ControlClient  # noqa: E402
 from ftsensord.service.config import load_config  # noqa: E402
 
-from .conftest import assert_names_file_and_key, start_daemon  # noqa: E402
+from .conftest import StreamRecorder, assert_names_file_and_key, start_daemon  # noqa: E402
 from .test_daemon import write_config  # noqa: E402
 
 PEER = Path(__file__).with_name("ros2_peer.py")
@@ -66,23 +65,13 @@ def peer(*steps: dict, timeout_s: float = 60) -> list[dict]:
     return [json.loads(line) for line in done.stdout.splitlines()]
 
 
-class Reference(threading.Thread):
-    """Every sample of the streams, by (topic, stamp in ns), as the ZeroMQ client receives them."""
-
-    def __init__(self, endpoint: str):
-        super().__init__(daemon=True)
-        self.endpoint, self.samples, self.stop = endpoint, {}, threading.Event()
-
-    def run(self) -> None:
-        with Subscriber(self.endpoint, STREAMS) as sub:
-            while not self.stop.is_set():
-                s = sub.receive(timeout_s=0.05)
-                if s is not None:
-                    self.samples[(s.topic, round(s.t_wall * 1e9))] = s
+def Reference(endpoint: str) -> StreamRecorder:  # noqa: N802 (a class's name to its callers)
+    """Every sample of the streams, by (topic, stamp in ns), as the Python client receives them."""
+    return StreamRecorder(endpoint, STREAMS, lambda s: (s.topic, round(s.t_wall * 1e9)))
 
 
 @pytest.fixture(scope="module")
-def daemon(tmp_path_factory) -> Iterator[tuple[Path, Reference]]:
+def daemon(tmp_path_factory) -> Iterator[tuple[Path, StreamRecorder]]:
     folder = tmp_path_factory.mktemp("ros2")
     config = write_config(folder, extra=f'[ros2]\nnamespace = "{NS}"\ndomain_id = {DOMAIN}\n' + GRAVITY)
     proc, notify = start_daemon(config, folder, env={"CYCLONEDDS_URI": URI}, stdout=subprocess.DEVNULL,
