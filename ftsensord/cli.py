@@ -71,7 +71,8 @@ def cmd_dataset(args: argparse.Namespace) -> int:
                                check_poses=args.check_poses, hold_s=args.hold_s)
     dataset.save(args.output)
     print(f"wrote {args.output}: {len(dataset)} poses ({args.plan}), {args.samples} samples each, "
-          f"{int(dataset.saturated.any(axis=1).sum())} with a saturated chip")
+          f"{int(dataset.saturated.any(axis=1).sum())} with a saturated chip" + (
+              f"; a step-and-hold of {len(dataset.hold.times_s)} readings" if dataset.hold is not None else ""))
     return 0
 
 

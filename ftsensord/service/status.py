@@ -161,7 +161,9 @@ def describe(status: dict[str, Any]) -> str:
                    + (f" (SCHED_FIFO {sched['asked']} refused: {sched['refused']})" if sched["refused"] else ""))
     for name, s in status["sensors"].items():
         tare = "tared, offset " + " ".join(f"{v:+.4g}" for v in s["tare_wrench"]) if s["tared"] else "not tared"
-        out.append(f"sensor {name}: frame {s['frame']}, serial {s['serial']}, {tare}; calibration {s['calibration']}")
+        creep = s.get("silicone")
+        out.append(f"sensor {name}: frame {s['frame']}, serial {s['serial']}, {tare}; calibration {s['calibration']}"
+                   + (f"; silicone's creep undone ({creep['restarts']} restarts)" if creep else ""))
     if "wrench/tip" in status.get("frames", {}):
         out.append(f"tip: frame {status['frames']['wrench/tip']}")
     gravity = status.get("gravity")
