@@ -42,7 +42,8 @@ def wait_for_status(control: Any, stop: threading.Event, timeout_s: float) -> di
                 return status
         except FtsensordError as exc:
             if time.monotonic() > end or stop.is_set():
-                raise ConfigError(f"no daemon answered on {control.endpoint}: {exc}") from exc
+                raise ConfigError(f"no daemon answered on {control.endpoint} in {timeout_s:g} s (--timeout); "
+                                  f"the last request: {exc}") from exc
         if time.monotonic() > end or stop.is_set():
             raise ConfigError(f"the daemon on {control.endpoint} publishes no stream yet")
         time.sleep(0.2)
@@ -58,7 +59,7 @@ class Bridge:
         from .node import Ros2Node
 
         self.stop = threading.Event()
-        self.control = ControlClient(control, timeout_s=3.0)
+        self.control = ControlClient(control, timeout_s=min(3.0, timeout_s))  # no request outlasts --timeout
         status = wait_for_status(self.control, self.stop, timeout_s)
         self.streams = [s for s in status["streams"] if s.startswith("wrench/")]
         frames = frames_from_status(status, self.streams)
