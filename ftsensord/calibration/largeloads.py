@@ -25,9 +25,9 @@ from .report import format_rmse
 #: The flux model's residual on check poses (p50 over poses, RMS per channel) above which a
 #: part departs from it, with 4 standard errors of a pose's mean in quadrature (noisier
 #: readings fit a model that extrapolates worse). At 100 readings a pose (limit 1.98 uT),
-#: 3 as-built parts leave 0.82-1.47 uT (the dipole-and-octupole model's own error at 10-40
-#: N) and the same with magnets glued 2-7 deg tilted 2.61-4.62 uT: 1.35x to spare below,
-#: 1.32x above; at 25 readings (limit 2.81 uT) 2.06-2.19 against 4.2-4.6 uT
+#: 9 as-built parts leave 0.82-1.47 uT (the dipole-and-octupole model's own error at 10-40
+#: N) and the same with magnets glued 2-7 deg tilted 2.55-5.31 uT: 1.35x to spare below,
+#: 1.29x above; at 25 readings (limit 2.81 uT) 2.06-2.19 against 4.2-4.6 uT
 #: (`python benchmarks/large_loads.py`, docs/calibration.md "Check poses").
 CHECK_RESIDUAL_T = 1.6e-6
 #: The nonlinear force error (RMS of |F error| over RMS of |F|) above which the silicone is
