@@ -14,53 +14,59 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import sys
 import threading
 import time
-from typing import Any
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 from ..errors import ConfigError, FtsensordError
+
+if TYPE_CHECKING:
+    from ..client import ControlClient
 
 log = logging.getLogger("ftsensord.ros2")
 
 #: Diagnostics period (s): REP 107 and diagnostic_updater publish at about 1 Hz.
 DIAGNOSTICS_S = 1.0
-#: How long the input thread waits in DDS before looking at `stop` (s).
+#: How long the input thread waits in DDS before looking at `done` (s).
 INPUT_WAIT_S = 0.2
 #: Samples a tare from ROS averages (the Trigger request carries none): 1 s at 100 Hz, as `ftsensord tare`.
 TARE_SAMPLES = 100
 
 
-def wait_for_status(control: Any, stop: threading.Event, timeout_s: float) -> dict[str, Any]:
-    """The daemon's status, asked until it answers (a daemon starting with us) or ``timeout_s``."""
+def wait_for_status(control: Any, stopped: Callable[[], bool], timeout_s: float) -> dict[str, Any] | None:
+    """The daemon's status, asked until it answers with streams (a daemon starting with us),
+    ConfigError after ``timeout_s``; None when ``stopped()`` first (a signal)."""
     end = time.monotonic() + timeout_s
-    while True:
+    while not stopped():
         try:
             status = control.status()
             if status.get("streams"):
                 return status
         except FtsensordError as exc:
-            if time.monotonic() > end or stop.is_set():
+            if time.monotonic() > end:
                 raise ConfigError(f"no daemon answered on {control.endpoint} in {timeout_s:g} s (--timeout); "
                                   f"the last request: {exc}") from exc
-        if time.monotonic() > end or stop.is_set():
+        if time.monotonic() > end:
             raise ConfigError(f"the daemon on {control.endpoint} publishes no stream yet")
         time.sleep(0.2)
+    return None
 
 
 class Bridge:
-    """The streams of the daemon on ``endpoint`` / ``control`` on DDS domain ``domain_id``."""
+    """The streams of the daemon on ``endpoint`` (its ``status`` asked of ``control``) on DDS
+    domain ``domain_id``, until ``stopped()``."""
 
-    def __init__(self, namespace: str, domain_id: int, endpoint: str, control: str, orientation: str | None,
-                 timeout_s: float = 30.0):
-        from ..client import ControlClient, OrientationPublisher
+    def __init__(self, namespace: str, domain_id: int, endpoint: str, control: ControlClient, status: dict[str, Any],
+                 orientation: str | None, stopped: Callable[[], bool]):
+        from ..client import OrientationPublisher
         from ..recording.ros2mcap import frames_from_status
         from .node import Ros2Node
 
-        self.stop = threading.Event()
-        self.control = ControlClient(control, timeout_s=min(3.0, timeout_s))  # no request outlasts --timeout
-        status = wait_for_status(self.control, self.stop, timeout_s)
+        self.stopped = stopped
+        self.done = threading.Event()  # `run` has ended: the input thread ends too
+        self.control = control
         self.streams = [s for s in status["streams"] if s.startswith("wrench/")]
         frames = frames_from_status(status, self.streams)
         oriented = sorted({*status.get("sensors", {}), *(["tip"] if "wrench/tip" in self.streams else [])})
@@ -89,7 +95,7 @@ class Bridge:
 
     def inputs(self) -> None:
         """The second thread: DDS inputs as they come (it waits in DDS, the GIL released)."""
-        while not self.stop.is_set():
+        while not self.done.is_set():
             self.node.serve(INPUT_WAIT_S, self.on_orientation, self.on_tare)
 
     def diagnose(self) -> None:
@@ -104,7 +110,7 @@ class Bridge:
         self.node.publish_diagnostics(diagnostics.statuses(status, self.flags, self.namespace, why), time.time())
 
     def run(self, seconds: float | None = None) -> int:
-        """Forward samples until `stop` (or ``seconds``); the number forwarded."""
+        """Forward samples until ``stopped()`` (or ``seconds``); the number forwarded."""
         from ..client import Subscriber
 
         thread = threading.Thread(target=self.inputs, daemon=True)
@@ -112,7 +118,7 @@ class Bridge:
         end = None if seconds is None else time.monotonic() + seconds
         forwarded, due = 0, time.monotonic()
         with Subscriber(self.endpoint, self.streams) as sub:
-            while not self.stop.is_set() and (end is None or time.monotonic() < end):
+            while not self.stopped() and (end is None or time.monotonic() < end):
                 sample = sub.receive(timeout_s=0.2)
                 # A cycle's streams come together: their wrenches first, as each arrives, then
                 # their statuses, so no wrench waits behind another stream's status.
@@ -130,13 +136,14 @@ class Bridge:
                 if time.monotonic() >= due:  # right after a cycle's samples: the next is a period away
                     due = max(due + DIAGNOSTICS_S, time.monotonic())
                     self.diagnose()
-        self.stop.set()
+        self.done.set()
         thread.join(timeout=5)
         return forwarded
 
 
 def cmd_ros2(args: argparse.Namespace) -> int:
-    from ..client import default_endpoint
+    from ..client import ControlClient, default_endpoint
+    from ..recording import StopOnSignals
     from ..service.config import load_config
     from ..service.ros2conf import Ros2Config, check_domain_id, default_domain_id, is_ros_name, needs_cyclonedds
 
@@ -153,18 +160,17 @@ def cmd_ros2(args: argparse.Namespace) -> int:
     domain_id = (check_domain_id("--domain-id", args.domain_id) if args.domain_id is not None
                  else ros2.domain_id if ros2 is not None else default_domain_id())
     needs_cyclonedds("ftsensord ros2")
-    signal.signal(signal.SIGTERM, signal.default_int_handler)  # stopped while it waits for the daemon: as Ctrl-C
-    try:
-        bridge = Bridge(namespace, domain_id, args.endpoint or endpoint, args.control or control,
-                        args.orientation or orientation, timeout_s=args.timeout)
-    except KeyboardInterrupt:  # stopped before it was on the graph: nothing to undo, no traceback
-        return 130
-    for signum in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(signum, lambda *_: bridge.stop.set())
-    print(f"ftsensord: ROS 2 bridge on DDS domain {domain_id}: "
-          + ", ".join(f"/{namespace}/{s}" for s in bridge.streams) + f", /diagnostics, /{namespace}/tare",
-          flush=True)
-    forwarded = bridge.run(args.seconds)
+    with StopOnSignals() as stopped:  # from the start: a signal while it waits for the daemon stops it too
+        client = ControlClient(args.control or control, timeout_s=min(3.0, args.timeout))  # no request outlasts --timeout
+        status = wait_for_status(client, stopped.is_set, args.timeout)
+        if status is None:  # stopped before it was on the graph: nothing to undo
+            return 130
+        bridge = Bridge(namespace, domain_id, args.endpoint or endpoint, client, status,
+                        args.orientation or orientation, stopped.is_set)
+        print(f"ftsensord: ROS 2 bridge on DDS domain {domain_id}: "
+              + ", ".join(f"/{namespace}/{s}" for s in bridge.streams) + f", /diagnostics, /{namespace}/tare",
+              flush=True)
+        forwarded = bridge.run(args.seconds)
     print(f"ftsensord ros2: {forwarded} samples forwarded, {bridge.node.write_errors} writes failed, "
           f"inputs {bridge.node.received}", file=sys.stderr)
     return 0
