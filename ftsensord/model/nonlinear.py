@@ -330,6 +330,9 @@ class NonlinearEstimator:
 PRIOR_WEIGHT = (BACKGROUND_NOISE_T / BACKGROUND_PRIOR_T) ** 2
 PRIOR_EYE = PRIOR_WEIGHT * np.eye(3)
 PRIOR_EYE.setflags(write=False)
+PRIOR_9 = np.zeros((9, 9))  # P: the prior on the 9 unknowns (the background field's 3 only)
+PRIOR_9[6:, 6:] = PRIOR_EYE
+PRIOR_9.setflags(write=False)
 PLAUSIBLE_WRENCH = PLAUSIBLE_RANGE * SENSOR_RANGE
 NEW = object()  # the kind of a step taken with a new Jacobian
 
@@ -354,11 +357,9 @@ def _chord_gains(J: np.ndarray, kept: tuple[np.ndarray, np.ndarray, np.ndarray] 
     where J was."""
     if kept is not None and kept[0] is J:
         return kept
-    M = J.T @ J
-    prior = np.zeros_like(M)
-    if J.shape[1] > 6:
-        prior[6:, 6:] = PRIOR_EYE
-    gains = np.linalg.solve(M + prior, np.concatenate([J.T, prior[:, 6:]], axis=1))
+    if J.shape[1] == 6:  # no background field: no prior, and no G_u
+        return J, np.linalg.solve(J.T @ J, J.T), PRIOR_9[:6, 6:]
+    gains = np.linalg.solve(J.T @ J + PRIOR_9, np.concatenate([J.T, PRIOR_9[:, 6:]], axis=1))
     return J, gains[:, :J.shape[0]], gains[:, J.shape[0]:]
 
 

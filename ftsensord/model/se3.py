@@ -9,6 +9,8 @@ Every branch threshold below carries its reason; tests sit at each one.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 #: Below this angle (rad) the coefficient functions use their Taylor series:
@@ -55,8 +57,10 @@ def _coefficients(theta: float) -> tuple[float, float, float]:
         return (1 - t2 / 6 + t2 * t2 / 120,
                 0.5 - t2 / 24 + t2 * t2 / 720,
                 1 / 6 - t2 / 120 + t2 * t2 / 5040)
-    return (np.sin(theta) / theta, (1 - np.cos(theta)) / theta**2,
-            (theta - np.sin(theta)) / theta**3)
+    # math's, not numpy's: Python floats keep every product after them cheap (the
+    # estimator's steps, `se3floats`, do a few dozen with these).
+    s, c = math.sin(theta), math.cos(theta)
+    return s / theta, (1 - c) / theta**2, (theta - s) / theta**3
 
 
 def exp_so3(w: np.ndarray) -> np.ndarray:

@@ -53,10 +53,17 @@ def continued(before: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, float, 
     velocity, left-multiplied as the estimator's steps), with that motion's size: its
     twist's translation (m) and turn (rad). Taken as a twist by `exp_se3`, so the result is
     a rigid motion to round-off (R_k R_k-1^T R_k as matrix products would compound theirs)."""
-    R0, t0 = before[:3, :3], before[:3, 3]
-    D = np.eye(4)
-    D[:3, :3] = pose[:3, :3] @ R0.T
-    D[:3, 3] = pose[:3, 3] - D[:3, :3] @ t0
+    # D = pose before^-1: R_D = R R_0^T, t_D = t - R_D t_0, in floats (a dozen numpy calls on
+    # 3x3 blocks cost more than the arithmetic).
+    (a0, a1, a2, s0), (b0, b1, b2, s1), (c0, c1, c2, s2), _ = before.tolist()
+    (d0, d1, d2, t0), (e0, e1, e2, t1), (f0, f1, f2, t2), _ = pose.tolist()
+    r00, r01, r02 = d0 * a0 + d1 * a1 + d2 * a2, d0 * b0 + d1 * b1 + d2 * b2, d0 * c0 + d1 * c1 + d2 * c2
+    r10, r11, r12 = e0 * a0 + e1 * a1 + e2 * a2, e0 * b0 + e1 * b1 + e2 * b2, e0 * c0 + e1 * c1 + e2 * c2
+    r20, r21, r22 = f0 * a0 + f1 * a1 + f2 * a2, f0 * b0 + f1 * b1 + f2 * b2, f0 * c0 + f1 * c1 + f2 * c2
+    D = np.array([r00, r01, r02, t0 - (r00 * s0 + r01 * s1 + r02 * s2),
+                  r10, r11, r12, t1 - (r10 * s0 + r11 * s1 + r12 * s2),
+                  r20, r21, r22, t2 - (r20 * s0 + r21 * s1 + r22 * s2),
+                  0.0, 0.0, 0.0, 1.0]).reshape(4, 4)
     step = log_se3(D)
     v0, v1, v2, w0, w1, w2 = step.tolist()
     return exp_se3(step) @ pose, math.sqrt(v0 * v0 + v1 * v1 + v2 * v2), math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
