@@ -305,6 +305,8 @@ class ConsistencyMaps:
             cov = np.linalg.inv(A.T @ A)[-gradient:, -gradient:]
             rows.append(np.linalg.cholesky(np.linalg.inv(cov)).T @ pinv[-gradient:])
         self.maps = np.vstack(rows) / sigma[self.channels]
+        # Sums each chip's 3 channels in one product: a reduction along an axis costs 5 us.
+        self.per_chip = np.kron(np.eye(len(self.used)), np.ones((3, 1)))
 
     def apply(self, d: np.ndarray) -> Consistency:
         """The check of one sample from its flux minus the zero ``d`` (T, every channel)."""
@@ -316,7 +318,7 @@ class ConsistencyMaps:
         r = y[:n]
         chi2 = float(r @ r)
         # G's rows are 0 for a chip that cannot be left out: its drop is 0.
-        drops = (r * y[n + 6:2 * n + 6]).reshape(-1, 3).sum(axis=1)
+        drops = (r * y[n + 6:2 * n + 6]) @ self.per_chip
         g = y[2 * n + 6:]
         if self.all:
             drop = drops
