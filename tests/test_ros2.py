@@ -231,3 +231,44 @@ def process_state(pid: str) -> str:
         return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
     except FileNotFoundError:
         return "gone"
+
+
+@pytest.mark.parametrize("frame_id", ["", "a", "tip", "sensor1", "sensor1/chip0", "é_unicode"])
+def test_the_bridges_cdr_bytes_are_cyclones_own_serialization(frame_id):
+    from ftsensord.recording.ros2mcap import Stamped, stamp, status_body
+    from ftsensord.ros2 import msgs
+    t_wall, values = 1_764_100_000.123456789, [1.5, -2.25, 3e-3, -4e5, 5.0, float("nan")]
+    header = msgs.Header(msgs.Time(*stamp(t_wall)), frame_id)
+    wrench = msgs.WrenchStamped(header, msgs.Wrench(msgs.Vector3(*values[:3]), msgs.Vector3(*values[3:])))
+    # the frame's padding to the first float64 depends on the frame_id's length: each length is one case
+    assert Stamped(frame_id).message(t_wall, np.array(values).tobytes()) == wrench.serialize(use_version_2=False)
+    status = msgs.SampleStatus(header, 2**40 + 3, 0x41, 7)
+    assert Stamped(frame_id).message(t_wall, status_body(2**40 + 3, 0x41, 7)) == status.serialize(use_version_2=False)
+
+
+def can_be_realtime() -> bool:
+    return subprocess.run(["chrt", "-f", "1", "true"], capture_output=True).returncode == 0
+
+
+@pytest.mark.skipif(not can_be_realtime(), reason="SCHED_FIFO not allowed here (needs CAP_SYS_NICE or RLIMIT_RTPRIO)")
+def test_under_a_realtime_daemon_only_the_bridges_forwarding_is_realtime_below_the_loop(tmp_path):
+    config = write_config(tmp_path, extra=f'[ros2]\nnamespace = "{NS}_rt"\ndomain_id = {DOMAIN}\n')
+    proc, notify = start_daemon(config, tmp_path, env={"CYCLONEDDS_URI": URI}, args=["--realtime", "50"])
+    try:
+        (child,) = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()
+        end = time.monotonic() + 30  # the bridge's start: imports, the daemon's status, the node, then the raise
+        while time.monotonic() < end and os.sched_getscheduler(int(child)) != os.SCHED_FIFO:
+            time.sleep(0.1)
+        time.sleep(0.5)  # its ZeroMQ context made just after the raise
+        threads = {int(t): Path(f"/proc/{child}/task/{t}/comm").read_text().strip()
+                   for t in os.listdir(f"/proc/{child}/task")}
+        policy = {t: (os.sched_getscheduler(t), os.sched_getparam(t).sched_priority) for t in threads}
+        assert (os.sched_getscheduler(proc.pid), os.sched_getparam(proc.pid).sched_priority) == (os.SCHED_FIFO, 50)
+        assert policy[int(child)] == (os.SCHED_FIFO, 1), threads  # the forwarding (main) thread
+        assert any(policy[t] == (os.SCHED_FIFO, 1) for t, name in threads.items() if name.startswith("ZMQbg/IO"))
+        others = {name: policy[t] for t, name in threads.items() if t != int(child) and not name.startswith("ZMQbg")}
+        assert len(others) >= 3 and all(p == (os.SCHED_OTHER, 0) for p in others.values()), others  # DDS's, inputs
+    finally:
+        proc.terminate()
+        proc.wait(timeout=20)
+        notify.close()
