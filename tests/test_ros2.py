@@ -140,6 +140,20 @@ def test_diagnostics_name_the_daemon_each_sensor_and_each_chip(daemon):
     assert status[f"{NS}: sensor1 chip 0x0C"]["hardware_id"] == "MLX90393 0x0C"
 
 
+def test_ros2_node_list_finds_the_node_with_the_endpoints_discovery_finds(daemon):
+    wrenches = [f"rt/{NS}/{s}" for s in STREAMS]
+    (graph,) = peer({"do": "nodes", "topics": [*wrenches, f"rt/{NS}/tare", "rt/diagnostics"]})
+    endpoints = graph["endpoints"]
+    (bridge,) = {e["participant"] for t in wrenches for e in endpoints[t]}  # one participant has them all
+    (node,) = graph["participants"][bridge]  # its ros_discovery_info: one node
+    assert (node["namespace"], node["name"]) == (f"/{NS}", "ftsensord")
+    for topic in wrenches + ["rt/diagnostics"]:  # the node's writer GIDs are the writers' own GUIDs
+        assert [e["guid"] for e in endpoints[topic] if e["participant"] == bridge][0] in node["writers"], topic
+    (tare,) = [e["guid"] for e in endpoints[f"rt/{NS}/tare"] if e["participant"] == bridge]
+    assert tare in node["readers"] and tare not in node["writers"]
+    assert len(node["writers"]) == len(set(node["writers"])) >= 2 * len(STREAMS) + 2  # + statuses, diagnostics, tare reply
+
+
 def test_an_orientation_from_ros_reaches_the_gravity_compensation(daemon):
     folder, _ = daemon
     s45 = float(np.sqrt(0.5))

@@ -41,6 +41,11 @@ log = logging.getLogger("ftsensord.ros2")
 
 #: ROS 2's default publisher depth ("keep last 10"): what `ros2 topic echo` and rclcpp assume.
 DEPTH = 10
+#: The node's name; its namespace is the topics' (``ros2 node list``: /<namespace>/ftsensord).
+NODE_NAME = "ftsensord"
+#: The participant's USER_DATA as rmw_cyclonedds sets it (rmw_node.cpp, rmw_context_impl_s::init:
+#: ``"enclave=" + enclave + ";"``); ROS's graph takes a participant with it for a ROS one.
+ENCLAVE = b"enclave=/;"
 #: How long a tare reply waits for the client's reply reader to be matched (rmw_cyclonedds's own
 #: rmw_send_response waits 100 ms; a tare takes a second, so this is rarely spent).
 REPLY_MATCH_S = 1.0
@@ -50,9 +55,11 @@ def _stamp(t_wall: float) -> msgs.Time:
     return msgs.Time(*stamp(t_wall))  # as in MCAP recordings
 
 
-def writer_qos(cls: type, extra: str = "") -> Qos:
-    """Reliable, volatile, keep last 10, XCDR1; USER_DATA ``<extra>typehash=RIHS01_...;``."""
-    return Qos(Policy.Reliability.Reliable(0), Policy.Durability.Volatile, Policy.History.KeepLast(DEPTH),
+def writer_qos(cls: type, extra: str = "", latched: bool = False) -> Qos:
+    """Reliable, volatile, keep last 10, XCDR1; USER_DATA ``<extra>typehash=RIHS01_...;``.
+    ``latched``: transient-local, keep last 1 (``ros_discovery_info``'s, as the rmw's)."""
+    durability = Policy.Durability.TransientLocal if latched else Policy.Durability.Volatile
+    return Qos(Policy.Reliability.Reliable(0), durability, Policy.History.KeepLast(1 if latched else DEPTH),
                Policy.DataRepresentation(use_cdrv0_representation=True),
                Policy.Userdata(f"{extra}typehash={msgs.type_hash(cls)};".encode()))
 
@@ -71,7 +78,7 @@ class Ros2Node:
 
     def __init__(self, namespace: str, domain_id: int, frames: dict[str, str], orientation_frames: list[str]):
         self.namespace, self.frames = namespace, frames
-        self.participant = DomainParticipant(domain_id)
+        self.participant = DomainParticipant(domain_id, qos=Qos(Policy.Userdata(ENCLAVE)))
         self.writers: dict[str, tuple[DataWriter, DataWriter, Stamped]] = {}
         self.last_seq: dict[str, int] = {}
         self.write_errors = 0
@@ -102,6 +109,26 @@ class Ros2Node:
             self.waitset.attach(ReadCondition(reader, SampleState.Any | ViewState.Any | InstanceState.Any))
         self.received: dict[str, int] = {"orientation": 0, "imu_without_orientation": 0, "tare": 0}
         self.taring = threading.Lock()
+        self.discovery = DataWriter(self.participant, Topic(self.participant, "ros_discovery_info",
+                                                            msgs.ParticipantEntitiesInfo),
+                                    writer_qos(msgs.ParticipantEntitiesInfo, latched=True))
+        self.announce()
+
+    def announce(self) -> None:
+        """The node on ``ros_discovery_info``, as every rmw says which nodes a participant has:
+        ``rmw_dds_common/msg/ParticipantEntitiesInfo``, the participant's GID and, for the node,
+        its name, namespace and its readers' and writers' GIDs (rmw_cyclonedds_cpp's
+        convert_guid_to_gid: a GID is the entity's 16-byte DDS GUID, rmw_node.cpp). The topic
+        name is not prefixed (avoid_ros_namespace_conventions); reliable, transient-local, keep
+        last 1: a node that starts later still reads it. Written again when a stream's writers
+        are made later. Iron and later (their Gid is 16 bytes; Humble's 24)."""
+        def gid(entity: Any) -> msgs.Gid:
+            return msgs.Gid(list(entity.get_guid().bytes))
+
+        writers = [w for ws in self.writers.values() for w in ws[:2]] + [self.diagnostics, self.replies]
+        node = msgs.NodeEntitiesInfo("/" + self.namespace, NODE_NAME, [gid(r) for r, _, _ in self.inputs],
+                                     [gid(w) for w in writers])
+        self.discovery.write(msgs.ParticipantEntitiesInfo(gid(self.participant), [node]))
 
     def _writer(self, topic: str, cls: type) -> DataWriter:
         return DataWriter(self.participant, Topic(self.participant, topic, cls), writer_qos(cls))
@@ -122,6 +149,8 @@ class Ros2Node:
             self.writers[stream] = (self._writer(topic, msgs.WrenchStamped),
                                     self._writer(topic + "/status", msgs.SampleStatus),
                                     Stamped(self.frames.get(stream, stream)))
+            if hasattr(self, "discovery"):  # a stream the daemon's status did not have at start
+                self.announce()
         return self.writers[stream]
 
     # A sample's messages are written as CDR bytes made by `Stamped` (the wrench's values are
