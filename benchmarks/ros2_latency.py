@@ -11,6 +11,8 @@ Python). The variants run in segments of ``--seconds``, interleaved in ``--round
 so the host's load falls on each alike:
 
 - ``none``: no bridge (ZeroMQ's own figure);
+- ``zmq3``: no bridge, two more ZeroMQ subscribers: three processes woken by each sample, as
+  with the bridge and its two DDS subscribers (the share of the subscribers' own contention);
 - ``bridge``: ``ftsensord ros2 --config`` as `run` starts it under a daemon at the normal priority;
 - ``bridge-rt``: the same with ``--realtime 1`` (its forwarding thread SCHED_FIFO 1), as
   `run` starts it under a real-time daemon.
@@ -137,6 +139,11 @@ def segment(variant: str, config: Path, folder: Path, seconds: float, queue: mp.
         child = mp.Process(target=split_bridge, args=(folder, 1 if variant == "split-rt" else 0,
                                                       time.time() + SETTLE_S + seconds, queue))
         child.start()
+    elif variant == "zmq3":  # two more ZeroMQ subscribers: as many woken a sample as with the two DDS ones
+        child = [mp.Process(target=zmq_listen, args=(f"ipc://{folder / 'wrench'}", time.time() + SETTLE_S + seconds,
+                                                     mp.Queue())) for _ in range(2)]
+        for c in child:
+            c.start()
     time.sleep(SETTLE_S)
     s0, cpu0, t0 = control.status(), cpu_seconds(pid), time.time()
     time.sleep(seconds)
@@ -145,6 +152,10 @@ def segment(variant: str, config: Path, folder: Path, seconds: float, queue: mp.
     if isinstance(child, subprocess.Popen):
         child.terminate()
         child.wait(timeout=20)
+    elif isinstance(child, list):
+        for c in child:
+            c.kill()  # their receipts are not counted
+            c.join()
     elif child is not None:
         got = queue.get(timeout=60)[1]
         child.join()
@@ -182,7 +193,7 @@ def main() -> int:
     parser.add_argument("--fifo", type=int, default=50, help="the daemon's --realtime (0: the normal priority)")
     parser.add_argument("--split", action="store_true", help="the bridge inside the benchmark, its hops timed")
     args = parser.parse_args()
-    variants = ["none", "split", "split-rt"] if args.split else ["none", "bridge", "bridge-rt"]
+    variants = ["none", "split", "split-rt"] if args.split else ["none", "zmq3", "bridge", "bridge-rt"]
     if not args.fifo:
         variants = [v for v in variants if not v.endswith("-rt")]  # `run` gives no FIFO to the bridge then
     print(f"load {os.getloadavg()[0]:.2f} at start; {args.rounds} rounds of {', '.join(variants)}, "
