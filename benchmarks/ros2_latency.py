@@ -22,9 +22,12 @@ DDS's header.stamp): one host, one clock. Per segment, from the daemon: its CPU 
 (/proc), its start jitter and publish time p99 (`status`, the last 1000 cycles), missed
 cycles. ``--split`` runs the bridge inside this benchmark instead (the same `Bridge`, with
 clocks read where a frame arrives and around its DDS write) and breaks the DDS path into
-hops. DDS stays on the loopback interface (CYCLONEDDS_URI).
+hops. ``--in-daemon`` sets the bridge process as `run` starts it against the same `Bridge`
+in a thread of the daemon's own process (benchmarks/ros2_in_daemon.py), a daemon started
+for each segment: the latency, and the loop's jitter and publish time each puts in.
+DDS stays on the loopback interface (CYCLONEDDS_URI).
 
-    python benchmarks/ros2_latency.py --seconds 10 --rounds 3 [--fifo 50] [--split]
+    python benchmarks/ros2_latency.py --seconds 10 --rounds 3 [--fifo 50] [--split | --in-daemon]
 """
 
 from __future__ import annotations
@@ -165,6 +168,45 @@ def segment(variant: str, config: Path, folder: Path, seconds: float, queue: mp.
             "publish_p99": s1["publish_us"]["p99"], "load": os.getloadavg()[0], "bridge": got}
 
 
+def daemon_segment(variant: str, seconds: float, fifo: int) -> dict:
+    """--in-daemon: a daemon of its own for the segment, with the bridge as `run` starts it
+    (``bridge-rt``: its child process) or as a thread of its own process (``in-daemon``,
+    benchmarks/ros2_in_daemon.py); the listeners for the segment."""
+    with tempfile.TemporaryDirectory() as tmp:
+        config = packaged_config(Path(tmp) / "ftsensord.toml")
+        program: tuple[str, ...] = ("-m", "ftsensord")
+        if variant.startswith("bridge"):
+            config.write_text(config.read_text() + f'\n[ros2]\nnamespace = "bench"\ndomain_id = {DOMAIN}\n')
+        else:
+            program = (str(Path(__file__).with_name("ros2_in_daemon.py")), "bench", str(DOMAIN), str(1 if fifo else 0))
+        proc, notify = start_daemon(config, Path(tmp), args=["--realtime", str(fifo)] if fifo else [],
+                                    env={"CYCLONEDDS_URI": URI}, program=program)
+        folder = Path(tmp) / "ftsensord"
+        try:
+            queue: mp.Queue = mp.Queue()
+            stop_at = time.time() + SETTLE_S + seconds + 1
+            listeners = [mp.Process(target=zmq_listen, args=(f"ipc://{folder / 'wrench'}", stop_at, queue)),
+                         *(mp.Process(target=dds_listen, args=(f"rt/bench/{TOPIC}", r, stop_at, queue))
+                           for r in (False, True))]
+            for p in listeners:
+                p.start()
+            control = ControlClient(f"ipc://{folder / 'control'}", timeout_s=5)
+            time.sleep(SETTLE_S)
+            s0, cpu0, t0 = control.status(), cpu_seconds(proc.pid), time.time()
+            time.sleep(seconds)
+            s1, cpu1, t1 = control.status(), cpu_seconds(proc.pid), time.time()
+            receipts = dict(queue.get(timeout=60) for _ in listeners)
+            for p in listeners:
+                p.join()
+        finally:
+            stop(proc, notify)
+    cycles = s1["cycles"] - s0["cycles"]
+    return {"variant": variant, "window": (t0, t1), "cpu_us": (cpu1 - cpu0) / cycles * 1e6, "cycles": cycles,
+            "missed": s1["missed_cycles"] - s0["missed_cycles"], "jitter_p99": s1["jitter_us"]["p99"],
+            "publish_p99": s1["publish_us"]["p99"], "load": os.getloadavg()[0], "bridge": None,
+            "receipts": receipts}
+
+
 def pct(d: np.ndarray) -> str:
     return f"{len(d)} samples, p50 {np.percentile(d, 50):.0f} us, p99 {np.percentile(d, 99):.0f} us, max {d.max():.0f} us"
 
@@ -192,12 +234,23 @@ def main() -> int:
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--fifo", type=int, default=50, help="the daemon's --realtime (0: the normal priority)")
     parser.add_argument("--split", action="store_true", help="the bridge inside the benchmark, its hops timed")
+    parser.add_argument("--in-daemon", action="store_true",
+                        help="the bridge process against the bridge as a thread of the daemon (a daemon a segment)")
     args = parser.parse_args()
-    variants = ["none", "split", "split-rt"] if args.split else ["none", "zmq3", "bridge", "bridge-rt"]
+    variants = (["bridge-rt", "in-daemon"] if args.in_daemon else ["none", "split", "split-rt"] if args.split
+                else ["none", "zmq3", "bridge", "bridge-rt"])
     if not args.fifo:
-        variants = [v for v in variants if not v.endswith("-rt")]  # `run` gives no FIFO to the bridge then
+        variants = [v.removesuffix("-rt") if args.in_daemon else v for v in variants if args.in_daemon or not v.endswith("-rt")]
     print(f"load {os.getloadavg()[0]:.2f} at start; {args.rounds} rounds of {', '.join(variants)}, "
           f"{args.seconds:g} s each; daemon --realtime {args.fifo}; {TOPIC} at 100 Hz")
+    if args.in_daemon:
+        segments = [daemon_segment(v, args.seconds, args.fifo) for _ in range(args.rounds) for v in variants]
+        receipts: dict[str, list] = {}
+        for seg in segments:
+            for name, got in seg["receipts"].items():
+                receipts.setdefault(name, []).extend(got)
+        report(variants, segments, receipts)
+        return 0
     with tempfile.TemporaryDirectory() as tmp:
         config = packaged_config(Path(tmp) / "ftsensord.toml")
         config.write_text(config.read_text() + f'\n[ros2]\nnamespace = "bench"\ndomain_id = {DOMAIN}\n')
@@ -221,6 +274,11 @@ def main() -> int:
                 p.join()
         finally:
             stop(proc, notify)
+    report(variants, segments, receipts)
+    return 0
+
+
+def report(variants: list[str], segments: list[dict], receipts: dict[str, list]) -> None:
     for v in variants:
         mine = [s for s in segments if s["variant"] == v]
         print(f"{v}: daemon CPU {np.median([s['cpu_us'] for s in mine]):.0f} us a cycle (median of segments), "
@@ -234,7 +292,6 @@ def main() -> int:
         if v.startswith("split"):
             hops(mine, receipts)
     print(f"load {os.getloadavg()[0]:.2f} at end")
-    return 0
 
 
 if __name__ == "__main__":
