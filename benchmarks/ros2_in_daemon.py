@@ -1,8 +1,9 @@
 """`ftsensord run` with the ROS 2 bridge as a thread of the daemon's own process: the
 alternative to the bridge process, for benchmarks/ros2_latency.py ``--in-daemon`` (measured,
-not shipped). The thread is the bridge's own `Bridge` (same code; REALTIME its thread's SCHED_FIFO
-priority, 1 as ``run`` gives the bridge process under a real-time daemon, 0: none), fed by ZeroMQ from the same process; it shares the
-daemon's GIL, allocator and garbage collector, which is what is measured.
+not shipped). The thread is the bridge's own `Bridge` (same code; REALTIME its SCHED_FIFO
+priority, 1 as ``run`` gives the bridge process under a real-time daemon, 0: none), fed by
+ZeroMQ from the same process; it shares the daemon's GIL, allocator and garbage collector,
+which is what is measured.
 
     python benchmarks/ros2_in_daemon.py NAMESPACE DOMAIN REALTIME run --config FILE [--realtime 50]
 """

@@ -208,7 +208,8 @@ def daemon_segment(variant: str, seconds: float, fifo: int) -> dict:
 
 
 def pct(d: np.ndarray) -> str:
-    return f"{len(d)} samples, p50 {np.percentile(d, 50):.0f} us, p99 {np.percentile(d, 99):.0f} us, max {d.max():.0f} us"
+    p50, p99 = np.percentile(d, [50, 99])
+    return f"{len(d)} samples, p50 {p50:.0f} us, p99 {p99:.0f} us, max {d.max():.0f} us"
 
 
 def hops(segments: list[dict], receipts: dict[str, list]) -> None:
@@ -239,8 +240,10 @@ def main() -> int:
     args = parser.parse_args()
     variants = (["bridge-rt", "in-daemon"] if args.in_daemon else ["none", "split", "split-rt"] if args.split
                 else ["none", "zmq3", "bridge", "bridge-rt"])
-    if not args.fifo:
-        variants = [v.removesuffix("-rt") if args.in_daemon else v for v in variants if args.in_daemon or not v.endswith("-rt")]
+    if not args.fifo and args.in_daemon:
+        variants = ["bridge", "in-daemon"]  # both at the normal priority, as `run` starts them then
+    elif not args.fifo:
+        variants = [v for v in variants if not v.endswith("-rt")]  # `run` gives no FIFO to the bridge then
     print(f"load {os.getloadavg()[0]:.2f} at start; {args.rounds} rounds of {', '.join(variants)}, "
           f"{args.seconds:g} s each; daemon --realtime {args.fifo}; {TOPIC} at 100 Hz")
     if args.in_daemon:
@@ -283,7 +286,8 @@ def report(variants: list[str], segments: list[dict], receipts: dict[str, list])
         mine = [s for s in segments if s["variant"] == v]
         print(f"{v}: daemon CPU {np.median([s['cpu_us'] for s in mine]):.0f} us a cycle (median of segments), "
               f"missed {sum(s['missed'] for s in mine)} of {sum(s['cycles'] for s in mine)} cycles; start jitter "
-              f"p99 {max(s['jitter_p99'] for s in mine):.0f} us, publish p99 {max(s['publish_p99'] for s in mine):.0f} us "
+              f"p99 {max(s['jitter_p99'] for s in mine):.0f} us, "
+              f"publish p99 {max(s['publish_p99'] for s in mine):.0f} us "
               f"(worst segment); load {min(s['load'] for s in mine):.2f}-{max(s['load'] for s in mine):.2f}")
         for name, got in receipts.items():
             d = np.array([r - s for s, r in got if any(m["window"][0] <= s < m["window"][1] for m in mine)]) * 1e6

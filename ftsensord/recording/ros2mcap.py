@@ -86,7 +86,8 @@ def encode_wrench(t_wall: float, frame_id: str, values: object) -> bytes:
 
 
 def encode_field(t_wall: float, frame_id: str, b: object) -> bytes:
-    return Stamped(frame_id).message(t_wall, struct.pack("<12d", *(float(v) for v in b), *([0.0] * 9)))  # type: ignore[attr-defined]
+    values = [float(v) for v in b] + [0.0] * 9  # type: ignore[attr-defined]  # the field, then its covariance
+    return Stamped(frame_id).message(t_wall, struct.pack("<12d", *values))
 
 
 def status_body(seq: int, flags: int, missed: int) -> bytes:

@@ -6,10 +6,10 @@ the topics some reader reads: the main thread does nothing else but, between two
 ask DDS which topics have readers and, once a second, turn the daemon's status into
 ``/diagnostics``. Under a real-time daemon `run` gives this thread alone (and its ZeroMQ
 I/O thread) SCHED_FIFO 1 (``--realtime``): on a busy host a sample then waits for the loop,
-never for other processes (docs/performance.md, "The ROS 2 bridge"). A second thread waits on DDS's inputs (orientations, tare
-requests). An
-orientation from ROS goes to the daemon's orientation socket as any client's would
-(`client.OrientationPublisher`); a tare to its control socket (`client.ControlClient`).
+never for other processes (docs/performance.md, "The ROS 2 bridge"). A second thread waits
+on DDS's inputs (orientations, tare requests). An orientation from ROS goes to the daemon's
+orientation socket as any client's would (`client.OrientationPublisher`); a tare to its
+control socket (`client.ControlClient`).
 `ftsensord run` starts this process when the configuration has a ``[ros2]`` table.
 """
 
@@ -225,7 +225,8 @@ def cmd_ros2(args: argparse.Namespace) -> int:
               + ", ".join(f"/{namespace}/{s}" for s in bridge.streams) + f", /diagnostics, /{namespace}/tare",
               flush=True)
         forwarded = bridge.run(args.seconds)
-    print(f"ftsensord ros2: {forwarded} samples forwarded, {bridge.node.write_errors} writes failed, {bridge.bad_frames} bad frames, "
+    print(f"ftsensord ros2: {forwarded} samples forwarded, {bridge.node.write_errors} writes failed, "
+          f"{bridge.bad_frames} bad frames, "
           f"inputs {bridge.node.received}", file=sys.stderr)
     return 0
 
