@@ -38,10 +38,12 @@ def packaged_config(path: Path, **values: str) -> Path:
 
 
 def start_daemon(config: Path, folder: Path, *, fifo: int = 0, nice: int = 0, args: Sequence[str] = (),
-                 env: dict[str, str] | None = None, **popen: Any) -> tuple[subprocess.Popen, socket.socket]:
+                 env: dict[str, str] | None = None, program: Sequence[str] = ("-m", "ftsensord"),
+                 **popen: Any) -> tuple[subprocess.Popen, socket.socket]:
     """`ftsensord run --config CONFIG [ARGS]` with its runtime folder in ``folder``, SCHED_FIFO
     at ``fifo`` (0: not; as `--realtime` asks it, from the start) or at ``nice``;
-    ``env``: more variables; ``popen``: the output's routing (subprocess.Popen's keywords,
+    ``env``: more variables; ``program``: what Python runs (a script that wraps ftsensord's
+    command line, benchmarks/ros2_in_daemon.py); ``popen``: the output's routing (subprocess.Popen's keywords,
     default: discarded). Returned with its notify socket (the caller's from then on:
     WATCHDOG=1 pings arrive there) once it said READY=1; `stop` ends both. The tests start
     the daemon with this too (tests/conftest.py)."""
@@ -53,7 +55,7 @@ def start_daemon(config: Path, folder: Path, *, fifo: int = 0, nice: int = 0, ar
     # chrt: the daemon's threads inherit the policy, as under the unit.
     prefix = (["chrt", "-f", str(fifo)] if fifo else []) + (["nice", "-n", str(nice)] if nice else [])
     popen = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, **popen}
-    proc = subprocess.Popen([*prefix, sys.executable, "-m", "ftsensord", "run", "--config", str(config), *args],
+    proc = subprocess.Popen([*prefix, sys.executable, *program, "run", "--config", str(config), *args],
                             env=full_env, text=True, **popen)
     try:
         while not notify.recv(4096).startswith(b"READY=1"):

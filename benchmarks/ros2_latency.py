@@ -1,16 +1,33 @@
-"""What the ROS 2 bridge adds: latency to a DDS subscriber against ZeroMQ's, and the daemon's CPU.
+"""What the ROS 2 bridge adds: latency from a sample's stamp to a DDS subscriber, against ZeroMQ's.
 
-Starts `ftsensord run` on the packaged simulated configuration (16 chips in real time,
-100 Hz) twice: without ``[ros2]``, then with it (`run` starts `ftsensord ros2`). In each
-run, one ZeroMQ subscriber and (with ros2) ``--dds`` DDS subscribers (Cyclone DDS, best
-effort and reliable alternately, each its own process, as separate ROS 2 nodes would be)
-read ``wrench/sensor1`` for ``--seconds``. A receipt's delay is the subscriber's wall clock
-at receipt minus the sample's stamp (``t_wall``, the header.stamp on DDS): one host, one
-clock. The daemon's CPU (its own process; the bridge is another) per cycle and its missed
-cycles, its start jitter and its publish time (p99 of the last 1000 cycles) come from /proc
-and its status. DDS stays on the loopback interface (CYCLONEDDS_URI).
+One daemon (`ftsensord run`, the packaged simulated configuration: 16 chips in real time,
+100 Hz, five wrench streams; ``--realtime 50`` as the systemd unit runs it, ``--fifo 0``: at
+the normal priority) runs throughout, and three subscribers to ``wrench/sensor1``, each a
+process of its own: ZeroMQ, DDS best effort (SensorDataQoS) and DDS reliable (ROS's default
+QoS). Each is the minimal loop doing the same work: wait (ZeroMQ's poll; a DDS waitset, as
+rclcpp's executor waits), take the message's bytes, unpack the stamp from them, read the
+clock; no message object is built on either side (a ROS 2 node deserializes in C, not in
+Python). The variants run in segments of ``--seconds``, interleaved in ``--rounds`` rounds,
+so the host's load falls on each alike:
 
-    python benchmarks/ros2_latency.py --seconds 30 [--dds 2]
+- ``none``: no bridge (ZeroMQ's own figure);
+- ``zmq3``: no bridge, two more ZeroMQ subscribers: three processes woken by each sample, as
+  with the bridge and its two DDS subscribers (the share of the subscribers' own contention);
+- ``bridge``: ``ftsensord ros2 --config`` as `run` starts it under a daemon at the normal priority;
+- ``bridge-rt``: the same with ``--realtime 1`` (its forwarding thread SCHED_FIFO 1), as
+  `run` starts it under a real-time daemon.
+
+A receipt's delay is the subscriber's wall clock minus the sample's stamp (``t_wall``,
+DDS's header.stamp): one host, one clock. Per segment, from the daemon: its CPU per cycle
+(/proc), its start jitter and publish time p99 (`status`, the last 1000 cycles), missed
+cycles. ``--split`` runs the bridge inside this benchmark instead (the same `Bridge`, with
+clocks read where a frame arrives and around its DDS write) and breaks the DDS path into
+hops. ``--in-daemon`` sets the bridge process as `run` starts it against the same `Bridge`
+in a thread of the daemon's own process (benchmarks/ros2_in_daemon.py), a daemon started
+for each segment: the latency, and the loop's jitter and publish time each puts in.
+DDS stays on the loopback interface (CYCLONEDDS_URI).
+
+    python benchmarks/ros2_latency.py --seconds 10 --rounds 3 [--fifo 50] [--split | --in-daemon]
 """
 
 from __future__ import annotations
@@ -18,41 +35,51 @@ from __future__ import annotations
 import argparse
 import multiprocessing as mp
 import os
+import struct
+import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+import zmq
 
-from ftsensord.client import ControlClient, Subscriber
+from ftsensord.client import ControlClient
+from ftsensord.service import wire
+from ftsensord.service.ros2conf import bridge_command
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from launch import cpu_seconds, packaged_config, start_daemon, stop
 
-SETTLE_S = 2.0  # the bridge up, discovery done, the first samples through before counting
+SETTLE_S = 3.0  # a bridge started (imports, participant), discovered, its first samples through
 DOMAIN = 200 + os.getpid() % 30  # 200-229: clear of ROS's default 0 and of the tests' 100-199
 URI = ("<CycloneDDS><Domain Id='any'><General><Interfaces><NetworkInterface address='127.0.0.1'/></Interfaces>"
        "<AllowMulticast>false</AllowMulticast></General><Discovery><ParticipantIndex>auto</ParticipantIndex>"
        "<MaxAutoParticipantIndex>30</MaxAutoParticipantIndex><Peers><Peer address='127.0.0.1'/></Peers>"
        "</Discovery></Domain></CycloneDDS>")
+TOPIC = "wrench/sensor1"
+T_WALL = struct.Struct("<d")
+T_WALL_AT = struct.calcsize(wire.HEADER.format[:7])  # the header's t_wall: after "<HBBIQd" (magic ... t_mono)
+CDR_STAMP = struct.Struct("<iI")  # header.stamp, right after CDR's 4-byte encapsulation
 
 
-def zmq_listen(endpoint: str, seconds: float, out: mp.Queue) -> None:
-    delays = []
-    with Subscriber(endpoint, ["wrench/sensor1"]) as sub:
-        start = time.monotonic()
-        while time.monotonic() < start + SETTLE_S + seconds:
-            s = sub.receive(timeout_s=0.1)
-            t = time.time()
-            if s is not None and time.monotonic() - start >= SETTLE_S:
-                delays.append(t - s.t_wall)
-    out.put(("zmq", delays))
+def zmq_listen(endpoint: str, stop_at: float, out: mp.Queue) -> None:
+    sock = zmq.Context().socket(zmq.SUB)
+    sock.setsockopt(zmq.SUBSCRIBE, TOPIC.encode() + b"\0")
+    sock.connect(endpoint)
+    got, offset = [], len(TOPIC) + 1 + T_WALL_AT
+    while time.time() < stop_at:
+        if sock.poll(100):
+            frame = sock.recv()
+            got.append((T_WALL.unpack_from(frame, offset)[0], time.time()))
+    out.put(("zmq", got))
 
 
-def dds_listen(topic: str, reliable: bool, seconds: float, out: mp.Queue) -> None:
+def dds_listen(topic: str, reliable: bool, stop_at: float, out: mp.Queue) -> None:
     os.environ["CYCLONEDDS_URI"] = URI
-    from cyclonedds.core import Policy, Qos, ReadCondition, SampleState, ViewState, InstanceState, WaitSet
+    from cyclonedds._clayer import ddspy_take
+    from cyclonedds.core import InstanceState, Policy, Qos, ReadCondition, SampleState, ViewState, WaitSet
     from cyclonedds.domain import DomainParticipant
     from cyclonedds.sub import DataReader
     from cyclonedds.topic import Topic
@@ -61,102 +88,214 @@ def dds_listen(topic: str, reliable: bool, seconds: float, out: mp.Queue) -> Non
 
     dp = DomainParticipant(DOMAIN)
     qos = Qos(Policy.Reliability.Reliable(10**9) if reliable else Policy.Reliability.BestEffort,
-              Policy.History.KeepLast(10 if reliable else 5))
+              Policy.History.KeepLast(10 if reliable else 5))  # ROS's default profile; SensorDataQoS
     reader = DataReader(dp, Topic(dp, topic, WrenchStamped), qos)
-    ws = WaitSet(dp)
-    ws.attach(ReadCondition(reader, SampleState.Any | ViewState.Any | InstanceState.Any))
-    delays = []
-    start = time.monotonic()
-    while time.monotonic() < start + SETTLE_S + seconds:
-        ws.wait(100_000_000)
+    waitset = WaitSet(dp)
+    mask = SampleState.Any | ViewState.Any | InstanceState.Any
+    waitset.attach(ReadCondition(reader, mask))
+    got = []
+    while time.time() < stop_at:
+        waitset.wait(100_000_000)
+        for data, info in ddspy_take(reader._ref, mask, 16):  # the CDR bytes, as DataReader.take has them
+            if info.valid_data:
+                sec, nanosec = CDR_STAMP.unpack_from(data, 4)
+                got.append((sec + nanosec * 1e-9, time.time()))
+    out.put((f"dds {'reliable' if reliable else 'best effort'}", got))
+
+
+def split_bridge(folder: Path, realtime: int, stop_at: float, out: mp.Queue) -> None:
+    """The bridge's own `Bridge` in this process, the clock read as each sensor1 frame arrives
+    and around its DDS write; (stamp, arrived, write called, write returned) each."""
+    os.environ["CYCLONEDDS_URI"] = URI
+    from ftsensord.ros2.bridge import Bridge
+
+    control = ControlClient(f"ipc://{folder / 'control'}", timeout_s=5)
+    bridge = Bridge("bench", DOMAIN, f"ipc://{folder / 'wrench'}", control, control.status(), None,
+                    lambda: time.time() > stop_at, realtime)
+    got, arrived = [], [0.0]
+    forward, publish = bridge.forward, bridge.node.publish_wrench
+
+    def timed_forward(frame: bytes):
+        arrived[0] = time.time()
+        return forward(frame)
+
+    def timed_publish(topic: str, t_wall: float, values: bytes) -> None:
         t = time.time()
-        for m in reader.take(N=100):
-            if time.monotonic() - start >= SETTLE_S and m.sample_info.valid_data:
-                delays.append(t - (m.header.stamp.sec + m.header.stamp.nanosec * 1e-9))
-    out.put((f"dds {'reliable' if reliable else 'best effort'}", delays))
+        publish(topic, t_wall, values)
+        if topic == TOPIC:
+            got.append((t_wall, arrived[0], t, time.time()))
+
+    bridge.forward, bridge.node.publish_wrench = timed_forward, timed_publish
+    bridge.run()
+    out.put(("bridge", got))
 
 
-def run(seconds: float, dds: int, ros2: bool) -> dict:
+def segment(variant: str, config: Path, folder: Path, seconds: float, queue: mp.Queue,
+            control: ControlClient, pid: int) -> dict:
+    """One variant for ``seconds`` after `SETTLE_S`; the window counted and the daemon's figures."""
+    child = None
+    if variant in ("bridge", "bridge-rt"):
+        child = subprocess.Popen(bridge_command(config, 1 if variant == "bridge-rt" else 0),
+                                 env={**os.environ, "CYCLONEDDS_URI": URI, "XDG_RUNTIME_DIR": str(folder.parent)},
+                                 stdout=subprocess.DEVNULL)
+    elif variant.startswith("split"):
+        child = mp.Process(target=split_bridge, args=(folder, 1 if variant == "split-rt" else 0,
+                                                      time.time() + SETTLE_S + seconds, queue))
+        child.start()
+    elif variant == "zmq3":  # two more ZeroMQ subscribers: as many woken a sample as with the two DDS ones
+        child = [mp.Process(target=zmq_listen, args=(f"ipc://{folder / 'wrench'}", time.time() + SETTLE_S + seconds,
+                                                     mp.Queue())) for _ in range(2)]
+        for c in child:
+            c.start()
+    time.sleep(SETTLE_S)
+    s0, cpu0, t0 = control.status(), cpu_seconds(pid), time.time()
+    time.sleep(seconds)
+    s1, cpu1, t1 = control.status(), cpu_seconds(pid), time.time()
+    got = None
+    if isinstance(child, subprocess.Popen):
+        child.terminate()
+        child.wait(timeout=20)
+    elif isinstance(child, list):
+        for c in child:
+            c.kill()  # their receipts are not counted
+            c.join()
+    elif child is not None:
+        got = queue.get(timeout=60)[1]
+        child.join()
+    cycles = s1["cycles"] - s0["cycles"]
+    return {"variant": variant, "window": (t0, t1), "cpu_us": (cpu1 - cpu0) / cycles * 1e6, "cycles": cycles,
+            "missed": s1["missed_cycles"] - s0["missed_cycles"], "jitter_p99": s1["jitter_us"]["p99"],
+            "publish_p99": s1["publish_us"]["p99"], "load": os.getloadavg()[0], "bridge": got}
+
+
+def daemon_segment(variant: str, seconds: float, fifo: int) -> dict:
+    """--in-daemon: a daemon of its own for the segment, with the bridge as `run` starts it
+    (``bridge-rt``: its child process) or as a thread of its own process (``in-daemon``,
+    benchmarks/ros2_in_daemon.py); the listeners for the segment."""
     with tempfile.TemporaryDirectory() as tmp:
         config = packaged_config(Path(tmp) / "ftsensord.toml")
-        if ros2:
+        program: tuple[str, ...] = ("-m", "ftsensord")
+        if variant.startswith("bridge"):
             config.write_text(config.read_text() + f'\n[ros2]\nnamespace = "bench"\ndomain_id = {DOMAIN}\n')
-        proc, notify = start_daemon(config, Path(tmp), env={"CYCLONEDDS_URI": URI})
+        else:
+            program = (str(Path(__file__).with_name("ros2_in_daemon.py")), "bench", str(DOMAIN), str(1 if fifo else 0))
+        proc, notify = start_daemon(config, Path(tmp), args=["--realtime", str(fifo)] if fifo else [],
+                                    env={"CYCLONEDDS_URI": URI}, program=program)
         folder = Path(tmp) / "ftsensord"
         try:
             queue: mp.Queue = mp.Queue()
-            workers = [mp.Process(target=zmq_listen, args=(f"ipc://{folder / 'wrench'}", seconds, queue))]
-            if ros2:
-                workers += [mp.Process(target=dds_listen, args=("rt/bench/wrench/sensor1", i % 2 == 1, seconds, queue))
-                            for i in range(dds)]
-            for w in workers:
-                w.start()
-            time.sleep(SETTLE_S)
+            stop_at = time.time() + SETTLE_S + seconds + 1
+            listeners = [mp.Process(target=zmq_listen, args=(f"ipc://{folder / 'wrench'}", stop_at, queue)),
+                         *(mp.Process(target=dds_listen, args=(f"rt/bench/{TOPIC}", r, stop_at, queue))
+                           for r in (False, True))]
+            for p in listeners:
+                p.start()
             control = ControlClient(f"ipc://{folder / 'control'}", timeout_s=5)
-            s0, cpu0 = control.status(), cpu_seconds(proc.pid)
-            results = dict(queue.get(timeout=seconds + 60) for _ in workers)
-            s1, cpu1 = control.status(), cpu_seconds(proc.pid)
-            for w in workers:
-                w.join()
+            time.sleep(SETTLE_S)
+            s0, cpu0, t0 = control.status(), cpu_seconds(proc.pid), time.time()
+            time.sleep(seconds)
+            s1, cpu1, t1 = control.status(), cpu_seconds(proc.pid), time.time()
+            receipts = dict(queue.get(timeout=60) for _ in listeners)
+            for p in listeners:
+                p.join()
         finally:
             stop(proc, notify)
     cycles = s1["cycles"] - s0["cycles"]
-    return {"results": results, "cpu_us_per_cycle": (cpu1 - cpu0) / cycles * 1e6, "cycles": cycles,
-            "missed": s1["missed_cycles"] - s0["missed_cycles"], "rate": s1["achieved_rate_hz"],
-            "jitter_p99": s1["jitter_us"]["p99"], "publish_p99": s1["publish_us"]["p99"]}
+    return {"variant": variant, "window": (t0, t1), "cpu_us": (cpu1 - cpu0) / cycles * 1e6, "cycles": cycles,
+            "missed": s1["missed_cycles"] - s0["missed_cycles"], "jitter_p99": s1["jitter_us"]["p99"],
+            "publish_p99": s1["publish_us"]["p99"], "load": os.getloadavg()[0], "bridge": None,
+            "receipts": receipts}
 
 
-def in_loop_cost(streams: int = 5, cycles: int = 2000) -> float:
-    """What the daemon's loop would spend a cycle (us) if it wrote to DDS itself: ``streams``
-    wrench samples (the packaged configuration publishes five), each a WrenchStamped and its
-    status, through the bridge's own `Ros2Node.publish`, with no reader (the least it costs)."""
-    os.environ["CYCLONEDDS_URI"] = URI
-    from ftsensord.ros2.node import Ros2Node
-    from ftsensord.service import wire
+def pct(d: np.ndarray) -> str:
+    p50, p99 = np.percentile(d, [50, 99])
+    return f"{len(d)} samples, p50 {p50:.0f} us, p99 {p99:.0f} us, max {d.max():.0f} us"
 
-    names = [f"wrench/s{i}" for i in range(streams)]
-    node = Ros2Node("inloop", DOMAIN, {n: n for n in names}, [])
-    values = np.arange(6.0)
-    t0 = time.perf_counter()
-    for seq in range(cycles):
-        for n in names:
-            node.publish(wire.Sample(n, wire.KIND_WRENCH, seq, 0.0, time.time(), 0, values))
-    return (time.perf_counter() - t0) / cycles * 1e6
+
+def hops(segments: list[dict], receipts: dict[str, list]) -> None:
+    """--split: each sample's way in hops, and which hop its p99 belongs to."""
+    zmq_at = dict(receipts["zmq"])
+    dds_at = dict(receipts["dds reliable"])
+    rows = [(s, zmq_at[s], a, w0, w1, dds_at[s]) for seg in segments for s, a, w0, w1 in seg["bridge"]
+            if seg["window"][0] <= s < seg["window"][1] and s in zmq_at and s in dds_at]
+    t = np.array(rows)
+    names = ["stamp -> ZeroMQ subscriber", "stamp -> bridge has the frame", "frame -> write called",
+             "write (WrenchStamped to DDS)", "write returned -> DDS reliable subscriber", "stamp -> DDS subscriber"]
+    parts = [t[:, 1] - t[:, 0], t[:, 2] - t[:, 0], t[:, 3] - t[:, 2], t[:, 4] - t[:, 3], t[:, 5] - t[:, 4],
+             t[:, 5] - t[:, 0]]
+    top = parts[-1] >= np.percentile(parts[-1], 99)
+    for name, d in zip(names, parts):
+        d = d * 1e6
+        print(f"    {name}: {pct(d)}; mean in the slowest 1 % of DDS receipts {d[top].mean():.0f} us")
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seconds", type=float, default=30.0)
-    parser.add_argument("--dds", type=int, default=2, help="DDS subscribers (default 2)")
-    parser.add_argument("--rounds", type=int, default=3, help="runs without and with [ros2], alternated (default 3)")
+    parser.add_argument("--seconds", type=float, default=10.0, help="a segment's counted length (s)")
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--fifo", type=int, default=50, help="the daemon's --realtime (0: the normal priority)")
+    parser.add_argument("--split", action="store_true", help="the bridge inside the benchmark, its hops timed")
+    parser.add_argument("--in-daemon", action="store_true",
+                        help="the bridge process against the bridge as a thread of the daemon (a daemon a segment)")
     args = parser.parse_args()
-    print(f"load {os.getloadavg()[0]:.2f} at start; {args.rounds} rounds of {args.seconds:g} s a run, "
-          f"wrench/sensor1 at 100 Hz")
-    delays: dict[str, list[float]] = {}
-    cpu: dict[bool, list[float]] = {False: [], True: []}
-    for _ in range(args.rounds):
-        for ros2 in (False, True):
-            r = run(args.seconds, args.dds, ros2)
-            cpu[ros2].append(r["cpu_us_per_cycle"])
-            print(f"{'with' if ros2 else 'without'} [ros2]: daemon CPU {r['cpu_us_per_cycle']:.0f} us a cycle over "
-                  f"{r['cycles']} cycles, missed {r['missed']}, achieved {r['rate']:.2f} Hz; last 1000 cycles' "
-                  f"start jitter p99 {r['jitter_p99']:.0f} us, publish p99 {r['publish_p99']:.0f} us; load "
-                  f"{os.getloadavg()[0]:.2f}")
-            for name, d in r["results"].items():
-                d = np.array(d) * 1e6
-                delays.setdefault(f"{name}{' (with [ros2])' if ros2 and name == 'zmq' else ''}", []).extend(d)
-                print(f"  {name}: {len(d)} samples, stamp to receipt p50 {np.percentile(d, 50):.0f} us, "
-                      f"p99 {np.percentile(d, 99):.0f} us, max {d.max():.0f} us")
-    print("all rounds:")
-    for name, d in delays.items():
-        print(f"  {name}: {len(d)} samples, p50 {np.percentile(d, 50):.0f} us, p99 {np.percentile(d, 99):.0f} us, "
-              f"max {np.max(d):.0f} us")
-    print(f"  daemon CPU a cycle, median of the rounds: without {np.median(cpu[False]):.0f} us, "
-          f"with {np.median(cpu[True]):.0f} us")
-    print(f"DDS writes in the loop instead (5 wrench streams, WrenchStamped + status each, no reader): "
-          f"{in_loop_cost():.0f} us a cycle")
-    print(f"load {os.getloadavg()[0]:.2f} at end")
+    variants = (["bridge-rt", "in-daemon"] if args.in_daemon else ["none", "split", "split-rt"] if args.split
+                else ["none", "zmq3", "bridge", "bridge-rt"])
+    if not args.fifo and args.in_daemon:
+        variants = ["bridge", "in-daemon"]  # both at the normal priority, as `run` starts them then
+    elif not args.fifo:
+        variants = [v for v in variants if not v.endswith("-rt")]  # `run` gives no FIFO to the bridge then
+    print(f"load {os.getloadavg()[0]:.2f} at start; {args.rounds} rounds of {', '.join(variants)}, "
+          f"{args.seconds:g} s each; daemon --realtime {args.fifo}; {TOPIC} at 100 Hz")
+    if args.in_daemon:
+        segments = [daemon_segment(v, args.seconds, args.fifo) for _ in range(args.rounds) for v in variants]
+        receipts: dict[str, list] = {}
+        for seg in segments:
+            for name, got in seg["receipts"].items():
+                receipts.setdefault(name, []).extend(got)
+        report(variants, segments, receipts)
+        return 0
+    with tempfile.TemporaryDirectory() as tmp:
+        config = packaged_config(Path(tmp) / "ftsensord.toml")
+        config.write_text(config.read_text() + f'\n[ros2]\nnamespace = "bench"\ndomain_id = {DOMAIN}\n')
+        # [ros2] for the bridges' --config; the daemon's own is started from a copy without it
+        daemon_config = packaged_config(Path(tmp) / "daemon.toml")
+        proc, notify = start_daemon(daemon_config, Path(tmp), args=["--realtime", str(args.fifo)] if args.fifo else [])
+        folder = Path(tmp) / "ftsensord"
+        try:
+            queue: mp.Queue = mp.Queue()
+            stop_at = time.time() + 5 + args.rounds * len(variants) * (args.seconds + SETTLE_S + 3)
+            listeners = [mp.Process(target=zmq_listen, args=(f"ipc://{folder / 'wrench'}", stop_at, queue)),
+                         *(mp.Process(target=dds_listen, args=(f"rt/bench/{TOPIC}", r, stop_at, queue))
+                           for r in (False, True))]
+            for p in listeners:
+                p.start()
+            control = ControlClient(f"ipc://{folder / 'control'}", timeout_s=5)
+            segments = [segment(v, config, folder, args.seconds, queue, control, proc.pid)
+                        for _ in range(args.rounds) for v in variants]
+            receipts = dict(queue.get(timeout=stop_at - time.time() + 60) for _ in listeners)
+            for p in listeners:
+                p.join()
+        finally:
+            stop(proc, notify)
+    report(variants, segments, receipts)
     return 0
+
+
+def report(variants: list[str], segments: list[dict], receipts: dict[str, list]) -> None:
+    for v in variants:
+        mine = [s for s in segments if s["variant"] == v]
+        print(f"{v}: daemon CPU {np.median([s['cpu_us'] for s in mine]):.0f} us a cycle (median of segments), "
+              f"missed {sum(s['missed'] for s in mine)} of {sum(s['cycles'] for s in mine)} cycles; start jitter "
+              f"p99 {max(s['jitter_p99'] for s in mine):.0f} us, "
+              f"publish p99 {max(s['publish_p99'] for s in mine):.0f} us "
+              f"(worst segment); load {min(s['load'] for s in mine):.2f}-{max(s['load'] for s in mine):.2f}")
+        for name, got in receipts.items():
+            d = np.array([r - s for s, r in got if any(m["window"][0] <= s < m["window"][1] for m in mine)]) * 1e6
+            if len(d):
+                print(f"  {name}: {pct(d)}")
+        if v.startswith("split"):
+            hops(mine, receipts)
+    print(f"load {os.getloadavg()[0]:.2f} at end")
 
 
 if __name__ == "__main__":

@@ -14,11 +14,11 @@ import threading
 import time
 from dataclasses import asdict, dataclass
 
-from cyclonedds.builtin import BuiltinDataReader, BuiltinTopicDcpsPublication
+from cyclonedds.builtin import BuiltinDataReader, BuiltinTopicDcpsPublication, BuiltinTopicDcpsSubscription
 from cyclonedds.core import Policy, Qos
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.idl import IdlStruct
-from cyclonedds.idl.types import array, byte, float64, int32, int64, sequence, uint8, uint32, uint64
+from cyclonedds.idl.types import array, bounded_str, byte, float64, int32, int64, sequence, uint8, uint32, uint64
 from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
@@ -129,6 +129,25 @@ class SampleStatus(IdlStruct, typename="ftsensord_msgs::msg::dds_::SampleStatus_
     missed: uint32
 
 
+@dataclass
+class Gid(IdlStruct, typename="rmw_dds_common::msg::dds_::Gid_"):
+    data: array[uint8, 16]  # rmw_dds_common/msg/Gid (Iron, Jazzy): char[16] data; one byte each on the wire
+
+
+@dataclass
+class NodeEntitiesInfo(IdlStruct, typename="rmw_dds_common::msg::dds_::NodeEntitiesInfo_"):
+    node_namespace: bounded_str[256]  # rmw_dds_common/msg/NodeEntitiesInfo: string<=256 node_namespace,
+    node_name: bounded_str[256]  # string<=256 node_name, Gid[] reader_gid_seq, Gid[] writer_gid_seq
+    reader_gid_seq: sequence[Gid]
+    writer_gid_seq: sequence[Gid]
+
+
+@dataclass
+class ParticipantEntitiesInfo(IdlStruct, typename="rmw_dds_common::msg::dds_::ParticipantEntitiesInfo_"):
+    gid: Gid  # rmw_dds_common/msg/ParticipantEntitiesInfo: Gid gid, NodeEntitiesInfo[] node_entities_info_seq
+    node_entities_info_seq: sequence[NodeEntitiesInfo]
+
+
 TYPES = {"WrenchStamped": WrenchStamped, "SampleStatus": SampleStatus, "DiagnosticArray": DiagnosticArray, "QuaternionStamped": QuaternionStamped,
          "Imu": Imu, "Empty": Empty}
 
@@ -172,6 +191,31 @@ def read(dp, step: dict) -> None:
                                   "user_data": p.qos[Policy.Userdata].data.decode() if Policy.Userdata in p.qos else ""}
     for t, msgs in got.items():
         print(json.dumps({"topic": t, "writer": seen.get(t), "messages": msgs}), flush=True)
+
+
+def nodes(dp, step: dict) -> None:
+    """The graph as rmw_cyclonedds reads it: ``ros_discovery_info`` (reliable, transient-local,
+    keep all: rmw_node.cpp), each participant's nodes with their endpoints' GIDs, beside the
+    GUIDs of the endpoints discovered on ``topics`` and of the participants that have them."""
+    qos = Qos(Policy.Reliability.Reliable(10**9), Policy.Durability.TransientLocal, Policy.History.KeepAll,
+              Policy.DataRepresentation(use_cdrv0_representation=True))
+    reader = DataReader(dp, Topic(dp, "ros_discovery_info", ParticipantEntitiesInfo), qos)
+    publications = BuiltinDataReader(dp, BuiltinTopicDcpsPublication)
+    subscriptions = BuiltinDataReader(dp, BuiltinTopicDcpsSubscription)
+    infos, endpoints = {}, {}
+    end = time.monotonic() + step.get("timeout_s", 20.0)
+    while time.monotonic() < end and not (infos and set(step["topics"]) <= set(endpoints)):
+        for m in reader.take(N=100):
+            infos[bytes(m.gid.data).hex()] = [
+                {"namespace": n.node_namespace, "name": n.node_name,
+                 "readers": [bytes(g.data).hex() for g in n.reader_gid_seq],
+                 "writers": [bytes(g.data).hex() for g in n.writer_gid_seq]} for n in m.node_entities_info_seq]
+        for e in [*publications.take(N=1000), *subscriptions.take(N=1000)]:
+            if e.topic_name in step["topics"]:
+                endpoints.setdefault(e.topic_name, []).append({"guid": e.key.bytes.hex(),
+                                                               "participant": e.participant_key.bytes.hex()})
+        time.sleep(0.05)
+    print(json.dumps({"participants": infos, "endpoints": endpoints}), flush=True)
 
 
 def publish(dp, step: dict) -> None:
@@ -240,7 +284,7 @@ def tare_topic(dp, step: dict) -> None:
 def main() -> int:
     dp = DomainParticipant(int(sys.argv[1]))
     for step in json.loads(sys.argv[2]):
-        {"read": read, "publish": publish, "trigger": call_trigger, "trigger-topic": tare_topic}[step["do"]](dp, step)
+        {"read": read, "nodes": nodes, "publish": publish, "trigger": call_trigger, "trigger-topic": tare_topic}[step["do"]](dp, step)
     return 0
 
 

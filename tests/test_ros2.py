@@ -89,7 +89,8 @@ def daemon(tmp_path_factory) -> Iterator[tuple[Path, StreamRecorder]]:
 
 def test_the_type_hashes_are_those_an_independent_implementation_computes():
     from ftsensord.ros2 import msgs
-    for cls in (msgs.WrenchStamped, msgs.DiagnosticArray, msgs.QuaternionStamped, msgs.Imu, msgs.Empty):
+    for cls in (msgs.WrenchStamped, msgs.DiagnosticArray, msgs.QuaternionStamped, msgs.Imu, msgs.Empty,
+                msgs.ParticipantEntitiesInfo):  # its Gid's char[16] and string<=256: FieldType ids of their own
         name = cls.__idl_typename__.replace("::dds_::", "::").rstrip("_").replace("::", "/")
         assert msgs.type_hash(cls) == rosbags_hash(name), name
 
@@ -138,6 +139,20 @@ def test_diagnostics_name_the_daemon_each_sensor_and_each_chip(daemon):
     values = {v["key"]: v["value"] for v in status[f"{NS}: sensor1"]["values"]}
     assert values["serial"] == "sim-sensor1" and values["chips_ok"] == "8 of 8"
     assert status[f"{NS}: sensor1 chip 0x0C"]["hardware_id"] == "MLX90393 0x0C"
+
+
+def test_ros2_node_list_finds_the_node_with_the_endpoints_discovery_finds(daemon):
+    wrenches = [f"rt/{NS}/{s}" for s in STREAMS]
+    (graph,) = peer({"do": "nodes", "topics": [*wrenches, f"rt/{NS}/tare", "rt/diagnostics"]})
+    endpoints = graph["endpoints"]
+    (bridge,) = {e["participant"] for t in wrenches for e in endpoints[t]}  # one participant has them all
+    (node,) = graph["participants"][bridge]  # its ros_discovery_info: one node
+    assert (node["namespace"], node["name"]) == (f"/{NS}", "ftsensord")
+    for topic in wrenches + ["rt/diagnostics"]:  # the node's writer GIDs are the writers' own GUIDs
+        assert [e["guid"] for e in endpoints[topic] if e["participant"] == bridge][0] in node["writers"], topic
+    (tare,) = [e["guid"] for e in endpoints[f"rt/{NS}/tare"] if e["participant"] == bridge]
+    assert tare in node["readers"] and tare not in node["writers"]
+    assert len(node["writers"]) == len(set(node["writers"])) >= 2 * len(STREAMS) + 2  # + statuses, diagnostics, tare reply
 
 
 def test_an_orientation_from_ros_reaches_the_gravity_compensation(daemon):
@@ -231,3 +246,44 @@ def process_state(pid: str) -> str:
         return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
     except FileNotFoundError:
         return "gone"
+
+
+@pytest.mark.parametrize("frame_id", ["", "a", "tip", "sensor1", "sensor1/chip0", "é_unicode"])
+def test_the_bridges_cdr_bytes_are_cyclones_own_serialization(frame_id):
+    from ftsensord.recording.ros2mcap import Stamped, stamp, status_body
+    from ftsensord.ros2 import msgs
+    t_wall, values = 1_764_100_000.123456789, [1.5, -2.25, 3e-3, -4e5, 5.0, float("nan")]
+    header = msgs.Header(msgs.Time(*stamp(t_wall)), frame_id)
+    wrench = msgs.WrenchStamped(header, msgs.Wrench(msgs.Vector3(*values[:3]), msgs.Vector3(*values[3:])))
+    # the frame's padding to the first float64 depends on the frame_id's length: each length is one case
+    assert Stamped(frame_id).message(t_wall, np.array(values).tobytes()) == wrench.serialize(use_version_2=False)
+    status = msgs.SampleStatus(header, 2**40 + 3, 0x41, 7)
+    assert Stamped(frame_id).message(t_wall, status_body(2**40 + 3, 0x41, 7)) == status.serialize(use_version_2=False)
+
+
+def can_be_realtime() -> bool:
+    return subprocess.run(["chrt", "-f", "1", "true"], capture_output=True).returncode == 0
+
+
+@pytest.mark.skipif(not can_be_realtime(), reason="SCHED_FIFO not allowed here (needs CAP_SYS_NICE or RLIMIT_RTPRIO)")
+def test_under_a_realtime_daemon_only_the_bridges_forwarding_is_realtime_below_the_loop(tmp_path):
+    config = write_config(tmp_path, extra=f'[ros2]\nnamespace = "{NS}_rt"\ndomain_id = {DOMAIN}\n')
+    proc, notify = start_daemon(config, tmp_path, env={"CYCLONEDDS_URI": URI}, args=["--realtime", "50"])
+    try:
+        (child,) = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()
+        end = time.monotonic() + 30  # the bridge's start: imports, the daemon's status, the node, then the raise
+        while time.monotonic() < end and os.sched_getscheduler(int(child)) != os.SCHED_FIFO:
+            time.sleep(0.1)
+        time.sleep(0.5)  # its ZeroMQ context made just after the raise
+        threads = {int(t): Path(f"/proc/{child}/task/{t}/comm").read_text().strip()
+                   for t in os.listdir(f"/proc/{child}/task")}
+        policy = {t: (os.sched_getscheduler(t), os.sched_getparam(t).sched_priority) for t in threads}
+        assert (os.sched_getscheduler(proc.pid), os.sched_getparam(proc.pid).sched_priority) == (os.SCHED_FIFO, 50)
+        assert policy[int(child)] == (os.SCHED_FIFO, 1), threads  # the forwarding (main) thread
+        assert any(policy[t] == (os.SCHED_FIFO, 1) for t, name in threads.items() if name.startswith("ZMQbg/IO"))
+        others = {name: policy[t] for t, name in threads.items() if t != int(child) and not name.startswith("ZMQbg")}
+        assert len(others) >= 3 and all(p == (os.SCHED_OTHER, 0) for p in others.values()), others  # DDS's, inputs
+    finally:
+        proc.terminate()
+        proc.wait(timeout=20)
+        notify.close()

@@ -53,26 +53,27 @@ SCHEMAS = {
 WRENCH, FLUX, STATUS = SCHEMAS
 
 
-class _Cdr:
-    """A CDR little-endian message: alignment counts from after the 4-byte encapsulation."""
+#: CDR's encapsulation header: plain little-endian CDR (XCDR1), no options.
+CDR_LE = b"\x00\x01\x00\x00"
+_TIME = struct.Struct("<iI")  # builtin_interfaces/Time: int32 sec, uint32 nanosec
+_WRENCH = struct.Struct("<6d")
+_STATUS = struct.Struct("<QII")  # SampleStatus after its header: uint64 seq, uint32 flags, uint32 missed
 
-    def __init__(self) -> None:
-        self.buf = bytearray(b"\x00\x01\x00\x00")  # CDR_LE, no options
 
-    def _align(self, n: int) -> None:
-        self.buf += b"\0" * (-(len(self.buf) - 4) % n)
+class Stamped:
+    """CDR (little-endian) of messages that start with a std_msgs/Header whose frame_id is
+    ``frame_id`` and go on with an 8-byte member (a float64 or uint64: every message here):
+    the header's bytes after the stamp are made once, padded so that member is 8-aligned
+    (CDR aligns from after the 4-byte encapsulation), and a message is a concatenation."""
 
-    def put(self, fmt: str, *values: float) -> None:
-        """Fields of one struct format whose fields are all of the first one's size (CDR aligns each)."""
-        self._align(struct.calcsize("<" + fmt.lstrip("0123456789")[0]))  # the first field's size
-        self.buf += struct.pack("<" + fmt, *values)
-
-    def header(self, t_wall: float, frame_id: str) -> None:
-        sec, nanosec = stamp(t_wall)
-        self.put("iI", sec, nanosec)
+    def __init__(self, frame_id: str):
         text = frame_id.encode() + b"\0"
-        self.put("I", len(text))
-        self.buf += text
+        string = struct.pack("<I", len(text)) + text
+        self.tail = string + b"\0" * (-(_TIME.size + len(string)) % 8)
+
+    def message(self, t_wall: float, body: bytes) -> bytes:
+        """The message stamped ``t_wall`` (UNIX s) whose members after the header are ``body``."""
+        return CDR_LE + _TIME.pack(*stamp(t_wall)) + self.tail + body
 
 
 def stamp(t_wall: float) -> tuple[int, int]:
@@ -81,26 +82,21 @@ def stamp(t_wall: float) -> tuple[int, int]:
 
 
 def encode_wrench(t_wall: float, frame_id: str, values: object) -> bytes:
-    m = _Cdr()
-    m.header(t_wall, frame_id)
-    m.put("6d", *(float(v) for v in values))  # type: ignore[attr-defined]
-    return bytes(m.buf)
+    return Stamped(frame_id).message(t_wall, _WRENCH.pack(*(float(v) for v in values)))  # type: ignore[attr-defined]
 
 
 def encode_field(t_wall: float, frame_id: str, b: object) -> bytes:
-    m = _Cdr()
-    m.header(t_wall, frame_id)
-    m.put("3d", *(float(v) for v in b))  # type: ignore[attr-defined]
-    m.put("9d", *([0.0] * 9))
-    return bytes(m.buf)
+    values = [float(v) for v in b] + [0.0] * 9  # type: ignore[attr-defined]  # the field, then its covariance
+    return Stamped(frame_id).message(t_wall, struct.pack("<12d", *values))
+
+
+def status_body(seq: int, flags: int, missed: int) -> bytes:
+    """A SampleStatus's members after its header (``missed`` held to its uint32)."""
+    return _STATUS.pack(seq, flags, min(missed, 2**32 - 1))
 
 
 def encode_status(t_wall: float, frame_id: str, seq: int, flags: int, missed: int) -> bytes:
-    m = _Cdr()
-    m.header(t_wall, frame_id)
-    m.put("Q", seq)
-    m.put("II", flags, min(missed, 2**32 - 1))
-    return bytes(m.buf)
+    return Stamped(frame_id).message(t_wall, status_body(seq, flags, missed))
 
 
 def ros2_messages(sample: wire.Sample, frame: str, last_seq: int | None) -> list[tuple[str, str, str, bytes]]:

@@ -1,12 +1,15 @@
 """`ftsensord ros2`: the daemon's wrench streams on the ROS 2 graph (`node`), fed by ZeroMQ.
 
 The bridge asks the daemon's status for its wrench streams and their frames (waiting for a
-daemon still starting), subscribes to them, and writes each sample to DDS as it arrives: the
-main thread does nothing else but, once a second between two cycles, turn the daemon's
-status into ``/diagnostics``. A second thread waits on DDS's inputs (orientations, tare
-requests). An
-orientation from ROS goes to the daemon's orientation socket as any client's would
-(`client.OrientationPublisher`); a tare to its control socket (`client.ControlClient`).
+daemon still starting), subscribes to them, and writes each sample to DDS as it arrives, on
+the topics some reader reads: the main thread does nothing else but, between two cycles,
+ask DDS which topics have readers and, once a second, turn the daemon's status into
+``/diagnostics``. Under a real-time daemon `run` gives this thread alone (and its ZeroMQ
+I/O thread) SCHED_FIFO 1 (``--realtime``): on a busy host a sample then waits for the loop,
+never for other processes (docs/performance.md, "The ROS 2 bridge"). A second thread waits
+on DDS's inputs (orientations, tare requests). An orientation from ROS goes to the daemon's
+orientation socket as any client's would (`client.OrientationPublisher`); a tare to its
+control socket (`client.ControlClient`).
 `ftsensord run` starts this process when the configuration has a ``[ros2]`` table.
 """
 
@@ -20,7 +23,8 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from ..errors import ConfigError, FtsensordError
+from ..errors import ConfigError, FtsensordError, WireError
+from ..service import wire
 
 if TYPE_CHECKING:
     from ..client import ControlClient
@@ -29,8 +33,15 @@ log = logging.getLogger("ftsensord.ros2")
 
 #: Diagnostics period (s): REP 107 and diagnostic_updater publish at about 1 Hz.
 DIAGNOSTICS_S = 1.0
+#: How often the bridge asks DDS which topics have readers (s): a new subscriber's first
+#: sample comes at most this late after discovery matched it.
+READERS_S = 0.2
 #: How long the input thread waits in DDS before looking at `done` (s).
 INPUT_WAIT_S = 0.2
+#: How long the forwarding thread waits for a sample before looking at `stopped` (ms).
+POLL_MS = 200
+#: A wrench's values on the wire: six float64.
+WRENCH_BYTES = 6 * 8
 #: Samples a tare from ROS averages (the Trigger request carries none): 1 s at 100 Hz, as `ftsensord tare`.
 TARE_SAMPLES = 100
 
@@ -59,12 +70,12 @@ class Bridge:
     domain ``domain_id``, until ``stopped()``."""
 
     def __init__(self, namespace: str, domain_id: int, endpoint: str, control: ControlClient, status: dict[str, Any],
-                 orientation: str | None, stopped: Callable[[], bool]):
+                 orientation: str | None, stopped: Callable[[], bool], realtime: int = 0):
         from ..client import OrientationPublisher
         from ..recording.ros2mcap import frames_from_status
         from .node import Ros2Node
 
-        self.stopped = stopped
+        self.stopped, self.realtime = stopped, realtime
         self.done = threading.Event()  # `run` has ended: the input thread ends too
         self.control = control
         self.streams = [s for s in status["streams"] if s.startswith("wrench/")]
@@ -74,6 +85,7 @@ class Bridge:
         self.endpoint, self.namespace = endpoint, namespace
         self.node = Ros2Node(namespace, domain_id, frames, oriented if orientation else [])
         self.flags: dict[str, int] = {}  # each sensor's latest wrench's flags, for the diagnostics
+        self.bad_frames = 0
 
     def on_orientation(self, frame: str, q_xyzw: list[float], t: float) -> None:
         if self.orientation is not None:
@@ -111,40 +123,80 @@ class Bridge:
 
     def run(self, seconds: float | None = None) -> int:
         """Forward samples until ``stopped()`` (or ``seconds``); the number forwarded."""
-        from ..client import Subscriber
-
         thread = threading.Thread(target=self.inputs, daemon=True)
         thread.start()
         end = None if seconds is None else time.monotonic() + seconds
-        forwarded, due = 0, time.monotonic()
-        with Subscriber(self.endpoint, self.streams) as sub:
+        forwarded, due, ask = 0, time.monotonic(), time.monotonic()
+        if self.realtime:  # this thread only: DDS's threads (made with the node) stay at the normal policy
+            from ..service.realtime import request_fifo
+
+            refused = request_fifo(self.realtime).refused
+            if refused:
+                log.warning("SCHED_FIFO %d for the forwarding refused (it runs at the normal priority): %s",
+                            self.realtime, refused)
+        sock = self.subscribe()
+        try:
             while not self.stopped() and (end is None or time.monotonic() < end):
-                sample = sub.receive(timeout_s=0.2)
                 # A cycle's streams come together: their wrenches first, as each arrives, then
                 # their statuses, so no wrench waits behind another stream's status.
                 cycle = []
-                while sample is not None:
-                    if self.node.publish_wrench(sample):
+                while sock.poll(0 if cycle else POLL_MS):
+                    sample = self.forward(sock.recv())
+                    if sample is not None:
                         cycle.append(sample)
-                    sample = sub.receive(timeout_s=0)
-                for sample in cycle:
-                    self.node.publish_status(sample)
-                    name = sample.topic.partition("/")[2]
+                for topic, t_wall, seq, flags in cycle:
+                    self.node.publish_status(topic, t_wall, seq, flags)
+                    name = topic.partition("/")[2]
                     if "/" not in name:  # a sensor's own stream (or the tip's), not a compensated one
-                        self.flags[name] = sample.flags
+                        self.flags[name] = flags
                 forwarded += len(cycle)
+                if time.monotonic() >= ask:  # between cycles, as the diagnostics
+                    ask = time.monotonic() + READERS_S
+                    self.node.find_readers()
                 if time.monotonic() >= due:  # right after a cycle's samples: the next is a period away
                     due = max(due + DIAGNOSTICS_S, time.monotonic())
                     self.diagnose()
+        finally:
+            sock.close(linger=0)
+            sock.context.term()
         self.done.set()
         thread.join(timeout=5)
         return forwarded
+
+    def subscribe(self) -> Any:
+        """A SUB socket on the wrench streams; its own context, so ZeroMQ's I/O thread is made now,
+        by the forwarding thread (at its scheduling policy), not by the control client's."""
+        import zmq
+
+        from ..client import QUEUE_HWM
+
+        sock = zmq.Context().socket(zmq.SUB)
+        sock.setsockopt(zmq.RCVHWM, QUEUE_HWM)
+        for stream in self.streams:
+            sock.setsockopt(zmq.SUBSCRIBE, stream.encode() + b"\0")  # the NUL: not its longer namesakes
+        sock.connect(self.endpoint)
+        return sock
+
+    def forward(self, frame: bytes) -> tuple[str, float, int, int] | None:
+        """A frame's wrench written to DDS at once; its (topic, t_wall, seq, flags) for the status."""
+        try:
+            topic, kind, flags, seq, _, t_wall, values = wire.unpack(frame)
+        except WireError as exc:
+            self.bad_frames += 1
+            if self.bad_frames == 1:
+                log.warning("a frame from %s is not a sample, dropped (and any more, counted): %s", self.endpoint, exc)
+            return None
+        if kind != wire.KIND_WRENCH or len(values) != WRENCH_BYTES:
+            return None
+        self.node.publish_wrench(topic, t_wall, values)
+        return topic, t_wall, seq, flags
 
 
 def cmd_ros2(args: argparse.Namespace) -> int:
     from ..client import ControlClient, default_endpoint
     from ..recording import StopOnSignals
     from ..service.config import load_config
+    from ..service.realtime import FIFO_PRIORITIES
     from ..service.ros2conf import Ros2Config, check_domain_id, default_domain_id, is_ros_name, needs_cyclonedds
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
@@ -159,6 +211,8 @@ def cmd_ros2(args: argparse.Namespace) -> int:
         raise ConfigError(f"--namespace: expected a ROS 2 name (letters, digits, _ and /), got {namespace!r}")
     domain_id = (check_domain_id("--domain-id", args.domain_id) if args.domain_id is not None
                  else ros2.domain_id if ros2 is not None else default_domain_id())
+    if args.realtime and args.realtime not in FIFO_PRIORITIES:
+        raise ConfigError(f"--realtime: expected a SCHED_FIFO priority from 1 to 99 (0: none), got {args.realtime}")
     needs_cyclonedds("ftsensord ros2")
     with StopOnSignals() as stopped:  # from the start: a signal while it waits for the daemon stops it too
         client = ControlClient(args.control or control, timeout_s=min(3.0, args.timeout))  # no request outlasts --timeout
@@ -166,12 +220,13 @@ def cmd_ros2(args: argparse.Namespace) -> int:
         if status is None:  # stopped before it was on the graph: nothing to undo
             return 130
         bridge = Bridge(namespace, domain_id, args.endpoint or endpoint, client, status,
-                        args.orientation or orientation, stopped.is_set)
+                        args.orientation or orientation, stopped.is_set, args.realtime)
         print(f"ftsensord: ROS 2 bridge on DDS domain {domain_id}: "
               + ", ".join(f"/{namespace}/{s}" for s in bridge.streams) + f", /diagnostics, /{namespace}/tare",
               flush=True)
         forwarded = bridge.run(args.seconds)
     print(f"ftsensord ros2: {forwarded} samples forwarded, {bridge.node.write_errors} writes failed, "
+          f"{bridge.bad_frames} bad frames, "
           f"inputs {bridge.node.received}", file=sys.stderr)
     return 0
 
@@ -190,5 +245,8 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--orientation", help="the daemon's orientation endpoint (default: the configuration's; "
                                          "none: orientations from ROS are not read)")
     p.add_argument("--seconds", type=float, help="stop after this long (default: until SIGTERM or Ctrl-C)")
+    p.add_argument("--realtime", type=int, default=0, metavar="PRIORITY",
+                   help="SCHED_FIFO priority of the forwarding thread (0: none; `run` gives 1 under a real-time "
+                        "daemon: below the loop, above normal processes)")
     p.add_argument("--timeout", type=float, default=30.0, help="how long to wait for the daemon at start (s)")
     p.set_defaults(func=cmd_ros2)

@@ -26,7 +26,7 @@ import typing
 from dataclasses import dataclass, field, fields
 
 from cyclonedds.idl import IdlStruct
-from cyclonedds.idl.types import array, byte, float64, int32, int64, sequence, uint8, uint32, uint64
+from cyclonedds.idl.types import array, bounded_str, byte, float64, int32, int64, sequence, uint8, uint32, uint64
 
 
 def _ros_name(cls: type) -> str:
@@ -146,14 +146,16 @@ class TriggerResponseWire(IdlStruct, typename="std_srvs::srv::dds_::Trigger_Resp
 
 #: type_description_interfaces/msg/FieldType's ids of the primitive types used here.
 _TYPE_IDS = {"int8": 2, "uint8": 3, "int16": 4, "uint16": 5, "int32": 6, "uint32": 7, "int64": 8, "uint64": 9,
-             "float32": 10, "float64": 11, "bool": 15, "byte": 16, "str": 17}
+             "float32": 10, "float64": 11, "char": 13, "bool": 15, "byte": 16, "str": 17}
+_BOUNDED_STRING = 21
 _NESTED = 1
 #: FieldType adds these to a type id for a fixed array, a bounded and an unbounded sequence.
 _ARRAY, _BOUNDED, _UNBOUNDED = 48, 96, 144
 
 
-def _field_type(hint: object) -> tuple[dict[str, object], type | None]:
-    """A field's FieldType (as a dict) and the nested class it names, if any."""
+def _field_type(hint: object, ros_type: str | None = None) -> tuple[dict[str, object], type | None]:
+    """A field's FieldType (as a dict) and the nested class it names, if any; ``ros_type``: the
+    .msg's primitive where the class's differs (`Gid`)."""
     capacity, offset = 0, 0
     args = typing.get_args(hint)
     if args and hasattr(args[1], "subtype"):  # array[...] or sequence[...]
@@ -169,7 +171,10 @@ def _field_type(hint: object) -> tuple[dict[str, object], type | None]:
     if isinstance(hint, type) and issubclass(hint, IdlStruct):
         return ({"type_id": _NESTED + offset, "capacity": capacity, "string_capacity": 0,
                  "nested_type_name": _ros_name(hint)}, hint)
-    name = args[1] if args else hint.__name__  # type: ignore[union-attr]
+    if args and isinstance(args[1], bounded_str):  # string<=N
+        return {"type_id": _BOUNDED_STRING + offset, "capacity": capacity, "string_capacity": args[1].max_length,
+                "nested_type_name": ""}, None
+    name = ros_type or (args[1] if args else hint.__name__)  # type: ignore[union-attr]
     return {"type_id": _TYPE_IDS[name] + offset, "capacity": capacity, "string_capacity": 0,
             "nested_type_name": ""}, None
 
@@ -178,7 +183,7 @@ def _describe(cls: type) -> tuple[dict[str, object], list[type]]:
     hints = typing.get_type_hints(cls, include_extras=True)
     out, nested = [], []
     for f in fields(cls):
-        ftype, inner = _field_type(hints[f.name])
+        ftype, inner = _field_type(hints[f.name], getattr(cls, "ROS_TYPES", {}).get(f.name))
         out.append({"name": f.name, "type": ftype})
         if inner is not None:
             nested.append(inner)
@@ -211,3 +216,28 @@ class SampleStatus(IdlStruct, typename="ftsensord_msgs::msg::dds_::SampleStatus_
     seq: uint64 = 0
     flags: uint32 = 0
     missed: uint32 = 0
+
+
+@dataclass
+class Gid(IdlStruct, typename="rmw_dds_common::msg::dds_::Gid_"):
+    """rmw_dds_common/msg/Gid since Iron: ``char[16] data``, a DDS GUID's 16 bytes (Humble's is
+    char[24]). A char is one byte on the wire; uint8 here (the binding's char takes 0-127 only),
+    hashed as the .msg's char."""
+    ROS_TYPES = {"data": "char"}  # not annotated: a class attribute, no IDL member
+    data: array[uint8, 16] = field(default_factory=lambda: [0] * 16)
+
+
+@dataclass
+class NodeEntitiesInfo(IdlStruct, typename="rmw_dds_common::msg::dds_::NodeEntitiesInfo_"):
+    node_namespace: bounded_str[256] = "/"
+    node_name: bounded_str[256] = ""
+    reader_gid_seq: sequence[Gid] = field(default_factory=list)
+    writer_gid_seq: sequence[Gid] = field(default_factory=list)
+
+
+@dataclass
+class ParticipantEntitiesInfo(IdlStruct, typename="rmw_dds_common::msg::dds_::ParticipantEntitiesInfo_"):
+    """What every ROS 2 participant says on ``ros_discovery_info``: its GID and its nodes'
+    names and endpoints' GIDs (how ``ros2 node list`` finds nodes)."""
+    gid: Gid = field(default_factory=Gid)
+    node_entities_info_seq: sequence[NodeEntitiesInfo] = field(default_factory=list)

@@ -24,14 +24,16 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+# ddspy_write: the C call DataWriter.write ends in, given the CDR bytes (the extra pins the
+# binding's major version for it; tests/test_ros2.py checks the bytes against its serializer).
+from cyclonedds._clayer import ddspy_write
 from cyclonedds.core import DDSException, InstanceState, Policy, Qos, ReadCondition, SampleState, ViewState, WaitSet
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 
-from ..recording.ros2mcap import stamp
-from ..service import wire
+from ..recording.ros2mcap import Stamped, stamp, status_body
 from . import msgs
 from .diagnostics import Status
 
@@ -39,6 +41,11 @@ log = logging.getLogger("ftsensord.ros2")
 
 #: ROS 2's default publisher depth ("keep last 10"): what `ros2 topic echo` and rclcpp assume.
 DEPTH = 10
+#: The node's name; its namespace is the topics' (``ros2 node list``: /<namespace>/ftsensord).
+NODE_NAME = "ftsensord"
+#: The participant's USER_DATA as rmw_cyclonedds sets it (rmw_node.cpp, rmw_context_impl_s::init:
+#: ``"enclave=" + enclave + ";"``); ROS's graph takes a participant with it for a ROS one.
+ENCLAVE = b"enclave=/;"
 #: How long a tare reply waits for the client's reply reader to be matched (rmw_cyclonedds's own
 #: rmw_send_response waits 100 ms; a tare takes a second, so this is rarely spent).
 REPLY_MATCH_S = 1.0
@@ -48,9 +55,11 @@ def _stamp(t_wall: float) -> msgs.Time:
     return msgs.Time(*stamp(t_wall))  # as in MCAP recordings
 
 
-def writer_qos(cls: type, extra: str = "") -> Qos:
-    """Reliable, volatile, keep last 10, XCDR1; USER_DATA ``<extra>typehash=RIHS01_...;``."""
-    return Qos(Policy.Reliability.Reliable(0), Policy.Durability.Volatile, Policy.History.KeepLast(DEPTH),
+def writer_qos(cls: type, extra: str = "", latched: bool = False) -> Qos:
+    """Reliable, volatile, keep last 10, XCDR1; USER_DATA ``<extra>typehash=RIHS01_...;``.
+    ``latched``: transient-local, keep last 1 (``ros_discovery_info``'s, as the rmw's)."""
+    durability = Policy.Durability.TransientLocal if latched else Policy.Durability.Volatile
+    return Qos(Policy.Reliability.Reliable(0), durability, Policy.History.KeepLast(1 if latched else DEPTH),
                Policy.DataRepresentation(use_cdrv0_representation=True),
                Policy.Userdata(f"{extra}typehash={msgs.type_hash(cls)};".encode()))
 
@@ -69,10 +78,14 @@ class Ros2Node:
 
     def __init__(self, namespace: str, domain_id: int, frames: dict[str, str], orientation_frames: list[str]):
         self.namespace, self.frames = namespace, frames
-        self.participant = DomainParticipant(domain_id)
-        self.writers: dict[str, tuple[DataWriter, DataWriter]] = {}
+        self.participant = DomainParticipant(domain_id, qos=Qos(Policy.Userdata(ENCLAVE)))
+        self.writers: dict[str, tuple[DataWriter, DataWriter, Stamped]] = {}
         self.last_seq: dict[str, int] = {}
         self.write_errors = 0
+        # The sample writers some reader matches (`find_readers`): a sample on a topic nobody
+        # reads is not written (a volatile writer keeps nothing for a later reader), so the
+        # bridge's CPU is its subscribed topics', not every stream's.
+        self.read: set[DataWriter] = set()
         for stream in frames:
             self._writers(stream)
         self.diagnostics = self._writer("rt/diagnostics", msgs.DiagnosticArray)
@@ -96,48 +109,71 @@ class Ros2Node:
             self.waitset.attach(ReadCondition(reader, SampleState.Any | ViewState.Any | InstanceState.Any))
         self.received: dict[str, int] = {"orientation": 0, "imu_without_orientation": 0, "tare": 0}
         self.taring = threading.Lock()
+        self.discovery = DataWriter(self.participant, Topic(self.participant, "ros_discovery_info",
+                                                            msgs.ParticipantEntitiesInfo),
+                                    writer_qos(msgs.ParticipantEntitiesInfo, latched=True))
+        self.announce()
+
+    def announce(self) -> None:
+        """The node on ``ros_discovery_info``, as every rmw says which nodes a participant has:
+        ``rmw_dds_common/msg/ParticipantEntitiesInfo``, the participant's GID and, for the node,
+        its name, namespace and its readers' and writers' GIDs (rmw_cyclonedds_cpp's
+        convert_guid_to_gid: a GID is the entity's 16-byte DDS GUID, rmw_node.cpp). The topic
+        name is not prefixed (avoid_ros_namespace_conventions); reliable, transient-local, keep
+        last 1: a node that starts later still reads it. Written again when a stream's writers
+        are made later. Iron and later (their Gid is 16 bytes; Humble's 24)."""
+        def gid(entity: Any) -> msgs.Gid:
+            return msgs.Gid(list(entity.get_guid().bytes))
+
+        writers = [w for ws in self.writers.values() for w in ws[:2]] + [self.diagnostics, self.replies]
+        node = msgs.NodeEntitiesInfo("/" + self.namespace, NODE_NAME, [gid(r) for r, _, _ in self.inputs],
+                                     [gid(w) for w in writers])
+        self.discovery.write(msgs.ParticipantEntitiesInfo(gid(self.participant), [node]))
 
     def _writer(self, topic: str, cls: type) -> DataWriter:
         return DataWriter(self.participant, Topic(self.participant, topic, cls), writer_qos(cls))
 
+    def find_readers(self) -> None:
+        """Which sample writers a reader matches now. Asked (the bridge: five times a second),
+        not told by a matched listener: Cyclone runs a listener in its own thread, which
+        then waits for the GIL, and deleting an entity waits for its listeners."""
+        self.read = {w for ws in self.writers.values() for w in ws[:2]
+                     if w.get_publication_matched_status().current_count > 0}
+
     def _reader(self, topic: str, cls: type, reliable: bool = False) -> DataReader:
         return DataReader(self.participant, Topic(self.participant, topic, cls), reader_qos(cls, reliable))
 
-    def _writers(self, stream: str) -> tuple[DataWriter, DataWriter]:
+    def _writers(self, stream: str) -> tuple[DataWriter, DataWriter, Stamped]:
         if stream not in self.writers:
             topic = f"rt/{self.namespace}/{stream}"
             self.writers[stream] = (self._writer(topic, msgs.WrenchStamped),
-                                    self._writer(topic + "/status", msgs.SampleStatus))
+                                    self._writer(topic + "/status", msgs.SampleStatus),
+                                    Stamped(self.frames.get(stream, stream)))
+            if hasattr(self, "discovery"):  # a stream the daemon's status did not have at start
+                self.announce()
         return self.writers[stream]
 
-    def publish(self, sample: wire.Sample) -> None:
-        """A wrench sample as its WrenchStamped and SampleStatus (a flux sample is not published)."""
-        if self.publish_wrench(sample):
-            self.publish_status(sample)
+    # A sample's messages are written as CDR bytes made by `Stamped` (the wrench's values are
+    # the wire's own float64 bytes): IdlStruct objects and their Python serializer cost about
+    # 0.15 ms a message on a cold cache, `struct` a tenth (docs/performance.md, The ROS 2 bridge).
+    def publish_wrench(self, topic: str, t_wall: float, values: bytes) -> None:
+        """A wrench sample of stream ``topic`` as its WrenchStamped: ``values`` fx fy fz mx my mz
+        (N, Nm; 48 bytes, little-endian float64 as on the wire), stamped ``t_wall`` (UNIX s)."""
+        writer, _, cdr = self._writers(topic)
+        if writer in self.read:
+            self._write(writer, cdr.message(t_wall, values))
 
-    def publish_wrench(self, sample: wire.Sample) -> bool:
-        """A wrench sample's WrenchStamped; False for a flux sample (not published)."""
-        if sample.kind != wire.KIND_WRENCH:
-            return False
-        v = [float(x) for x in sample.values]
-        header = msgs.Header(_stamp(sample.t_wall), self.frames.get(sample.topic, sample.topic))
-        self._write(self._writers(sample.topic)[0],
-                    msgs.WrenchStamped(header, msgs.Wrench(msgs.Vector3(*v[:3]), msgs.Vector3(*v[3:6]))))
-        return True
-
-    def publish_status(self, sample: wire.Sample) -> None:
+    def publish_status(self, topic: str, t_wall: float, seq: int, flags: int) -> None:
         """A wrench sample's SampleStatus: seq, flags, seqs missed since the stream's previous."""
-        last = self.last_seq.get(sample.topic)
-        self.last_seq[sample.topic] = sample.seq
-        missed = sample.seq - last - 1 if last is not None and sample.seq > last + 1 else 0
-        header = msgs.Header(_stamp(sample.t_wall), self.frames.get(sample.topic, sample.topic))
-        self._write(self._writers(sample.topic)[1], msgs.SampleStatus(header, sample.seq, sample.flags,
-                                                                      min(missed, 2**32 - 1)))
+        last = self.last_seq.get(topic)
+        self.last_seq[topic] = seq
+        missed = seq - last - 1 if last is not None and seq > last + 1 else 0
+        _, writer, cdr = self._writers(topic)
+        if writer in self.read:
+            self._write(writer, cdr.message(t_wall, status_body(seq, flags, missed)))
 
-    def _write(self, writer: DataWriter, message: Any) -> None:
-        try:
-            writer.write(message)
-        except DDSException:
+    def _write(self, writer: DataWriter, cdr: bytes) -> None:
+        if ddspy_write(writer._ref, cdr) < 0:  # noqa: SLF001 (the writer's handle, as DataWriter.write passes it)
             self.write_errors += 1  # counted, said at exit: the next sample is the newer one anyway
 
     def publish_diagnostics(self, statuses: list[Status], t_wall: float) -> None:

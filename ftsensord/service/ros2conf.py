@@ -90,6 +90,11 @@ def needs_cyclonedds(who: str, hint: str = "") -> None:
         raise ConfigError(f"{who} needs Eclipse Cyclone DDS's Python binding: pip install 'ftsensord[ros2]'{hint}")
 
 
+#: The bridge's forwarding thread's SCHED_FIFO priority under a real-time daemon: the lowest,
+#: above every normal process (the subscribers it competes with on a busy host) and below the
+#: loop and anything else made real-time (docs/performance.md, "The ROS 2 bridge").
+BRIDGE_FIFO = 1
+
 #: prctl(2)'s PR_SET_PDEATHSIG: the signal the child gets when its parent dies.
 PR_SET_PDEATHSIG = 1
 
@@ -97,7 +102,8 @@ PR_SET_PDEATHSIG = 1
 def _child_setup() -> None:
     """In the child before exec: SIGTERM when the daemon dies (even by SIGKILL: no bridge left
     serving a dead daemon's name), and the default policy, not the real-time one the daemon
-    has (the unit's CPUSchedulingPolicy=fifo, or --realtime): DDS must never compete with the loop."""
+    has (``run --realtime``): DDS's own threads never compete with the loop (the forwarding
+    thread alone asks for `BRIDGE_FIFO`, `bridge_command`)."""
     try:
         ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
     except (OSError, AttributeError):
@@ -109,16 +115,31 @@ def _child_setup() -> None:
         pass  # not lowered: the bridge then runs at the daemon's policy; nothing else changes
 
 
+def bridge_command(config_path: Path, realtime: int) -> list[str]:
+    """``ftsensord ros2 --config CONFIG``, with ``--realtime PRIORITY`` for its forwarding thread
+    when ``realtime`` is not 0."""
+    return [sys.executable, "-m", "ftsensord", "ros2", "--config", str(config_path),
+            *(["--realtime", str(realtime)] if realtime else [])]
+
+
+def realtime_below_us() -> int:
+    """`BRIDGE_FIFO` when this process runs real-time above it, else 0 (the bridge at the
+    daemon's normal priority: never above the loop)."""
+    policy = os.sched_getscheduler(0)
+    rt = policy in (os.SCHED_FIFO, os.SCHED_RR) and os.sched_getparam(0).sched_priority > BRIDGE_FIFO
+    return BRIDGE_FIFO if rt else 0
+
+
 @contextlib.contextmanager
 def ros2_beside(ros2: Ros2Config | None, config_path: Path) -> Iterator[subprocess.Popen | None]:
     """With a ``[ros2]`` table, ``ftsensord ros2 --config CONFIG`` as a child of the daemon at
-    the default scheduling policy, stopped (SIGTERM) when the block ends; else nothing. Entered
-    before the daemon has a thread (preexec_fn runs between fork and exec)."""
+    the default scheduling policy (its forwarding thread at `BRIDGE_FIFO` under a real-time
+    daemon), stopped (SIGTERM) when the block ends; else nothing. Entered before the daemon has
+    a thread (preexec_fn runs between fork and exec)."""
     if ros2 is None:
         yield None
         return
-    child = subprocess.Popen([sys.executable, "-m", "ftsensord", "ros2", "--config", str(config_path)],
-                             preexec_fn=_child_setup)
+    child = subprocess.Popen(bridge_command(config_path, realtime_below_us()), preexec_fn=_child_setup)
     try:
         yield child
     finally:
