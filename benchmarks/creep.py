@@ -233,9 +233,7 @@ def main() -> int:
         n = dict(poses=40, validation_poses=12, samples=20, hold_s=20.0) if quick else \
             dict(poses=193, validation_poses=60, samples=100, hold_s=60.0)
         dataset = simulate_dataset(scene(True, tmp), "sensor1", "six-axis", seed=1, sweeps=False, **n)
-        # The nonlinear fit warns that the part departs from its model (the creep's flux): kept, as
-        # a user would with allow_poor_fit, to measure the stage behind that estimator too.
-        cal, result = calibrate(dataset, nonlinear=not quick, allow_poor_fit=True)
+        cal, result = calibrate(dataset, nonlinear=not quick)
         lines = report_header(quick, n, cal, result)
         settings = [Setting("default (burst, 100 Hz)", config.settings.osr, config.settings.dig_filt, 100.0)]
         if not quick:
