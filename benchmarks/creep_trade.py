@@ -185,8 +185,10 @@ def report(results: list, where: dict, quick: bool, elapsed: float) -> str:
              f"step on Fx held {where['step'][1] - where['step'][0]:.0f} s, the training-like profile. Each cell "
              "is without / with the compensation. Step: the largest |error| from 0.5 s after it of 0.25 s means "
              "and of single samples (% of the step; the issue asks 2 %), and the time to half the step (ms). "
+             "nan: the loop, under 1 Hz, has no sample in the second before the step to tare on. "
              "Sines: amplitude published / applied and lag (ms), where the loop takes 4 samples a period or more "
-             "(else -). Training: RMSE over the force axes (N).", "",
+             "(else -). Training: RMSE over the force axes (N). Samples flagged: those the stage keeps out of its "
+             "state (a chip missing, stale, saturated or left out, inconsistent, fallen back, invalid).", "",
              "| OSR, DIG_FILT | scheduler | rate (Hz) | samples (flagged) | step, means (%) | step, single (%) | "
              "to half (ms) | " + " | ".join(f"{f:g} Hz amplitude; lag (ms)" for f in freqs) + " | training (N) |",
              "|---|---|---|---|---|---|---|" + "---|" * len(freqs) + "---|"]
