@@ -75,18 +75,44 @@ NAN = float("nan")
 SILICONE = """## Moving loads: the silicone's memory
 
 Every row above holds its load still. A silicone that relaxes (docs/physics.md, "The
-silicone's memory") makes a moving load and a held one read differently:
-`python benchmarks/creep.py` measures it at three of these loops on a part with the default
-series, with and without the compensation (docs/silicone-figures.md, docs/silicone.png;
-summary in docs/accuracy.md). What decides the trade there:
+silicone's memory") makes a moving load and a held one read differently.
+`python benchmarks/creep_trade.py` runs every chip setting above under each scheduler at its
+computed bound (read-back off: burst reaches 214 Hz at OSR 0-2) on a part with the default
+series, linear estimator, one 74 s profile (2 N sines at 0.5-5 Hz, a 2 N step held 30 s,
+the training-like profile), with and without the compensation: 30 loops, 294 to 15680
+samples each, in [tradeoff-dynamic.md](tradeoff-dynamic.md) and
+[tradeoff-dynamic.png](tradeoff-dynamic.png); `python benchmarks/creep.py` adds the
+nonlinear estimator and averaging at the default loop (docs/silicone-figures.md). What
+decides the trade there:
 
-- The compensation, not the rate: without it a 2 N step held 30 s reads 12 % high and a sine
-  3 % low at every loop; with it 1.4-1.5 % and within 0.5 %.
-- A faster loop (OSR 0, DIG_FILT 2 at 140 Hz against OSR 1, DIG_FILT 2 at 100 Hz) wins lag:
-  4.7-4.9 ms against 4.9-5.2 ms on 0.5-5 Hz sines, 5 against 7 ms to half a step; its noise
-  costs the held step's single samples 6.7 % against 5.7 % (0.25 s means alike, 1.4-1.5 %).
-- Averaging wins noise (single samples of the held step 3.2 %) and loses the moving load:
-  4 readings add 15 ms of lag and take 5.9 % off a 5 Hz sine, the window's own response."""
+- The compensation first: without it every loop reads a moving load 16 % low and a held
+  step 11.5-15 % off (the calibration's K is the long-term stiffness); with it the sines
+  read 0.976-0.985 of the load under overlapped and burst wherever no sample is flagged (K A's
+  own -2 % on Fx) and the training RMSE halves (0.124-0.126 N to 0.061-0.066 N at 88-214 Hz).
+- A faster rate wins the moving load: the lag of a 2 Hz sine is 5-6 ms at 88-214 Hz, 8 ms at
+  44-59 Hz, 10 ms at 26-30 Hz and 35-90 ms under the naive scheduler's 8.8-22 Hz; the
+  training RMSE, compensated,
+  0.061-0.064 N at 88 Hz and over, 0.069-0.072 at 44-59 Hz, 0.087-0.090 at 26-30 Hz, 0.18 and
+  more below 10 Hz. The held step's 0.25 s means are best at the fastest loops too (1.70-1.82 %
+  under burst at 170-214 Hz and 1.74-1.93 % under overlapped at 96-116 Hz, within the issue's
+  2 %; 2.1-2.5 % under overlapped at 88, 105 and 138 Hz, the noisier samples; 2.4-3.8 % at
+  59 Hz and below, fewer samples a window).
+- Noise wins the held load sample by sample: a single sample of the held step is 7.8-8.1 %
+  off at OSR 0, DIG_FILT 2, 5.3-6.3 % at OSR 1-2, DIG_FILT 1-3, and 3.8-4.6 % at DIG_FILT
+  4-7, where the loop is 4-59 Hz.
+- The scheduler: naive is too slow for any moving load (1.8-22 Hz, the chips read one after
+  another) and has 9-97 % of its samples flagged `inconsistent` + `degraded`; overlapped and
+  burst do alike where both reach 88 Hz or more.
+- **Where the compensation fails: samples flagged while the load moves.** The consistency
+  check flags a moving load at the longest conversions (burst at OSR 2-3, DIG_FILT 4-7: the
+  5 Hz sine at 59 and 30 Hz, the 2 Hz one at 8 Hz, the 1 Hz one and the held step's creep at
+  4-8 Hz; 116-340 of those loops' samples) and
+  under the naive scheduler (its chips sampled up to a cycle apart). The stage keeps every
+  flagged sample out of its state (docs/calibration.md) and coasts on the last clean load,
+  so those stretches are not compensated: 0.76-0.86 of the sine's amplitude and 13-15 % off
+  the held step at 4-8 Hz, as without it.
+  The overlapped scheduler at the same settings has none flagged and is compensated
+  throughout."""
 
 
 @dataclass

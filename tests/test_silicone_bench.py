@@ -24,3 +24,18 @@ def test_quick_creep_benchmark_identifies_and_compensates():
     # Compensated, a held step's error is a fraction of what it is without (the full run's figures
     # are in the docs; the quick mode's hold is too short to identify the slow term well).
     assert step["memory, compensated"] < 0.5 * step["memory, not compensated"], text
+
+
+def test_quick_dynamic_trade_compensates_each_scheduler_and_leaves_out_what_it_cannot_sample():
+    env = {**os.environ, "PYTHONPATH": str(BENCHMARKS.parent)}
+    out = subprocess.run([sys.executable, str(BENCHMARKS / "creep_trade.py"), "--quick"], capture_output=True,
+                         text=True, timeout=600, env=env, cwd=BENCHMARKS.parent)
+    assert out.returncode == 0, out.stderr  # its check that the offline stage is the daemon's held too
+    rows = {scheduler: cells.split(" | ") for scheduler, cells in
+            re.findall(r"\| 3, 4 \| (naive|overlapped|burst) \| (.*) \|", out.stdout)}
+    assert set(rows) == {"naive", "overlapped", "burst"}, out.stdout
+    for scheduler in ("overlapped", "burst"):
+        without, with_ = (float(v) for v in rows[scheduler][2].split(" / "))  # the held step's means, %
+        assert with_ < 0.5 * without, rows[scheduler]
+    # The naive scheduler's 1.8 Hz loop takes under 4 samples a period of a 0.5 Hz sine: not judged.
+    assert rows["naive"][0].startswith("1.") and rows["naive"][5] == "-", rows["naive"]

@@ -132,6 +132,9 @@ class Dataset:
     rotation: np.ndarray | None = None  # (n, 3, 3) R_w0 per pose, world z up; None: not recorded
     temperature_c: np.ndarray | None = None  # (n,) the chips' mean die temperature per pose, degC; None: not recorded
     hold: Hold | None = None  # the step-and-hold segment; None: not recorded
+    #: (n, 3) s on one clock through the run: when each pose's load was applied, and its first
+    #: and last reading (the silicone's creep in each dwell, `creep.dwell_loads`); None: not recorded.
+    times_s: np.ndarray | None = None
     path: str = ""  # the file it was read from, for error messages (not saved)
 
     def __len__(self) -> int:
@@ -141,7 +144,8 @@ class Dataset:
         """The poses where ``mask`` is true (sweeps kept)."""
         picked = {name: getattr(self, name)[mask] for name in POSE_FIELDS}
         return replace(self, **picked, rotation=None if self.rotation is None else self.rotation[mask],
-                       temperature_c=None if self.temperature_c is None else self.temperature_c[mask])
+                       temperature_c=None if self.temperature_c is None else self.temperature_c[mask],
+                       times_s=None if self.times_s is None else self.times_s[mask])
 
     def temperature_range(self) -> tuple[float, float, float] | None:
         """The die temperature over the poses (degC): mean, lowest, highest; None: not recorded."""
@@ -165,6 +169,7 @@ class Dataset:
                 "flux_sem_t": self.flux_sem_t[k].tolist(), "saturated": self.saturated[k].tolist(),
                 **({} if self.rotation is None else {"rotation": self.rotation[k].tolist()}),
                 **({} if self.temperature_c is None else {"temperature_c": float(self.temperature_c[k])}),
+                **({} if self.times_s is None else {"times_s": self.times_s[k].tolist()}),
             } for k in range(len(self))],
             "position_sweeps": {f"0x{a:02X}": {"position_m": s.position_m.tolist(), "flux_t": s.flux_t.tolist()}
                                 for a, s in self.sweeps.items()},
@@ -188,10 +193,10 @@ class Dataset:
         addresses = parse_addresses(sensor, "addresses")
         chips = len(addresses)
         columns: dict[str, list] = {name: [] for name in POSE_FIELDS}
-        rotations, temperatures = [], []
+        rotations, temperatures, times = [], [], []
         rows = doc.tables("poses")
         for row in rows:
-            row.only((*POSE_FIELDS, "rotation", "temperature_c"))
+            row.only((*POSE_FIELDS, "rotation", "temperature_c", "times_s"))
             sat = row.get("saturated")
             if not isinstance(sat, list) or len(sat) != chips or not all(isinstance(v, bool) for v in sat):
                 raise row.fail("saturated", f"{chips} booleans, one per chip", sat)
@@ -219,6 +224,10 @@ class Dataset:
                                row.doc.get("temperature_c", "none"))
             if "temperature_c" in row.doc:  # an MLX90393's operating range, -20 to 85 degC
                 temperatures.append(row.number("temperature_c", low=-20.0, high=85.0, unit="degC"))
+            if ("times_s" in row.doc) != ("times_s" in rows[0].doc):
+                raise row.fail("times_s", "times in every pose or in none (as poses[0])", row.doc.get("times_s", "none"))
+            if "times_s" in row.doc:
+                times.append(_times(row, times[-1][0] if times else -np.inf))
         sweeps = {}
         if "position_sweeps" in doc.doc:
             table = doc.table("position_sweeps")
@@ -242,7 +251,18 @@ class Dataset:
                    serial=sensor.string("serial", ""), source=doc.string("source", ""), sweeps=sweeps,
                    rotation=np.array(rotations) if rotations else None,
                    temperature_c=np.array(temperatures) if temperatures else None, path=str(path),
+                   times_s=np.array(times) if times else None,
                    hold=Hold.parse(doc.table("hold"), 3 * chips) if "hold" in doc.doc else None)
+
+
+def _times(row: Table, last_applied: float) -> list[float]:
+    """A pose's [applied, first reading, last reading] (s): in that order, and applied no
+    earlier than the pose before's (the poses are kept in the order the robot made them)."""
+    t = row.numbers("times_s", 3, unit="s")
+    if not (last_applied <= t[0] <= t[1] <= t[2]):
+        raise row.fail("times_s", f"[applied, first reading, last reading] in that order, applied no earlier than "
+                       f"the pose before's ({last_applied} s)", t)
+    return t
 
 
 def _rotation(row: Table, gravity_dir: list[float]) -> np.ndarray:

@@ -34,7 +34,9 @@ def record_dataset(bus: Bus, addresses: Sequence[int], poses: Sequence[tuple[Cal
     adapter takes (the Pi's i2c-bcm2835 refuses a read that is not last).
 
     Each pose's full orientation is recorded in the dataset (``rotation``), as a
-    real robot knows it from its joints.
+    real robot knows it from its joints, and its times (``times_s``, the bus's clock from
+    the run's start): the load's, and its first and last reading's (the conversions' end):
+    what the silicone's creep during each dwell is computed from (`creep.dwell_loads`).
     """
     chips = [MLX90393(bus, a, sleep=bus.sleep) for a in addresses]
     for chip in chips:
@@ -46,16 +48,22 @@ def record_dataset(bus: Bus, addresses: Sequence[int], poses: Sequence[tuple[Cal
     mean, sem = np.zeros((n, 3 * c)), np.zeros((n, 3 * c))
     saturated = np.zeros((n, c), dtype=bool)
     temperature = np.zeros(n)
+    times = np.zeros((n, 3))
+    start = bus.monotonic()
     for k, (pose, _) in enumerate(poses):
         celsius = []
         if turn is not None:
             turn(pose.orientation())
         apply_load(pose.wrench())
+        times[k, 0] = bus.monotonic() - start
         readings = np.zeros((samples, 3 * c))
         for s in range(samples):
             # The pose's first and last readings take the die temperature too (their mean is
             # the pose's while it changes steadily): what temperature compensation refers to.
             zyxt = mlx.ZYXT_XYZT if s in (0, samples - 1) else mlx.ZYXT_XYZ
+            sampled = bus.monotonic() - start + wait_s[zyxt]  # the conversions' end: the field's time
+            times[k, 1] = sampled if s == 0 else times[k, 1]
+            times[k, 2] = sampled
             saturated[k] |= _read(bus, chips, zyxt, wait_s[zyxt], readings[s], celsius)
         mean[k] = readings.mean(axis=0)
         temperature[k] = np.mean(celsius)
@@ -65,7 +73,7 @@ def record_dataset(bus: Bus, addresses: Sequence[int], poses: Sequence[tuple[Cal
                    np.array([s for _, s in poses]), np.array([p.mass_kg for p, _ in poses]),
                    np.array([p.lever_m for p, _ in poses]), np.array([p.gravity_dir for p, _ in poses]),
                    samples, serial, source, rotation=np.array([p.orientation() for p, _ in poses]),
-                   temperature_c=temperature)
+                   temperature_c=temperature, times_s=times)
 
 
 def _read(bus: Bus, chips: list[MLX90393], zyxt: int, wait_s: float, out: np.ndarray,
