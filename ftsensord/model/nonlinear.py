@@ -109,7 +109,8 @@ BACKGROUND_NOISE_T = 1e-6
 #: moving load's fit then paid a field evaluation for its last step, a third of its work.)
 LINEAR_STEP_T = 1e-6
 #: Damping up to `WARM_DAMPING` changes a step by a millionth of itself or less: the
-#: undamped Gauss-Newton gains serve for it (one solve for the step and the chord after it).
+#: undamped Gauss-Newton gains (`_chord_gains`) serve for a new Jacobian's step as for a kept
+#: one's, and the chord steps after it reuse them (one solve a Jacobian, not two).
 UNDAMPED = WARM_DAMPING
 
 
@@ -239,9 +240,7 @@ class NonlinearEstimator:
             if pred is not r_of:
                 r, r_of = (b - pred)[channels], pred
                 cost = float(r @ r) + _prior(u)
-            # Gauss-Newton's own gains (`_chord_gains`) for a kept Jacobian, and for a new one
-            # while the damping is `UNDAMPED`: the chord steps after it then reuse them.
-            chord = used == b.size and (not fresh or lam <= UNDAMPED)
+            chord = used == b.size and (not fresh or lam <= UNDAMPED)  # Gauss-Newton's gains serve
             if chord:
                 self._gains = _chord_gains(J_full, self._gains)
                 gain, gain_u = self._gains[1], self._gains[2]
