@@ -425,3 +425,23 @@ def test_a_calibration_file_says_which_field_model_it_was_fitted_with(tmp_path):
     doc["checksum"] = checksum(doc)
     path.write_text(json.dumps(doc))
     assert_names_file_and_key(Calibration.load, path, "nonlinear.field_model", '"dipole+octupole"')
+
+
+@pytest.mark.parametrize("background", [True, False])
+def test_a_jacobian_blind_to_one_axis_is_a_refusal_not_an_exception(background):
+    # A warm fit's new Jacobian takes the undamped gains (`UNDAMPED`): their J^T J singular
+    # must end the fit as the damped solve's does, not raise out of `estimate`.
+    model = FluxModel(G, G.magnet_moment_am2, octupole=False)
+    est = NonlinearEstimator(model, K, background=background)
+    field = np.zeros(3) if background else None
+    assert est.estimate(model.predict(se3.exp_se3(np.linalg.solve(K, [2.0, 0, 0, 0, 0, 0])), field)).converged
+
+    def blind(T, u, with_field):  # the turn about z seen by no chip
+        pred, J = FluxModel.predict_and_jacobian(model, T, u, with_field)
+        J = J.copy()
+        J[:, 5] = 0.0
+        return pred, J
+
+    model.predict_and_jacobian = blind
+    e = est.estimate(model.predict(se3.exp_se3(np.linalg.solve(K, [6.0, 0, 0, 0, 0, 0])), field))
+    assert not e.converged

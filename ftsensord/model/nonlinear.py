@@ -241,24 +241,23 @@ class NonlinearEstimator:
                 r, r_of = (b - pred)[channels], pred
                 cost = float(r @ r) + _prior(u)
             chord = used == b.size and (not fresh or lam <= UNDAMPED)  # Gauss-Newton's gains serve
-            if chord:
-                self._gains = _chord_gains(J_full, self._gains)
-                gain, gain_u = self._gains[1], self._gains[2]
-                step = gain @ r if u is None else gain @ r - gain_u @ u
-            else:
+            if not chord:
                 JtJ, Jtr = _normal(J_full[channels], r, u)
             # The rate is seen from two steps of one kind: both with new Jacobians (Newton's
             # quadratic convergence) or both with the same one (a chord's linear rate: the
             # step that made a Jacobian, then a step with it kept, are two of the same chord).
             kind = NEW if fresh else J_full
             while True:
-                if not chord:
-                    try:
+                try:  # J^T J singular (undamped or damped: a pose no chip sees move) is a refusal
+                    if chord:
+                        self._gains = _chord_gains(J_full, self._gains)
+                        step = self._gains[1] @ r if u is None else self._gains[1] @ r - self._gains[2] @ u
+                    else:
                         damped = JtJ.copy()
                         damped.flat[::damped.shape[0] + 1] *= 1 + lam  # JtJ + lam diag(JtJ)
                         step = np.linalg.solve(damped, Jtr)
-                    except np.linalg.LinAlgError:
-                        return Estimate(se3.log_se3(T), T, False, k, np.sqrt(cost / used), _field(u))
+                except np.linalg.LinAlgError:
+                    return Estimate(se3.log_se3(T), T, False, k, np.sqrt(cost / used), _field(u))
                 # 1e-300: a zero step needs no limit (and must not divide by zero). The
                 # background field enters linearly: its step needs no limit of its own.
                 v0, v1, v2, w0, w1, w2 = step.tolist()[:6]
