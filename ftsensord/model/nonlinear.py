@@ -108,9 +108,9 @@ BACKGROUND_NOISE_T = 1e-6
 #: linearised cost by construction; an evaluation would only repeat it. (It was 0.1 uT: a
 #: moving load's fit then paid a field evaluation for its last step, a third of its work.)
 LINEAR_STEP_T = 1e-6
-#: Damping up to `WARM_DAMPING` changes a step by a millionth of itself or less: the
-#: undamped Gauss-Newton gains (`_chord_gains`) serve for a new Jacobian's step as for a kept
-#: one's, and the chord steps after it reuse them (one solve a Jacobian, not two).
+#: Damping up to `WARM_DAMPING` changes a step by under 2e-5 of itself (1e-6 times the scaled
+#: J^T J's condition, tests/test_nonlinear.py): the undamped Gauss-Newton gains (`_chord_gains`)
+#: serve for a new Jacobian's step as for a kept one's, and the chord steps after (one solve).
 UNDAMPED = WARM_DAMPING
 
 
