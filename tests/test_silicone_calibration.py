@@ -98,3 +98,17 @@ def test_the_poses_times_survive_the_file_and_a_wrong_order_is_refused(tmp_path)
     del doc["poses"][3]["times_s"]
     (tmp_path / "bad.json").write_text(json.dumps(doc))
     assert_names_file_and_key(Dataset.load, tmp_path / "bad.json", "times_s", "in every pose or in none")
+
+
+def test_a_load_applied_while_the_pose_before_was_still_read_is_refused(tmp_path):
+    # The poses are one after another: a load applied before the last reading of the pose before
+    # would put part of that pose's readings under it, which `dwell_loads` cannot know.
+    ds = simulate_dataset(_part_with_memory(SERIES), "sensor1", "six-axis", poses=6, validation_poses=0, samples=3,
+                          seed=0, sweeps=False, no_load_poses=0)
+    assert ds.times_s is not None and np.all(ds.times_s[1:, 0] >= ds.times_s[:-1, 2] - 1e-6)  # as the rig records them (the check's round-off)
+    ds.save(tmp_path / "ds.json")
+    doc = json.loads((tmp_path / "ds.json").read_text())
+    before = doc["poses"][2]["times_s"]
+    doc["poses"][3]["times_s"][0] = (before[0] + before[2]) / 2  # after the pose before's load, before its last reading
+    (tmp_path / "bad.json").write_text(json.dumps(doc))
+    assert_names_file_and_key(Dataset.load, tmp_path / "bad.json", "times_s", "no earlier than")

@@ -227,7 +227,7 @@ class Dataset:
             if ("times_s" in row.doc) != ("times_s" in rows[0].doc):
                 raise row.fail("times_s", "times in every pose or in none (as poses[0])", row.doc.get("times_s", "none"))
             if "times_s" in row.doc:
-                times.append(_times(row, times[-1][0] if times else -np.inf))
+                times.append(_times(row, times[-1][2] if times else -np.inf))
         sweeps = {}
         if "position_sweeps" in doc.doc:
             table = doc.table("position_sweeps")
@@ -255,13 +255,16 @@ class Dataset:
                    hold=Hold.parse(doc.table("hold"), 3 * chips) if "hold" in doc.doc else None)
 
 
-def _times(row: Table, last_applied: float) -> list[float]:
+def _times(row: Table, last_read: float) -> list[float]:
     """A pose's [applied, first reading, last reading] (s): in that order, and applied no
-    earlier than the pose before's (the poses are kept in the order the robot made them)."""
+    earlier than the pose before's last reading (the poses are kept in the order the robot
+    made them, one after another: `creep.dwell_loads` holds each load until the next's time)."""
     t = row.numbers("times_s", 3, unit="s")
-    if not (last_applied <= t[0] <= t[1] <= t[2]):
+    # 1 us: a reading's time is a clock read plus the conversion's wait, the next load's the clock
+    # read after that wait: equal but for round-off on a clock that only moves by waits (the simulator's).
+    if not (last_read - 1e-6 <= t[0] <= t[1] <= t[2]):
         raise row.fail("times_s", f"[applied, first reading, last reading] in that order, applied no earlier than "
-                       f"the pose before's ({last_applied} s)", t)
+                       f"the pose before's last reading ({last_read} s)", t)
     return t
 
 
