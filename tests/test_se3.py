@@ -125,3 +125,14 @@ def test_wrench_transform_is_the_papers_tip_formula_for_parallel_frames():
     f, m = np.array([1.0, 2.0, -3.0]), np.array([0.01, 0.0, 0.02])
     w_tip = se3.wrench_transform(se3.pose(p=p)) @ np.concatenate([f, m])
     assert np.allclose(w_tip, np.concatenate([f, m + np.cross(p, f)]))
+
+
+@pytest.mark.parametrize("angle", [1e110, 1e200, np.inf, np.nan])
+def test_an_overflowing_or_non_finite_rotation_gives_nan_not_an_exception(angle):
+    # The coefficients in math's floats: math.sin(inf) and 1e110 ** 3 raise where numpy's gave
+    # inf or NaN; a rotation that large is no rotation, and its callers test for finite results.
+    with np.errstate(all="ignore"):
+        R = se3.exp_so3(np.array([angle, 0.0, 0.0]))
+        T = se3.exp_se3(np.array([0.0, 0.0, 0.0, 0.0, angle, 0.0]))
+    assert R.shape == (3, 3) and T.shape == (4, 4)
+    assert not np.isfinite(R).all() or not np.isfinite(T).all() or np.allclose(R @ R.T, np.eye(3))

@@ -59,8 +59,11 @@ def _coefficients(theta: float) -> tuple[float, float, float]:
                 1 / 6 - t2 / 120 + t2 * t2 / 5040)
     # math's, not numpy's: Python floats keep every product after them cheap (the
     # estimator's steps, `se3floats`, do a few dozen with these).
+    if theta == math.inf:  # a twist that overflowed: NaN, as numpy's sin gave (math's raises)
+        return math.nan, math.nan, math.nan
     s, c = math.sin(theta), math.cos(theta)
-    return s / theta, (1 - c) / theta**2, (theta - s) / theta**3
+    t2 = theta * theta  # products, not **: a float's ** raises on overflow where * gives inf
+    return s / theta, (1 - c) / t2, (theta - s) / (t2 * theta)
 
 
 def exp_so3(w: np.ndarray) -> np.ndarray:
