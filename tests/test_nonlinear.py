@@ -273,16 +273,18 @@ def test_the_last_steps_flux_from_the_jacobian_ends_where_evaluating_it_does(mon
     assert per_sample <= 1.1 and per_sample_evaluated >= 1.9, (per_sample, per_sample_evaluated)
 
 
-def test_a_moving_load_is_followed_to_the_same_end_in_fewer_iterations(monkeypatch):
+@pytest.mark.parametrize("seed", [6, 7, 8, 9, 10])
+def test_a_moving_load_is_followed_to_the_same_end_in_fewer_iterations(monkeypatch, seed):
     """A load moving on every axis (40 % of the range, 1.3 Hz, 100 Hz samples, 1 uT of
     noise a channel): the warm start that follows the motion ends within 5 % of the
     estimate's own noise of the exact least-squares pose (new Jacobians every step, tight
-    tolerances), in fewer iterations. Measured: 2.6 % (from the last pose instead: 1.7 %);
-    5 % adds 0.1 % to the error's RMS in quadrature, and leaves room for another BLAS's
-    round-off to take another path."""
+    tolerances), in fewer iterations. Measured on seeds 6-10: 2.5-2.8 % with the Jacobian
+    reused within 40 um and 4 mrad, 2.1-2.7 % within 20 um and 2 mrad (seed 6 from the last
+    pose instead: 1.7 %); 5 % adds 0.1 % to the error's RMS in quadrature, and leaves room
+    for another BLAS's round-off to take another path."""
     import ftsensord.model.nonlinear as nonlinear
     from ftsensord.model.linear import SENSOR_RANGE
-    rng = np.random.default_rng(6)
+    rng = np.random.default_rng(seed)
     t = np.arange(80) / 100.0
     loads = 0.4 * SENSOR_RANGE * np.sin(2 * np.pi * 1.3 * t[:, None] + np.arange(6) * np.pi / 3)
     truth = [flux_at(w) for w in loads]

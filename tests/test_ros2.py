@@ -287,3 +287,22 @@ def test_under_a_realtime_daemon_only_the_bridges_forwarding_is_realtime_below_t
         proc.terminate()
         proc.wait(timeout=20)
         notify.close()
+
+
+def test_a_frame_that_is_not_a_wrench_is_dropped_and_counted():
+    """On a wrench stream, garbage and a sample of another kind are dropped and counted (the
+    first logged), never written to DDS; a wrench is written and handed on for its status."""
+    from types import SimpleNamespace
+
+    from ftsensord.ros2.bridge import Bridge
+    from ftsensord.service import wire
+
+    written: list[tuple] = []
+    bridge = SimpleNamespace(bad_frames=0, endpoint="ipc://test",
+                             node=SimpleNamespace(publish_wrench=lambda *args: written.append(args)))
+    flux = wire.encode("wrench/sensor1", wire.KIND_FLUX, 1, 0.0, 0.0, 0, np.zeros(24))
+    assert Bridge.forward(bridge, flux) is None and Bridge.forward(bridge, b"garbage") is None
+    assert bridge.bad_frames == 2 and not written
+    wrench = wire.encode("wrench/sensor1", wire.KIND_WRENCH, 2, 1.0, 5.0, 3, np.arange(6.0))
+    assert Bridge.forward(bridge, wrench) == ("wrench/sensor1", 5.0, 2, 3)
+    assert len(written) == 1 and written[0][2] == np.arange(6.0).tobytes()

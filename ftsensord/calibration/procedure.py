@@ -141,6 +141,8 @@ def _fit_static(raw: Dataset) -> tuple[Dataset, CalibrationTemperature | None, C
     carried = replace(raw, wrench=dwell_loads(silicone.relaxation, raw.wrench, raw.times_s, raw.samples_per_pose))
     dataset, temperature, result = thermal_fit(carried, fit)
     again, said = identify(raw.hold, result.model.wrench)  # the series again; the scale now near 1
+    if again is None:  # K is now the long-term stiffness, and nothing undoes the creep
+        said += "; K is the long-term stiffness, so without the series a changing load reads low until the silicone settles"
     return dataset, temperature, result, again, f"fitted on the loads the silicone carried over each dwell; {said}"
 
 

@@ -50,8 +50,8 @@ CONTRACTION = 0.1
 #: loads to 40 % of range; the field's gradient varies over the 2 mm a magnet is from its
 #: nearest saturating chip; the background enters it against 1.6 mT), so each chord step
 #: still shrinks the error some thirtyfold. Its end point moves by at most 2.5-2.8 % of the
-#: noise's own scatter (tests/test_nonlinear.py, a moving load on five seeds: the same as
-#: with 20 um and 2 mrad, where half the moving samples needed a second Jacobian). A
+#: noise's own scatter (tests/test_nonlinear.py's moving load, seeds 6-10; 2.1-2.7 % with
+#: 20 um and 2 mrad, where half the moving samples needed a second Jacobian). A
 #: sample 10 ms after the last moves the pose by about 6 um and 0.7 mrad (noise, at rest):
 #: its fit needs no new Jacobian. A moving load's warm start (`_ahead`) lands 22 um and
 #: 1.5 mrad from the fit's answer at p50, 35 um and 2.5 mrad at p90 (1.3 Hz, 40 % of range,

@@ -181,12 +181,13 @@ class Bridge:
         """A frame's wrench written to DDS at once; its (topic, t_wall, seq, flags) for the status."""
         try:
             topic, kind, flags, seq, _, t_wall, values = wire.unpack(frame)
+            if kind != wire.KIND_WRENCH or len(values) != WRENCH_BYTES:
+                raise WireError(f"kind {kind} with {len(values)} bytes of values, not a wrench's {WRENCH_BYTES}")
         except WireError as exc:
             self.bad_frames += 1
             if self.bad_frames == 1:
-                log.warning("a frame from %s is not a sample, dropped (and any more, counted): %s", self.endpoint, exc)
-            return None
-        if kind != wire.KIND_WRENCH or len(values) != WRENCH_BYTES:
+                log.warning("a frame from %s is not a wrench sample, dropped (and any more, counted): %s",
+                            self.endpoint, exc)
             return None
         self.node.publish_wrench(topic, t_wall, values)
         return topic, t_wall, seq, flags

@@ -122,7 +122,7 @@ def bridge_command(config_path: Path, realtime: int) -> list[str]:
             *(["--realtime", str(realtime)] if realtime else [])]
 
 
-def realtime_below_us() -> int:
+def bridge_priority() -> int:
     """`BRIDGE_FIFO` when this process runs real-time above it, else 0 (the bridge at the
     daemon's normal priority: never above the loop)."""
     policy = os.sched_getscheduler(0)
@@ -139,7 +139,7 @@ def ros2_beside(ros2: Ros2Config | None, config_path: Path) -> Iterator[subproce
     if ros2 is None:
         yield None
         return
-    child = subprocess.Popen(bridge_command(config_path, realtime_below_us()), preexec_fn=_child_setup)
+    child = subprocess.Popen(bridge_command(config_path, bridge_priority()), preexec_fn=_child_setup)
     try:
         yield child
     finally:
