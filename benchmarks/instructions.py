@@ -59,7 +59,6 @@ def _skip(daemon: object, parts: list[str]) -> None:
 def _child(what: str, steps: int, readback_every: int | None, skip: list[str]) -> None:
     """The process callgrind counts: ``WARM`` steps, then ``steps`` more."""
     sys.path.insert(0, str(HERE))
-    import numpy as np
     import zmq
 
     import cycle_cpu
@@ -71,9 +70,11 @@ def _child(what: str, steps: int, readback_every: int | None, skip: list[str]) -
     if what == "nonlinear":
         nl = config.sensors[0].calibration.nonlinear
         assert nl is not None  # the packaged calibrations have one
-        flux, _ = nonlinear_cpu.readings(0.4, 1.3, 6)
+        flux, _ = nonlinear_cpu.readings(0.4, 1.3, 6)  # 462 readings: the longer run's 60 + 400
+        if len(flux) < WARM + steps:
+            raise SystemExit(f"{len(flux)} moving readings, {WARM + steps} needed: raise the periods")
         estimator = nl.estimator()
-        for b in np.concatenate([flux, flux])[:WARM + steps]:
+        for b in flux[:WARM + steps]:
             estimator.estimate(b)
         return
     if readback_every is not None:
