@@ -11,6 +11,7 @@ from ftsensord.model.viscoelastic import CreepFilter, CreepInverse, Relaxation
 from ftsensord.sim import load_scene
 from ftsensord.sim.loads import RecordedLoad, StaticLoad, StepLoad
 from ftsensord.sim.physics import PAPER_STIFFNESS_DIAG, PhysicalScene, SimSensor
+from ftsensord.service.status import sensor_status
 from ftsensord.sim.silicone import DEFAULT_RELAXATION
 
 from .conftest import assert_names_file_and_key
@@ -260,7 +261,7 @@ def test_the_daemon_stage_undoes_a_held_steps_creep_and_restarts_on_a_tare_and_a
     compensated.tare(fluxes[-1])
     assert compensated.creep.restarts == 2
     assert np.allclose(compensated.step(_results(fluxes[-1])).wrench, 0.0, atol=1e-9)
-    assert compensated.status()["silicone"]["restarts"] == 2
+    assert sensor_status(compensated)["silicone"]["restarts"] == 2
 
 
 def test_a_rate_change_restarts_the_stage_with_the_new_period():
@@ -319,7 +320,7 @@ def test_a_calibration_without_a_hold_says_so_and_the_daemon_runs_as_before():
     assert cal.silicone is None and "no step-and-hold segment" in cal.report["silicone"]
     config = SensorConfig("sensor1", ADDRESSES, __import__("pathlib").Path("cal.json"), cal, "sensor")
     pipeline = SensorPipeline.build(config, WrenchFilter(), 2, thermal=False)
-    assert pipeline.creep.inverse is None and pipeline.status()["silicone"] is None
+    assert pipeline.creep.inverse is None and sensor_status(pipeline)["silicone"] is None
     w = np.array([1.0, 2, 3, 0.1, 0.2, 0.3])
     assert pipeline.creep.apply(w, True) is w  # passed through as it is
 

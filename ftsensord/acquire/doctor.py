@@ -110,7 +110,7 @@ def _short_run(bus: Bus, addresses: list[int], scheduler: str, settings: mlx.Set
         results = reader.read()
         reader.upkeep()
         if k >= SETTLE_CYCLES:
-            errors += sum(not r.ok for r in results)
+            errors += sum(not r.ok for r in results.values())
     assert t_first is not None
     elapsed = bus.monotonic() - t_first
     transfers, waits = timed.in_transfers, timed.in_waits

@@ -214,41 +214,59 @@ class ChipCare:
                     continue
             results[a] = judge(r, now)
 
+    def judge_words(self, addresses: tuple[int, ...], words: list[tuple[int, ...]],
+                    now: float) -> dict[int, ChipError]:
+        """`judge` a clean cycle, every chip a measurement, from their X, Y, Z ``words``
+        (in ``addresses``' order); the chips found stuck, with their errors."""
+        health, stuck = self.health, None
+        for a, w in zip(addresses, words):
+            h = health[a]
+            if w != h.last_words and h.stuck_words is None:  # `_words`'s usual cycle, as it does it
+                h.stale_run, h.last_words, h.same_words = 0, w, 0
+                continue
+            error = self._words(h, a, w, now)
+            if error is not None:
+                stuck = stuck or {}
+                stuck[a] = error
+        return stuck or {}
+
     def judge(self, r: ChipResult, now: float) -> ChipResult:
         """Update a healthy chip's health from its result; a stuck chip's data become an error."""
         h = self.health[r.address]
         m = r.measurement
         if m is not None:
-            h.stale_run = 0
-            words = m.xyz_words()
-            last, h.last_words = h.last_words, words
-            if words != last:
-                h.same_words = 0
-                if h.stuck_words is None:
-                    return r  # the usual cycle: new words from a chip in good standing
-            else:
-                h.same_words += 1
-            moved = last is not None and words != last
-            if self.stuck_cycles and h.same_words >= self.stuck_cycles:
-                h.stuck_detections += 1
-                self.fail(r.address, now, reset=True, why=f"stuck ({self.stuck_cycles + 1} identical readings)")
-                h.stuck_words = words
-                return ChipResult(r.address, error=ChipProtocolError(
-                    r.address, f"stuck: the same X, Y, Z words {self.stuck_cycles + 1} cycles in a row"))
-            if h.stuck_words is not None:
-                # Back from its reset: out until two of its readings in a row differ (a
-                # stuck chip may give one fresh reading after a reset, then freeze again).
-                if not moved:
-                    return ChipResult(r.address, error=ChipProtocolError(
-                        r.address, "stuck before its reset: out until its words change"))
-                h.stuck_words = None  # it converts again
-            return r
+            error = self._words(h, r.address, m.xyz_words(), now)
+            return r if error is None else ChipResult(r.address, error=error)
         if isinstance(r.error, ChipRefusedError) and r.error.command == "RM":
             h.stale_run += 1  # no new data (DRDY low): stale, unless it lasts
             if h.stale_run <= STALE_LIMIT:
                 return r
         self.fail(r.address, now, why=str(r.error))
         return r
+
+    def _words(self, h: ChipHealth, address: int, words: tuple[int, ...], now: float) -> ChipError | None:
+        """A healthy chip's new reading, by its X, Y, Z words: None, or why its data are not to be used."""
+        h.stale_run = 0
+        last, h.last_words = h.last_words, words
+        if words != last:
+            h.same_words = 0
+            if h.stuck_words is None:
+                return None  # the usual cycle: new words from a chip in good standing
+        else:
+            h.same_words += 1
+        moved = last is not None and words != last
+        if self.stuck_cycles and h.same_words >= self.stuck_cycles:
+            h.stuck_detections += 1
+            self.fail(address, now, reset=True, why=f"stuck ({self.stuck_cycles + 1} identical readings)")
+            h.stuck_words = words
+            return ChipProtocolError(address, f"stuck: the same X, Y, Z words {self.stuck_cycles + 1} cycles in a row")
+        if h.stuck_words is not None:
+            # Back from its reset: out until two of its readings in a row differ (a
+            # stuck chip may give one fresh reading after a reset, then freeze again).
+            if not moved:
+                return ChipProtocolError(address, "stuck before its reset: out until its words change")
+            h.stuck_words = None  # it converts again
+        return None
 
     def read_back(self, chip: MLX90393, now: float) -> None:
         """Compare ``chip``'s registers with what was written; a chip that differs is reset."""

@@ -31,9 +31,10 @@ from ..chip.i2c import BITS_PER_BYTE, Bus, BusTiming
 from ..errors import ChipError, ChipProtocolError, ConfigError
 from .bound import OSC_MARGIN, SCHEDULERS, Shapes, overlapped_rm_at
 from .health import ChipCare, ChipHealth, ChipResult
-from .transfers import Transfers, probe_shapes
+from .readings import Readings
+from .transfers import RMRead, Transfers, probe_shapes
 
-__all__ = ["Reader", "Transfers", "probe_shapes"]
+__all__ = ["Readings", "Reader", "Transfers", "probe_shapes"]
 
 log = logging.getLogger("ftsensord")
 
@@ -68,6 +69,8 @@ class Reader:
     cycle: int = 0
     xfer: Transfers = field(init=False)
     turn: ReadBackTurn = field(init=False)
+    _addresses: tuple[int, ...] = field(init=False)
+    _index: dict[int, int] = field(init=False)
 
     def __post_init__(self) -> None:
         if self.scheduler not in SCHEDULERS:
@@ -75,7 +78,9 @@ class Reader:
         self.care = ChipCare(self.bus, self.chips, self.settings, burst=self.scheduler == "burst",
                              stuck_cycles=self.stuck_cycles,
                              burst_zyxt=mlx.ZYXT_XYZT if self.temperature else mlx.ZYXT_XYZ)
-        self.xfer = Transfers(self.bus)
+        self.xfer = Transfers(self.bus, self.chips)
+        self._addresses = tuple(c.address for c in self.chips)
+        self._index = {a: i for i, a in enumerate(self._addresses)}
         self.turn = ReadBackTurn(burst=self.scheduler == "burst")
         timing = getattr(self.bus, "timing", None)
         if timing is not None:
@@ -129,8 +134,8 @@ class Reader:
             except ChipError:
                 pass
 
-    def read(self, zyxt: int = mlx.ZYXT_XYZ) -> list[ChipResult]:
-        """One cycle: a result for every chip, in the order of ``chips``.
+    def read(self, zyxt: int = mlx.ZYXT_XYZ) -> Readings:
+        """One cycle: a result for every chip, by address (in the order of ``chips``).
 
         ``zyxt`` picks the items (add T now and then for the temperature); burst
         mode reads X, Y and Z, and T only if it converts it (``temperature``).
@@ -151,17 +156,29 @@ class Reader:
         checked = None
         if self.readback_every and self.cycle % self.readback_every == 0 and healthy:
             checked = healthy[(self.cycle // self.readback_every) % len(healthy)]
+        rm = None
         if self.scheduler == "naive":
             results.update({c.address: self._single(c, zyxt) for c in healthy})
         elif self.scheduler == "overlapped":
-            results.update(self._overlapped(healthy, zyxt, checked, now))
+            rm = self._overlapped(healthy, zyxt, checked, now, results)
             checked = None  # read back during the wait
         else:
             order = self.turn.order(healthy)
             t = self.bus.monotonic()
-            results.update(self.xfer.read_all(order, zyxt))
+            rm = self.xfer.read_block(order, zyxt) if order else None
             self.turn.others_s = (self.bus.monotonic() - t) * (len(order) - 1) / max(1, len(order))
-        self.care.judge_all(results, healthy, now)
+        # The usual cycle, every chip read cleanly, stays in arrays (`Readings`) and is judged by its words.
+        readings = None
+        if rm is not None and not results:
+            readings = Readings.of_block(rm, self.chips, self._addresses, self._index)
+        if readings is not None:
+            for a, error in self.care.judge_words(readings.addresses, readings.words, now).items():
+                readings.fail(a, ChipResult(a, error=error))
+        else:
+            if rm is not None:
+                results.update(self.xfer.results(rm))
+            self.care.judge_all(results, healthy, now)
+            readings = Readings(self._addresses, self._index, results={a: results[a] for a in self._addresses})
         if late is not None:  # read back after the reads, as it came before `upkeep` existed
             self.care.read_back(late, now)
         elif checked is not None and not self.turn.may_wait():
@@ -170,7 +187,7 @@ class Reader:
         self.turn.due = checked
         self.cycle += 1
         self.turn.read_end = self.bus.monotonic()
-        return [results[c.address] for c in self.chips]
+        return readings
 
     def upkeep(self) -> None:
         """The last `read`'s register read-back of one chip, left until its samples are
@@ -183,10 +200,10 @@ class Reader:
             self.care.read_back(chip, now)
 
     def _overlapped(self, healthy: list[MLX90393], zyxt: int, checked: MLX90393 | None,
-                    now: float) -> dict[int, ChipResult]:
+                    now: float, results: dict[int, ChipResult]) -> RMRead | None:
         """SM every chip, wait, RM every chip; ``checked`` is read back while the others
-        convert, then started and read last (`bound.cycle_bound` counts the same)."""
-        results: dict[int, ChipResult] = {}
+        convert, then started and read last (`bound.cycle_bound` counts the same). The
+        chips that failed before the RM go into ``results``."""
         t0 = self.bus.monotonic()
         others = [c for c in healthy if c is not checked]
         results.update(self.xfer.start_all(others, zyxt))
@@ -216,8 +233,7 @@ class Reader:
                     self.bus.sleep(max(0.0, t0 + rm_at - self.bus.monotonic()))
         if last_offset is None:
             self.bus.sleep(max(0.0, t0 + first + conversion - self.bus.monotonic()))
-        results.update(self.xfer.read_all(ready, zyxt))
-        return results
+        return self.xfer.read_block(ready, zyxt) if ready else None
 
     def _single(self, chip: MLX90393, zyxt: int) -> ChipResult:
         try:

@@ -15,6 +15,7 @@ from __future__ import annotations
 import ctypes
 import logging
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -29,6 +30,24 @@ from .bound import Shapes
 from .health import ChipResult
 
 log = logging.getLogger("ftsensord")
+
+#: One ioctl of an RM plan: the rows it reads and its messages.
+Transfer = tuple[list[int], list[i2c_msg]]
+#: Orders an RM plan keeps (`RMPlan.reading`): the usual cycle needs one per chip (the chip
+#: read back is read last); faults add subsets, forgotten past this.
+MAX_ORDERS = 64
+
+
+@dataclass
+class RMRead:
+    """One `Transfers.read_block`: the plan whose block holds the replies (converted:
+    `BlockDecoder.convert`), the rows read, the chips that failed on the bus, and whether
+    it was clean (every row a measurement of X, Y, Z, none saturated, none failed)."""
+
+    plan: RMPlan
+    rows: list[int]
+    failed: dict[int, ChipError]
+    clean: bool
 
 
 def _rr_tref(chip: MLX90393) -> tuple[i2c_msg, i2c_msg]:
@@ -74,8 +93,8 @@ class Transfers:
     `probe_shapes` at start and again after a refusal, so a refused ioctl is paid
     once, not every cycle."""
 
-    def __init__(self, bus: Bus):
-        self.bus = bus
+    def __init__(self, bus: Bus, order: list[MLX90393]):
+        self.bus, self.order = bus, order  # order: the reader's chips, which an RM plan's rows follow
         self.shapes = Shapes()  # the narrowest until `learn` has asked
         self.reprobe = True
         self.probe_at = 0  # the cycle of the next probe while none has answered
@@ -106,15 +125,17 @@ class Transfers:
         return {a: ChipResult(a, error=e) for a, e in started.items() if isinstance(e, ChipError)}
 
     def read_all(self, chips: list[MLX90393], zyxt: int) -> dict[int, ChipResult]:
+        """RM from ``chips`` (`read_block`), a result each."""
+        return self.results(self.read_block(chips, zyxt)) if chips else {}
+
+    def read_block(self, chips: list[MLX90393], zyxt: int) -> RMRead:
         """RM from ``chips``: as wide transfers as the adapter takes, their replies
-        landing in one block that is decoded at once (`BlockDecoder`); when a
+        landing in one block that is converted at once (`BlockDecoder.convert`); when a
         transfer of several fails, each of its chips on its own."""
-        if not chips:
-            return {}
-        plan, rows = self._rm_plan(chips, zyxt)
+        plan, rows, transfers = self._rm_plan(chips, zyxt)
         failed: dict[int, ChipError] = {}
         alone: list[int] = []
-        for members, msgs in plan.transfers(rows):
+        for members, msgs in transfers:
             if len(members) > 1:
                 try:
                     self.bus.i2c_rdwr(*msgs)
@@ -129,13 +150,21 @@ class Transfers:
             except OSError as exc:
                 a = plan.decoder.chips[i].address
                 failed[a] = bus_error(a, plan.command, exc)
-        decoded = plan.decoder.decode(plan.block, rows)
-        if not failed and plan.decoder.clean:  # the usual cycle: every reply a measurement
+        clean = plan.decoder.convert(plan.block)
+        return RMRead(plan, rows, failed, clean and not failed)
+
+    @staticmethod
+    def results(read: RMRead) -> dict[int, ChipResult]:
+        """A `ChipResult` for each chip of ``read``: its measurement, or why not."""
+        plan, rows = read.plan, read.rows
+        decoded = plan.decoder.measurements(plan.block, rows)
+        chips = [plan.decoder.chips[i] for i in rows]
+        if not read.failed and plan.decoder.clean:  # every reply a measurement
             return {chip.address: ChipResult(chip.address, m) for chip, m in zip(chips, decoded)}  # type: ignore[arg-type]
         out = {}
         for chip, m in zip(chips, decoded):
             a = chip.address
-            e = failed.get(a)
+            e = read.failed.get(a)
             if e is not None:
                 out[a] = ChipResult(a, error=e)
             elif isinstance(m, ChipError):
@@ -144,20 +173,26 @@ class Transfers:
                 out[a] = ChipResult(a, m)
         return out
 
-    def _rm_plan(self, chips: list[MLX90393], zyxt: int) -> tuple[RMPlan, list[int]]:
-        """The RM plan at the learnt shapes that holds ``chips``, and their rows in it.
+    def _rm_plan(self, chips: list[MLX90393], zyxt: int) -> tuple[RMPlan, list[int], list[Transfer]]:
+        """The RM plan at the learnt shapes that holds ``chips``, their rows in it and
+        the transfers that read them in their order.
 
         One plan per (zyxt, shapes), reused whichever of its chips are read, so a fault
-        costs no plan; rebuilt for ``chips`` when one of them is not in it (a chip back
-        from a reset) or one of its chips' settings changed (a reset clears them): one
-        plan's memory, whatever the faults."""
+        costs no plan; rebuilt when one of ``chips`` is not in it (a chip back from a
+        reset) or one of its chips' settings changed (a reset clears them): one plan's
+        memory, whatever the faults. Its rows follow ``order`` (the reader's chips), so
+        with every chip in it row i is the reader's chip i, whatever order they are read in."""
         per = self.shapes.pairs_per_transfer
         plan = self._plans.get((zyxt, per))
-        rows = None if plan is None else plan.rows(chips)
-        if plan is None or rows is None or not plan.decoder.valid_for(plan.decoder.chips):
-            plan = self._plans[zyxt, per] = RMPlan(chips, zyxt, per)
-            rows = list(range(len(chips)))
-        return plan, rows
+        if plan is not None and plan.decoder.valid_for(plan.decoder.chips):
+            got = plan.reading(chips)
+            if got is not None:
+                return plan, *got
+        members = set(chips)
+        plan = self._plans[zyxt, per] = RMPlan([c for c in self.order if c in members] or chips, zyxt, per)
+        got = plan.reading(chips)
+        assert got is not None  # built to hold them
+        return plan, *got
 
     def refused(self, exc: OSError) -> None:
         """A transfer failed: a refused shape (not a NACK) means the adapter takes less
@@ -208,7 +243,7 @@ class Transfers:
 class RMPlan:
     """The RM of a list of chips, built once: each chip's read message points into its
     row of one (n, L) block (``block``, uint8), so a cycle's replies are decoded in one
-    pass by ``decoder``; `transfers` groups the (write, read) pairs of the rows read,
+    pass by ``decoder``; `reading` groups the (write, read) pairs of the rows read,
     ``per`` chips an ioctl."""
 
     def __init__(self, chips: list[MLX90393], zyxt: int, per: int):
@@ -223,20 +258,25 @@ class RMPlan:
                        i2c_msg(addr=c.address, flags=I2C_M_RD, len=L,
                                buf=ctypes.cast(base + i * L, ctypes.POINTER(ctypes.c_char))))
                       for i, c in enumerate(chips)]
-        self._every = list(range(len(chips)))
-        self._every_transfers = self._grouped(self._every)  # the usual cycle: every chip, in order
+        self._orders: dict[tuple[MLX90393, ...], tuple[list[int], list[Transfer]]] = {}
 
-    def rows(self, chips: list[MLX90393]) -> list[int] | None:
-        """The rows of ``chips``, in their order; None when one is not in this plan."""
-        get = self.row.get
-        rows = [get(c) for c in chips]
-        return None if None in rows else rows  # type: ignore[return-value]
+    def reading(self, chips: list[MLX90393]) -> tuple[list[int], list[Transfer]] | None:
+        """The rows of ``chips`` and the transfers that read them in their order; None
+        when one is not in this plan. Kept per order: a read-back's chip read last gives
+        one order per chip, each worked out once."""
+        key = tuple(chips)
+        got = self._orders.get(key)
+        if got is None:
+            get = self.row.get
+            rows = [get(c) for c in chips]
+            if None in rows:
+                return None
+            if len(self._orders) >= MAX_ORDERS:  # faults make subsets: forget rather than grow
+                self._orders.clear()
+            got = self._orders[key] = (rows, self._grouped(rows))  # type: ignore[arg-type]
+        return got
 
-    def transfers(self, rows: list[int]) -> list[tuple[list[int], list[i2c_msg]]]:
-        """(rows, messages) of each ioctl that reads ``rows`` in their order."""
-        return self._every_transfers if rows == self._every else self._grouped(rows)
-
-    def _grouped(self, rows: list[int]) -> list[tuple[list[int], list[i2c_msg]]]:
+    def _grouped(self, rows: list[int]) -> list[Transfer]:
         per, pairs = self.per, self.pairs
         return [(rows[k:k + per], [m for i in rows[k:k + per] for m in pairs[i]]) for k in range(0, len(rows), per)]
 

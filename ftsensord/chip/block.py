@@ -51,6 +51,8 @@ class BlockDecoder:
         self.xyz_only = self.columns == [0, 1, 2] and self.axes == [0, 1, 2]
         self.unsigned = not self.signed.any()
         self.clean = False  # the last `decode` found no error and no temperature: every entry a Measurement
+        # The last `convert`'s arrays (see there); empty until the first.
+        self.status = self.bad = self.words = self.field = self.saturated = np.empty(0)
         # Saturated where |counts| reaches the span or the Hall limit: the least |counts|
         # whose tesla (counts x scale, as decoded) reach it, found once per chip and axis.
         self.saturates_at = np.minimum(self.span, np.array(
@@ -66,41 +68,54 @@ class BlockDecoder:
             self.changes = MLX90393.settings_changes
         return valid
 
+    def convert(self, block: np.ndarray) -> bool:
+        """One numpy pass over ``block`` ((n, L) uint8: each row one chip's reply, status
+        byte first), kept in ``field`` (n, 3, T, NaN where not read), ``saturated``,
+        ``words`` (uint16, a view of ``block``), ``status`` and ``bad`` (replies left to
+        the per-chip decoder). True when every row is a measurement of X, Y and Z, none
+        saturated: then ``field`` is all anyone needs of this cycle."""
+        self.status = status = block[:, 0]
+        self.bad = bad = self.bad_status[status]
+        # The words big-endian after the status byte: a view, no arithmetic (uint16, as read).
+        self.words = words = block[:, 1:].view(">u2")
+        if self.xyz_only and self.unsigned:  # the usual RM: X, Y, Z and nothing else, offset words
+            counts = words - self.zero  # int32, the zero's type: no uint16 wrap below the zero
+            self.field = counts * self.scale
+            self.saturated = saturated = np.abs(counts) >= self.saturates_at
+            return not bad.any() and not saturated.any()
+        n = len(self.chips)
+        self.field = field = np.full((n, 3), np.nan)
+        self.saturated = saturated = np.zeros((n, 3), dtype=bool)
+        if self.columns:
+            w = words[:, self.columns].astype(np.int32)
+            counts = np.where(self.signed, w - ((w & 0x8000) << 1), w - self.zero)
+            field[:, self.axes] = counts * self.scale
+            saturated[:, self.axes] = np.abs(counts) >= self.saturates_at
+        return False
+
     def decode(self, block: np.ndarray, rows: list[int] | None = None) -> list[Measurement | ChipError]:
         """Per chip, in order: its `Measurement`, or the `ChipError` its reply gives.
 
-        ``block`` (n, L) uint8: each row one chip's reply, status byte first. ``rows``:
-        the rows read this time, in the order wanted (default: all, in order); the
-        others hold older replies, decoded with the rest (one numpy pass costs the same)
-        but never looked at.
+        ``block`` as `convert` takes it. ``rows``: the rows read this time, in the order
+        wanted (default: all, in order); the others hold older replies, decoded with the
+        rest (one numpy pass costs the same) but never looked at.
         """
-        status = block[:, 0]
-        bad = self.bad_status[status]
-        # The words big-endian after the status byte: a view, no arithmetic (uint16, as read).
-        words = block[:, 1:].view(">u2")
-        if self.xyz_only and self.unsigned:  # the usual RM: X, Y, Z and nothing else, offset words
-            counts = words - self.zero  # int32, the zero's type: no uint16 wrap below the zero
-            field = counts * self.scale
-            saturated = np.abs(counts) >= self.saturates_at
-        else:
-            n = len(self.chips)
-            field = np.full((n, 3), np.nan)
-            saturated = np.zeros((n, 3), dtype=bool)
-            if self.columns:
-                w = words[:, self.columns].astype(np.int32)
-                counts = np.where(self.signed, w - ((w & 0x8000) << 1), w - self.zero)
-                field[:, self.axes] = counts * self.scale
-                saturated[:, self.axes] = np.abs(counts) >= self.saturates_at
+        self.convert(block)
+        return self.measurements(block, rows)
+
+    def measurements(self, block: np.ndarray, rows: list[int] | None = None) -> list[Measurement | ChipError]:
+        """`decode`'s answer from the arrays the last `convert` of ``block`` left."""
+        saturated, field, words, bad = self.saturated, self.field, self.words, self.bad
         # Per row, as Python objects, each in one call (row views, lists): no per-chip numpy.
         sat_any = saturated.any(axis=1).tolist() if saturated.any() else [False] * len(self.chips)
         raw = list(map(tuple, words.tolist()))
-        statuses = status.tolist()
+        statuses = self.status.tolist()
         fields, sats = list(field), list(saturated)
         items, status_of = self.items, mlx.STATUSES.__getitem__
         order = range(len(self.chips)) if rows is None else rows
         bad_rows = cast("list[bool]", bad.tolist()) if bad.any() else None
         self.clean = self.t_column is None and (bad_rows is None or not any(bad_rows[i] for i in order))
-        if self.clean:  # the usual cycle: no error, no temperature
+        if self.clean:  # no error, no temperature
             return [Measurement(status_of(statuses[i]), fields[i], sats[i], None, raw[i], items, sat_any[i])
                     for i in order]
         t_column = self.t_column

@@ -177,7 +177,7 @@ class Daemon(Commands):
         late = self.timing.begin(start, lateness, self.period_s)
         every = self.config.temperature_every
         zyxt = mlx.ZYXT_XYZT if every and self.timing.cycles % every == 0 else mlx.ZYXT_XYZ
-        results = {r.address: r for r in self.reader.read(zyxt)}
+        results = self.reader.read(zyxt)
         t_mono, t_wall = self.clock(), self.wall()
         # Every stream's sequence number is the cycle's: a deadline the loop skipped is a jump.
         seq = self.timing.cycles + self.timing.missed
@@ -214,7 +214,7 @@ class Daemon(Commands):
                 flags, gravity = self.gravity.tare_input(p.name, start) if self.gravity else (0, None)
                 self.tares.feed(p.name, s.flux, s.flags | flags, gravity)
         self.tares.advance(self.sensors)
-        self.chips.count_all(results.values())
+        self.chips.count_all(results)
         self.timing.end(self.clock() - start)
         if not self.ready:
             self.ready = True

@@ -13,12 +13,13 @@ from __future__ import annotations
 import functools
 import time
 from collections import deque
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
 from ..acquire.health import ChipResult
+from ..acquire.readings import Readings
 from ..calibration.thermal import ThermalLaws
 from ..chip import mlx90393 as mlx
 from ..errors import ChipRefusedError
@@ -102,7 +103,7 @@ class SensorPipeline:
     def name(self) -> str:
         return self.config.name
 
-    def step(self, results: dict[int, ChipResult], base_flags: int = 0, R: np.ndarray | None = None) -> SensorSample:
+    def step(self, results: Mapping[int, ChipResult], base_flags: int = 0, R: np.ndarray | None = None) -> SensorSample:
         """This cycle's sample from the chips' ``results`` (by address); ``base_flags``
         apply to every stream of the cycle (e.g. late); ``R``: the sensor's orientation
         (R_world,sensor; None: unknown), for the stray stage."""
@@ -126,8 +127,12 @@ class SensorPipeline:
         filtered, wflags = self.filter.update(wrench, wflags)  # a filtered wrench carries its inputs' flags
         return SensorSample(flux, flags, filtered, wflags, valid)
 
-    def flux(self, results: dict[int, ChipResult]) -> tuple[np.ndarray, int, np.ndarray]:
+    def flux(self, results: Mapping[int, ChipResult]) -> tuple[np.ndarray, int, np.ndarray]:
         """The sensor's stacked flux (T), its flags, and which chips are usable."""
+        if type(results) is Readings and results.field is not None:  # a clean cycle: rows of its array
+            flux = results.field[results.rows(self.config.addresses)].reshape(-1)
+            self.last_flux[:] = flux
+            return flux, 0, _every_chip(len(self.config.addresses))
         ms = [results[a].measurement for a in self.config.addresses]
         for m in ms:
             if m is None or m.temperature_c is not None or m.any_saturated:
@@ -246,19 +251,6 @@ class SensorPipeline:
         self.estimator = estimator
         self.filter.reset()
         self.creep.reset()
-
-    def status(self) -> dict[str, Any]:
-        return {
-            "calibration": str(self.config.calibration_path), "serial": self.config.calibration.serial,
-            "frame": self.config.frame, "tared": self.tared, "estimator": self.estimator,
-            "nonlinear_calibrated": self.nonlinear is not None, "fallbacks": self.fallbacks,
-            "estimate_cpu_us": {"mean": float(np.mean(self.estimate_s)) * 1e6,
-                                "max": float(np.max(self.estimate_s)) * 1e6} if self.estimate_s else None,
-            "tare_wrench": self.tare_wrench.round(6).tolist(),
-            "temperature": None if self.thermal is None else self.thermal.status(),
-            "stray": None if self.stray is None else self.stray.status(),
-            "silicone": self.creep.status(),
-        }
 
 
 #: Flags of a sample the stray stage does not learn from: a chip not read or left out, a

@@ -5,18 +5,21 @@ The keys of the `status` reply are documented in docs/protocol.md.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+import statistics
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from .. import __version__
 from ..acquire.health import ChipHealth, ChipResult
+from ..acquire.readings import Readings
 from ..errors import ChipError, ChipRefusedError
 from .frames import TIP
 from .loop import percentiles_us
 
 if TYPE_CHECKING:
     from .daemon import Daemon
+    from .pipeline import SensorPipeline
 
 
 @dataclass
@@ -35,8 +38,10 @@ class ChipLedger:
 
     def __init__(self, sensors: dict[str, tuple[int, ...]]):
         self.chips = {a: ChipStats(name) for name, addresses in sensors.items() for a in addresses}
+        self._clean_last = False  # the last cycle counted was clean: every chip's ok is set
 
     def failed_to_start(self, address: int, exc: ChipError) -> None:
+        self._clean_last = False
         stats = self.chips[address]
         stats.ok, stats.errors, stats.last_error = False, stats.errors + 1, str(exc)
 
@@ -56,11 +61,18 @@ class ChipLedger:
         else:
             stats.ok = False
 
-    def count_all(self, results: Iterable[ChipResult]) -> None:
+    def count_all(self, results: Mapping[int, ChipResult]) -> None:
         """`count` every result of a cycle; the usual one (a reading, unsaturated, no
-        temperature) without a call of its own."""
+        temperature) without a call of its own, a clean cycle (`Readings.clean`) at once."""
+        if type(results) is Readings and results.clean:
+            if not self._clean_last:  # every chip read: ok, and nothing else counted
+                for a in results.addresses:
+                    self.chips[a].ok = True
+                self._clean_last = True
+            return
+        self._clean_last = False
         chips, count = self.chips, self.count
-        for r in results:
+        for r in results.values():
             m = r.measurement
             if m is not None and m.saturated_any is False and m.temperature_c is None:
                 chips[r.address].ok = True
@@ -129,7 +141,7 @@ def status_reply(d: Daemon) -> dict[str, Any]:
         "cycles": t.cycles, "missed_cycles": t.missed, "late_cycles": t.late,
         "averaging": d.config.averaging, "lowpass_hz": d.config.lowpass_hz,
         "chips": d.chips.report(d.reader.health, d.reader.bus.monotonic()),
-        "sensors": {s.name: s.status() for s in d.sensors},
+        "sensors": {s.name: sensor_status(s) for s in d.sensors},
         "streams": sorted(d.streams), "publish": d.config.publish, "control": d.config.control,
         "connections": {c.name: c.status() for c in d.guard.caps}, "replies_dropped": d.control.dropped,
         "frames": stream_frames(d), "gravity": d.gravity.status(d.sensors, d.clock()) if d.gravity else None,
@@ -185,3 +197,18 @@ def describe(status: dict[str, Any]) -> str:
         out.append(f"  {address}: {c['state'].upper()}{retry}, {c['errors']} errors, {c['reinits']} resets, "
               f"{c['register_drifts']} register changes, {c['stuck_detections']} stuck; last: {c['last_error']}")
     return "\n".join(out)
+
+
+def sensor_status(p: SensorPipeline) -> dict[str, Any]:
+    """One sensor's part of the `status` reply: calibration, tare, estimator and its stages."""
+    return {
+        "calibration": str(p.config.calibration_path), "serial": p.config.calibration.serial,
+        "frame": p.config.frame, "tared": p.tared, "estimator": p.estimator,
+        "nonlinear_calibrated": p.nonlinear is not None, "fallbacks": p.fallbacks,
+        "estimate_cpu_us": {"mean": statistics.fmean(p.estimate_s) * 1e6,
+                            "max": max(p.estimate_s) * 1e6} if p.estimate_s else None,
+        "tare_wrench": p.tare_wrench.round(6).tolist(),
+        "temperature": None if p.thermal is None else p.thermal.status(),
+        "stray": None if p.stray is None else p.stray.status(),
+        "silicone": p.creep.status(),
+    }
