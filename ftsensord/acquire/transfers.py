@@ -230,7 +230,7 @@ class Transfers:
                 alone.extend(group)  # which one failed? ask each on its own
                 continue
             for chip, (_, read) in zip(group, pairs):
-                out[chip.address] = _decoded(decode, chip, bytes(read))
+                out[chip.address] = _decoded(decode, chip, read.buf[:read.len])
         for chip in alone:
             write, read = messages(chip)
             try:

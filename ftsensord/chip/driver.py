@@ -116,7 +116,7 @@ class MLX90393:
             self.bus.i2c_rdwr(write, read)
         except OSError as exc:
             raise bus_error(self.address, command, exc) from exc
-        return bytes(read)
+        return read.buf[:read.len]  # bytes(read) is two Python calls more (smbus2's __bytes__, string_at)
 
     def check_status(self, byte: int, command: str) -> mlx.Status:
         """Decode a status byte; raise `ChipRefusedError` when ERROR is set."""
