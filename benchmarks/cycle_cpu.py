@@ -240,7 +240,7 @@ def measure(cycles: int, rounds: int, readback_every: int | None = None) -> dict
             out["bus"].append(per_cycle_us(recorded.replay, replays) / RECORDED_CYCLES)
             out["nonlinear"].append(per_cycle_us(daemons["nonlinear"].cycle, max(1, cycles // 4)))
         for s in daemons["nonlinear"].sensors:
-            estimate_us.append(s.status()["estimate_cpu_us"]["mean"])
+            estimate_us.append(statistics.fmean(s.estimate_s) * 1e6)
         parts = breakdown(daemons["linear"], cycles)
         failing = sum(d.chips.failing for d in daemons.values())
         inconsistent = sum(s.check.inconsistent for d in daemons.values() for s in d.sensors)

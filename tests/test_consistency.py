@@ -7,10 +7,12 @@ import json
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from ftsensord.calibration.calfile import Calibration
 from ftsensord.chip import mlx90393 as mlx
-from ftsensord.model.linear import chi2_quantile
+from ftsensord.model.linear import Consistency, chi2_quantile
 from ftsensord.service import wire
 from ftsensord.service.config import builtin_path
 from ftsensord.service.filters import WrenchFilter
@@ -20,6 +22,10 @@ from ftsensord.service.redundancy import (
     CHIP_RESIDUAL_AT_REST,
     MODEL_RESIDUAL_AT_RANGE,
     MODEL_RESIDUAL_AT_REST,
+    SLOW_WINDOW,
+    RedundancyCheck,
+    _slow_limit,
+    every_chip,
 )
 from ftsensord.sim.loads import StaticLoad
 from ftsensord.sim.scene import default_scene
@@ -331,3 +337,49 @@ def test_filtered_streams_restart_after_a_stall(tmp_path):
     assert wrong == [], [round(after[i].values[0], 3) for i in wrong]
     assert not any(s.flags for s in after)  # none needed flagging: nothing of the past is left
     rig.close()
+
+
+def _slow_reference(drops: list[list[float]], loads: list[float]) -> list[int | None]:
+    """The slow test as it reads: every sample, each chip's drop summed over the window, against
+    the limit at the window's largest load; the window starts again after a finding."""
+    out: list[int | None] = []
+    window: list[tuple[list[float], float]] = []
+    for d, load2 in zip(drops, loads):
+        window.append((d, load2))
+        last = window[-SLOW_WINDOW:]
+        if len(window) < SLOW_WINDOW:
+            out.append(None)
+            continue
+        total = [sum(row[i] for row, _ in last) for i in range(len(d))]
+        limit = _slow_limit(len(d), max(l for _, l in last))
+        found = int(np.argmax(total)) if max(total) > limit ** 2 else None
+        out.append(found)
+        if found is not None:
+            window = []
+    return out
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.tuples(st.lists(st.floats(-1e-9, 40.0), min_size=8, max_size=8), st.floats(0.0, 0.3)),
+                min_size=SLOW_WINDOW, max_size=4 * SLOW_WINDOW))
+def test_the_slow_tests_shortcut_finds_what_the_whole_sum_finds(samples):
+    """The slow test skips the per-chip sum when the samples' largest drops add up to less than
+    its least limit: it must find the same chips, on the same samples, as summing every time
+    (drops up to 40 a sample: sums from far below to far beyond the limits, 233 at rest for 8
+    chips; -1e-9: a drop's round-off below zero)."""
+    check = RedundancyCheck()
+    chips = every_chip(8)
+    got = [check._slow_culprit(Consistency(0.0, 18, np.zeros(6), np.zeros(8), 15, np.array(d)), chips, 8, load2)
+           for d, load2 in samples]
+    assert got == _slow_reference([d for d, _ in samples], [l for _, l in samples])
+
+
+def test_the_slow_test_finds_a_chip_below_one_samples_limit():
+    """A chip whose drop (25 a sample at rest) is a third of what one sample's test needs is
+    found by the slow test on the window's 10th sample, not before."""
+    check = RedundancyCheck()
+    d = np.full(8, 2.0)
+    d[3] = 25.0
+    got = [check._slow_culprit(Consistency(0.0, 18, np.zeros(6), np.zeros(8), 15, d), every_chip(8), 8, 0.0)
+           for _ in range(SLOW_WINDOW)]
+    assert got == [None] * (SLOW_WINDOW - 1) + [3]

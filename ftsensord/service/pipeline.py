@@ -33,7 +33,7 @@ from . import wire
 from .sensorconf import SensorConfig
 from .filters import WrenchFilter
 from .loop import STATS_WINDOW
-from .redundancy import RedundancyCheck
+from .redundancy import RedundancyCheck, count_missing, every_chip
 
 #: A linear estimate is flagged `extrapolated` past this multiple of the calibration's
 #: largest load on an axis: up to 1.5x no axis's error relative to the load has grown
@@ -80,7 +80,7 @@ class SensorPipeline:
     thermal: ThermalCompensation | None = None  # None: temperatures not read (temperature_every = 0)
     stray: WorldGradient | None = None  # stray_field = "world": a motor's gradient learnt as the tool turns
     creep: CreepCompensation = field(default_factory=lambda: CreepCompensation(None, 100.0))  # the silicone's (`build`)
-    _extrapolation: tuple[np.ndarray | None, np.ndarray | None] | None = field(default=None, repr=False)
+    _extrapolation: tuple[np.ndarray | None, list[float] | None] | None = field(default=None, repr=False)
 
     @classmethod
     def build(cls, s: SensorConfig, smoothing: WrenchFilter, max_missing_chips: int,
@@ -122,7 +122,7 @@ class SensorPipeline:
                     wflags |= wire.FLAG_TEMPERATURE
         wrench = self.creep.apply(wrench, not wflags & _BREAKS_MEMORY)  # the silicone's creep undone
         valid = not wflags & wire.FLAG_INVALID
-        if valid and (np.abs(wrench) > SENSOR_RANGE).any():
+        if valid and any(abs(w) > r for w, r in zip(wrench.tolist(), _RANGE)):  # (NaN: not over, as numpy)
             wflags |= wire.FLAG_OVERLOAD
         filtered, wflags = self.filter.update(wrench, wflags)  # a filtered wrench carries its inputs' flags
         return SensorSample(flux, flags, filtered, wflags, valid)
@@ -132,7 +132,7 @@ class SensorPipeline:
         if type(results) is Readings and results.field is not None:  # a clean cycle: rows of its array
             flux = results.field[results.rows(self.config.addresses)].reshape(-1)
             self.last_flux[:] = flux
-            return flux, 0, _every_chip(len(self.config.addresses))
+            return flux, 0, every_chip(len(self.config.addresses))
         ms = [results[a].measurement for a in self.config.addresses]
         for m in ms:
             if m is None or m.temperature_c is not None or m.any_saturated:
@@ -140,13 +140,13 @@ class SensorPipeline:
         else:  # the usual cycle, each chip read, none saturated, no temperature: one stack
             flux = np.concatenate([m.field_t for m in ms])  # type: ignore[union-attr]
             self.last_flux[:] = flux
-            return flux, 0, _every_chip(len(ms))
+            return flux, 0, every_chip(len(ms))
         if self.thermal is not None and any(m is not None and m.temperature_c is not None for m in ms):
             self.thermal.observe([None if m is None else m.temperature_c for m in ms])
         if all(m is not None and not m.any_saturated for m in ms):  # a temperature cycle: one stack, no loop
             flux = np.concatenate([m.field_t for m in ms])  # type: ignore[union-attr]
             self.last_flux[:] = flux
-            return flux, 0, _every_chip(len(ms))
+            return flux, 0, every_chip(len(ms))
         flux = np.full(3 * len(self.config.addresses), np.nan)
         usable = np.zeros(len(self.config.addresses), dtype=bool)
         flags = 0
@@ -190,7 +190,7 @@ class SensorPipeline:
         else NaN, flagged invalid."""
         usable, checked = self.check.chips(self, flux, usable)
         flags |= checked
-        missing = len(usable) - int(np.count_nonzero(usable))
+        missing = count_missing(usable)
         few_missing = missing <= self.max_missing_chips
         if self.estimator == "nonlinear" and self.nonlinear is not None and self.zero_twist is not None:
             if few_missing:
@@ -217,8 +217,10 @@ class SensorPipeline:
         fitted = self.config.calibration.wrench_range
         kept = self._extrapolation
         if kept is None or kept[0] is not fitted:  # worked out once per calibration, not every sample
-            kept = self._extrapolation = (fitted, None if fitted is None else EXTRAPOLATION_MARGIN * fitted)
-        if kept[1] is not None and (np.abs(wrench + self.tare_wrench) > kept[1]).any():
+            kept = self._extrapolation = (fitted, None if fitted is None else (EXTRAPOLATION_MARGIN * fitted).tolist())
+        # Over six Python floats: four numpy calls on six values cost more than the loop.
+        if kept[1] is not None and any(abs(w + t) > limit for w, t, limit in
+                                       zip(wrench.tolist(), self.tare_wrench.tolist(), kept[1])):
             flags |= wire.FLAG_EXTRAPOLATED
         return wrench, flags
 
@@ -253,6 +255,9 @@ class SensorPipeline:
         self.creep.reset()
 
 
+_RANGE = SENSOR_RANGE.tolist()  # the overload test's limits as Python floats (N, Nm)
+
+
 #: Flags of a sample the stray stage does not learn from: a chip not read or left out, a
 #: load beyond the linear model (a temperature beyond its span is asked of the stage itself).
 _NOT_LEARNT = (wire.FLAG_CHIP_MISSING | wire.FLAG_SATURATED | wire.FLAG_STALE | wire.FLAG_DEGRADED
@@ -263,14 +268,6 @@ _NOT_LEARNT = (wire.FLAG_CHIP_MISSING | wire.FLAG_SATURATED | wire.FLAG_STALE | 
 #: entering it): a chip not read, stale or left out, no estimate, a fallback to the other estimator.
 _BREAKS_MEMORY = (wire.FLAG_CHIP_MISSING | wire.FLAG_SATURATED | wire.FLAG_STALE | wire.FLAG_DEGRADED
                   | wire.FLAG_INVALID | wire.FLAG_FALLBACK | wire.FLAG_INCONSISTENT)
-
-
-@functools.lru_cache(maxsize=8)
-def _every_chip(n: int) -> np.ndarray:
-    """``n`` chips all usable (read-only: shared by every cycle that has them all)."""
-    every = np.ones(n, dtype=bool)
-    every.setflags(write=False)
-    return every
 
 
 def use_estimator(pipelines: list[SensorPipeline], estimator: str, sensor: str | None) -> dict[str, str]:

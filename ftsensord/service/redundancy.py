@@ -5,6 +5,7 @@ pipeline (`pipeline.SensorPipeline`) asks it for the chips to estimate from.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import TYPE_CHECKING
 
@@ -58,6 +59,33 @@ _WINDOW_ONES = np.ones(SLOW_WINDOW)
 
 
 
+@functools.lru_cache(maxsize=8)
+def every_chip(n: int) -> np.ndarray:
+    """``n`` chips all usable (read-only: shared by every cycle that has them all)."""
+    every = np.ones(n, dtype=bool)
+    every.setflags(write=False)
+    return every
+
+
+def _slow_limit(chips: int, load2: float) -> float:
+    """The slow test's limit (whitened norm) on one chip's drop summed over the window, with
+    ``chips`` in use at the load ``load2`` (`RedundancyCheck._load2`): its share of the odds
+    (a quarter, split among the chips) plus the model's error over the window (Minkowski)."""
+    return _slow_noise(chips) + math.sqrt(SLOW_WINDOW) * (CHIP_RESIDUAL_AT_REST + CHIP_RESIDUAL_AT_RANGE * load2)
+
+
+@functools.lru_cache(maxsize=16)
+def _slow_noise(chips: int) -> float:
+    """`_slow_limit`'s noise part, worked out once per number of chips."""
+    return math.sqrt(chi2_quantile(3 * SLOW_WINDOW, CONSISTENCY_FALSE_ODDS / (4 * chips)))
+
+
+def count_missing(usable: np.ndarray) -> int:
+    """How many chips ``usable`` leaves out; none, without counting, when it is `every_chip`'s."""
+    n = len(usable)
+    return 0 if usable is every_chip(n) else n - int(np.count_nonzero(usable))
+
+
 class RedundancyCheck:
     """Which of a sensor's chips agree with one deflection (`LinearModel.consistency`),
     sample by sample, and which were found out and stay out until they agree again."""
@@ -68,6 +96,7 @@ class RedundancyCheck:
         # The slow test's window: each sample's drops (one row a sample, in turn) and load.
         self.slow_drops = np.zeros((SLOW_WINDOW, 0))
         self.slow_loads = [0.0] * SLOW_WINDOW
+        self.slow_tops = [0.0] * SLOW_WINDOW  # each sample's largest drop
         self.slow_count = 0  # samples in the window since it was last cleared
         self.slow_key = b""  # the chips the drops in the window were computed over
 
@@ -75,7 +104,7 @@ class RedundancyCheck:
         """The chips to estimate from, and `inconsistent` (+ `degraded`) when the usable
         chips' residual is beyond noise and model error: the chip whose leaving explains
         it is left out if the rest then agree, else the sample is flagged as it stands."""
-        n_usable = int(np.count_nonzero(usable))
+        n_usable = len(usable) - count_missing(usable)
         if len(usable) - n_usable > p.max_missing_chips:
             return usable, 0  # too few chips for any estimate: the sample is invalid as it stands
         if p.model.H is None or p.sigma_t is None or n_usable * 3 <= p.model.unknowns:
@@ -141,13 +170,16 @@ class RedundancyCheck:
         turn = self.slow_count % SLOW_WINDOW
         self.slow_drops[turn] = c.drop
         self.slow_loads[turn] = load2
+        self.slow_tops[turn] = max(c.drop.tolist())
         self.slow_count += 1
         if self.slow_count < SLOW_WINDOW:
             return None
+        # No chip's sum exceeds the sum of each sample's largest drop: under the least limit
+        # (at rest) that settles the usual sample without summing the window per chip.
+        if sum(self.slow_tops) <= _slow_limit(n, 0.0) ** 2:
+            return None
         total = (_WINDOW_ONES @ self.slow_drops).tolist()  # the sum over the window (a product: see per_chip)
-        s2 = max(self.slow_loads)
-        limit = math.sqrt(chi2_quantile(3 * SLOW_WINDOW, CONSISTENCY_FALSE_ODDS / (4 * n))) \
-            + math.sqrt(SLOW_WINDOW) * (CHIP_RESIDUAL_AT_REST + CHIP_RESIDUAL_AT_RANGE * s2)
+        limit = _slow_limit(n, max(self.slow_loads))
         largest = max(total)
         if largest <= limit ** 2:
             return None
