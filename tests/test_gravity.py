@@ -34,7 +34,7 @@ from ftsensord.model import se3
 from ftsensord.service import orientation as ori
 from ftsensord.service import wire
 from ftsensord.service.config import load_config
-from ftsensord.service.pipeline import SensorSample, tip_wrench
+from ftsensord.service.pipeline import SensorSample, tip_moves, tip_wrench
 from ftsensord.service.status import describe
 from ftsensord.sim import load_scene
 from ftsensord.sim.loads import FixedOrientation, fibonacci_directions, gravity_to_down
@@ -195,7 +195,7 @@ def test_a_rotated_tool_pose_gives_the_rotated_wrench_by_hand_and_by_the_adjoint
     T = se3.pose(se3.exp_so3(np.radians([0.0, 0.0, 90.0])), np.array([0.0, 0.0, -0.2]))
     w = np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.5])
     sample = SensorSample(np.zeros(24), 0, w, wire.FLAG_DEGRADED, True)
-    tip, flags = tip_wrench({"s": sample}, {"s": T})
+    tip, flags = tip_wrench({"s": sample}, tip_moves({"s": T}))
     assert np.allclose(tip, [0.0, 1.0, 0.0, 0.2, 0.0, 0.5], atol=1e-12) and flags == wire.FLAG_DEGRADED
     assert np.allclose(tip, se3.adjoint(se3.inverse(T)).T @ w, atol=1e-12)  # X = Ad(T_s,tip)^T
 

@@ -37,7 +37,7 @@ from .gravity import Gravity
 from .host import HostGuard
 from .loop import LoopTiming, serve_until
 from .orientation import OrientationReceiver
-from .pipeline import SensorPipeline, SensorSample, tip_wrench
+from .pipeline import SensorPipeline, SensorSample, tip_moves, tip_wrench
 from .realtime import Scheduling
 from .reloads import Reloads
 from .ros2conf import BridgeWatch
@@ -72,6 +72,7 @@ class Daemon(Commands):
         self.orientations = OrientationReceiver(orientation, {*self.sensor_names, TIP})
         self.gravity = self._gravity(config)
         self.timing = LoopTiming()
+        self._tip: tuple[dict[str, np.ndarray] | None, list[tuple[str, np.ndarray]]] = (None, [])  # poses, tip_moves
         self.control = Control(control, self)
         self.tares = Tares(self.control.reply)
         self.reloads = Reloads(self._prepared, self.finish_reload, self.control.reply) if background_reload else None
@@ -200,7 +201,10 @@ class Daemon(Commands):
             self._publish(f"wrench/{p.name}", wire.KIND_WRENCH, seq, t_mono, t_wall, s.flags, s.wrench)
             if p is self.sensors[0]:
                 self.timing.published(self.clock() - t_mono)
-        tip = tip_wrench(samples, self.config.tool_poses) if self.config.tool_poses else None
+        poses = self.config.tool_poses
+        if poses is not self._tip[0]:  # a new configuration: its transforms, once
+            self._tip = (poses, tip_moves(poses))
+        tip = tip_wrench(samples, self._tip[1]) if poses else None
         if tip is not None:
             self._publish("wrench/tip", wire.KIND_WRENCH, seq, t_mono, t_wall, tip[1], tip[0])
         for topic, flags, values in self.gravity.streams(samples, tip, self.sensors, start) if self.gravity else ():

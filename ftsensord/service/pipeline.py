@@ -10,7 +10,6 @@ missing), a saturated chip its reading (flagged, not used).
 
 from __future__ import annotations
 
-import functools
 import time
 from collections import deque
 from collections.abc import Mapping
@@ -282,21 +281,19 @@ def use_estimator(pipelines: list[SensorPipeline], estimator: str, sensor: str |
     return {p.name: p.estimator for p in pipelines}
 
 
-def tip_wrench(samples: dict[str, SensorSample], poses: dict[str, np.ndarray]) -> tuple[np.ndarray, int]:
-    """The wrench at the tool tip (N, Nm, tip frame): each sensor's moved from its pose
-    in the tip frame (T_tip,s: f_tip = R f_s, m_tip = R m_s + p x R f_s) and summed, with
-    every sensor's flags: the tip is as good as its worst sensor."""
-    tip, flags = np.zeros(6), 0
-    for name, T in poses.items():
-        tip += _moved_from(np.asarray(T, dtype=float).tobytes()) @ samples[name].wrench
-        flags |= samples[name].flags
-    return tip, flags
+def tip_moves(poses: dict[str, np.ndarray]) -> list[tuple[str, np.ndarray]]:
+    """Each sensor's wrench transform to the tool tip, X(T_tip,s), from its pose in the tip
+    frame (4 x 4, m): f_tip = R f_s, m_tip = R m_s + p x R f_s; built once per configuration."""
+    return [(name, se3.wrench_transform(np.asarray(T, dtype=float))) for name, T in poses.items()]
 
 
-@functools.lru_cache(maxsize=64)
-def _moved_from(pose: bytes) -> np.ndarray:
-    """The wrench transform from a sensor at ``pose`` in the tip frame (4 x 4 float64 as
-    bytes, m): built once per pose, not every cycle."""
-    X = se3.wrench_transform(np.frombuffer(pose).reshape(4, 4))
-    X.setflags(write=False)  # shared by every cycle
-    return X
+def tip_wrench(samples: dict[str, SensorSample], moves: list[tuple[str, np.ndarray]]) -> tuple[np.ndarray, int]:
+    """The wrench at the tool tip (N, Nm, tip frame): each sensor's moved by its `tip_moves`
+    transform and summed, with every sensor's flags: the tip is as good as its worst sensor."""
+    tip, flags = None, 0
+    for name, X in moves:
+        s = samples[name]
+        moved = X @ s.wrench
+        tip = moved if tip is None else tip + moved
+        flags |= s.flags
+    return (np.zeros(6) if tip is None else tip), flags

@@ -101,6 +101,8 @@ class Tares:
 
     def advance(self, pipelines: Sequence[SensorPipeline]) -> None:
         """After a cycle: finish the tares that have their samples, give up on the hopeless."""
+        if not self.jobs:
+            return
         by_name = {p.name: p for p in pipelines}
         for job in list(self.jobs):
             job.cycles += 1
