@@ -218,11 +218,13 @@ class MLX90393:
         if not 0 <= reg <= mlx.REG_MAX:
             raise ValueError(f"register address 0x{reg:02X} is out of range 0x00-0x{mlx.REG_MAX:02X}")
         reply = self.transfer(bytes([mlx.CMD_RR, reg << 2]), 3)
-        status = mlx.status_of(reply[0])
-        if status.error:  # raises, naming the register (a name built only then)
-            self.check_status(reply[0], f"RR 0x{reg:02X}")
-        if status.data_bytes != 2:
-            raise ChipProtocolError(self.address, f"RR expects 2 data bytes, status says {status.data_bytes}")
+        byte = reply[0]
+        # The status's bits tested as they are: `Status`' properties cost a call each, every read-back.
+        if byte & mlx.STATUS_ERROR:  # raises, naming the register (a name built only then)
+            self.check_status(byte, f"RR 0x{reg:02X}")
+        if byte & mlx.STATUS_D_MASK:  # D1:D0 = 0: 2 data bytes (2 D + 2)
+            raise ChipProtocolError(self.address,
+                                    f"RR expects 2 data bytes, status says {mlx.status_of(byte).data_bytes}")
         return (reply[1] << 8) | reply[2]
 
     def write_register(self, reg: int, value: int, *, verify: bool = True) -> None:
@@ -265,6 +267,7 @@ class MLX90393:
     @settings.setter
     def settings(self, settings: mlx.Settings | None) -> None:
         self._settings = settings
+        self._expected: tuple[tuple[int, ...], dict[int, int]] | None = None  # CONF1..3 as read, as they must be
         MLX90393.settings_changes += 1  # a `BlockDecoder` built before is stale
         # Per axis: the word's coding and tesla per count, fixed until the next configure.
         self._decoding = [] if settings is None else [
@@ -279,7 +282,11 @@ class MLX90393:
         if self.settings is None:
             raise ChipProtocolError(self.address, "not configured")
         current = self.read_configuration()  # CONF1, CONF2, CONF3, in this order
-        return current == _expected_registers(self.settings, *current.values()) and tcmp_offsets_hold(self)
+        read = tuple(current.values())
+        kept = self._expected
+        if kept is None or kept[0] != read:  # (hashing the settings for the cache costs a microsecond)
+            kept = self._expected = (read, _expected_registers(self.settings, *read))
+        return current == kept[1] and tcmp_offsets_hold(self)
 
 
 def write_tcmp_offsets(chip: MLX90393, settings: mlx.Settings) -> None:
