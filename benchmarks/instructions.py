@@ -48,7 +48,8 @@ def _skip(daemon: object, parts: list[str]) -> None:
         if part == "check":
             for p in daemon.sensors:  # type: ignore[attr-defined]
                 p.check.chips = lambda pipeline, flux, usable: (usable, 0)
-        elif part == "judge":
+        elif part == "judge":  # the clean cycle's (`judge_words`) and any other's (`judge_all`)
+            daemon.reader.care.judge_words = lambda *args: {}  # type: ignore[attr-defined]
             daemon.reader.care.judge_all = lambda *args: None  # type: ignore[attr-defined]
         elif part == "count":
             daemon.chips.count_all = lambda *args: None  # type: ignore[attr-defined]
