@@ -22,7 +22,7 @@ import numpy as np
 
 from ..errors import ConfigError
 
-__all__ = ["SOLVERS", "CompiledSolve", "compile_library", "library_path", "load", "solver_for"]
+__all__ = ["SOLVERS", "CompiledSolve", "attach", "compile_library", "library_path", "load", "solver_for"]
 
 SOURCE = Path(__file__).with_name("_nlsolve.c")
 STEM = "_nlsolve"
@@ -87,6 +87,12 @@ def solver_for(solver: str, path: Path | None = None) -> CompiledSolve | None:
         raise ConfigError(f"solver 'compiled': no compiled solver at {path or Path(__file__).parent} "
                           "(built at install where a C compiler is present; 'auto' falls back to numpy)")
     return None if lib is None else CompiledSolve(lib)
+
+
+def attach(estimator, solver: str, path: Path | None = None) -> None:
+    """Make ``estimator`` (a `NonlinearEstimator`) solve with ``solver``, the library at
+    ``path`` (default beside this module): tests and benchmarks set one they built."""
+    estimator._compiled = solver_for(solver, path)
 
 
 class CompiledSolve:
