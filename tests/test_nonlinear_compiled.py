@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from ftsensord.errors import ConfigError
-from ftsensord.model import nlcompiled, se3
+from ftsensord.model import nlcompiled, nonlinear, se3
 from ftsensord.model.geometry import SensorGeometry
 from ftsensord.model.linear import SENSOR_RANGE
 from ftsensord.model.nonlinear import FluxModel, NonlinearEstimator
@@ -61,7 +61,7 @@ def flux(w: np.ndarray, rng: np.random.Generator | None = None) -> np.ndarray:
 def compare(reference: NonlinearEstimator, compiled: NonlinearEstimator, samples, usable=None, start=None) -> dict:
     """Each sample through both in turn: the same decision, iterations and background
     field's presence; end points gathered for the caller's tolerance."""
-    xi_a, xi_b, converged = [], [], []
+    xi_a, xi_b, converged, iterations = [], [], [], []
     for k, b in enumerate(samples):
         chips = usable[k] if isinstance(usable, list) else usable
         a, c = reference.estimate(b, chips, start), compiled.estimate(b, chips, start)
@@ -70,10 +70,11 @@ def compare(reference: NonlinearEstimator, compiled: NonlinearEstimator, samples
         xi_a.append(a.xi)
         xi_b.append(c.xi)
         converged.append(a.converged)
+        iterations.append(a.iterations)
         if a.converged:
             assert np.allclose(a.background_t, c.background_t, rtol=0, atol=1e-3 * NOISE_T), k  # a thousandth of the noise
     return {"reference": np.array(xi_a), "compiled": np.array(xi_b),
-            "converged": converged}
+            "converged": converged, "iterations": np.mean(iterations)}
 
 
 def assert_within_scatter(result: dict, scatter: np.ndarray) -> None:
@@ -92,7 +93,7 @@ def c_model(library, model: FluxModel) -> tuple[nlcompiled.CompiledSolve, object
     est = NonlinearEstimator(model, K, solver="numpy")
     solve = nlcompiled.solver_for("compiled", library)
     assert solve is not None
-    solve._pack(est, nlcompiled._tunables(est.max_iterations))
+    solve._pack(est, nlcompiled._tunables(vars(nonlinear), est.max_iterations), nonlinear.PLAUSIBLE_WRENCH)
     return solve, ctypes.c_void_p(solve._model.ctypes.data)
 
 
@@ -227,3 +228,20 @@ def test_an_install_carries_the_library_it_built():
     files = importlib.metadata.files("ftsensord") or []
     built = [f for f in files if f.name.startswith(nlcompiled.STEM) and f.name.endswith(".so")]
     assert built and nlcompiled.load(built[0].locate()) is not None, [str(f) for f in files if "model" in str(f)]
+
+
+def test_the_compiled_fit_follows_the_modules_constants_and_the_models_arrays(library, monkeypatch):
+    """A constant of nonlinear.py changed (as tests do) and the model's offset and scale
+    changed in place (as a calibration's iteration may) reach the compiled fit too."""
+    rng = np.random.default_rng(12)
+    samples = [flux(np.array([10.0, -5.0, 3.0, 0.02, 0.0, -0.02]), rng) for _ in range(40)]
+    model = FluxModel(G, G.magnet_moment_am2, np.ones((8, 3)), np.zeros((8, 3)))
+    reference, compiled = pair(library, model)
+    kept = compare(reference, compiled, samples[:20])
+    model.offset_t[3] += 20e-6
+    model.scale[5] *= 1.01
+    moved = compare(reference, compiled, samples[20:])
+    assert np.abs(moved["compiled"].mean(axis=0) - kept["compiled"].mean(axis=0)).max() > 1e-6  # the change is seen
+    monkeypatch.setattr(nonlinear, "MAX_STEP_M", 1e-6)  # steps of 1 um at most: the noise moves the pose more
+    limited = compare(reference, compiled, samples[:20])
+    assert limited["iterations"] > moved["iterations"] + 1, (limited["iterations"], moved["iterations"])

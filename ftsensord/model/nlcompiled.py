@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
+from . import se3
 
 __all__ = ["SOLVERS", "CompiledSolve", "attach", "compile_library", "library_path", "load", "solver_for"]
 
@@ -112,10 +113,11 @@ class CompiledSolve:
         self._end: tuple[np.ndarray, np.ndarray, bool] | None = None
 
     def solve(self, est, b: np.ndarray, usable: np.ndarray | None, start: np.ndarray, u0: np.ndarray,
-              background: bool, damping: float) -> tuple[np.ndarray, np.ndarray, bool, int, float, np.ndarray]:
+              background: bool, damping: float, constants: dict) -> tuple[np.ndarray, np.ndarray, bool, int, float, np.ndarray]:
         """`NonlinearEstimator._solve` for ``est``: (xi, T, converged, iterations, rms,
-        background field), ``est.pose`` and ``est.background_t`` set when it converged."""
-        self._pack(est, _tunables(est.max_iterations))
+        background field), ``est.pose`` and ``est.background_t`` set when it converged;
+        ``constants`` nonlinear.py's (its globals, read every call as its own solve does)."""
+        self._pack(est, _tunables(constants, est.max_iterations), constants["PLAUSIBLE_WRENCH"])
         n3 = 3 * (len(b) // 3)
         self._b[:n3] = b
         self._T[:] = start.ravel()
@@ -136,34 +138,33 @@ class CompiledSolve:
             self._end = (T, est.background_t, background)
         return self._out[:6].copy(), T, converged, int(out[7]), out[6], u
 
-    def _pack(self, est, tunables: tuple[float, ...]) -> None:
+    def _pack(self, est, tunables: tuple[float, ...], plausible: np.ndarray) -> None:
         """The model's constants into `_model` when any changed (as `FluxModel._constants`
         follows its arrays, and the offset, stiffness and tolerances besides)."""
         model = est.model
         c = model._constants
-        key = (model.offset_t.tobytes(), est.stiffness.tobytes(), est.zero_twist.tobytes(), tunables)
+        key = (model.offset_t.tobytes(), est.stiffness.tobytes(), est.zero_twist.tobytes(), plausible.tobytes(),
+               tunables)
         if self._packed and self._packed[0] is c and self._packed[1] == key:
             return
         if c.n > NMAX:
             raise ConfigError(f"nonlinear solver 'compiled': {c.n} chips, at most {NMAX}")
-        from .nonlinear import PLAUSIBLE_WRENCH  # here, not above: nonlinear imports this module
         m = self._model
         m[:] = 0.0
         m[:4] = (c.n, c.half_q is not None, c.own_only is not None, 0.0)
         parts = {"chip_p": c.chip_p, "magnet_p": c.magnet_p, "m": c.m, "axis": c.axis,
                  "half_q": np.zeros(c.n) if c.half_q is None else c.half_q, "inv_m": c.inv_m,
                  "resp": c.response_chip, "offset": model.offset_t, "K": est.stiffness,
-                 "zero_twist": est.zero_twist, "plausible": PLAUSIBLE_WRENCH, "tun": np.array(tunables)}
+                 "zero_twist": est.zero_twist, "plausible": plausible, "tun": np.array(tunables)}
         for name, value in parts.items():
             flat = np.asarray(value, dtype=float).ravel()
             m[_AT[name]:_AT[name] + flat.size] = flat
         self._packed = (c, key)
 
 
-def _tunables(max_iterations: int) -> tuple[float, ...]:
-    """nonlinear.py's tolerances and limits in _nlsolve.c's enum's order, read every call:
-    the compiled fit follows that module's constants (a test's too) as its `_solve` does."""
-    from . import nonlinear as nl, se3  # here: nonlinear imports this module
-    return (nl.MAX_STEP_M, nl.MAX_STEP_RAD, nl.STEP_TOL, nl.STEP_TOL_RAD, nl.CONTRACTION, nl.JACOBIAN_REUSE_M,
-            nl.JACOBIAN_REUSE_TRACE, nl.JACOBIAN_REUSE_T, nl.MAX_RESIDUAL_T, nl.BACKGROUND_LIMIT_T, nl.PRIOR_WEIGHT,
-            nl.LINEAR_STEP_T, nl.UNDAMPED, se3.SMALL_ANGLE, se3.NEAR_PI, float(max_iterations))
+def _tunables(nl: dict, max_iterations: int) -> tuple[float, ...]:
+    """nonlinear.py's tolerances and limits (``nl``, its globals) in _nlsolve.c's enum's order."""
+    return (nl["MAX_STEP_M"], nl["MAX_STEP_RAD"], nl["STEP_TOL"], nl["STEP_TOL_RAD"], nl["CONTRACTION"],
+            nl["JACOBIAN_REUSE_M"], nl["JACOBIAN_REUSE_TRACE"], nl["JACOBIAN_REUSE_T"], nl["MAX_RESIDUAL_T"],
+            nl["BACKGROUND_LIMIT_T"], nl["PRIOR_WEIGHT"], nl["LINEAR_STEP_T"], nl["UNDAMPED"], se3.SMALL_ANGLE,
+            se3.NEAR_PI, float(max_iterations))

@@ -213,7 +213,8 @@ class NonlinearEstimator:
     def _solve(self, b: np.ndarray, usable: np.ndarray | None, start: np.ndarray, u0: np.ndarray,
                background: bool, damping: float = 1e-3) -> Estimate:
         if self._compiled is not None:
-            return Estimate(*self._compiled.solve(self, b, usable, start, u0, background, damping))
+            # globals(): this module's constants, read every call (as below), no import circle
+            return Estimate(*self._compiled.solve(self, b, usable, start, u0, background, damping, globals()))
         b = np.asarray(b, dtype=float)
         T = np.asarray(start, dtype=float)  # never changed in place: the field kept for it stays right
         u = np.array(u0, dtype=float) if background else None
