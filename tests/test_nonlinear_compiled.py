@@ -73,7 +73,8 @@ def compare(reference: NonlinearEstimator, compiled: NonlinearEstimator, samples
         converged.append(a.converged)
         iterations.append(a.iterations)
         if a.converged:
-            assert np.allclose(a.background_t, c.background_t, rtol=0, atol=1e-3 * NOISE_T), k  # a thousandth of the noise
+            # The field as the pose: the same steps, round-off apart; a thousandth of a channel's noise.
+            assert np.allclose(a.background_t, c.background_t, rtol=0, atol=1e-3 * NOISE_T), k
     return {"reference": np.array(xi_a), "compiled": np.array(xi_b),
             "converged": converged, "iterations": np.mean(iterations)}
 
@@ -159,8 +160,8 @@ def test_chips_leaving_and_coming_back_give_the_same_fits(library):
     assert_within_scatter(result, rest_scatter(model, loads[-1]))
 
 
-@pytest.mark.parametrize("w", [[45.0, 0, 12.0, 0, 0.1, 0], [0, -40.0, -15, 0.1, 0, 0], [35.0, -35, 14, 0.14, -0.14, 0.14],
-                               [0, 0, 0, 0, 0, 0.2]])
+@pytest.mark.parametrize("w", [[45.0, 0, 12.0, 0, 0.1, 0], [0, -40.0, -15, 0.1, 0, 0],
+                               [35.0, -35, 14, 0.14, -0.14, 0.14], [0, 0, 0, 0, 0, 0.2]])
 def test_cold_starts_at_full_range_give_the_same_fits(library, w):
     samples = [flux(np.array(w), np.random.default_rng(2))]
     model = FluxModel(G, G.magnet_moment_am2)
@@ -219,6 +220,9 @@ def test_the_solver_is_chosen_by_name(tmp_path, library):
         nlcompiled.solver_for("compiled", tmp_path / "none.so")
     with pytest.raises(ConfigError, match="'fast' is not one of auto, numpy, compiled"):
         NonlinearEstimator(model, K, solver="fast")
+    with pytest.raises(ConfigError, match="17 chips, at most 16"):  # _nlsolve.c's NMAX
+        nlcompiled.solver_for("compiled", library, chips=17)
+    assert nlcompiled.solver_for("auto", library, chips=17) is None
 
 
 def test_an_install_carries_the_library_it_built():

@@ -17,6 +17,7 @@ import importlib.machinery
 import shutil
 import subprocess
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -77,23 +78,27 @@ def compile_library(folder: Path, cc: str | None = None) -> Path:
     return out
 
 
-def solver_for(solver: str, path: Path | None = None) -> CompiledSolve | None:
-    """The compiled solve for ``solver`` ("auto", "numpy" or "compiled"), None for numpy's."""
+def solver_for(solver: str, path: Path | None = None, chips: int = 8) -> CompiledSolve | None:
+    """The compiled solve for ``solver`` ("auto", "numpy" or "compiled") of a sensor with
+    ``chips`` chips, None for numpy's (always for "numpy"; for "auto" when the library is
+    absent or the sensor has more chips than it takes)."""
     if solver not in SOLVERS:
         raise ConfigError(f"solver: {solver!r} is not one of {', '.join(SOLVERS)}")
     if solver == "numpy":
         return None
-    lib = load(path)
+    lib = load(path) if chips <= NMAX else None
     if lib is None and solver == "compiled":
-        raise ConfigError(f"solver 'compiled': no compiled solver at {path or Path(__file__).parent} "
-                          "(built at install where a C compiler is present; 'auto' falls back to numpy)")
+        why = (f"{chips} chips, at most {NMAX}" if chips > NMAX else f"no compiled solver at "
+               f"{path or Path(__file__).parent} (built at install where a C compiler is present)")
+        raise ConfigError(f"solver 'compiled': {why}; 'auto' falls back to numpy's")
     return None if lib is None else CompiledSolve(lib)
 
 
-def attach(estimator, solver: str, path: Path | None = None) -> None:
-    """Make ``estimator`` (a `NonlinearEstimator`) solve with ``solver``, the library at
-    ``path`` (default beside this module): tests and benchmarks set one they built."""
-    estimator._compiled = solver_for(solver, path)
+def attach(estimator: Any, solver: str, path: Path | None = None) -> None:
+    """Make ``estimator`` (a `NonlinearEstimator`: not imported, it imports this module) solve
+    with ``solver``, the library at ``path`` (default beside this module): tests and
+    benchmarks set one they built."""
+    estimator._compiled = solver_for(solver, path, estimator.model.geometry.n_chips)
 
 
 class CompiledSolve:
@@ -112,15 +117,16 @@ class CompiledSolve:
         #: takes the flux kept in the state (as `NonlinearEstimator._end`).
         self._end: tuple[np.ndarray, np.ndarray, bool] | None = None
 
-    def solve(self, est, b: np.ndarray, usable: np.ndarray | None, start: np.ndarray, u0: np.ndarray,
-              background: bool, damping: float, constants: dict) -> tuple[np.ndarray, np.ndarray, bool, int, float, np.ndarray]:
+    def solve(self, est: Any, b: np.ndarray, usable: np.ndarray | None, start: np.ndarray, u0: np.ndarray,
+              background: bool, damping: float, constants: dict[str, Any]
+              ) -> tuple[np.ndarray, np.ndarray, bool, int, float, np.ndarray]:
         """`NonlinearEstimator._solve` for ``est``: (xi, T, converged, iterations, rms,
         background field), ``est.pose`` and ``est.background_t`` set when it converged;
         ``constants`` nonlinear.py's (its globals, read every call as its own solve does)."""
         self._pack(est, _tunables(constants, est.max_iterations), constants["PLAUSIBLE_WRENCH"])
         n3 = 3 * (len(b) // 3)
         self._b[:n3] = b
-        self._T[:] = start.ravel()
+        self._T[:] = np.ravel(start)
         self._u[:] = u0
         usable_at = None
         if usable is not None:
@@ -138,7 +144,7 @@ class CompiledSolve:
             self._end = (T, est.background_t, background)
         return self._out[:6].copy(), T, converged, int(out[7]), out[6], u
 
-    def _pack(self, est, tunables: tuple[float, ...], plausible: np.ndarray) -> None:
+    def _pack(self, est: Any, tunables: tuple[float, ...], plausible: np.ndarray) -> None:
         """The model's constants into `_model` when any changed (as `FluxModel._constants`
         follows its arrays, and the offset, stiffness and tolerances besides)."""
         model = est.model
@@ -147,8 +153,6 @@ class CompiledSolve:
                tunables)
         if self._packed and self._packed[0] is c and self._packed[1] == key:
             return
-        if c.n > NMAX:
-            raise ConfigError(f"nonlinear solver 'compiled': {c.n} chips, at most {NMAX}")
         m = self._model
         m[:] = 0.0
         m[:4] = (c.n, c.half_q is not None, c.own_only is not None, 0.0)
@@ -162,7 +166,7 @@ class CompiledSolve:
         self._packed = (c, key)
 
 
-def _tunables(nl: dict, max_iterations: int) -> tuple[float, ...]:
+def _tunables(nl: dict[str, Any], max_iterations: int) -> tuple[float, ...]:
     """nonlinear.py's tolerances and limits (``nl``, its globals) in _nlsolve.c's enum's order."""
     return (nl["MAX_STEP_M"], nl["MAX_STEP_RAD"], nl["STEP_TOL"], nl["STEP_TOL_RAD"], nl["CONTRACTION"],
             nl["JACOBIAN_REUSE_M"], nl["JACOBIAN_REUSE_TRACE"], nl["JACOBIAN_REUSE_T"], nl["MAX_RESIDUAL_T"],

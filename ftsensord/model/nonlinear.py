@@ -155,7 +155,7 @@ class NonlinearEstimator:
         #: warm start follows the motion between them (`_ahead`).
         self._motion: tuple[np.ndarray, np.ndarray] | None = None
         self._gains: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # `_chord_gains`' last
-        self._compiled = solver_for(solver)  # None: numpy's
+        self._compiled = solver_for(solver, chips=model.geometry.n_chips)  # None: numpy's
 
     def estimate(self, b: np.ndarray, usable: np.ndarray | None = None, start: np.ndarray | None = None) -> Estimate:
         """The pose that explains flux ``b`` (3n,) on the usable chips (default all).
