@@ -1,4 +1,4 @@
-"""The nonlinear estimator's solve compiled: `_nlsolve.c` (plain C, no Python headers)
+"""The nonlinear estimator's solve compiled: `_nlsolve.c` and `_nlmodel.c` (plain C, no Python headers)
 built at install into a shared library beside this module (setup.py, optional: absent
 where no C compiler was), loaded through ctypes and called with pointers to float64
 arrays kept here. ctypes' plain calls write no executable memory (a systemd unit's
@@ -26,7 +26,8 @@ from . import se3
 
 __all__ = ["SOLVERS", "CompiledSolve", "attach", "compile_library", "library_path", "load", "solver_for"]
 
-SOURCE = Path(__file__).with_name("_nlsolve.c")
+#: The C sources (setup.py builds the same), with _nlsolve.h beside them.
+SOURCES = (Path(__file__).with_name("_nlsolve.c"), Path(__file__).with_name("_nlmodel.c"))
 STEM = "_nlsolve"
 SOLVERS = ("auto", "numpy", "compiled")
 NMAX = 16  # _nlsolve.c's NMAX: chips a sensor may have
@@ -69,11 +70,11 @@ def compiler() -> str | None:
 
 
 def compile_library(folder: Path, cc: str | None = None) -> Path:
-    """Build `_nlsolve.c` into ``folder`` with warnings as errors, for tests and benchmarks
+    """Build `SOURCES` into ``folder`` with warnings as errors, for tests and benchmarks
     run from a source tree (an install builds it beside this module: setup.py)."""
     out = Path(folder) / (STEM + ".so")
     cmd = [cc or compiler() or "cc", "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-shared", "-fPIC",
-           "-o", str(out), str(SOURCE), "-lm"]
+           "-o", str(out), *map(str, SOURCES), "-lm"]
     subprocess.run(cmd, check=True, capture_output=True, text=True)
     return out
 
