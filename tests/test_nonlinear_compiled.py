@@ -278,3 +278,17 @@ def test_the_compiled_solve_runs_where_memory_may_not_be_written_and_executed(li
     done = subprocess.run([sys.executable, "-c", MDWE_CHILD, str(library)], preexec_fn=deny, capture_output=True,
                           text=True, timeout=120, cwd=Path(__file__).resolve().parent.parent)
     assert done.returncode == 0 and done.stdout.split() == ["True"], (done.returncode, done.stdout, done.stderr)
+
+
+def test_the_motion_continued_is_se3floats(library):
+    """The warm start's prediction (`se3floats.continued`) in C: the same pose and sizes."""
+    from ftsensord.model.se3floats import continued
+    solve = nlcompiled.solver_for("compiled", library)
+    assert solve is not None
+    rng = np.random.default_rng(5)
+    for scale in (1e-6, 1e-3, 1.0):  # the series near zero, a sample's motion, a large turn
+        before = se3.exp_se3(rng.normal(0, 1, 6) * [1e-3, 1e-3, 1e-3, 0.02, 0.02, 0.02])
+        pose = se3.exp_se3(rng.normal(0, scale, 6) * [1e-3, 1e-3, 1e-3, 0.5, 0.5, 0.5]) @ before
+        want, c = continued(before, pose), solve.continued(before, pose)
+        assert np.allclose(c[0], want[0], rtol=0, atol=1e-15)  # round-off of unit-size entries
+        assert np.allclose(c[1:], want[1:], rtol=1e-12, atol=1e-20)

@@ -190,3 +190,28 @@ void nl_predict_and_jacobian(const nl_model *M, const double *T, const double *u
 }
 
 void nl_predict(const nl_model *M, const double *T, const double *u, double *pred) { nlm_predict(M, T, u, pred); }
+
+/* se3floats.continued: ``pose`` moved on by the motion from ``before`` to it (4x4 each),
+ * T_k (T_k-1)^-1 T_k taken as a twist, into ahead (4x4); that twist's translation (m) and
+ * turn (rad) into sizes. */
+void nl_continued(const double *before, const double *pose, double small, double near_pi, double *ahead,
+                  double *sizes)
+{
+    double D[16] = {0}, step[6], E[12];
+    for (int i = 0; i < 3; i++) {  /* R_D = R R_0^T, t_D = t - R_D t_0 */
+        for (int j = 0; j < 3; j++)
+            D[4 * i + j] = pose[4 * i] * before[4 * j] + pose[4 * i + 1] * before[4 * j + 1]
+                           + pose[4 * i + 2] * before[4 * j + 2];
+        D[4 * i + 3] = pose[4 * i + 3] - (D[4 * i] * before[3] + D[4 * i + 1] * before[7] + D[4 * i + 2] * before[11]);
+    }
+    D[15] = 1.0;
+    nlm_log_se3(D, small, near_pi, step);
+    nlm_exp_se3(step, small, E);
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 4; j++)
+            ahead[4 * i + j] = E[4 * i] * pose[j] + E[4 * i + 1] * pose[4 + j] + E[4 * i + 2] * pose[8 + j]
+                               + (j == 3 ? E[4 * i + 3] : 0.0);
+    ahead[12] = ahead[13] = ahead[14] = 0.0, ahead[15] = 1.0;
+    sizes[0] = sqrt(step[0] * step[0] + step[1] * step[1] + step[2] * step[2]);
+    sizes[1] = sqrt(step[3] * step[3] + step[4] * step[4] + step[5] * step[5]);
+}

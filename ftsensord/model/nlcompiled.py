@@ -61,6 +61,8 @@ def load(path: Path | None = None) -> ctypes.CDLL | None:
     lib.nl_state_bytes.restype = lib.nl_model_doubles.restype = ctypes.c_size_t
     lib.nl_solve.argtypes = [_P, _P, _P, _P, _P, _P, ctypes.c_int, ctypes.c_double, ctypes.c_int, _P]
     lib.nl_solve.restype = ctypes.c_int
+    lib.nl_continued.argtypes = [_P, _P, ctypes.c_double, ctypes.c_double, _P, _P]
+    lib.nl_continued.restype = None
     return lib if lib.nl_model_doubles() == _DOUBLES else None
 
 
@@ -111,7 +113,8 @@ class CompiledSolve:
         self._state = np.zeros(lib.nl_state_bytes(), np.uint8)
         self._model = np.zeros(_DOUBLES)
         self._T, self._u, self._b = np.empty(16), np.empty(3), np.empty(3 * NMAX)
-        self._usable, self._out = np.empty(NMAX), np.empty(9)
+        self._usable, self._out, self._sizes = np.empty(NMAX), np.empty(9), np.empty(2)
+        self._sizes_at = self._sizes.ctypes.data
         self._addresses = [a.ctypes.data for a in (self._model, self._state, self._b, self._usable, self._T, self._u)]
         self._packed: tuple = ()  # what the model was packed from
         #: The last converged fit's pose, field and kind: a start from those two objects
@@ -144,6 +147,16 @@ class CompiledSolve:
             est.pose, est.background_t = T, u.copy()
             self._end = (T, est.background_t, background)
         return self._out[:6].copy(), T, converged, int(out[7]), out[6], u
+
+    def continued(self, before: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, float, float]:
+        """`se3floats.continued` in C: ``pose`` moved on by the motion from ``before`` to it,
+        that motion's translation (m) and turn (rad)."""
+        before, pose = np.ascontiguousarray(before, dtype=float), np.ascontiguousarray(pose, dtype=float)
+        ahead = np.empty((4, 4))
+        self.lib.nl_continued(before.ctypes.data, pose.ctypes.data, se3.SMALL_ANGLE, se3.NEAR_PI, ahead.ctypes.data,
+                              self._sizes_at)
+        moved, turned = self._sizes.tolist()
+        return ahead, moved, turned
 
     def _pack(self, est: Any, tunables: tuple[float, ...], plausible: np.ndarray) -> None:
         """The model's constants into `_model` when any changed (as `FluxModel._constants`

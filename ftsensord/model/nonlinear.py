@@ -195,7 +195,8 @@ class NonlinearEstimator:
         motion = self._motion
         if motion is None or motion[1] is not pose or _near(pose, motion[0].tolist(), None, None):
             return pose  # none yet, the pose set since, or at rest
-        ahead, moved_m, turned_rad = continued(motion[0], pose)
+        move_on = continued if self._compiled is None else self._compiled.continued  # the same in C
+        ahead, moved_m, turned_rad = move_on(motion[0], pose)
         return pose if moved_m > MAX_STEP_M or turned_rad > MAX_STEP_RAD else ahead
 
     def _cold(self, b: np.ndarray, usable: np.ndarray | None, start: np.ndarray) -> Estimate:
