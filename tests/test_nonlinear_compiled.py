@@ -216,6 +216,12 @@ def test_the_solver_is_chosen_by_name(tmp_path, library):
     assert NonlinearEstimator(model, K, solver="numpy")._compiled is None
     assert nlcompiled.solver_for("auto", library) is not None
     assert nlcompiled.solver_for("auto", tmp_path / "none.so") is None  # absent: numpy's, silently
+    other = tmp_path / "other.c"  # a library that is not this source's (a stale or foreign build)
+    other.write_text("int nl_model_doubles(void) { return 0; }\n")
+    import subprocess
+    subprocess.run([nlcompiled.compiler(), "-shared", "-fPIC", "-o", str(tmp_path / "other.so"), str(other)], check=True)
+    assert nlcompiled.load(tmp_path / "other.so") is None
+    assert nlcompiled.solver_for("auto", tmp_path / "other.so") is None
     with pytest.raises(ConfigError, match="compiled.*none.so.*C compiler"):
         nlcompiled.solver_for("compiled", tmp_path / "none.so")
     with pytest.raises(ConfigError, match="'fast' is not one of auto, numpy, compiled"):

@@ -30,8 +30,8 @@ __all__ = ["SOLVERS", "CompiledSolve", "attach", "compile_library", "library_pat
 SOURCES = (Path(__file__).with_name("_nlsolve.c"), Path(__file__).with_name("_nlmodel.c"))
 STEM = "_nlsolve"
 SOLVERS = ("auto", "numpy", "compiled")
-NMAX = 16  # _nlsolve.c's NMAX: chips a sensor may have
-#: _nlsolve.c's nl_model, field by field, in doubles.
+NMAX = 16  # _nlsolve.h's NMAX: chips a sensor may have
+#: _nlsolve.h's nl_model, field by field, in doubles.
 LAYOUT = {"head": 4, "chip_p": 3 * NMAX, "magnet_p": 3 * NMAX, "m": 3 * NMAX, "axis": 3 * NMAX, "half_q": NMAX,
           "inv_m": NMAX, "resp": 9 * NMAX, "offset": 3 * NMAX, "K": 36, "zero_twist": 6, "plausible": 6, "tun": 16}
 _AT = {name: sum(list(LAYOUT.values())[:i]) for i, name in enumerate(LAYOUT)}
@@ -50,19 +50,19 @@ def library_path(folder: Path | None = None) -> Path | None:
 
 def load(path: Path | None = None) -> ctypes.CDLL | None:
     """The library at ``path`` (default `library_path()`), its calls typed; None when
-    there is none or it is not this source's (its model layout differs)."""
+    there is none or it is not this source's (a call missing, or its model layout differs)."""
     path = library_path() if path is None else path
     if path is None:
         return None
     try:
         lib = ctypes.CDLL(str(path))
-    except OSError:
+        lib.nl_state_bytes.restype = lib.nl_model_doubles.restype = ctypes.c_size_t
+        lib.nl_solve.argtypes = [_P, _P, _P, _P, _P, _P, ctypes.c_int, ctypes.c_double, ctypes.c_int, _P]
+        lib.nl_solve.restype = ctypes.c_int
+        lib.nl_continued.argtypes = [_P, _P, ctypes.c_double, ctypes.c_double, _P, _P]
+        lib.nl_continued.restype = None
+    except (OSError, AttributeError):  # not loadable, or built from another source (a call missing)
         return None
-    lib.nl_state_bytes.restype = lib.nl_model_doubles.restype = ctypes.c_size_t
-    lib.nl_solve.argtypes = [_P, _P, _P, _P, _P, _P, ctypes.c_int, ctypes.c_double, ctypes.c_int, _P]
-    lib.nl_solve.restype = ctypes.c_int
-    lib.nl_continued.argtypes = [_P, _P, ctypes.c_double, ctypes.c_double, _P, _P]
-    lib.nl_continued.restype = None
     return lib if lib.nl_model_doubles() == _DOUBLES else None
 
 
