@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import ctypes
 import os
+import subprocess
+import sys
 import sysconfig
 from pathlib import Path
 
@@ -218,7 +220,6 @@ def test_the_solver_is_chosen_by_name(tmp_path, library):
     assert nlcompiled.solver_for("auto", tmp_path / "none.so") is None  # absent: numpy's, silently
     other = tmp_path / "other.c"  # a library that is not this source's (a stale or foreign build)
     other.write_text("int nl_model_doubles(void) { return 0; }\n")
-    import subprocess
     subprocess.run([nlcompiled.compiler(), "-shared", "-fPIC", "-o", str(tmp_path / "other.so"), str(other)], check=True)
     assert nlcompiled.load(tmp_path / "other.so") is None
     assert nlcompiled.solver_for("auto", tmp_path / "other.so") is None
@@ -279,8 +280,6 @@ def test_the_compiled_solve_runs_where_memory_may_not_be_written_and_executed(li
         if libc.prctl(PR_SET_MDWE, PR_MDWE_REFUSE_EXEC_GAIN, 0, 0, 0) != 0:
             raise OSError(ctypes.get_errno(), "prctl(PR_SET_MDWE)")
 
-    import subprocess
-    import sys
     done = subprocess.run([sys.executable, "-c", MDWE_CHILD, str(library)], preexec_fn=deny, capture_output=True,
                           text=True, timeout=120, cwd=Path(__file__).resolve().parent.parent)
     assert done.returncode == 0 and done.stdout.split() == ["True"], (done.returncode, done.stdout, done.stderr)
