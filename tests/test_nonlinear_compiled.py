@@ -24,6 +24,7 @@ from ftsensord.model import nlcompiled, nonlinear, se3
 from ftsensord.model.geometry import SensorGeometry
 from ftsensord.model.linear import SENSOR_RANGE
 from ftsensord.model.nonlinear import FluxModel, NonlinearEstimator
+from ftsensord.model.se3floats import continued
 from ftsensord.sim.physics import PAPER_STIFFNESS_DIAG, PhysicalScene, SimSensor
 
 G = SensorGeometry.ring()
@@ -287,7 +288,6 @@ def test_the_compiled_solve_runs_where_memory_may_not_be_written_and_executed(li
 
 def test_the_motion_continued_is_se3floats(library):
     """The warm start's prediction (`se3floats.continued`) in C: the same pose and sizes."""
-    from ftsensord.model.se3floats import continued
     solve = nlcompiled.solver_for("compiled", library)
     assert solve is not None
     rng = np.random.default_rng(5)
@@ -296,4 +296,4 @@ def test_the_motion_continued_is_se3floats(library):
         pose = se3.exp_se3(rng.normal(0, scale, 6) * [1e-3, 1e-3, 1e-3, 0.5, 0.5, 0.5]) @ before
         want, c = continued(before, pose), solve.continued(before, pose)
         assert np.allclose(c[0], want[0], rtol=0, atol=1e-15)  # round-off of unit-size entries
-        assert np.allclose(c[1:], want[1:], rtol=1e-12, atol=1e-20)
+        assert np.allclose(c[1:], want[1:], rtol=1e-12, atol=1e-20)  # norms of the same twist, round-off apart
