@@ -9,7 +9,9 @@ emulated chip's noise, quantised to the chip's LSB as the chip does. The package
 calibration's nonlinear estimator (`model.nonlinear.NonlinearEstimator`, the daemon's)
 estimates every reading in turn, warm-started as in the daemon, ``--loops`` times round
 the readings; each call's CPU time (``time.process_time``: a preemption on a busy host
-does not count) gives mean, p50, p99 and max. The same readings at rest (the load's mean,
+does not count) gives mean, p50, p99 and max. Both solvers (`nlcompiled`): numpy's and the
+compiled one (the installed library, else built from the source for the run where a C
+compiler is), in interleaved rounds. The same readings at rest (the load's mean,
 zero) give the figure the at-rest benchmark (`cycle_cpu.py`) reports, for comparison.
 Accuracy: each estimate's wrench K (xi - xi0) against the scene's load (RMS per axis),
 and how many did not converge (the daemon falls back to the linear estimate for those).
@@ -25,11 +27,14 @@ import json
 import math
 import os
 import platform
+import tempfile
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from ftsensord.model import nlcompiled
 from ftsensord.model.linear import SENSOR_RANGE
 from ftsensord.model.nonlinear import NonlinearEstimator
 from ftsensord.service.config import builtin_path, load_config
@@ -95,22 +100,52 @@ def stats_us(cpu: np.ndarray) -> dict[str, float]:
             "max": float(us.max())}
 
 
+def compiled_library(folder: str) -> tuple[Path | None, str]:
+    """The compiled solve's library: the installed one (beside `nlcompiled`), else built
+    into ``folder`` from the source when a C compiler is here; and where it came from."""
+    installed = nlcompiled.library_path()
+    if installed is not None:
+        return installed, "installed"
+    if nlcompiled.compiler() is None:
+        return None, "none (no C compiler)"
+    return nlcompiled.compile_library(Path(folder)), "compiled from the source for this run"
+
+
 def measure(fraction: float, hz: float, periods: int, loops: int) -> dict[str, Any]:
+    """Both solvers (numpy's and the compiled one, where it builds) on the same readings,
+    in interleaved rounds (one replay each a round, which goes first alternating), so a
+    change of the host's load hits both. The top level is the compiled one's when there is
+    one (what `solver = "auto"` runs where it is installed), else numpy's."""
     config = load_config(builtin_path("sim.toml"))
     nl = config.sensors[0].calibration.nonlinear
     assert nl is not None  # the packaged calibrations have one
     flux, truth = readings(fraction, hz, periods)
     rest, _ = readings(0.0, hz, periods, seed=1)
-    out: dict[str, Any] = {"samples": len(flux), "loops": loops, "fraction": fraction, "hz": hz}
-    for name, data in (("moving", flux), ("rest", rest)):
-        estimator = nl.estimator()
-        replay(estimator, data[:10], 1)  # warm: the pose found, first Jacobians made
-        cpu, wrench, failed, iterations = replay(estimator, data, loops)
-        out[name] = {"cpu_us": stats_us(cpu), "not_converged": failed,
-                     "iterations_per_sample": iterations / len(cpu)}
-        if name == "moving":
-            ok = np.all(np.isfinite(wrench), axis=1)
-            out[name]["rms_error"] = np.sqrt(np.mean((wrench[ok] - truth[ok]) ** 2, axis=0)).tolist()
+    out: dict[str, Any] = {"samples": len(flux), "loops": loops, "fraction": fraction, "hz": hz, "by_solver": {}}
+    with tempfile.TemporaryDirectory() as tmp:
+        library, origin = compiled_library(tmp)
+        solvers = ["numpy"] + (["compiled"] if library is not None else [])
+        out.update({"library": origin, "solver": solvers[-1]})
+        for name, data in (("moving", flux), ("rest", rest)):
+            estimators = {s: nl.estimator() for s in solvers}
+            for s, estimator in estimators.items():
+                nlcompiled.attach(estimator, s, library)
+            runs: dict[str, list] = {s: [] for s in solvers}
+            for s in solvers:
+                replay(estimators[s], data[:10], 1)  # warm: the pose found, first Jacobians made
+            for j in range(loops):
+                for s in solvers if j % 2 == 0 else solvers[::-1]:
+                    runs[s].append(replay(estimators[s], data, 1))
+            for s in solvers:
+                cpu = np.concatenate([r[0] for r in runs[s]])
+                result = {"cpu_us": stats_us(cpu), "not_converged": sum(r[2] for r in runs[s]),
+                          "iterations_per_sample": sum(r[3] for r in runs[s]) / len(cpu)}
+                if name == "moving":
+                    wrench = runs[s][-1][1]
+                    ok = np.all(np.isfinite(wrench), axis=1)
+                    result["rms_error"] = np.sqrt(np.mean((wrench[ok] - truth[ok]) ** 2, axis=0)).tolist()
+                out["by_solver"].setdefault(s, {})[name] = result
+    out.update(out["by_solver"][out["solver"]])
     return out
 
 
@@ -135,13 +170,15 @@ def main() -> int:
         print(json.dumps(r, indent=2))
         return 0
     print(f"{r['machine']}, pinned to core {cpu}, load {load:.2f}; {r['samples']} readings x {loops} loops; "
-          f"every axis at {args.fraction:.0%} of the range, {args.hz:g} Hz")
-    for name in ("moving", "rest"):
-        s = r[name]["cpu_us"]
-        print(f"{name:7s} mean {s['mean']:6.1f}  p50 {s['p50']:6.1f}  p99 {s['p99']:6.1f}  max {s['max']:7.1f} us a sample; "
-              f"{r[name]['iterations_per_sample']:.2f} iterations, {r[name]['not_converged']} not converged")
-    err = r["moving"]["rms_error"]
-    print("moving: RMS error " + " ".join(f"{e:.3g}" for e in err) + " (N, Nm; target p99 <= 200 us)")
+          f"every axis at {args.fraction:.0%} of the range, {args.hz:g} Hz; compiled solver: {r['library']}")
+    for solver, runs in r["by_solver"].items():
+        for name in ("moving", "rest"):
+            s = runs[name]["cpu_us"]
+            print(f"{solver:8s} {name:7s} mean {s['mean']:6.1f}  p50 {s['p50']:6.1f}  p99 {s['p99']:6.1f}  "
+                  f"max {s['max']:7.1f} us a sample; {runs[name]['iterations_per_sample']:.2f} iterations, "
+                  f"{runs[name]['not_converged']} not converged")
+        err = runs["moving"]["rms_error"]
+        print(f"{solver:8s} moving: RMS error " + " ".join(f"{e:.3g}" for e in err) + " (N, Nm; target p99 <= 200 us)")
     return 0
 
 

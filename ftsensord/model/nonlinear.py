@@ -18,10 +18,9 @@ import numpy as np
 
 from . import se3
 from .fluxmodel import FluxModel
-from .se3floats import continued
-from .se3floats import exp_se3 as _exp_se3
-from .se3floats import log_se3 as _log_se3
+from .se3floats import continued, exp_se3 as _exp_se3, log_se3 as _log_se3
 from .linear import SENSOR_RANGE
+from .nlcompiled import solver_for
 
 __all__ = ["Estimate", "FluxModel", "NonlinearEstimator"]
 
@@ -132,10 +131,11 @@ class NonlinearEstimator:
     With ``background`` (the default) a uniform field u (3 unknowns, frame {0}) is
     estimated with the 6 of the pose, 9 from the 24 readings: the room's field, which
     turns in the sensor's frame as the tool turns, then moves u and not the wrench.
+    ``solver``: "numpy" (`_solve`), "compiled" (the same in C, `nlcompiled`) or "auto" (C when installed).
     """
 
     def __init__(self, model: FluxModel, stiffness: np.ndarray, *, max_iterations: int = 30,
-                 background: bool = True, zero_twist: np.ndarray | None = None):
+                 background: bool = True, zero_twist: np.ndarray | None = None, solver: str = "auto"):
         self.model = model
         self.stiffness = np.asarray(stiffness, dtype=float)
         #: The deflection read at no load (m, rad): the plausibility test judges the wrench
@@ -155,10 +155,7 @@ class NonlinearEstimator:
         #: warm start follows the motion between them (`_ahead`).
         self._motion: tuple[np.ndarray, np.ndarray] | None = None
         self._gains: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # `_chord_gains`' last
-
-    @property
-    def unknowns(self) -> int:
-        return 9 if self.background else 6
+        self._compiled = solver_for(solver, chips=model.geometry.n_chips)  # None: numpy's
 
     def estimate(self, b: np.ndarray, usable: np.ndarray | None = None, start: np.ndarray | None = None) -> Estimate:
         """The pose that explains flux ``b`` (3n,) on the usable chips (default all).
@@ -198,7 +195,8 @@ class NonlinearEstimator:
         motion = self._motion
         if motion is None or motion[1] is not pose or _near(pose, motion[0].tolist(), None, None):
             return pose  # none yet, the pose set since, or at rest
-        ahead, moved_m, turned_rad = continued(motion[0], pose)
+        move_on = continued if self._compiled is None else self._compiled.continued  # the same in C
+        ahead, moved_m, turned_rad = move_on(motion[0], pose)
         return pose if moved_m > MAX_STEP_M or turned_rad > MAX_STEP_RAD else ahead
 
     def _cold(self, b: np.ndarray, usable: np.ndarray | None, start: np.ndarray) -> Estimate:
@@ -215,6 +213,9 @@ class NonlinearEstimator:
 
     def _solve(self, b: np.ndarray, usable: np.ndarray | None, start: np.ndarray, u0: np.ndarray,
                background: bool, damping: float = 1e-3) -> Estimate:
+        if self._compiled is not None:
+            # globals(): this module's constants, read every call (as below), no import circle
+            return Estimate(*self._compiled.solve(self, b, usable, start, u0, background, damping, globals()))
         b = np.asarray(b, dtype=float)
         T = np.asarray(start, dtype=float)  # never changed in place: the field kept for it stays right
         u = np.array(u0, dtype=float) if background else None
