@@ -53,7 +53,7 @@ def pair(library, model: FluxModel, **kwargs) -> tuple[NonlinearEstimator, Nonli
     reference = NonlinearEstimator(model, K, solver="numpy", **kwargs)
     compiled = NonlinearEstimator(model, K, **kwargs)
     nlcompiled.attach(compiled, "compiled", library)
-    assert compiled._compiled is not None
+    assert compiled.compiled is not None
     return reference, compiled
 
 
@@ -216,7 +216,7 @@ def test_garbage_gives_the_same_decisions(library):
 
 def test_the_solver_is_chosen_by_name(tmp_path, library):
     model = FluxModel(G, G.magnet_moment_am2)
-    assert NonlinearEstimator(model, K, solver="numpy")._compiled is None
+    assert NonlinearEstimator(model, K, solver="numpy").compiled is None
     assert nlcompiled.solver_for("auto", library) is not None
     assert nlcompiled.solver_for("auto", tmp_path / "none.so") is None  # absent: numpy's, silently
     other = tmp_path / "other.c"  # a library that is not this source's (a stale or foreign build)
@@ -297,3 +297,22 @@ def test_the_motion_continued_is_se3floats(library):
         want, c = continued(before, pose), solve.continued(before, pose)
         assert np.allclose(c[0], want[0], rtol=0, atol=1e-15)  # round-off of unit-size entries
         assert np.allclose(c[1:], want[1:], rtol=1e-12, atol=1e-20)  # norms of the same twist, round-off apart
+
+
+def test_status_says_which_solve_the_daemon_runs(library):
+    """`status`' `nonlinear_solver`: numpy's without the library, compiled with it, null
+    without a nonlinear calibration (an operator sees whether the install built it)."""
+    from ftsensord.service.config import builtin_path, load_config
+    from ftsensord.service.filters import WrenchFilter
+    from ftsensord.service.pipeline import SensorPipeline
+    from ftsensord.service.status import sensor_status
+
+    s = load_config(builtin_path("sim.toml")).sensors[0]
+    p = SensorPipeline.build(s, WrenchFilter(), 2)
+    assert p.nonlinear is not None  # the packaged calibrations have one
+    nlcompiled.attach(p.nonlinear, "numpy")
+    assert sensor_status(p)["nonlinear_solver"] == "numpy"
+    nlcompiled.attach(p.nonlinear, "compiled", library)
+    assert sensor_status(p)["nonlinear_solver"] == "compiled"
+    p.nonlinear = None
+    assert sensor_status(p)["nonlinear_solver"] is None

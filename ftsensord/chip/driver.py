@@ -94,8 +94,8 @@ class MLX90393:
         self.bus, self.address, self.sleep = bus, address, sleep
         self.settings = None
         self.tref = mlx.TREF_TYPICAL
-        # Built once per command and reused: a new i2c_msg costs two ctypes buffers.
-        self._msgs: dict[tuple[bytes, int], tuple[i2c_msg, i2c_msg]] = {}
+        self._msgs: dict[tuple[bytes, int], tuple[i2c_msg, i2c_msg]] = {}  # per command (an i2c_msg: 2 buffers)
+        self._expected: tuple[mlx.Settings | None, tuple[int, ...], dict[int, int]] | None = None  # `_expected_for`
 
     def __repr__(self) -> str:
         return f"MLX90393(address=0x{self.address:02X})"
@@ -218,13 +218,11 @@ class MLX90393:
         if not 0 <= reg <= mlx.REG_MAX:
             raise ValueError(f"register address 0x{reg:02X} is out of range 0x00-0x{mlx.REG_MAX:02X}")
         reply = self.transfer(bytes([mlx.CMD_RR, reg << 2]), 3)
-        byte = reply[0]
-        # The status's bits tested as they are: `Status`' properties cost a call each, every read-back.
-        if byte & mlx.STATUS_ERROR:  # raises, naming the register (a name built only then)
-            self.check_status(byte, f"RR 0x{reg:02X}")
-        if byte & mlx.STATUS_D_MASK:  # D1:D0 = 0: 2 data bytes (2 D + 2)
-            raise ChipProtocolError(self.address,
-                                    f"RR expects 2 data bytes, status says {mlx.status_of(byte).data_bytes}")
+        # The status by its bits: `Status`' properties cost a call each, every read-back.
+        if reply[0] & mlx.STATUS_ERROR:  # raises, naming the register (a name built only then)
+            self.check_status(reply[0], f"RR 0x{reg:02X}")
+        if reply[0] & mlx.STATUS_D_MASK:  # D1:D0 = 0 for 2 data bytes (2 D + 2)
+            raise ChipProtocolError(self.address, f"RR expects 2 data bytes, status {mlx.status_of(reply[0])}")
         return (reply[1] << 8) | reply[2]
 
     def write_register(self, reg: int, value: int, *, verify: bool = True) -> None:
@@ -267,7 +265,6 @@ class MLX90393:
     @settings.setter
     def settings(self, settings: mlx.Settings | None) -> None:
         self._settings = settings
-        self._expected: tuple[tuple[int, ...], dict[int, int]] | None = None  # CONF1..3 as read, as they must be
         MLX90393.settings_changes += 1  # a `BlockDecoder` built before is stale
         # Per axis: the word's coding and tesla per count, fixed until the next configure.
         self._decoding = [] if settings is None else [
@@ -282,11 +279,7 @@ class MLX90393:
         if self.settings is None:
             raise ChipProtocolError(self.address, "not configured")
         current = self.read_configuration()  # CONF1, CONF2, CONF3, in this order
-        read = tuple(current.values())
-        kept = self._expected
-        if kept is None or kept[0] != read:  # (hashing the settings for the cache costs a microsecond)
-            kept = self._expected = (read, _expected_registers(self.settings, *read))
-        return current == kept[1] and tcmp_offsets_hold(self)
+        return current == _expected_for(self, tuple(current.values())) and tcmp_offsets_hold(self)
 
 
 def write_tcmp_offsets(chip: MLX90393, settings: mlx.Settings) -> None:
@@ -307,6 +300,15 @@ def tcmp_offsets_hold(chip: MLX90393) -> bool:
 
 
 @functools.lru_cache(maxsize=64)
+def _expected_for(chip: MLX90393, read: tuple[int, ...]) -> dict[int, int]:
+    """`_expected_registers` for ``chip``'s settings and CONF1..CONF3 as ``read``, kept on the
+    chip while both stay (its lru_cache would hash the settings every read-back: 1 us)."""
+    kept = chip._expected
+    if kept is None or kept[0] is not chip.settings or kept[1] != read:
+        kept = chip._expected = (chip.settings, read, _expected_registers(chip.settings, *read))  # type: ignore[arg-type]
+    return kept[2]
+
+
 def _expected_registers(settings: mlx.Settings, conf1: int, conf2: int, conf3: int) -> dict[int, int]:
     """What CONF1..CONF3 must hold for ``settings``, other bits as read: the same few
     words every read-back, worked out once (do not change the dict returned)."""

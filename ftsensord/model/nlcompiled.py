@@ -101,7 +101,7 @@ def attach(estimator: Any, solver: str, path: Path | None = None) -> None:
     """Make ``estimator`` (a `NonlinearEstimator`: not imported, it imports this module) solve
     with ``solver``, the library at ``path`` (default beside this module): tests and
     benchmarks set one they built."""
-    estimator._compiled = solver_for(solver, path, estimator.model.geometry.n_chips)
+    estimator.compiled = solver_for(solver, path, estimator.model.geometry.n_chips)
 
 
 class CompiledSolve:

@@ -155,7 +155,7 @@ class NonlinearEstimator:
         #: warm start follows the motion between them (`_ahead`).
         self._motion: tuple[np.ndarray, np.ndarray] | None = None
         self._gains: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # `_chord_gains`' last
-        self._compiled = solver_for(solver, chips=model.geometry.n_chips)  # None: numpy's
+        self.compiled = solver_for(solver, chips=model.geometry.n_chips)  # None: numpy's
 
     def estimate(self, b: np.ndarray, usable: np.ndarray | None = None, start: np.ndarray | None = None) -> Estimate:
         """The pose that explains flux ``b`` (3n,) on the usable chips (default all).
@@ -195,7 +195,7 @@ class NonlinearEstimator:
         motion = self._motion
         if motion is None or motion[1] is not pose or _near(pose, motion[0].tolist(), None, None):
             return pose  # none yet, the pose set since, or at rest
-        move_on = continued if self._compiled is None else self._compiled.continued  # the same in C
+        move_on = continued if self.compiled is None else self.compiled.continued  # the same in C
         ahead, moved_m, turned_rad = move_on(motion[0], pose)
         return pose if moved_m > MAX_STEP_M or turned_rad > MAX_STEP_RAD else ahead
 
@@ -213,9 +213,9 @@ class NonlinearEstimator:
 
     def _solve(self, b: np.ndarray, usable: np.ndarray | None, start: np.ndarray, u0: np.ndarray,
                background: bool, damping: float = 1e-3) -> Estimate:
-        if self._compiled is not None:
+        if self.compiled is not None:
             # globals(): this module's constants, read every call (as below), no import circle
-            return Estimate(*self._compiled.solve(self, b, usable, start, u0, background, damping, globals()))
+            return Estimate(*self.compiled.solve(self, b, usable, start, u0, background, damping, globals()))
         b = np.asarray(b, dtype=float)
         T = np.asarray(start, dtype=float)  # never changed in place: the field kept for it stays right
         u = np.array(u0, dtype=float) if background else None

@@ -205,6 +205,8 @@ def sensor_status(p: SensorPipeline) -> dict[str, Any]:
         "calibration": str(p.config.calibration_path), "serial": p.config.calibration.serial,
         "frame": p.config.frame, "tared": p.tared, "estimator": p.estimator,
         "nonlinear_calibrated": p.nonlinear is not None, "fallbacks": p.fallbacks,
+        # Which solve the nonlinear estimator runs: the C one built at install, or numpy's.
+        "nonlinear_solver": None if p.nonlinear is None else "numpy" if p.nonlinear.compiled is None else "compiled",
         "estimate_cpu_us": {"mean": statistics.fmean(p.estimate_s) * 1e6,
                             "max": max(p.estimate_s) * 1e6} if p.estimate_s else None,
         "tare_wrench": p.tare_wrench.round(6).tolist(),
