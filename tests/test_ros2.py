@@ -70,10 +70,12 @@ def Reference(endpoint: str) -> StreamRecorder:  # noqa: N802 (a class's name to
     return StreamRecorder(endpoint, STREAMS, lambda s: (s.topic, round(s.t_wall * 1e9)))
 
 
-@pytest.fixture(scope="module")
-def daemon(tmp_path_factory) -> Iterator[tuple[Path, StreamRecorder]]:
+@pytest.fixture(scope="module", params=["bridge", "in-loop"])
+def daemon(tmp_path_factory, request) -> Iterator[tuple[Path, StreamRecorder]]:
+    """A daemon with ``[ros2]``, each output in turn: the bridge process, the loop's own writes."""
     folder = tmp_path_factory.mktemp("ros2")
-    config = write_config(folder, extra=f'[ros2]\nnamespace = "{NS}"\ndomain_id = {DOMAIN}\n' + GRAVITY)
+    config = write_config(folder, extra=f'[ros2]\nnamespace = "{NS}"\ndomain_id = {DOMAIN}\n'
+                                        f'output = "{request.param}"\n' + GRAVITY)
     proc, notify = start_daemon(config, folder, env={"CYCLONEDDS_URI": URI}, stdout=subprocess.DEVNULL,
                                 stderr=subprocess.DEVNULL)
     ref = Reference(f"ipc://{folder / 'ftsensord' / 'wrench'}")
