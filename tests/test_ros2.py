@@ -263,6 +263,24 @@ def test_the_bridges_cdr_bytes_are_cyclones_own_serialization(frame_id):
     assert Stamped(frame_id).message(t_wall, status_body(2**40 + 3, 0x41, 7)) == status.serialize(use_version_2=False)
 
 
+@pytest.mark.parametrize("statuses", [
+    [],
+    [(0, "ns: daemon", "100 Hz", "", [])],
+    [(3, "ns: daemon", "no answer", "", []), (2, "ns: s1 chip 0x0D", "failing: NACK", "MLX90393 0x0D",
+                                               [("state", "failing"), ("errors", "12"), ("é", "")])],
+    [(1, "n" * k, "m" * (k + 1), "h" * (k + 2), [("k" * k, "v" * (k + 3))] * k) for k in range(6)],
+])
+def test_the_diagnostics_cdr_bytes_are_cyclones_own_serialization(statuses):
+    from ftsensord.recording.ros2mcap import stamp
+    from ftsensord.ros2 import diagnostics, msgs
+    t_wall = 1_764_100_000.987654321
+    array = msgs.DiagnosticArray(msgs.Header(msgs.Time(*stamp(t_wall)), ""), [
+        msgs.DiagnosticStatus(level, name, message, hardware_id, [msgs.KeyValue(k, v) for k, v in values])
+        for level, name, message, hardware_id, values in statuses])
+    # the strings' lengths 0-5 move every later length's 4-byte alignment: each is a case
+    assert diagnostics.cdr(statuses, t_wall) == array.serialize(use_version_2=False)
+
+
 def can_be_realtime() -> bool:
     return subprocess.run(["chrt", "-f", "1", "true"], capture_output=True).returncode == 0
 

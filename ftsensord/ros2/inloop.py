@@ -5,7 +5,8 @@ After each cycle's ZeroMQ sends (`service.daemon.Daemon.cycle`'s ``outputs``), o
 made once a stream, and each cycle's stamp and six float64 are patched into them; its
 SampleStatus likewise. No thread, no process, no ZeroMQ subscriber between the loop and
 DDS. In the same place, outside every sample's path: which topics have readers (five
-times a second), ``/diagnostics`` from the daemon's own status (once a second), and the
+times a second), ``/diagnostics`` from the daemon's own status (once a second, over two
+cycles: the status in one, the message's bytes, `diagnostics.cdr`, in the next), and the
 inputs, taken without waiting (a waitset asked with a zero timeout): an orientation goes to
 the daemon's orientation receiver as a message on its socket would, a tare to its control
 socket from a thread of its own (it takes the tare's samples to answer).
@@ -26,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..recording.ros2mcap import Stamped, stamp, status_body
+from ..recording.ros2mcap import stamp, status_body
 from ..service import orientation as wire_orientation
 from ..service.status import stream_frames
 from . import diagnostics
@@ -93,6 +94,7 @@ class InLoop:
         self.read: tuple[Stream, ...] = ()  # streams whose wrench or status some reader reads
         self.flags: dict[str, int] = {}  # each sensor's (and the tip's) latest flags, for the diagnostics
         self.ask = self.due = time.monotonic()
+        self.pending: list[diagnostics.Status] | None = None  # the statuses to write next cycle
         self.write_errors = 0
 
     def after_sends(self, seq: int, t_wall: float, samples: dict[str, SensorSample],
@@ -117,10 +119,14 @@ class InLoop:
         if now >= self.ask:
             self.ask = now + READERS_S
             self.find_readers()
-        if now >= self.due:
+        # The diagnostics over two cycles: the daemon's status (about 1 ms) in one, its
+        # message in the next (0.1 ms), so no cycle carries both.
+        if self.pending is not None:
+            self.node.publish_diagnostics(self.pending, t_wall)
+            self.pending = None
+        elif now >= self.due:
             self.due = max(self.due + DIAGNOSTICS_S, now)
-            self.node.publish_diagnostics(diagnostics.statuses(self.daemon.status(), self.flags, self.namespace),
-                                          t_wall)
+            self.pending = diagnostics.statuses(self.daemon.status(), self.flags, self.namespace)
         self.node.serve(0.0, self.on_orientation, self.on_tare)
 
     def write(self, ddspy_write: Any, stream: Stream, seq: int, time_bytes: bytes, flags: int,
