@@ -199,6 +199,8 @@ def test_a_ros2_table_is_checked_and_names_the_extra_when_it_is_missing(tmp_path
     assert_names_file_and_key(load_config, path, "ros2.namespace", "a ROS 2 name")
     path = write_config(tmp_path, extra='[ros2]\ndomain_id = 300\n')
     assert_names_file_and_key(load_config, path, "ros2.domain_id", "0 to 232")
+    path = write_config(tmp_path, extra='[ros2]\noutput = "thread"\n')
+    assert_names_file_and_key(load_config, path, "ros2.output", '"bridge" or "in-loop"')
     monkeypatch.setenv("ROS_DOMAIN_ID", "42")
     assert load_config(write_config(tmp_path, extra="[ros2]\n")).ros2.domain_id == 42
     import importlib.util
@@ -303,6 +305,24 @@ def test_under_a_realtime_daemon_only_the_bridges_forwarding_is_realtime_below_t
         assert any(policy[t] == (os.SCHED_FIFO, 1) for t, name in threads.items() if name.startswith("ZMQbg/IO"))
         others = {name: policy[t] for t, name in threads.items() if t != int(child) and not name.startswith("ZMQbg")}
         assert len(others) >= 3 and all(p == (os.SCHED_OTHER, 0) for p in others.values()), others  # DDS's, inputs
+    finally:
+        proc.terminate()
+        proc.wait(timeout=20)
+        notify.close()
+
+
+@pytest.mark.skipif(not can_be_realtime(), reason="SCHED_FIFO not allowed here (needs CAP_SYS_NICE or RLIMIT_RTPRIO)")
+def test_in_loop_under_a_realtime_daemon_ddss_own_threads_stay_at_the_normal_policy(tmp_path):
+    config = write_config(tmp_path, extra=f'[ros2]\nnamespace = "{NS}_rt"\ndomain_id = {DOMAIN}\noutput = "in-loop"\n')
+    proc, notify = start_daemon(config, tmp_path, env={"CYCLONEDDS_URI": URI}, args=["--realtime", "50"])
+    try:
+        assert not Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()  # no bridge process
+        threads = {int(t): Path(f"/proc/{proc.pid}/task/{t}/comm").read_text().strip()
+                   for t in os.listdir(f"/proc/{proc.pid}/task")}
+        policy = {t: (os.sched_getscheduler(t), os.sched_getparam(t).sched_priority) for t in threads}
+        assert policy[proc.pid] == (os.SCHED_FIFO, 50)  # the loop's thread, which makes the DDS writes
+        dds = {name: policy[t] for t, name in threads.items() if name in ("gc", "dq.builtins", "dq.user", "tev", "recv")}
+        assert len(dds) == 5 and all(p == (os.SCHED_OTHER, 0) for p in dds.values()), (dds, threads)
     finally:
         proc.terminate()
         proc.wait(timeout=20)

@@ -141,10 +141,10 @@ def bridge_priority() -> int:
 
 @contextlib.contextmanager
 def ros2_beside(ros2: Ros2Config | None, config_path: Path) -> Iterator[subprocess.Popen | None]:
-    """With a ``[ros2]`` table, ``ftsensord ros2 --config CONFIG`` as a child of the daemon at
-    the default scheduling policy (its forwarding thread at `BRIDGE_FIFO` under a real-time
-    daemon), stopped (SIGTERM) when the block ends; else nothing. Entered before the daemon has
-    a thread (preexec_fn runs between fork and exec)."""
+    """With a ``[ros2]`` table whose output is ``"bridge"``, ``ftsensord ros2 --config CONFIG``
+    as a child of the daemon at the default scheduling policy (its forwarding thread at
+    `BRIDGE_FIFO` under a real-time daemon), stopped (SIGTERM) when the block ends; else
+    nothing. Entered before the daemon has a thread (preexec_fn runs between fork and exec)."""
     if ros2 is None or ros2.output != "bridge":
         yield None
         return
