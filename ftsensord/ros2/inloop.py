@@ -84,6 +84,8 @@ class InLoop:
     """The daemon's streams on DDS domain ``ros2.domain_id``, written by its loop thread."""
 
     def __init__(self, daemon: Daemon, ros2: Ros2Config):
+        from cyclonedds._clayer import ddspy_write  # the C call DataWriter.write ends in (node.py)
+
         from .node import Ros2Node
 
         self.daemon, self.namespace = daemon, ros2.namespace
@@ -96,25 +98,26 @@ class InLoop:
         self.ask = self.due = time.monotonic()
         self.pending: list[diagnostics.Status] | None = None  # the statuses to write next cycle
         self.write_errors = 0
+        self.ddspy_write = ddspy_write
 
     def after_sends(self, seq: int, t_wall: float, samples: dict[str, SensorSample],
                     tip: tuple[np.ndarray, int] | None, compensated: list[tuple[str, int, np.ndarray]]) -> None:
         """A cycle's wrenches (N, Nm, each in its stream's frame), stamped ``t_wall`` (UNIX s), to
         the DDS readers; then, when due, readers, diagnostics and inputs."""
-        from cyclonedds._clayer import ddspy_write  # imported once; a dict lookup after
-
         time_bytes = _TIME.pack(*stamp(t_wall))
         for name, s in samples.items():
             self.flags[name] = s.flags
         if tip is not None:
             self.flags["tip"] = tip[1]
-        if self.read:
-            wrenches = [(f"wrench/{n}", s.flags, s.wrench) for n, s in samples.items()]
-            wrenches += [("wrench/tip", tip[1], tip[0])] if tip is not None else []
-            for topic, flags, values in wrenches + compensated:
-                stream = self.streams.get(topic)
-                if stream is not None and stream in self.read:
-                    self.write(ddspy_write, stream, seq, time_bytes, flags, values)
+        wrenches = [(f"wrench/{n}", s.flags, s.wrench) for n, s in samples.items()]
+        wrenches += [("wrench/tip", tip[1], tip[0])] if tip is not None else []
+        for topic, flags, values in wrenches + compensated:
+            stream = self.streams.get(topic)
+            if stream is None:
+                continue  # a stream the configuration did not have at start (a reload): not on DDS
+            last, stream.last_seq = stream.last_seq, seq
+            if stream in self.read:
+                self.write(stream, seq, last, time_bytes, flags, values)
         now = time.monotonic()
         if now >= self.ask:
             self.ask = now + READERS_S
@@ -129,15 +132,17 @@ class InLoop:
             self.pending = diagnostics.statuses(self.daemon.status(), self.flags, self.namespace)
         self.node.serve(0.0, self.on_orientation, self.on_tare)
 
-    def write(self, ddspy_write: Any, stream: Stream, seq: int, time_bytes: bytes, flags: int,
+    def write(self, stream: Stream, seq: int, last: int | None, time_bytes: bytes, flags: int,
               values: np.ndarray) -> None:
+        """One stream's WrenchStamped and SampleStatus (``last``: its previous seq) on the
+        writers some reader reads."""
+        ddspy_write = self.ddspy_write
         if stream.wrench_writer in self.node.read:
             buf = stream.wrench
             buf[STAMP_AT:STAMP_AT + 8] = time_bytes
             buf[stream.values_at:] = values.astype("<f8", copy=False).tobytes()
             if ddspy_write(stream.wrench_ref, buf) < 0:
                 self.write_errors += 1  # counted: the next sample is the newer one anyway
-        last, stream.last_seq = stream.last_seq, seq
         if stream.status_writer in self.node.read:
             missed = seq - last - 1 if last is not None and seq > last + 1 else 0
             buf = stream.status
