@@ -312,7 +312,10 @@ def report(variants: list[str], segments: list[dict], receipts: dict[str, list])
         for name, got in receipts.items():
             d = np.array([r - s for s, r in got if any(m["window"][0] <= s < m["window"][1] for m in mine)]) * 1e6
             if len(d):
-                print(f"  {name}: {pct(d)}")
+                # and each segment's p99: one segment whose subscriber the host starved moves the pooled p99
+                each = [np.percentile([r - s for s, r in got if m["window"][0] <= s < m["window"][1]], 99) * 1e6
+                        for m in mine if any(m["window"][0] <= s < m["window"][1] for s, _ in got)]
+                print(f"  {name}: {pct(d)}; p99 by segment " + " ".join(f"{x:.0f}" for x in each) + " us")
         if v.startswith("split"):
             hops(mine, receipts)
     print(f"load {os.getloadavg()[0]:.2f} at end")

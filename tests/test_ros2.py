@@ -200,9 +200,10 @@ def test_a_ros2_table_is_checked_and_names_the_extra_when_it_is_missing(tmp_path
     path = write_config(tmp_path, extra='[ros2]\ndomain_id = 300\n')
     assert_names_file_and_key(load_config, path, "ros2.domain_id", "0 to 232")
     path = write_config(tmp_path, extra='[ros2]\noutput = "thread"\n')
-    assert_names_file_and_key(load_config, path, "ros2.output", '"bridge" or "in-loop"')
+    assert_names_file_and_key(load_config, path, "ros2.output", '"in-loop" or "bridge"')
     monkeypatch.setenv("ROS_DOMAIN_ID", "42")
     assert load_config(write_config(tmp_path, extra="[ros2]\n")).ros2.domain_id == 42
+    assert load_config(write_config(tmp_path, extra="[ros2]\n")).ros2.output == "in-loop"  # the default: measured
     import importlib.util
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "cyclonedds" else real(name, *a))
@@ -229,7 +230,8 @@ def test_a_failing_chip_or_a_flagged_wrench_raises_the_level_ros_tools_show():
 
 
 def test_the_bridge_stops_with_the_daemon_even_when_it_is_killed(tmp_path):
-    config = write_config(tmp_path, extra=f'[ros2]\nnamespace = "{NS}_kill"\ndomain_id = {DOMAIN}\n')
+    config = write_config(tmp_path, extra=f'[ros2]\nnamespace = "{NS}_kill"\ndomain_id = {DOMAIN}\n'
+                                                   'output = "bridge"\n')
     proc, notify = start_daemon(config, tmp_path, env={"CYCLONEDDS_URI": URI})
     try:
         (child,) = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()
@@ -289,7 +291,8 @@ def can_be_realtime() -> bool:
 
 @pytest.mark.skipif(not can_be_realtime(), reason="SCHED_FIFO not allowed here (needs CAP_SYS_NICE or RLIMIT_RTPRIO)")
 def test_under_a_realtime_daemon_only_the_bridges_forwarding_is_realtime_below_the_loop(tmp_path):
-    config = write_config(tmp_path, extra=f'[ros2]\nnamespace = "{NS}_rt"\ndomain_id = {DOMAIN}\n')
+    config = write_config(tmp_path, extra=f'[ros2]\nnamespace = "{NS}_rt"\ndomain_id = {DOMAIN}\n'
+                                                   'output = "bridge"\n')
     proc, notify = start_daemon(config, tmp_path, env={"CYCLONEDDS_URI": URI}, args=["--realtime", "50"])
     try:
         (child,) = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()

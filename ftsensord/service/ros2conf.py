@@ -3,7 +3,7 @@
     [ros2]
     namespace = "ftsensord"   # topics /<namespace>/wrench/<stream>, service /<namespace>/tare
     domain_id = 0             # default: $ROS_DOMAIN_ID, else 0 (ROS's default)
-    output = "bridge"         # or "in-loop" (docs/performance.md, "The ROS 2 bridge")
+    output = "in-loop"        # or "bridge" (docs/performance.md, "The ROS 2 bridge")
 
 Parsed here. ``output = "bridge"``: `ros2_beside` starts the bridge (`ftsensord ros2`) for
 `ftsensord run` as a process of its own, by its command line: nothing of the bridge is
@@ -42,14 +42,14 @@ _TOKEN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 #: DDS's RTPS port mapping leaves 0-232 for domain ids (ROS 2 docs, "The ROS_DOMAIN_ID").
 MAX_DOMAIN_ID = 232
 #: Where the DDS writes are made: a bridge process fed by ZeroMQ, or the daemon's loop thread.
-OUTPUTS = ("bridge", "in-loop")
+OUTPUTS = ("in-loop", "bridge")
 
 
 @dataclass(frozen=True)
 class Ros2Config:
     namespace: str = "ftsensord"  # without slashes at either end
     domain_id: int = 0
-    output: str = "bridge"  # one of OUTPUTS
+    output: str = "in-loop"  # one of OUTPUTS: in-loop measured better (docs/performance.md)
 
 
 def default_domain_id(environ: dict[str, str] | None = None) -> int:
