@@ -332,6 +332,30 @@ def test_in_loop_under_a_realtime_daemon_ddss_own_threads_stay_at_the_normal_pol
         notify.close()
 
 
+def test_in_loop_without_a_dds_participant_the_zeromq_streams_go_on(tmp_path):
+    """A Cyclone DDS configuration it cannot use (an interface this host does not have): the
+    daemon says so in its log and publishes on ZeroMQ as without ``[ros2]``."""
+    config = write_config(tmp_path, extra=f'[ros2]\nnamespace = "{NS}_bad"\ndomain_id = {DOMAIN}\n')
+    bad = "<CycloneDDS><Domain Id='any'><General><Interfaces><NetworkInterface address='192.0.2.77'/>" \
+          "</Interfaces></General></Domain></CycloneDDS>"  # TEST-NET-1: never a local address
+    log = tmp_path / "log"
+    with log.open("w") as out:
+        proc, notify = start_daemon(config, tmp_path, env={"CYCLONEDDS_URI": bad}, stderr=out)
+    try:
+        ref = Reference(f"ipc://{tmp_path / 'ftsensord' / 'wrench'}")
+        ref.start()
+        time.sleep(1.0)
+        ref.stop.set()
+        assert len(ref.samples) > 50  # 100 Hz, two streams: ZeroMQ unaffected
+        assert proc.poll() is None
+    finally:
+        proc.terminate()
+        proc.wait(timeout=20)
+        notify.close()
+    text = log.read_text()
+    assert "the ROS 2 output did not start: ros2: no DDS participant on domain" in text, text[-2000:]
+
+
 def test_a_frame_that_is_not_a_wrench_is_dropped_and_counted():
     """On a wrench stream, garbage and a sample of another kind are dropped and counted (the
     first logged), never written to DDS; a wrench is written and handed on for its status."""

@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ..errors import ConfigError
 from ..recording.ros2mcap import stamp, status_body
 from ..service import orientation as wire_orientation
 from ..service.status import stream_frames
@@ -86,24 +87,41 @@ class InLoop:
     def __init__(self, daemon: Daemon, ros2: Ros2Config):
         from cyclonedds._clayer import ddspy_write  # the C call DataWriter.write ends in (node.py)
 
+        from cyclonedds.core import DDSException
+
         from .node import Ros2Node
 
         self.daemon, self.namespace = daemon, ros2.namespace
         frames = {s: f for s, f in stream_frames(daemon).items() if s.startswith("wrench/")}
         oriented = sorted(daemon.orientations.frames) if daemon.config.orientation_endpoint else []
-        self.node = at_normal_policy(lambda: Ros2Node(ros2.namespace, ros2.domain_id, frames, oriented))
+        try:
+            self.node = at_normal_policy(lambda: Ros2Node(ros2.namespace, ros2.domain_id, frames, oriented))
+        except DDSException as exc:  # a bad CYCLONEDDS_URI, no usable interface: said, not a traceback
+            raise ConfigError(f"ros2: no DDS participant on domain {ros2.domain_id} "
+                              f"(CYCLONEDDS_URI={os.environ.get('CYCLONEDDS_URI', '')!r}): {exc}") from exc
         self.streams = {topic: Stream(self.node, topic) for topic in frames}
         self.read: tuple[Stream, ...] = ()  # streams whose wrench or status some reader reads
         self.flags: dict[str, int] = {}  # each sensor's (and the tip's) latest flags, for the diagnostics
         self.ask = self.due = time.monotonic()
         self.pending: list[diagnostics.Status] | None = None  # the statuses to write next cycle
-        self.write_errors = 0
+        self.write_errors = self.failures = 0
         self.ddspy_write = ddspy_write
 
     def after_sends(self, seq: int, t_wall: float, samples: dict[str, SensorSample],
                     tip: tuple[np.ndarray, int] | None, compensated: list[tuple[str, int, np.ndarray]]) -> None:
         """A cycle's wrenches (N, Nm, each in its stream's frame), stamped ``t_wall`` (UNIX s), to
-        the DDS readers; then, when due, readers, diagnostics and inputs."""
+        the DDS readers; then, when due, readers, diagnostics and inputs. What fails in DDS is
+        counted (the first logged), never raised into the loop: the ZeroMQ streams go on, as
+        they do when the bridge process dies."""
+        try:
+            self._after_sends(seq, t_wall, samples, tip, compensated)
+        except Exception as exc:  # noqa: BLE001 (any of DDS's or the binding's: the loop must not stop)
+            self.failures += 1
+            if self.failures == 1:
+                log.error("the ROS 2 output failed (and any more failures, counted): %r", exc)
+
+    def _after_sends(self, seq: int, t_wall: float, samples: dict[str, SensorSample],
+                     tip: tuple[np.ndarray, int] | None, compensated: list[tuple[str, int, np.ndarray]]) -> None:
         time_bytes = _TIME.pack(*stamp(t_wall))
         for name, s in samples.items():
             self.flags[name] = s.flags

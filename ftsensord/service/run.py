@@ -208,6 +208,9 @@ def run(config: Config, early: Iterable[int] = (), realtime: int = 0, ros2_in_lo
     ``realtime``: the SCHED_FIFO priority to ask for (0: none; a refusal is logged, not fatal);
     ``ros2_in_loop(daemon, ros2)``: the output for ``[ros2] output = "in-loop"`` (`ros2.inloop.InLoop`,
     handed in by the command line: the service does not import DDS's floor)."""
+    if config.ros2 is not None and config.ros2.output == "in-loop" and ros2_in_loop is None:
+        raise ConfigError(f'{config.path}: ros2.output: "in-loop" needs the ROS 2 output, which this caller '
+                          "of service.run does not hand in (`ftsensord run` does)")
     signals = Signals(early)
     if signals.stop:  # stopped while starting: nothing made yet, nothing to undo
         log.info("stopped before starting")
@@ -244,9 +247,10 @@ def _serve(config: Config, bus: Bus, notifier: Notifier, files: RuntimeFiles, si
                     guard=HostGuard(caps, files), background_reload=True, scheduling=scheduling)
     daemon.bridge = bridge
     if config.ros2 is not None and config.ros2.output == "in-loop":
-        if ros2_in_loop is None:
-            raise ConfigError(f"{config.path}: ros2.output: \"in-loop\" needs `ftsensord run` (this caller gave no DDS output)")
-        daemon.outputs.append(ros2_in_loop(daemon, config.ros2))
+        try:
+            daemon.outputs.append(ros2_in_loop(daemon, config.ros2))
+        except FtsensordError as exc:  # as when the bridge process exits: ROS 2 is off, ZeroMQ goes on
+            log.error("the ROS 2 output did not start: %s; the ZeroMQ streams go on without it", exc)
 
     signals.attach(daemon)
     log.info("ftsensord on %s: %s; publishing on %s, control on %s", config.bus, config.bound().describe(),
