@@ -26,12 +26,14 @@ hops. ``--in-loop`` sets, a daemon started for each segment, no DDS at all (``no
 daemon and the ZeroMQ subscriber alone), the bridge process as `run` starts it
 (``bridge-rt``, ``bridge`` under ``--fifo 0``) and ``[ros2] output = "in-loop"`` (the loop
 thread's own DDS writes, after the cycle's ZeroMQ sends): each one's latencies, the loop's
-start jitter and cycle time, the daemon's CPU (and the bridge process's). ``--in-daemon`` sets the bridge process as `run` starts it against the same `Bridge`
+start jitter and cycle time, the daemon's CPU (and the bridge process's). ``--each-send``
+likewise sets ``none``, ``in-loop`` and ``each-send``: the in-loop output writing each
+stream right after its own ZeroMQ send (benchmarks/ros2_each_send.py). ``--in-daemon`` sets the bridge process as `run` starts it against the same `Bridge`
 in a thread of the daemon's own process (benchmarks/ros2_in_daemon.py), a daemon started
 for each segment: the latency, and the loop's jitter and publish time each puts in.
 DDS stays on the loopback interface (CYCLONEDDS_URI).
 
-    python benchmarks/ros2_latency.py --seconds 10 --rounds 3 [--fifo 50] [--split | --in-daemon | --in-loop]
+    python benchmarks/ros2_latency.py --seconds 10 --rounds 3 [--fifo 50] [--split | --in-daemon | --in-loop | --each-send]
 """
 
 from __future__ import annotations
@@ -181,12 +183,14 @@ def daemon_segment(variant: str, seconds: float, fifo: int) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         config = packaged_config(Path(tmp) / "ftsensord.toml")
         program: tuple[str, ...] = ("-m", "ftsensord")
-        if variant.startswith("bridge") or variant == "in-loop":
-            output = "in-loop" if variant == "in-loop" else "bridge"
+        if variant.startswith("bridge") or variant in ("in-loop", "each-send"):
+            output = "bridge" if variant.startswith("bridge") else "in-loop"
             config.write_text(config.read_text() + f'\n[ros2]\nnamespace = "bench"\ndomain_id = {DOMAIN}\n'
                                                    f'output = "{output}"\n')
-        elif variant == "in-daemon":
+        if variant == "in-daemon":
             program = (str(Path(__file__).with_name("ros2_in_daemon.py")), "bench", str(DOMAIN), str(1 if fifo else 0))
+        elif variant == "each-send":  # the in-loop output, each stream written right after its own send
+            program = (str(Path(__file__).with_name("ros2_each_send.py")),)
         proc, notify = start_daemon(config, Path(tmp), args=["--realtime", str(fifo)] if fifo else [],
                                     env={"CYCLONEDDS_URI": URI}, program=program)
         folder = Path(tmp) / "ftsensord"
@@ -251,9 +255,12 @@ def main() -> int:
                         help="the bridge process against the bridge as a thread of the daemon (a daemon a segment)")
     parser.add_argument("--in-loop", action="store_true",
                         help="no DDS, the bridge process and the loop's own DDS writes (a daemon a segment)")
+    parser.add_argument("--each-send", action="store_true",
+                        help="no DDS, in-loop, and in-loop writing each stream after its own send (a daemon a segment)")
     args = parser.parse_args()
     variants = (["bridge-rt", "in-daemon"] if args.in_daemon else ["none", "split", "split-rt"] if args.split
-                else ["none", "bridge-rt", "in-loop"] if args.in_loop else ["none", "zmq3", "bridge", "bridge-rt"])
+                else ["none", "bridge-rt", "in-loop"] if args.in_loop else ["none", "in-loop", "each-send"]
+                if args.each_send else ["none", "zmq3", "bridge", "bridge-rt"])
     if not args.fifo and (args.in_daemon or args.in_loop):
         # at the normal priority, as `run` starts the bridge then
         variants = [v.replace("bridge-rt", "bridge") for v in variants]
@@ -261,7 +268,7 @@ def main() -> int:
         variants = [v for v in variants if not v.endswith("-rt")]  # `run` gives no FIFO to the bridge then
     print(f"load {os.getloadavg()[0]:.2f} at start; {args.rounds} rounds of {', '.join(variants)}, "
           f"{args.seconds:g} s each; daemon --realtime {args.fifo}; {TOPIC} at 100 Hz")
-    if args.in_daemon or args.in_loop:
+    if args.in_daemon or args.in_loop or args.each_send:
         segments = [daemon_segment(v, args.seconds, args.fifo) for _ in range(args.rounds) for v in variants]
         receipts: dict[str, list] = {}
         for seg in segments:
