@@ -10,7 +10,8 @@ never for other processes (docs/performance.md, "The ROS 2 bridge"). A second th
 on DDS's inputs (orientations, tare requests). An orientation from ROS goes to the daemon's
 orientation socket as any client's would (`client.OrientationPublisher`); a tare to its
 control socket (`client.ControlClient`).
-`ftsensord run` starts this process when the configuration has a ``[ros2]`` table.
+`ftsensord run` starts this process when the configuration's ``[ros2]`` table says ``output = "bridge"``
+(its default, ``"in-loop"``, writes from the daemon's loop instead: `inloop`).
 """
 
 from __future__ import annotations
