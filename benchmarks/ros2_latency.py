@@ -22,12 +22,18 @@ DDS's header.stamp): one host, one clock. Per segment, from the daemon: its CPU 
 (/proc), its start jitter and publish time p99 (`status`, the last 1000 cycles), missed
 cycles. ``--split`` runs the bridge inside this benchmark instead (the same `Bridge`, with
 clocks read where a frame arrives and around its DDS write) and breaks the DDS path into
-hops. ``--in-daemon`` sets the bridge process as `run` starts it against the same `Bridge`
+hops. ``--in-loop`` sets, a daemon started for each segment, no DDS at all (``none``: the
+daemon and the ZeroMQ subscriber alone), the bridge process as `run` starts it
+(``bridge-rt``, ``bridge`` under ``--fifo 0``) and ``[ros2] output = "in-loop"`` (the loop
+thread's own DDS writes, after the cycle's ZeroMQ sends): each one's latencies, the loop's
+start jitter and cycle time, the daemon's CPU (and the bridge process's). ``--each-send``
+likewise sets ``none``, ``in-loop`` and ``each-send``: the in-loop output writing each
+stream right after its own ZeroMQ send (benchmarks/ros2_each_send.py). ``--in-daemon`` sets the bridge process as `run` starts it against the same `Bridge`
 in a thread of the daemon's own process (benchmarks/ros2_in_daemon.py), a daemon started
 for each segment: the latency, and the loop's jitter and publish time each puts in.
 DDS stays on the loopback interface (CYCLONEDDS_URI).
 
-    python benchmarks/ros2_latency.py --seconds 10 --rounds 3 [--fifo 50] [--split | --in-daemon]
+    python benchmarks/ros2_latency.py --seconds 10 --rounds 3 [--fifo 50] [--split | --in-daemon | --in-loop | --each-send]
 """
 
 from __future__ import annotations
@@ -169,16 +175,22 @@ def segment(variant: str, config: Path, folder: Path, seconds: float, queue: mp.
 
 
 def daemon_segment(variant: str, seconds: float, fifo: int) -> dict:
-    """--in-daemon: a daemon of its own for the segment, with the bridge as `run` starts it
-    (``bridge-rt``: its child process) or as a thread of its own process (``in-daemon``,
-    benchmarks/ros2_in_daemon.py); the listeners for the segment."""
+    """--in-daemon, --in-loop: a daemon of its own for the segment, with the bridge as `run`
+    starts it (``bridge``, ``bridge-rt``: its child process), as a thread of its own process
+    (``in-daemon``, benchmarks/ros2_in_daemon.py), its loop thread writing DDS (``in-loop``:
+    ``[ros2] output = "in-loop"``) or no DDS at all (``none``: no [ros2], no DDS subscriber);
+    the listeners for the segment."""
     with tempfile.TemporaryDirectory() as tmp:
         config = packaged_config(Path(tmp) / "ftsensord.toml")
         program: tuple[str, ...] = ("-m", "ftsensord")
-        if variant.startswith("bridge"):
-            config.write_text(config.read_text() + f'\n[ros2]\nnamespace = "bench"\ndomain_id = {DOMAIN}\n')
-        else:
+        if variant.startswith("bridge") or variant in ("in-loop", "each-send"):
+            output = "bridge" if variant.startswith("bridge") else "in-loop"
+            config.write_text(config.read_text() + f'\n[ros2]\nnamespace = "bench"\ndomain_id = {DOMAIN}\n'
+                                                   f'output = "{output}"\n')
+        if variant == "in-daemon":
             program = (str(Path(__file__).with_name("ros2_in_daemon.py")), "bench", str(DOMAIN), str(1 if fifo else 0))
+        elif variant == "each-send":  # the in-loop output, each stream written right after its own send
+            program = (str(Path(__file__).with_name("ros2_each_send.py")),)
         proc, notify = start_daemon(config, Path(tmp), args=["--realtime", str(fifo)] if fifo else [],
                                     env={"CYCLONEDDS_URI": URI}, program=program)
         folder = Path(tmp) / "ftsensord"
@@ -187,14 +199,17 @@ def daemon_segment(variant: str, seconds: float, fifo: int) -> dict:
             stop_at = time.time() + SETTLE_S + seconds + 1
             listeners = [mp.Process(target=zmq_listen, args=(f"ipc://{folder / 'wrench'}", stop_at, queue)),
                          *(mp.Process(target=dds_listen, args=(f"rt/bench/{TOPIC}", r, stop_at, queue))
-                           for r in (False, True))]
+                           for r in ((False, True) if variant != "none" else ()))]
             for p in listeners:
                 p.start()
             control = ControlClient(f"ipc://{folder / 'control'}", timeout_s=5)
             time.sleep(SETTLE_S)
+            children = [int(c) for c in Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()]
             s0, cpu0, t0 = control.status(), cpu_seconds(proc.pid), time.time()
+            child0 = sum(cpu_seconds(c) for c in children)
             time.sleep(seconds)
             s1, cpu1, t1 = control.status(), cpu_seconds(proc.pid), time.time()
+            child1 = sum(cpu_seconds(c) for c in children)
             receipts = dict(queue.get(timeout=60) for _ in listeners)
             for p in listeners:
                 p.join()
@@ -202,9 +217,10 @@ def daemon_segment(variant: str, seconds: float, fifo: int) -> dict:
             stop(proc, notify)
     cycles = s1["cycles"] - s0["cycles"]
     return {"variant": variant, "window": (t0, t1), "cpu_us": (cpu1 - cpu0) / cycles * 1e6, "cycles": cycles,
+            "bridge_cpu_us": (child1 - child0) / cycles * 1e6 if children else None,
             "missed": s1["missed_cycles"] - s0["missed_cycles"], "jitter_p99": s1["jitter_us"]["p99"],
-            "publish_p99": s1["publish_us"]["p99"], "load": os.getloadavg()[0], "bridge": None,
-            "receipts": receipts}
+            "publish_p99": s1["publish_us"]["p99"], "cycle_p99": s1["cycle_us"]["p99"], "load": os.getloadavg()[0],
+            "bridge": None, "receipts": receipts}
 
 
 def pct(d: np.ndarray) -> str:
@@ -237,16 +253,22 @@ def main() -> int:
     parser.add_argument("--split", action="store_true", help="the bridge inside the benchmark, its hops timed")
     parser.add_argument("--in-daemon", action="store_true",
                         help="the bridge process against the bridge as a thread of the daemon (a daemon a segment)")
+    parser.add_argument("--in-loop", action="store_true",
+                        help="no DDS, the bridge process and the loop's own DDS writes (a daemon a segment)")
+    parser.add_argument("--each-send", action="store_true",
+                        help="no DDS, in-loop, and in-loop writing each stream after its own send (a daemon a segment)")
     args = parser.parse_args()
     variants = (["bridge-rt", "in-daemon"] if args.in_daemon else ["none", "split", "split-rt"] if args.split
-                else ["none", "zmq3", "bridge", "bridge-rt"])
-    if not args.fifo and args.in_daemon:
-        variants = ["bridge", "in-daemon"]  # both at the normal priority, as `run` starts them then
+                else ["none", "bridge-rt", "in-loop"] if args.in_loop else ["none", "in-loop", "each-send"]
+                if args.each_send else ["none", "zmq3", "bridge", "bridge-rt"])
+    if not args.fifo and (args.in_daemon or args.in_loop):
+        # at the normal priority, as `run` starts the bridge then
+        variants = [v.replace("bridge-rt", "bridge") for v in variants]
     elif not args.fifo:
         variants = [v for v in variants if not v.endswith("-rt")]  # `run` gives no FIFO to the bridge then
     print(f"load {os.getloadavg()[0]:.2f} at start; {args.rounds} rounds of {', '.join(variants)}, "
           f"{args.seconds:g} s each; daemon --realtime {args.fifo}; {TOPIC} at 100 Hz")
-    if args.in_daemon:
+    if args.in_daemon or args.in_loop or args.each_send:
         segments = [daemon_segment(v, args.seconds, args.fifo) for _ in range(args.rounds) for v in variants]
         receipts: dict[str, list] = {}
         for seg in segments:
@@ -289,10 +311,18 @@ def report(variants: list[str], segments: list[dict], receipts: dict[str, list])
               f"p99 {max(s['jitter_p99'] for s in mine):.0f} us, "
               f"publish p99 {max(s['publish_p99'] for s in mine):.0f} us "
               f"(worst segment); load {min(s['load'] for s in mine):.2f}-{max(s['load'] for s in mine):.2f}")
+        if "cycle_p99" in mine[0]:
+            bridge = [s["bridge_cpu_us"] for s in mine if s["bridge_cpu_us"] is not None]
+            print("  start jitter p99 by segment " + " ".join(f"{s['jitter_p99']:.0f}" for s in mine)
+                  + " us; cycle p99 by segment " + " ".join(f"{s['cycle_p99']:.0f}" for s in mine) + " us"
+                  + (f"; the bridge process's CPU {np.median(bridge):.0f} us a cycle" if bridge else ""))
         for name, got in receipts.items():
             d = np.array([r - s for s, r in got if any(m["window"][0] <= s < m["window"][1] for m in mine)]) * 1e6
             if len(d):
-                print(f"  {name}: {pct(d)}")
+                # and each segment's p99: one segment whose subscriber the host starved moves the pooled p99
+                each = [np.percentile([r - s for s, r in got if m["window"][0] <= s < m["window"][1]], 99) * 1e6
+                        for m in mine if any(m["window"][0] <= s < m["window"][1] for s, _ in got)]
+                print(f"  {name}: {pct(d)}; p99 by segment " + " ".join(f"{x:.0f}" for x in each) + " us")
         if v.startswith("split"):
             hops(mine, receipts)
     print(f"load {os.getloadavg()[0]:.2f} at end")

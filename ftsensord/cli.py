@@ -15,7 +15,7 @@ from . import __version__
 from .acquire.bus import ACCEPTED_FORMS, open_bus
 from .acquire.scan import format_table, scan
 from .bridge import add_parser as add_bridge_parser
-from .ros2.bridge import add_parser as add_ros2_parser
+from .ros2 import InLoop, add_ros2_parser
 from .errors import ConfigError, DaemonNotAnswering, FtsensordError
 from .service.sensorconf import ESTIMATORS
 from .service.status import describe
@@ -114,7 +114,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from .service.config import load_config
     from .service.run import run
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
-    return run(load_config(args.config), early=args.early_signals, realtime=args.realtime)
+    return run(load_config(args.config), early=args.early_signals, realtime=args.realtime, ros2_in_loop=InLoop)
 
 
 def _control(args: argparse.Namespace):

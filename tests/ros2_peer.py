@@ -235,14 +235,26 @@ def publish(dp, step: dict) -> None:
     print(json.dumps({"published": step["topic"], "matched": matched}), flush=True)
 
 
-def orient(dp, topics: list, stop: threading.Event) -> None:
-    """The identity orientation on each of ``topics`` at 100 Hz until ``stop``."""
+def orient(dp, topics: list, stop: threading.Event, ready: threading.Event) -> None:
+    """The identity orientation on each of ``topics`` at 100 Hz until ``stop``; ``ready`` set once
+    every writer is matched and has written (a loaded host's discovery takes more than 0.2 s)."""
     writers = [DataWriter(dp, Topic(dp, t, QuaternionStamped), qos(False)) for t in topics]
+    for w in writers:
+        wait_matched(w)
     while not stop.is_set():
         now = time.time()
         for w in writers:
             w.write(QuaternionStamped(Header(Time(int(now), int(now % 1 * 1e9)), ""), Quaternion(0, 0, 0, 1)))
+        ready.set()
         time.sleep(0.01)
+
+
+def oriented(dp, topics: list, stop: threading.Event) -> None:
+    """`orient` in a thread of its own; returns once its orientations are coming."""
+    ready = threading.Event()
+    threading.Thread(target=orient, args=(dp, topics, stop, ready), daemon=True).start()
+    ready.wait(10.0)
+    time.sleep(0.1)  # a few more in, the daemon's newest fresh
 
 
 def call_trigger(dp, step: dict) -> None:
@@ -253,7 +265,7 @@ def call_trigger(dp, step: dict) -> None:
     available = wait_matched(writer) and wait_matched(reader)
     keep = threading.Event()
     if step.get("orient"):  # orientations kept coming during the call, as a tare under gravity compensation needs
-        threading.Thread(target=orient, args=(dp, step["orient"], keep), daemon=True).start()
+        oriented(dp, step["orient"], keep)
     guid = writer.get_instance_handle() & (2**64 - 1)  # rmw_send_request: header.guid = the writer's instance handle
     seqs = list(range(7, 7 + step.get("requests", 1)))  # back to back, as several callers would
     for seq in seqs:
@@ -273,8 +285,7 @@ def tare_topic(dp, step: dict) -> None:
     writer = DataWriter(dp, Topic(dp, step["topic"], Empty), qos(True))
     matched = wait_matched(writer)
     keep = threading.Event()
-    threading.Thread(target=orient, args=(dp, step["orient"], keep), daemon=True).start()
-    time.sleep(0.2)  # the first orientations in before the tare's first sample
+    oriented(dp, step["orient"], keep)  # the orientations in before the tare's first sample
     writer.write(Empty())
     time.sleep(3.0)  # the tare takes 100 samples: 1 s at 100 Hz, 3 on a loaded host
     keep.set()

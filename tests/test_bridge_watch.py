@@ -37,7 +37,7 @@ def test_a_bridge_that_ignores_sigterm_is_killed_when_the_daemon_stops(monkeypat
     monkeypatch.setattr(ros2conf, "BRIDGE_EXIT_S", 0.5)
     t0 = time.monotonic()
     with caplog.at_level(logging.WARNING, logger="ftsensord"):
-        with ros2_beside(Ros2Config(), tmp_path / "ftsensord.toml") as child:
+        with ros2_beside(Ros2Config(output="bridge"), tmp_path / "ftsensord.toml") as child:
             while not (tmp_path / "up").exists():  # its SIGTERM handler set
                 assert child.poll() is None and time.monotonic() - t0 < 30
                 time.sleep(0.01)

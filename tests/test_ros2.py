@@ -70,10 +70,12 @@ def Reference(endpoint: str) -> StreamRecorder:  # noqa: N802 (a class's name to
     return StreamRecorder(endpoint, STREAMS, lambda s: (s.topic, round(s.t_wall * 1e9)))
 
 
-@pytest.fixture(scope="module")
-def daemon(tmp_path_factory) -> Iterator[tuple[Path, StreamRecorder]]:
+@pytest.fixture(scope="module", params=["bridge", "in-loop"])
+def daemon(tmp_path_factory, request) -> Iterator[tuple[Path, StreamRecorder]]:
+    """A daemon with ``[ros2]``, each output in turn: the bridge process, the loop's own writes."""
     folder = tmp_path_factory.mktemp("ros2")
-    config = write_config(folder, extra=f'[ros2]\nnamespace = "{NS}"\ndomain_id = {DOMAIN}\n' + GRAVITY)
+    config = write_config(folder, extra=f'[ros2]\nnamespace = "{NS}"\ndomain_id = {DOMAIN}\n'
+                                        f'output = "{request.param}"\n' + GRAVITY)
     proc, notify = start_daemon(config, folder, env={"CYCLONEDDS_URI": URI}, stdout=subprocess.DEVNULL,
                                 stderr=subprocess.DEVNULL)
     ref = Reference(f"ipc://{folder / 'ftsensord' / 'wrench'}")
@@ -197,8 +199,11 @@ def test_a_ros2_table_is_checked_and_names_the_extra_when_it_is_missing(tmp_path
     assert_names_file_and_key(load_config, path, "ros2.namespace", "a ROS 2 name")
     path = write_config(tmp_path, extra='[ros2]\ndomain_id = 300\n')
     assert_names_file_and_key(load_config, path, "ros2.domain_id", "0 to 232")
+    path = write_config(tmp_path, extra='[ros2]\noutput = "thread"\n')
+    assert_names_file_and_key(load_config, path, "ros2.output", '"in-loop" or "bridge"')
     monkeypatch.setenv("ROS_DOMAIN_ID", "42")
     assert load_config(write_config(tmp_path, extra="[ros2]\n")).ros2.domain_id == 42
+    assert load_config(write_config(tmp_path, extra="[ros2]\n")).ros2.output == "in-loop"  # the default: measured
     import importlib.util
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "cyclonedds" else real(name, *a))
@@ -225,7 +230,8 @@ def test_a_failing_chip_or_a_flagged_wrench_raises_the_level_ros_tools_show():
 
 
 def test_the_bridge_stops_with_the_daemon_even_when_it_is_killed(tmp_path):
-    config = write_config(tmp_path, extra=f'[ros2]\nnamespace = "{NS}_kill"\ndomain_id = {DOMAIN}\n')
+    config = write_config(tmp_path, extra=f'[ros2]\nnamespace = "{NS}_kill"\ndomain_id = {DOMAIN}\n'
+                                                   'output = "bridge"\n')
     proc, notify = start_daemon(config, tmp_path, env={"CYCLONEDDS_URI": URI})
     try:
         (child,) = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()
@@ -261,13 +267,32 @@ def test_the_bridges_cdr_bytes_are_cyclones_own_serialization(frame_id):
     assert Stamped(frame_id).message(t_wall, status_body(2**40 + 3, 0x41, 7)) == status.serialize(use_version_2=False)
 
 
+@pytest.mark.parametrize("statuses", [
+    [],
+    [(0, "ns: daemon", "100 Hz", "", [])],
+    [(3, "ns: daemon", "no answer", "", []), (2, "ns: s1 chip 0x0D", "failing: NACK", "MLX90393 0x0D",
+                                               [("state", "failing"), ("errors", "12"), ("é", "")])],
+    [(1, "n" * k, "m" * (k + 1), "h" * (k + 2), [("k" * k, "v" * (k + 3))] * k) for k in range(6)],
+])
+def test_the_diagnostics_cdr_bytes_are_cyclones_own_serialization(statuses):
+    from ftsensord.recording.ros2mcap import stamp
+    from ftsensord.ros2 import diagnostics, msgs
+    t_wall = 1_764_100_000.987654321
+    array = msgs.DiagnosticArray(msgs.Header(msgs.Time(*stamp(t_wall)), ""), [
+        msgs.DiagnosticStatus(level, name, message, hardware_id, [msgs.KeyValue(k, v) for k, v in values])
+        for level, name, message, hardware_id, values in statuses])
+    # the strings' lengths 0-5 move every later length's 4-byte alignment: each is a case
+    assert diagnostics.cdr(statuses, t_wall) == array.serialize(use_version_2=False)
+
+
 def can_be_realtime() -> bool:
     return subprocess.run(["chrt", "-f", "1", "true"], capture_output=True).returncode == 0
 
 
 @pytest.mark.skipif(not can_be_realtime(), reason="SCHED_FIFO not allowed here (needs CAP_SYS_NICE or RLIMIT_RTPRIO)")
 def test_under_a_realtime_daemon_only_the_bridges_forwarding_is_realtime_below_the_loop(tmp_path):
-    config = write_config(tmp_path, extra=f'[ros2]\nnamespace = "{NS}_rt"\ndomain_id = {DOMAIN}\n')
+    config = write_config(tmp_path, extra=f'[ros2]\nnamespace = "{NS}_rt"\ndomain_id = {DOMAIN}\n'
+                                                   'output = "bridge"\n')
     proc, notify = start_daemon(config, tmp_path, env={"CYCLONEDDS_URI": URI}, args=["--realtime", "50"])
     try:
         (child,) = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()
@@ -287,6 +312,48 @@ def test_under_a_realtime_daemon_only_the_bridges_forwarding_is_realtime_below_t
         proc.terminate()
         proc.wait(timeout=20)
         notify.close()
+
+
+@pytest.mark.skipif(not can_be_realtime(), reason="SCHED_FIFO not allowed here (needs CAP_SYS_NICE or RLIMIT_RTPRIO)")
+def test_in_loop_under_a_realtime_daemon_ddss_own_threads_stay_at_the_normal_policy(tmp_path):
+    config = write_config(tmp_path, extra=f'[ros2]\nnamespace = "{NS}_rt"\ndomain_id = {DOMAIN}\noutput = "in-loop"\n')
+    proc, notify = start_daemon(config, tmp_path, env={"CYCLONEDDS_URI": URI}, args=["--realtime", "50"])
+    try:
+        assert not Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()  # no bridge process
+        threads = {int(t): Path(f"/proc/{proc.pid}/task/{t}/comm").read_text().strip()
+                   for t in os.listdir(f"/proc/{proc.pid}/task")}
+        policy = {t: (os.sched_getscheduler(t), os.sched_getparam(t).sched_priority) for t in threads}
+        assert policy[proc.pid] == (os.SCHED_FIFO, 50)  # the loop's thread, which makes the DDS writes
+        dds = {name: policy[t] for t, name in threads.items() if name in ("gc", "dq.builtins", "dq.user", "tev", "recv")}
+        assert len(dds) == 5 and all(p == (os.SCHED_OTHER, 0) for p in dds.values()), (dds, threads)
+    finally:
+        proc.terminate()
+        proc.wait(timeout=20)
+        notify.close()
+
+
+def test_in_loop_without_a_dds_participant_the_zeromq_streams_go_on(tmp_path):
+    """A Cyclone DDS configuration it cannot use (an interface this host does not have): the
+    daemon says so in its log and publishes on ZeroMQ as without ``[ros2]``."""
+    config = write_config(tmp_path, extra=f'[ros2]\nnamespace = "{NS}_bad"\ndomain_id = {DOMAIN}\n')
+    bad = "<CycloneDDS><Domain Id='any'><General><Interfaces><NetworkInterface address='192.0.2.77'/>" \
+          "</Interfaces></General></Domain></CycloneDDS>"  # TEST-NET-1: never a local address
+    log = tmp_path / "log"
+    with log.open("w") as out:
+        proc, notify = start_daemon(config, tmp_path, env={"CYCLONEDDS_URI": bad}, stderr=out)
+    try:
+        ref = Reference(f"ipc://{tmp_path / 'ftsensord' / 'wrench'}")
+        ref.start()
+        time.sleep(1.0)
+        ref.stop.set()
+        assert len(ref.samples) > 50  # 100 Hz, two streams: ZeroMQ unaffected
+        assert proc.poll() is None
+    finally:
+        proc.terminate()
+        proc.wait(timeout=20)
+        notify.close()
+    text = log.read_text()
+    assert "the ROS 2 output did not start: ros2: no DDS participant on domain" in text, text[-2000:]
 
 
 def test_a_frame_that_is_not_a_wrench_is_dropped_and_counted():

@@ -10,7 +10,8 @@ never for other processes (docs/performance.md, "The ROS 2 bridge"). A second th
 on DDS's inputs (orientations, tare requests). An orientation from ROS goes to the daemon's
 orientation socket as any client's would (`client.OrientationPublisher`); a tare to its
 control socket (`client.ControlClient`).
-`ftsensord run` starts this process when the configuration has a ``[ros2]`` table.
+`ftsensord run` starts this process when the configuration's ``[ros2]`` table says ``output = "bridge"``
+(its default, ``"in-loop"``, writes from the daemon's loop instead: `inloop`).
 """
 
 from __future__ import annotations
@@ -65,6 +66,20 @@ def wait_for_status(control: Any, stopped: Callable[[], bool], timeout_s: float)
     return None
 
 
+def tare(control: str) -> tuple[bool, str]:
+    """A tare from ROS: the daemon on ``control`` asked by a client of its own (this runs in a
+    thread of its own); whether it tared, and the Trigger response's message."""
+    from ..client import ControlClient
+
+    try:
+        result = ControlClient(control, timeout_s=3.0).tare(samples=TARE_SAMPLES)
+    except FtsensordError as exc:
+        return False, f"tare refused: {exc}"
+    return True, "tared " + ", ".join(
+        f"{n} on {result['samples']} samples (removed " + " ".join(f"{v:+.4g}" for v in w) + " N, Nm)"
+        for n, w in result["tare_wrench"].items())
+
+
 class Bridge:
     """The streams of the daemon on ``endpoint`` (its ``status`` asked of ``control``) on DDS
     domain ``domain_id``, until ``stopped()``."""
@@ -95,15 +110,7 @@ class Bridge:
                 log.warning("orientation of %s from ROS refused: %s", frame, exc)
 
     def on_tare(self) -> tuple[bool, str]:
-        from ..client import ControlClient
-
-        try:  # a client of its own: this runs in a thread of its own
-            result = ControlClient(self.control.endpoint, timeout_s=3.0).tare(samples=TARE_SAMPLES)
-        except FtsensordError as exc:
-            return False, f"tare refused: {exc}"
-        return True, "tared " + ", ".join(
-            f"{n} on {result['samples']} samples (removed " + " ".join(f"{v:+.4g}" for v in w) + " N, Nm)"
-            for n, w in result["tare_wrench"].items())
+        return tare(self.control.endpoint)
 
     def inputs(self) -> None:
         """The second thread: DDS inputs as they come (it waits in DDS, the GIL released)."""

@@ -33,8 +33,8 @@ from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 
-from ..recording.ros2mcap import Stamped, stamp, status_body
-from . import msgs
+from ..recording.ros2mcap import Stamped, status_body
+from . import diagnostics, msgs
 from .diagnostics import Status
 
 log = logging.getLogger("ftsensord.ros2")
@@ -49,10 +49,6 @@ ENCLAVE = b"enclave=/;"
 #: How long a tare reply waits for the client's reply reader to be matched (rmw_cyclonedds's own
 #: rmw_send_response waits 100 ms; a tare takes a second, so this is rarely spent).
 REPLY_MATCH_S = 1.0
-
-
-def _stamp(t_wall: float) -> msgs.Time:
-    return msgs.Time(*stamp(t_wall))  # as in MCAP recordings
 
 
 def writer_qos(cls: type, extra: str = "", latched: bool = False) -> Qos:
@@ -177,15 +173,15 @@ class Ros2Node:
             self.write_errors += 1  # counted, said at exit: the next sample is the newer one anyway
 
     def publish_diagnostics(self, statuses: list[Status], t_wall: float) -> None:
-        self.diagnostics.write(msgs.DiagnosticArray(msgs.Header(_stamp(t_wall), ""), [
-            msgs.DiagnosticStatus(level, name, message, hardware_id, [msgs.KeyValue(k, v) for k, v in values])
-            for level, name, message, hardware_id, values in statuses]))
+        self._write(self.diagnostics, diagnostics.cdr(statuses, t_wall))
 
     def serve(self, timeout_s: float, on_orientation: Callable[[str, list[float], float], None],
               on_tare: Callable[[], tuple[bool, str]]) -> None:
         """Wait for input up to ``timeout_s`` and handle what came: orientations at once,
-        each tare in a thread of its own (it takes the tare's samples to answer)."""
-        self.waitset.wait(int(timeout_s * 1e9))
+        each tare in a thread of its own (it takes the tare's samples to answer). ``timeout_s`` 0:
+        asked without waiting (the in-loop output, each cycle: about a microsecond when nothing came)."""
+        if not self.waitset.wait(int(timeout_s * 1e9)):
+            return
         for reader, kind, frame in self.inputs:
             for msg in reader.take(N=64):
                 if not msg.sample_info.valid_data:

@@ -82,6 +82,7 @@ class Daemon(Commands):
         self.ready = False
         self.calibrations = Calibrations().remember(config)
         self.bridge = BridgeWatch()  # the ROS 2 bridge `run` started beside it, if any
+        self.outputs: list[Any] = []  # `run` adds ([ros2] output "in-loop"): after_sends(...) each cycle
 
     def _reader(self, config: Config) -> Reader:
         chips = [MLX90393(self.bus, a, sleep=self.bus.sleep) for a in config.addresses]
@@ -207,10 +208,13 @@ class Daemon(Commands):
         tip = tip_wrench(samples, self._tip[1]) if poses else None
         if tip is not None:
             self._publish("wrench/tip", wire.KIND_WRENCH, seq, t_mono, t_wall, tip[1], tip[0])
-        for topic, flags, values in self.gravity.streams(samples, tip, self.sensors, start) if self.gravity else ():
+        compensated = self.gravity.streams(samples, tip, self.sensors, start) if self.gravity else []
+        for topic, flags, values in compensated:
             self._publish(topic, wire.KIND_WRENCH, seq, t_mono, t_wall, flags, values)
         for name, s in samples.items():
             self._publish(f"flux/{name}", wire.KIND_FLUX, seq, t_mono, t_wall, s.flux_flags, s.flux)
+        for out in self.outputs:  # after every ZeroMQ send: no ZeroMQ sample waits for them
+            out.after_sends(seq, t_wall, samples, tip, compensated)
         self.reader.upkeep()  # the register read-back: bus time no sample waits for
         for p in self.sensors:
             s = samples[p.name]

@@ -3,9 +3,12 @@
     [ros2]
     namespace = "ftsensord"   # topics /<namespace>/wrench/<stream>, service /<namespace>/tare
     domain_id = 0             # default: $ROS_DOMAIN_ID, else 0 (ROS's default)
+    output = "in-loop"        # or "bridge" (docs/performance.md, "The ROS 2 bridge")
 
-Parsed here, and `ros2_beside` starts the bridge (`ftsensord ros2`) for `ftsensord run`
-as a process of its own, by its command line: nothing of the bridge is imported here. A
+Parsed here. ``output = "bridge"``: `ros2_beside` starts the bridge (`ftsensord ros2`) for
+`ftsensord run` as a process of its own, by its command line: nothing of the bridge is
+imported here. ``output = "in-loop"``: the daemon's loop thread writes to DDS itself, after
+each cycle's ZeroMQ sends (`ftsensord.ros2.inloop`, handed to `run` by the command line). A
 ``[ros2]`` table without the ``ros2`` extra installed is refused at load, naming the extra,
 so the daemon never starts believing it is on the graph.
 """
@@ -38,12 +41,15 @@ BRIDGE_EXIT_S = 10.0
 _TOKEN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 #: DDS's RTPS port mapping leaves 0-232 for domain ids (ROS 2 docs, "The ROS_DOMAIN_ID").
 MAX_DOMAIN_ID = 232
+#: Where the DDS writes are made: a bridge process fed by ZeroMQ, or the daemon's loop thread.
+OUTPUTS = ("in-loop", "bridge")
 
 
 @dataclass(frozen=True)
 class Ros2Config:
     namespace: str = "ftsensord"  # without slashes at either end
     domain_id: int = 0
+    output: str = "in-loop"  # one of OUTPUTS: in-loop measured better (docs/performance.md)
 
 
 def default_domain_id(environ: dict[str, str] | None = None) -> int:
@@ -68,15 +74,18 @@ def parse_ros2(doc: Table, path: Path) -> Ros2Config | None:
     if "ros2" not in doc.doc:
         return None
     t = doc.table("ros2")
-    t.only({"namespace", "domain_id"})
+    t.only({"namespace", "domain_id", "output"})
     namespace = t.string("namespace", "ftsensord").strip("/")
     if not is_ros_name(namespace):
         raise t.fail("namespace", "a ROS 2 name: tokens of letters, digits and underscores separated by /, "
                                   "none starting with a digit", namespace)
     domain_id = t.integer("domain_id", 0 if "domain_id" in t.doc else default_domain_id(), low=0, high=MAX_DOMAIN_ID,
                           what=f"a DDS domain id, 0 to {MAX_DOMAIN_ID}")
-    needs_cyclonedds(f"{path}: ros2: the ROS 2 bridge", " (or remove the [ros2] table)")
-    return Ros2Config(namespace, domain_id)
+    output = t.string("output", Ros2Config.output)
+    if output not in OUTPUTS:
+        raise t.fail("output", " or ".join(f'"{o}"' for o in OUTPUTS), output)
+    needs_cyclonedds(f"{path}: ros2: the ROS 2 output", " (or remove the [ros2] table)")
+    return Ros2Config(namespace, domain_id, output)
 
 
 def is_ros_name(name: str) -> bool:
@@ -132,11 +141,11 @@ def bridge_priority() -> int:
 
 @contextlib.contextmanager
 def ros2_beside(ros2: Ros2Config | None, config_path: Path) -> Iterator[subprocess.Popen | None]:
-    """With a ``[ros2]`` table, ``ftsensord ros2 --config CONFIG`` as a child of the daemon at
-    the default scheduling policy (its forwarding thread at `BRIDGE_FIFO` under a real-time
-    daemon), stopped (SIGTERM) when the block ends; else nothing. Entered before the daemon has
-    a thread (preexec_fn runs between fork and exec)."""
-    if ros2 is None:
+    """With a ``[ros2]`` table whose output is ``"bridge"``, ``ftsensord ros2 --config CONFIG``
+    as a child of the daemon at the default scheduling policy (its forwarding thread at
+    `BRIDGE_FIFO` under a real-time daemon), stopped (SIGTERM) when the block ends; else
+    nothing. Entered before the daemon has a thread (preexec_fn runs between fork and exec)."""
+    if ros2 is None or ros2.output != "bridge":
         yield None
         return
     child = subprocess.Popen(bridge_command(config_path, bridge_priority()), preexec_fn=_child_setup)

@@ -13,7 +13,7 @@ import os
 import signal
 from collections.abc import Iterable
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import zmq
 
@@ -203,9 +203,14 @@ class Signals:
         self.reload = False  # handed over: the daemon clears its own
 
 
-def run(config: Config, early: Iterable[int] = (), realtime: int = 0) -> int:
+def run(config: Config, early: Iterable[int] = (), realtime: int = 0, ros2_in_loop: Any = None) -> int:
     """Serve ``config`` until SIGTERM; ``early``: signals that came before (`__main__.EARLY_SIGNALS`);
-    ``realtime``: the SCHED_FIFO priority to ask for (0: none; a refusal is logged, not fatal)."""
+    ``realtime``: the SCHED_FIFO priority to ask for (0: none; a refusal is logged, not fatal);
+    ``ros2_in_loop(daemon, ros2)``: the output for ``[ros2] output = "in-loop"`` (`ros2.inloop.InLoop`,
+    handed in by the command line: the service does not import DDS's floor)."""
+    if config.ros2 is not None and config.ros2.output == "in-loop" and ros2_in_loop is None:
+        raise ConfigError(f'{config.path}: ros2.output: "in-loop" needs the ROS 2 output, which this caller '
+                          "of service.run does not hand in (`ftsensord run` does)")
     signals = Signals(early)
     if signals.stop:  # stopped while starting: nothing made yet, nothing to undo
         log.info("stopped before starting")
@@ -224,14 +229,14 @@ def run(config: Config, early: Iterable[int] = (), realtime: int = 0) -> int:
         except (OSError, FtsensordError) as exc:
             raise ConfigError(f"{config.path}: bus: cannot open {config.bus!r}: {exc}") from exc
         with ros2_beside(config.ros2, config.path) as bridge:  # [ros2]: DDS in a process of its own
-            return _serve(config, bus, notifier, files, signals, scheduling, BridgeWatch(bridge))
+            return _serve(config, bus, notifier, files, signals, scheduling, BridgeWatch(bridge), ros2_in_loop)
     finally:
         for fd in locks:
             os.close(fd)
 
 
 def _serve(config: Config, bus: Bus, notifier: Notifier, files: RuntimeFiles, signals: Signals,
-           scheduling: Scheduling, bridge: BridgeWatch) -> int:
+           scheduling: Scheduling, bridge: BridgeWatch, ros2_in_loop: Any = None) -> int:
     context = zmq.Context()
     publisher, control, auth = make_sockets(context, config, files)
     endpoint = config.orientation_endpoint
@@ -241,6 +246,11 @@ def _serve(config: Config, bus: Bus, notifier: Notifier, files: RuntimeFiles, si
     daemon = Daemon(config, bus, publisher, control, notifier=notifier, orientation=orientation,
                     guard=HostGuard(caps, files), background_reload=True, scheduling=scheduling)
     daemon.bridge = bridge
+    if config.ros2 is not None and config.ros2.output == "in-loop":
+        try:
+            daemon.outputs.append(ros2_in_loop(daemon, config.ros2))
+        except FtsensordError as exc:  # as when the bridge process exits: ROS 2 is off, ZeroMQ goes on
+            log.error("the ROS 2 output did not start: %s; the ZeroMQ streams go on without it", exc)
 
     signals.attach(daemon)
     log.info("ftsensord on %s: %s; publishing on %s, control on %s", config.bus, config.bound().describe(),

@@ -1,0 +1,143 @@
+"""Instructions the in-loop ROS 2 output adds to the daemon's cycle, counted by callgrind
+(benchmarks/instructions.py's method: two runs of one process, one doing ``STEPS`` more
+cycles after the same start and warm-up; the difference over the extra cycles).
+
+The daemon is instructions.py's (the packaged configuration on `cycle_cpu.InstantBus`), its
+``outputs`` as ``[ros2] output = "in-loop"`` sets them (`ftsensord.ros2.inloop.InLoop`):
+
+- ``none``: no output (the daemon's own cycle);
+- ``unread``: the output, no DDS reader (nothing written; the readers asked, the inputs polled);
+- ``read``: a reliable DDS reader of ``wrench/sensor1`` in another process (not counted):
+  one write a cycle, as in benchmarks/ros2_latency.py;
+- ``diagnostics``: as ``read``, with ``/diagnostics`` due every other cycle (the status in
+  one, the message in the next): twice the difference from ``read`` is one second's
+  diagnostics, a hundredth of it a cycle's share at 100 Hz.
+
+Wall-clock timers (the readers asked five times a second, the diagnostics once) are held off
+in the counted cycles: under valgrind a cycle lasts 50 times longer. Counted per thread
+(``--separate-threads``): the loop's thread, and every thread of the process (DDS's own:
+receive, timed events, delivery).
+
+    python benchmarks/ros2_instructions.py [none unread read diagnostics]
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing as mp
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+WARM = 60  # as instructions.py: plans built, shapes learnt, the estimator's pose found
+STEPS = 400
+MATCH_S = 30.0  # discovery under valgrind: seconds, not milliseconds
+VARIANTS = ("none", "unread", "read", "diagnostics")
+
+
+def _child(what: str, steps: int) -> None:
+    sys.path.insert(0, str(HERE))
+    import zmq
+
+    import cycle_cpu
+    from ftsensord.service.config import builtin_path, load_config
+    from ftsensord.service.daemon import Daemon
+    from ftsensord.service.ros2conf import Ros2Config
+
+    config = load_config(builtin_path("sim.toml"))
+    with tempfile.TemporaryDirectory() as tmp:
+        ctx = zmq.Context()
+        pub = ctx.socket(zmq.PUB)
+        pub.setsockopt(zmq.LINGER, 0)
+        pub.bind(f"ipc://{tmp}/pub")
+        daemon = Daemon(config, cycle_cpu.InstantBus(config), pub, None)
+        daemon.start()
+        out = None
+        if what != "none":
+            from ftsensord.ros2.inloop import InLoop
+
+            out = InLoop(daemon, Ros2Config("bench", int(os.environ["BENCH_DOMAIN"]), "in-loop"))
+            daemon.outputs.append(out)
+        for _ in range(WARM):
+            daemon.cycle()
+        if what in ("read", "diagnostics"):
+            end = time.monotonic() + MATCH_S
+            while not out.read and time.monotonic() < end:  # type: ignore[union-attr]
+                out.find_readers()  # type: ignore[union-attr]
+                daemon.cycle()
+            if not out.read:  # type: ignore[union-attr]
+                raise SystemExit("the DDS reader was not matched")
+        if out is not None:
+            out.ask = float("inf")
+            out.due = float("inf")
+        for i in range(steps):
+            if what == "diagnostics" and i % 2 == 0:
+                out.due = 0.0  # type: ignore[union-attr]
+            daemon.cycle()
+        pub.close()
+        ctx.term()
+
+
+def count(what: str, steps: int, env: dict[str, str]) -> tuple[int, int]:
+    """(the loop thread's, every thread's) instructions in one child process."""
+    with tempfile.TemporaryDirectory() as tmp:
+        args = ["valgrind", "--tool=callgrind", "--separate-threads=yes", f"--callgrind-out-file={tmp}/out",
+                sys.executable, __file__, "--child", what, str(steps)]
+        subprocess.run(args, env=env, capture_output=True, text=True, check=True)
+        totals = {}
+        for f in Path(tmp).glob("out*"):
+            found = re.search(r"^(?:totals|summary): (\d+)", f.read_text(errors="replace"), re.M)
+            if found:
+                totals[f.name] = int(found.group(1))
+    if not totals:
+        raise SystemExit("callgrind wrote no counts")
+    main = totals.get("out-01", max(totals.values()))  # thread 1: the main thread, the loop's
+    return main, sum(totals.values())
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("what", nargs="*", help=f"what to count: {', '.join(VARIANTS)} (default all)")
+    parser.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child:
+        _child(args.child[0], int(args.child[1]))
+        return 0
+    from ros2_latency import DOMAIN, URI, dds_listen
+
+    env = dict(os.environ, PYTHONHASHSEED="0", OPENBLAS_NUM_THREADS="1", CYCLONEDDS_URI=URI, BENCH_DOMAIN=str(DOMAIN),
+               PYTHONPATH=os.pathsep.join([str(HERE.parent), os.environ.get("PYTHONPATH", "")]))
+    os.environ["CYCLONEDDS_URI"] = URI
+    got = {}
+    for what in args.what or VARIANTS:
+        reader = None
+        if what in ("read", "diagnostics"):  # read throughout both runs; its receipts are not used
+            reader = mp.Process(target=dds_listen, args=("rt/bench/wrench/sensor1", True, time.time() + 3600,
+                                                         mp.Queue()), daemon=True)
+            reader.start()
+        try:
+            (m1, a1), (m2, a2) = count(what, STEPS, env), count(what, 2 * STEPS, env)
+        finally:
+            if reader is not None:
+                reader.kill()
+                reader.join()
+        got[what] = ((m2 - m1) / STEPS, (a2 - a1) / STEPS)
+        print(f"{what:12s} loop thread {got[what][0]:12,.0f}, all threads {got[what][1]:12,.0f} instructions a cycle",
+              flush=True)
+    if "none" in got:
+        for what, (m, a) in got.items():
+            print(f"{what:12s} added: loop thread {m - got['none'][0]:+10,.0f}, all threads {a - got['none'][1]:+10,.0f}")
+    if {"read", "diagnostics"} <= got.keys():
+        once = 2 * (got["diagnostics"][0] - got["read"][0])
+        print(f"one /diagnostics (status, statuses, bytes, write): {once:,.0f} in the loop thread; "
+              f"{once / 100:,.0f} a cycle at 100 Hz")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,194 @@
+"""``[ros2] output = "in-loop"``: the daemon's loop thread writes the samples to DDS itself.
+
+After each cycle's ZeroMQ sends (`service.daemon.Daemon.cycle`'s ``outputs``), one
+``ddspy_write`` a stream whose topic some reader reads: the WrenchStamped's CDR bytes are
+made once a stream, and each cycle's stamp and six float64 are patched into them; its
+SampleStatus likewise. No thread, no process, no ZeroMQ subscriber between the loop and
+DDS. In the same place, outside every sample's path: which topics have readers (five
+times a second), ``/diagnostics`` from the daemon's own status (once a second, over two
+cycles: the status in one, the message's bytes, `diagnostics.cdr`, in the next), and the
+inputs, taken without waiting (a waitset asked with a zero timeout): an orientation goes to
+the daemon's orientation receiver as a message on its socket would, a tare to its control
+socket from a thread of its own (it takes the tare's samples to answer).
+
+DDS's own threads (receive, timed events, delivery, garbage) are made with the participant,
+by a thread at the normal policy: under ``run --realtime`` they never run real-time, as in
+the bridge process; only the writes run in the loop thread, at its priority.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import struct
+import threading
+import time
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ..errors import ConfigError
+from ..recording.ros2mcap import stamp, status_body
+from ..service import orientation as wire_orientation
+from ..service.status import stream_frames
+from . import diagnostics
+from .bridge import DIAGNOSTICS_S, READERS_S, WRENCH_BYTES, tare
+
+if TYPE_CHECKING:
+    from ..service.daemon import Daemon
+    from ..service.pipeline import SensorSample
+    from ..service.ros2conf import Ros2Config
+    from .node import Ros2Node
+
+log = logging.getLogger("ftsensord.ros2")
+
+_TIME = struct.Struct("<iI")  # builtin_interfaces/Time
+STAMP_AT = 4  # header.stamp: right after CDR's 4-byte encapsulation
+_STATUS_BODY = len(status_body(0, 0, 0))
+
+
+def at_normal_policy(make: Any) -> Any:
+    """``make()`` called in a thread of its own at SCHED_OTHER (the threads it starts inherit
+    that policy, not the real-time loop's); its result, or its exception raised here."""
+    out: dict[str, Any] = {}
+
+    def body() -> None:
+        try:
+            if os.sched_getscheduler(0) != os.SCHED_OTHER:  # 0: this thread (Linux)
+                os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+            out["made"] = make()
+        except BaseException as exc:  # noqa: BLE001 (handed to the caller)
+            out["error"] = exc
+
+    thread = threading.Thread(target=body, name="ros2-setup")
+    thread.start()
+    thread.join()
+    if "error" in out:
+        raise out["error"]
+    return out["made"]
+
+
+class Stream:
+    """One stream's writers and its two messages' bytes, patched in place each cycle."""
+
+    def __init__(self, node: Ros2Node, topic: str):
+        wrench_writer, status_writer, cdr = node._writers(topic)  # noqa: SLF001 (the node's own table)
+        self.wrench_writer, self.status_writer = wrench_writer, status_writer
+        self.wrench_ref, self.status_ref = wrench_writer._ref, status_writer._ref  # noqa: SLF001 (for ddspy_write)
+        self.wrench = bytearray(cdr.message(0.0, bytes(WRENCH_BYTES)))
+        self.status = bytearray(cdr.message(0.0, status_body(0, 0, 0)))
+        self.values_at, self.body_at = len(self.wrench) - WRENCH_BYTES, len(self.status) - _STATUS_BODY
+        self.last_seq: int | None = None
+
+
+class InLoop:
+    """The daemon's streams on DDS domain ``ros2.domain_id``, written by its loop thread."""
+
+    def __init__(self, daemon: Daemon, ros2: Ros2Config):
+        from cyclonedds._clayer import ddspy_write  # the C call DataWriter.write ends in (node.py)
+
+        from cyclonedds.core import DDSException
+
+        from .node import Ros2Node
+
+        self.daemon, self.namespace = daemon, ros2.namespace
+        frames = {s: f for s, f in stream_frames(daemon).items() if s.startswith("wrench/")}
+        oriented = sorted(daemon.orientations.frames) if daemon.config.orientation_endpoint else []
+        try:
+            self.node = at_normal_policy(lambda: Ros2Node(ros2.namespace, ros2.domain_id, frames, oriented))
+        except DDSException as exc:  # a bad CYCLONEDDS_URI, no usable interface: said, not a traceback
+            raise ConfigError(f"ros2: no DDS participant on domain {ros2.domain_id} "
+                              f"(CYCLONEDDS_URI={os.environ.get('CYCLONEDDS_URI', '')!r}): {exc}") from exc
+        self.streams = {topic: Stream(self.node, topic) for topic in frames}
+        self.read: tuple[Stream, ...] = ()  # streams whose wrench or status some reader reads
+        self.flags: dict[str, int] = {}  # each sensor's (and the tip's) latest flags, for the diagnostics
+        self.ask = self.due = time.monotonic()
+        self.pending: list[diagnostics.Status] | None = None  # the statuses to write next cycle
+        self.write_errors = self.failures = 0
+        self.ddspy_write = ddspy_write
+
+    def after_sends(self, seq: int, t_wall: float, samples: dict[str, SensorSample],
+                    tip: tuple[np.ndarray, int] | None, compensated: list[tuple[str, int, np.ndarray]]) -> None:
+        """A cycle's wrenches (N, Nm, each in its stream's frame), stamped ``t_wall`` (UNIX s), to
+        the DDS readers; then, when due, readers, diagnostics and inputs. What fails in DDS is
+        counted (the first logged), never raised into the loop: the ZeroMQ streams go on, as
+        they do when the bridge process dies."""
+        try:
+            self._after_sends(seq, t_wall, samples, tip, compensated)
+        except Exception as exc:  # noqa: BLE001 (any of DDS's or the binding's: the loop must not stop)
+            self.failures += 1
+            if self.failures == 1:
+                log.error("the ROS 2 output failed (and any more failures, counted): %r", exc)
+
+    def _after_sends(self, seq: int, t_wall: float, samples: dict[str, SensorSample],
+                     tip: tuple[np.ndarray, int] | None, compensated: list[tuple[str, int, np.ndarray]]) -> None:
+        time_bytes = _TIME.pack(*stamp(t_wall))
+        for name, s in samples.items():
+            self.flags[name] = s.flags
+        if tip is not None:
+            self.flags["tip"] = tip[1]
+        wrenches = [(f"wrench/{n}", s.flags, s.wrench) for n, s in samples.items()]
+        wrenches += [("wrench/tip", tip[1], tip[0])] if tip is not None else []
+        for topic, flags, values in wrenches + compensated:
+            stream = self.streams.get(topic)
+            if stream is None:
+                continue  # a stream the configuration did not have at start (a reload): not on DDS
+            last, stream.last_seq = stream.last_seq, seq
+            if stream in self.read:
+                self.write(stream, seq, last, time_bytes, flags, values)
+        now = time.monotonic()
+        if now >= self.ask:
+            self.ask = now + READERS_S
+            self.find_readers()
+        # The diagnostics over two cycles: the daemon's status (about 1 ms) in one, its
+        # message in the next (0.1 ms), so no cycle carries both.
+        if self.pending is not None:
+            self.node.publish_diagnostics(self.pending, t_wall)
+            self.pending = None
+        elif now >= self.due:
+            self.due = max(self.due + DIAGNOSTICS_S, now)
+            self.pending = diagnostics.statuses(self.daemon.status(), self.flags, self.namespace)
+        self.node.serve(0.0, self.on_orientation, self.on_tare)
+
+    def write(self, stream: Stream, seq: int, last: int | None, time_bytes: bytes, flags: int,
+              values: np.ndarray) -> None:
+        """One stream's WrenchStamped and SampleStatus (``last``: its previous seq) on the
+        writers some reader reads."""
+        ddspy_write = self.ddspy_write
+        if stream.wrench_writer in self.node.read:
+            buf = stream.wrench
+            buf[STAMP_AT:STAMP_AT + 8] = time_bytes
+            buf[stream.values_at:] = values.astype("<f8", copy=False).tobytes()
+            if ddspy_write(stream.wrench_ref, buf) < 0:
+                self.write_errors += 1  # counted: the next sample is the newer one anyway
+        if stream.status_writer in self.node.read:
+            missed = seq - last - 1 if last is not None and seq > last + 1 else 0
+            buf = stream.status
+            buf[STAMP_AT:STAMP_AT + 8] = time_bytes
+            buf[stream.body_at:] = status_body(seq, flags, missed)
+            if ddspy_write(stream.status_ref, buf) < 0:
+                self.write_errors += 1
+
+    def find_readers(self) -> None:
+        self.node.find_readers()
+        self.read = tuple(s for s in self.streams.values()
+                          if s.wrench_writer in self.node.read or s.status_writer in self.node.read)
+
+    def on_orientation(self, frame: str, q_xyzw: list[float], t: float) -> None:
+        """As the orientation socket's message: the receiver checks the frame and the rotation."""
+        try:
+            message = wire_orientation.encode(frame, np.array([q_xyzw[3], *q_xyzw[:3]]), t)
+        except ValueError as exc:
+            log.warning("orientation of %s from ROS refused: %s", frame, exc)
+            return
+        self.daemon.orientations.take([message], self.daemon.clock())
+
+    def on_tare(self) -> tuple[bool, str]:
+        """In the thread the node starts for a tare: lowered to the normal policy first (it
+        was made by the loop's thread), then a control client of its own asks the daemon."""
+        try:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        except OSError:
+            pass  # left at the loop's policy: it waits on a socket almost all the time
+        return tare(self.daemon.config.control)
+
