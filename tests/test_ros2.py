@@ -100,9 +100,16 @@ def test_the_type_hashes_are_those_an_independent_implementation_computes():
 @pytest.mark.parametrize("reliable", [True, False], ids=["default-qos", "sensor-data-qos"])
 def test_a_ros2_subscriber_reads_every_wrench_as_the_zeromq_stream_has_it(daemon, reliable):
     folder, ref = daemon
-    frames = ControlClient(f"ipc://{folder / 'control'}").status()["frames"]
+    control = ControlClient(f"ipc://{folder / 'control'}")
+    frames = control.status()["frames"]
     topics = {**{f"rt/{NS}/{s}": "WrenchStamped" for s in STREAMS}, f"rt/{NS}/wrench/tip/status": "SampleStatus"}
     lines = peer({"do": "read", "topics": topics, "count": 30, "reliable": reliable})
+    outputs = control.status()["outputs"]  # in-loop: what it wrote, for an operator
+    if outputs:
+        (out,) = outputs
+        assert out["output"] == "in-loop" and out["write_errors"] == out["failures"] == 0
+        # (the peer has gone: its readers may already be forgotten, 0.2 s after it left)
+        assert out["namespace"] == NS and set(out["streams_read"]) <= set(STREAMS)
     time.sleep(0.1)  # the reference's last samples in
     (status,) = [line for line in lines if line["topic"].endswith("/status")]
     assert status["writer"]["type_name"] == "ftsensord_msgs::msg::dds_::SampleStatus_"

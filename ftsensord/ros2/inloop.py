@@ -72,6 +72,7 @@ class Stream:
     """One stream's writers and its two messages' bytes, patched in place each cycle."""
 
     def __init__(self, node: Ros2Node, topic: str):
+        self.topic = topic  # the daemon's (``wrench/<name>``)
         wrench_writer, status_writer, cdr = node._writers(topic)  # noqa: SLF001 (the node's own table)
         self.wrench_writer, self.status_writer = wrench_writer, status_writer
         self.wrench_ref, self.status_ref = wrench_writer._ref, status_writer._ref  # noqa: SLF001 (for ddspy_write)
@@ -91,7 +92,7 @@ class InLoop:
 
         from .node import Ros2Node
 
-        self.daemon, self.namespace = daemon, ros2.namespace
+        self.daemon, self.namespace, self.domain_id = daemon, ros2.namespace, ros2.domain_id
         frames = {s: f for s, f in stream_frames(daemon).items() if s.startswith("wrench/")}
         oriented = sorted(daemon.orientations.frames) if daemon.config.orientation_endpoint else []
         try:
@@ -168,6 +169,12 @@ class InLoop:
             buf[stream.body_at:] = status_body(seq, flags, missed)
             if ddspy_write(stream.status_ref, buf) < 0:
                 self.write_errors += 1
+
+    def status(self) -> dict[str, Any]:
+        """The `status` reply's part (``outputs``): what an operator checks when ROS sees nothing."""
+        return {"output": "in-loop", "namespace": self.namespace, "domain_id": self.domain_id,
+                "streams_read": sorted(s.topic for s in self.read), "write_errors": self.write_errors,
+                "failures": self.failures}
 
     def find_readers(self) -> None:
         self.node.find_readers()

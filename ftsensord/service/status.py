@@ -146,6 +146,7 @@ def status_reply(d: Daemon) -> dict[str, Any]:
         "connections": {c.name: c.status() for c in d.guard.caps}, "replies_dropped": d.control.dropped,
         "frames": stream_frames(d), "gravity": d.gravity.status(d.sensors, d.clock()) if d.gravity else None,
         "scheduling": d.scheduling.status(), "ros2_bridge": d.bridge.status(),
+        "outputs": [o.status() for o in d.outputs],
     }
 
 
