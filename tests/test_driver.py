@@ -121,3 +121,17 @@ def test_partial_reads_leave_unread_axes_nan():
     m = drv.decode_measurement(bytes([0x00, 0x40, 0x10]), mlx.ZYXT_Y)
     assert np.isnan(m.field_t[0]) and np.isnan(m.field_t[2]) and not np.isnan(m.field_t[1])
     assert m.temperature_c is None
+
+
+def test_the_read_back_compares_with_the_settings_written_last(chip, bus):
+    """Configured again with other settings, a chip whose registers went back to the first
+    settings' words does not match: what is expected follows the settings, not the words."""
+    first = {r: bus.chips[ADDR].registers[r] for r in (mlx.REG_CONF1, mlx.REG_CONF2, mlx.REG_CONF3)}
+    assert chip.configuration_matches()
+    chip.configure(mlx.Settings(gain_sel=5))
+    assert chip.configuration_matches()
+    for r, v in first.items():
+        bus.chips[ADDR].registers[r] = v  # the words of the first settings, by themselves
+    assert not chip.configuration_matches()
+    chip.configure(mlx.Settings())  # the first settings again: the same words now match
+    assert chip.configuration_matches()

@@ -13,7 +13,6 @@ Every command is split into a message builder (``*_messages``) and a decoder
 
 from __future__ import annotations
 
-import functools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -299,10 +298,9 @@ def tcmp_offsets_hold(chip: MLX90393) -> bool:
         chip.read_register(reg) == mlx.OFFSET_TCMP_ZERO for reg in mlx.REG_OFFSETS)
 
 
-@functools.lru_cache(maxsize=64)
 def _expected_for(chip: MLX90393, read: tuple[int, ...]) -> dict[int, int]:
     """`_expected_registers` for ``chip``'s settings and CONF1..CONF3 as ``read``, kept on the
-    chip while both stay (its lru_cache would hash the settings every read-back: 1 us)."""
+    chip while both stay (an lru_cache would hash the settings every read-back: 1 us)."""
     kept = chip._expected
     if kept is None or kept[0] is not chip.settings or kept[1] != read:
         kept = chip._expected = (chip.settings, read, _expected_registers(chip.settings, *read))  # type: ignore[arg-type]
@@ -310,8 +308,8 @@ def _expected_for(chip: MLX90393, read: tuple[int, ...]) -> dict[int, int]:
 
 
 def _expected_registers(settings: mlx.Settings, conf1: int, conf2: int, conf3: int) -> dict[int, int]:
-    """What CONF1..CONF3 must hold for ``settings``, other bits as read: the same few
-    words every read-back, worked out once (do not change the dict returned)."""
+    """What CONF1..CONF3 must hold for ``settings``, other bits as read (`_expected_for`
+    keeps it per chip: do not change the dict returned)."""
     return settings.to_registers({mlx.REG_CONF1: conf1, mlx.REG_CONF2: conf2, mlx.REG_CONF3: conf3})
 
 
