@@ -90,6 +90,12 @@ def encode_field(t_wall: float, frame_id: str, b: object) -> bytes:
     return Stamped(frame_id).message(t_wall, struct.pack("<12d", *values))
 
 
+def missed_since(last: int | None, seq: int) -> int:
+    """Sequence numbers skipped between a stream's previous sample ``last`` (None: none yet)
+    and this one, ``seq``; 0 when it went back (a restarted daemon: nothing known skipped)."""
+    return seq - last - 1 if last is not None and seq > last + 1 else 0
+
+
 def status_body(seq: int, flags: int, missed: int) -> bytes:
     """A SampleStatus's members after its header (``missed`` held to its uint32)."""
     return _STATUS.pack(seq, flags, min(missed, 2**32 - 1))
@@ -112,7 +118,7 @@ def ros2_messages(sample: wire.Sample, frame: str, last_seq: int | None) -> list
         for i in range(len(sample.values) // 3):
             chip_frame = f"{sensor}/chip{i}"
             out.append((f"{topic}/chip{i}", FLUX, chip_frame, encode_field(t, chip_frame, sample.values[3 * i:3 * i + 3])))
-    missed = sample.seq - last_seq - 1 if last_seq is not None and sample.seq > last_seq + 1 else 0
+    missed = missed_since(last_seq, sample.seq)
     out.append((f"{topic}/status", STATUS, frame, encode_status(t, frame, sample.seq, sample.flags, missed)))
     return out
 

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..errors import ConfigError
-from ..recording.ros2mcap import stamp, status_body
+from ..recording.ros2mcap import missed_since, stamp, status_body
 from ..service import orientation as wire_orientation
 from ..service.status import stream_frames
 from . import diagnostics
@@ -163,10 +163,9 @@ class InLoop:
             if ddspy_write(stream.wrench_ref, buf) < 0:
                 self.write_errors += 1  # counted: the next sample is the newer one anyway
         if stream.status_writer in self.node.read:
-            missed = seq - last - 1 if last is not None and seq > last + 1 else 0
             buf = stream.status
             buf[STAMP_AT:STAMP_AT + 8] = time_bytes
-            buf[stream.body_at:] = status_body(seq, flags, missed)
+            buf[stream.body_at:] = status_body(seq, flags, missed_since(last, seq))
             if ddspy_write(stream.status_ref, buf) < 0:
                 self.write_errors += 1
 

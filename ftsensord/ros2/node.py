@@ -33,7 +33,7 @@ from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 
-from ..recording.ros2mcap import Stamped, status_body
+from ..recording.ros2mcap import Stamped, missed_since, status_body
 from . import diagnostics, msgs
 from .diagnostics import Status
 
@@ -163,10 +163,9 @@ class Ros2Node:
         """A wrench sample's SampleStatus: seq, flags, seqs missed since the stream's previous."""
         last = self.last_seq.get(topic)
         self.last_seq[topic] = seq
-        missed = seq - last - 1 if last is not None and seq > last + 1 else 0
         _, writer, cdr = self._writers(topic)
         if writer in self.read:
-            self._write(writer, cdr.message(t_wall, status_body(seq, flags, missed)))
+            self._write(writer, cdr.message(t_wall, status_body(seq, flags, missed_since(last, seq))))
 
     def _write(self, writer: DataWriter, cdr: bytes) -> None:
         if ddspy_write(writer._ref, cdr) < 0:  # noqa: SLF001 (the writer's handle, as DataWriter.write passes it)
