@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from ftsensord.calibration.calfile import Calibration
 from ftsensord.chip import mlx90393 as mlx
-from ftsensord.model.linear import Consistency, chi2_quantile
+from ftsensord.model.consistency import Consistency, chi2_quantile
 from ftsensord.service import wire
 from ftsensord.service.config import builtin_path
 from ftsensord.service.filters import WrenchFilter

@@ -10,19 +10,22 @@ frame {0}.
 
 from __future__ import annotations
 
-import functools
 import itertools
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from . import se3
+from .consistency import Consistency, ConsistencyMaps, FoldedCheck
 from .geometry import SensorGeometry, separable_gradient
 from .registration import Registration, register
 
 #: The sensor's range (paper): +-50 N in X and Y, +-20 N in Z, +-0.2 Nm, frame {0}.
 SENSOR_RANGE = np.array([50.0, 50.0, 20.0, 0.2, 0.2, 0.2])
+#: A linear estimate is flagged `extrapolated` past this multiple of the calibration's
+#: largest load on an axis: up to 1.5x no axis's error relative to the load has grown
+#: 1.5-fold, by 3x one has nearly tripled (benchmarks/extrapolation.py, docs/calibration.md).
+EXTRAPOLATION_MARGIN = 1.5
 @dataclass(frozen=True)
 class PositionMap:
     """p = M b + o per chip (eq. 1): ``M`` (n, 3, 3) in m/T, ``o`` (n, 3) in m."""
@@ -245,149 +248,31 @@ class LinearModel:
         if last is not None and last[0] is chips and last[1] is sigma:
             return last[2].apply(b - self.zero)  # the same read-only arrays as last time: the same maps
         chips = np.asarray(chips, dtype=bool)
+        maps = self._maps(chips, sigma)
+        if not chips.flags.writeable and not sigma.flags.writeable:  # nobody changes them: kept by identity
+            self._last_check = (chips, sigma, maps)
+        return maps.apply(b - self.zero)
+
+    def folded(self, sigma: np.ndarray, scale: np.ndarray | None, shift: np.ndarray | None,
+               load_offset: np.ndarray, load_scale: np.ndarray, bound_scale: np.ndarray) -> FoldedCheck | None:
+        """`consistency` of every chip and the wrench in one product (`FoldedCheck`, which says
+        what the loads are), the flux brought to the reference temperature by b scale - shift
+        (None: as read) first; None without H or with no redundancy to check."""
+        if self.H is None:
+            return None
+        maps = self._maps(np.ones(self.A.shape[1] // 3, dtype=bool), sigma)
+        if maps.maps is None:
+            return None
+        return FoldedCheck(maps, self.KA, self.zero, scale, shift, load_offset, load_scale, bound_scale)
+
+    def _maps(self, chips: np.ndarray, sigma: np.ndarray) -> ConsistencyMaps:
+        """The consistency maps of ``chips`` (bool, one per chip) at channel noise ``sigma``, built once."""
         key = chips.tobytes() + sigma.tobytes()
         maps = self._checks.get(key)
         if maps is None:
             maps = self._checks[key] = ConsistencyMaps(
                 self.columns, self.K, sigma, chips, 0 if self.gradient is None else self.gradient.shape[1])
-        if not chips.flags.writeable and not sigma.flags.writeable:  # nobody changes them: kept by identity
-            self._last_check = (chips, sigma, maps)
-        return maps.apply(b - self.zero)
-
-
-class ConsistencyMaps:
-    """`LinearModel.consistency`'s sums for one set of chips and channel noise, folded into
-    one matrix at build so that a sample costs one (2 |S| + 6) x |S| product.
-
-    With A = W_S H_S (whitened, room columns included), the residual is r = P x with the
-    projector P = I - A pinv(A), x = W_S (b_S - b0_S), and leaving chip c (channels c) out
-    lowers |r|^2 by r_c^T (P_cc)^-1 r_c (the deletion identity of least squares, exact when
-    the rest still see every column of A: P_cc is then invertible). So the rows are P,
-    K pinv(A)[:6] (the wrench) and G P, G block-diagonal of the (P_cc)^-1; the whitening
-    1/sigma is folded into the columns.
-
-    The last ``gradient`` columns of H, when any, are a field's gradient g: the rows L with
-    |L x|^2 = g_hat^T Cov(g_hat)^-1 g_hat (chi-square, ``gradient`` dof, under noise alone)
-    follow, L = C^T pinv(A)[-k:] with C C^T = Cov^-1 (Cholesky), Cov = (A^T A)^-1's block.
-    """
-
-    def __init__(self, H: np.ndarray, K: np.ndarray, sigma: np.ndarray, chips: np.ndarray, gradient: int = 0):
-        n_chips, unknowns = len(chips), H.shape[1]
-        self.channels = np.repeat(chips, 3)
-        self.all = bool(chips.all())
-        self.used = np.flatnonzero(chips)
-        self.dof = 3 * len(self.used) - unknowns
-        self.dof_without = self.dof - 3
-        self.n = 3 * len(self.used)
-        self.gradient_dof = gradient
-        self.none_left = np.full(n_chips, np.inf)
-        A = H[self.channels] / sigma[self.channels, None]
-        self.maps: np.ndarray | None = None
-        if self.dof <= 0 or np.linalg.matrix_rank(A) < unknowns:
-            return  # too few chips, or they do not see every axis: nothing to test
-        pinv = np.linalg.pinv(A)
-        P = np.eye(self.n) - A @ pinv
-        G = np.zeros((self.n, self.n))
-        can_leave = np.zeros(len(self.used), dtype=bool)
-        for k in range(len(self.used)):
-            part = slice(3 * k, 3 * k + 3)
-            rest = np.ones(self.n, dtype=bool)
-            rest[part] = False
-            # The same rank test the chips as a whole pass: the rest must still see every column.
-            if self.dof_without > 0 and np.linalg.matrix_rank(A[rest]) == unknowns:
-                G[part, part] = np.linalg.inv(P[part, part])
-                can_leave[k] = True
-        self.stays = np.ones(n_chips, dtype=bool)  # not in use, or the rest would not see every column
-        self.stays[self.used[can_leave]] = False
-        self.any_stays = bool(self.stays.any())
-        rows = [P, K @ pinv[:6], G @ P]
-        if gradient:
-            cov = np.linalg.inv(A.T @ A)[-gradient:, -gradient:]
-            rows.append(np.linalg.cholesky(np.linalg.inv(cov)).T @ pinv[-gradient:])
-        self.maps = np.vstack(rows) / sigma[self.channels]
-        # Sums each chip's 3 channels in one product: a reduction along an axis costs 5 us.
-        self.per_chip = np.kron(np.eye(len(self.used)), np.ones((3, 1)))
-
-    def apply(self, d: np.ndarray) -> Consistency:
-        """The check of one sample from its flux minus the zero ``d`` (T, every channel)."""
-        if self.maps is None:
-            return Consistency(np.inf, self.dof, np.full(6, np.nan), self.none_left.copy(), self.dof_without,
-                               np.zeros(len(self.none_left)))
-        n = self.n
-        y = self.maps @ (d if self.all else d[self.channels])
-        r = y[:n]
-        chi2 = float(r @ r)
-        # G's rows are 0 for a chip that cannot be left out: its drop is 0.
-        drops = (r * y[n + 6:2 * n + 6]) @ self.per_chip
-        g = y[2 * n + 6:]
-        if self.all:
-            drop = drops
-        else:
-            drop = np.zeros(len(self.none_left))
-            drop[self.used] = drops
-        without = chi2 - drop
-        if self.any_stays:
-            without[self.stays] = np.inf
-        return Consistency(chi2, self.dof, y[n:n + 6], without, self.dof_without, drop,
-                           float(g @ g) if self.gradient_dof else 0.0, self.gradient_dof)
-
-
-@dataclass(slots=True)  # not frozen: a frozen dataclass's __init__ costs a microsecond a sample
-class Consistency:
-    """What the redundancy check found in one sample (`LinearModel.consistency`).
-
-    ``chi2``: the squared whitened residual over the chips used, ``dof`` its degrees
-    of freedom; ``wrench`` K xi_hat (N, Nm) from the same weighted fit; ``chi2_without``
-    (one per chip): the same with that chip left out (inf for a chip not in use or
-    when the rest do not see all six axes), ``dof_without`` its degrees of freedom;
-    ``drop`` (one per chip) chi2 minus chi2_without, 0 where the chip cannot be left out.
-    ``gradient_chi2``: the estimated gradient's squared whitened size (chi-square with
-    ``gradient_dof`` under noise alone; 0 with no gradient estimated).
-    """
-
-    chi2: float
-    dof: int
-    wrench: np.ndarray
-    chi2_without: np.ndarray
-    dof_without: int
-    drop: np.ndarray
-    gradient_chi2: float = 0.0
-    gradient_dof: int = 0
-
-    def culprit(self) -> int:
-        """The chip whose leaving lowers the residual most (its index in the sensor)."""
-        return int(np.argmin(self.chi2_without))
-
-
-@functools.lru_cache(maxsize=64)
-def chi2_quantile(dof: int, odds: float) -> float:
-    """The x with P(chi-square(dof) > x) = ``odds``: exact survival function for an
-    integer dof (the Poisson sum, with erfc for an odd dof), inverted by bisection."""
-    if dof < 1 or not 0 < odds < 1:
-        raise ValueError(f"need dof >= 1 and 0 < odds < 1, got {dof}, {odds}")
-
-    def survival(x: float) -> float:
-        h = x / 2
-        if dof % 2 == 0:
-            term = total = math.exp(-h)
-            for i in range(1, dof // 2):
-                term *= h / i
-                total += term
-            return total
-        total = math.erfc(math.sqrt(h))
-        term = math.sqrt(2 * x / math.pi) * math.exp(-h)
-        for i in range(1, (dof + 1) // 2):
-            total += term
-            term *= x / (2 * i + 1)
-        return total
-
-    lo, hi = 0.0, float(dof)
-    while survival(hi) > odds:
-        hi *= 2
-    for _ in range(200):  # to round-off: 200 halvings of any bracket below 2^60
-        mid = (lo + hi) / 2
-        lo, hi = (mid, hi) if survival(mid) > odds else (lo, mid)
-    return hi
+        return maps
 
 
 def tip_wrench(wrenches: list[np.ndarray], tip_to_sensor: list[np.ndarray]) -> np.ndarray:

@@ -23,7 +23,7 @@ from ..calibration.thermal import ThermalLaws
 from ..chip import mlx90393 as mlx
 from ..errors import ChipRefusedError
 from ..model import se3
-from ..model.linear import SENSOR_RANGE, LinearModel
+from ..model.linear import EXTRAPOLATION_MARGIN, SENSOR_RANGE, LinearModel
 from ..model.nonlinear import NonlinearEstimator
 from ..stages.silicone import CreepCompensation
 from ..stages.stray import WorldGradient
@@ -34,10 +34,6 @@ from .filters import WrenchFilter
 from .loop import STATS_WINDOW
 from .redundancy import RedundancyCheck, count_missing, every_chip
 
-#: A linear estimate is flagged `extrapolated` past this multiple of the calibration's
-#: largest load on an axis: up to 1.5x no axis's error relative to the load has grown
-#: 1.5-fold, by 3x one has nearly tripled (benchmarks/extrapolation.py, docs/calibration.md).
-EXTRAPOLATION_MARGIN = 1.5
 def channel_sigma_t(settings: mlx.Settings, chips: int) -> np.ndarray:
     """Each channel's reading noise (T, chips x 3): the chip's noise and its LSB's
     quantisation (LSB^2 / 12), which at the paper's settings is as large."""
@@ -109,16 +105,17 @@ class SensorPipeline:
         flux, flags, usable = self.flux(results)
         flags |= base_flags
         thermal = self.thermal
-        if thermal is None and self.stray is None:
-            wrench, wflags = self.estimate(flux, flags, usable)
+        # The usual sample (linear, every chip usable and agreeing): check and wrench in one product.
+        usual = self.check.usual(self, flux, usable) if self.estimator == "linear" and self.stray is None else None
+        if usual is not None:
+            wrench, wflags = usual[0], flags | (wire.FLAG_EXTRAPOLATED if usual[1] else 0)
         else:
-            reference = flux if thermal is None else thermal.apply(flux)
-            wrench, wflags = self._staged(reference, flags, usable, R)
-            if thermal is not None:
-                if thermal.wrench_scale != 1.0:  # (x 1.0 changes no number)
-                    wrench = wrench * thermal.wrench_scale
-                if thermal.beyond_span:
-                    wflags |= wire.FLAG_TEMPERATURE
+            wrench, wflags = self._staged(flux if thermal is None else thermal.apply(flux), flags, usable, R)
+        if thermal is not None:
+            if thermal.wrench_scale != 1.0:  # (x 1.0 changes no number)
+                wrench = wrench * thermal.wrench_scale
+            if thermal.beyond_span:
+                wflags |= wire.FLAG_TEMPERATURE
         wrench = self.creep.apply(wrench, not wflags & _BREAKS_MEMORY)  # the silicone's creep undone
         valid = not wflags & wire.FLAG_INVALID
         if valid and any(abs(w) > r for w, r in zip(wrench.tolist(), _RANGE)):  # (NaN: not over, as numpy)

@@ -11,7 +11,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..model.linear import SENSOR_RANGE, Consistency, chi2_quantile
+from ..model.consistency import Consistency, FoldedCheck, chi2_quantile
+from ..model.linear import EXTRAPOLATION_MARGIN, SENSOR_RANGE
 from . import wire
 
 if TYPE_CHECKING:
@@ -55,7 +56,6 @@ REJOIN_SAMPLES, REJOIN_ODDS = 20, 1e-2
 #: at its limit). Minkowski: |sum (noise + model)^2|^(1/2) <= |sum noise^2|^(1/2) +
 #: sqrt(N) max|model|, so the odds hold. 10 samples: 0.1 s at 100 Hz.
 SLOW_WINDOW = 10
-_WINDOW_ONES = np.ones(SLOW_WINDOW)
 
 
 
@@ -80,6 +80,19 @@ def _slow_noise(chips: int) -> float:
     return math.sqrt(chi2_quantile(3 * SLOW_WINDOW, CONSISTENCY_FALSE_ODDS / (4 * chips)))
 
 
+@functools.lru_cache(maxsize=8)
+def _every_key(n: int) -> bytes:
+    """The slow test's key (`RedundancyCheck.slow_key`) of ``n`` chips all in use."""
+    return every_chip(n).tobytes()
+
+
+def _gradient_limit(dof: int, load2: float) -> float:
+    """The gradient test's limit (whitened norm) at the load ``load2``: its half of the
+    whole residual's odds plus the model's allowance."""
+    return (math.sqrt(chi2_quantile(dof, CONSISTENCY_FALSE_ODDS / 4))
+            + GRADIENT_RESIDUAL_AT_REST + GRADIENT_RESIDUAL_AT_RANGE * load2)
+
+
 def count_missing(usable: np.ndarray) -> int:
     """How many chips ``usable`` leaves out; none, without counting, when it is `every_chip`'s."""
     n = len(usable)
@@ -93,12 +106,56 @@ class RedundancyCheck:
     def __init__(self) -> None:
         self.inconsistent = 0  # samples flagged
         self.suspects: dict[int, int] = {}  # chip index: samples it has agreed since found out
-        # The slow test's window: each sample's drops (one row a sample, in turn) and load.
-        self.slow_drops = np.zeros((SLOW_WINDOW, 0))
+        # The slow test's window: each sample's drops (one list a sample, in turn) and load.
+        self.slow_drops: list[list[float]] = [[] for _ in range(SLOW_WINDOW)]
         self.slow_loads = [0.0] * SLOW_WINDOW
         self.slow_tops = [0.0] * SLOW_WINDOW  # each sample's largest drop
         self.slow_count = 0  # samples in the window since it was last cleared
         self.slow_key = b""  # the chips the drops in the window were computed over
+        # The usual sample's `FoldedCheck` and what it was folded from (compared by identity).
+        self._folded: tuple[tuple[object, ...], FoldedCheck | None] = ((None,) * 6, None)
+
+    def usual(self, p: SensorPipeline, flux: np.ndarray, usable: np.ndarray) -> tuple[np.ndarray, bool] | None:
+        """The usual sample in one product (`FoldedCheck`): with every chip usable and none
+        found out, when every test passes, the linear wrench (N, Nm; before the temperature
+        stage's stiffness) of ``flux`` as read (T) and whether it is extrapolated (beyond
+        `EXTRAPOLATION_MARGIN` x the calibration's loads); None otherwise, having changed
+        nothing: `chips` on the flux at the reference temperature then decides, as always."""
+        n = len(usable)
+        if usable is not every_chip(n) or self.suspects or p.sigma_t is None:
+            return None
+        f = self._fold(p)
+        if f is None:
+            return None
+        y, sums = f.apply(flux)
+        chi2, drops = sums[0], sums[1:n + 1]
+        load2 = max(sums[n + 2:n + 8])
+        whole, one = self._limits(p, load2, f.dof, n, CONSISTENCY_FALSE_ODDS)
+        top = max(drops)  # a chip that cannot be left out drops 0, as `_agree`'s inf without it
+        if not (chi2 <= whole ** 2 and top <= one ** 2):  # (NaN: not within; the general way says why)
+            return None
+        if f.gradient_dof and sums[n + 1] > _gradient_limit(f.gradient_dof, load2) ** 2:
+            return None
+        key = _every_key(n)
+        if self._slow_find(drops, top, key, n, load2) is not None:
+            return None
+        self._slow_push(drops, top, key, load2)
+        return y[f.wrench], max(sums[n + 8:]) > 1.0
+
+    def _fold(self, p: SensorPipeline) -> FoldedCheck | None:
+        """The `FoldedCheck` of ``p``'s model, noise, temperature stage and tare, made anew when one changed."""
+        thermal = p.thermal
+        scale, shift = (None, None) if thermal is None else (thermal.flux_scale, thermal.flux_shift)
+        fitted = p.config.calibration.wrench_range
+        (model, sigma, s, h, tare, kept_fitted), folded = self._folded
+        if not (model is p.model and sigma is p.sigma_t and s is scale and h is shift and tare is p.tare_wrench
+                and kept_fitted is fitted):
+            # With no calibrated loads nothing is extrapolated: a bound no load reaches.
+            bound = np.zeros(6) if fitted is None else 1.0 / (EXTRAPOLATION_MARGIN * fitted)
+            folded = p.model.folded(p.sigma_t, scale, shift, p.tare_wrench,  # type: ignore[arg-type]
+                                    1.0 / (fitted if fitted is not None else SENSOR_RANGE), bound)
+            self._folded = ((p.model, p.sigma_t, scale, shift, p.tare_wrench, fitted), folded)
+        return folded
 
     def chips(self, p: SensorPipeline, flux: np.ndarray, usable: np.ndarray) -> tuple[np.ndarray, int]:
         """The chips to estimate from, and `inconsistent` (+ `degraded`) when the usable
@@ -150,11 +207,8 @@ class RedundancyCheck:
         """Both tests (and the gradient's, when estimated) within their limits. |noise + model|
         <= |noise| + |model|, so the false-alarm odds stay within CONSISTENCY_FALSE_ODDS."""
         whole, one = self._limits(p, load2, c.dof, chips, CONSISTENCY_FALSE_ODDS)
-        if c.gradient_dof:
-            limit = (math.sqrt(chi2_quantile(c.gradient_dof, CONSISTENCY_FALSE_ODDS / 4))
-                     + GRADIENT_RESIDUAL_AT_REST + GRADIENT_RESIDUAL_AT_RANGE * load2)
-            if c.gradient_chi2 > limit ** 2:
-                return False
+        if c.gradient_dof and c.gradient_chi2 > _gradient_limit(c.gradient_dof, load2) ** 2:
+            return False
         # The largest drop is chi2 - the smallest chi2 without (inf for a chip not to be left
         # out); Python's min of 8 floats, not numpy's (a reduction costs 2 us).
         return c.chi2 <= whole ** 2 and c.chi2 - min(c.chi2_without.tolist()) <= one ** 2
@@ -162,29 +216,38 @@ class RedundancyCheck:
     def _slow_culprit(self, c: Consistency, chips: np.ndarray, n: int, load2: float) -> int | None:
         """The chip whose drop summed over the last `SLOW_WINDOW` samples (over the same
         ``chips``, ``n`` of them) is beyond noise and model error, or None."""
-        key = chips.tobytes()
-        if key != self.slow_key:
-            self.slow_drops = np.zeros((SLOW_WINDOW, len(chips)))
+        drops = c.drop.tolist()
+        top, key = max(drops), chips.tobytes()
+        culprit = self._slow_find(drops, top, key, n, load2)
+        self._slow_push(drops, top, key, load2)
+        if culprit is not None:
             self.slow_count = 0
-            self.slow_key = key
-        turn = self.slow_count % SLOW_WINDOW
-        self.slow_drops[turn] = c.drop
-        self.slow_loads[turn] = load2
-        self.slow_tops[turn] = max(c.drop.tolist())
-        self.slow_count += 1
-        if self.slow_count < SLOW_WINDOW:
+        return culprit
+
+    def _slow_find(self, drops: list[float], top: float, key: bytes, n: int, load2: float) -> int | None:
+        """`_slow_culprit`'s answer with this sample's ``drops`` (``top`` their largest) in
+        the window, the window left as it is."""
+        count = self.slow_count + 1 if key == self.slow_key else 1
+        if count < SLOW_WINDOW:
             return None
+        turn = self.slow_count % SLOW_WINDOW
         # No chip's sum exceeds the sum of each sample's largest drop: under the least limit
         # (at rest) that settles the usual sample without summing the window per chip.
-        if sum(self.slow_tops) <= _slow_limit(n, 0.0) ** 2:
+        if sum(self.slow_tops) - self.slow_tops[turn] + top <= _slow_limit(n, 0.0) ** 2:
             return None
-        total = (_WINDOW_ONES @ self.slow_drops).tolist()  # the sum over the window (a product: see per_chip)
-        limit = _slow_limit(n, max(self.slow_loads))
+        rows = self.slow_drops[:turn] + [drops] + self.slow_drops[turn + 1:]
+        total = [sum(column) for column in zip(*rows)]
+        loads = self.slow_loads[:turn] + [load2] + self.slow_loads[turn + 1:]
         largest = max(total)
-        if largest <= limit ** 2:
-            return None
-        self.slow_count = 0
-        return total.index(largest)
+        return None if largest <= _slow_limit(n, max(loads)) ** 2 else total.index(largest)
+
+    def _slow_push(self, drops: list[float], top: float, key: bytes, load2: float) -> None:
+        """This sample into the slow test's window (a new set of chips starts it anew)."""
+        if key != self.slow_key:
+            self.slow_count, self.slow_key = 0, key
+        turn = self.slow_count % SLOW_WINDOW
+        self.slow_drops[turn], self.slow_loads[turn], self.slow_tops[turn] = drops, load2, top
+        self.slow_count += 1
 
     def _load2(self, p: SensorPipeline, c: Consistency) -> float:
         """The load's square, as a fraction of the calibration's largest (largest over the axes)."""

@@ -40,7 +40,8 @@ from typing import Any
 import numpy as np
 
 from ..model.geometry import GRADIENT_PARTS, SensorGeometry, gradient_basis, separable_gradient
-from ..model.linear import LinearModel, chi2_quantile
+from ..model.consistency import chi2_quantile
+from ..model.linear import LinearModel
 
 #: Samples the estimate remembers (the weight of older ones falls by e over this many): 30 s
 #: at 100 Hz. A motor's current and the tool's place change over seconds; a hand turning the
