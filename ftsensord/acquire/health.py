@@ -88,6 +88,25 @@ class ChipHealth:
     step_at: float = 0.0  # when its previous step was sent (s, bus clock)
 
 
+def _still_configured(chip: MLX90393, burst: bool, burst_zyxt: int) -> bool:
+    """A chip back from a glitch usually kept its registers: three reads (0.5 ms)
+    spare it a reset (4.4 ms, most of it the datasheet's waits). False when it
+    lost them (it lost power) or refuses (a stray mode). ``burst``: the chips run in
+    burst mode (converting ``burst_zyxt``), which RR refuses: EX first, SB after."""
+    if chip.settings is None:
+        return False
+    try:
+        if burst:
+            chip.exit_mode()
+        if not chip.configuration_matches():
+            return False
+        if burst:
+            chip.start_burst(burst_zyxt)
+    except ChipRefusedError:
+        return False
+    return True
+
+
 class ChipCare:
     """The health of every chip of one bus, and one recovery step a cycle.
 
@@ -105,10 +124,20 @@ class ChipCare:
         self.health = {c.address: ChipHealth() for c in chips}
         self.stuck_cycles = stuck_cycles_for(settings) if stuck_cycles is None else stuck_cycles
         self._attempted = False  # one recovery a cycle
+        self.turns = 0  # bumped as a chip starts or stops failing: `healthy` keeps its list till then
+        self._healthy: tuple[int, list[MLX90393], list[MLX90393]] = (-1, [], [])
 
     @property
     def failing(self) -> set[int]:
         return {a for a, h in self.health.items() if h.failing}
+
+    def healthy(self, chips: list[MLX90393]) -> list[MLX90393]:
+        """``chips`` that are not failing: the same list, made once, while none starts or stops."""
+        turns, of, kept = self._healthy
+        if turns != self.turns or of is not chips:
+            kept = [c for c in chips if not self.health[c.address].failing]
+            self._healthy = (self.turns, chips, kept)
+        return kept
 
     def new_cycle(self) -> None:
         self._attempted = False
@@ -128,6 +157,7 @@ class ChipCare:
             log.warning("chip 0x%02X failing%s: %s", address, ", to be reset" if reset else "",
                         why or "no valid answer")
             h.failing, h.backoff_s, h.retry_at = True, 0.0, now  # first retry: the next cycle
+            self.turns += 1
         else:
             h.backoff_s = min(max(2 * h.backoff_s, BACKOFF_FIRST_S), BACKOFF_MAX_S)
             h.retry_at = now + h.backoff_s
@@ -150,7 +180,7 @@ class ChipCare:
                 chip.address, f"failing; next retry in {max(0.0, h.retry_at - now):.2f} s"))
         self._attempted = True
         try:
-            if h.step == 0 and not h.needs_reset and self._still_configured(chip):
+            if h.step == 0 and not h.needs_reset and _still_configured(chip, self.burst, self.burst_zyxt):
                 how = "answers again with its configuration intact"
             elif h.step == 0:
                 chip.exit_mode()
@@ -173,26 +203,10 @@ class ChipCare:
             return ChipResult(chip.address, error=exc)
         if h.step == 0:
             h.failing = h.needs_reset = False
+            self.turns += 1
             log.info("chip 0x%02X back: %s", chip.address, how)
             how += "; read again from the next cycle"
         return ChipResult(chip.address, error=ChipNotRespondingError(chip.address, how))
-
-    def _still_configured(self, chip: MLX90393) -> bool:
-        """A chip back from a glitch usually kept its registers: three reads (0.5 ms)
-        spare it a reset (4.4 ms, most of it the datasheet's waits). False when it
-        lost them (it lost power) or refuses (a stray mode)."""
-        if chip.settings is None:
-            return False
-        try:
-            if self.burst:
-                chip.exit_mode()
-            if not chip.configuration_matches():
-                return False
-            if self.burst:
-                chip.start_burst(self.burst_zyxt)
-        except ChipRefusedError:
-            return False
-        return True
 
     def judge_all(self, results: dict[int, ChipResult], chips: list[MLX90393], now: float) -> None:
         """`judge` the results of ``chips`` (by address) that are healthy, in place; the

@@ -147,7 +147,7 @@ class Reader:
             self._learn_shapes()
         now = self.bus.monotonic()
         health = self.care.health
-        healthy = [c for c in self.chips if not health[c.address].failing]
+        healthy = self.care.healthy(self.chips)
         self.care.new_cycle()
         # The longest-failing first: every chip gets its turn.
         due = [] if len(healthy) == len(self.chips) else sorted(
@@ -259,9 +259,22 @@ class ReadBackTurn:
     host_s: float = 0.0
     others_s: float = 0.0
 
+    _orders: dict[MLX90393, list[MLX90393]] = field(default_factory=dict)  # `order`'s, of `_of`
+    _of: list[MLX90393] | None = None
+
     def order(self, healthy: list[MLX90393]) -> list[MLX90393]:
+        """``healthy`` in the order to read them: the chip the last read-back restarted last
+        (the same list each time for the same chips: `ChipCare.healthy` keeps them)."""
         last = self.last
-        return healthy if last is None or last not in healthy else [c for c in healthy if c is not last] + [last]
+        if last is None:
+            return healthy
+        if healthy is not self._of:
+            self._orders, self._of = {}, healthy
+        got = self._orders.get(last)
+        if got is None:
+            got = self._orders[last] = (healthy if last not in healthy
+                                        else [c for c in healthy if c is not last] + [last])
+        return got
 
     def may_wait(self) -> bool:
         return not self.burst or self.host_s <= self.others_s

@@ -37,7 +37,7 @@ class Readings(Mapping[int, ChipResult]):
 
     def __init__(self, addresses: tuple[int, ...], index: dict[int, int], *,
                  results: dict[int, ChipResult] | None = None, field: np.ndarray | None = None,
-                 words: list[tuple[int, ...]] | None = None, statuses: list[int] | None = None):
+                 words: list[tuple[int, ...]] | None = None, statuses: bytes | list[int] | None = None):
         self.addresses, self.index = addresses, index  # index: address -> row, shared by every cycle
         self.field, self.words, self.statuses = field, words, statuses
         self._made: dict[int, ChipResult] = {} if results is None else results
@@ -50,8 +50,8 @@ class Readings(Mapping[int, ChipResult]):
         decoder = rm.plan.decoder
         if not rm.clean or len(rm.rows) != len(chips) or decoder.chips != chips:
             return None
-        return cls(addresses, index, field=decoder.field, words=list(map(tuple, decoder.words.tolist())),
-                   statuses=decoder.status.tolist())
+        return cls(addresses, index, field=decoder.field, words=decoder.xyz_words(),
+                   statuses=decoder.replies[::decoder.reply_len])
 
     @property
     def clean(self) -> bool:

@@ -8,6 +8,7 @@ D1:D0) goes there, so every error is raised by the same code.
 from __future__ import annotations
 
 import functools
+import struct
 from typing import cast
 
 import numpy as np
@@ -15,6 +16,10 @@ import numpy as np
 from ..errors import ChipError, ChipProtocolError
 from . import mlx90393 as mlx
 from .driver import MLX90393, Measurement
+
+
+#: An RM reply of X, Y, Z: the status byte, then three big-endian words.
+_XYZ_REPLY = struct.Struct(">x3H")
 
 
 class BlockDecoder:
@@ -48,15 +53,22 @@ class BlockDecoder:
         self.span = np.array([[f.span for f in row] for row in fmts], dtype=np.int32).reshape(n, -1)
         self.scale = np.array([[c._decoding[a][1] for a in self.axes] for c in chips]).reshape(n, -1)
         self.bad_status = _bad_status(self.d_expected)
+        self.good_status = bytes(np.flatnonzero(~self.bad_status).astype(np.uint8))  # the status bytes that are not
         self.xyz_only = self.columns == [0, 1, 2] and self.axes == [0, 1, 2]
         self.unsigned = not self.signed.any()
         self.clean = False  # the last `decode` found no error and no temperature: every entry a Measurement
         # The last `convert`'s arrays (see there); empty until the first.
-        self.status = self.bad = self.words = self.field = self.saturated = np.empty(0)
+        self.status = self.words = self.field = self.saturated = np.empty(0)
+        self.bad: np.ndarray | None = np.empty(0, dtype=bool)
+        self.replies = b""  # the block's bytes, when the last `convert` was of X, Y, Z alone
         # Saturated where |counts| reaches the span or the Hall limit: the least |counts|
         # whose tesla (counts x scale, as decoded) reach it, found once per chip and axis.
         self.saturates_at = np.minimum(self.span, np.array(
             [[_hall_limit_counts(s) for s in row] for row in self.scale], dtype=np.int64).reshape(n, -1))
+
+    def xyz_words(self) -> list[tuple[int, int, int]]:
+        """Each row's X, Y, Z words as read (the last `convert`'s block, of X, Y, Z alone)."""
+        return list(_XYZ_REPLY.iter_unpack(self.replies))
 
     def valid_for(self, chips: list[MLX90393]) -> bool:
         """True while ``chips`` are the ones built for, with the same settings."""
@@ -75,14 +87,18 @@ class BlockDecoder:
         the per-chip decoder). True when every row is a measurement of X, Y and Z, none
         saturated: then ``field`` is all anyone needs of this cycle."""
         self.status = status = block[:, 0]
-        self.bad = bad = self.bad_status[status]
         # The words big-endian after the status byte: a view, no arithmetic (uint16, as read).
         self.words = words = block[:, 1:].view(">u2")
         if self.xyz_only and self.unsigned:  # the usual RM: X, Y, Z and nothing else, offset words
+            # The replies as bytes: their status bytes checked and their words read as Python
+            # ints (`xyz_words`) each in one call, where numpy takes two or more.
+            self.replies = replies = block.tobytes()
+            self.bad = None  # (worked out by `measurements` when it is asked)
             counts = words - self.zero  # int32, the zero's type: no uint16 wrap below the zero
             self.field = counts * self.scale
             self.saturated = saturated = np.abs(counts) >= self.saturates_at
-            return not bad.any() and not saturated.any()
+            return not replies[::self.reply_len].translate(None, self.good_status) and not saturated.any()
+        self.bad = self.bad_status[status]
         n = len(self.chips)
         self.field = field = np.full((n, 3), np.nan)
         self.saturated = saturated = np.zeros((n, 3), dtype=bool)
@@ -105,7 +121,8 @@ class BlockDecoder:
 
     def measurements(self, block: np.ndarray, rows: list[int] | None = None) -> list[Measurement | ChipError]:
         """`decode`'s answer from the arrays the last `convert` of ``block`` left."""
-        saturated, field, words, bad = self.saturated, self.field, self.words, self.bad
+        saturated, field, words = self.saturated, self.field, self.words
+        bad = self.bad if self.bad is not None else self.bad_status[self.status]
         # Per row, as Python objects, each in one call (row views, lists): no per-chip numpy.
         sat_any = saturated.any(axis=1).tolist() if saturated.any() else [False] * len(self.chips)
         raw = list(map(tuple, words.tolist()))

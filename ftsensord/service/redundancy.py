@@ -75,6 +75,12 @@ def _slow_limit(chips: int, load2: float) -> float:
 
 
 @functools.lru_cache(maxsize=16)
+def _slow_least(chips: int) -> float:
+    """The square of `_slow_limit` at rest, its least: worked out once per number of chips."""
+    return _slow_limit(chips, 0.0) ** 2
+
+
+@functools.lru_cache(maxsize=16)
 def _slow_noise(chips: int) -> float:
     """`_slow_limit`'s noise part, worked out once per number of chips."""
     return math.sqrt(chi2_quantile(3 * SLOW_WINDOW, CONSISTENCY_FALSE_ODDS / (4 * chips)))
@@ -91,6 +97,14 @@ def _gradient_limit(dof: int, load2: float) -> float:
     whole residual's odds plus the model's allowance."""
     return (math.sqrt(chi2_quantile(dof, CONSISTENCY_FALSE_ODDS / 4))
             + GRADIENT_RESIDUAL_AT_REST + GRADIENT_RESIDUAL_AT_RANGE * load2)
+
+
+@functools.lru_cache(maxsize=64)
+def _noise_limits(dof: int, chips: int, odds: float, gradient: bool) -> tuple[float, float]:
+    """`RedundancyCheck._limits`' noise parts, worked out once per case."""
+    # With a gradient estimated, its test takes half of the whole residual's odds.
+    whole_odds = odds / (4 if gradient else 2)
+    return math.sqrt(chi2_quantile(dof, whole_odds)), math.sqrt(chi2_quantile(3, odds / (4 * chips)))
 
 
 def count_missing(usable: np.ndarray) -> int:
@@ -233,7 +247,7 @@ class RedundancyCheck:
         turn = self.slow_count % SLOW_WINDOW
         # No chip's sum exceeds the sum of each sample's largest drop: under the least limit
         # (at rest) that settles the usual sample without summing the window per chip.
-        if sum(self.slow_tops) - self.slow_tops[turn] + top <= _slow_limit(n, 0.0) ** 2:
+        if sum(self.slow_tops) - self.slow_tops[turn] + top <= _slow_least(n):
             return None
         rows = self.slow_drops[:turn] + [drops] + self.slow_drops[turn + 1:]
         total = [sum(column) for column in zip(*rows)]
@@ -260,8 +274,7 @@ class RedundancyCheck:
         drop at the load ``load2`` (`_load2`): the noise's at ``odds`` (half to the whole,
         a quarter to one chip's, split among ``chips``; the last quarter is the slow
         test's) plus the model's own error at this load."""
-        # With a gradient estimated, its test takes half of the whole residual's odds.
-        whole_odds = odds / (4 if p.model.gradient is not None else 2)
-        whole = math.sqrt(chi2_quantile(dof, whole_odds)) + MODEL_RESIDUAL_AT_REST + MODEL_RESIDUAL_AT_RANGE * load2
-        one = math.sqrt(chi2_quantile(3, odds / (4 * chips))) + CHIP_RESIDUAL_AT_REST + CHIP_RESIDUAL_AT_RANGE * load2
-        return whole, one
+        whole, one = _noise_limits(dof, chips, odds, p.model.gradient is not None)
+        return (whole + MODEL_RESIDUAL_AT_REST + MODEL_RESIDUAL_AT_RANGE * load2,
+                one + CHIP_RESIDUAL_AT_REST + CHIP_RESIDUAL_AT_RANGE * load2)
+

@@ -70,8 +70,9 @@ _F8 = np.dtype("<f8")
 
 def encode(topic: str, kind: int, seq: int, t_mono: float, t_wall: float, flags: int,
            values: np.ndarray) -> bytes:
-    if type(values) is not np.ndarray or values.dtype != _F8 or not values.flags.c_contiguous:
-        values = np.ascontiguousarray(values, dtype=_F8)  # (a daemon's own values are already)
+    # (tobytes is in C order whatever the layout; a daemon's own values are float64 already)
+    if type(values) is not np.ndarray or values.dtype != _F8:
+        values = np.asarray(values, dtype=_F8)
     return _prefix(topic) + HEADER.pack(MAGIC, VERSION, kind, flags, seq, t_mono, t_wall,
                                         len(values), 0, 0) + values.tobytes()
 
