@@ -12,7 +12,7 @@ from ftsensord.acquire.readings import Readings
 from ftsensord.calibration.calfile import Calibration
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.model.consistency import ConsistencyMaps, FoldedCheck
-from ftsensord.model.linear import EXTRAPOLATION_MARGIN, LinearModel
+from ftsensord.model.linear import EXTRAPOLATION_MARGIN, SENSOR_RANGE, LinearModel
 from ftsensord.service import wire
 from ftsensord.service.config import builtin_path, load_config
 from ftsensord.service.filters import WrenchFilter
@@ -152,3 +152,22 @@ def test_the_usual_sample_is_the_separate_ones():
     taken = sum(a is not None for a in answers)
     assert taken > 250, f"the one product took only {taken} of 400 samples"
     assert any(a is not None and a[1] for a in answers), "no extrapolated sample went the one product's way"
+
+
+def test_overload_is_flagged_axis_by_axis():
+    """The overload flag, whichever way the sample went: set exactly when the estimate is
+    beyond SENSOR_RANGE on some axis (the default filter passes the wrench through), loads
+    from a tenth of the range to 1.6 times it on each axis."""
+    s, usual, _ = _pair()
+    scene, seen = default_scene(), set()
+    for axis in range(6):
+        for size in (0.1, 0.3, 0.6, 1.0, 1.6):
+            u = np.zeros(6)
+            u[axis] = size * SENSOR_RANGE[axis]
+            scene.set_load(0, StaticLoad(u))
+            b = np.concatenate([scene.field_t(a, 0.0) for a in s.addresses])
+            got = usual.step(_readings(s.addresses, b))
+            over = bool(np.any(np.abs(got.wrench) > SENSOR_RANGE))
+            assert bool(got.flags & wire.FLAG_OVERLOAD) is over, (axis, size, got.wrench)
+            seen.add(over)
+    assert seen == {False, True}

@@ -10,6 +10,7 @@ missing), a saturated chip its reading (flagged, not used).
 
 from __future__ import annotations
 
+import operator
 import time
 from collections import deque
 from collections.abc import Mapping
@@ -118,7 +119,8 @@ class SensorPipeline:
                 wflags |= wire.FLAG_TEMPERATURE
         wrench = self.creep.apply(wrench, not wflags & _BREAKS_MEMORY)  # the silicone's creep undone
         valid = not wflags & wire.FLAG_INVALID
-        if valid and any(abs(w) > r for w, r in zip(wrench.tolist(), _RANGE)):  # (NaN: not over, as numpy)
+        # Axis by axis in C (maps of builtins, no Python frame a value); NaN: not over, as numpy.
+        if valid and any(map(operator.gt, map(abs, wrench.tolist()), _RANGE)):
             wflags |= wire.FLAG_OVERLOAD
         filtered, wflags = self.filter.update(wrench, wflags)  # a filtered wrench carries its inputs' flags
         return SensorSample(flux, flags, filtered, wflags, valid)
@@ -214,9 +216,9 @@ class SensorPipeline:
         kept = self._extrapolation
         if kept is None or kept[0] is not fitted:  # worked out once per calibration, not every sample
             kept = self._extrapolation = (fitted, None if fitted is None else (EXTRAPOLATION_MARGIN * fitted).tolist())
-        # Over six Python floats: four numpy calls on six values cost more than the loop.
-        if kept[1] is not None and any(abs(w + t) > limit for w, t, limit in
-                                       zip(wrench.tolist(), self.tare_wrench.tolist(), kept[1])):
+        # Over six Python floats, in C (maps of builtins): four numpy calls on six values cost more.
+        if kept[1] is not None and any(map(operator.gt, map(abs, map(operator.add, wrench.tolist(),
+                                                                     self.tare_wrench.tolist())), kept[1])):
             flags |= wire.FLAG_EXTRAPOLATED
         return wrench, flags
 
