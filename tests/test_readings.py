@@ -130,3 +130,23 @@ def test_a_failed_chip_takes_the_cycle_out_of_arrays():
     np.testing.assert_array_equal(readings[0x0D].measurement.field_t, kept)
     with pytest.raises(KeyError):
         readings[0x40]
+
+
+def test_the_healthy_chips_follow_every_chip_that_fails_and_comes_back():
+    """`ChipCare.healthy` keeps one list while no chip starts or stops failing: a chip taken
+    out leaves it at once, and it is in it again once it is back, read from the next cycle."""
+    reader = _reader("burst", _scene())
+    care = reader.care
+    first = care.healthy(reader.chips)
+    assert first == reader.chips and care.healthy(reader.chips) is first
+    care.fail(0x13, reader.bus.monotonic(), reset=True, why="test")
+    out = care.healthy(reader.chips)
+    assert [c.address for c in out] == [a for a in ADDRESSES if a != 0x13]
+    for _ in range(20):  # one reset step a cycle (EX, RT, configure), then back
+        readings = _cycle(reader)
+        if not care.health[0x13].failing:
+            break
+    assert not care.health[0x13].failing
+    assert [c.address for c in care.healthy(reader.chips)] == ADDRESSES
+    assert _cycle(reader)[0x13].ok and _cycle(reader).clean
+    assert 0x13 not in readings or not readings[0x13].ok  # the cycle it came back in gave no data
