@@ -200,21 +200,27 @@ def listener(name: str, folder: Path, stop_at: float, queue: mp.Queue) -> mp.Pro
     return mp.Process(target=dds_listen, args=(f"rt/bench/{TOPIC}", name == "dds reliable", stop_at, queue))
 
 
+def segment_config(variant: str, path: Path) -> Path:
+    """The packaged configuration at ``path``, with the [ros2] table a daemon of ``variant`` runs:
+    ``output = "bridge"`` (``bridge*``), ``"in-loop"`` (``in-loop``, ``each-send``, ``*-alone``)
+    or none (``none``, ``in-daemon``: ros2_in_daemon.py runs the bridge itself)."""
+    config = packaged_config(path)
+    if variant.startswith("bridge") or variant in ("in-loop", "each-send") or variant.endswith("-alone"):
+        output = "bridge" if variant.startswith("bridge") else "in-loop"
+        config.write_text(config.read_text() + f'\n[ros2]\nnamespace = "bench"\ndomain_id = {DOMAIN}\n'
+                                               f'output = "{output}"\n')
+    return config
+
+
 def daemon_segment(variant: str, seconds: float, fifo: int, listen: tuple[str, ...] | None = None) -> dict:
-    """--in-daemon, --in-loop, --alone: a daemon of its own for the segment, with the bridge as
-    `run` starts it (``bridge``, ``bridge-rt``: its child process), as a thread of its own
-    process (``in-daemon``, benchmarks/ros2_in_daemon.py), its loop thread writing DDS
-    (``in-loop``, ``*-alone``: ``[ros2] output = "in-loop"``) or no DDS at all (``none``: no
-    [ros2]); ``listen``: the subscribers for the segment (default: all of `EVERY`, ZeroMQ's
-    alone for ``none``)."""
+    """--in-daemon, --in-loop, --each-send, --alone: a daemon of its own for the segment
+    (`segment_config`; ``in-daemon``: the bridge a thread of its process, ros2_in_daemon.py;
+    ``each-send``: ros2_each_send.py) and ``listen``, the subscribers for the segment (default:
+    all of `EVERY`, ZeroMQ's alone for ``none``)."""
     listen = listen or (("zmq",) if variant == "none" else EVERY)
     with tempfile.TemporaryDirectory() as tmp:
-        config = packaged_config(Path(tmp) / "ftsensord.toml")
+        config = segment_config(variant, Path(tmp) / "ftsensord.toml")
         program: tuple[str, ...] = ("-m", "ftsensord")
-        if variant.startswith("bridge") or variant in ("in-loop", "each-send") or variant.endswith("-alone"):
-            output = "bridge" if variant.startswith("bridge") else "in-loop"
-            config.write_text(config.read_text() + f'\n[ros2]\nnamespace = "bench"\ndomain_id = {DOMAIN}\n'
-                                                   f'output = "{output}"\n')
         if variant == "in-daemon":
             program = (str(Path(__file__).with_name("ros2_in_daemon.py")), "bench", str(DOMAIN), str(1 if fifo else 0))
         elif variant == "each-send":  # the in-loop output, each stream written right after its own send
