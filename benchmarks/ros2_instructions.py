@@ -11,14 +11,17 @@ The daemon is instructions.py's (the packaged configuration on `cycle_cpu.Instan
   one write a cycle, as in benchmarks/ros2_latency.py;
 - ``diagnostics``: as ``read``, with ``/diagnostics`` due every other cycle (the status in
   one, the message in the next): twice the difference from ``read`` is one second's
-  diagnostics, a hundredth of it a cycle's share at 100 Hz.
+  diagnostics, a hundredth of it a cycle's share at 100 Hz;
+- ``diag-status``: as ``diagnostics``, the message never written (dropped before its cycle):
+  twice the difference from ``read`` is the cycle that builds the statuses, the rest of one
+  second's diagnostics the cycle that writes the message.
 
 Wall-clock timers (the readers asked five times a second, the diagnostics once) are held off
 in the counted cycles: under valgrind a cycle lasts 50 times longer. Counted per thread
 (``--separate-threads``): the loop's thread, and every thread of the process (DDS's own:
 receive, timed events, delivery).
 
-    python benchmarks/ros2_instructions.py [none unread read diagnostics]
+    python benchmarks/ros2_instructions.py [none unread read diag-status diagnostics]
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ HERE = Path(__file__).resolve().parent
 WARM = 60  # as instructions.py: plans built, shapes learnt, the estimator's pose found
 STEPS = 400
 MATCH_S = 30.0  # discovery under valgrind: seconds, not milliseconds
-VARIANTS = ("none", "unread", "read", "diagnostics")
+VARIANTS = ("none", "unread", "read", "diag-status", "diagnostics")
 
 
 def _child(what: str, steps: int) -> None:
@@ -65,7 +68,7 @@ def _child(what: str, steps: int) -> None:
             daemon.outputs.append(out)
         for _ in range(WARM):
             daemon.cycle()
-        if what in ("read", "diagnostics"):
+        if what in ("read", "diag-status", "diagnostics"):
             end = time.monotonic() + MATCH_S
             while not out.read and time.monotonic() < end:  # type: ignore[union-attr]
                 out.find_readers()  # type: ignore[union-attr]
@@ -76,8 +79,10 @@ def _child(what: str, steps: int) -> None:
             out.ask = float("inf")
             out.due = float("inf")
         for i in range(steps):
-            if what == "diagnostics" and i % 2 == 0:
+            if what in ("diag-status", "diagnostics") and i % 2 == 0:
                 out.due = 0.0  # type: ignore[union-attr]
+            elif what == "diag-status":
+                out.pending = None  # type: ignore[union-attr]
             daemon.cycle()
         pub.close()
         ctx.term()
@@ -116,7 +121,7 @@ def main() -> int:
     got = {}
     for what in args.what or VARIANTS:
         reader = None
-        if what in ("read", "diagnostics"):  # read throughout both runs; its receipts are not used
+        if what in ("read", "diag-status", "diagnostics"):  # read throughout both runs; its receipts are not used
             reader = mp.Process(target=dds_listen, args=("rt/bench/wrench/sensor1", True, time.time() + 3600,
                                                          mp.Queue()), daemon=True)
             reader.start()
@@ -136,6 +141,9 @@ def main() -> int:
         once = 2 * (got["diagnostics"][0] - got["read"][0])
         print(f"one /diagnostics (status, statuses, bytes, write): {once:,.0f} in the loop thread; "
               f"{once / 100:,.0f} a cycle at 100 Hz")
+        if "diag-status" in got:
+            built = 2 * (got["diag-status"][0] - got["read"][0])
+            print(f"  the cycle building the statuses: {built:+,.0f}; the cycle writing the message: {once - built:+,.0f}")
     return 0
 
 
