@@ -26,7 +26,7 @@ from ftsensord.client import ControlClient  # noqa: E402
 from ftsensord.service.config import load_config  # noqa: E402
 
 from .conftest import StreamRecorder, assert_names_file_and_key, start_daemon  # noqa: E402
-from .test_daemon import write_config  # noqa: E402
+from .test_daemon import Rig, write_config  # noqa: E402
 
 PEER = Path(__file__).with_name("ros2_peer.py")
 DOMAIN = 100 + os.getpid() % 100  # 100-199: clear of ROS's default 0 and of other runs' domains
@@ -234,6 +234,26 @@ def test_a_failing_chip_or_a_flagged_wrench_raises_the_level_ros_tools_show():
     status["achieved_rate_hz"] = 90.0  # below 95 % of the rate
     assert d.statuses(status, {}, "ns")[0][0] == d.WARN
     assert d.statuses(None, {}, "ns", "timed out") == [(d.STALE, "ns: daemon", "no answer from the daemon: timed out", "", [])]
+
+
+def test_the_in_loop_diagnostics_show_what_the_status_reply_says(tmp_path):
+    """In the loop's thread the statuses come from `health`, not the whole `status` reply: the
+    same statuses, with a chip failing too."""
+    from ftsensord.ros2 import diagnostics as d
+    from ftsensord.service import wire
+    rig = Rig(tmp_path)
+    try:
+        rig.bus.faults.nack(0x0E)
+        rig.cycles(3)
+        health, status = d.health(rig.daemon), rig.daemon.status()
+        assert health == {k: status[k] for k in health}
+        flags = {"sensor1": wire.FLAG_CHIP_MISSING, "sensor2": 0}
+        shown = d.statuses(health, flags, "ns")
+        assert shown == d.statuses(status, flags, "ns")
+        assert {name: level for level, name, *_ in shown if level} == {"ns: sensor1": d.ERROR,
+                                                                        "ns: sensor1 chip 0x0E": d.ERROR}
+    finally:
+        rig.close()
 
 
 def test_the_bridge_stops_with_the_daemon_even_when_it_is_killed(tmp_path):

@@ -141,14 +141,14 @@ class InLoop:
         if now >= self.ask:
             self.ask = now + READERS_S
             self.find_readers()
-        # The diagnostics over two cycles: the daemon's status (about 1 ms) in one, its
-        # message in the next (0.1 ms), so no cycle carries both.
+        # The diagnostics over two cycles: the daemon's health and its statuses in one, the
+        # message in the next, so no cycle carries both.
         if self.pending is not None:
             self.node.publish_diagnostics(self.pending, t_wall)
             self.pending = None
         elif now >= self.due:
             self.due = max(self.due + DIAGNOSTICS_S, now)
-            self.pending = diagnostics.statuses(self.daemon.status(), self.flags, self.namespace)
+            self.pending = diagnostics.statuses(diagnostics.health(self.daemon), self.flags, self.namespace)
         self.node.serve(0.0, self.on_orientation, self.on_tare)
 
     def write(self, stream: Stream, seq: int, last: int | None, time_bytes: bytes, flags: int,
