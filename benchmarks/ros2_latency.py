@@ -37,8 +37,8 @@ loop's jitter and publish time each puts in.
 none competes with another for the core the loop thread leaves: ``none`` (no [ros2]: plain
 ZeroMQ), ``zmq-alone`` (the ZeroMQ subscriber), ``dds-be-alone``, ``dds-rel-alone`` (one DDS
 subscriber, best effort or reliable, no ZeroMQ one). All but ``none`` run ``[ros2] output =
-"in-loop"``; with no DDS reader it writes nothing, so ``zmq-alone`` measures the daemon as
-shipped (readers asked, inputs polled, the diagnostics' status once a second) without the one
+"in-loop"``; with no DDS reader it writes no wrench, so ``zmq-alone`` measures the daemon as
+shipped (readers asked, inputs polled, /diagnostics once a second) without the one wrench
 write a cycle: that write comes after the cycle's ZeroMQ sends, so it cannot delay the
 sample measured, and a DDS reader to make it happen would be the competing process this mode
 removes (``none`` shows what the rest of the output costs ZeroMQ). It prints each DDS

@@ -5,11 +5,12 @@ After each cycle's ZeroMQ sends (`service.daemon.Daemon.cycle`'s ``outputs``), o
 made once a stream, and each cycle's stamp and six float64 are patched into them; its
 SampleStatus likewise. No thread, no process, no ZeroMQ subscriber between the loop and
 DDS. In the same place, outside every sample's path: which topics have readers (five
-times a second), ``/diagnostics`` from the daemon's own status (once a second, over two
-cycles: the status in one, the message's bytes, `diagnostics.cdr`, in the next), and the
-inputs, taken without waiting (a waitset asked with a zero timeout): an orientation goes to
-the daemon's orientation receiver as a message on its socket would, a tare to its control
-socket from a thread of its own (it takes the tare's samples to answer).
+times a second), ``/diagnostics`` from the part of the daemon's status it shows (once a
+second, over two cycles: `diagnostics.health` and the statuses in one, the message's bytes,
+`diagnostics.cdr`, and its write in the next), and the inputs, taken without waiting (a
+waitset asked with a zero timeout): an orientation goes to the daemon's orientation
+receiver as a message on its socket would, a tare to its control socket from a thread of
+its own (it takes the tare's samples to answer).
 
 DDS's own threads (receive, timed events, delivery, garbage) are made with the participant,
 by a thread at the normal policy: under ``run --realtime`` they never run real-time, as in
