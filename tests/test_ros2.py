@@ -197,7 +197,7 @@ def test_the_trigger_service_and_the_tare_topic_tare_the_sensors(daemon):
     control.untare()
     assert not any(s["tared"] for s in control.status()["sensors"].values())
     (out,) = peer({"do": "trigger-topic", "topic": f"rt/{NS}/tare", "orient": orient})
-    assert out["matched"]
+    assert out["matched"] and out["tared"]  # as /diagnostics said it
     assert all(s["tared"] for s in control.status()["sensors"].values())
 
 
