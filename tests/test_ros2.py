@@ -310,6 +310,12 @@ def test_the_diagnostics_cdr_bytes_are_cyclones_own_serialization(statuses):
         for level, name, message, hardware_id, values in statuses])
     # the strings' lengths 0-5 move every later length's 4-byte alignment: each is a case
     assert diagnostics.cdr(statuses, t_wall) == array.serialize(use_version_2=False)
+    for count in (1, 2):  # a few statuses a cycle, as the in-loop output encodes them
+        encoder, adds = diagnostics.Encoder(statuses), 1
+        while not encoder.add(count):
+            adds += 1
+        assert encoder.message(t_wall) == array.serialize(use_version_2=False)
+        assert adds == max(1, -(-len(statuses) // count))  # no add more than the statuses need
 
 
 def can_be_realtime() -> bool:

@@ -13,6 +13,7 @@ its 2 ms, which the in-loop output spends in the loop's thread).
 from __future__ import annotations
 
 import struct
+from itertools import chain
 from typing import TYPE_CHECKING, Any
 
 from ..recording.ros2mcap import CDR_LE, stamp
@@ -108,32 +109,47 @@ def statuses(status: dict[str, Any] | None, flags: dict[str, int], namespace: st
 
 
 _U32 = struct.Struct("<I")
+_PAD = (b"", b"\0\0\0", b"\0\0", b"\0")  # by an offset mod 4: the zeros up to the next multiple of 4
+_OCTET = [bytes((i,)) for i in range(256)]
+
+
+class Encoder:
+    """A ``diagnostic_msgs/msg/DiagnosticArray`` of ``statuses_`` as plain little-endian CDR
+    (XCDR1, as the rmws write it), made a few statuses at a time (`add`; the in-loop output
+    spreads them over cycles), its header's stamp put in last (`message`), its frame_id
+    empty: each uint32 (a string's or a sequence's length) 4-aligned from after the
+    encapsulation, a string's length counting its NUL, the level one octet."""
+
+    def __init__(self, statuses_: list[Status]):
+        self.statuses, self.done = statuses_, 0
+        # the stamp's 8 bytes (`message`), frame_id "" (its length, its NUL), 3 to align, the count
+        self.parts = [CDR_LE, b"", b"\1\0\0\0\0\0\0\0", _U32.pack(len(statuses_))]
+        self.at = 20  # bytes after the encapsulation
+
+    def add(self, count: int) -> bool:
+        """The next ``count`` statuses encoded; whether every status is now."""
+        parts, at, pack = self.parts, self.at, _U32.pack
+        for level, name, message, hardware_id, values in self.statuses[self.done:self.done + count]:
+            parts.append(_OCTET[level])
+            at += 1
+            # None: where the values' count goes, a uint32 alone (one loop: the per-string
+            # work is the cost here, a function call a string would double it)
+            for text in (name, message, hardware_id, None, *chain.from_iterable(values)):
+                data = b"" if text is None else text.encode() + b"\0"
+                pad = _PAD[at & 3]
+                parts.append(pad + pack(len(values) if text is None else len(data)) + data)
+                at += len(pad) + 4 + len(data)
+        self.at, self.done = at, min(self.done + count, len(self.statuses))
+        return self.done == len(self.statuses)
+
+    def message(self, t_wall: float) -> bytes:
+        """The message stamped ``t_wall`` (UNIX s), once `add` has encoded every status."""
+        self.parts[1] = struct.pack("<iI", *stamp(t_wall))
+        return b"".join(self.parts)
 
 
 def cdr(statuses_: list[Status], t_wall: float) -> bytes:
-    """A ``diagnostic_msgs/msg/DiagnosticArray`` of ``statuses_`` stamped ``t_wall`` (UNIX s),
-    empty frame_id, as plain little-endian CDR (XCDR1, as the rmws write it): each uint32 (a
-    string's or a sequence's length) 4-aligned from after the encapsulation, a string's length
-    counting its NUL, the level one octet."""
-    out = bytearray(struct.pack("<iI", *stamp(t_wall)))
-
-    def u32(n: int) -> None:
-        out.extend(b"\0" * (-len(out) % 4))
-        out.extend(_U32.pack(n))
-
-    def string(text: str) -> None:
-        data = text.encode() + b"\0"
-        u32(len(data))
-        out.extend(data)
-
-    string("")  # header.frame_id
-    u32(len(statuses_))
-    for level, name, message, hardware_id, values in statuses_:
-        out.append(level)
-        for text in (name, message, hardware_id):
-            string(text)
-        u32(len(values))
-        for key, value in values:
-            string(key)
-            string(value)
-    return CDR_LE + bytes(out)
+    """`Encoder`'s message of ``statuses_`` stamped ``t_wall`` (UNIX s), made at once."""
+    encoder = Encoder(statuses_)
+    encoder.add(len(statuses_))
+    return encoder.message(t_wall)
