@@ -8,10 +8,9 @@ DDS. In the same place, outside every sample's path: which topics have readers (
 times a second), ``/diagnostics`` from the part of the daemon's status it shows (once a
 second, over a few cycles: `diagnostics.health` and the statuses in one, the message's
 bytes, `diagnostics.Encoder`, a few statuses a cycle in the next, the write with the last),
-and the inputs, taken without waiting (a
-waitset asked with a zero timeout): an orientation goes to the daemon's orientation
-receiver as a message on its socket would, a tare to its control socket from a thread of
-its own (it takes the tare's samples to answer).
+and the inputs, taken without waiting (a waitset asked with a zero timeout): an orientation
+goes to the daemon's orientation receiver as a message on its socket would, a tare to its
+control socket from a thread of its own (it takes the tare's samples to answer).
 
 DDS's own threads (receive, timed events, delivery, garbage) are made with the participant,
 by a thread at the normal policy: under ``run --realtime`` they never run real-time, as in
@@ -48,8 +47,8 @@ _TIME = struct.Struct("<iI")  # builtin_interfaces/Time
 STAMP_AT = 4  # header.stamp: right after CDR's 4-byte encapsulation
 _STATUS_BODY = len(status_body(0, 0, 0))
 #: /diagnostics' statuses encoded a cycle: 7 of the packaged configuration's 19 (the daemon,
-#: 2 sensors, 16 chips) are about 0.65M instructions, 0.2 ms, no more than the cycle that
-#: makes the statuses (benchmarks/ros2_instructions.py); all 19 at once were 0.5 ms.
+#: 2 sensors, 16 chips) are about 0.6M instructions, less than the cycle that makes the
+#: statuses (0.94M; benchmarks/ros2_instructions.py), where all 19 at once were 2.2M.
 DIAGNOSTICS_A_CYCLE = 7
 
 
@@ -147,7 +146,7 @@ class InLoop:
         if now >= self.ask:
             self.ask = now + READERS_S
             self.find_readers()
-        # The diagnostics over a few cycles, so no cycle carries more than about 0.2 ms of
+        # The diagnostics over a few cycles, so no cycle carries more than about 0.25 ms of
         # them: the daemon's health and its statuses in one, their bytes in the next ones.
         if self.pending is not None:
             if self.pending.add(DIAGNOSTICS_A_CYCLE):
