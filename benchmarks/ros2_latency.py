@@ -28,12 +28,24 @@ daemon and the ZeroMQ subscriber alone), the bridge process as `run` starts it
 thread's own DDS writes, after the cycle's ZeroMQ sends): each one's latencies, the loop's
 start jitter and cycle time, the daemon's CPU (and the bridge process's). ``--each-send``
 likewise sets ``none``, ``in-loop`` and ``each-send``: the in-loop output writing each
-stream right after its own ZeroMQ send (benchmarks/ros2_each_send.py). ``--in-daemon`` sets the bridge process as `run` starts it against the same `Bridge`
-in a thread of the daemon's own process (benchmarks/ros2_in_daemon.py), a daemon started
-for each segment: the latency, and the loop's jitter and publish time each puts in.
+stream right after its own ZeroMQ send (benchmarks/ros2_each_send.py). ``--in-daemon`` sets the bridge
+process as `run` starts it against the same `Bridge` in a thread of the daemon's own process
+(benchmarks/ros2_in_daemon.py), a daemon started for each segment: the latency, and the
+loop's jitter and publish time each puts in.
+
+``--alone``, a daemon started for each segment, one subscriber process in each (`ALONE`), so
+none competes with another for the core the loop thread leaves: ``none`` (no [ros2]: plain
+ZeroMQ), ``zmq-alone`` (the ZeroMQ subscriber), ``dds-be-alone``, ``dds-rel-alone`` (one DDS
+subscriber, best effort or reliable, no ZeroMQ one). All but ``none`` run ``[ros2] output =
+"in-loop"``; with no DDS reader it writes no wrench, so ``zmq-alone`` measures the daemon as
+shipped (readers asked, inputs polled, /diagnostics once a second) without the one wrench
+write a cycle: that write comes after the cycle's ZeroMQ sends, so it cannot delay the
+sample measured, and a DDS reader to make it happen would be the competing process this mode
+removes (``none`` shows what the rest of the output costs ZeroMQ). It prints each DDS
+variant's p99 minus ``zmq-alone``'s (and ``none``'s), pooled and round by round.
 DDS stays on the loopback interface (CYCLONEDDS_URI).
 
-    python benchmarks/ros2_latency.py --seconds 10 --rounds 3 [--fifo 50] [--split | --in-daemon | --in-loop | --each-send]
+    python benchmarks/ros2_latency.py --seconds 10 --rounds 3 [--fifo 50] [--split | --in-daemon | --in-loop | --each-send | --alone]
 """
 
 from __future__ import annotations
@@ -174,19 +186,41 @@ def segment(variant: str, config: Path, folder: Path, seconds: float, queue: mp.
             "publish_p99": s1["publish_us"]["p99"], "load": os.getloadavg()[0], "bridge": got}
 
 
-def daemon_segment(variant: str, seconds: float, fifo: int) -> dict:
-    """--in-daemon, --in-loop: a daemon of its own for the segment, with the bridge as `run`
-    starts it (``bridge``, ``bridge-rt``: its child process), as a thread of its own process
-    (``in-daemon``, benchmarks/ros2_in_daemon.py), its loop thread writing DDS (``in-loop``:
-    ``[ros2] output = "in-loop"``) or no DDS at all (``none``: no [ros2], no DDS subscriber);
-    the listeners for the segment."""
+#: The subscribers a segment runs, by the names their receipts come back under.
+EVERY = ("zmq", "dds best effort", "dds reliable")
+#: --alone: one subscriber process a segment.
+ALONE = {"none": ("zmq",), "zmq-alone": ("zmq",), "dds-be-alone": ("dds best effort",),
+         "dds-rel-alone": ("dds reliable",)}
+
+
+def listener(name: str, folder: Path, stop_at: float, queue: mp.Queue) -> mp.Process:
+    """The subscriber process ``name`` (one of `EVERY`) to the daemon whose runtime folder is ``folder``."""
+    if name == "zmq":
+        return mp.Process(target=zmq_listen, args=(f"ipc://{folder / 'wrench'}", stop_at, queue))
+    return mp.Process(target=dds_listen, args=(f"rt/bench/{TOPIC}", name == "dds reliable", stop_at, queue))
+
+
+def segment_config(variant: str, path: Path) -> Path:
+    """The packaged configuration at ``path``, with the [ros2] table a daemon of ``variant`` runs:
+    ``output = "bridge"`` (``bridge*``), ``"in-loop"`` (``in-loop``, ``each-send``, ``*-alone``)
+    or none (``none``, ``in-daemon``: ros2_in_daemon.py runs the bridge itself)."""
+    config = packaged_config(path)
+    if variant.startswith("bridge") or variant in ("in-loop", "each-send") or variant.endswith("-alone"):
+        output = "bridge" if variant.startswith("bridge") else "in-loop"
+        config.write_text(config.read_text() + f'\n[ros2]\nnamespace = "bench"\ndomain_id = {DOMAIN}\n'
+                                               f'output = "{output}"\n')
+    return config
+
+
+def daemon_segment(variant: str, seconds: float, fifo: int, listen: tuple[str, ...] | None = None) -> dict:
+    """--in-daemon, --in-loop, --each-send, --alone: a daemon of its own for the segment
+    (`segment_config`; ``in-daemon``: the bridge a thread of its process, ros2_in_daemon.py;
+    ``each-send``: ros2_each_send.py) and ``listen``, the subscribers for the segment (default:
+    all of `EVERY`, ZeroMQ's alone for ``none``)."""
+    listen = listen or (("zmq",) if variant == "none" else EVERY)
     with tempfile.TemporaryDirectory() as tmp:
-        config = packaged_config(Path(tmp) / "ftsensord.toml")
+        config = segment_config(variant, Path(tmp) / "ftsensord.toml")
         program: tuple[str, ...] = ("-m", "ftsensord")
-        if variant.startswith("bridge") or variant in ("in-loop", "each-send"):
-            output = "bridge" if variant.startswith("bridge") else "in-loop"
-            config.write_text(config.read_text() + f'\n[ros2]\nnamespace = "bench"\ndomain_id = {DOMAIN}\n'
-                                                   f'output = "{output}"\n')
         if variant == "in-daemon":
             program = (str(Path(__file__).with_name("ros2_in_daemon.py")), "bench", str(DOMAIN), str(1 if fifo else 0))
         elif variant == "each-send":  # the in-loop output, each stream written right after its own send
@@ -197,9 +231,7 @@ def daemon_segment(variant: str, seconds: float, fifo: int) -> dict:
         try:
             queue: mp.Queue = mp.Queue()
             stop_at = time.time() + SETTLE_S + seconds + 1
-            listeners = [mp.Process(target=zmq_listen, args=(f"ipc://{folder / 'wrench'}", stop_at, queue)),
-                         *(mp.Process(target=dds_listen, args=(f"rt/bench/{TOPIC}", r, stop_at, queue))
-                           for r in ((False, True) if variant != "none" else ()))]
+            listeners = [listener(name, folder, stop_at, queue) for name in listen]
             for p in listeners:
                 p.start()
             control = ControlClient(f"ipc://{folder / 'control'}", timeout_s=5)
@@ -257,10 +289,12 @@ def main() -> int:
                         help="no DDS, the bridge process and the loop's own DDS writes (a daemon a segment)")
     parser.add_argument("--each-send", action="store_true",
                         help="no DDS, in-loop, and in-loop writing each stream after its own send (a daemon a segment)")
+    parser.add_argument("--alone", action="store_true",
+                        help="in-loop, one subscriber process a segment: ZeroMQ, DDS best effort, DDS reliable")
     args = parser.parse_args()
     variants = (["bridge-rt", "in-daemon"] if args.in_daemon else ["none", "split", "split-rt"] if args.split
                 else ["none", "bridge-rt", "in-loop"] if args.in_loop else ["none", "in-loop", "each-send"]
-                if args.each_send else ["none", "zmq3", "bridge", "bridge-rt"])
+                if args.each_send else list(ALONE) if args.alone else ["none", "zmq3", "bridge", "bridge-rt"])
     if not args.fifo and (args.in_daemon or args.in_loop):
         # at the normal priority, as `run` starts the bridge then
         variants = [v.replace("bridge-rt", "bridge") for v in variants]
@@ -268,13 +302,20 @@ def main() -> int:
         variants = [v for v in variants if not v.endswith("-rt")]  # `run` gives no FIFO to the bridge then
     print(f"load {os.getloadavg()[0]:.2f} at start; {args.rounds} rounds of {', '.join(variants)}, "
           f"{args.seconds:g} s each; daemon --realtime {args.fifo}; {TOPIC} at 100 Hz")
-    if args.in_daemon or args.in_loop or args.each_send:
-        segments = [daemon_segment(v, args.seconds, args.fifo) for _ in range(args.rounds) for v in variants]
+    if args.in_daemon or args.in_loop or args.each_send or args.alone:
+        segments = [daemon_segment(v, args.seconds, args.fifo, ALONE[v] if args.alone else None)
+                    for _ in range(args.rounds) for v in variants]
         receipts: dict[str, list] = {}
         for seg in segments:
             for name, got in seg["receipts"].items():
                 receipts.setdefault(name, []).extend(got)
         report(variants, segments, receipts)
+        if args.alone:
+            for v in ("dds-be-alone", "dds-rel-alone"):
+                for base in ("zmq-alone", "none"):
+                    pooled, by_round = p99_above(segments, v, base)
+                    print(f"{v} p99 minus {base}'s: {pooled:+.0f} us pooled; by round "
+                          + " ".join(f"{d:+.0f}" for d in by_round) + " us")
         return 0
     with tempfile.TemporaryDirectory() as tmp:
         config = packaged_config(Path(tmp) / "ftsensord.toml")
@@ -286,9 +327,7 @@ def main() -> int:
         try:
             queue: mp.Queue = mp.Queue()
             stop_at = time.time() + 5 + args.rounds * len(variants) * (args.seconds + SETTLE_S + 3)
-            listeners = [mp.Process(target=zmq_listen, args=(f"ipc://{folder / 'wrench'}", stop_at, queue)),
-                         *(mp.Process(target=dds_listen, args=(f"rt/bench/{TOPIC}", r, stop_at, queue))
-                           for r in (False, True))]
+            listeners = [listener(name, folder, stop_at, queue) for name in EVERY]
             for p in listeners:
                 p.start()
             control = ControlClient(f"ipc://{folder / 'control'}", timeout_s=5)
@@ -301,6 +340,17 @@ def main() -> int:
             stop(proc, notify)
     report(variants, segments, receipts)
     return 0
+
+
+def p99_above(segments: list[dict], variant: str, base: str) -> tuple[float, list[float]]:
+    """``variant``'s delay p99 minus ``base``'s (us): pooled over their segments, and each
+    ``variant`` segment against the ``base`` segment of the same round (the n-th of each)."""
+    def p99(segs: list[dict]) -> float:
+        return float(np.percentile([r - s for m in segs for got in m["receipts"].values() for s, r in got
+                                    if m["window"][0] <= s < m["window"][1]], 99) * 1e6)
+
+    mine, theirs = ([s for s in segments if s["variant"] == v] for v in (variant, base))
+    return p99(mine) - p99(theirs), [p99([a]) - p99([b]) for a, b in zip(mine, theirs, strict=True)]
 
 
 def report(variants: list[str], segments: list[dict], receipts: dict[str, list]) -> None:
@@ -320,9 +370,10 @@ def report(variants: list[str], segments: list[dict], receipts: dict[str, list])
             d = np.array([r - s for s, r in got if any(m["window"][0] <= s < m["window"][1] for m in mine)]) * 1e6
             if len(d):
                 # and each segment's p99: one segment whose subscriber the host starved moves the pooled p99
-                each = [np.percentile([r - s for s, r in got if m["window"][0] <= s < m["window"][1]], 99) * 1e6
-                        for m in mine if any(m["window"][0] <= s < m["window"][1] for s, _ in got)]
-                print(f"  {name}: {pct(d)}; p99 by segment " + " ".join(f"{x:.0f}" for x in each) + " us")
+                each = [[r - s for s, r in got if m["window"][0] <= s < m["window"][1]] for m in mine]
+                print(f"  {name}: {pct(d)}; p99 by segment " + " ".join(f"{np.percentile(e, 99) * 1e6:.0f}"
+                                                                        for e in each if e)
+                      + " us, samples by segment " + " ".join(str(len(e)) for e in each))
         if v.startswith("split"):
             hops(mine, receipts)
     print(f"load {os.getloadavg()[0]:.2f} at end")

@@ -281,15 +281,23 @@ def call_trigger(dp, step: dict) -> None:
 
 
 def tare_topic(dp, step: dict) -> None:
-    """std_msgs/msg/Empty on ``topic``, orientations coming meanwhile, until the 100-sample tare is surely done."""
+    """std_msgs/msg/Empty on ``topic``, orientations coming meanwhile, until /diagnostics says
+    every sensor is tared (the tare takes 100 samples: 1 s at 100 Hz, more on a loaded host;
+    a fixed wait of 3 s was too short at times) or ``timeout_s`` passed."""
     writer = DataWriter(dp, Topic(dp, step["topic"], Empty), qos(True))
+    diagnostics = DataReader(dp, Topic(dp, "rt/diagnostics", DiagnosticArray), qos(True))
     matched = wait_matched(writer)
     keep = threading.Event()
     oriented(dp, step["orient"], keep)  # the orientations in before the tare's first sample
     writer.write(Empty())
-    time.sleep(3.0)  # the tare takes 100 samples: 1 s at 100 Hz, 3 on a loaded host
+    tared, end = False, time.monotonic() + step.get("timeout_s", 20.0)
+    while not tared and time.monotonic() < end:
+        time.sleep(0.05)
+        for m in diagnostics.take(N=16):  # a sensor's status has a "tared" value, the others none
+            said = [kv.value for s in m.status for kv in s.values if kv.key == "tared"]
+            tared = bool(said) and all(v == "True" for v in said)
     keep.set()
-    print(json.dumps({"published": step["topic"], "matched": matched}), flush=True)
+    print(json.dumps({"published": step["topic"], "matched": matched, "tared": tared}), flush=True)
 
 
 def main() -> int:

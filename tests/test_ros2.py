@@ -26,7 +26,7 @@ from ftsensord.client import ControlClient  # noqa: E402
 from ftsensord.service.config import load_config  # noqa: E402
 
 from .conftest import StreamRecorder, assert_names_file_and_key, start_daemon  # noqa: E402
-from .test_daemon import write_config  # noqa: E402
+from .test_daemon import Rig, write_config  # noqa: E402
 
 PEER = Path(__file__).with_name("ros2_peer.py")
 DOMAIN = 100 + os.getpid() % 100  # 100-199: clear of ROS's default 0 and of other runs' domains
@@ -197,7 +197,7 @@ def test_the_trigger_service_and_the_tare_topic_tare_the_sensors(daemon):
     control.untare()
     assert not any(s["tared"] for s in control.status()["sensors"].values())
     (out,) = peer({"do": "trigger-topic", "topic": f"rt/{NS}/tare", "orient": orient})
-    assert out["matched"]
+    assert out["matched"] and out["tared"]  # as /diagnostics said it
     assert all(s["tared"] for s in control.status()["sensors"].values())
 
 
@@ -234,6 +234,26 @@ def test_a_failing_chip_or_a_flagged_wrench_raises_the_level_ros_tools_show():
     status["achieved_rate_hz"] = 90.0  # below 95 % of the rate
     assert d.statuses(status, {}, "ns")[0][0] == d.WARN
     assert d.statuses(None, {}, "ns", "timed out") == [(d.STALE, "ns: daemon", "no answer from the daemon: timed out", "", [])]
+
+
+def test_the_in_loop_diagnostics_show_what_the_status_reply_says(tmp_path):
+    """In the loop's thread the statuses come from `health`, not the whole `status` reply: the
+    same statuses, with a chip failing too."""
+    from ftsensord.ros2 import diagnostics as d
+    from ftsensord.service import wire
+    rig = Rig(tmp_path)
+    try:
+        rig.bus.faults.nack(0x0E)
+        rig.cycles(3)
+        health, status = d.health(rig.daemon), rig.daemon.status()
+        assert health == {k: status[k] for k in health}
+        flags = {"sensor1": wire.FLAG_CHIP_MISSING, "sensor2": 0}
+        shown = d.statuses(health, flags, "ns")
+        assert shown == d.statuses(status, flags, "ns")
+        assert {name: level for level, name, *_ in shown if level} == {"ns: sensor1": d.ERROR,
+                                                                        "ns: sensor1 chip 0x0E": d.ERROR}
+    finally:
+        rig.close()
 
 
 def test_the_bridge_stops_with_the_daemon_even_when_it_is_killed(tmp_path):
@@ -290,6 +310,12 @@ def test_the_diagnostics_cdr_bytes_are_cyclones_own_serialization(statuses):
         for level, name, message, hardware_id, values in statuses])
     # the strings' lengths 0-5 move every later length's 4-byte alignment: each is a case
     assert diagnostics.cdr(statuses, t_wall) == array.serialize(use_version_2=False)
+    for count in (1, 2):  # a few statuses a cycle, as the in-loop output encodes them
+        encoder, adds = diagnostics.Encoder(statuses), 1
+        while not encoder.add(count):
+            adds += 1
+        assert encoder.message(t_wall) == array.serialize(use_version_2=False)
+        assert adds == max(1, -(-len(statuses) // count))  # no add more than the statuses need
 
 
 def can_be_realtime() -> bool:

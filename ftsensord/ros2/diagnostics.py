@@ -13,10 +13,15 @@ its 2 ms, which the in-loop output spends in the loop's thread).
 from __future__ import annotations
 
 import struct
-from typing import Any
+from itertools import chain
+from typing import TYPE_CHECKING, Any
 
 from ..recording.ros2mcap import CDR_LE, stamp
+from ..service import status as reply
 from ..service import wire
+
+if TYPE_CHECKING:
+    from ..service.daemon import Daemon
 
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
 #: Chip states (`service.status`) and their levels: a chip being reset still answers the
@@ -31,6 +36,8 @@ QUIET_FLAGS = wire.FLAG_LATE
 RATE_SHARE = 0.95
 
 Status = tuple[int, str, str, str, list[tuple[str, str]]]  # level, name, message, hardware_id, values
+#: The daemon's own keys of the `status` reply its diagnostic status shows.
+DAEMON_KEYS = ["rate_hz", "achieved_rate_hz", "cycles", "missed_cycles", "late_cycles", "bus", "scheduler", "uptime_s"]
 
 
 def _values(d: dict[str, Any], keys: list[str]) -> list[tuple[str, str]]:
@@ -41,8 +48,7 @@ def daemon_status(status: dict[str, Any], namespace: str) -> Status:
     rate, achieved = float(status.get("rate_hz", 0.0)), status.get("achieved_rate_hz")
     slow = achieved is not None and float(achieved) < RATE_SHARE * rate
     message = f"{achieved:.1f} of {rate:g} Hz" if achieved is not None else f"{rate:g} Hz"
-    values = _values(status, ["rate_hz", "achieved_rate_hz", "cycles", "missed_cycles", "late_cycles", "bus",
-                              "scheduler", "uptime_s"])
+    values = _values(status, DAEMON_KEYS)
     return (WARN if slow else OK, f"{namespace}: daemon", message + (" (below the configured rate)" if slow else ""),
             str(status.get("bus", "")), values)
 
@@ -75,6 +81,19 @@ def chip_status(address: str, c: dict[str, Any], namespace: str) -> Status:
             f"MLX90393 {address}", values)
 
 
+def health(d: Daemon) -> dict[str, Any]:
+    """The part of ``d``'s `status` reply `statuses` reads (`DAEMON_KEYS`, ``chips``,
+    ``sensors``), made as the reply makes it, in the daemon's own thread (the in-loop output).
+    Not the whole reply, whose timing percentiles (each over the last 1000 cycles) and the
+    rest make it six times dearer (callgrind: 2.1M instructions against 0.35M), in the loop."""
+    t = d.timing
+    return {"rate_hz": d.config.rate_hz, "achieved_rate_hz": t.achieved_rate_hz(), "cycles": t.cycles,
+            "missed_cycles": t.missed, "late_cycles": t.late, "bus": d.config.bus, "scheduler": d.config.scheduler,
+            "uptime_s": round(d.clock() - d.started_at, 3),
+            "chips": d.chips.report(d.reader.health, d.reader.bus.monotonic()),
+            "sensors": {s.name: reply.sensor_status(s) for s in d.sensors}}
+
+
 def statuses(status: dict[str, Any] | None, flags: dict[str, int], namespace: str, why: str = "") -> list[Status]:
     """Every component's status from the daemon's ``status`` (None: it did not answer, ``why``:
     one STALE status); ``flags``: each sensor's latest wrench's flags, by sensor name."""
@@ -90,32 +109,47 @@ def statuses(status: dict[str, Any] | None, flags: dict[str, int], namespace: st
 
 
 _U32 = struct.Struct("<I")
+_PAD = (b"", b"\0\0\0", b"\0\0", b"\0")  # by an offset mod 4: the zeros up to the next multiple of 4
+_OCTET = [bytes((i,)) for i in range(256)]
+
+
+class Encoder:
+    """A ``diagnostic_msgs/msg/DiagnosticArray`` of ``statuses_`` as plain little-endian CDR
+    (XCDR1, as the rmws write it), made a few statuses at a time (`add`; the in-loop output
+    spreads them over cycles), its header's stamp put in last (`message`), its frame_id
+    empty: each uint32 (a string's or a sequence's length) 4-aligned from after the
+    encapsulation, a string's length counting its NUL, the level one octet."""
+
+    def __init__(self, statuses_: list[Status]):
+        self.statuses, self.done = statuses_, 0
+        # the stamp's 8 bytes (`message`), frame_id "" (its length, its NUL), 3 to align, the count
+        self.parts = [CDR_LE, b"", b"\1\0\0\0\0\0\0\0", _U32.pack(len(statuses_))]
+        self.at = 20  # bytes after the encapsulation
+
+    def add(self, count: int) -> bool:
+        """The next ``count`` statuses encoded; whether every status is now."""
+        parts, at, pack = self.parts, self.at, _U32.pack
+        for level, name, message, hardware_id, values in self.statuses[self.done:self.done + count]:
+            parts.append(_OCTET[level])
+            at += 1
+            # None: where the values' count goes, a uint32 alone (one loop: the per-string
+            # work is the cost here, a function call a string would double it)
+            for text in (name, message, hardware_id, None, *chain.from_iterable(values)):
+                data = b"" if text is None else text.encode() + b"\0"
+                pad = _PAD[at & 3]
+                parts.append(pad + pack(len(values) if text is None else len(data)) + data)
+                at += len(pad) + 4 + len(data)
+        self.at, self.done = at, min(self.done + count, len(self.statuses))
+        return self.done == len(self.statuses)
+
+    def message(self, t_wall: float) -> bytes:
+        """The message stamped ``t_wall`` (UNIX s), once `add` has encoded every status."""
+        self.parts[1] = struct.pack("<iI", *stamp(t_wall))
+        return b"".join(self.parts)
 
 
 def cdr(statuses_: list[Status], t_wall: float) -> bytes:
-    """A ``diagnostic_msgs/msg/DiagnosticArray`` of ``statuses_`` stamped ``t_wall`` (UNIX s),
-    empty frame_id, as plain little-endian CDR (XCDR1, as the rmws write it): each uint32 (a
-    string's or a sequence's length) 4-aligned from after the encapsulation, a string's length
-    counting its NUL, the level one octet."""
-    out = bytearray(struct.pack("<iI", *stamp(t_wall)))
-
-    def u32(n: int) -> None:
-        out.extend(b"\0" * (-len(out) % 4))
-        out.extend(_U32.pack(n))
-
-    def string(text: str) -> None:
-        data = text.encode() + b"\0"
-        u32(len(data))
-        out.extend(data)
-
-    string("")  # header.frame_id
-    u32(len(statuses_))
-    for level, name, message, hardware_id, values in statuses_:
-        out.append(level)
-        for text in (name, message, hardware_id):
-            string(text)
-        u32(len(values))
-        for key, value in values:
-            string(key)
-            string(value)
-    return CDR_LE + bytes(out)
+    """`Encoder`'s message of ``statuses_`` stamped ``t_wall`` (UNIX s), made at once."""
+    encoder = Encoder(statuses_)
+    encoder.add(len(statuses_))
+    return encoder.message(t_wall)

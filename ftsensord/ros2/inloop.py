@@ -5,11 +5,12 @@ After each cycle's ZeroMQ sends (`service.daemon.Daemon.cycle`'s ``outputs``), o
 made once a stream, and each cycle's stamp and six float64 are patched into them; its
 SampleStatus likewise. No thread, no process, no ZeroMQ subscriber between the loop and
 DDS. In the same place, outside every sample's path: which topics have readers (five
-times a second), ``/diagnostics`` from the daemon's own status (once a second, over two
-cycles: the status in one, the message's bytes, `diagnostics.cdr`, in the next), and the
-inputs, taken without waiting (a waitset asked with a zero timeout): an orientation goes to
-the daemon's orientation receiver as a message on its socket would, a tare to its control
-socket from a thread of its own (it takes the tare's samples to answer).
+times a second), ``/diagnostics`` from the part of the daemon's status it shows (once a
+second, over a few cycles: `diagnostics.health` and the statuses in one, the message's
+bytes, `diagnostics.Encoder`, a few statuses a cycle in the next, the write with the last),
+and the inputs, taken without waiting (a waitset asked with a zero timeout): an orientation
+goes to the daemon's orientation receiver as a message on its socket would, a tare to its
+control socket from a thread of its own (it takes the tare's samples to answer).
 
 DDS's own threads (receive, timed events, delivery, garbage) are made with the participant,
 by a thread at the normal policy: under ``run --realtime`` they never run real-time, as in
@@ -45,6 +46,10 @@ log = logging.getLogger("ftsensord.ros2")
 _TIME = struct.Struct("<iI")  # builtin_interfaces/Time
 STAMP_AT = 4  # header.stamp: right after CDR's 4-byte encapsulation
 _STATUS_BODY = len(status_body(0, 0, 0))
+#: /diagnostics' statuses encoded a cycle: 7 of the packaged configuration's 19 (the daemon,
+#: 2 sensors, 16 chips) are about 0.6M instructions, less than the cycle that makes the
+#: statuses (0.94M; benchmarks/ros2_instructions.py), where all 19 at once were 2.2M.
+DIAGNOSTICS_A_CYCLE = 7
 
 
 def at_normal_policy(make: Any) -> Any:
@@ -104,7 +109,7 @@ class InLoop:
         self.read: tuple[Stream, ...] = ()  # streams whose wrench or status some reader reads
         self.flags: dict[str, int] = {}  # each sensor's (and the tip's) latest flags, for the diagnostics
         self.ask = self.due = time.monotonic()
-        self.pending: list[diagnostics.Status] | None = None  # the statuses to write next cycle
+        self.pending: diagnostics.Encoder | None = None  # the /diagnostics being encoded
         self.write_errors = self.failures = 0
         self.ddspy_write = ddspy_write
 
@@ -141,14 +146,16 @@ class InLoop:
         if now >= self.ask:
             self.ask = now + READERS_S
             self.find_readers()
-        # The diagnostics over two cycles: the daemon's status (about 1 ms) in one, its
-        # message in the next (0.1 ms), so no cycle carries both.
+        # The diagnostics over a few cycles, so no cycle carries more than about 0.25 ms of
+        # them: the daemon's health and its statuses in one, their bytes in the next ones.
         if self.pending is not None:
-            self.node.publish_diagnostics(self.pending, t_wall)
-            self.pending = None
+            if self.pending.add(DIAGNOSTICS_A_CYCLE):
+                self.node.write_diagnostics(self.pending.message(t_wall))
+                self.pending = None
         elif now >= self.due:
             self.due = max(self.due + DIAGNOSTICS_S, now)
-            self.pending = diagnostics.statuses(self.daemon.status(), self.flags, self.namespace)
+            self.pending = diagnostics.Encoder(diagnostics.statuses(diagnostics.health(self.daemon), self.flags,
+                                                                    self.namespace))
         self.node.serve(0.0, self.on_orientation, self.on_tare)
 
     def write(self, stream: Stream, seq: int, last: int | None, time_bytes: bytes, flags: int,

@@ -172,7 +172,11 @@ class Ros2Node:
             self.write_errors += 1  # counted, said at exit: the next sample is the newer one anyway
 
     def publish_diagnostics(self, statuses: list[Status], t_wall: float) -> None:
-        self._write(self.diagnostics, diagnostics.cdr(statuses, t_wall))
+        self.write_diagnostics(diagnostics.cdr(statuses, t_wall))
+
+    def write_diagnostics(self, cdr: bytes) -> None:
+        """A DiagnosticArray's CDR bytes (`diagnostics.Encoder`'s message) on /diagnostics."""
+        self._write(self.diagnostics, cdr)
 
     def serve(self, timeout_s: float, on_orientation: Callable[[str, list[float], float], None],
               on_tare: Callable[[], tuple[bool, str]]) -> None:
