@@ -283,17 +283,23 @@ def _brute_force(model, b, sigma, chips):
     return whole, wrench, without, gradient
 
 
+def packaged_model(room: bool | str):
+    """Sensor 1's packaged model; ``room``: blind to the room's field, "gradient": and to a gradient."""
+    model = Calibration.load(builtin_path("sim-sensor1.json")).model
+    if room:
+        model = model.rejecting_room_field()
+    if room == "gradient":
+        model = model.with_gradient()
+    return model
+
+
 @pytest.mark.parametrize("room", [False, True, "gradient"])
 def test_the_consistency_maps_give_the_least_squares_residuals(room):
     """One product a sample (the deletion identity) gives what fitting every subset gives:
     chi2, the wrench, and chi2 with each chip left out, inf where the rest cannot see all
     axes (down to 2 chips: no degrees of freedom), for all chips and for subsets; with the
     gradient estimated, its whitened size."""
-    model = Calibration.load(builtin_path("sim-sensor1.json")).model
-    if room:
-        model = model.rejecting_room_field()
-    if room == "gradient":
-        model = model.with_gradient()
+    model = packaged_model(room)
     rng = np.random.default_rng(11)
     for trial in range(60):
         chips = np.ones(8, dtype=bool)

@@ -9,9 +9,8 @@ import numpy as np
 import pytest
 
 from ftsensord.acquire.readings import Readings
-from ftsensord.calibration.calfile import Calibration
 from ftsensord.chip import mlx90393 as mlx
-from ftsensord.model.consistency import ConsistencyMaps, FoldedCheck
+from ftsensord.model.consistency import FoldedCheck
 from ftsensord.model.linear import EXTRAPOLATION_MARGIN, SENSOR_RANGE, LinearModel
 from ftsensord.service import wire
 from ftsensord.service.config import builtin_path, load_config
@@ -20,13 +19,9 @@ from ftsensord.service.pipeline import SensorPipeline, channel_sigma_t
 from ftsensord.sim.loads import StaticLoad
 from ftsensord.sim.scene import default_scene
 
+from .test_consistency import packaged_model
+
 SIGMA_T = channel_sigma_t(mlx.Settings(), 8)
-
-
-def _sums(maps: ConsistencyMaps, model: LinearModel, d: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """chi2, each chip's drop and the fitted wrench the separate check gives for d = b - b0."""
-    c = maps.apply(d)
-    return c.chi2, c.drop, c.wrench
 
 
 @pytest.mark.parametrize("room", [False, True, "gradient"])
@@ -34,14 +29,9 @@ def test_the_folded_sums_are_the_checks(room):
     """chi2, the drops (squares here, products there), the gradient's size, the model's wrench
     and both loads equal the separate computations, with the temperature stage's scale and
     shift folded in, for noise-sized and 30x residuals and one channel far off."""
-    model = Calibration.load(builtin_path("sim-sensor1.json")).model
-    if room:
-        model = model.rejecting_room_field()
-    if room == "gradient":
-        model = model.with_gradient()
+    model = packaged_model(room)
     rng = np.random.default_rng(5)
     every = np.ones(8, dtype=bool)
-    maps = model._maps(every, SIGMA_T)
     scale, shift = 1 + rng.normal(0, 2e-3, 24), rng.normal(0, 3e-6, 24)
     tare, fitted = rng.normal(0, 1, 6), np.array([40.0, 40.0, 60.0, 0.5, 0.5, 0.4])
     f = model.folded(SIGMA_T, scale, shift, tare, 1 / fitted, 1 / (EXTRAPOLATION_MARGIN * fitted))
