@@ -53,7 +53,8 @@ class BlockDecoder:
         self.span = np.array([[f.span for f in row] for row in fmts], dtype=np.int32).reshape(n, -1)
         self.scale = np.array([[c._decoding[a][1] for a in self.axes] for c in chips]).reshape(n, -1)
         self.bad_status = _bad_status(self.d_expected)
-        self.good_status = bytes(np.flatnonzero(~self.bad_status).astype(np.uint8))  # the status bytes that are not
+        # The status bytes a reply may carry to be taken as it comes (`convert`'s one translate).
+        self.good_status = bytes(np.flatnonzero(~self.bad_status).astype(np.uint8))
         self.xyz_only = self.columns == [0, 1, 2] and self.axes == [0, 1, 2]
         self.unsigned = not self.signed.any()
         self.clean = False  # the last `decode` found no error and no temperature: every entry a Measurement

@@ -45,6 +45,7 @@ class ConsistencyMaps:
         self.none_left = np.full(n_chips, np.inf)
         A = H[self.channels] / sigma[self.channels, None]
         self.maps: np.ndarray | None = None
+        self.chip_rows: np.ndarray | None = None  # `FoldedCheck`'s: each chip's drop as a square
         if self.dof <= 0 or np.linalg.matrix_rank(A) < unknowns:
             return  # too few chips, or they do not see every axis: nothing to test
         pinv = np.linalg.pinv(A)
@@ -70,7 +71,7 @@ class ConsistencyMaps:
             cov = np.linalg.inv(A.T @ A)[-gradient:, -gradient:]
             rows.append(np.linalg.cholesky(np.linalg.inv(cov)).T @ pinv[-gradient:])
         self.maps = np.vstack(rows) / sigma[self.channels]
-        self.chip_rows = (Ct @ P) / sigma[self.channels]  # `FoldedCheck`'s: squares, not products
+        self.chip_rows = (Ct @ P) / sigma[self.channels]
         # Sums each chip's 3 channels in one product: a reduction along an axis costs 5 us.
         self.per_chip = np.kron(np.eye(len(self.used)), np.ones((3, 1)))
 
