@@ -34,6 +34,7 @@ import json
 import sys
 import tempfile
 import time
+import uuid
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import nullcontext
 from dataclasses import dataclass
@@ -160,11 +161,13 @@ com_m = [0.0, 0.0, 0.0]
 """))
     # "world" learns from the tool's orientation, which a haptic application sends every tick:
     # here the scene's own, each cycle, over an inproc pair.
-    ctx = zmq.Context.instance()
+    # A fresh name each run: ZeroMQ frees a closed socket's inproc name later, in its own thread,
+    # and the previous run's (same seed, estimator and folder) was once still taken on a loaded host.
+    ctx, name = zmq.Context.instance(), f"inproc://orientation-{uuid.uuid4().hex}"
     ori_sub, ori_pub = ctx.socket(zmq.SUB), ctx.socket(zmq.PUB)
     ori_sub.setsockopt(zmq.SUBSCRIBE, b"")
-    ori_sub.bind(f"inproc://orientation-{seed}-{estimator}-{id(folder)}")
-    ori_pub.connect(f"inproc://orientation-{seed}-{estimator}-{id(folder)}")
+    ori_sub.bind(name)
+    ori_pub.connect(name)
     scene_obj = load_scene(folder / "scene.toml")
     rig = InProcess(load_config(folder / "ftsensord.toml"), scene_obj, subscribe=b"wrench/", seed=seed,
                     **({"orientation": ori_sub} if stray == "world" else {}))

@@ -5,12 +5,14 @@ from __future__ import annotations
 import importlib.util
 import sys
 import threading
-from collections.abc import Callable, Hashable
+import weakref
+from collections.abc import Callable, Hashable, Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+import zmq
 
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.chip.driver import MLX90393
@@ -23,6 +25,41 @@ from ftsensord.sim import (
 )
 
 ADDR = 0x0C
+
+#: Every zmq.Context made in this process (weakly held), for `no_zmq_context_left_open`.
+_CONTEXTS: weakref.WeakSet[zmq.Context] = weakref.WeakSet()
+_context_init = zmq.Context.__init__
+
+
+def _tracked_init(self: zmq.Context, *args: Any, **kwargs: Any) -> None:
+    _context_init(self, *args, **kwargs)
+    _CONTEXTS.add(self)
+
+
+zmq.Context.__init__ = _tracked_init  # type: ignore[method-assign]
+
+
+@pytest.fixture(autouse=True)
+def no_zmq_context_left_open() -> Iterator[None]:
+    """A test fails if it leaves a context of its own (not the singleton) unterminated: left to
+    the garbage collector, `Context.__del__` -> term() waits forever for sockets that the same
+    collection was to close, and a later test hangs (the suite hung once in test_heat_scene).
+    The context is destroyed here, so the rest of the suite runs on."""
+    yield
+    left = [c for c in list(_CONTEXTS) if not c.closed and not c._shadow and c is not type(c)._instance]
+    named = repr(left)  # with their open sockets, before they are closed
+    for c in left:
+        c.destroy(linger=0)
+    assert not left, f"zmq contexts left unterminated (use the zmq_context fixture): {named}"
+
+
+@pytest.fixture
+def zmq_context() -> Iterator[zmq.Context]:
+    """A context of the test's own, destroyed at teardown with any socket still open (linger 0),
+    whether the test passed or failed half-way (see `no_zmq_context_left_open`)."""
+    ctx = zmq.Context()
+    yield ctx
+    ctx.destroy(linger=0)
 
 
 def assert_names_file_and_key(load, path, key: str, expected: str) -> None:

@@ -26,6 +26,19 @@ from ftsensord.sim import load_scene
 from .conftest import assert_names_file_and_key
 from .test_daemon import Rig
 
+@pytest.fixture
+def make_rig(tmp_path):
+    """``Rig(tmp_path, ...)``, closed at teardown whether the test passed or not."""
+    made: list[Rig] = []
+
+    def make(**kwargs) -> Rig:
+        made.append(Rig(tmp_path, **kwargs))
+        return made[-1]
+    yield make
+    for rig in made:
+        rig.close()
+
+
 HUGE = "1" * 5000  # over Python's 4300-digit int-from-string limit: a plain ValueError
 
 
@@ -37,8 +50,8 @@ HUGE = "1" * 5000  # over Python's 4300-digit int-from-string limit: a plain Val
     "[" * 5000 + "]" * 5000,
     '{"cmd":"status","x":' + '{"a":' * 9 + "1" + "}" * 9 + "}",  # over the request depth
 ])
-def test_requests_that_used_to_kill_are_answered_with_an_error_and_the_loop_goes_on(tmp_path, raw):
-    rig = Rig(tmp_path)
+def test_requests_that_used_to_kill_are_answered_with_an_error_and_the_loop_goes_on(make_rig, raw):
+    rig = make_rig()
     rig.cycles(3)
     rig.req.send(raw.encode())
     rig.daemon.handle_control()
@@ -79,10 +92,10 @@ def test_a_calibration_file_over_the_limits_is_refused_naming_file_and_key(tmp_p
     assert_names_file_and_key(Calibration.load, path, key, expected)
 
 
-def test_a_sighup_with_such_a_calibration_is_a_refused_reload_not_an_exit(tmp_path):
+def test_a_sighup_with_such_a_calibration_is_a_refused_reload_not_an_exit(tmp_path, make_rig):
     cal = tmp_path / "sensor1.json"
     shutil.copy(builtin_path("sim-sensor1.json"), cal)
-    rig = Rig(tmp_path, sensor1_cal=str(cal))
+    rig = make_rig(sensor1_cal=str(cal))
     rig.cycles(2)
     text = cal.read_text()
     cal.write_text(text.replace('"version": 1', '"version": ' + HUGE, 1))
@@ -124,8 +137,8 @@ def test_a_toml_file_over_the_limits_is_refused_naming_file_and_key(tmp_path, te
     assert_names_file_and_key(load_toml, path, "", expected)
 
 
-def test_reload_applies_stuck_cycles_and_readback_every(tmp_path):
-    rig = Rig(tmp_path)
+def test_reload_applies_stuck_cycles_and_readback_every(tmp_path, make_rig):
+    rig = make_rig()
     assert rig.daemon.reader.readback_every == 1
     (tmp_path / "ftsensord.toml").write_text(
         (tmp_path / "ftsensord.toml").read_text().replace("rate_hz = 100", "rate_hz = 100\nstuck_cycles = 0\nreadback_every = 5"))
@@ -143,9 +156,9 @@ def test_reload_applies_stuck_cycles_and_readback_every(tmp_path):
     assert (rig.bus.transfers - transfers) / 10 > per_cycle_5  # read back every cycle: more transfers
 
 
-def test_a_rate_too_slow_for_the_watchdog_is_refused(tmp_path):
+def test_a_rate_too_slow_for_the_watchdog_is_refused(tmp_path, make_rig):
     notifier = Notifier(environ={"NOTIFY_SOCKET": str(tmp_path / "none"), "WATCHDOG_USEC": "5000000"})
-    rig = Rig(tmp_path, notifier=notifier)
+    rig = make_rig(notifier=notifier)
     reply = rig.request(cmd="set", rate_hz=0.1)  # 10 s between cycles: 10 s between pings
     assert reply["ok"] is False and "WatchdogSec=5" in reply["error"]
     assert rig.daemon.config.rate_hz == 100
@@ -155,8 +168,8 @@ def test_a_rate_too_slow_for_the_watchdog_is_refused(tmp_path):
     Notifier(environ={}).check_rate(0.1)  # no watchdog: any rate
 
 
-def test_status_is_built_once_per_cycle_and_after_any_change(tmp_path):
-    rig = Rig(tmp_path)
+def test_status_is_built_once_per_cycle_and_after_any_change(make_rig):
+    rig = make_rig()
     rig.cycles(2)
     first = rig.request(cmd="status")["result"]
     again = rig.request(cmd="status")["result"]
@@ -167,8 +180,8 @@ def test_status_is_built_once_per_cycle_and_after_any_change(tmp_path):
     assert rig.request(cmd="status")["result"]["cycles"] == 3
 
 
-def test_requests_are_served_in_turn_one_per_client_within_the_budget(tmp_path):
-    rig = Rig(tmp_path)
+def test_requests_are_served_in_turn_one_per_client_within_the_budget(make_rig):
+    rig = make_rig()
     ctx = zmq.Context.instance()
     router = ctx.socket(zmq.ROUTER)
     router.bind("inproc://fair")
@@ -192,8 +205,8 @@ def test_requests_are_served_in_turn_one_per_client_within_the_budget(tmp_path):
         sock.close(linger=0)
 
 
-def test_a_nack_during_read_back_is_not_register_drift(tmp_path, caplog):
-    rig = Rig(tmp_path)
+def test_a_nack_during_read_back_is_not_register_drift(make_rig, caplog):
+    rig = make_rig()
     rng = np.random.default_rng(3)
     rig.bus.faults.take_nack = lambda address: bool(rng.random() < 0.05)  # 5 % of transfers NACKed
     with caplog.at_level(logging.INFO, logger="ftsensord"):
@@ -204,9 +217,9 @@ def test_a_nack_during_read_back_is_not_register_drift(tmp_path, caplog):
     assert len(read_back_nacks) > 10  # the case that counted as drift and forced a reset before
 
 
-def test_a_chip_failing_and_returning_is_logged_once_per_transition(tmp_path, caplog):
+def test_a_chip_failing_and_returning_is_logged_once_per_transition(make_rig, caplog):
     from .test_faults import fault
-    rig = Rig(tmp_path, scene_extra=fault("nack", 0.3, 0.6, address=0x0E))
+    rig = make_rig(scene_extra=fault("nack", 0.3, 0.6, address=0x0E))
     with caplog.at_level(logging.INFO, logger="ftsensord"):
         rig.cycles(200)
     about = [r.getMessage() for r in caplog.records if "0x0E" in r.getMessage()]

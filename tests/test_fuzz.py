@@ -65,12 +65,12 @@ def ask_status(ctx: zmq.Context, endpoint: str, daemon: Daemon) -> dict:
     return reply
 
 
-def test_twenty_thousand_hostile_requests_are_all_answered_and_publishing_stays_intact(tmp_path):
+def test_twenty_thousand_hostile_requests_are_all_answered_and_publishing_stays_intact(tmp_path, zmq_context):
     config_path = write_config(tmp_path, extra=f'publish = "ipc://{tmp_path}/pub"\ncontrol = "ipc://{tmp_path}/ctl"')
     config = load_config(config_path)
     clock = VirtualClock()
     bus = simulated_bus(load_scene(tmp_path / "scene.toml"), clock=clock, bus_hz=400e3, seed=2)
-    ctx = zmq.Context()
+    ctx = zmq_context  # terminated at teardown, with any socket an assert left open
     pub, ctl, _ = make_sockets(ctx, config)
     daemon = Daemon(config, bus, pub, ctl, clock=clock.now, wall=lambda: 1.7e9 + clock.now())
     daemon.start()
@@ -138,10 +138,9 @@ def test_twenty_thousand_hostile_requests_are_all_answered_and_publishing_stays_
     assert ask_status(ctx, config.control, daemon)["result"]["cycles"] == cycles  # still serving
     for sock in (pub, ctl, sub, client, oversized):
         sock.close(linger=0)
-    ctx.term()
 
 
-def test_clients_flooding_status_do_not_starve_the_loop(tmp_path):
+def test_clients_flooding_status_do_not_starve_the_loop(tmp_path, zmq_context):
     """Four clients keeping 20 requests each in flight, on the loop's own code (`Daemon.run`,
     `serve_until`) with a virtual clock in which building a status costs 1 ms: before, the
     loop answered every waiting request before its next cycle, and the sequence numbers
@@ -150,7 +149,7 @@ def test_clients_flooding_status_do_not_starve_the_loop(tmp_path):
                                                       f'control = "ipc://{tmp_path}/ctl"'))
     clock = VirtualClock()
     bus = simulated_bus(load_scene(tmp_path / "scene.toml"), clock=clock, bus_hz=400e3, seed=2)
-    ctx = zmq.Context()
+    ctx = zmq_context  # terminated at teardown, with any socket an assert left open
     pub, ctl, _ = make_sockets(ctx, config)
     daemon = Daemon(config, bus, pub, ctl, clock=clock.now, wall=lambda: 1.7e9 + clock.now())
     build = daemon.status
@@ -205,12 +204,11 @@ def test_clients_flooding_status_do_not_starve_the_loop(tmp_path):
     assert min(answered) > 0  # each client answered in turn
     for sock in (pub, ctl, sub):
         sock.close(linger=0)
-    ctx.term()
 
 
-def test_an_oversized_request_is_dropped_and_the_next_one_answered(tmp_path):
+def test_an_oversized_request_is_dropped_and_the_next_one_answered(tmp_path, zmq_context):
     config = load_config(write_config(tmp_path, extra=f'control = "ipc://{tmp_path}/ctl"'))
-    ctx = zmq.Context()
+    ctx = zmq_context  # terminated at teardown, with any socket an assert left open
     pub, ctl, _ = make_sockets(ctx, config)
     daemon = Daemon(config, simulated_bus(load_scene(tmp_path / "scene.toml"), clock=VirtualClock()), pub, ctl)
     req = ctx.socket(zmq.REQ)
@@ -224,4 +222,3 @@ def test_an_oversized_request_is_dropped_and_the_next_one_answered(tmp_path):
     assert ask_status(ctx, config.control, daemon)["ok"]
     for sock in (pub, ctl):
         sock.close(linger=0)
-    ctx.term()

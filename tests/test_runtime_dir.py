@@ -51,9 +51,9 @@ def test_the_fallback_folder_is_created_private(fallback):
     assert client.default_endpoint("wrench") == f"ipc://{fallback}/wrench"
 
 
-def test_a_folder_taken_over_by_another_user_is_refused_by_daemon_and_client(fallback, monkeypatch):
+def test_a_folder_taken_over_by_another_user_is_refused_by_daemon_and_client(fallback, monkeypatch, zmq_context):
     fallback.mkdir(mode=0o755)
-    ctx = zmq.Context()
+    ctx = zmq_context  # terminated at teardown, with any socket an assert left open
     impostor = ctx.socket(zmq.PUB)  # the attacker's publisher, in place before the victim
     impostor.bind(f"ipc://{fallback}/wrench")
     someone_else_owns(fallback, monkeypatch)
@@ -67,10 +67,9 @@ def test_a_folder_taken_over_by_another_user_is_refused_by_daemon_and_client(fal
         assert not (fallback / "control").exists()
     finally:
         impostor.close(linger=0)
-        ctx.term()
 
 
-def test_a_symlinked_folder_is_refused_and_nothing_is_created_through_it(fallback, tmp_path):
+def test_a_symlinked_folder_is_refused_and_nothing_is_created_through_it(fallback, tmp_path, zmq_context):
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir(mode=0o700)
     fallback.symlink_to(elsewhere)
@@ -78,12 +77,11 @@ def test_a_symlinked_folder_is_refused_and_nothing_is_created_through_it(fallbac
         ensure_private_dir(fallback)
     with pytest.raises(ConfigError, match="symbolic link"):
         client.default_endpoint("control")
-    ctx = zmq.Context()
+    ctx = zmq_context  # terminated at teardown, with any socket an assert left open
     sock = ctx.socket(zmq.PUB)
     with pytest.raises(ConfigError, match="symbolic link"):
         bind(sock, f"ipc://{fallback}/wrench")
     sock.close(linger=0)
-    ctx.term()
     assert list(elsewhere.iterdir()) == []
 
 

@@ -234,7 +234,7 @@ def test_cli_set_and_reload(running):
     assert proc.wait(timeout=10) == 0
 
 
-def test_curve_control_lets_in_only_known_clients(tmp_path):
+def test_curve_control_lets_in_only_known_clients(tmp_path, zmq_context):
     import zmq
     import zmq.auth
 
@@ -252,8 +252,7 @@ def test_curve_control_lets_in_only_known_clients(tmp_path):
     config = load_config(write_config(tmp_path, extra=(
         'control = "tcp://0.0.0.0:45671"\n[security]\n'
         f'curve_server_cert = "{server_secret}"\ncurve_clients_dir = "{clients}"')))
-    ctx = zmq.Context()
-    pub, ctl, auth = make_sockets(ctx, config)
+    pub, ctl, auth = make_sockets(zmq_context, config)  # the fixture terminates the context
     daemon = Daemon(config, simulated_bus(load_scene(tmp_path / "scene.toml"), clock=VirtualClock()), pub, ctl)
     import threading
     stop = threading.Event()
@@ -273,7 +272,6 @@ def test_curve_control_lets_in_only_known_clients(tmp_path):
         auth.stop()
         pub.close(linger=0)
         ctl.close(linger=0)
-        ctx.term()
 
 
 def test_sighup_storm_and_sigterm_during_a_reload(running):

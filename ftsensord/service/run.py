@@ -138,12 +138,12 @@ def secure_control(context: zmq.Context, control: zmq.Socket, config: Config) ->
         from zmq.auth import load_certificate
         from zmq.auth.thread import ThreadAuthenticator
 
+        public, secret = load_certificate(str(security.curve_server_cert))  # before a thread is started
+        if secret is None:
+            raise ConfigError(f"{security.curve_server_cert}: no secret key in this certificate")
         auth = ThreadAuthenticator(context)
         auth.start()
         auth.configure_curve(domain="*", location=str(security.curve_clients_dir))
-        public, secret = load_certificate(str(security.curve_server_cert))
-        if secret is None:
-            raise ConfigError(f"{security.curve_server_cert}: no secret key in this certificate")
         control.curve_secretkey = secret
         control.curve_publickey = public
         control.curve_server = True
@@ -172,7 +172,12 @@ def make_sockets(context: zmq.Context, config: Config,
     control.setsockopt(zmq.ROUTER_MANDATORY, 1)  # a reply that cannot go raises, so it is counted
     control.setsockopt(zmq.LINGER, 0)
     auth = secure_control(context, control, config)
-    bind(control, config.control, files)
+    try:
+        bind(control, config.control, files)
+    except BaseException:
+        if auth is not None:  # its thread's socket: the caller's context.destroy must not race it
+            auth.stop()  # type: ignore[attr-defined]
+        raise
     return publisher, control, auth
 
 
@@ -238,34 +243,34 @@ def run(config: Config, early: Iterable[int] = (), realtime: int = 0, ros2_in_lo
 def _serve(config: Config, bus: Bus, notifier: Notifier, files: RuntimeFiles, signals: Signals,
            scheduling: Scheduling, bridge: BridgeWatch, ros2_in_loop: Any = None) -> int:
     context = zmq.Context()
-    publisher, control, auth = make_sockets(context, config, files)
-    endpoint = config.orientation_endpoint
-    orientation = open_receiver(context, endpoint, functools.partial(bind, files=files)) if endpoint else None
-    caps = [ConnectionCap(publisher, "publish"), ConnectionCap(control, "control"),
-            *([ConnectionCap(orientation, "orientation")] if orientation is not None else [])]
-    daemon = Daemon(config, bus, publisher, control, notifier=notifier, orientation=orientation,
-                    guard=HostGuard(caps, files), background_reload=True, scheduling=scheduling)
-    daemon.bridge = bridge
-    if config.ros2 is not None and config.ros2.output == "in-loop":
-        try:
-            daemon.outputs.append(ros2_in_loop(daemon, config.ros2))
-        except FtsensordError as exc:  # as when the bridge process exits: ROS 2 is off, ZeroMQ goes on
-            log.error("the ROS 2 output did not start: %s; the ZeroMQ streams go on without it", exc)
-
-    signals.attach(daemon)
-    log.info("ftsensord on %s: %s; publishing on %s, control on %s", config.bus, config.bound().describe(),
-             ", ".join(config.publish), config.control)
+    caps: list[ConnectionCap] = []
+    auth = None
     try:
+        publisher, control, auth = make_sockets(context, config, files)
+        endpoint = config.orientation_endpoint
+        orientation = open_receiver(context, endpoint, functools.partial(bind, files=files)) if endpoint else None
+        caps = [ConnectionCap(publisher, "publish"), ConnectionCap(control, "control"),
+                *([ConnectionCap(orientation, "orientation")] if orientation is not None else [])]
+        daemon = Daemon(config, bus, publisher, control, notifier=notifier, orientation=orientation,
+                        guard=HostGuard(caps, files), background_reload=True, scheduling=scheduling)
+        daemon.bridge = bridge
+        if config.ros2 is not None and config.ros2.output == "in-loop":
+            try:
+                daemon.outputs.append(ros2_in_loop(daemon, config.ros2))
+            except FtsensordError as exc:  # as when the bridge process exits: ROS 2 is off, ZeroMQ goes on
+                log.error("the ROS 2 output did not start: %s; the ZeroMQ streams go on without it", exc)
+
+        signals.attach(daemon)
+        log.info("ftsensord on %s: %s; publishing on %s, control on %s", config.bus, config.bound().describe(),
+                 ", ".join(config.publish), config.control)
         return daemon.run()
     finally:
         for cap in caps:
             cap.close()
-        publisher.close()
         if auth is not None:
-            auth.stop()  # type: ignore[attr-defined]
-        control.close()
-        if orientation is not None:
-            orientation.close()
-        context.term()
+            auth.stop()  # type: ignore[attr-defined]  # its socket is its thread's: closed there, first
+        # Every socket still open (also those of a start that failed half-way) closed now: a context
+        # left to the garbage collector can wait in term() for sockets the same collection closes.
+        context.destroy(linger=0)
         bus.close()
         files.remove_own()
