@@ -237,15 +237,16 @@ def test_a_failing_chip_or_a_flagged_wrench_raises_the_level_ros_tools_show():
 
 
 def test_the_in_loop_diagnostics_show_what_the_status_reply_says(tmp_path):
-    """In the loop's thread the statuses come from `health`, not the whole `status` reply: the
-    same statuses, with a chip failing too."""
+    """In the loop's thread the statuses come from `health_reply`, not the whole `status` reply:
+    the same statuses, with a chip failing too."""
     from ftsensord.ros2 import diagnostics as d
     from ftsensord.service import wire
+    from ftsensord.service.status import health_reply
     rig = Rig(tmp_path)
     try:
         rig.bus.faults.nack(0x0E)
         rig.cycles(3)
-        health, status = d.health(rig.daemon), rig.daemon.status()
+        health, status = health_reply(rig.daemon), rig.daemon.status()
         assert health == {k: status[k] for k in health}
         flags = {"sensor1": wire.FLAG_CHIP_MISSING, "sensor2": 0}
         shown = d.statuses(health, flags, "ns")

@@ -14,14 +14,10 @@ from __future__ import annotations
 
 import struct
 from itertools import chain
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from ..recording.ros2mcap import CDR_LE, stamp
-from ..service import status as reply
 from ..service import wire
-
-if TYPE_CHECKING:
-    from ..service.daemon import Daemon
 
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
 #: Chip states (`service.status`) and their levels: a chip being reset still answers the
@@ -79,19 +75,6 @@ def chip_status(address: str, c: dict[str, Any], namespace: str) -> Status:
                          "register_drifts", "stuck_detections", "last_error"])
     return (CHIP_LEVELS.get(state, WARN), f"{namespace}: {c.get('sensor', '?')} chip {address}", message,
             f"MLX90393 {address}", values)
-
-
-def health(d: Daemon) -> dict[str, Any]:
-    """The part of ``d``'s `status` reply `statuses` reads (`DAEMON_KEYS`, ``chips``,
-    ``sensors``), made as the reply makes it, in the daemon's own thread (the in-loop output).
-    Not the whole reply, whose timing percentiles (each over the last 1000 cycles) and the
-    rest make it six times dearer (callgrind: 2.1M instructions against 0.35M), in the loop."""
-    t = d.timing
-    return {"rate_hz": d.config.rate_hz, "achieved_rate_hz": t.achieved_rate_hz(), "cycles": t.cycles,
-            "missed_cycles": t.missed, "late_cycles": t.late, "bus": d.config.bus, "scheduler": d.config.scheduler,
-            "uptime_s": round(d.clock() - d.started_at, 3),
-            "chips": d.chips.report(d.reader.health, d.reader.bus.monotonic()),
-            "sensors": {s.name: reply.sensor_status(s) for s in d.sensors}}
 
 
 def statuses(status: dict[str, Any] | None, flags: dict[str, int], namespace: str, why: str = "") -> list[Status]:

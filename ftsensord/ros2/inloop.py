@@ -6,7 +6,7 @@ made once a stream, and each cycle's stamp and six float64 are patched into them
 SampleStatus likewise. No thread, no process, no ZeroMQ subscriber between the loop and
 DDS. In the same place, outside every sample's path: which topics have readers (five
 times a second), ``/diagnostics`` from the part of the daemon's status it shows (once a
-second, over a few cycles: `diagnostics.health` and the statuses in one, the message's
+second, over a few cycles: `service.status.health_reply` and the statuses in one, the message's
 bytes, `diagnostics.Encoder`, a few statuses a cycle in the next, the write with the last),
 and the inputs, taken without waiting (a waitset asked with a zero timeout): an orientation
 goes to the daemon's orientation receiver as a message on its socket would, a tare to its
@@ -31,7 +31,7 @@ import numpy as np
 from ..errors import ConfigError
 from ..recording.ros2mcap import missed_since, stamp, status_body
 from ..service import orientation as wire_orientation
-from ..service.status import stream_frames
+from ..service.status import health_reply, stream_frames
 from . import diagnostics
 from .bridge import DIAGNOSTICS_S, READERS_S, WRENCH_BYTES, tare
 
@@ -154,7 +154,7 @@ class InLoop:
                 self.pending = None
         elif now >= self.due:
             self.due = max(self.due + DIAGNOSTICS_S, now)
-            self.pending = diagnostics.Encoder(diagnostics.statuses(diagnostics.health(self.daemon), self.flags,
+            self.pending = diagnostics.Encoder(diagnostics.statuses(health_reply(self.daemon), self.flags,
                                                                     self.namespace))
         self.node.serve(0.0, self.on_orientation, self.on_tare)
 

@@ -122,14 +122,26 @@ def stream_frames(d: Daemon) -> dict[str, str]:
     return frames
 
 
+def health_reply(d: Daemon) -> dict[str, Any]:
+    """The part of the `status` reply that says how the loop, its chips and its sensors fare:
+    what ROS 2's ``/diagnostics`` shows, made in the loop's own thread by the in-loop output.
+    Without the reply's timing percentiles (each over the last 1000 cycles) and the rest,
+    which make the whole reply six times dearer (callgrind: 2.1M instructions against 0.35M)."""
+    t = d.timing
+    return {"uptime_s": round(d.clock() - d.started_at, 3), "bus": d.config.bus, "scheduler": d.config.scheduler,
+            "rate_hz": d.config.rate_hz, "achieved_rate_hz": t.achieved_rate_hz(),
+            "cycles": t.cycles, "missed_cycles": t.missed, "late_cycles": t.late,
+            "chips": d.chips.report(d.reader.health, d.reader.bus.monotonic()),
+            "sensors": {s.name: sensor_status(s) for s in d.sensors}}
+
+
 def status_reply(d: Daemon) -> dict[str, Any]:
-    """The `status` reply (keys in docs/protocol.md)."""
+    """The `status` reply (keys in docs/protocol.md): `health_reply` and the rest."""
     bound, t, board = d.config.bound(d.board_timing), d.timing, d.board_timing
     return {
-        "version": __version__, "uptime_s": round(d.clock() - d.started_at, 3),
-        "config": str(d.config.path), "bus": d.config.bus, "scheduler": d.config.scheduler,
+        "version": __version__, **health_reply(d),
+        "config": str(d.config.path),
         "readback_every": d.config.readback_every, "schedule": d.config.choice,
-        "rate_hz": d.config.rate_hz, "achieved_rate_hz": t.achieved_rate_hz(),
         "bound_hz": bound.rate_hz, "bound": bound.describe(),  # the bus as measured at start, or simulated:
         "adapter": board and board.adapter, "clock_hz": board and board.clock_hz,
         "ioctl_us": None if board is None or board.ioctl_s is None else board.ioctl_s * 1e6,
@@ -138,10 +150,7 @@ def status_reply(d: Daemon) -> dict[str, Any]:
         "cycle_us": percentiles_us(t.durations), "period_us": d.period_s * 1e6,
         # The daemon's part of a sample's latency: t_mono to its first stream's send.
         "publish_us": percentiles_us(t.publish_delays),
-        "cycles": t.cycles, "missed_cycles": t.missed, "late_cycles": t.late,
         "averaging": d.config.averaging, "lowpass_hz": d.config.lowpass_hz,
-        "chips": d.chips.report(d.reader.health, d.reader.bus.monotonic()),
-        "sensors": {s.name: sensor_status(s) for s in d.sensors},
         "streams": sorted(d.streams), "publish": d.config.publish, "control": d.config.control,
         "connections": {c.name: c.status() for c in d.guard.caps}, "replies_dropped": d.control.dropped,
         "frames": stream_frames(d), "gravity": d.gravity.status(d.sensors, d.clock()) if d.gravity else None,
