@@ -100,7 +100,7 @@ class Reader:
         return self.xfer.shapes
 
     def _learn_shapes(self) -> None:
-        self.xfer.learn([c for c in self.chips if not self.health[c.address].failing] or self.chips, self.cycle)
+        self.xfer.learn(self.care.healthy(self.chips) or self.chips, self.cycle)
 
     @property
     def health(self) -> dict[int, ChipHealth]:

@@ -124,10 +124,6 @@ class Transfers:
         started = self.batch(chips, lambda c: c.sm_messages(zyxt), self._decode_sm)
         return {a: ChipResult(a, error=e) for a, e in started.items() if isinstance(e, ChipError)}
 
-    def read_all(self, chips: list[MLX90393], zyxt: int) -> dict[int, ChipResult]:
-        """RM from ``chips`` (`read_block`), a result each."""
-        return self.results(self.read_block(chips, zyxt)) if chips else {}
-
     def read_block(self, chips: list[MLX90393], zyxt: int) -> RMRead:
         """RM from ``chips``: as wide transfers as the adapter takes, their replies
         landing in one block that is converted at once (`BlockDecoder.convert`); when a
