@@ -203,7 +203,7 @@ def test_one_plan_reads_every_order_and_every_subset(adapter):
         for c in chips:
             c.start_single(mlx.ZYXT_XYZ)
         bus.sleep(reader.conversion_s(mlx.ZYXT_XYZ))
-        results = reader.xfer.read_all(chips, mlx.ZYXT_XYZ)
+        results = reader.xfer.results(reader.xfer.read_block(chips, mlx.ZYXT_XYZ))
         assert sorted(results) == sorted(c.address for c in chips)
         for a, r in results.items():
             # 50 uT: the noise is a few uT; another chip's reply is mT away (fields drawn over +-2 mT).
