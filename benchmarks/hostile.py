@@ -3,6 +3,7 @@
 
     python benchmarks/hostile.py descriptors --connections 3000   # held on control and wrench each
     python benchmarks/hostile.py unread --clients 200 --requests 1000  # clients that never read
+    python benchmarks/hostile.py stalled --clients 128 --seconds 20   # subscribers that never read
     python benchmarks/hostile.py calibration --runs 20   # a huge calibration file, one at the limit
     python benchmarks/hostile.py early-stop --delays 0.02,0.1,0.3,0.5,0.7,0.9   # SIGTERM while starting
     python benchmarks/hostile.py first-status --runs 5   # the first `status`'s cost, fresh processes
@@ -12,7 +13,10 @@ as it can and holds them (libzmq accepts them before any handshake), then asks `
 over a connection of its own: alive or not, the daemon's descriptors at their peak, the
 connections kept and refused. `unread` starts DEALER clients that send `status` requests
 and never read a reply, and reports the daemon's RSS before, at the peak and after the
-clients left, and the replies dropped. `calibration` (in this process, no daemon) times
+clients left, and the replies dropped. `stalled` connects SUB clients to every stream that
+never read (their own queues and socket buffers as small as they go, so the daemon's queue
+fills), beside one recorder that reads: the daemon's RSS before, with them and after, and
+the recorder's sequence gaps against the cycles the loop skipped. `calibration` (in this process, no daemon) times
 `Calibration.load` refusing a 200 MB file, and reading one padded to the size limit with
 numbers (the slowest JSON to parse). `early-stop` sends SIGTERM to `ftsensord run` that
 long after starting it and reports its exit status and the files it left. `first-status`
@@ -180,6 +184,45 @@ def unread(folder: Path, proc: subprocess.Popen, clients: int, requests: int) ->
             "alive": proc.poll() is None}
 
 
+def stalled(folder: Path, proc: subprocess.Popen, clients: int, seconds: float) -> dict[str, Any]:
+    """``clients`` SUBs to every stream that never read, for ``seconds``, beside a recorder."""
+    from ftsensord.client import Subscriber
+
+    control = ControlClient(f"ipc://{folder / 'control'}", timeout_s=10)
+    endpoint = f"ipc://{folder / 'wrench'}"
+    before = memory_kib(proc.pid)["VmRSS"]
+    ctx = zmq.Context()
+    socks = []
+    for _ in range(clients):
+        s = ctx.socket(zmq.SUB)
+        s.setsockopt(zmq.RCVHWM, 1)
+        s.setsockopt(zmq.RCVBUF, 4096)
+        s.setsockopt(zmq.LINGER, 0)
+        s.setsockopt(zmq.SUBSCRIBE, b"")
+        s.connect(endpoint)
+        socks.append(s)
+    missed0 = control.status()["missed_cycles"]
+    received = 0
+    with Subscriber(endpoint, context=ctx) as recorder:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            received += recorder.receive(timeout_s=1.0) is not None
+        gaps = dict(recorder.gaps)
+    status = control.status()
+    loaded = memory_kib(proc.pid)
+    for s in socks:
+        s.close()
+    ctx.term()
+    time.sleep(3.0)  # the daemon's I/O thread frees the gone peers' queues (malloc_trim after 1 s)
+    after = memory_kib(proc.pid)["VmRSS"]
+    return {"clients": clients, "seconds": seconds, "rss_before_mib": round(before / 1024, 1),
+            "rss_loaded_mib": round(loaded["VmRSS"] / 1024, 1), "rss_peak_mib": round(loaded["VmHWM"] / 1024, 1),
+            "rss_after_mib": round(after / 1024, 1), "recorder_received": received,
+            "recorder_gaps": gaps, "missed_cycles": status["missed_cycles"] - missed0,
+            "publish_connections_refused": status.get("connections", {}).get("publish", {}).get("refused"),
+            "alive": proc.poll() is None}
+
+
 def calibration(runs: int) -> dict[str, Any]:
     """Median and largest time (ms) over ``runs`` of loading a 200 MB calibration file (refused
     by its size) and one of the packaged ones padded with numbers to MAX_CALIBRATION_BYTES."""
@@ -262,9 +305,11 @@ print(json.dumps(times))
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("mode", choices=("descriptors", "unread", "calibration", "early-stop", "first-status"))
+    parser.add_argument("mode", choices=("descriptors", "unread", "stalled", "calibration", "early-stop",
+                                         "first-status"))
     parser.add_argument("--connections", type=int, default=3000, help="descriptors: held on each socket")
-    parser.add_argument("--clients", type=int, default=200, help="unread: DEALER clients")
+    parser.add_argument("--clients", type=int, default=200, help="unread: DEALER clients; stalled: SUBs")
+    parser.add_argument("--seconds", type=float, default=20.0, help="stalled: how long they stay")
     parser.add_argument("--requests", type=int, default=1000, help="unread: requests each")
     parser.add_argument("--runs", type=int, default=20, help="calibration: loads timed; first-status: processes")
     parser.add_argument("--delays", default="0.02,0.1,0.3,0.5,0.7,0.9", help="early-stop: s after the start")
@@ -281,8 +326,9 @@ def main() -> None:
         proc, notify = sandboxed(config, folder, unit)
         try:
             run = folder / "ftsensord"
-            out = descriptors(run, proc, args.connections) if args.mode == "descriptors" else \
-                unread(run, proc, args.clients, args.requests)
+            out = {"descriptors": lambda: descriptors(run, proc, args.connections),
+                   "unread": lambda: unread(run, proc, args.clients, args.requests),
+                   "stalled": lambda: stalled(run, proc, args.clients, args.seconds)}[args.mode]()
             out["limit_nofile"] = unit.limit_nofile
             out["memory_max"] = unit.memory_max
             out["seccomp"] = bool(unit.filters)

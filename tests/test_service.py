@@ -274,6 +274,49 @@ def test_curve_control_lets_in_only_known_clients(tmp_path, zmq_context):
         ctl.close(linger=0)
 
 
+def test_a_recorder_loses_no_sample_while_the_daemons_io_thread_cannot_run(tmp_path, zmq_context):
+    """The daemon's ZeroMQ I/O thread held off the CPU (SCHED_IDLE, pinned to the CPU the loop
+    runs on: what a busy 2-core host does to it outside the unit's FIFO) while the loop
+    publishes a second's cycles: the publisher's queue holds them all for a recorder. With
+    the old queue of 8 messages, streams lost their last 13-30 of the 100 cycles."""
+    import zmq
+
+    from ftsensord.service.config import load_config
+    from ftsensord.service.daemon import Daemon
+    from ftsensord.service.run import make_sockets
+    from ftsensord.sim import VirtualClock, load_scene, simulated_bus
+    cpu = min(os.sched_getaffinity(0))
+    zmq_context.set(zmq.THREAD_SCHED_POLICY, os.SCHED_IDLE)  # before its first socket starts the thread
+    zmq_context.set(zmq.THREAD_AFFINITY_CPU_ADD, cpu)
+    config = load_config(write_config(tmp_path, extra=f'publish = "ipc://{tmp_path}/wrench"\n'
+                                                     f'control = "ipc://{tmp_path}/control"'))
+    pub, ctl, _ = make_sockets(zmq_context, config)
+    clock = VirtualClock()
+    daemon = Daemon(config, simulated_bus(load_scene(tmp_path / "scene.toml"), clock=clock), pub, ctl, clock=clock.now)
+    daemon.start()
+    recorder_context = zmq.Context()  # an I/O thread of its own, free to run
+    with Subscriber(f"ipc://{tmp_path}/wrench", context=recorder_context) as recorder:
+        while recorder.receive(timeout_s=0.01) is None:  # connected and subscribed
+            daemon.cycle()
+        start = daemon.timing.cycles
+        others = os.sched_getaffinity(0)
+        os.sched_setaffinity(0, {cpu})
+        try:
+            for _ in range(int(config.rate_hz)):  # on the virtual clock: back to back, never sleeping
+                daemon.cycle()
+        finally:
+            os.sched_setaffinity(0, others)
+        seqs = {}
+        while (s := recorder.receive(timeout_s=1.0)) is not None:
+            seqs.setdefault(s.topic, []).append(s.seq)
+    recorder_context.destroy(linger=0)
+    streams = {"wrench/sensor1", "wrench/sensor2", "wrench/tip", "flux/sensor1", "flux/sensor2"}
+    assert set(seqs) == streams
+    for topic, got in seqs.items():  # each stream's every cycle, from the first after the warm-up
+        assert got[-1] == start + int(config.rate_hz) - 1 and got == list(range(got[0], got[-1] + 1)), topic
+        assert got[0] <= start, topic
+
+
 def test_sighup_storm_and_sigterm_during_a_reload(running):
     proc, pub, ctl = running
     control = ControlClient(ctl)

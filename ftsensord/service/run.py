@@ -38,9 +38,14 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("ftsensord")
 
-#: Samples queued per subscriber before the newest are dropped: a haptic loop
-#: wants the latest value, never a backlog of stale ones.
-PUB_HWM = 8
+#: Messages queued per subscriber before the newest are dropped (libzmq's default). A
+#: recorder loses nothing while it, or the daemon's own ZeroMQ I/O thread (not FIFO outside
+#: the unit), is held off the CPU for up to 2 s (5 streams at 100 Hz); 8, as before, lost
+#: samples to a 20 ms hiccup. A haptic loop's freshness is its CONFLATE socket's job, and
+#: the kernel's socket buffer already holds ~1000 samples of any backlog. Cost: a message
+#: is shared by every queue, so 127 stalled subscribers pin 2.2 MiB more than with 8
+#: (docs/reliability.md, "Subscribers nobody reads").
+PUB_HWM = 1000
 #: Control requests queued before more are dropped (a flood cannot eat memory).
 CONTROL_HWM = 100
 #: Replies queued per control client: four cycles' worth (MAX_PER_CYCLE each), so a client
