@@ -1,5 +1,6 @@
 """Hostile neighbours against the real daemon under its own unit's restrictions
-(benchmarks/unit_sandbox.py: system call filter, LimitNOFILE, the FIFO policy where allowed).
+(benchmarks/unit_sandbox.py: system call filter, LimitNOFILE, MemoryMax as a memory cgroup
+where this host lets us make one, the FIFO policy where allowed).
 
     python benchmarks/hostile.py descriptors --connections 3000   # held on control and wrench each
     python benchmarks/hostile.py unread --clients 200 --requests 1000  # clients that never read
@@ -47,19 +48,21 @@ from ftsensord.client import ControlClient
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from launch import packaged_config, start_daemon, stop
-from unit_sandbox import UnitRestrictions, seccomp_available
+from unit_sandbox import MemoryGroup, UnitRestrictions, seccomp_available
 
 UNIT = Path(__file__).resolve().parent.parent / "systemd" / "ftsensord.service"
 
 
-def sandboxed(config: Path, folder: Path, unit: UnitRestrictions) -> tuple[subprocess.Popen, socket.socket]:
-    """`ftsensord run` under ``unit`` (the filter only where seccomp is available), its
-    output in ``folder``/daemon.log."""
+def sandboxed(config: Path, folder: Path, unit: UnitRestrictions,
+              memory: MemoryGroup | None = None) -> tuple[subprocess.Popen, socket.socket]:
+    """`ftsensord run` under ``unit`` (the filter only where seccomp is available; in
+    ``memory``, a group made for its MemoryMax=, where one could be made), its output in
+    ``folder``/daemon.log."""
     if not seccomp_available():
         unit.filters = []
     with open(folder / "daemon.log", "w") as log:
-        return start_daemon(config, folder, args=unit.run_args, preexec_fn=unit.preexec(), stdout=log,
-                            stderr=subprocess.STDOUT)
+        return start_daemon(config, folder, args=unit.run_args, preexec_fn=unit.preexec(memory=memory),
+                            stdout=log, stderr=subprocess.STDOUT)
 
 
 def memory_kib(pid: int) -> dict[str, int]:
@@ -323,7 +326,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         config = packaged_config(folder / "ftsensord.toml")
-        proc, notify = sandboxed(config, folder, unit)
+        memory = MemoryGroup.make(unit.memory_max, f"ftsensord-hostile-{os.getpid()}") if unit.memory_max else None
+        proc, notify = sandboxed(config, folder, unit, memory)
         try:
             run = folder / "ftsensord"
             out = {"descriptors": lambda: descriptors(run, proc, args.connections),
@@ -335,6 +339,11 @@ def main() -> None:
         finally:
             out_code = stop(proc, notify)
         out["exit_code"] = out_code
+        # The cgroup's own count (page cache included, as the limit counts it), where enforced.
+        out["memory_group"] = None if memory is None else {
+            "v2": memory.v2, "peak_mib": round(memory.peak() / 2**20, 1), "oom_kills": memory.oom_kills()}
+        if memory is not None:
+            memory.remove()
         print(json.dumps(out, indent=1))
 
 

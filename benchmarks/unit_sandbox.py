@@ -1,6 +1,7 @@
 """The systemd unit's own restrictions on a process started here, without systemd: its
 `SystemCallFilter=` installed with seccomp before exec, its resource limits with
-setrlimit, the `--realtime` its ExecStart= gives the daemon. The tests run the daemon under them (tests/test_unit_sandbox.py),
+setrlimit, its `MemoryMax=` as a memory cgroup where this host lets us make one
+(`MemoryGroup`), the `--realtime` its ExecStart= gives the daemon. The tests run the daemon under them (tests/test_unit_sandbox.py),
 because `systemd-analyze verify` and `security` read the unit but never run the program:
 a filter that kills the daemon at start passes both.
 
@@ -133,9 +134,11 @@ class UnitRestrictions:
             allowed = allowed - calls if deny else allowed | calls
         return allowed
 
-    def preexec(self, groups: dict[str, list[str]] | None = None) -> Callable[[], None]:
+    def preexec(self, groups: dict[str, list[str]] | None = None,
+                memory: MemoryGroup | None = None) -> Callable[[], None]:
         """A `subprocess.Popen` ``preexec_fn`` that applies these restrictions in the child,
-        in systemd's order: limits first, the system call filter last."""
+        in systemd's order: its cgroup (``memory``, made for `memory_max`) and limits first,
+        the system call filter last."""
         allowed = self.allowed_calls(groups if groups is not None else syscall_groups())
         lib = _libseccomp()
         # Resolved here, not in the child: the child should do as little as possible.
@@ -149,6 +152,8 @@ class UnitRestrictions:
         rtprio = min(self.limit_rtprio, rtprio_hard) if rtprio_hard != resource.RLIM_INFINITY else self.limit_rtprio
 
         def apply() -> None:
+            if memory is not None:
+                memory.join()
             resource.setrlimit(resource.RLIMIT_NOFILE, nofile)
             resource.setrlimit(resource.RLIMIT_RTPRIO, (rtprio, rtprio))
             if allowed is None:
@@ -163,6 +168,73 @@ class UnitRestrictions:
                 raise OSError("seccomp_load failed")
 
         return apply
+
+
+class MemoryGroup:
+    """``MemoryMax=`` as systemd applies it: a memory cgroup of its own for the process, whose
+    limit the kernel enforces (reclaim, then the OOM killer). Made as a child of this
+    process's own group, on cgroup v2 (``memory.max``) or a v1 memory hierarchy
+    (``memory.limit_in_bytes``; swap left free, as systemd leaves it without MemorySwapMax=).
+    `make` gives None where no such group can be made here (no memory controller for us)."""
+
+    def __init__(self, path: Path, v2: bool):
+        self.path, self.v2 = path, v2
+
+    @classmethod
+    def make(cls, limit: int, name: str) -> MemoryGroup | None:
+        for line in Path("/proc/self/cgroup").read_text().splitlines():
+            _, controllers, own = line.split(":", 2)
+            v2 = controllers == ""
+            if not v2 and "memory" not in controllers.split(","):
+                continue
+            root = _cgroup_mount("cgroup2" if v2 else "memory")
+            if root is None:
+                continue
+            path = root / own.lstrip("/") / name
+            try:
+                path.mkdir()
+            except OSError:
+                continue
+            group = cls(path, v2)
+            try:
+                (path / group._limit_file).write_text(str(limit))
+            except OSError:  # v2 without memory delegated to our group: no such file
+                path.rmdir()
+                continue
+            return group
+        return None
+
+    @property
+    def _limit_file(self) -> str:
+        return "memory.max" if self.v2 else "memory.limit_in_bytes"
+
+    def join(self) -> None:
+        """In a ``preexec_fn``: move the calling process into the group (before exec, so all
+        the program allocates is counted)."""
+        (self.path / "cgroup.procs").write_text("0")
+
+    def peak(self) -> int:
+        """The most the group has used, bytes (its page cache included, as the limit counts it)."""
+        return int((self.path / ("memory.peak" if self.v2 else "memory.max_usage_in_bytes")).read_text())
+
+    def oom_kills(self) -> int:
+        """Processes of the group the OOM killer took."""
+        text = (self.path / ("memory.events" if self.v2 else "memory.oom_control")).read_text()
+        return dict((k, int(v)) for k, v in (line.split() for line in text.splitlines())).get("oom_kill", 0)
+
+    def remove(self) -> None:
+        """Delete the group (its processes gone)."""
+        self.path.rmdir()
+
+
+def _cgroup_mount(kind: str) -> Path | None:
+    """Where the cgroup2 hierarchy, or the v1 hierarchy with this controller, is mounted."""
+    for line in Path("/proc/self/mountinfo").read_text().splitlines():
+        pre, _, post = line.partition(" - ")
+        fstype, _, options = post.split(" ")[:3]
+        if (kind == "cgroup2" and fstype == "cgroup2") or (fstype == "cgroup" and kind in options.split(",")):
+            return Path(pre.split(" ")[4])
+    return None
 
 
 def seccomp_available() -> bool:
