@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from ..chip import mlx90393 as mlx
 from ..docfile import Table, load_json
 from ..errors import ConfigError
 from ..model.linear import LinearModel, PositionMap
@@ -156,8 +157,8 @@ def _temperature(doc: Table, channels: int) -> CalibrationTemperature:
     """The ``temperature_c`` section (`CalibrationTemperature.document` writes it)."""
     t = doc.table("temperature_c")
     t.only({"mean", "lowest", "highest", "drift_t_per_k"})
-    # An MLX90393's operating range is -20 to 85 degC.
-    mean, lowest, highest = (t.number(k, low=-20.0, high=85.0, unit="degC") for k in ("mean", "lowest", "highest"))
+    low, high = mlx.OPERATING_RANGE_C  # the chips' operating range, as a dataset's
+    mean, lowest, highest = (t.number(k, low=low, high=high, unit="degC") for k in ("mean", "lowest", "highest"))
     if not lowest <= mean <= highest:
         raise doc.fail("temperature_c", "lowest <= mean <= highest (degC)", doc.get("temperature_c"))
     drift = np.array(t.numbers("drift_t_per_k", channels, unit="T/K")) if "drift_t_per_k" in t.doc else None
