@@ -239,7 +239,9 @@ class Dataset:
                 s = table.table(key)
                 s.only({"position_m", "flux_t"})
                 positions = s.get("position_m")
-                k = len(positions) if isinstance(positions, list) else 0
+                if not isinstance(positions, list):  # its length sizes both matrices
+                    raise s.fail("position_m", "a list of magnet positions [x, y, z] (m)", positions)
+                k = len(positions)
                 flux = np.array(s.matrix("flux_t", k, 3, unit="T"))
                 why = implausible_flux(flux)
                 if why is not None:
