@@ -31,6 +31,7 @@ from ftsensord.model.linear import (
     fit_position_map,
     tip_wrench,
 )
+from ftsensord.service.config import builtin_path
 from ftsensord.sim import NOISELESS, VirtualClock, simulated_bus, two_sensor_scene
 from ftsensord.sim.loads import StaticLoad, paper_plan
 
@@ -244,6 +245,10 @@ def test_calibration_file_round_trips(small_dataset, tmp_path):
     (lambda d: d.pop("checksum"), "checksum", "missing"),
     (lambda d: d["wrench_range"].pop(), "wrench_range", "6 finite numbers (N, Nm)"),
     (lambda d: d["wrench_range"].__setitem__(2, 0.0), "wrench_range", "6 numbers over 0"),
+    # NaN or Infinity in a part no parser reads (json.loads takes them): before, the checksum's
+    # canonical JSON raised a bare "Out of range float values are not JSON compliant".
+    (lambda d: d["fit_report"].update(note=float("nan")), "fit_report.note", "finite numbers"),
+    (lambda d: d["sensor"].update(serial=float("inf")), "sensor.serial", "finite numbers"),
 ])
 def test_a_bad_calibration_file_names_the_file_and_key(small_dataset, tmp_path, change, key, expected):
     path = tmp_path / "cal.json"
@@ -297,3 +302,16 @@ def test_fit_refuses_rank_deficient_data_rather_than_returning_a_matrix(seed, ki
                  np.zeros((n, 3)), samples_per_pose=10)
     with pytest.raises(CalibrationError, match="not identifiable"):
         fit(ds)
+
+
+@pytest.mark.parametrize("key", ["K", "nonlinear.K"])
+def test_a_stiffness_at_the_end_of_the_float_range_is_refused_naming_it(tmp_path, key):
+    """An entry of -1e308 (finite, so it passes the matrix's own check) with the checksum made
+    again: before, the eigenvalues of nonlinear.K's symmetric part overflowed and a bare
+    LinAlgError ("Eigenvalues did not converge") left the loader, naming neither file nor key."""
+    doc = Calibration.load(builtin_path("sim-sensor1.json")).document()
+    (doc["nonlinear"]["K"] if key == "nonlinear.K" else doc["K"])[1][1] = -1e308
+    doc["checksum"] = checksum(doc)
+    path = tmp_path / "cal.json"
+    path.write_text(json.dumps(doc))
+    assert_names_file_and_key(Calibration.load, path, key, "expected")

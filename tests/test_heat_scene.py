@@ -8,6 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from ftsensord.calibration.dataset import Dataset
+from ftsensord.calibration.procedure import simulate_dataset
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.chip.driver import MLX90393
 from ftsensord.model.magnet import NDFEB_BR_TEMPCO_PER_K, remanence_factor
@@ -24,7 +26,7 @@ from ftsensord.sim import (
 from ftsensord.sim import physics as sim_physics
 from ftsensord.sim.loads import StaticLoad
 from ftsensord.sim.physics import PhysicalScene, SimSensor, Tolerances
-from ftsensord.sim.scene import default_scene_path
+from ftsensord.sim.scene import TEMPERATURE_RANGE_C, default_scene_path
 from ftsensord.sim.thermal import ChipDrift, TemperatureProfile
 
 from .conftest import assert_names_file_and_key
@@ -184,10 +186,10 @@ celsius = [25.0, 25.0, 35.0]
     (("celsius = [25.0, 25.0, 35.0]", "celsius = [25.0, 35.0]"), "sensor[0].temperature.celsius",
      "3 finite numbers (degC, one per time"),
     (("celsius = [25.0, 25.0, 35.0]", "celsius = [25.0, 25.0, 308.15]"), "sensor[0].temperature.celsius",
-     "temperatures in [-40.0, 85.0]"),
+     "temperatures in [-20.0, 85.0]"),
     (('kind = "recorded"', 'kind = "constant"'), "sensor[0].temperature.times_s", "one of celsius, kind"),
     (('kind = "recorded"\ntimes_s = [0.0, 20.0, 140.0]\ncelsius = [25.0, 25.0, 35.0]',
-      'kind = "constant"\ncelsius = 400'), "sensor[0].temperature.celsius", "finite number in [-40.0, 85.0]"),
+      'kind = "constant"\ncelsius = 400'), "sensor[0].temperature.celsius", "finite number in [-20.0, 85.0]"),
     (('kind = "recorded"\ntimes_s = [0.0, 20.0, 140.0]\ncelsius = [25.0, 25.0, 35.0]',
       'kind = "linear"\ncelsius = 25.0'), "sensor[0].temperature.drift_c_per_s", "missing"),
     (("[sensor.temperature]\nkind = \"recorded\"\ntimes_s = [0.0, 20.0, 140.0]\ncelsius = [25.0, 25.0, 35.0]",
@@ -199,6 +201,36 @@ def test_a_bad_temperature_table_names_file_key_and_expectation(tmp_path, edit, 
     assert text != TEMPERATURE_SCENE
     path.write_text(text)
     assert_names_file_and_key(load_scene, path, key, expected)
+
+
+@pytest.mark.parametrize(("text", "key"), [
+    (TEMPERATURE_SCENE.replace("kind = \"sensors\"", "kind = \"sensors\"\ntemperature_c = 298.15"), "temperature_c"),
+    ("version = 1\nkind = \"static\"\ntemperature_c = 298.15\n[[chip]]\naddress = 0x0C\nfield_ut = [1, 2, 3]\n",
+     "temperature_c"),
+    ("version = 1\nkind = \"static\"\n[[chip]]\naddress = 0x0C\nfield_ut = [1, 2, 3]\ntemperature_c = -30\n",
+     "chip[0].temperature_c"),
+])
+def test_every_scene_temperature_is_in_the_chips_operating_range(tmp_path, text, key):
+    """A kelvin figure (298.15) or a temperature the parts are not specified at, written in
+    any of a scene's temperature keys, is refused as in ``[sensor.temperature]``: before,
+    the scene-wide and the static scene's keys took any number, and the chips read 298 degC."""
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    assert_names_file_and_key(load_scene, path, key, f"in [{mlx.OPERATING_RANGE_C[0]}, {mlx.OPERATING_RANGE_C[1]}]")
+
+
+def test_a_dataset_recorded_at_the_scenes_coldest_loads_for_calibration(tmp_path):
+    """What a scene may hold, the calibration takes: a sensor at the low end of the chips'
+    range gives a dataset `Dataset.load` reads back (before, a scene took -40 degC and the
+    dataset file refused anything below -20, so `ftsensord calibrate` refused what
+    `ftsensord dataset` had written)."""
+    low = TEMPERATURE_RANGE_C[0]  # the coldest a scene file takes
+    scene = PhysicalScene([SimSensor("s", ADDRESSES, temperature=TemperatureProfile.constant(low + 0.2))])
+    ds = simulate_dataset(scene, "s", "six-axis", poses=30, validation_poses=0, samples=2, seed=1, sweeps=False,
+                          no_load_poses=0)
+    assert ds.temperature_c is not None and ds.temperature_c.min() < low + 0.5
+    ds.save(tmp_path / "cold.json")
+    assert np.array_equal(Dataset.load(tmp_path / "cold.json").temperature_c, ds.temperature_c)
 
 
 def test_the_warm_scene_file_warms_both_sensors_whose_chips_drift_as_their_parts():

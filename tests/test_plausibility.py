@@ -136,6 +136,18 @@ def test_a_rank_deficient_sweep_names_the_chip_and_the_file(clean, tmp_path):
     assert str(path) in msg and "position_sweeps.0x0E" in msg and "position rank < 3" in msg, msg
 
 
+@pytest.mark.parametrize("bad", [None, 0.001, "[0, 0, 0]"])
+def test_a_sweeps_positions_that_are_no_list_are_named_not_its_flux(clean, tmp_path, bad):
+    """Before, positions of the wrong kind made the loader ask for a "0 x 3 matrix" of flux_t,
+    naming the key that was right."""
+    path = tmp_path / "ds.json"
+    clean.save(path)
+    doc = json.loads(path.read_text())
+    doc["position_sweeps"]["0x0E"]["position_m"] = bad
+    path.write_text(json.dumps(doc))
+    assert_names_file_and_key(Dataset.load, path, "position_sweeps.0x0E.position_m", "positions")
+
+
 # --- orientations and no-load poses --------------------------------------------------------------------
 def test_orientations_round_trip_and_a_wrong_one_names_the_pose(room, tmp_path):
     path = tmp_path / "ds.json"

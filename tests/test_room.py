@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from ftsensord.calibration.calfile import Calibration
-from ftsensord.calibration.fit import fit
+from ftsensord.calibration.dataset import Dataset
+from ftsensord.calibration.fit import fit, room_directions
 from ftsensord.calibration.rig import record_dataset, simulate_sweeps, simulated_robot
 from ftsensord.errors import CalibrationError
 from ftsensord.model import se3
@@ -23,6 +24,7 @@ from ftsensord.sim.loads import (
     FixedOrientation,
     RecordedOrientation,
     StaticLoad,
+    fibonacci_directions,
     gravity_to_down,
     paper_plan,
 )
@@ -347,3 +349,34 @@ def test_calibrate_on_a_room_dataset_shows_progress_and_a_refusal_says_what_to_r
     assert main(["calibrate", str(tmp_path / "bad.json"), "-o", str(tmp_path / "bad-cal.json"),
                  "--allow-poor-fit"]) == 0
     assert (tmp_path / "bad-cal.json").exists()
+
+
+def _no_load(rotations: list[np.ndarray], field_t: np.ndarray, sem_t: float = 0.3e-6) -> Dataset:
+    """No-load poses at ``rotations`` (R_w0) in a uniform room field, the nominal chips: the
+    stacked R_Si^T R_w0^T u, plus each mean's noise (standard error ``sem_t``), 100 readings."""
+    stacked = np.concatenate([R.T for R in SensorGeometry.ring().chip_R], axis=0)
+    rng = np.random.default_rng(4)
+    flux = np.array([stacked @ (R.T @ field_t) for R in rotations]) + rng.normal(0, sem_t, (len(rotations), 24))
+    n = len(rotations)
+    return Dataset(ADDRS, np.zeros((n, 6)), flux, np.full((n, 24), sem_t), np.zeros((n, 8), dtype=bool),
+                   np.array(["no-load"] * n), np.zeros(n), np.zeros((n, 3)),
+                   np.array([R.T @ DOWN for R in rotations]), samples_per_pose=100, path="planar.json")
+
+
+def test_no_load_poses_turned_about_one_axis_are_refused_not_taken_for_a_field_free_room():
+    """A robot turning only its last joint at no load (24 turns about the shaft, held
+    vertical or tilted 60 deg) sweeps the room's field through 2 flux directions, its 3rd at
+    the noise: before, the fit said "no room field above 10 x the noise floor" (with two
+    directions at 80 times it) and took the nominal directions, which leak the field on an
+    as-built part (2.4 against 0.35 mNm noiseless over the no-load sweep, part 101 in 25 uT).
+    Poses spread over the sphere in the same field, and a field-free room, are kept."""
+    turns = [se3.exp_so3(np.array([0, 0, 2 * np.pi * k / 24])) for k in range(24)]
+    tilted = [se3.exp_so3(np.array([np.radians(60), 0, 0])) @ R for R in turns]
+    for rotations in (turns, tilted):
+        with pytest.raises(CalibrationError) as exc:
+            room_directions(_no_load(rotations, EARTH_T), SensorGeometry.ring())
+        assert "planar.json" in str(exc.value) and "one axis" in str(exc.value)
+    spread = [gravity_to_down(d) @ se3.exp_so3(np.array([0, 0, 2.4 * k]))
+              for k, d in enumerate(fibonacci_directions(24))]
+    assert room_directions(_no_load(spread, EARTH_T), SensorGeometry.ring())[1]["source"] == "no-load poses"
+    assert room_directions(_no_load(turns, np.zeros(3)), SensorGeometry.ring())[1]["mode"] == "geometry"

@@ -10,12 +10,14 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from ..chip import mlx90393 as mlx
 from ..docfile import Table, load_json
 from ..errors import ConfigError
 from ..model.linear import LinearModel, PositionMap
@@ -138,13 +140,20 @@ class Calibration:
         if not isinstance(report, dict):
             raise doc.fail("fit_report", "a table", report)
         stored = doc.string("checksum")
+        where = _not_finite(raw)
+        if where is not None:  # in a part no parser above reads: the checksum's JSON has no NaN
+            raise ConfigError(f"{path}: {where}: expected finite numbers (JSON has none other; `ftsensord "
+                              "calibrate` writes none), got NaN or Infinity")
         if stored != checksum(raw):
             raise doc.fail("checksum", f"{checksum(raw)} (the file was changed after it was written)", stored)
         if np.linalg.matrix_rank(K @ A) < 6:
             raise doc.fail("K", "K A of rank 6 (a sensor must see all six axes)", "a rank-deficient K A")
         for key, stiffness in (("K", K), ("nonlinear.K", None if nonlinear is None else nonlinear.K)):
             if stiffness is not None:
-                lowest = float(np.linalg.eigvalsh(0.5 * (stiffness + stiffness.T))[0])
+                try:
+                    lowest = float(np.linalg.eigvalsh(0.5 * stiffness + 0.5 * stiffness.T)[0])
+                except np.linalg.LinAlgError:  # entries near the float range's end (1e308): none to speak of
+                    lowest = float("nan")
                 if not lowest > 0:  # the test `fit.check_stiffness` makes, for a file
                     raise ConfigError(f"{path}: {key}: expected a positive definite stiffness (x^T K x > 0), "
                                       f"got one whose symmetric part has eigenvalue {lowest:.3g}")
@@ -156,8 +165,8 @@ def _temperature(doc: Table, channels: int) -> CalibrationTemperature:
     """The ``temperature_c`` section (`CalibrationTemperature.document` writes it)."""
     t = doc.table("temperature_c")
     t.only({"mean", "lowest", "highest", "drift_t_per_k"})
-    # An MLX90393's operating range is -20 to 85 degC.
-    mean, lowest, highest = (t.number(k, low=-20.0, high=85.0, unit="degC") for k in ("mean", "lowest", "highest"))
+    low, high = mlx.OPERATING_RANGE_C  # the chips' operating range, as a dataset's
+    mean, lowest, highest = (t.number(k, low=low, high=high, unit="degC") for k in ("mean", "lowest", "highest"))
     if not lowest <= mean <= highest:
         raise doc.fail("temperature_c", "lowest <= mean <= highest (degC)", doc.get("temperature_c"))
     drift = np.array(t.numbers("drift_t_per_k", channels, unit="T/K")) if "drift_t_per_k" in t.doc else None
@@ -194,6 +203,18 @@ def _nonlinear(doc: Table, chips: int) -> NonlinearCalibration:
         t.number("ring_radius_m", low=1e-3, high=0.1, unit="m"), t.number("tilt_deg", low=-90, high=90),
         tuple(warnings), magnet_p, strength,
         t.string("field_model", "dipole", choices=("dipole", "dipole+octupole")) == "dipole+octupole")
+
+
+def _not_finite(value: Any, where: str = "") -> str | None:
+    """The key path (``a.b[3]``) of the first NaN or infinity in ``value``, or None."""
+    if isinstance(value, float):
+        return None if math.isfinite(value) else where
+    items = (value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, list) else ())
+    for k, v in items:
+        found = _not_finite(v, f"{where}[{k}]" if isinstance(k, int) else f"{where}.{k}" if where else str(k))
+        if found is not None:
+            return found
+    return None
 
 
 def checksum(doc: dict[str, Any]) -> str:

@@ -222,8 +222,9 @@ class Dataset:
             if ("temperature_c" in row.doc) != ("temperature_c" in rows[0].doc):
                 raise row.fail("temperature_c", "a temperature in every pose or in none (as poses[0])",
                                row.doc.get("temperature_c", "none"))
-            if "temperature_c" in row.doc:  # an MLX90393's operating range, -20 to 85 degC
-                temperatures.append(row.number("temperature_c", low=-20.0, high=85.0, unit="degC"))
+            if "temperature_c" in row.doc:  # the chips' operating range, as a scene's
+                low, high = mlx.OPERATING_RANGE_C
+                temperatures.append(row.number("temperature_c", low=low, high=high, unit="degC"))
             if ("times_s" in row.doc) != ("times_s" in rows[0].doc):
                 raise row.fail("times_s", "times in every pose or in none (as poses[0])", row.doc.get("times_s", "none"))
             if "times_s" in row.doc:
@@ -238,7 +239,9 @@ class Dataset:
                 s = table.table(key)
                 s.only({"position_m", "flux_t"})
                 positions = s.get("position_m")
-                k = len(positions) if isinstance(positions, list) else 0
+                if not isinstance(positions, list):  # its length sizes both matrices
+                    raise s.fail("position_m", "a list of magnet positions [x, y, z] (m)", positions)
+                k = len(positions)
                 flux = np.array(s.matrix("flux_t", k, 3, unit="T"))
                 why = implausible_flux(flux)
                 if why is not None:

@@ -209,11 +209,21 @@ def room_directions(dataset: Dataset, geometry: SensorGeometry, mode: str = "aut
             + ", ".join(f"{v * 1e6:.3g}" for v in sv[:5]) + f" uT; noise floor {floor * 1e6:.3g} uT): not a "
             "uniform field alone. Take the rod and mass off for the no-load poses, and move steel and motors "
             "away from the sensor")
+    if sv[2] <= ROOM_EXTRA_FACTOR * floor < ROOM_SIGNAL_FACTOR * floor <= sv[0]:
+        # A field stands well above the noise, but its 3rd direction is at the noise (where a
+        # 4th must stay): the poses turned the sensor about one axis only, so the field along
+        # it never changed. Over poses spread on the sphere the three stand alike (~1.1:1).
+        raise CalibrationError(
+            f"{dataset.where()}the no-load poses turn the sensor about one axis only: the room field varies in 2 "
+            "flux directions (singular values " + ", ".join(f"{v * 1e6:.3g}" for v in sv[:3]) + f" uT; noise floor "
+            f"{floor * 1e6:.3g} uT), its 3rd is not seen, and the directions measured would leave it in. Record "
+            "no-load poses at orientations spread over the sphere (the shaft tilted every way, turned about the "
+            "vertical too), not by turning one joint")
     if sv[2] < ROOM_SIGNAL_FACTOR * floor:
         # The room field is too weak to measure its directions: nothing to reject that the
         # noise does not hide, so the nominal directions are as good and cost the same.
-        report.update(mode="geometry", source="nominal chip orientations (the no-load poses show no room "
-                      f"field above {ROOM_SIGNAL_FACTOR:g} x the noise floor)")
+        report.update(mode="geometry", source="nominal chip orientations (the no-load poses show no 3rd room "
+                      f"field direction above {ROOM_SIGNAL_FACTOR:g} x the noise floor)")
         return geometry.room_directions(), report
     report["source"] = "no-load poses"
     return vt[:3].T, report

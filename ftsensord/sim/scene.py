@@ -185,15 +185,17 @@ def _tolerances(t: Table) -> Tolerances:
                       t.integer("seed", low=0, what="an integer >= 0 naming the part"))
 
 
-#: A sensor's temperature is the MLX90393's operating range (E code, -40 to 85 degC): the
-#: datasheet's drifts say nothing beyond, and a kelvin figure (298) or a typo falls outside.
-TEMPERATURE_RANGE_C = (-40.0, 85.0)
+#: Every temperature a scene holds is in the chips' operating range (`mlx.OPERATING_RANGE_C`):
+#: the datasheet's drifts say nothing beyond, a kelvin figure (298) or a typo falls outside,
+#: and a dataset recorded on the scene must load (it is held to the same range).
+TEMPERATURE_RANGE_C = mlx.OPERATING_RANGE_C
+TEMPERATURE_UNIT = "degC, the MLX90393's operating range"
 
 
 def _temperature(t: Table) -> TemperatureProfile:
     kind = t.string("kind", choices=("constant", "linear", "recorded"))
     low, high = TEMPERATURE_RANGE_C
-    unit = "degC, the MLX90393's operating range"
+    unit = TEMPERATURE_UNIT
     if kind == "constant":
         t.only({"kind", "celsius"})
         return TemperatureProfile.constant(t.number("celsius", low=low, high=high, unit=unit))
@@ -293,8 +295,10 @@ def _static(doc: Table) -> StaticScene:
             raise chip.fail("address", "an address not used before", addr)
         fields[addr] = np.array(chip.numbers("field_ut", 3, unit="uT, chip frame")) * 1e-6
         if "temperature_c" in chip.doc:
-            temps[addr] = chip.number("temperature_c", unit="degC")
-    scene = StaticScene(fields, temps, doc.number("temperature_c", 25.0, unit="degC"))
+            temps[addr] = chip.number("temperature_c", low=TEMPERATURE_RANGE_C[0], high=TEMPERATURE_RANGE_C[1],
+                                      unit=TEMPERATURE_UNIT)
+    scene = StaticScene(fields, temps, doc.number("temperature_c", 25.0, low=TEMPERATURE_RANGE_C[0],
+                                                  high=TEMPERATURE_RANGE_C[1], unit=TEMPERATURE_UNIT))
     scene.faults = _faults(doc, scene.addresses)
     return scene
 
@@ -312,7 +316,8 @@ def _physical(doc: Table) -> PhysicalScene:
             seen.add(a)
     scene = PhysicalScene(sensors, field_model=doc.string("field_model", "cylinder", choices=FIELD_MODELS),
                           crosstalk=doc.string("crosstalk", "dipole", choices=CROSSTALK_MODELS),
-                          temperature_c=doc.number("temperature_c", 25.0, unit="degC"),
+                          temperature_c=doc.number("temperature_c", 25.0, low=TEMPERATURE_RANGE_C[0],
+                                                   high=TEMPERATURE_RANGE_C[1], unit=TEMPERATURE_UNIT),
                           temperature_drift_c_per_s=doc.number("temperature_drift_c_per_s", 0.0, unit="degC/s"),
                           external_field_t=_external_field(doc),
                           stray_sources=_stray_sources(doc, sensors))

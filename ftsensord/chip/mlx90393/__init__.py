@@ -112,6 +112,7 @@ from .settings import (  # noqa: F401
 )
 from .thermal import (  # noqa: F401
     OFFSET_DRIFT_UT_PER_K,
+    OPERATING_RANGE_C,
     SENSITIVITY_TEMPCO_PER_K,
     SENSITIVITY_TEMPCO_SPREAD_PER_K,
     SENSITIVITY_TEMPCO_TCMP_PER_K,

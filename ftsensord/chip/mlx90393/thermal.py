@@ -9,6 +9,11 @@ datasheet gives X/Y and Z apart.
 
 from __future__ import annotations
 
+#: The die temperatures (degC) the parts are specified at: the MLX90393SLW this project names
+#: (`PART_VARIANTS`), temperature code S, -20 to 85 degC. The datasheet's drifts say nothing
+#: beyond; a scene, a dataset and a calibration file are held to it alike.
+OPERATING_RANGE_C = (-20.0, 85.0)
+
 #: The datasheet specifies the chip at 25 degC; every drift below is a change from there.
 TEMPERATURE_REF_C = 25.0
 
