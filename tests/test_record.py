@@ -490,6 +490,43 @@ def test_a_csv_record_cut_by_a_write_error_says_how_many_samples_it_holds(tmp_pa
     assert meta["torn_row"] and full.startswith(meta["torn_row"]) and meta["torn_row"] != full, meta["torn_row"]
 
 
+DISK_FULL_ANY = """
+import resource, signal
+import numpy as np
+from ftsensord.recording import open_writer, record
+from ftsensord.service import wire
+
+class Synthetic:
+    i = 0
+    def receive(self, timeout_s=None):
+        self.i += 1
+        return None if self.i > 5000 else wire.Sample("wrench/sensor1", wire.KIND_WRENCH, self.i, self.i * 0.01,
+                                                      1.7e9, 0, np.full(6, self.i * 1e-3))
+
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+resource.setrlimit(resource.RLIMIT_FSIZE, (50_000, 50_000))
+try:
+    record(Synthetic(), open_writer({path!r}, ["wrench/sensor1"]), ["wrench/sensor1"], flush_every_s=0)
+except OSError as exc:
+    print("error", exc.errno, exc.filename)
+    print(exc)
+"""
+
+
+@pytest.mark.parametrize("fmt", ["csv", "npz", "mcap"])
+def test_a_write_error_names_the_file_it_could_not_write(tmp_path, fmt):
+    """A full disk (the file size limit: the same failed write) ends `record` with an
+    OSError that names the file, so `ftsensord record`'s message ("ftsensord: [Errno 27]
+    File too large: '.../run.csv'") says which file: a bare write() error names none."""
+    path = tmp_path / f"r.{fmt}"
+    out = subprocess.run([sys.executable, "-c", DISK_FULL_ANY.format(path=str(path))], capture_output=True,
+                         text=True, timeout=60)
+    first, message = (out.stdout.splitlines() + ["", ""])[:2]
+    assert first.startswith("error 27 "), out.stdout + out.stderr  # EFBIG
+    named = path if fmt != "npz" else tmp_path / "r.npz.part"  # the NPZ's rows go to its sidecar first
+    assert first == f"error 27 {named}" and str(named) in message, out.stdout
+
+
 @pytest.mark.parametrize("fmt", ["csv", "npz", "mcap"])
 def test_the_temperature_flag_reaches_every_recording(tmp_path, fmt):
     """Bit 11 (`temperature`) as any other flag: the CSV's and NPZ's flags column and the

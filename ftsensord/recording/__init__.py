@@ -47,6 +47,8 @@ FLUSH_EVERY_S = 0.5
 
 
 class SampleWriter(Protocol):
+    file: Any  # the open file the rows go to (named when writing it fails)
+
     def write(self, sample: wire.Sample) -> None: ...
     def flush(self) -> None: ...
     def close(self, tallies: dict[str, Tally]) -> None: ...
@@ -191,7 +193,19 @@ def record(sub: Receiver, writer: SampleWriter, streams: list[str], *, count: in
     take what is already queued, and close the writer (the file is complete).
 
     ``stop`` is looked at least every ``flush_every_s``: a signal handler sets it.
+    A write error (a full disk) is raised as an OSError naming the file written.
     """
+    try:
+        return _record(sub, writer, streams, count, seconds, timeout_s, stop, clock, flush_every_s)
+    except OSError as exc:
+        if exc.filename is not None or exc.errno is None:
+            raise
+        # write() and close() name no file (a full disk: "[Errno 28] No space left on device")
+        raise OSError(exc.errno, exc.strerror, getattr(writer.file, "name", None)) from exc
+
+
+def _record(sub: Receiver, writer: SampleWriter, streams: list[str], count: int | None, seconds: float | None,
+            timeout_s: float, stop: Callable[[], bool], clock: Callable[[], float], flush_every_s: float) -> Outcome:
     tallies = {s: Tally() for s in streams}
     start = last_sample = last_flush = clock()
     reason = "stopped"
