@@ -413,6 +413,11 @@ def test_config_refuses_a_rate_above_the_bound_naming_it(tmp_path):
     (("rate_hz = 100", "rate_hz = nan"), "rate_hz", "finite number"),
     (("rate_hz = 100", "rate_hz = inf"), "rate_hz", "finite number"),
     (("version = 1", "version = 2"), "version", "expected 1"),
+    # RES is a 2-bit field: 2.5 was read as RES 2 (int() of the float), 1e-300 as RES 0
+    (("[chip]\n", "[chip]\nres = [2.5, 3, 3]\n"), "chip.res", "3 integers"),
+    (("[chip]\n", "[chip]\nres = [3, 3, 1e-300]\n"), "chip.res", "3 integers"),
+    # a sensor 1e12 m from the tip (a unit mistake, or worse) was taken: moments of 1e12 N m
+    (("sensor2 = [0.0, 0.0, -0.1]", "sensor2 = [0.0, 0.0, -1e12]"), "tool.offsets_m.sensor2", "within 2 m"),
 ])
 def test_a_bad_configuration_names_the_file_the_key_and_what_was_expected(tmp_path, edit, key, expected):
     path = write_config(tmp_path)
