@@ -178,3 +178,13 @@ def test_the_floor_check_sees_imports_that_run_whatever_their_form(tmp_path, sou
     path.write_text(source)
     found = _imports("ftsensord.chip.fake", path)
     assert imported in found and floor(imported) > floor("ftsensord.chip.fake"), found
+
+
+@pytest.mark.parametrize("module", sorted(m for m, p in MODULES.items() if p.name == "__init__.py"))
+def test_each_package_init_only_hands_names_on(module):
+    """`__init__` holds no code of its own (a reader looks for a part's code in its modules);
+    the package face's one function is its lazy `__getattr__`. Until 2026-11-27 the
+    recording's held its writers and loop (302 lines), the simulator's `simulated_bus`."""
+    tree = ast.parse(MODULES[module].read_text())
+    defined = [n.name for n in tree.body if isinstance(n, (ast.FunctionDef, ast.ClassDef))]
+    assert defined == (["__getattr__"] if module == "ftsensord" else []), f"{module} defines {defined}"

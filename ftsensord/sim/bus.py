@@ -23,11 +23,12 @@ import errno
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
+import numpy as np
 from smbus2 import i2c_msg
 from smbus2.smbus2 import I2C_M_RD
 
 from ..chip.i2c import ADAPTER_RULES, BITS_PER_BYTE, I2C_RDWR_MAX_MSGS, BusTiming
-from .chip import EmulatedMLX90393
+from .chip import EmulatedMLX90393, FieldSource, NoiseModel
 from .clock import MonotonicClock, VirtualClock
 from .faults import FaultScript
 
@@ -221,3 +222,27 @@ class SimulatedBus:
         before `attach`: it then holds its power-on registers, as a real one does.
         """
         return self.chips.pop(address)
+
+
+def simulated_bus(scene: FieldSource, *, clock: VirtualClock | MonotonicClock | None = None,
+                  bus_hz: float | None = None, seed: int | None = 0,
+                  noise: NoiseModel = NoiseModel(), adapter: str = DEFAULT_ADAPTER,
+                  ioctl_s: float = DEFAULT_IOCTL_S, clock_hz: float | None = None) -> SimulatedBus:
+    """A bus with one emulated chip per address of ``scene``, each drifting with its die
+    temperature as the scene's part says (`PhysicalScene.chip_drift`; a static scene's do not).
+
+    ``seed`` makes the chips' noise repeatable (None: fresh entropy); each chip
+    gets its own stream, so adding a chip does not change another's noise.
+    ``adapter``, ``ioctl_s`` (s per ioctl) and ``clock_hz`` (the wire's real
+    clock, None: ``bus_hz``) are the board's (`SimulatedBus`); the defaults are
+    a Raspberry Pi 4's.
+    """
+    addresses = scene.addresses
+    streams = np.random.SeedSequence(seed).spawn(len(addresses))
+    drift = getattr(scene, "chip_drift", None)  # a physical scene's parts drift with heat
+    chips = [EmulatedMLX90393(address, scene, rng=np.random.default_rng(stream), noise=noise,
+                              drift=None if drift is None else drift(address))
+             for address, stream in zip(addresses, streams)]
+    faults = getattr(scene, "faults", [])
+    return SimulatedBus(chips, clock=clock, bus_hz=bus_hz, script=FaultScript(faults) if faults else None,
+                        adapter=adapter, ioctl_s=ioctl_s, clock_hz=clock_hz)
