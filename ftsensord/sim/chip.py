@@ -173,6 +173,7 @@ class EmulatedMLX90393(RegisterCommands, Conversions):
         self._reply_pending = False  # a command whose reply has not been read yet
         self._sm_unread = False  # an accepted SM whose status byte has not been read yet
         self._conv_items: tuple[str, ...] = ()
+        self._conv_setup: tuple[mlx.Settings, tuple[int, ...]] | None = None  # settings, offsets at its start
         self._conv_first = math.inf  # time the first result is ready
         self._conv_interval = math.inf  # burst interval (inf: one conversion only)
         self._last_index = -1  # index of the newest result already read
@@ -259,6 +260,11 @@ class EmulatedMLX90393(RegisterCommands, Conversions):
         self.mode = _MODE_OF_OPCODE[opcode]
         zyxt_eff = mlx.items_zyxt(items)
         self._conv_items = items
+        # A single conversion is made with the settings it started with (the datasheet is silent on a
+        # WR during one; a result already in the data registers cannot change): a later WR acts on the
+        # next. A burst's results are each a conversion of their own, with the registers then (WR is
+        # refused in burst: only a register drifting by itself changes them).
+        self._conv_setup = (s, tuple(self.registers[r] for r in mlx.REG_OFFSETS)) if self.mode is Mode.SINGLE else None
         self._last_index = -1
         if self.mode is Mode.WOC:
             # Wake-on-change is accepted as a mode (status bit, exclusivity) but
