@@ -594,3 +594,23 @@ print(sorted(set(sys.modules) - before))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip() == "[]", out.stdout
+
+
+@pytest.mark.parametrize("value,expected", [
+    # libzmq binds these without a word, elsewhere than written: 99999 -> 34463, -1 -> 65535,
+    # 5e3 -> 5, * and 0 -> a port of the kernel's choosing, 5555/x -> 5555
+    ("tcp://127.0.0.1:99999", "a port from 1 to 65535"), ("tcp://127.0.0.1:-1", "a port from 1 to 65535"),
+    ("tcp://127.0.0.1:5e3", "a port from 1 to 65535"), ("tcp://127.0.0.1:*", "a port from 1 to 65535"),
+    ("tcp://127.0.0.1:0", "a port from 1 to 65535"), ("tcp://127.0.0.1:5555/x", "a port from 1 to 65535"),
+    ("tcp://127.0.0.1:5555 ", "a port from 1 to 65535"), ("tcp://localhost", "a port from 1 to 65535"),
+    # these ended `ftsensord run` with a ZMQError traceback at bind
+    ("tcp://127.0.0.1:", "a port from 1 to 65535"), ("ipc://", "an absolute path"),
+    ("ipc://" + "/tmp/" + "x" * 110, "at most 107 bytes"),
+    ("ipc://run/ftsensord/wrench", "an absolute path"),  # relative: to whatever folder the daemon starts in
+])
+@pytest.mark.parametrize("key", ["control", "publish_tcp"])
+def test_an_endpoint_zeromq_would_bind_elsewhere_or_refuse_is_refused_naming_file_and_key(tmp_path, key, value, expected):
+    if key == "publish_tcp" and value.startswith("ipc://"):
+        key = "publish"
+    path = write_config(tmp_path, extra=f'{key} = "{value}"')
+    assert_names_file_and_key(load_config, path, key, expected)
