@@ -48,6 +48,17 @@ def default_endpoint(name: str) -> str:
     return f"ipc://{folder / name}"
 
 
+def connect(sock: zmq.Socket, endpoint: str) -> None:
+    """``sock.connect(endpoint)``; an endpoint ZeroMQ cannot parse is a ConfigError naming it
+    (the socket closed), not a ZMQError traceback out of every command."""
+    try:
+        sock.connect(endpoint)
+    except zmq.ZMQError as exc:
+        sock.close(linger=0)
+        raise ConfigError(f"{endpoint}: ZeroMQ cannot connect to it ({exc.strerror}); "
+                          "expected ipc://PATH or tcp://HOST:PORT") from exc
+
+
 class ControlClient:
     """JSON requests to the daemon's control endpoint (a fresh REQ socket each,
     so a timed-out request never wedges the next)."""
@@ -74,7 +85,7 @@ class ControlClient:
             socket.curve_publickey, socket.curve_secretkey = load_certificate(self.curve[0])
             socket.curve_serverkey, _ = load_certificate(self.curve[1])
         try:
-            socket.connect(self.endpoint)
+            connect(socket, self.endpoint)
             socket.send(json.dumps({"cmd": cmd, **args}).encode())
             wait = self.timeout_s if timeout_s is None else timeout_s
             if not socket.poll(int(wait * 1000)):
@@ -183,7 +194,11 @@ class Subscriber:
             for stream in group:
                 # The NUL after the topic makes "wrench/sensor1" not match "wrench/sensor10".
                 sock.setsockopt(zmq.SUBSCRIBE, stream.encode() + b"\0" if stream else b"")
-            sock.connect(self.endpoint)
+            try:
+                connect(sock, self.endpoint)
+            except ConfigError:
+                self.close()  # the ones opened before it
+                raise
             self.sockets.append(sock)
         self.poller = zmq.Poller()
         for sock in self.sockets:
@@ -242,7 +257,7 @@ class OrientationPublisher:
         self.endpoint = endpoint or default_endpoint("orientation")
         self.socket = (context or zmq.Context.instance()).socket(zmq.PUB)
         self.socket.setsockopt(zmq.LINGER, 0)
-        self.socket.connect(self.endpoint)
+        connect(self.socket, self.endpoint)
 
     def send(self, frame: str, rotation: Any = None, t_sender: float | None = None, *,
              q_wxyz: Any = None, q_xyzw: Any = None) -> None:

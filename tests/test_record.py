@@ -547,3 +547,26 @@ def test_the_temperature_flag_reaches_every_recording(tmp_path, fmt):
         status = [m for topic, m, _ in read_mcap(path) if topic.endswith("/status")]
         assert [m.flags for m in status] == [flags]
     assert wire.flag_names(flags) == ["inconsistent", "temperature"]
+
+
+@pytest.mark.parametrize("args", [("status", "--control", "nonsense"), ("status", "--control", "tcp://127.0.0.1:*"),
+                                  ("echo", "wrench/sensor1", "--endpoint", "ipc://", "--timeout", "0.2"),
+                                  ("record", "wrench/sensor1", "{tmp}/x.csv", "--endpoint", "tcp://127.0.0.1:", "--timeout", "0.2")])
+def test_an_endpoint_zeromq_cannot_connect_to_is_a_message_not_a_traceback(tmp_path, args):
+    """`--control nonsense` ended every command with a ZMQError traceback ("Invalid argument")."""
+    args = tuple(a.format(tmp=tmp_path) for a in args)
+    proc = cli(*args)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2 and "Traceback" not in err, err
+    endpoint = args[args.index("--control") + 1] if "--control" in args else args[args.index("--endpoint") + 1]
+    last = err.strip().splitlines()[-1]  # (record first says no daemon answered for the frames)
+    assert last.startswith(f"ftsensord: {endpoint}: ") and "ipc://PATH or tcp://HOST:PORT" in last, err
+
+
+def test_the_client_classes_refuse_an_endpoint_zeromq_cannot_connect_to(zmq_context):
+    from ftsensord.client import OrientationPublisher
+    for make in (lambda: ControlClient("nonsense", context=zmq_context).status(),
+                 lambda: Subscriber("tcp://127.0.0.1:", ["wrench/sensor1"], context=zmq_context),
+                 lambda: OrientationPublisher("ipc://", context=zmq_context)):
+        with pytest.raises(ConfigError, match="ipc://PATH or tcp://HOST:PORT"):
+            make()
