@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 import zmq
 
+from .docfile import parse_json
 from .errors import ConfigError, ControlError, DaemonNotAnswering, FtsensordError, WireError
 from .service import wire
 from .service.paths import check_private_dir, runtime_dir
@@ -91,9 +92,15 @@ class ControlClient:
             if not socket.poll(int(wait * 1000)):
                 raise DaemonNotAnswering(f"no ftsensord answered on {self.endpoint} within {wait:g} s "
                                          "(is it running? `systemctl status ftsensord`)")
-            reply = json.loads(socket.recv())
+            raw = socket.recv()
         finally:
             socket.close()
+        try:
+            reply = parse_json(raw)
+        except ConfigError as exc:
+            reply = exc
+        if not isinstance(reply, dict):  # not the daemon's (another program there), or corrupted
+            raise ControlError(f"the reply on {self.endpoint} is not a JSON object: {str(reply)[:120]}")
         if not reply.get("ok"):
             raise ControlError(reply.get("error", "the daemon refused the request"))
         return reply.get("result")

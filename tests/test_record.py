@@ -570,3 +570,30 @@ def test_the_client_classes_refuse_an_endpoint_zeromq_cannot_connect_to(zmq_cont
                  lambda: OrientationPublisher("ipc://", context=zmq_context)):
         with pytest.raises(ConfigError, match="ipc://PATH or tcp://HOST:PORT"):
             make()
+
+
+@pytest.mark.parametrize("reply", [b"garbage", b"[1, 2]", b'"ok"', b"\xff\xfe", b"[" * 10_000])
+def test_a_control_reply_that_is_not_a_json_object_is_a_control_error(zmq_context, reply):
+    """Another program on the control endpoint (or a corrupted reply): `ControlClient` raised
+    JSONDecodeError or AttributeError ('list' object has no attribute 'get'), which the
+    command line printed as a traceback."""
+    import zmq
+
+    from ftsensord.errors import ControlError
+
+    router = zmq_context.socket(zmq.ROUTER)
+    port = router.bind_to_random_port("tcp://127.0.0.1")
+
+    def answer():
+        if router.poll(5000):
+            envelope = router.recv_multipart()[:-1]
+            router.send_multipart([*envelope, reply])
+
+    t = threading.Thread(target=answer)
+    t.start()
+    try:
+        with pytest.raises(ControlError, match="not a JSON object"):
+            ControlClient(f"tcp://127.0.0.1:{port}", timeout_s=5, context=zmq_context).status()
+    finally:
+        t.join()
+        router.close(0)
