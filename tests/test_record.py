@@ -597,3 +597,27 @@ def test_a_control_reply_that_is_not_a_json_object_is_a_control_error(zmq_contex
     finally:
         t.join()
         router.close(0)
+
+
+def test_the_npz_sidecar_reads_by_hand_as_docs_clients_md_lays_it_out(tmp_path):
+    """An independent reader of a killed NPZ recording's `.npz.part`, from the page alone: a
+    JSON line naming `count`, then records of i64 seq, f64 t_mono, f64 t_wall, i64 flags,
+    `count` f64 values, little-endian (the layout was not on the page)."""
+    import json
+    import struct
+
+    writer = open_writer(tmp_path / "r.npz", ["flux/sensor1"])
+    sent = [wire.Sample("flux/sensor1", wire.KIND_FLUX, 7 + i, 0.5 * i, 1.7e9 + i, 0x41 * i,
+                        np.arange(24.0) * (i + 1) * 1e-6) for i in range(3)]
+    for s in sent:
+        writer.write(s)
+    writer.flush()  # as a kill leaves it: no close
+    raw = (tmp_path / "r.npz.part").read_bytes()
+    line, _, body = raw.partition(b"\n")
+    count = json.loads(line)["count"]
+    size = struct.calcsize(f"<qddq{count}d")
+    assert count == 24 and len(body) == 3 * size
+    for i, s in enumerate(sent):
+        seq, t_mono, t_wall, flags, *values = struct.unpack_from(f"<qddq{count}d", body, i * size)
+        assert (seq, t_mono, t_wall, flags) == (s.seq, s.t_mono, s.t_wall, s.flags) and values == list(s.values)
+    writer.file.close()
