@@ -82,7 +82,7 @@ def tool_poses(tool: Table, sensors: list[str]) -> tuple[dict[str, np.ndarray], 
 def _lever(t: Table, name: str, unit: str) -> np.ndarray:
     """A position (m) within `MAX_LEVER_M` of the frame's origin."""
     p = np.array(t.numbers(name, 3, unit=unit))
-    if not (np.abs(p).max() <= MAX_LEVER_M and np.linalg.norm(p) <= MAX_LEVER_M):  # each first: no overflow
+    if not (np.abs(p).max() <= MAX_LEVER_M and np.linalg.norm(p) <= MAX_LEVER_M):  # max first: squaring 1e308 overflows
         raise t.fail(name, f"a position within {MAX_LEVER_M:g} m of the frame's origin ({unit})", p.tolist())
     return p
 
