@@ -149,6 +149,19 @@ def test_single_measurement_timing_data_ready_and_return_to_idle(bus):
     assert mlx.Status(again[0]).error  # DRDY low once read
 
 
+@pytest.mark.parametrize("oscillator", [0.8, 1.2])  # the datasheet's +-20 %
+def test_a_chip_whose_oscillator_runs_off_nominal_has_its_data_that_much_sooner_or_later(bus, oscillator):
+    """An outside driver waiting the nominal conversion time, no margin, read its data here on
+    every chip (2026-11-27); a chip at the slow end of the datasheet's +-20 % refuses that RM."""
+    bus.chips[ADDR].oscillator = oscillator
+    configure_raw(bus)
+    assert not status(bus, bytes([mlx.CMD_SM | mlx.ZYXT_XYZ])).error
+    bus.sleep(SM_XYZ_S * oscillator - 50e-6)
+    assert mlx.Status(xfer(bus, bytes([mlx.CMD_RM | mlx.ZYXT_XYZ]), 7)[0]).error  # not ready yet
+    bus.sleep(100e-6)
+    assert not mlx.Status(xfer(bus, bytes([mlx.CMD_RM | mlx.ZYXT_XYZ]), 7)[0]).error
+
+
 def test_an_sm_whose_status_is_not_read_measures_nothing(bus):
     """The datasheet: the first SM after power-up or reset should have its status read
     back to get valid data. The emulator starts no SM whose status the next command

@@ -133,7 +133,8 @@ class EmulatedMLX90393(RegisterCommands, Conversions):
 
     Fault hooks for tests: ``stuck`` (the same data forever, DRDY always high),
     ``memory_error`` (a double-bit ECC error: every command but RT refused),
-    `drift_register` (a register that changes by itself).
+    `drift_register` (a register that changes by itself), ``oscillator`` (this chip's
+    conversion times against nominal: the datasheet's +-20 % is 0.8 to 1.2).
     """
 
     def __init__(self, address: int, scene: FieldSource, *,
@@ -157,6 +158,7 @@ class EmulatedMLX90393(RegisterCommands, Conversions):
             self.nonvolatile[reg] = value
         self.stuck = False
         self.memory_error = False
+        self.oscillator = 1.0  # times nominal; the reader waits for the slowest (acquire.bound.OSC_MARGIN)
         self.field_override: np.ndarray | None = None  # fault: a field from elsewhere (T)
         self._pending_drifts: list[tuple[float, int, int]] = []
         self.power_on()
@@ -271,8 +273,8 @@ class EmulatedMLX90393(RegisterCommands, Conversions):
             # never produces data here: ftsensord does not use it.
             self._conv_first, self._conv_interval = math.inf, math.inf
         else:
-            self._conv_first = now + s.single_measurement_us(zyxt_eff) * 1e-6
-            self._conv_interval = (s.burst_interval_us(zyxt_eff) * 1e-6
+            self._conv_first = now + s.single_measurement_us(zyxt_eff) * 1e-6 * self.oscillator
+            self._conv_interval = (s.burst_interval_us(zyxt_eff) * 1e-6 * self.oscillator
                                    if self.mode is Mode.BURST else math.inf)
         self._sm_unread = self.mode is Mode.SINGLE
         return self._status()
