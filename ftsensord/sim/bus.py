@@ -1,4 +1,5 @@
-"""A simulated I2C bus with smbus2's ``i2c_rdwr(*msgs)`` surface.
+"""A simulated I2C bus with smbus2's ``i2c_rdwr(*msgs)`` surface (and the SMBus byte and
+block calls that public MLX90393 scripts use, carried out as the kernel does).
 
 Like the kernel's ``I2C_RDWR`` ioctl it takes up to 42 messages in one call;
 what else one call may hold is the adapter driver's rule (`ADAPTER_RULES`):
@@ -25,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from smbus2 import i2c_msg
-from smbus2.smbus2 import I2C_M_RD
+from smbus2.smbus2 import I2C_M_RD, I2C_SMBUS_BLOCK_MAX
 
 from ..chip.i2c import ADAPTER_RULES, BITS_PER_BYTE, I2C_RDWR_MAX_MSGS, BusTiming
 from .chip import EmulatedMLX90393, FieldSource, NoiseModel
@@ -191,6 +192,28 @@ class SimulatedBus:
                 ctypes.memmove(msg.buf, data, msg.len)
         finally:
             self.clock.wait_until(self.epoch + start + (bits + 1) * bit_s)
+
+    # --- smbus2's SMBus calls an MLX90393 script uses, as the kernel carries them out ----------
+    # (I2C_SMBUS on an adapter without SMBus support: i2c_smbus_xfer_emulated's messages)
+    def write_byte(self, i2c_addr: int, value: int, force: bool | None = None) -> None:
+        self.i2c_rdwr(i2c_msg.write(i2c_addr, bytes([value])))
+
+    def read_byte(self, i2c_addr: int, force: bool | None = None) -> int:
+        read = i2c_msg.read(i2c_addr, 1)
+        self.i2c_rdwr(read)
+        return bytes(read)[0]
+
+    def write_i2c_block_data(self, i2c_addr: int, register: int, data: list[int], force: bool | None = None) -> None:
+        if len(data) > I2C_SMBUS_BLOCK_MAX:
+            raise ValueError(f"Data length cannot exceed {I2C_SMBUS_BLOCK_MAX} bytes")
+        self.i2c_rdwr(i2c_msg.write(i2c_addr, bytes([register, *data])))
+
+    def read_i2c_block_data(self, i2c_addr: int, register: int, length: int, force: bool | None = None) -> list[int]:
+        if length > I2C_SMBUS_BLOCK_MAX:
+            raise ValueError(f"Desired block length over {I2C_SMBUS_BLOCK_MAX} bytes")
+        write, read = i2c_msg.write(i2c_addr, bytes([register])), i2c_msg.read(i2c_addr, length)
+        self.i2c_rdwr(write, read)  # repeated start, as the kernel's emulation
+        return list(bytes(read))
 
     def close(self) -> None:
         self.closed = True
