@@ -52,6 +52,8 @@ def default_endpoint(name: str) -> str:
 def connect(sock: zmq.Socket, endpoint: str) -> None:
     """``sock.connect(endpoint)``; an endpoint ZeroMQ cannot parse is a ConfigError naming it
     (the socket closed), not a ZMQError traceback out of every command."""
+    if endpoint.startswith("tcp://["):  # an IPv6 address ([::1]): libzmq reaches it only when asked to
+        sock.setsockopt(zmq.IPV6, 1)
     try:
         sock.connect(endpoint)
     except zmq.ZMQError as exc:

@@ -621,3 +621,24 @@ def test_the_npz_sidecar_reads_by_hand_as_docs_clients_md_lays_it_out(tmp_path):
         seq, t_mono, t_wall, flags, *values = struct.unpack_from(f"<qddq{count}d", body, i * size)
         assert (seq, t_mono, t_wall, flags) == (s.seq, s.t_mono, s.t_wall, s.flags) and values == list(s.values)
     writer.file.close()
+
+
+def test_a_subscriber_reaches_a_publisher_on_ipv6_loopback(zmq_context):
+    """`tcp://[::1]:PORT` is a loopback endpoint the configuration accepts; libzmq connects to
+    it only with ZMQ_IPV6 set, so a Subscriber given it waited for ever (2026-11-27)."""
+    import zmq
+
+    pub = zmq_context.socket(zmq.PUB)
+    pub.setsockopt(zmq.IPV6, 1)
+    port = pub.bind_to_random_port("tcp://[::1]")
+    sample = wire.Sample("wrench/sensor1", wire.KIND_WRENCH, 5, 1.0, 1.7e9, 0, np.arange(6.0))
+    with Subscriber(f"tcp://[::1]:{port}", ["wrench/sensor1"], context=zmq_context) as sub:
+        got = None
+        for _ in range(50):  # a slow joiner: publish until the subscription has arrived
+            pub.send(wire.encode(sample.topic, sample.kind, sample.seq, sample.t_mono, sample.t_wall, sample.flags,
+                                 sample.values))
+            got = sub.receive(timeout_s=0.1)
+            if got is not None:
+                break
+    pub.close(0)
+    assert got is not None and got.seq == 5 and np.array_equal(got.values, np.arange(6.0))
