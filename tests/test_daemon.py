@@ -614,3 +614,18 @@ def test_an_endpoint_zeromq_would_bind_elsewhere_or_refuse_is_refused_naming_fil
         key = "publish"
     path = write_config(tmp_path, extra=f'{key} = "{value}"')
     assert_names_file_and_key(load_config, path, key, expected)
+
+
+@pytest.mark.parametrize("name,expected", [
+    # loaded, then the first cycle died: UnicodeEncodeError publishing wrench/s\u00e9nsor1
+    ("s\\u00e9nsor1", "letters, digits and underscores"),
+    # loaded, and wrench/tip carried two wrenches in turn, the sensor's and the tool tip's
+    ("tip", "not tip"),
+    ("sensor1\\u0000", "letters, digits and underscores"),  # a NUL in the topic: frames that do not decode
+    ("sensor 1", "letters, digits and underscores"), ("a/b", "letters, digits and underscores"),
+    ("", "letters, digits and underscores"), ("x" * 40, "at most 31"), ("1st", "letters, digits and underscores"),
+])
+def test_a_sensor_name_that_cannot_be_a_stream_is_refused_naming_file_and_key(tmp_path, name, expected):
+    path = write_config(tmp_path)
+    path.write_text(path.read_text().replace('name = "sensor1"', f'name = "{name}"', 1))
+    assert_names_file_and_key(load_config, path, "sensor[0].name", expected)
