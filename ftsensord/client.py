@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 import zmq
 
+from .docfile import parse_json
 from .errors import ConfigError, ControlError, DaemonNotAnswering, FtsensordError, WireError
 from .service import wire
 from .service.paths import check_private_dir, runtime_dir
@@ -46,6 +47,19 @@ def default_endpoint(name: str) -> str:
     if os.path.lexists(folder):
         check_private_dir(folder)
     return f"ipc://{folder / name}"
+
+
+def connect(sock: zmq.Socket, endpoint: str) -> None:
+    """``sock.connect(endpoint)``; an endpoint ZeroMQ cannot parse is a ConfigError naming it
+    (the socket closed), not a ZMQError traceback out of every command."""
+    if endpoint.startswith("tcp://["):  # an IPv6 address ([::1]): libzmq reaches it only when asked to
+        sock.setsockopt(zmq.IPV6, 1)
+    try:
+        sock.connect(endpoint)
+    except zmq.ZMQError as exc:
+        sock.close(linger=0)
+        raise ConfigError(f"{endpoint}: ZeroMQ cannot connect to it ({exc.strerror}); "
+                          "expected ipc://PATH or tcp://HOST:PORT") from exc
 
 
 class ControlClient:
@@ -74,15 +88,21 @@ class ControlClient:
             socket.curve_publickey, socket.curve_secretkey = load_certificate(self.curve[0])
             socket.curve_serverkey, _ = load_certificate(self.curve[1])
         try:
-            socket.connect(self.endpoint)
+            connect(socket, self.endpoint)
             socket.send(json.dumps({"cmd": cmd, **args}).encode())
             wait = self.timeout_s if timeout_s is None else timeout_s
             if not socket.poll(int(wait * 1000)):
                 raise DaemonNotAnswering(f"no ftsensord answered on {self.endpoint} within {wait:g} s "
                                          "(is it running? `systemctl status ftsensord`)")
-            reply = json.loads(socket.recv())
+            raw = socket.recv()
         finally:
             socket.close()
+        try:
+            reply = parse_json(raw)
+        except ConfigError as exc:
+            reply = exc
+        if not isinstance(reply, dict):  # not the daemon's (another program there), or corrupted
+            raise ControlError(f"the reply on {self.endpoint} is not a JSON object: {str(reply)[:120]}")
         if not reply.get("ok"):
             raise ControlError(reply.get("error", "the daemon refused the request"))
         return reply.get("result")
@@ -183,7 +203,11 @@ class Subscriber:
             for stream in group:
                 # The NUL after the topic makes "wrench/sensor1" not match "wrench/sensor10".
                 sock.setsockopt(zmq.SUBSCRIBE, stream.encode() + b"\0" if stream else b"")
-            sock.connect(self.endpoint)
+            try:
+                connect(sock, self.endpoint)
+            except ConfigError:
+                self.close()  # the ones opened before it
+                raise
             self.sockets.append(sock)
         self.poller = zmq.Poller()
         for sock in self.sockets:
@@ -242,7 +266,7 @@ class OrientationPublisher:
         self.endpoint = endpoint or default_endpoint("orientation")
         self.socket = (context or zmq.Context.instance()).socket(zmq.PUB)
         self.socket.setsockopt(zmq.LINGER, 0)
-        self.socket.connect(self.endpoint)
+        connect(self.socket, self.endpoint)
 
     def send(self, frame: str, rotation: Any = None, t_sender: float | None = None, *,
              q_wxyz: Any = None, q_xyzw: Any = None) -> None:

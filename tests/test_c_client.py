@@ -436,3 +436,23 @@ def test_the_protocol_pages_c_compiles_as_c_and_cpp_and_decodes_its_vector(tools
         assert out[:4] == ["6", str(py.seq), f"{py.flags:x}", repr(py.t_mono)]
         np.testing.assert_array_equal([float(x) for x in out[4:]], py.values)
         build.build([tmp_path / "loop.c"], tmp_path / f"loop-{lang}.o", lang, tools.libzmq, link=False)
+
+
+@pytest.mark.parametrize("which", ["driver", "driver_cxx"])
+def test_the_header_reaches_a_publisher_on_ipv6_loopback(tools, which):
+    """`tcp://[::1]:PORT` is a loopback endpoint the configuration accepts; libzmq connects to it
+    only with ZMQ_IPV6 set, so fts_open given it never had a sample (2026-11-27)."""
+    ctx = zmq.Context.instance()
+    pub = ctx.socket(zmq.XPUB)
+    pub.setsockopt(zmq.IPV6, 1)
+    port = pub.bind_to_random_port("tcp://[::1]")
+    c = Driven(getattr(tools, which), f"tcp://[::1]:{port}", "wrench/sensor1")
+    try:
+        assert pub.poll(5000), "the header's subscription never arrived"
+        assert pub.recv() == b"\x01wrench/sensor1\0"
+        pub.send(frame(seq=3))
+        got = c("wait 5000")
+        assert (got["rc"], got["seq"]) == ("1", "3")
+    finally:
+        c.close()
+        pub.close(linger=0)

@@ -413,6 +413,11 @@ def test_config_refuses_a_rate_above_the_bound_naming_it(tmp_path):
     (("rate_hz = 100", "rate_hz = nan"), "rate_hz", "finite number"),
     (("rate_hz = 100", "rate_hz = inf"), "rate_hz", "finite number"),
     (("version = 1", "version = 2"), "version", "expected 1"),
+    # RES is a 2-bit field: 2.5 was read as RES 2 (int() of the float), 1e-300 as RES 0
+    (("[chip]\n", "[chip]\nres = [2.5, 3, 3]\n"), "chip.res", "3 integers"),
+    (("[chip]\n", "[chip]\nres = [3, 3, 1e-300]\n"), "chip.res", "3 integers"),
+    # a sensor 1e12 m from the tip (a unit mistake, or worse) was taken: moments of 1e12 N m
+    (("sensor2 = [0.0, 0.0, -0.1]", "sensor2 = [0.0, 0.0, -1e12]"), "tool.offsets_m.sensor2", "within 2 m"),
 ])
 def test_a_bad_configuration_names_the_file_the_key_and_what_was_expected(tmp_path, edit, key, expected):
     path = write_config(tmp_path)
@@ -589,3 +594,38 @@ print(sorted(set(sys.modules) - before))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip() == "[]", out.stdout
+
+
+@pytest.mark.parametrize("value,expected", [
+    # libzmq binds these without a word, elsewhere than written: 99999 -> 34463, -1 -> 65535,
+    # 5e3 -> 5, * and 0 -> a port of the kernel's choosing, 5555/x -> 5555
+    ("tcp://127.0.0.1:99999", "a port from 1 to 65535"), ("tcp://127.0.0.1:-1", "a port from 1 to 65535"),
+    ("tcp://127.0.0.1:5e3", "a port from 1 to 65535"), ("tcp://127.0.0.1:*", "a port from 1 to 65535"),
+    ("tcp://127.0.0.1:0", "a port from 1 to 65535"), ("tcp://127.0.0.1:5555/x", "a port from 1 to 65535"),
+    ("tcp://127.0.0.1:5555 ", "a port from 1 to 65535"), ("tcp://localhost", "a port from 1 to 65535"),
+    # these ended `ftsensord run` with a ZMQError traceback at bind
+    ("tcp://127.0.0.1:", "a port from 1 to 65535"), ("ipc://", "an absolute path"),
+    ("ipc://" + "/tmp/" + "x" * 110, "at most 107 bytes"),
+    ("ipc://run/ftsensord/wrench", "an absolute path"),  # relative: to whatever folder the daemon starts in
+])
+@pytest.mark.parametrize("key", ["control", "publish_tcp"])
+def test_an_endpoint_zeromq_would_bind_elsewhere_or_refuse_is_refused_naming_file_and_key(tmp_path, key, value, expected):
+    if key == "publish_tcp" and value.startswith("ipc://"):
+        key = "publish"
+    path = write_config(tmp_path, extra=f'{key} = "{value}"')
+    assert_names_file_and_key(load_config, path, key, expected)
+
+
+@pytest.mark.parametrize("name,expected", [
+    # loaded, then the first cycle died: UnicodeEncodeError publishing wrench/s\u00e9nsor1
+    ("s\\u00e9nsor1", "letters, digits and underscores"),
+    # loaded, and wrench/tip carried two wrenches in turn, the sensor's and the tool tip's
+    ("tip", "not tip"),
+    ("sensor1\\u0000", "letters, digits and underscores"),  # a NUL in the topic: frames that do not decode
+    ("sensor 1", "letters, digits and underscores"), ("a/b", "letters, digits and underscores"),
+    ("", "letters, digits and underscores"), ("x" * 40, "at most 31"), ("1st", "letters, digits and underscores"),
+])
+def test_a_sensor_name_that_cannot_be_a_stream_is_refused_naming_file_and_key(tmp_path, name, expected):
+    path = write_config(tmp_path)
+    path.write_text(path.read_text().replace('name = "sensor1"', f'name = "{name}"', 1))
+    assert_names_file_and_key(load_config, path, "sensor[0].name", expected)

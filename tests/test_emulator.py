@@ -149,6 +149,19 @@ def test_single_measurement_timing_data_ready_and_return_to_idle(bus):
     assert mlx.Status(again[0]).error  # DRDY low once read
 
 
+@pytest.mark.parametrize("oscillator", [0.8, 1.2])  # the datasheet's +-20 %
+def test_a_chip_whose_oscillator_runs_off_nominal_has_its_data_that_much_sooner_or_later(bus, oscillator):
+    """An outside driver waiting the nominal conversion time, no margin, read its data here on
+    every chip (2026-11-27); a chip at the slow end of the datasheet's +-20 % refuses that RM."""
+    bus.chips[ADDR].oscillator = oscillator
+    configure_raw(bus)
+    assert not status(bus, bytes([mlx.CMD_SM | mlx.ZYXT_XYZ])).error
+    bus.sleep(SM_XYZ_S * oscillator - 50e-6)
+    assert mlx.Status(xfer(bus, bytes([mlx.CMD_RM | mlx.ZYXT_XYZ]), 7)[0]).error  # not ready yet
+    bus.sleep(100e-6)
+    assert not mlx.Status(xfer(bus, bytes([mlx.CMD_RM | mlx.ZYXT_XYZ]), 7)[0]).error
+
+
 def test_an_sm_whose_status_is_not_read_measures_nothing(bus):
     """The datasheet: the first SM after power-up or reset should have its status read
     back to get valid data. The emulator starts no SM whose status the next command
@@ -263,6 +276,27 @@ def test_noiseless_readings_are_the_field_quantised_to_the_lsb(bus, scene, setti
         assert m.field_t[i] == pytest.approx(round(scene.fields_t[ADDR][i] / lsb) * lsb, abs=1e-12)
     assert m.temperature_c == pytest.approx(31.5, abs=0.5 / 45.2)
     assert not m.any_saturated
+
+
+@pytest.mark.parametrize("when_s", [SM_XYZ_S / 2, 2 * SM_XYZ_S])  # mid-conversion, and done before the RM
+def test_a_conversion_keeps_the_settings_it_started_with(bus, scene, when_s):
+    """The words an RM returns were made by the conversion: a WR of GAIN_SEL after its SM
+    does not rescale them (until 2026-11-27 the emulator coded them at RM time with the
+    registers then, so a driver that changed the gain and decoded with the new one read
+    the right field here and a wrong one, 5x off, on a chip)."""
+    started, changed = mlx.Settings(gain_sel=7, res_x=0, res_y=0, res_z=0), mlx.Settings(gain_sel=0, res_x=0, res_y=0, res_z=0)
+    configure_raw(bus, started)
+    assert not status(bus, bytes([mlx.CMD_SM | mlx.ZYXT_XYZ])).error
+    bus.sleep(when_s)
+    conf1 = changed.to_registers()[mlx.REG_CONF1]
+    assert not status(bus, bytes([mlx.CMD_WR, conf1 >> 8, conf1 & 0xFF, mlx.REG_CONF1 << 2])).error
+    bus.sleep(2 * SM_XYZ_S)
+    reply = xfer(bus, bytes([mlx.CMD_RM | mlx.ZYXT_XYZ]), 7)
+    assert not mlx.Status(reply[0]).error
+    x = mlx.raw_to_counts((reply[1] << 8) | reply[2], started.raw_format("x"))
+    assert x == round(scene.fields_t[ADDR][0] * 1e6 / started.sensitivity_ut("x"))  # 667 counts at GAIN_SEL 7, not 133
+    # the next conversion takes the new gain
+    assert rm_counts(bus, changed)[0] == round(scene.fields_t[ADDR][0] * 1e6 / changed.sensitivity_ut("x"))
 
 
 TCMP = mlx.Settings(gain_sel=4, res_x=1, res_y=1, res_z=1, tcmp_en=True)

@@ -448,6 +448,10 @@ def test_malformed_orientation_messages_are_dropped_and_counted_and_the_daemon_g
     ('orientation = "stream"', 'orientation = "imu"', "gravity.orientation", "one of"),
     ("stale_after_s = 0.05", "gravity_mps2 = [0.0, 0.0, -9810.0]", "gravity.gravity_mps2", "|g| 9.7-9.9"),
     (f"mass_kg = {M1}", "mass_kg = 50.0", "gravity.sensor1.mass_kg", "kg"),
+    # 30 for 30 mm: was taken, and the compensated moment was -49 N m, unflagged (1e308: -4.9e307)
+    (f"com_m = {C1.tolist()}", "com_m = [0.0, 0.0, 30.0]", "gravity.sensor1.com_m", "within 2 m"),
+    (f"com_m = {C_TIP.tolist()}", "com_m = [0.0, 0.0, 1e308]", "gravity.tip.com_m", "within 2 m"),
+    (f"position_m = {P1.tolist()}", "position_m = [1e12, 0.0, 0.0]", "tool.pose.sensor1.position_m", "within 2 m"),
     ('orientation = "stream"', 'orientation = "mount"', "gravity.sensor1.mount_rotvec_deg", "orientation in the world"),
     ("[tool]", "[toolx]", "gravity.tip", "one of"),  # no [tool]: no tip
     (f"mass_kg = {M2}", f"mass_kg = {M2}\nmount_rotvec_deg = [0.0, 0.0, 0.0]", "gravity.sensor2.mount_rotvec_deg",

@@ -490,6 +490,43 @@ def test_a_csv_record_cut_by_a_write_error_says_how_many_samples_it_holds(tmp_pa
     assert meta["torn_row"] and full.startswith(meta["torn_row"]) and meta["torn_row"] != full, meta["torn_row"]
 
 
+DISK_FULL_ANY = """
+import resource, signal
+import numpy as np
+from ftsensord.recording import open_writer, record
+from ftsensord.service import wire
+
+class Synthetic:
+    i = 0
+    def receive(self, timeout_s=None):
+        self.i += 1
+        return None if self.i > 5000 else wire.Sample("wrench/sensor1", wire.KIND_WRENCH, self.i, self.i * 0.01,
+                                                      1.7e9, 0, np.full(6, self.i * 1e-3))
+
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+resource.setrlimit(resource.RLIMIT_FSIZE, (50_000, 50_000))
+try:
+    record(Synthetic(), open_writer({path!r}, ["wrench/sensor1"]), ["wrench/sensor1"], flush_every_s=0)
+except OSError as exc:
+    print("error", exc.errno, exc.filename)
+    print(exc)
+"""
+
+
+@pytest.mark.parametrize("fmt", ["csv", "npz", "mcap"])
+def test_a_write_error_names_the_file_it_could_not_write(tmp_path, fmt):
+    """A full disk (the file size limit: the same failed write) ends `record` with an
+    OSError that names the file, so `ftsensord record`'s message ("ftsensord: [Errno 27]
+    File too large: '.../run.csv'") says which file: a bare write() error names none."""
+    path = tmp_path / f"r.{fmt}"
+    out = subprocess.run([sys.executable, "-c", DISK_FULL_ANY.format(path=str(path))], capture_output=True,
+                         text=True, timeout=60)
+    first, message = (out.stdout.splitlines() + ["", ""])[:2]
+    assert first.startswith("error 27 "), out.stdout + out.stderr  # EFBIG
+    named = path if fmt != "npz" else tmp_path / "r.npz.part"  # the NPZ's rows go to its sidecar first
+    assert first == f"error 27 {named}" and str(named) in message, out.stdout
+
+
 @pytest.mark.parametrize("fmt", ["csv", "npz", "mcap"])
 def test_the_temperature_flag_reaches_every_recording(tmp_path, fmt):
     """Bit 11 (`temperature`) as any other flag: the CSV's and NPZ's flags column and the
@@ -510,3 +547,98 @@ def test_the_temperature_flag_reaches_every_recording(tmp_path, fmt):
         status = [m for topic, m, _ in read_mcap(path) if topic.endswith("/status")]
         assert [m.flags for m in status] == [flags]
     assert wire.flag_names(flags) == ["inconsistent", "temperature"]
+
+
+@pytest.mark.parametrize("args", [("status", "--control", "nonsense"), ("status", "--control", "tcp://127.0.0.1:*"),
+                                  ("echo", "wrench/sensor1", "--endpoint", "ipc://", "--timeout", "0.2"),
+                                  ("record", "wrench/sensor1", "{tmp}/x.csv", "--endpoint", "tcp://127.0.0.1:", "--timeout", "0.2")])
+def test_an_endpoint_zeromq_cannot_connect_to_is_a_message_not_a_traceback(tmp_path, args):
+    """`--control nonsense` ended every command with a ZMQError traceback ("Invalid argument")."""
+    args = tuple(a.format(tmp=tmp_path) for a in args)
+    proc = cli(*args)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2 and "Traceback" not in err, err
+    endpoint = args[args.index("--control") + 1] if "--control" in args else args[args.index("--endpoint") + 1]
+    last = err.strip().splitlines()[-1]  # (record first says no daemon answered for the frames)
+    assert last.startswith(f"ftsensord: {endpoint}: ") and "ipc://PATH or tcp://HOST:PORT" in last, err
+
+
+def test_the_client_classes_refuse_an_endpoint_zeromq_cannot_connect_to(zmq_context):
+    from ftsensord.client import OrientationPublisher
+    for make in (lambda: ControlClient("nonsense", context=zmq_context).status(),
+                 lambda: Subscriber("tcp://127.0.0.1:", ["wrench/sensor1"], context=zmq_context),
+                 lambda: OrientationPublisher("ipc://", context=zmq_context)):
+        with pytest.raises(ConfigError, match="ipc://PATH or tcp://HOST:PORT"):
+            make()
+
+
+@pytest.mark.parametrize("reply", [b"garbage", b"[1, 2]", b'"ok"', b"\xff\xfe", b"[" * 10_000])
+def test_a_control_reply_that_is_not_a_json_object_is_a_control_error(zmq_context, reply):
+    """Another program on the control endpoint (or a corrupted reply): `ControlClient` raised
+    JSONDecodeError or AttributeError ('list' object has no attribute 'get'), which the
+    command line printed as a traceback."""
+    import zmq
+
+    from ftsensord.errors import ControlError
+
+    router = zmq_context.socket(zmq.ROUTER)
+    port = router.bind_to_random_port("tcp://127.0.0.1")
+
+    def answer():
+        if router.poll(5000):
+            envelope = router.recv_multipart()[:-1]
+            router.send_multipart([*envelope, reply])
+
+    t = threading.Thread(target=answer)
+    t.start()
+    try:
+        with pytest.raises(ControlError, match="not a JSON object"):
+            ControlClient(f"tcp://127.0.0.1:{port}", timeout_s=5, context=zmq_context).status()
+    finally:
+        t.join()
+        router.close(0)
+
+
+def test_the_npz_sidecar_reads_by_hand_as_docs_clients_md_lays_it_out(tmp_path):
+    """An independent reader of a killed NPZ recording's `.npz.part`, from the page alone: a
+    JSON line naming `count`, then records of i64 seq, f64 t_mono, f64 t_wall, i64 flags,
+    `count` f64 values, little-endian (the layout was not on the page)."""
+    import json
+    import struct
+
+    writer = open_writer(tmp_path / "r.npz", ["flux/sensor1"])
+    sent = [wire.Sample("flux/sensor1", wire.KIND_FLUX, 7 + i, 0.5 * i, 1.7e9 + i, 0x41 * i,
+                        np.arange(24.0) * (i + 1) * 1e-6) for i in range(3)]
+    for s in sent:
+        writer.write(s)
+    writer.flush()  # as a kill leaves it: no close
+    raw = (tmp_path / "r.npz.part").read_bytes()
+    line, _, body = raw.partition(b"\n")
+    count = json.loads(line)["count"]
+    size = struct.calcsize(f"<qddq{count}d")
+    assert count == 24 and len(body) == 3 * size
+    for i, s in enumerate(sent):
+        seq, t_mono, t_wall, flags, *values = struct.unpack_from(f"<qddq{count}d", body, i * size)
+        assert (seq, t_mono, t_wall, flags) == (s.seq, s.t_mono, s.t_wall, s.flags) and values == list(s.values)
+    writer.file.close()
+
+
+def test_a_subscriber_reaches_a_publisher_on_ipv6_loopback(zmq_context):
+    """`tcp://[::1]:PORT` is a loopback endpoint the configuration accepts; libzmq connects to
+    it only with ZMQ_IPV6 set, so a Subscriber given it waited for ever (2026-11-27)."""
+    import zmq
+
+    pub = zmq_context.socket(zmq.PUB)
+    pub.setsockopt(zmq.IPV6, 1)
+    port = pub.bind_to_random_port("tcp://[::1]")
+    sample = wire.Sample("wrench/sensor1", wire.KIND_WRENCH, 5, 1.0, 1.7e9, 0, np.arange(6.0))
+    with Subscriber(f"tcp://[::1]:{port}", ["wrench/sensor1"], context=zmq_context) as sub:
+        got = None
+        for _ in range(50):  # a slow joiner: publish until the subscription has arrived
+            pub.send(wire.encode(sample.topic, sample.kind, sample.seq, sample.t_mono, sample.t_wall, sample.flags,
+                                 sample.values))
+            got = sub.receive(timeout_s=0.1)
+            if got is not None:
+                break
+    pub.close(0)
+    assert got is not None and got.seq == 5 and np.array_equal(got.values, np.arange(6.0))

@@ -205,3 +205,25 @@ def test_real_clock_learns_its_spin_and_never_ends_a_wait_early():
         clock.wait_until(t)
         assert clock.now() >= t
     assert clock.min_spin_s <= clock._spin <= clock.spin_s
+
+
+def test_an_smbus2_script_runs_unchanged_on_the_emulator(bus, scene):
+    """Public Python MLX90393 examples use smbus2's SMBus calls, not i2c_rdwr (ControlEverything's,
+    whose register words and order these are): write_i2c_block_data for WR, write_byte for SM,
+    read_byte for a status, read_i2c_block_data for RM. The simulated bus offered only i2c_rdwr,
+    so such a script failed with AttributeError before it reached the chip (2026-11-27)."""
+    bus.write_i2c_block_data(ADDR, 0x60, [0x00, 0x5C, 0x00])  # WR CONF1: GAIN_SEL 5, HALLCONF 0xC
+    assert bus.read_byte(ADDR) & mlx.STATUS_ERROR == 0
+    bus.write_i2c_block_data(ADDR, 0x60, [0x02, 0xB4, 0x08])  # WR CONF3: RES 1, DIG_FILT 5, OSR 0
+    assert bus.read_byte(ADDR) & mlx.STATUS_ERROR == 0
+    bus.write_byte(ADDR, 0x3E)  # SM of X, Y, Z
+    assert bus.read_byte(ADDR) & mlx.STATUS_SM_MODE
+    bus.sleep(0.5)
+    data = bus.read_i2c_block_data(ADDR, 0x4E, 7)  # RM: status and three words
+    assert data[0] & mlx.STATUS_ERROR == 0 and len(data) == 7
+    x = int.from_bytes(bytes(data[1:3]), "big", signed=True)
+    assert x == round(scene.fields_t[ADDR][0] * 1e6 / (0.150 * 5 / 3 * 2))  # GAIN_SEL 5, RES 1: 0.5 uT/LSB
+    with pytest.raises(OSError):  # a second read of one reply: the chip does not ACK it
+        bus.read_byte(ADDR)
+    with pytest.raises(ValueError):  # smbus2's own limit: 32 bytes a block
+        bus.read_i2c_block_data(ADDR, 0x4E, 33)

@@ -57,7 +57,13 @@ def test_round_trip(topic, seq, flags, values):
 
 
 @pytest.mark.parametrize("frame", [b"", b"wrench", b"wrench\0short", vector("wrench")[:-1],
-                                   vector("wrench").replace(b"\x46\x54\x01", b"\x46\x54\x02", 1)])
+                                   vector("wrench").replace(b"\x46\x54\x01", b"\x46\x54\x02", 1),
+                                   # the topic is ASCII: a byte past 0x7F raised UnicodeDecodeError (not a
+                                   # WireError), out of Subscriber.receive and the recorder (a SUB to all topics)
+                                   vector("wrench").replace(b"wrench/", b"wrench\xaf", 1),
+                                   vector("wrench").replace(b"wrench/", b"wr\xc3\xa9nch", 1)])
 def test_malformed_frames_are_refused(frame):
     with pytest.raises(WireError):
         wire.decode(frame)
+    with pytest.raises(WireError):
+        wire.unpack(frame)

@@ -119,15 +119,24 @@ enum {
     FTS_ZMQ_SUBSCRIBE_ = 6,
     FTS_ZMQ_LINGER_ = 17,
     FTS_ZMQ_RCVTIMEO_ = 27,
+    FTS_ZMQ_IPV6_ = 42,
     FTS_ZMQ_CONFLATE_ = 54,
     FTS_ZMQ_DONTWAIT_ = 1
 };
 #ifdef ZMQ_VERSION_MAJOR
 FTS_STATIC_ASSERT_(ZMQ_PUB == FTS_ZMQ_PUB_ && ZMQ_SUB == FTS_ZMQ_SUB_ && ZMQ_SUBSCRIBE == FTS_ZMQ_SUBSCRIBE_ &&
                        ZMQ_LINGER == FTS_ZMQ_LINGER_ && ZMQ_RCVTIMEO == FTS_ZMQ_RCVTIMEO_ &&
-                       ZMQ_CONFLATE == FTS_ZMQ_CONFLATE_ && ZMQ_DONTWAIT == FTS_ZMQ_DONTWAIT_,
+                       ZMQ_CONFLATE == FTS_ZMQ_CONFLATE_ && ZMQ_DONTWAIT == FTS_ZMQ_DONTWAIT_ &&
+                       ZMQ_IPV6 == FTS_ZMQ_IPV6_,
                    "ftsensord.h: libzmq constants differ from zmq.h");
 #endif
+
+/* An IPv6 address (tcp://[::1]:PORT) is reached only with ZMQ_IPV6 set; 0 or libzmq's -1. */
+static inline int fts_ipv6_(void *sock, const char *endpoint)
+{
+    int one = 1;
+    return strncmp(endpoint, "tcp://[", 7) == 0 ? zmq_setsockopt(sock, FTS_ZMQ_IPV6_, &one, sizeof one) : 0;
+}
 
 /* ---- the wire format (docs/protocol.md; ftsensord/service/wire.py) -------------------- */
 #define FTS_MAGIC 0x5446u /* the bytes 46 54, "FT", read as a little-endian u16 */
@@ -404,7 +413,7 @@ static inline int fts_open_ctx(fts_sub *s, void *ctx, const char *endpoint, cons
     /* CONFLATE acts on connections made after it is set: before zmq_connect. */
     if (zmq_setsockopt(s->sock, FTS_ZMQ_CONFLATE_, &one, sizeof one) != 0 ||
         zmq_setsockopt(s->sock, FTS_ZMQ_LINGER_, &zero, sizeof zero) != 0 ||
-        zmq_setsockopt(s->sock, FTS_ZMQ_SUBSCRIBE_, s->topic, n + 1) != 0 ||
+        zmq_setsockopt(s->sock, FTS_ZMQ_SUBSCRIBE_, s->topic, n + 1) != 0 || fts_ipv6_(s->sock, endpoint) != 0 ||
         zmq_connect(s->sock, endpoint) != 0) {
         int rc = fts_zfail_(s);
         zmq_close(s->sock);
@@ -597,7 +606,8 @@ static inline int fts_orientation_open(fts_orient *p, const char *endpoint)
     memset(p, 0, sizeof *p);
     int zero = 0;
     if ((p->ctx = zmq_ctx_new()) == NULL || (p->sock = zmq_socket(p->ctx, FTS_ZMQ_PUB_)) == NULL ||
-        zmq_setsockopt(p->sock, FTS_ZMQ_LINGER_, &zero, sizeof zero) != 0 || zmq_connect(p->sock, endpoint) != 0) {
+        zmq_setsockopt(p->sock, FTS_ZMQ_LINGER_, &zero, sizeof zero) != 0 || fts_ipv6_(p->sock, endpoint) != 0 ||
+        zmq_connect(p->sock, endpoint) != 0) {
         p->zmq_err = zmq_errno();
         fts_orientation_close(p);
         return FTS_E_ZMQ;

@@ -133,6 +133,8 @@ def load_config(path: str | Path | None = None, calibrations: Calibrations | Non
     chip = doc.table("chip", {})
     chip.only({"gain_sel", "hallconf", "res", "osr", "dig_filt", "osr2"})
     res = chip.numbers("res", 3, [3, 3, 3])
+    if any(r != int(r) for r in res):  # int() would read 2.5 as RES 2
+        raise chip.fail("res", "3 integers (RES_X, RES_Y, RES_Z)", chip.get("res"))
     settings = mlx.Settings(gain_sel=chip.integer("gain_sel", 0), hallconf=chip.integer("hallconf", 0xC),
                             res_x=int(res[0]), res_y=int(res[1]), res_z=int(res[2]),
                             osr=chip.integer("osr", 1), dig_filt=chip.integer("dig_filt", 2),

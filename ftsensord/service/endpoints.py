@@ -4,6 +4,7 @@ this host only with ``[security]`` (CURVE for control, `public_stream` for the w
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,6 +27,9 @@ class Security:
 
 
 LOOPBACK = ("127.0.0.1", "localhost", "[::1]")
+#: An ipc socket's path is a sockaddr_un's sun_path: 108 bytes with its NUL (libzmq refuses more at bind).
+MAX_IPC_PATH_BYTES = 107
+_TCP = re.compile(r"tcp://(?P<host>[^\s/]+):(?P<port>[0-9]{1,5})")
 
 
 def is_loopback(endpoint: str) -> bool:
@@ -40,9 +44,26 @@ def endpoint(table: Table, key: str, default: str, *, off_loopback: bool = False
     if value.startswith("ipc://@"):  # Linux's abstract namespace: no file, so no mode, group or lock
         raise table.fail(key, "an ipc:// endpoint with a path (an abstract socket, ipc://@name, has no file "
                               "permissions: anyone on the host could connect)", value)
+    problem = _malformed(value)
+    if problem:
+        raise table.fail(key, problem, value)
     if not off_loopback and not is_loopback(value):
         raise table.fail(key, f"a loopback TCP endpoint (127.0.0.1, localhost or [::1]); {why}", value)
     return value
+
+
+def _malformed(value: str) -> str | None:
+    """What is wrong with an endpoint libzmq would bind elsewhere than written (it takes
+    port 99999 as 34463, -1 as 65535, 5e3 as 5, * or 0 as any) or refuse at bind time."""
+    if value.startswith("tcp://"):
+        match = _TCP.fullmatch(value)
+        if match is None or not 1 <= int(match["port"]) <= 65535:
+            return "tcp://HOST:PORT with a port from 1 to 65535 (digits only: no wildcard, no path)"
+        return None
+    path = value[len("ipc://"):]
+    if not path.startswith("/") or len(path.encode()) > MAX_IPC_PATH_BYTES:
+        return f"ipc:// and an absolute path of at most {MAX_IPC_PATH_BYTES} bytes (a socket file's limit)"
+    return None
 
 
 def security_table(doc: Table) -> Security:

@@ -23,6 +23,9 @@ STANDARD_G = 9.80665
 ORIENTATION_SOURCES = ("mount", "stream")
 #: Longest frame name an orientation message carries (its 32-byte field keeps a NUL).
 MAX_FRAME_NAME = 31
+#: Farthest a sensor or a payload's centre of mass lies from the frame it is given in (m):
+#: a hand-held or robot-carried tool is well within it; more is a unit mistake (30 for 30 mm).
+MAX_LEVER_M = 2.0
 
 
 @dataclass
@@ -63,17 +66,25 @@ def tool_poses(tool: Table, sensors: list[str]) -> tuple[dict[str, np.ndarray], 
         offsets = tool.table("offsets_m")
         for name in offsets.doc:
             _known(offsets, name, sensors)
-            poses[name] = se3.pose(p=np.array(offsets.numbers(name, 3, unit="m, the sensor's origin in the tip frame")))
+            poses[name] = se3.pose(p=_lever(offsets, name, "m, the sensor's origin in the tip frame"))
     else:
         table = tool.table("pose")
         for name in table.doc:
             _known(table, name, sensors)
             t = table.table(name)
             t.only({"position_m", "rotvec_deg"})
-            p = np.array(t.numbers("position_m", 3, unit="m, the sensor's origin in the tip frame"))
+            p = _lever(t, "position_m", "m, the sensor's origin in the tip frame")
             rotvec = np.radians(t.numbers("rotvec_deg", 3, [0.0, 0.0, 0.0], unit="deg, the sensor's axes in the tip frame"))
             poses[name] = se3.pose(se3.exp_so3(rotvec), p)
     return poses, tool.string("frame", TIP)
+
+
+def _lever(t: Table, name: str, unit: str) -> np.ndarray:
+    """A position (m) within `MAX_LEVER_M` of the frame's origin."""
+    p = np.array(t.numbers(name, 3, unit=unit))
+    if not (np.abs(p).max() <= MAX_LEVER_M and np.linalg.norm(p) <= MAX_LEVER_M):  # max first: squaring 1e308 overflows
+        raise t.fail(name, f"a position within {MAX_LEVER_M:g} m of the frame's origin ({unit})", p.tolist())
+    return p
 
 
 def _known(t: Table, name: str, sensors: list[str]) -> None:
@@ -104,7 +115,7 @@ def gravity_config(g: Table, sensors: list[str], tool: dict[str, np.ndarray], de
                                "messages carry the name)", name)
         # 10 kg is far beyond what a sensor of 50 N range carries: a unit mistake (g for kg).
         config.payloads[name] = Payload(t.number("mass_kg", low=0.0, high=10.0, unit="kg"),
-                                        np.array(t.numbers("com_m", 3, unit="m, in this frame")))
+                                        _lever(t, "com_m", "m, in this frame"))
         if "mount_rotvec_deg" in t.doc:
             if source != "mount":
                 raise t.fail("mount_rotvec_deg", 'no mount with orientation = "stream" (the stream gives it)',

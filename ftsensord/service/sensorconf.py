@@ -5,6 +5,7 @@ when the file changes).
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -13,12 +14,16 @@ from ..calibration.calfile import Calibration
 from ..calibration.dataset import parse_addresses
 from ..docfile import Table
 from ..model.linear import LinearModel
+from .frames import MAX_FRAME_NAME, TIP
 from .paths import resolve_file
 
 if TYPE_CHECKING:
     from .config import Config
 
 ESTIMATORS = ("linear", "nonlinear")
+#: A sensor's name is in its streams' topics (ASCII on the wire), ROS 2 names and orientation
+#: messages (`MAX_FRAME_NAME`): one token, as ROS 2 names take it.
+SENSOR_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 #: Beside the deflection: the room's field; its gradient's parts a ring tells apart; a world-fixed gradient (`stages.stray`).
 STRAY_FIELDS = ("uniform", "gradient", "world")
 
@@ -91,6 +96,9 @@ def sensor_tables(doc: Table, calibrations: Calibrations | None = None) -> list[
             raise t.fail("calibration", f"a calibration for the chips {[f'0x{a:02X}' for a in addresses]} in "
                                         f"this order", f"{cal_path} (for {[f'0x{a:02X}' for a in calibration.addresses]})")
         name = t.string("name")
+        if not SENSOR_NAME.fullmatch(name) or len(name) > MAX_FRAME_NAME or name == TIP:
+            raise t.fail("name", f"a name of letters, digits and underscores, not starting with a digit, at most "
+                                 f"{MAX_FRAME_NAME} characters, not {TIP} (the tool's: wrench/{TIP})", name)
         if any(s.name == name for s in sensors):
             raise t.fail("name", "a name no other sensor has", name)
         estimator = t.string("estimator", "linear", choices=ESTIMATORS)

@@ -95,6 +95,8 @@ def unpack(frame: bytes) -> tuple[str, int, int, int, float, float, bytes]:
         raise WireError(f"not an ftsensord v{VERSION} sample (magic 0x{magic:04X}, version {version})")
     if len(body) != HEADER.size + 8 * count:
         raise WireError(f"{count} values announced, {(len(body) - HEADER.size) / 8:g} present")
+    if not topic.isascii():  # a stray publisher's frame: refused as any malformed one, not a UnicodeDecodeError
+        raise WireError(f"the topic is not ASCII: {topic[:40]!r}")
     return topic.decode("ascii"), kind, flags, seq, t_mono, t_wall, body[HEADER.size:]
 
 

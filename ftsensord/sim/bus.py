@@ -1,4 +1,5 @@
-"""A simulated I2C bus with smbus2's ``i2c_rdwr(*msgs)`` surface.
+"""A simulated I2C bus with smbus2's ``i2c_rdwr(*msgs)`` surface (and the SMBus byte and
+block calls that public MLX90393 scripts use, carried out as the kernel does).
 
 Like the kernel's ``I2C_RDWR`` ioctl it takes up to 42 messages in one call;
 what else one call may hold is the adapter driver's rule (`ADAPTER_RULES`):
@@ -23,11 +24,12 @@ import errno
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
+import numpy as np
 from smbus2 import i2c_msg
-from smbus2.smbus2 import I2C_M_RD
+from smbus2.smbus2 import I2C_M_RD, I2C_SMBUS_BLOCK_MAX
 
 from ..chip.i2c import ADAPTER_RULES, BITS_PER_BYTE, I2C_RDWR_MAX_MSGS, BusTiming
-from .chip import EmulatedMLX90393
+from .chip import EmulatedMLX90393, FieldSource, NoiseModel
 from .clock import MonotonicClock, VirtualClock
 from .faults import FaultScript
 
@@ -191,6 +193,28 @@ class SimulatedBus:
         finally:
             self.clock.wait_until(self.epoch + start + (bits + 1) * bit_s)
 
+    # --- smbus2's SMBus calls an MLX90393 script uses, as the kernel carries them out ----------
+    # (I2C_SMBUS on an adapter without SMBus support: i2c_smbus_xfer_emulated's messages)
+    def write_byte(self, i2c_addr: int, value: int, force: bool | None = None) -> None:
+        self.i2c_rdwr(i2c_msg.write(i2c_addr, bytes([value])))
+
+    def read_byte(self, i2c_addr: int, force: bool | None = None) -> int:
+        read = i2c_msg.read(i2c_addr, 1)
+        self.i2c_rdwr(read)
+        return bytes(read)[0]
+
+    def write_i2c_block_data(self, i2c_addr: int, register: int, data: list[int], force: bool | None = None) -> None:
+        if len(data) > I2C_SMBUS_BLOCK_MAX:
+            raise ValueError(f"Data length cannot exceed {I2C_SMBUS_BLOCK_MAX} bytes")
+        self.i2c_rdwr(i2c_msg.write(i2c_addr, bytes([register, *data])))
+
+    def read_i2c_block_data(self, i2c_addr: int, register: int, length: int, force: bool | None = None) -> list[int]:
+        if length > I2C_SMBUS_BLOCK_MAX:
+            raise ValueError(f"Desired block length over {I2C_SMBUS_BLOCK_MAX} bytes")
+        write, read = i2c_msg.write(i2c_addr, bytes([register])), i2c_msg.read(i2c_addr, length)
+        self.i2c_rdwr(write, read)  # repeated start, as the kernel's emulation
+        return list(bytes(read))
+
     def close(self) -> None:
         self.closed = True
 
@@ -221,3 +245,27 @@ class SimulatedBus:
         before `attach`: it then holds its power-on registers, as a real one does.
         """
         return self.chips.pop(address)
+
+
+def simulated_bus(scene: FieldSource, *, clock: VirtualClock | MonotonicClock | None = None,
+                  bus_hz: float | None = None, seed: int | None = 0,
+                  noise: NoiseModel = NoiseModel(), adapter: str = DEFAULT_ADAPTER,
+                  ioctl_s: float = DEFAULT_IOCTL_S, clock_hz: float | None = None) -> SimulatedBus:
+    """A bus with one emulated chip per address of ``scene``, each drifting with its die
+    temperature as the scene's part says (`PhysicalScene.chip_drift`; a static scene's do not).
+
+    ``seed`` makes the chips' noise repeatable (None: fresh entropy); each chip
+    gets its own stream, so adding a chip does not change another's noise.
+    ``adapter``, ``ioctl_s`` (s per ioctl) and ``clock_hz`` (the wire's real
+    clock, None: ``bus_hz``) are the board's (`SimulatedBus`); the defaults are
+    a Raspberry Pi 4's.
+    """
+    addresses = scene.addresses
+    streams = np.random.SeedSequence(seed).spawn(len(addresses))
+    drift = getattr(scene, "chip_drift", None)  # a physical scene's parts drift with heat
+    chips = [EmulatedMLX90393(address, scene, rng=np.random.default_rng(stream), noise=noise,
+                              drift=None if drift is None else drift(address))
+             for address, stream in zip(addresses, streams)]
+    faults = getattr(scene, "faults", [])
+    return SimulatedBus(chips, clock=clock, bus_hz=bus_hz, script=FaultScript(faults) if faults else None,
+                        adapter=adapter, ioctl_s=ioctl_s, clock_hz=clock_hz)

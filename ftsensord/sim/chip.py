@@ -133,7 +133,8 @@ class EmulatedMLX90393(RegisterCommands, Conversions):
 
     Fault hooks for tests: ``stuck`` (the same data forever, DRDY always high),
     ``memory_error`` (a double-bit ECC error: every command but RT refused),
-    `drift_register` (a register that changes by itself).
+    `drift_register` (a register that changes by itself), ``oscillator`` (this chip's
+    conversion times against nominal: the datasheet's +-20 % is 0.8 to 1.2).
     """
 
     def __init__(self, address: int, scene: FieldSource, *,
@@ -157,6 +158,7 @@ class EmulatedMLX90393(RegisterCommands, Conversions):
             self.nonvolatile[reg] = value
         self.stuck = False
         self.memory_error = False
+        self.oscillator = 1.0  # times nominal; the reader waits for the slowest (acquire.bound.OSC_MARGIN)
         self.field_override: np.ndarray | None = None  # fault: a field from elsewhere (T)
         self._pending_drifts: list[tuple[float, int, int]] = []
         self.power_on()
@@ -173,6 +175,7 @@ class EmulatedMLX90393(RegisterCommands, Conversions):
         self._reply_pending = False  # a command whose reply has not been read yet
         self._sm_unread = False  # an accepted SM whose status byte has not been read yet
         self._conv_items: tuple[str, ...] = ()
+        self._conv_setup: tuple[mlx.Settings, tuple[int, ...]] | None = None  # settings, offsets at its start
         self._conv_first = math.inf  # time the first result is ready
         self._conv_interval = math.inf  # burst interval (inf: one conversion only)
         self._last_index = -1  # index of the newest result already read
@@ -259,14 +262,19 @@ class EmulatedMLX90393(RegisterCommands, Conversions):
         self.mode = _MODE_OF_OPCODE[opcode]
         zyxt_eff = mlx.items_zyxt(items)
         self._conv_items = items
+        # A single conversion is made with the settings it started with (the datasheet is silent on a
+        # WR during one; a result already in the data registers cannot change): a later WR acts on the
+        # next. A burst's results are each a conversion of their own, with the registers then (WR is
+        # refused in burst: only a register drifting by itself changes them).
+        self._conv_setup = (s, tuple(self.registers[r] for r in mlx.REG_OFFSETS)) if self.mode is Mode.SINGLE else None
         self._last_index = -1
         if self.mode is Mode.WOC:
             # Wake-on-change is accepted as a mode (status bit, exclusivity) but
             # never produces data here: ftsensord does not use it.
             self._conv_first, self._conv_interval = math.inf, math.inf
         else:
-            self._conv_first = now + s.single_measurement_us(zyxt_eff) * 1e-6
-            self._conv_interval = (s.burst_interval_us(zyxt_eff) * 1e-6
+            self._conv_first = now + s.single_measurement_us(zyxt_eff) * 1e-6 * self.oscillator
+            self._conv_interval = (s.burst_interval_us(zyxt_eff) * 1e-6 * self.oscillator
                                    if self.mode is Mode.BURST else math.inf)
         self._sm_unread = self.mode is Mode.SINGLE
         return self._status()

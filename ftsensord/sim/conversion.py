@@ -50,6 +50,7 @@ class Conversions:
     rng: np.random.Generator
     tref: int
     registers: list[int]
+    _conv_setup: tuple[mlx.Settings, tuple[int, ...]] | None
     field_override: np.ndarray | None
 
     def settings(self) -> mlx.Settings:
@@ -65,8 +66,9 @@ class Conversions:
         return bytes(out)
 
     def _convert(self, t: float) -> dict[str, int]:
-        """Quantised words of a conversion finishing at time ``t``."""
-        s = self.settings()
+        """Quantised words of a conversion finishing at time ``t``, coded with the settings and
+        OFFSET registers it started with (``_conv_setup``; None: the registers now)."""
+        s, offsets = self._conv_setup or (self.settings(), tuple(self.registers[r] for r in mlx.REG_OFFSETS))
         field = self.field_override if self.field_override is not None else np.asarray(
             self.scene.field_t(self.address, t), dtype=float)
         temp = self.scene.temperature_c(self.address, t)
@@ -81,7 +83,7 @@ class Conversions:
             if sigma > 0:
                 b_ut += self.rng.normal(0.0, sigma)
             counts = round(b_ut / sensitivity)
-            words[axis] = _tcmp_word(counts, self.registers[mlx.REG_OFFSETS[i]]) if s.tcmp_en \
+            words[axis] = _tcmp_word(counts, offsets[i]) if s.tcmp_en \
                 else mlx.counts_to_raw(counts, fmt)
         if self.noise.temperature_sigma_c > 0:
             temp += self.rng.normal(0.0, self.noise.temperature_sigma_c)
