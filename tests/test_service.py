@@ -317,6 +317,35 @@ def test_a_recorder_loses_no_sample_while_the_daemons_io_thread_cannot_run(tmp_p
         assert got[0] <= start, topic
 
 
+def test_the_daemon_binds_ipv6_loopback_endpoints(tmp_path, zmq_context):
+    """`tcp://[::1]:PORT` is a loopback endpoint the configuration accepts: libzmq binds it
+    only with ZMQ_IPV6 set ("No such device" before), and a subscriber receives from it."""
+    import zmq
+
+    from ftsensord.service import wire
+    from ftsensord.service.config import load_config
+    from ftsensord.service.run import make_sockets
+    probe = zmq_context.socket(zmq.PUB)
+    probe.setsockopt(zmq.IPV6, 1)
+    port = probe.bind_to_random_port("tcp://[::1]")
+    probe.close(linger=0)  # a free port: the configuration names it
+    config = load_config(write_config(tmp_path, extra=f'publish = "ipc://{tmp_path}/wrench"\n'
+                                                     f'publish_tcp = "tcp://[::1]:{port}"\n'
+                                                     f'control = "ipc://{tmp_path}/control"'))
+    pub, ctl, _ = make_sockets(zmq_context, config)
+    with Subscriber(f"tcp://[::1]:{port}", ["wrench/sensor1"], context=zmq_context) as sub:
+        frame = wire.encode("wrench/sensor1", wire.KIND_WRENCH, 7, 0.0, 0.0, 0, np.zeros(6))
+        got = None
+        for _ in range(200):  # until the subscription has reached the publisher
+            pub.send(frame)
+            got = sub.receive(timeout_s=0.01)
+            if got is not None:
+                break
+        assert got is not None and got.seq == 7
+    pub.close(linger=0)
+    ctl.close(linger=0)
+
+
 def test_sighup_storm_and_sigterm_during_a_reload(running):
     proc, pub, ctl = running
     control = ControlClient(ctl)

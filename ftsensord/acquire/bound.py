@@ -17,7 +17,7 @@ from ..errors import ConfigError
 
 SCHEDULERS = ("naive", "overlapped", "burst")
 #: The chip's oscillator runs within +-20 % of nominal: wait for the slowest.
-OSC_MARGIN = 1.2
+OSC_MARGIN = mlx.OSCILLATOR_SLOWEST
 #: Chips per transfer: two messages each, at most 42 messages an ioctl.
 CHIPS_PER_TRANSFER = I2C_RDWR_MAX_MSGS // 2
 
@@ -118,7 +118,7 @@ def cycle_bound(scheduler: str, n_chips: int, settings: mlx.Settings, bus_hz: fl
     shapes = Shapes.of(adapter)
     zyxt = mlx.ZYXT_XYZT if temperature else mlx.ZYXT_XYZ
     conversion = settings.single_measurement_us(zyxt) * 1e-6 * OSC_MARGIN
-    rm_bits = RM_BITS + (BITS_PER_BYTE * 2 if zyxt & mlx.ZYXT_T else 0)
+    rm_bits = rm_bits_for(zyxt)
     sm_one = (SM_BITS + 1) / bus_hz + overhead_s
     rm_one = (rm_bits + 1) / bus_hz + overhead_s
     # RR of CONF1..CONF3, and of OFFSET_X/Y/Z with TCMP_EN (`MLX90393.configuration_matches`).
@@ -143,7 +143,7 @@ def cycle_bound(scheduler: str, n_chips: int, settings: mlx.Settings, bus_hz: fl
             if n_sm else (0.0, 0)
         first = overhead_s + (1 + BITS_PER_BYTE * 2) / bus_hz
         rm_at = overlapped_rm_at(first + conversion, start + check, conversion, first,
-                                 _last_offset_s(n_chips, rm_bits, shapes.pairs_per_transfer, bus_hz, overhead_s)
+                                 last_offset_s(n_chips, rm_bits, shapes.pairs_per_transfer, bus_hz, overhead_s)
                                  if readback else None, sm_one if readback else 0.0)
         if readback:
             start += sm_one
@@ -172,7 +172,12 @@ def overlapped_rm_at(first_ready: float, checked: float, conversion: float, firs
     return max(first_ready, checked + sm_one, checked + first + conversion - last_offset)
 
 
-def _last_offset_s(n_chips: int, rm_bits: int, per_transfer: int, bus_hz: float, overhead_s: float) -> float:
+def rm_bits_for(zyxt: int) -> int:
+    """Bits on the wire of one chip's RM of ``zyxt`` (X, Y, Z; T adds a word)."""
+    return RM_BITS + (BITS_PER_BYTE * 2 if zyxt & mlx.ZYXT_T else 0)
+
+
+def last_offset_s(n_chips: int, rm_bits: int, per_transfer: int, bus_hz: float, overhead_s: float) -> float:
     """How long after the RM transfers begin the last chip's RM command reaches it (s)."""
     transfers, k = divmod(n_chips - 1, per_transfer)
     full = (per_transfer * rm_bits + 1) / bus_hz + overhead_s

@@ -29,7 +29,7 @@ from ..chip import mlx90393 as mlx
 from ..chip.driver import MLX90393
 from ..chip.i2c import BITS_PER_BYTE, Bus, BusTiming
 from ..errors import ChipError, ChipProtocolError, ConfigError
-from .bound import OSC_MARGIN, SCHEDULERS, Shapes, overlapped_rm_at
+from .bound import OSC_MARGIN, SCHEDULERS, Shapes, last_offset_s, overlapped_rm_at, rm_bits_for
 from .health import ChipCare, ChipHealth, ChipResult
 from .readings import Readings
 from .transfers import RMRead, Transfers, probe_shapes
@@ -124,6 +124,10 @@ class Reader:
             except ChipError as exc:
                 errors[chip.address] = exc
                 self.care.fail(chip.address, self.bus.monotonic())
+        if self.scheduler == "burst":
+            # The last chip's SB was just sent: its first result comes one conversion later
+            # (its oscillator the slowest), and a read before it would be refused.
+            self.bus.sleep(self.conversion_s(mlx.ZYXT_XYZT if self.temperature else mlx.ZYXT_XYZ))
         return errors
 
     def stop(self) -> None:
@@ -221,12 +225,8 @@ class Reader:
                 results.update(self.xfer.start_all([checked], zyxt))
                 if checked.address not in results:
                     ready.append(checked)
-                    n = len(ready)
-                    per = self.shapes.pairs_per_transfer
-                    rm_bits = (1 + BITS_PER_BYTE * 2) + (1 + BITS_PER_BYTE * (1 + 2 * len(mlx.zyxt_items(zyxt))))
-                    transfers, k = divmod(n - 1, per)
-                    last_offset = (transfers * ((per * rm_bits + 1) / self.bus_hz + self.overhead_s)
-                                   + self.overhead_s + (k * rm_bits + 1 + BITS_PER_BYTE * 2) / self.bus_hz)
+                    last_offset = last_offset_s(len(ready), rm_bits_for(zyxt), self.shapes.pairs_per_transfer,
+                                                self.bus_hz, self.overhead_s)
                     sm_one = self.bus.monotonic() - t_sm
                     # Measured from the cycle's start, as the bound computes it.
                     rm_at = overlapped_rm_at(first + conversion, t_sm - t0, conversion, first, last_offset, sm_one)

@@ -82,6 +82,8 @@ def bind(socket: zmq.Socket, endpoint: str, files: RuntimeFiles | None = None) -
     path = _ipc_path(endpoint)
     if path is not None:
         ensure_private_dir(path.parent)
+    if endpoint.startswith("tcp://["):  # an IPv6 address ([::1]): libzmq binds it only when asked to
+        socket.setsockopt(zmq.IPV6, 1)
     socket.bind(endpoint)
     if path is not None:
         os.chmod(path, 0o660)

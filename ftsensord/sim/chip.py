@@ -134,7 +134,7 @@ class EmulatedMLX90393(RegisterCommands, Conversions):
     Fault hooks for tests: ``stuck`` (the same data forever, DRDY always high),
     ``memory_error`` (a double-bit ECC error: every command but RT refused),
     `drift_register` (a register that changes by itself), ``oscillator`` (this chip's
-    conversion times against nominal: the datasheet's +-20 % is 0.8 to 1.2).
+    conversion times against nominal: the datasheet's +-20 % is 0.8 to 1.2; the slowest by default).
     """
 
     def __init__(self, address: int, scene: FieldSource, *,
@@ -158,7 +158,9 @@ class EmulatedMLX90393(RegisterCommands, Conversions):
             self.nonvolatile[reg] = value
         self.stuck = False
         self.memory_error = False
-        self.oscillator = 1.0  # times nominal; the reader waits for the slowest (acquire.bound.OSC_MARGIN)
+        # Times nominal: the slowest a real chip may be (a driver that waits the nominal time
+        # reads too early on such a chip, so it must here too); tests set 0.8 for the fastest.
+        self.oscillator = mlx.OSCILLATOR_SLOWEST
         self.field_override: np.ndarray | None = None  # fault: a field from elsewhere (T)
         self._pending_drifts: list[tuple[float, int, int]] = []
         self.power_on()

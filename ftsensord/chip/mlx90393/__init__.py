@@ -124,6 +124,7 @@ from .timing import (  # noqa: F401
     NOISE_REF_TCONVM_US,
     NOISE_REF_XY_UT,
     NOISE_Z_FACTOR,
+    OSCILLATOR_SLOWEST,
     T_AFTER_EX_US,
     T_AFTER_RT_US,
     T_HS_US,

@@ -8,6 +8,9 @@ import math
 from .protocol import ZYXT_T, axis_count
 
 # --- Timing (nominal; the chip's oscillator varies by about +-20 %) ---------------
+#: The slowest a chip's conversions may run, times nominal (the oscillator's +20 %): what a
+#: driver waits for, and what the emulator runs at unless told otherwise.
+OSCILLATOR_SLOWEST = 1.2
 TSTBY_US = 220.0
 TACTIVE_US = 360.0
 TCONV_END_US = 100.0
