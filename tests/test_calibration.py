@@ -315,3 +315,13 @@ def test_a_stiffness_at_the_end_of_the_float_range_is_refused_naming_it(tmp_path
     path = tmp_path / "cal.json"
     path.write_text(json.dumps(doc))
     assert_names_file_and_key(Calibration.load, path, key, "expected")
+
+
+def test_a_bad_chip_position_map_is_named_by_its_index(tmp_path):
+    """position_map.M[5], not position_map.M[5]M: the item's key joined to its list's."""
+    doc = json.loads(builtin_path("sim-sensor1.json").read_text())
+    doc["position_map"]["M"][5] = [[1, 2], [3, 4]]
+    doc["checksum"] = checksum(doc)
+    path = tmp_path / "cal.json"
+    path.write_text(json.dumps(doc))
+    assert_names_file_and_key(Calibration.load, path, "position_map.M[5]: ", "a 3 x 3 matrix")

@@ -132,7 +132,8 @@ class Calibration:
             M = pm.get("M")
             if not isinstance(M, list) or len(M) != len(addresses):
                 raise pm.fail("M", f"{len(addresses)} 3x3 matrices, one per chip", M)
-            Ms = [Table({"M": m}, path, f"{pm.key('M')}[{i}]").matrix("M", 3, 3) for i, m in enumerate(M)]
+            # Each chip's M named as position_map.M[i] (the item's key joined to its list's).
+            Ms = [Table({f"[{i}]": m}, path, pm.key("M")).matrix(f"[{i}]", 3, 3) for i, m in enumerate(M)]
             pmap = PositionMap(np.array(Ms), np.array(pm.matrix("o", len(addresses), 3, unit="m")))
         nonlinear = _nonlinear(doc, len(addresses)) if "nonlinear" in raw else None
         silicone = SiliconeCalibration.parse(doc.table("silicone")) if "silicone" in raw else None
