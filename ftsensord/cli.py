@@ -191,8 +191,8 @@ def cmd_record(args: argparse.Namespace) -> int:
 
     with StopOnSignals() as stopped:  # from here on a signal ends the recording cleanly
         frames = daemon_frames(args.streams, args.endpoint, args.control, args.timeout)
-        writer = open_writer(args.file, args.streams, frames)
-        with Subscriber(args.endpoint, args.streams) as sub:
+        with Subscriber(args.endpoint, args.streams) as sub:  # a bad endpoint: refused before a file is made
+            writer = open_writer(args.file, args.streams, frames)
             outcome = record(sub, writer, args.streams, count=args.count, seconds=args.seconds,
                              timeout_s=args.timeout, stop=stopped.is_set)
     if outcome.reason == "timeout":

@@ -561,6 +561,7 @@ def test_an_endpoint_zeromq_cannot_connect_to_is_a_message_not_a_traceback(tmp_p
     endpoint = args[args.index("--control") + 1] if "--control" in args else args[args.index("--endpoint") + 1]
     last = err.strip().splitlines()[-1]  # (record first says no daemon answered for the frames)
     assert last.startswith(f"ftsensord: {endpoint}: ") and "ipc://PATH or tcp://HOST:PORT" in last, err
+    assert not (tmp_path / "x.csv").exists()  # record refused it before making its file
 
 
 def test_the_client_classes_refuse_an_endpoint_zeromq_cannot_connect_to(zmq_context):
