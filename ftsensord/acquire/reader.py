@@ -127,7 +127,7 @@ class Reader:
         if self.scheduler == "burst":
             # The last chip's SB was just sent: its first result comes one conversion later
             # (its oscillator the slowest), and a read before it would be refused.
-            self.bus.sleep(self.conversion_s(mlx.ZYXT_XYZT if self.temperature else mlx.ZYXT_XYZ))
+            self.bus.sleep(self.conversion_s(self.care.burst_zyxt))
         return errors
 
     def stop(self) -> None:
