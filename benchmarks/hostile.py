@@ -327,23 +327,32 @@ def main() -> None:
         folder = Path(tmp)
         config = packaged_config(folder / "ftsensord.toml")
         memory = MemoryGroup.make(unit.memory_max, f"ftsensord-hostile-{os.getpid()}") if unit.memory_max else None
-        proc, notify = sandboxed(config, folder, unit, memory)
         try:
-            run = folder / "ftsensord"
-            out = {"descriptors": lambda: descriptors(run, proc, args.connections),
-                   "unread": lambda: unread(run, proc, args.clients, args.requests),
-                   "stalled": lambda: stalled(run, proc, args.clients, args.seconds)}[args.mode]()
-            out["limit_nofile"] = unit.limit_nofile
-            out["memory_max"] = unit.memory_max
-            out["seccomp"] = bool(unit.filters)
+            proc, notify = sandboxed(config, folder, unit, memory)
+            try:
+                run = folder / "ftsensord"
+                out = {"descriptors": lambda: descriptors(run, proc, args.connections),
+                       "unread": lambda: unread(run, proc, args.clients, args.requests),
+                       "stalled": lambda: stalled(run, proc, args.clients, args.seconds)}[args.mode]()
+                out["limit_nofile"] = unit.limit_nofile
+                out["memory_max"] = unit.memory_max
+                out["seccomp"] = bool(unit.filters)
+            finally:
+                try:
+                    out_code = stop(proc, notify)
+                finally:
+                    if proc.poll() is None:  # stop timed out: the group cannot go while it lives
+                        proc.kill()
+                        proc.wait()
+            out["exit_code"] = out_code
+            # The cgroup's own count (page cache included, as the limit counts it), where enforced.
+            peak = None if memory is None else memory.peak()
+            out["memory_group"] = None if memory is None else {
+                "v2": memory.v2, "peak_mib": None if peak is None else round(peak / 2**20, 1),
+                "oom_kills": memory.oom_kills()}
         finally:
-            out_code = stop(proc, notify)
-        out["exit_code"] = out_code
-        # The cgroup's own count (page cache included, as the limit counts it), where enforced.
-        out["memory_group"] = None if memory is None else {
-            "v2": memory.v2, "peak_mib": round(memory.peak() / 2**20, 1), "oom_kills": memory.oom_kills()}
-        if memory is not None:
-            memory.remove()
+            if memory is not None:
+                memory.remove()
         print(json.dumps(out, indent=1))
 
 

@@ -181,7 +181,10 @@ class MemoryGroup:
         self.path, self.v2 = path, v2
 
     @classmethod
-    def make(cls, limit: int, name: str) -> MemoryGroup | None:
+    def make(cls, limit: int, name: str, swap: bool = True) -> MemoryGroup | None:
+        """``swap=False`` also keeps the group out of swap (v2 ``memory.swap.max`` 0, v1
+        ``memory.memsw.limit_in_bytes``), so a process beyond the limit is killed, not swapped
+        out; None then where that cannot be set."""
         for line in Path("/proc/self/cgroup").read_text().splitlines():
             _, controllers, own = line.split(":", 2)
             v2 = controllers == ""
@@ -198,7 +201,10 @@ class MemoryGroup:
             group = cls(path, v2)
             try:
                 (path / group._limit_file).write_text(str(limit))
-            except OSError:  # v2 without memory delegated to our group: no such file
+                if not swap:  # v1's memsw counts memory and swap together: the same limit
+                    (path / ("memory.swap.max" if v2 else "memory.memsw.limit_in_bytes")).write_text(
+                        "0" if v2 else str(limit))
+            except OSError:  # v2 without memory delegated to our group, or no swap accounting
                 path.rmdir()
                 continue
             return group
@@ -213,9 +219,11 @@ class MemoryGroup:
         the program allocates is counted)."""
         (self.path / "cgroup.procs").write_text("0")
 
-    def peak(self) -> int:
-        """The most the group has used, bytes (its page cache included, as the limit counts it)."""
-        return int((self.path / ("memory.peak" if self.v2 else "memory.max_usage_in_bytes")).read_text())
+    def peak(self) -> int | None:
+        """The most the group has used, bytes (its page cache included, as the limit counts
+        it); None where the kernel keeps no peak (cgroup v2 before Linux 5.19)."""
+        path = self.path / ("memory.peak" if self.v2 else "memory.max_usage_in_bytes")
+        return int(path.read_text()) if path.exists() else None
 
     def oom_kills(self) -> int:
         """Processes of the group the OOM killer took."""

@@ -26,6 +26,7 @@ import zmq
 from .docfile import parse_json
 from .errors import ConfigError, ControlError, DaemonNotAnswering, FtsensordError, WireError
 from .service import wire
+from .service.endpoints import needs_ipv6
 from .service.paths import check_private_dir, runtime_dir
 
 #: Samples a recording subscriber may queue: 10 s of five streams at 100 Hz.
@@ -52,7 +53,7 @@ def default_endpoint(name: str) -> str:
 def connect(sock: zmq.Socket, endpoint: str) -> None:
     """``sock.connect(endpoint)``; an endpoint ZeroMQ cannot parse is a ConfigError naming it
     (the socket closed), not a ZMQError traceback out of every command."""
-    if endpoint.startswith("tcp://["):  # an IPv6 address ([::1]): libzmq reaches it only when asked to
+    if needs_ipv6(endpoint):
         sock.setsockopt(zmq.IPV6, 1)
     try:
         sock.connect(endpoint)

@@ -62,6 +62,17 @@ def zmq_context() -> Iterator[zmq.Context]:
     ctx.destroy(linger=0)
 
 
+@pytest.fixture
+def ipv6_loopback() -> None:
+    """Skips a test where this host has no IPv6 loopback (a container without ::1)."""
+    import socket
+    try:
+        with socket.socket(socket.AF_INET6) as s:
+            s.bind(("::1", 0))
+    except OSError as exc:
+        pytest.skip(f"no IPv6 loopback here ({exc})")
+
+
 def assert_names_file_and_key(load, path, key: str, expected: str) -> None:
     """``load(path)`` refuses the file with a ConfigError naming the file, the key and
     what was expected: the contract for every file the project reads."""

@@ -439,7 +439,7 @@ def test_the_protocol_pages_c_compiles_as_c_and_cpp_and_decodes_its_vector(tools
 
 
 @pytest.mark.parametrize("which", ["driver", "driver_cxx"])
-def test_the_header_reaches_a_publisher_on_ipv6_loopback(tools, which):
+def test_the_header_reaches_a_publisher_on_ipv6_loopback(tools, which, ipv6_loopback):
     """`tcp://[::1]:PORT` is a loopback endpoint the configuration accepts; libzmq connects to it
     only with ZMQ_IPV6 set, so fts_open given it never had a sample (2026-11-27)."""
     ctx = zmq.Context.instance()

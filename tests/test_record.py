@@ -624,7 +624,7 @@ def test_the_npz_sidecar_reads_by_hand_as_docs_clients_md_lays_it_out(tmp_path):
     writer.file.close()
 
 
-def test_a_subscriber_reaches_a_publisher_on_ipv6_loopback(zmq_context):
+def test_a_subscriber_reaches_a_publisher_on_ipv6_loopback(zmq_context, ipv6_loopback):
     """`tcp://[::1]:PORT` is a loopback endpoint the configuration accepts; libzmq connects to
     it only with ZMQ_IPV6 set, so a Subscriber given it waited for ever (2026-11-27)."""
     import zmq

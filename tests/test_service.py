@@ -296,20 +296,26 @@ def test_a_recorder_loses_no_sample_while_the_daemons_io_thread_cannot_run(tmp_p
     daemon.start()
     recorder_context = zmq.Context()  # an I/O thread of its own, free to run
     with Subscriber(f"ipc://{tmp_path}/wrench", context=recorder_context) as recorder:
-        while recorder.receive(timeout_s=0.01) is None:  # connected and subscribed
+        def cycle() -> None:  # one period of virtual time each: the chips' results come as they would
+            t0 = clock.now()
             daemon.cycle()
+            clock.wait_until(t0 + 1.0 / config.rate_hz)
+
+        while recorder.receive(timeout_s=0.01) is None:  # connected and subscribed
+            cycle()
         start = daemon.timing.cycles
         others = os.sched_getaffinity(0)
         os.sched_setaffinity(0, {cpu})
         try:
-            for _ in range(int(config.rate_hz)):  # on the virtual clock: back to back, never sleeping
-                daemon.cycle()
+            for _ in range(int(config.rate_hz)):  # virtual time: back to back in real time, never sleeping
+                cycle()
         finally:
             os.sched_setaffinity(0, others)
         seqs = {}
         while (s := recorder.receive(timeout_s=1.0)) is not None:
             seqs.setdefault(s.topic, []).append(s.seq)
     recorder_context.destroy(linger=0)
+    assert not daemon.reader.failing  # realistic cycles: every chip read
     streams = {"wrench/sensor1", "wrench/sensor2", "wrench/tip", "flux/sensor1", "flux/sensor2"}
     assert set(seqs) == streams
     for topic, got in seqs.items():  # each stream's every cycle, from the first after the warm-up
@@ -317,7 +323,7 @@ def test_a_recorder_loses_no_sample_while_the_daemons_io_thread_cannot_run(tmp_p
         assert got[0] <= start, topic
 
 
-def test_the_daemon_binds_ipv6_loopback_endpoints(tmp_path, zmq_context):
+def test_the_daemon_binds_ipv6_loopback_endpoints(tmp_path, zmq_context, ipv6_loopback):
     """`tcp://[::1]:PORT` is a loopback endpoint the configuration accepts: libzmq binds it
     only with ZMQ_IPV6 set ("No such device" before), and a subscriber receives from it."""
     import zmq

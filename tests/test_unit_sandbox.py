@@ -149,26 +149,30 @@ def assert_within_memory_max(unit, memory_group, out: dict) -> None:
     """The daemon stayed under the unit's MemoryMax=: counted and enforced by the kernel in
     its cgroup where there is one (never OOM-killed, its peak below), else by its peak RSS."""
     assert unit.memory_max is not None
+    assert out["rss_peak_mib"] * 2**20 < unit.memory_max, out
     if memory_group is None:
-        assert out["rss_peak_mib"] * 2**20 < unit.memory_max, out
         return
     assert memory_group.oom_kills() == 0, out
-    assert memory_group.peak() < unit.memory_max, (memory_group.peak(), out)
+    # The kernel holds a group's peak at its limit (reclaiming, then killing), so the peak is
+    # held to three quarters of it: the worst hostile load measured 146 of 256 MiB.
+    peak = memory_group.peak()
+    assert peak is None or peak < 0.75 * unit.memory_max, (peak, out)
 
 
 def test_the_memory_group_enforces_its_limit(tmp_path, unit):
     """The cgroup the tests use is enforced here, so a daemon within it is within the unit's
     MemoryMax=: the same daemon in a group of 16 MiB (it charges about 28 of its own) is OOM-killed."""
-    group = sandbox.MemoryGroup.make(16 * 2**20, f"ftsensord-small-{os.getpid()}")
+    # Out of swap too: with swap, a process over the limit is swapped out rather than killed.
+    group = sandbox.MemoryGroup.make(16 * 2**20, f"ftsensord-small-{os.getpid()}", swap=False)
     if group is None:
-        pytest.skip("no memory cgroup can be made here (no memory controller delegated to us)")
+        pytest.skip("no memory cgroup without swap can be made here (no memory controller delegated to us)")
     try:
         config = hostile.packaged_config(tmp_path / "ftsensord.toml")
         out = subprocess.run([sys.executable, "-m", "ftsensord", "run", "--config", str(config), *unit.run_args],
                              env={**os.environ, "XDG_RUNTIME_DIR": str(tmp_path)}, capture_output=True,
                              preexec_fn=unit.preexec(memory=group), timeout=60)
         assert out.returncode == -signal.SIGKILL, out.stderr[-2000:]
-        assert group.oom_kills() >= 1 and group.peak() <= 16 * 2**20
+        assert group.oom_kills() >= 1
     finally:
         group.remove()
 

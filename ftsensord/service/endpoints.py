@@ -29,7 +29,14 @@ class Security:
 LOOPBACK = ("127.0.0.1", "localhost", "[::1]")
 #: An ipc socket's path is a sockaddr_un's sun_path: 108 bytes with its NUL (libzmq refuses more at bind).
 MAX_IPC_PATH_BYTES = 107
-_TCP = re.compile(r"tcp://(?P<host>[^\s/]+):(?P<port>[0-9]{1,5})")
+#: A host is a name, an IPv4 address, * (every interface) or [an IPv6 address]; libzmq takes
+#: more (tcp://0.0.0.0:5555:1) and refuses it at bind.
+_TCP = re.compile(r"tcp://(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.*-]+):(?P<port>[0-9]{1,5})")
+
+
+def needs_ipv6(endpoint: str) -> bool:
+    """An IPv6 address (tcp://[::1]:PORT): libzmq binds or reaches it only with ZMQ_IPV6 set."""
+    return endpoint.startswith("tcp://[")
 
 
 def is_loopback(endpoint: str) -> bool:
@@ -58,7 +65,8 @@ def _malformed(value: str) -> str | None:
     if value.startswith("tcp://"):
         match = _TCP.fullmatch(value)
         if match is None or not 1 <= int(match["port"]) <= 65535:
-            return "tcp://HOST:PORT with a port from 1 to 65535 (digits only: no wildcard, no path)"
+            return ("tcp://HOST:PORT (a name, an IPv4 address, * or [an IPv6 address]) with a port from 1 to "
+                    "65535 (digits only: no wildcard, no path)")
         return None
     path = value[len("ipc://"):]
     if not path.startswith("/") or len(path.encode()) > MAX_IPC_PATH_BYTES:

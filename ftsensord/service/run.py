@@ -24,7 +24,7 @@ from .config import Config
 from .connections import ConnectionCap, raise_descriptor_limit
 from .control import MAX_PER_CYCLE, MAX_REQUEST
 from .daemon import Daemon
-from .endpoints import is_loopback
+from .endpoints import is_loopback, needs_ipv6
 from .host import HostGuard
 from .orientation import open_receiver
 from .paths import ensure_private_dir
@@ -82,7 +82,7 @@ def bind(socket: zmq.Socket, endpoint: str, files: RuntimeFiles | None = None) -
     path = _ipc_path(endpoint)
     if path is not None:
         ensure_private_dir(path.parent)
-    if endpoint.startswith("tcp://["):  # an IPv6 address ([::1]): libzmq binds it only when asked to
+    if needs_ipv6(endpoint):
         socket.setsockopt(zmq.IPV6, 1)
     socket.bind(endpoint)
     if path is not None:
