@@ -26,13 +26,11 @@ import numpy as np
 
 from ftsensord.acquire.readings import Readings
 from ftsensord.chip import mlx90393 as mlx
-from ftsensord.service import wire
 from ftsensord.service.config import builtin_path, load_config
 from ftsensord.service.filters import WrenchFilter
 from ftsensord.service.pipeline import SensorPipeline, channel_sigma_t
 from ftsensord.sim import default_scene
 
-FLAGGED = wire.FLAG_INCONSISTENT | wire.FLAG_DEGRADED | wire.FLAG_INVALID
 CLEAN = 10  # samples before the onset: the slow test's window full, as in a running daemon
 
 
@@ -68,7 +66,7 @@ def onsets(sizes_ut: list[float], count: int, after: int, seed: int = 0) -> dict
                 got = step(p, truth + rng.normal(0, 1, truth.size) * sigma + (offset if k >= CLEAN else 0.0))
                 if k < CLEAN:
                     continue
-                if got.flags & FLAGGED:
+                if got.flags:  # any flag warns the user (as benchmarks/motor_close.py counts)
                     found = k - CLEAN if found is None else found
                     continue
                 error = float(np.max(np.abs(got.wrench) / noise))

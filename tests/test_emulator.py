@@ -291,13 +291,15 @@ def test_a_conversion_keeps_the_settings_it_started_with(bus, scene, when_s):
     assert not status(bus, bytes([mlx.CMD_SM | mlx.ZYXT_XYZ])).error
     bus.sleep(when_s)
     conf1 = changed.to_registers()[mlx.REG_CONF1]
-    assert not status(bus, bytes([mlx.CMD_WR, conf1 >> 8, conf1 & 0xFF, mlx.REG_CONF1 << 2])).error
+    wr = status(bus, bytes([mlx.CMD_WR, conf1 >> 8, conf1 & 0xFF, mlx.REG_CONF1 << 2]))
+    assert wr.error == (when_s < SM_XYZ_S)  # refused while the conversion is under way (the strict choice)
     bus.sleep(2 * SM_XYZ_S)
     reply = xfer(bus, bytes([mlx.CMD_RM | mlx.ZYXT_XYZ]), 7)
     assert not mlx.Status(reply[0]).error
     x = mlx.raw_to_counts((reply[1] << 8) | reply[2], started.raw_format("x"))
     assert x == round(scene.fields_t[ADDR][0] * 1e6 / started.sensitivity_ut("x"))  # 667 counts at GAIN_SEL 7, not 133
-    # the next conversion takes the new gain
+    # the next conversion takes the new gain (written again once idle, where it was refused)
+    assert not status(bus, bytes([mlx.CMD_WR, conf1 >> 8, conf1 & 0xFF, mlx.REG_CONF1 << 2])).error
     assert rm_counts(bus, changed)[0] == round(scene.fields_t[ADDR][0] * 1e6 / changed.sensitivity_ut("x"))
 
 

@@ -213,6 +213,9 @@ def room_directions(dataset: Dataset, geometry: SensorGeometry, mode: str = "aut
         # A field stands well above the noise, but its 3rd direction is at the noise (where a
         # 4th must stay): the poses turned the sensor about one axis only, so the field along
         # it never changed. Over poses spread on the sphere the three stand alike (~1.1:1).
+        # (The middle comparison only says floor > 0: a noiseless dataset has no such band.
+        # A 3rd direction between the two factors, above the noise yet too weak to measure,
+        # takes the nominal directions below, as a field-free room does: not refused.)
         raise CalibrationError(
             f"{dataset.where()}the no-load poses turn the sensor about one axis only: the room field varies in 2 "
             "flux directions (singular values " + ", ".join(f"{v * 1e6:.3g}" for v in sv[:3]) + f" uT; noise floor "

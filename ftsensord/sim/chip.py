@@ -101,7 +101,9 @@ class RegisterCommands:
 
     def _wr(self, opcode: int, zyxt: int, data: bytes, now: float) -> bytes:
         reg = self._register_address(data[3]) if len(data) == 4 else None
-        if reg is None or reg > mlx.REG_CUSTOMER_MAX or self.mode in (Mode.BURST, Mode.WOC):
+        # SINGLE is a conversion under way (it ends in IDLE): the datasheet is silent on a WR
+        # then, so the strict choice, refused, as in burst.
+        if reg is None or reg > mlx.REG_CUSTOMER_MAX or self.mode is not Mode.IDLE:
             return self._status(error=True)
         self.registers[reg] = (data[1] << 8) | data[2]
         return self._status()
