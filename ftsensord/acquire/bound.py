@@ -18,6 +18,10 @@ from ..errors import ConfigError
 SCHEDULERS = ("naive", "overlapped", "burst")
 #: The chip's oscillator runs within +-20 % of nominal: wait for the slowest.
 OSC_MARGIN = mlx.OSCILLATOR_SLOWEST
+#: The chip read back in an overlapped cycle has its RM timed to reach it as its conversion
+#: ends; this much later keeps round-off (~1e-18 s) from putting it a hair early on a chip
+#: at the slow end of the oscillator's spread, and is under half a bit at 400 kHz.
+READY_GUARD_S = 1e-6
 #: Chips per transfer: two messages each, at most 42 messages an ioctl.
 CHIPS_PER_TRANSFER = I2C_RDWR_MAX_MSGS // 2
 
@@ -169,7 +173,7 @@ def overlapped_rm_at(first_ready: float, checked: float, conversion: float, firs
     """
     if last_offset is None:
         return max(first_ready, checked)
-    return max(first_ready, checked + sm_one, checked + first + conversion - last_offset)
+    return max(first_ready, checked + sm_one, checked + first + conversion - last_offset + READY_GUARD_S)
 
 
 def rm_bits_for(zyxt: int) -> int:
