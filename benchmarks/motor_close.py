@@ -36,7 +36,6 @@ def run(placements: int, samples: int = 20, seed: int = 7) -> list[dict]:
     config = load_config(builtin_path("sim.toml"))
     s = config.sensors[0]
     sigma = channel_sigma_t(config.settings, len(s.addresses))
-    index = {a: i for i, a in enumerate(s.addresses)}
     rng = np.random.default_rng(seed)
     out = []
     for estimator in ("linear", "nonlinear"):
@@ -56,8 +55,7 @@ def run(placements: int, samples: int = 20, seed: int = 7) -> list[dict]:
                 scene.set_load(0, StaticLoad(load))
                 b = np.concatenate([scene.field_t(a, 1.0) for a in s.addresses])
                 for _ in range(samples):
-                    got = p.step(Readings(s.addresses, index, field=(b + rng.normal(0, 1, b.size) * sigma).reshape(-1, 3),
-                                          words=[(0, 0, 0)] * len(s.addresses), statuses=[0] * len(s.addresses)))
+                    got = p.step(Readings.of_field(s.addresses, b + rng.normal(0, 1, b.size) * sigma))
                     e = np.abs(got.wrench - load)
                     if got.flags == 0 and (e[:3].max() > 0.05 or e[3:].max() > 2e-3):  # any flag warns
                         wrong += 1

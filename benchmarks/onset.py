@@ -40,12 +40,10 @@ def onsets(sizes_ut: list[float], count: int, after: int, seed: int = 0) -> dict
     scene = default_scene()
     sigma = channel_sigma_t(config.settings, len(s.addresses))
     truth = np.concatenate([scene.field_t(a, 0.0) for a in s.addresses])
-    index = {a: i for i, a in enumerate(s.addresses)}
     rng = np.random.default_rng(seed)
 
     def step(p: SensorPipeline, b: np.ndarray):
-        return p.step(Readings(s.addresses, index, field=b.reshape(-1, 3), words=[(0, 0, 0)] * len(s.addresses),
-                               statuses=[0] * len(s.addresses)))
+        return p.step(Readings.of_field(s.addresses, b))
 
     # One sample's wrench noise per axis, measured on the same pipeline at rest.
     p = SensorPipeline.build(s, WrenchFilter(), config.max_missing_chips, config.settings)

@@ -95,11 +95,6 @@ def _pair():
     return s, usual, separate
 
 
-def _readings(addresses: tuple[int, ...], flux: np.ndarray) -> Readings:
-    return Readings(addresses, {a: i for i, a in enumerate(addresses)}, field=flux.reshape(-1, 3),
-                    words=[(0, 0, 0)] * len(addresses), statuses=[0] * len(addresses))
-
-
 def test_the_usual_sample_is_the_separate_ones():
     """Sample by sample, through a temperature change, a tare, loads up to 1.8x the
     calibration's (extrapolated past 1.5x), a chip off by 8 sigma (found out, kept out until
@@ -128,8 +123,8 @@ def test_the_usual_sample_is_the_separate_ones():
             b[9:12] += 8 * sigma[9:12]  # chip 3 off by 8 sigma for ten samples
         if 300 <= k < 360:
             b[15:18] += (k - 300) * 0.35 * sigma[15:18]  # chip 5 drifting
-        got = usual.step(_readings(s.addresses, b))
-        want = separate.step(_readings(s.addresses, b))
+        got = usual.step(Readings.of_field(s.addresses, b))
+        want = separate.step(Readings.of_field(s.addresses, b))
         extrapolated += bool(got.flags & wire.FLAG_EXTRAPOLATED)
         assert got.flags == want.flags, k
         # Round-off: the folded constant's cancellation, 1e-12 of the wrench's scale.
@@ -156,7 +151,7 @@ def test_overload_is_flagged_axis_by_axis():
             u[axis] = size * SENSOR_RANGE[axis]
             scene.set_load(0, StaticLoad(u))
             b = np.concatenate([scene.field_t(a, 0.0) for a in s.addresses])
-            got = usual.step(_readings(s.addresses, b))
+            got = usual.step(Readings.of_field(s.addresses, b))
             over = bool(np.any(np.abs(got.wrench) > SENSOR_RANGE))
             assert bool(got.flags & wire.FLAG_OVERLOAD) is over, (axis, size, got.wrench)
             seen.add(over)

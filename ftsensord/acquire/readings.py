@@ -53,6 +53,15 @@ class Readings(Mapping[int, ChipResult]):
         return cls(addresses, index, field=decoder.field, words=decoder.xyz_words(),
                    statuses=decoder.replies[::decoder.reply_len])
 
+    @classmethod
+    def of_field(cls, addresses: tuple[int, ...], field: np.ndarray) -> Readings:
+        """A clean cycle of a known ``field`` (T, every channel: n x 3, or flat, in
+        ``addresses``' order), words and statuses zero: a flux replayed or computed, fed to
+        the pipelines as the reader's would be."""
+        n = len(addresses)
+        return cls(addresses, {a: i for i, a in enumerate(addresses)}, field=field.reshape(n, 3),
+                   words=[(0, 0, 0)] * n, statuses=bytes(n))
+
     @property
     def clean(self) -> bool:
         """Every chip read, each a measurement of X, Y, Z, none saturated: ``field`` holds them all."""
