@@ -3,8 +3,8 @@
 where this host lets us make one, the FIFO policy where allowed).
 
     python benchmarks/hostile.py descriptors --connections 3000   # held on control and wrench each
-    python benchmarks/hostile.py unread --clients 200 --requests 1000  # clients that never read
-    python benchmarks/hostile.py stalled --clients 128 --seconds 20   # subscribers that never read
+    python benchmarks/hostile.py unread --clients 127 --requests 1000  # clients that never read
+    python benchmarks/hostile.py stalled --clients 127 --seconds 20   # subscribers that never read
     python benchmarks/hostile.py calibration --runs 20   # a huge calibration file, one at the limit
     python benchmarks/hostile.py early-stop --delays 0.02,0.1,0.3,0.5,0.7,0.9   # SIGTERM while starting
     python benchmarks/hostile.py first-status --runs 5   # the first `status`'s cost, fresh processes
@@ -148,21 +148,44 @@ def _peer_closed(s: socket.socket) -> bool:
         return True
 
 
+def silent_clients(ctx: zmq.Context, kind: int, endpoint: str, count: int,
+                   options: dict[int, Any]) -> list[zmq.Socket]:
+    """``count`` sockets of ``kind`` connected to ``endpoint`` that read nothing: their own
+    queue and socket buffer as small as they go, so what the daemon sends them waits in its
+    own queues; ``options``: the kind's own (set after those)."""
+    socks = []
+    for _ in range(count):
+        s = ctx.socket(kind)
+        for option, value in {zmq.RCVHWM: 1, zmq.RCVBUF: 4096, zmq.LINGER: 0, **options}.items():
+            s.setsockopt(option, value)
+        s.connect(endpoint)
+        socks.append(s)
+    return socks
+
+
+def leave(ctx: zmq.Context, socks: list[zmq.Socket], pid: int) -> int:
+    """The clients gone (``socks`` closed, ``ctx`` ended): the daemon's RSS (KiB) once its I/O
+    thread has freed their queues and `malloc_trim` (1 s after the last) given them back."""
+    for s in socks:
+        s.close()
+    ctx.term()
+    time.sleep(3.0)
+    return memory_kib(pid)["VmRSS"]
+
+
+def rss_figures(before: int, loaded: dict[str, int], after: int) -> dict[str, float]:
+    """The daemon's RSS before the clients (KiB), with them (`memory_kib`) and after they left, in MiB."""
+    return {"rss_before_mib": round(before / 1024, 1), "rss_loaded_mib": round(loaded["VmRSS"] / 1024, 1),
+            "rss_peak_mib": round(loaded["VmHWM"] / 1024, 1), "rss_after_mib": round(after / 1024, 1)}
+
+
 def unread(folder: Path, proc: subprocess.Popen, clients: int, requests: int) -> dict[str, Any]:
     """``clients`` DEALERs each sending ``requests`` `status` requests, reading nothing."""
     endpoint = f"ipc://{folder / 'control'}"
     control = ControlClient(endpoint, timeout_s=10)
     before = memory_kib(proc.pid)["VmRSS"]
     ctx = zmq.Context()
-    socks = []
-    for _ in range(clients):
-        s = ctx.socket(zmq.DEALER)
-        s.setsockopt(zmq.RCVHWM, 1)  # a client that reads nothing holds as little as it can
-        s.setsockopt(zmq.RCVBUF, 4096)
-        s.setsockopt(zmq.SNDHWM, requests)
-        s.setsockopt(zmq.LINGER, 0)
-        s.connect(endpoint)
-        socks.append(s)
+    socks = silent_clients(ctx, zmq.DEALER, endpoint, clients, {zmq.SNDHWM: requests})
     request = json.dumps({"cmd": "status"}).encode()
     for s in socks:
         for _ in range(requests):
@@ -175,16 +198,10 @@ def unread(folder: Path, proc: subprocess.Popen, clients: int, requests: int) ->
         time.sleep(0.5)
         status = control.status()
         dropped.append(status.get("replies_dropped", 0))
-    peak = memory_kib(proc.pid)
-    for s in socks:
-        s.close()
-    ctx.term()
-    time.sleep(3.0)  # the daemon's I/O thread frees the gone peers' queues
-    after = memory_kib(proc.pid)["VmRSS"]
-    return {"clients": clients, "requests_each": requests, "rss_before_mib": round(before / 1024, 1),
-            "rss_loaded_mib": round(peak["VmRSS"] / 1024, 1), "rss_peak_mib": round(peak["VmHWM"] / 1024, 1),
-            "rss_after_mib": round(after / 1024, 1), "replies_dropped": status.get("replies_dropped"),
-            "alive": proc.poll() is None}
+    loaded = memory_kib(proc.pid)
+    after = leave(ctx, socks, proc.pid)
+    return {"clients": clients, "requests_each": requests, **rss_figures(before, loaded, after),
+            "replies_dropped": status.get("replies_dropped"), "alive": proc.poll() is None}
 
 
 def stalled(folder: Path, proc: subprocess.Popen, clients: int, seconds: float) -> dict[str, Any]:
@@ -195,15 +212,7 @@ def stalled(folder: Path, proc: subprocess.Popen, clients: int, seconds: float) 
     endpoint = f"ipc://{folder / 'wrench'}"
     before = memory_kib(proc.pid)["VmRSS"]
     ctx = zmq.Context()
-    socks = []
-    for _ in range(clients):
-        s = ctx.socket(zmq.SUB)
-        s.setsockopt(zmq.RCVHWM, 1)
-        s.setsockopt(zmq.RCVBUF, 4096)
-        s.setsockopt(zmq.LINGER, 0)
-        s.setsockopt(zmq.SUBSCRIBE, b"")
-        s.connect(endpoint)
-        socks.append(s)
+    socks = silent_clients(ctx, zmq.SUB, endpoint, clients, {zmq.SUBSCRIBE: b""})
     missed0 = control.status()["missed_cycles"]
     received = 0
     with Subscriber(endpoint, context=ctx) as recorder:
@@ -213,14 +222,9 @@ def stalled(folder: Path, proc: subprocess.Popen, clients: int, seconds: float) 
         gaps = dict(recorder.gaps)
     status = control.status()
     loaded = memory_kib(proc.pid)
-    for s in socks:
-        s.close()
-    ctx.term()
-    time.sleep(3.0)  # the daemon's I/O thread frees the gone peers' queues (malloc_trim after 1 s)
-    after = memory_kib(proc.pid)["VmRSS"]
-    return {"clients": clients, "seconds": seconds, "rss_before_mib": round(before / 1024, 1),
-            "rss_loaded_mib": round(loaded["VmRSS"] / 1024, 1), "rss_peak_mib": round(loaded["VmHWM"] / 1024, 1),
-            "rss_after_mib": round(after / 1024, 1), "recorder_received": received,
+    after = leave(ctx, socks, proc.pid)
+    return {"clients": clients, "seconds": seconds, **rss_figures(before, loaded, after),
+            "recorder_received": received,
             "recorder_gaps": gaps, "missed_cycles": status["missed_cycles"] - missed0,
             "publish_connections_refused": status.get("connections", {}).get("publish", {}).get("refused"),
             "alive": proc.poll() is None}
@@ -311,7 +315,9 @@ def main() -> None:
     parser.add_argument("mode", choices=("descriptors", "unread", "stalled", "calibration", "early-stop",
                                          "first-status"))
     parser.add_argument("--connections", type=int, default=3000, help="descriptors: held on each socket")
-    parser.add_argument("--clients", type=int, default=200, help="unread: DEALER clients; stalled: SUBs")
+    parser.add_argument("--clients", type=int, default=127,
+                        help="unread: DEALER clients; stalled: SUBs (at most 127: the daemon keeps 128 "
+                             "connections a socket, and this script's control client or recorder takes one)")
     parser.add_argument("--seconds", type=float, default=20.0, help="stalled: how long they stay")
     parser.add_argument("--requests", type=int, default=1000, help="unread: requests each")
     parser.add_argument("--runs", type=int, default=20, help="calibration: loads timed; first-status: processes")
