@@ -48,7 +48,10 @@ from ftsensord.docfile import load_toml
 from ftsensord.model import se3
 from ftsensord.model.geometry import SensorGeometry
 from ftsensord.model.linear import SENSOR_RANGE, LinearModel
-from ftsensord.sim import PhysicalScene, SimSensor, VirtualClock, simulated_bus
+from ftsensord.sim import PhysicalScene
+from ftsensord.sim import SimSensor
+from ftsensord.sim import VirtualClock
+from ftsensord.sim import simulated_bus
 from ftsensord.sim.loads import (
     FixedOrientation,
     StaticLoad,

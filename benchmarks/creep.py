@@ -1,10 +1,10 @@
 """The silicone's memory, end to end: writes docs/silicone-figures.md (and docs/silicone.png).
 
 A part of the default scene whose silicone relaxes (the default Prony series,
-`ftsensord.sim.silicone.DEFAULT_RELAXATION`) is calibrated by the simulated procedure with
+`ftsensord.sim.memory.DEFAULT_RELAXATION`) is calibrated by the simulated procedure with
 its step-and-hold segment (the series identified from it); then the daemon, in process on a
 virtual clock at the loop's rate, publishes sensor1's wrench under moving loads, with the
-compensation (`stages.silicone`) and without, against the scene's truth:
+compensation (`processing.creep`) and without, against the scene's truth:
 
 - a 2 N step on Fx held 30 s: the largest error from 0.5 s after the step on, and the time
   to half the step (the response's lag);
@@ -45,14 +45,17 @@ from ftsensord.acquire.health import stuck_cycles_for
 from ftsensord.calibration.calfile import Calibration
 from ftsensord.calibration.procedure import calibrate, simulate_dataset
 from ftsensord.model.viscoelastic import CreepInverse, Relaxation
-from ftsensord.service import wire
-from ftsensord.service.config import Config, builtin_path, load_config
-from ftsensord.service.daemon import Daemon
-from ftsensord.sim import PhysicalScene, VirtualClock, load_scene, simulated_bus
+from ftsensord.protocol import wire
+from ftsensord.config.file import Config, builtin_path, load_config
+from ftsensord.daemon.daemon import Daemon
+from ftsensord.sim import PhysicalScene
+from ftsensord.sim import VirtualClock
+from ftsensord.sim import load_scene
+from ftsensord.sim import simulated_bus
 from ftsensord.sim.loads import StepLoad
 from ftsensord.sim.scene import default_scene_path
-from ftsensord.sim.silicone import DEFAULT_RELAXATION
-from ftsensord.stages.silicone import CreepCompensation
+from ftsensord.sim.memory import DEFAULT_RELAXATION
+from ftsensord.processing.creep import CreepCompensation
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from tradeoff import Capture  # noqa: E402  (a sibling script: the publisher stand-in)

@@ -40,9 +40,9 @@ import numpy as np
 
 from ftsensord.acquire.board import bus_timing
 from ftsensord.acquire.bound import cycle_bound
-from ftsensord.service.config import builtin_path, load_config
-from ftsensord.service.pipeline import _BREAKS_MEMORY  # the stage's rule of what a sample keeps out
-from ftsensord.stages.silicone import CreepCompensation
+from ftsensord.config.file import builtin_path, load_config
+from ftsensord.processing.pipeline import _BREAKS_MEMORY  # the stage's rule of what a sample keeps out
+from ftsensord.processing.creep import CreepCompensation
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from creep import (  # noqa: E402

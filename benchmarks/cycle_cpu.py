@@ -1,6 +1,6 @@
 """The daemon's own CPU per cycle, beside a minimal numpy loop doing the same work, in one run.
 
-The daemon (`ftsensord.service.daemon.Daemon`, the default configuration: 16 chips, two
+The daemon (`ftsensord.daemon.daemon.Daemon`, the default configuration: 16 chips, two
 sensors of 8, the tool tip, five publishes over ipc) cycles on `InstantBus`, a stand-in
 bus that answers like 16 healthy chips at once. The stand-in's own Python is not the
 daemon's: its ioctls are recorded and replayed on it alone (`Recorded`), and that time,
@@ -40,9 +40,10 @@ from smbus2 import i2c_msg
 
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.model import se3
-from ftsensord.service.config import Config, builtin_path, load_config
-from ftsensord.service.daemon import Daemon
-from ftsensord.sim import NoiseModel, default_scene
+from ftsensord.config.file import Config, builtin_path, load_config
+from ftsensord.daemon.daemon import Daemon
+from ftsensord.sim import NoiseModel
+from ftsensord.sim import default_scene
 
 #: Readings a chip cycles through: at the default settings' noise (a third of the words'
 #: 6 uT LSB) the same words come back often, never for as many cycles as the stuck test needs.

@@ -38,13 +38,14 @@ from typing import Any
 import numpy as np
 import zmq
 
-from ftsensord.service.config import load_config
-from ftsensord.service.daemon import Daemon
-from ftsensord.service.run import make_sockets, open_configured_bus
-from ftsensord.sim import MonotonicClock, VirtualClock
+from ftsensord.config.file import load_config
+from ftsensord.daemon.daemon import Daemon
+from ftsensord.daemon.run import make_sockets, open_configured_bus
+from ftsensord.sim import MonotonicClock
+from ftsensord.sim import VirtualClock
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from launch import packaged_config  # noqa: E402  (a sibling script)
+from ftsensord.testing.harness import packaged_config
 
 SETTLE_CYCLES = 20  # chips started, plans built and caches warm before counting
 

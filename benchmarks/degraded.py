@@ -18,7 +18,9 @@ import numpy as np
 from ftsensord.calibration.fit import AXES, fit
 from ftsensord.calibration.rig import record_dataset, simulate_sweeps
 from ftsensord.model.geometry import SensorGeometry
-from ftsensord.sim import VirtualClock, simulated_bus, two_sensor_scene
+from ftsensord.sim import VirtualClock
+from ftsensord.sim import simulated_bus
+from ftsensord.sim import two_sensor_scene
 from ftsensord.sim.loads import StaticLoad, paper_plan
 
 

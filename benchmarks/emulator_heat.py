@@ -24,7 +24,10 @@ import time
 from pathlib import Path
 
 from ftsensord.chip import mlx90393 as mlx
-from ftsensord.sim import NOISELESS, VirtualClock, load_scene, simulated_bus
+from ftsensord.sim import NOISELESS
+from ftsensord.sim import VirtualClock
+from ftsensord.sim import load_scene
+from ftsensord.sim import simulated_bus
 from ftsensord.sim.scene import default_scene_path
 
 CONFIG = Path(__file__).resolve().parent.parent / "config"

@@ -5,7 +5,7 @@ whose largest axis is s times the calibration's `wrench_range` on that axis (the
 proportion), and prints the linear model's RMSE per axis as a fraction of s x range: the
 error relative to the load's size. The physics is noiseless, so this is the model's
 error alone. The daemon flags a linear estimate beyond `EXTRAPOLATION_MARGIN` x range
-`extrapolated` (ftsensord/service/pipeline.py); this table is where that number comes from. Run:
+`extrapolated` (ftsensord/processing/pipeline.py); this table is where that number comes from. Run:
 
     python benchmarks/extrapolation.py [--loads 200]
 """
@@ -18,7 +18,7 @@ import numpy as np
 
 from ftsensord.calibration.calfile import Calibration
 from ftsensord.calibration.fit import AXES
-from ftsensord.service.config import builtin_path
+from ftsensord.config.file import builtin_path
 from ftsensord.sim.loads import StaticLoad
 from ftsensord.sim.scene import default_scene
 

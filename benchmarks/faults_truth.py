@@ -24,11 +24,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from launch import InProcess
+from ftsensord.testing.harness import InProcess
 
-from ftsensord.service import wire
-from ftsensord.service.config import load_config
-from ftsensord.service.filters import WrenchFilter
+from ftsensord.protocol import wire
+from ftsensord.config.file import load_config
+from ftsensord.processing.filters import WrenchFilter
 from ftsensord.sim import load_scene
 from ftsensord.sim.scene import default_scene_text
 

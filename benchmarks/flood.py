@@ -28,11 +28,11 @@ import numpy as np
 import zmq
 
 from ftsensord.client import ControlClient
-from ftsensord.service import wire
-from ftsensord.service.control import MAX_REQUEST
+from ftsensord.protocol import wire
+from ftsensord.daemon.control import MAX_REQUEST
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from launch import packaged_config, start_daemon, stop
+from ftsensord.testing.harness import packaged_config, start_daemon, stop
 
 IN_FLIGHT = 20
 WATCHDOG_USEC = 5_000_000

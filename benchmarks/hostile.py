@@ -47,7 +47,7 @@ import zmq
 from ftsensord.client import ControlClient
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from launch import packaged_config, start_daemon, stop
+from ftsensord.testing.harness import packaged_config, start_daemon, stop
 from unit_sandbox import MemoryGroup, UnitRestrictions, seccomp_available
 
 UNIT = Path(__file__).resolve().parent.parent / "systemd" / "ftsensord.service"
@@ -235,7 +235,7 @@ def calibration(runs: int) -> dict[str, Any]:
     by its size) and one of the packaged ones padded with numbers to MAX_CALIBRATION_BYTES."""
     from ftsensord.calibration.calfile import MAX_CALIBRATION_BYTES, Calibration
     from ftsensord.errors import ConfigError
-    from ftsensord.service.config import builtin_path
+    from ftsensord.config.file import builtin_path
 
     with tempfile.TemporaryDirectory() as tmp:
         huge = Path(tmp) / "huge.json"
@@ -288,8 +288,8 @@ def first_status(runs: int) -> dict[str, Any]:
 import json, sys, time
 sys.path.insert(0, %r)
 from pathlib import Path
-from launch import InProcess, packaged_config
-from ftsensord.service.config import load_config
+from ftsensord.testing.harness import InProcess, packaged_config
+from ftsensord.config.file import load_config
 from ftsensord.sim.scene import default_scene
 rig = InProcess(load_config(packaged_config(Path(sys.argv[1]) / "c.toml")), default_scene())
 for _ in range(3):

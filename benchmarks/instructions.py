@@ -65,8 +65,8 @@ def _child(what: str, steps: int, readback_every: int | None, skip: list[str]) -
 
     import cycle_cpu
     import nonlinear_cpu
-    from ftsensord.service.config import builtin_path, load_config
-    from ftsensord.service.daemon import Daemon
+    from ftsensord.config.file import builtin_path, load_config
+    from ftsensord.daemon.daemon import Daemon
 
     config = load_config(builtin_path("sim.toml"))
     if what == "nonlinear":

@@ -36,11 +36,11 @@ import numpy as np
 import zmq
 
 from ftsensord.client import ControlClient
-from ftsensord.service import wire
+from ftsensord.protocol import wire
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from c_client import load_build
-from launch import cpu_seconds, packaged_config, start_daemon, stop
+from ftsensord.testing.harness import cpu_seconds, packaged_config, start_daemon, stop
 
 SETTLE_S = 1.0  # connections made and the first samples through before counting
 

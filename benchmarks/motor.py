@@ -43,15 +43,16 @@ from pathlib import Path
 import numpy as np
 import zmq
 from accuracy import PAPER, SWEEP
-from launch import InProcess
+from ftsensord.testing.harness import InProcess
 
 from ftsensord.calibration.fit import rmse, singular_values_ka
 from ftsensord.calibration.procedure import calibrate, simulate_dataset
 from ftsensord.docfile import load_toml
 from ftsensord.model import se3
-from ftsensord.service import orientation, wire
-from ftsensord.service.config import load_config
-from ftsensord.service.sensorconf import STRAY_FIELDS
+from ftsensord.protocol import orientation
+from ftsensord.protocol import wire
+from ftsensord.config.file import load_config
+from ftsensord.config.sensors import STRAY_FIELDS
 from ftsensord.sim import load_scene
 from ftsensord.sim.loads import paper_plan
 from ftsensord.sim.scene import default_scene_path

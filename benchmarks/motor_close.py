@@ -21,9 +21,9 @@ import json
 import numpy as np
 
 from ftsensord.acquire.readings import Readings
-from ftsensord.service.config import builtin_path, load_config
-from ftsensord.service.filters import WrenchFilter
-from ftsensord.service.pipeline import SensorPipeline, channel_sigma_t
+from ftsensord.config.file import builtin_path, load_config
+from ftsensord.processing.filters import WrenchFilter
+from ftsensord.processing.pipeline import SensorPipeline, channel_sigma_t
 from ftsensord.sim import default_scene
 from ftsensord.sim.loads import StaticLoad
 from ftsensord.sim.physics import StraySource

@@ -23,8 +23,10 @@ import numpy as np
 
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.model import se3
-from ftsensord.service.config import Config, builtin_path, load_config
-from ftsensord.sim import NoiseModel, default_scene, load_scene
+from ftsensord.config.file import Config, builtin_path, load_config
+from ftsensord.sim import NoiseModel
+from ftsensord.sim import default_scene
+from ftsensord.sim import load_scene
 from ftsensord.sim.chip import FieldSource
 
 CHUNK = 200_000  # samples drawn at once: 200,000 x 24 doubles, 38 MB

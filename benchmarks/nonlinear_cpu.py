@@ -37,8 +37,9 @@ import numpy as np
 from ftsensord.model import nlcompiled
 from ftsensord.model.linear import SENSOR_RANGE
 from ftsensord.model.nonlinear import NonlinearEstimator
-from ftsensord.service.config import builtin_path, load_config
-from ftsensord.sim import NoiseModel, default_scene
+from ftsensord.config.file import builtin_path, load_config
+from ftsensord.sim import NoiseModel
+from ftsensord.sim import default_scene
 
 RATE_HZ = 100.0  # the daemon's default rate: a reading every 10 ms
 

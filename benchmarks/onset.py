@@ -10,7 +10,7 @@ sample's wrench noise, any axis) from the truth, in how many onsets, the worst, 
 many samples after the onset the check first flagged (median, largest).
 
 One sample's check lets a chip through while its drop is within the noise's 1e-9 point
-plus the model's allowance (`service.redundancy`): at 0.64 sigma of wrench per unit of
+plus the model's allowance (`processing.redundancy`): at 0.64 sigma of wrench per unit of
 residual, a step in a chip's worst direction just under that limit moves the wrench ~5.7
 sigma, noise adds to it, and the slow test (10 samples summed) needs a sample or two more.
 
@@ -26,9 +26,9 @@ import numpy as np
 
 from ftsensord.acquire.readings import Readings
 from ftsensord.chip import mlx90393 as mlx
-from ftsensord.service.config import builtin_path, load_config
-from ftsensord.service.filters import WrenchFilter
-from ftsensord.service.pipeline import SensorPipeline, channel_sigma_t
+from ftsensord.config.file import builtin_path, load_config
+from ftsensord.processing.filters import WrenchFilter
+from ftsensord.processing.pipeline import SensorPipeline, channel_sigma_t
 from ftsensord.sim import default_scene
 
 CLEAN = 10  # samples before the onset: the slow test's window full, as in a running daemon

@@ -39,7 +39,9 @@ from ftsensord.chip.mlx90393 import HALL_SATURATION_T
 from ftsensord.cli import main as ftsensord
 from ftsensord.model import se3
 from ftsensord.model.linear import SENSOR_RANGE
-from ftsensord.sim import PhysicalScene, SimSensor, default_scene
+from ftsensord.sim import PhysicalScene
+from ftsensord.sim import SimSensor
+from ftsensord.sim import default_scene
 from ftsensord.sim.loads import FixedOrientation, StaticLoad
 
 #: The pose spoilt where a kind spoils one (a fit pose, 200 g: index 7 of the plan), and the chips.

@@ -29,7 +29,7 @@ from pathlib import Path
 from ftsensord.client import ControlClient, Subscriber
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from launch import cpu_seconds, packaged_config, start_daemon, stop
+from ftsensord.testing.harness import cpu_seconds, packaged_config, start_daemon, stop
 
 
 def main() -> int:

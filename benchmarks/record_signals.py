@@ -35,7 +35,7 @@ from ftsensord.client import Subscriber
 from ftsensord.recording import load_rows, read_mcap
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from launch import packaged_config, start_daemon, stop  # noqa: E402  (a sibling script)
+from ftsensord.testing.harness import packaged_config, start_daemon, stop
 
 SIGNALS = [signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGKILL]
 FORMATS = {"csv": ["wrench/sensor1"], "npz": ["wrench/sensor1"],

@@ -17,8 +17,8 @@ import numpy as np
 import ftsensord.ros2 as ros2
 from ftsensord.ros2.inloop import _TIME, InLoop
 from ftsensord.recording.ros2mcap import stamp
-from ftsensord.service import wire
-from ftsensord.service.daemon import Daemon
+from ftsensord.protocol import wire
+from ftsensord.daemon.daemon import Daemon
 
 
 class EachSend(InLoop):

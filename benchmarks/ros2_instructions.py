@@ -49,9 +49,9 @@ def _child(what: str, steps: int) -> None:
     import zmq
 
     import cycle_cpu
-    from ftsensord.service.config import builtin_path, load_config
-    from ftsensord.service.daemon import Daemon
-    from ftsensord.service.ros2conf import Ros2Config
+    from ftsensord.config.file import builtin_path, load_config
+    from ftsensord.daemon.daemon import Daemon
+    from ftsensord.config.ros2conf import Ros2Config
 
     config = load_config(builtin_path("sim.toml"))
     with tempfile.TemporaryDirectory() as tmp:

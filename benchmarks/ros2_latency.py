@@ -64,11 +64,11 @@ import numpy as np
 import zmq
 
 from ftsensord.client import ControlClient
-from ftsensord.service import wire
-from ftsensord.service.ros2conf import bridge_command
+from ftsensord.protocol import wire
+from ftsensord.daemon.ros2child import bridge_command
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from launch import cpu_seconds, packaged_config, start_daemon, stop
+from ftsensord.testing.harness import cpu_seconds, packaged_config, start_daemon, stop
 
 SETTLE_S = 3.0  # a bridge started (imports, participant), discovered, its first samples through
 DOMAIN = 200 + os.getpid() % 30  # 200-229: clear of ROS's default 0 and of the tests' 100-199

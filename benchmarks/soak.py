@@ -41,9 +41,9 @@ import numpy as np
 
 from ftsensord.client import ControlClient, Subscriber
 from ftsensord.model import se3
-from ftsensord.service import wire
-from ftsensord.service.config import Config, load_config
-from ftsensord.service.pipeline import channel_sigma_t
+from ftsensord.protocol import wire
+from ftsensord.config.file import Config, load_config
+from ftsensord.processing.pipeline import channel_sigma_t
 from ftsensord.sim import load_scene
 from ftsensord.sim.chip import FieldSource
 from ftsensord.sim.faults import random_faults
@@ -51,7 +51,7 @@ from ftsensord.sim.scene import default_scene_text
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from faults_truth import WRONG_SIGMA, unflagged_error_sigma
-from launch import packaged_config, start_daemon, stop
+from ftsensord.testing.harness import packaged_config, start_daemon, stop
 from noise_tails import tail_rate, wrench_noise
 
 SENSORS = {"sensor1": range(0x0C, 0x14), "sensor2": range(0x14, 0x1C)}
@@ -82,7 +82,7 @@ def rss_kib(pid: int) -> int:
 
 def applied(config: Config) -> dict[str, np.ndarray]:
     """The static load each wrench stream should show (N, Nm): LOAD on sensor1, none on
-    sensor2, and at the tip LOAD moved from sensor1's pose (as service.pipeline.tip_wrench)."""
+    sensor2, and at the tip LOAD moved from sensor1's pose (as processing.pipeline.tip_wrench)."""
     tip = se3.wrench_transform(config.tool_poses["sensor1"]) @ np.array(LOAD)
     return {"wrench/sensor1": np.array(LOAD), "wrench/sensor2": np.zeros(6), "wrench/tip": tip}
 

@@ -13,9 +13,9 @@ import numpy as np
 from ftsensord.calibration.calfile import Calibration
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.model import se3
-from ftsensord.service.config import builtin_path
-from ftsensord.service.pipeline import channel_sigma_t
-from ftsensord.stages.stray import WorldGradient
+from ftsensord.config.file import builtin_path
+from ftsensord.processing.pipeline import channel_sigma_t
+from ftsensord.processing.stray import WorldGradient
 
 
 def main() -> int:

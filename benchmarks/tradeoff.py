@@ -50,9 +50,9 @@ from ftsensord.chip import mlx90393 as mlx
 from ftsensord.chip.driver import MLX90393
 from ftsensord.chip.i2c import Bus
 from ftsensord.model.linear import SENSOR_RANGE
-from ftsensord.service import wire
-from ftsensord.service.config import Config, builtin_path, load_config
-from ftsensord.service.daemon import Daemon
+from ftsensord.protocol import wire
+from ftsensord.config.file import Config, builtin_path, load_config
+from ftsensord.daemon.daemon import Daemon
 from ftsensord.sim import (
     MonotonicClock,
     PhysicalScene,
@@ -65,7 +65,7 @@ from ftsensord.sim.loads import StaticLoad, paper_plan
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from cycle_cpu import InstantBus  # noqa: E402  (a sibling script: one stand-in bus for both)
-from launch import start_daemon, stop  # noqa: E402
+from ftsensord.testing.harness import start_daemon, stop  # noqa: E402
 
 DOCS = Path(__file__).resolve().parent.parent / "docs"
 ADDRESSES = list(range(0x0C, 0x1C))  # the instant bus's chips: the default scene's

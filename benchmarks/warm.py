@@ -33,11 +33,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from launch import InProcess
+from ftsensord.testing.harness import InProcess
 
 from ftsensord.calibration.procedure import calibrate, simulate_dataset
-from ftsensord.service import wire
-from ftsensord.service.config import load_config
+from ftsensord.protocol import wire
+from ftsensord.config.file import load_config
 from ftsensord.sim import load_scene
 from ftsensord.sim.loads import NO_LOAD, StaticLoad
 

@@ -13,14 +13,20 @@ imports only from its own floor or those below (tests/test_layout.py checks it):
    chip health and recovery, scanning.
 6. `calibration`: datasets, the rig, the linear and nonlinear fits, the
    calibration file, the report.
-7. `stages`: what acts on a sensor's flux before its estimator and on its
-   wrench after (the temperature's laws), apart from the service's loop.
-8. `service`: configuration, the loop, the per-sensor pipeline, tare, control,
-   status, the wire format, sockets, sd_notify.
-9. `client`: subscribing to the streams, sending control requests.
-10. `recording`, `plot`, `bridge`, `echo`: streams to CSV, NPZ or MCAP files; live
-    plots; live viewers; printed lines.
-11. `cli`: the `ftsensord` command.
+7. `protocol`: what the daemon and every client share: the wire format, the
+   orientation stream, endpoints, the runtime folder.
+8. `config`: the configuration file, read and validated (nothing started).
+9. `processing`: one sensor's way from chip results to a flagged, filtered
+   wrench: the pipeline, the redundancy check, the stages (temperature, stray
+   field, creep), filters, tare, gravity.
+10. `daemon`: the loop, control, status, reloads, `ftsensord run`, and the OS
+    plumbing (sd_notify, real time, connections, the runtime folder).
+11. `client`: subscribing to the streams, sending control requests.
+12. `recording`, `plot`, `foxglove`, `ros2`, `echo`: streams to CSV, NPZ or MCAP
+    files; live plots; live viewers; the ROS 2 graph; printed lines.
+13. `cli`: the `ftsensord` command.
+14. `testing`: the daemon harness the tests and benchmarks use (as gpiozero ships
+    its mock pin factory); nothing in the package imports it.
 
 The names below are the public face; they are imported on first use, so
 ``import ftsensord`` stays cheap and pulls in no floor it does not need.
@@ -36,7 +42,7 @@ __version__ = "0.1.0"
 _EXPORTS = {
     "open_bus": "ftsensord.acquire.bus",
     "MLX90393": "ftsensord.chip.driver",
-    "load_config": "ftsensord.service.config",
+    "load_config": "ftsensord.config.file",
     "Subscriber": "ftsensord.client",
     "ControlClient": "ftsensord.client",
     "FtsensordError": "ftsensord.errors",
@@ -44,11 +50,11 @@ _EXPORTS = {
 __all__ = ["ControlClient", "FtsensordError", "MLX90393", "Subscriber", "__version__", "load_config", "open_bus"]
 
 if TYPE_CHECKING:
-    from .acquire.bus import open_bus
-    from .chip.driver import MLX90393
-    from .client import ControlClient, Subscriber
-    from .errors import FtsensordError
-    from .service.config import load_config
+    from ftsensord.acquire.bus import open_bus
+    from ftsensord.chip.driver import MLX90393
+    from ftsensord.client import ControlClient, Subscriber
+    from ftsensord.errors import FtsensordError
+    from ftsensord.config.file import load_config
 
 
 def __getattr__(name: str) -> Any:

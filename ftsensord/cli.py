@@ -11,15 +11,15 @@ import math
 import sys
 from collections.abc import Sequence
 
-from . import __version__
-from .acquire.bus import ACCEPTED_FORMS, open_bus
-from .acquire.scan import format_table, scan
-from .bridge import add_parser as add_bridge_parser
-from .ros2 import InLoop, add_ros2_parser
-from .errors import ConfigError, DaemonNotAnswering, FtsensordError
-from .service.sensorconf import ESTIMATORS
-from .service.status import describe
-from .sim.loads import PLANS
+from ftsensord import __version__
+from ftsensord.acquire.bus import ACCEPTED_FORMS, open_bus
+from ftsensord.acquire.scan import format_table, scan
+from ftsensord.foxglove import add_parser as add_bridge_parser
+from ftsensord.ros2 import InLoop, add_ros2_parser
+from ftsensord.errors import ConfigError, DaemonNotAnswering, FtsensordError
+from ftsensord.config.sensors import ESTIMATORS
+from ftsensord.daemon.status import describe
+from ftsensord.sim.loads import PLANS
 
 
 def cmd_scan(args: argparse.Namespace) -> int:
@@ -50,8 +50,8 @@ def _rate_hz(text: str) -> float:
 
 
 def cmd_doctor(args: argparse.Namespace) -> int:
-    from .acquire.bound import SCHEDULERS
-    from .acquire.doctor import doctor, format_doctor
+    from ftsensord.acquire.bound import SCHEDULERS
+    from ftsensord.acquire.doctor import doctor, format_doctor
 
     report = doctor(args.bus, (args.scheduler,) if args.scheduler else SCHEDULERS, bus_hz=args.bus_hz,
                     force=args.force, real_time=args.real_time, rate_hz=args.rate)
@@ -63,7 +63,7 @@ def cmd_doctor(args: argparse.Namespace) -> int:
 
 
 def cmd_dataset(args: argparse.Namespace) -> int:
-    from .calibration.procedure import simulate_dataset
+    from ftsensord.calibration.procedure import simulate_dataset
 
     dataset = simulate_dataset(args.scene, args.sensor, args.plan, poses=args.poses,
                                validation_poses=args.validation_poses, samples=args.samples, seed=args.seed,
@@ -77,11 +77,11 @@ def cmd_dataset(args: argparse.Namespace) -> int:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from .calibration.dataset import Dataset
-    from .calibration.nlfit import FitProgress
-    from .calibration.procedure import calibrate, summary
-    from .calibration.report import write_report
-    from .errors import CalibrationError
+    from ftsensord.calibration.dataset import Dataset
+    from ftsensord.calibration.nlfit import FitProgress
+    from ftsensord.calibration.procedure import calibrate, summary
+    from ftsensord.calibration.report import write_report
+    from ftsensord.errors import CalibrationError
 
     dataset = Dataset.load(args.dataset)
 
@@ -111,14 +111,14 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     import logging
-    from .service.config import load_config
-    from .service.run import run
+    from ftsensord.config.file import load_config
+    from ftsensord.daemon.run import run
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     return run(load_config(args.config), early=args.early_signals, realtime=args.realtime, ros2_in_loop=InLoop)
 
 
 def _control(args: argparse.Namespace):
-    from .client import ControlClient
+    from ftsensord.client import ControlClient
     curve = (args.curve_cert, args.server_cert) if args.curve_cert else None
     if (args.curve_cert is None) != (args.server_cert is None):
         raise ConfigError("--curve-cert and --server-cert go together (CURVE needs both)")
@@ -174,20 +174,14 @@ def cmd_reload(args: argparse.Namespace) -> int:
 
 
 def cmd_echo(args: argparse.Namespace) -> int:
-    from .echo import echo
+    from ftsensord.echo import echo
 
     return echo(args.stream, args.endpoint, args.control, args.count, args.timeout)
 
 
 def cmd_record(args: argparse.Namespace) -> int:
-    from .client import Subscriber
-    from .recording import (
-        StopOnSignals,
-        daemon_frames,
-        open_writer,
-        record,
-        summary_line,
-    )
+    from ftsensord.client import Subscriber
+    from ftsensord.recording import StopOnSignals, daemon_frames, open_writer, record, summary_line
 
     with StopOnSignals() as stopped:  # from here on a signal ends the recording cleanly
         frames = daemon_frames(args.streams, args.endpoint, args.control, args.timeout)
@@ -202,8 +196,8 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
-    from .client import check_streams
-    from .plot import live, snapshot
+    from ftsensord.client import check_streams
+    from ftsensord.plot import live, snapshot
 
     check_streams(args.streams, args.endpoint, args.control, timeout_s=min(args.timeout, 1.0))
     if args.png:

@@ -9,7 +9,7 @@
     ControlClient().tare(samples=100)
 
 Endpoints default to the daemon's: the service's /run/ftsensord, else the
-user's runtime folder (see `ftsensord.service.paths.runtime_dir`).
+user's runtime folder (see `ftsensord.protocol.paths.runtime_dir`).
 """
 
 from __future__ import annotations
@@ -23,11 +23,11 @@ from typing import Any
 import numpy as np
 import zmq
 
-from .docfile import parse_json
-from .errors import ConfigError, ControlError, DaemonNotAnswering, FtsensordError, WireError
-from .service import wire
-from .service.endpoints import needs_ipv6
-from .service.paths import check_private_dir, runtime_dir
+from ftsensord.docfile import parse_json
+from ftsensord.errors import ConfigError, ControlError, DaemonNotAnswering, FtsensordError, WireError
+from ftsensord.protocol import wire
+from ftsensord.protocol.endpoints import needs_ipv6
+from ftsensord.protocol.paths import check_private_dir, runtime_dir
 
 #: Samples a recording subscriber may queue: 10 s of five streams at 100 Hz.
 QUEUE_HWM = 5000
@@ -261,7 +261,7 @@ class OrientationPublisher:
     """
 
     def __init__(self, endpoint: str | None = None, context: zmq.Context | None = None):
-        from .service import orientation
+        from ftsensord.protocol import orientation
 
         self._encode = orientation.encode
         self.endpoint = endpoint or default_endpoint("orientation")

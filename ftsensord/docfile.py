@@ -12,7 +12,7 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-from .errors import ConfigError
+from ftsensord.errors import ConfigError
 
 _MISSING = object()
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import sys
 
-from .client import Subscriber, check_streams
-from .recording.columns import value_columns
-from .service import wire
+from ftsensord.client import Subscriber, check_streams
+from ftsensord.recording.columns import value_columns
+from ftsensord.protocol import wire
 
 #: A wrench's values as printed (N, Nm), and a flux's (uT: the tesla's digits are all leading zeros).
 WRENCH_WIDTH, FLUX_WIDTH = 10, 9

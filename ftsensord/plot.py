@@ -21,9 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from .client import Subscriber
-from .errors import ConfigError
-from .service import wire
+from ftsensord.client import Subscriber
+from ftsensord.errors import ConfigError
+from ftsensord.protocol import wire
 
 #: Redraw period of the live plot, s: smooth to the eye, light on the CPU.
 REFRESH_S = 0.1

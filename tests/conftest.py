@@ -109,8 +109,8 @@ BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
 
 def benchmark(name: str) -> Any:
     """A script of benchmarks/ as a module, loaded once and registered under its name: its
-    dataclasses look their module up there, and its siblings' ``from launch import ...``
-    then find the same module, not a second copy."""
+    dataclasses look their module up there, and a test that loads it again gets the same
+    module, not a second copy."""
     if name not in sys.modules:
         spec = importlib.util.spec_from_file_location(name, BENCHMARKS / f"{name}.py")
         assert spec is not None and spec.loader is not None
@@ -123,13 +123,11 @@ def benchmark(name: str) -> Any:
     return sys.modules[name]
 
 
-#: `ftsensord run --config CONFIG` in a subprocess, its runtime folder in ``folder``,
-#: returned with its notify socket once it said READY=1 (the caller stops it and closes the
-#: socket); keywords route its output (subprocess.Popen's). benchmarks/launch.py: the one
-#: way the project starts the daemon for a run.
-start_daemon = benchmark("launch").start_daemon
-#: A `Daemon` in this process on a virtual clock, with a subscriber and a control client.
-InProcess = benchmark("launch").InProcess
+# `start_daemon`: `ftsensord run --config CONFIG` in a subprocess, its runtime folder in
+# ``folder``, returned with its notify socket once it said READY=1; `InProcess`: a `Daemon`
+# in this process on a virtual clock. ftsensord.testing.harness: the one way the project
+# starts the daemon for a run.
+from ftsensord.testing.harness import InProcess, start_daemon  # noqa: E402,F401
 
 
 class StreamRecorder(threading.Thread):

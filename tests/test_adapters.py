@@ -27,7 +27,10 @@ from ftsensord.chip.driver import MLX90393
 from ftsensord.chip.i2c import ADAPTER_RULES
 from ftsensord.cli import main
 from ftsensord.errors import ChipNotRespondingError, ChipProtocolError, ConfigError
-from ftsensord.sim import NOISELESS, VirtualClock, simulated_bus, two_sensor_scene
+from ftsensord.sim import NOISELESS
+from ftsensord.sim import VirtualClock
+from ftsensord.sim import simulated_bus
+from ftsensord.sim import two_sensor_scene
 
 from .conftest import ADDR
 

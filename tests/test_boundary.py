@@ -17,10 +17,10 @@ import zmq
 from ftsensord.calibration.calfile import MAX_CALIBRATION_BYTES, Calibration
 from ftsensord.docfile import MAX_DEPTH, load_toml, parse_json
 from ftsensord.errors import ConfigError
-from ftsensord.service.config import builtin_path
-from ftsensord.service.control import Budget, Control
-from ftsensord.service import wire
-from ftsensord.service.sdnotify import Notifier
+from ftsensord.config.file import builtin_path
+from ftsensord.daemon.control import Budget, Control
+from ftsensord.protocol import wire
+from ftsensord.daemon.sdnotify import Notifier
 from ftsensord.sim import load_scene
 
 from .conftest import assert_names_file_and_key
@@ -232,21 +232,21 @@ def test_a_reload_reads_its_files_off_the_loop_and_a_flood_is_one_reload(tmp_pat
     file work is held up (a slow disk, a big file), the loop goes on publishing every
     cycle; the 50 requests that came meanwhile are answered by one reload after it, and
     the replies all say ok."""
-    from ftsensord.service import commands
-    from ftsensord.service.config import load_config
+    from ftsensord.daemon import daemon as daemon_module
+    from ftsensord.config.file import load_config
 
     from .conftest import InProcess
     from .test_daemon import write_config
 
     release, reading = threading.Event(), threading.Event()
-    real = commands.reload_config
+    real = daemon_module.reload_config
 
     def slow_reload_config(*args, **kwargs):
         reading.set()
         assert release.wait(30)  # held until the test has run its cycles
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(commands, "reload_config", slow_reload_config)
+    monkeypatch.setattr(daemon_module, "reload_config", slow_reload_config)
     rig = InProcess(load_config(write_config(tmp_path)), load_scene(tmp_path / "scene.toml"),
                     subscribe=b"wrench/sensor1\0", background_reload=True)
     d = rig.daemon

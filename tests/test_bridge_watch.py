@@ -1,4 +1,4 @@
-"""The ROS 2 bridge as the daemon watches it (service/ros2conf.py): an exit is logged once and
+"""The ROS 2 bridge as the daemon watches it (daemon/ros2child.py): an exit is logged once and
 shown in `status`; a bridge that does not stop is killed, never left behind. No DDS here:
 the child is a stand-in process."""
 
@@ -11,8 +11,9 @@ import time
 
 import pytest
 
-from ftsensord.service import ros2conf
-from ftsensord.service.ros2conf import BridgeWatch, Ros2Config, ros2_beside
+from ftsensord.config.ros2conf import Ros2Config
+from ftsensord.daemon import ros2child
+from ftsensord.daemon.ros2child import BridgeWatch, ros2_beside
 
 
 def test_a_bridge_that_exits_is_logged_once_and_shown_in_status(caplog):
@@ -33,8 +34,8 @@ def test_a_bridge_that_ignores_sigterm_is_killed_when_the_daemon_stops(monkeypat
     stubborn = [sys.executable, "-c", "import signal, time; signal.signal(signal.SIGTERM, signal.SIG_IGN); "
                 "open(r'%s', 'w').close(); time.sleep(60)" % (tmp_path / "up")]
     real = subprocess.Popen
-    monkeypatch.setattr(ros2conf.subprocess, "Popen", lambda args, **kw: real(stubborn, **kw))
-    monkeypatch.setattr(ros2conf, "BRIDGE_EXIT_S", 0.5)
+    monkeypatch.setattr(ros2child.subprocess, "Popen", lambda args, **kw: real(stubborn, **kw))
+    monkeypatch.setattr(ros2child, "BRIDGE_EXIT_S", 0.5)
     t0 = time.monotonic()
     with caplog.at_level(logging.WARNING, logger="ftsensord"):
         with ros2_beside(Ros2Config(output="bridge"), tmp_path / "ftsensord.toml") as child:
@@ -52,7 +53,7 @@ def test_without_a_ros2_table_nothing_is_started(tmp_path):
 
 def test_a_domain_id_from_the_environment_or_the_flag_is_checked():
     from ftsensord.errors import ConfigError
-    from ftsensord.service.ros2conf import check_domain_id, default_domain_id
+    from ftsensord.config.ros2conf import check_domain_id, default_domain_id
     assert default_domain_id({}) == 0 and default_domain_id({"ROS_DOMAIN_ID": " 42 "}) == 42
     for bad in ("300", "abc", "-1"):  # once silently domain 0: the bridge off the nodes' domain
         with pytest.raises(ConfigError, match=r"ROS_DOMAIN_ID \(environment\): expected a DDS domain id"):

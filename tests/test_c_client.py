@@ -21,7 +21,7 @@ import pytest
 import zmq
 
 from ftsensord.client import ControlClient, Subscriber
-from ftsensord.service import wire
+from ftsensord.protocol import wire
 
 from .test_daemon import LOAD, write_config
 
@@ -129,7 +129,7 @@ def test_constants_match_the_wire_format_and_libzmq(tools):
 
 
 def test_the_c_orientation_sender_writes_the_documented_vector_and_the_daemons_receiver_takes_it(tools, tmp_path):
-    from ftsensord.service.orientation import OrientationReceiver
+    from ftsensord.protocol.orientation import OrientationReceiver
 
     from .test_gravity import VECTOR
 

@@ -31,8 +31,11 @@ from ftsensord.model.linear import (
     fit_position_map,
     tip_wrench,
 )
-from ftsensord.service.config import builtin_path
-from ftsensord.sim import NOISELESS, VirtualClock, simulated_bus, two_sensor_scene
+from ftsensord.config.file import builtin_path
+from ftsensord.sim import NOISELESS
+from ftsensord.sim import VirtualClock
+from ftsensord.sim import simulated_bus
+from ftsensord.sim import two_sensor_scene
 from ftsensord.sim.loads import StaticLoad, paper_plan
 
 from .conftest import assert_names_file_and_key

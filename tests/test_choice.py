@@ -15,10 +15,12 @@ from ftsensord.acquire import choice
 from ftsensord.acquire.bound import SCHEDULERS, cycle_bound
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.errors import ConfigError
-from ftsensord.service.config import load_config, reload_config
-from ftsensord.service.daemon import Daemon
+from ftsensord.config.file import load_config, reload_config
+from ftsensord.daemon.daemon import Daemon
 from ftsensord.chip.i2c import BusTiming
-from ftsensord.sim import VirtualClock, load_scene, simulated_bus
+from ftsensord.sim import VirtualClock
+from ftsensord.sim import load_scene
+from ftsensord.sim import simulated_bus
 from ftsensord.sim.bus import SimulatedBus
 
 from .test_daemon import write_config

@@ -12,9 +12,11 @@ from ftsensord import cli
 from ftsensord.acquire import choice
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.errors import ConfigError
-from ftsensord.service.config import load_config
-from ftsensord.service.daemon import Daemon
-from ftsensord.sim import VirtualClock, load_scene, simulated_bus
+from ftsensord.config.file import load_config
+from ftsensord.daemon.daemon import Daemon
+from ftsensord.sim import VirtualClock
+from ftsensord.sim import load_scene
+from ftsensord.sim import simulated_bus
 
 from .test_choice import PESSIMISTIC, _AdapterLike, _Null, _with_bus
 from .test_daemon import write_config

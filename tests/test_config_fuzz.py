@@ -16,9 +16,9 @@ from hypothesis import strategies as st
 
 from ftsensord.calibration.calfile import Calibration, checksum
 from ftsensord.errors import ConfigError
-from ftsensord.service.config import load_config
-from ftsensord.service.paths import builtin_path
-from ftsensord.service.sensorconf import Calibrations
+from ftsensord.config.file import load_config
+from ftsensord.protocol.paths import builtin_path
+from ftsensord.config.sensors import Calibrations
 
 CONFIG = {
     "version": 1, "bus": "sim", "bus_hz": 400000, "rate_hz": 100, "averaging": 1, "lowpass_hz": 0.0,

@@ -13,11 +13,11 @@ from hypothesis import strategies as st
 from ftsensord.calibration.calfile import Calibration
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.model.consistency import Consistency, chi2_quantile
-from ftsensord.service import wire
-from ftsensord.service.config import builtin_path
-from ftsensord.service.filters import WrenchFilter
-from ftsensord.service.pipeline import channel_sigma_t
-from ftsensord.service.redundancy import (
+from ftsensord.protocol import wire
+from ftsensord.config.file import builtin_path
+from ftsensord.processing.filters import WrenchFilter
+from ftsensord.processing.pipeline import channel_sigma_t
+from ftsensord.processing.redundancy import (
     CHIP_RESIDUAL_AT_RANGE,
     CHIP_RESIDUAL_AT_REST,
     MODEL_RESIDUAL_AT_RANGE,

@@ -18,7 +18,9 @@ from ftsensord.chip import mlx90393 as mlx
 from ftsensord.chip.block import BlockDecoder
 from ftsensord.chip.driver import MLX90393
 from ftsensord.errors import ChipError
-from ftsensord.sim import StaticScene, VirtualClock, simulated_bus
+from ftsensord.sim import StaticScene
+from ftsensord.sim import VirtualClock
+from ftsensord.sim import simulated_bus
 
 from .test_daemon import Rig
 

@@ -16,10 +16,11 @@ import pytest
 import zmq
 
 from ftsensord.errors import ConfigError
-from ftsensord.service import wire
-from ftsensord.service.config import load_config
-from ftsensord.service.sdnotify import Notifier
-from ftsensord.sim import VirtualClock, load_scene
+from ftsensord.protocol import wire
+from ftsensord.config.file import load_config
+from ftsensord.daemon.sdnotify import Notifier
+from ftsensord.sim import VirtualClock
+from ftsensord.sim import load_scene
 from ftsensord.sim.scene import default_scene_text
 
 from .conftest import InProcess, assert_names_file_and_key
@@ -308,7 +309,7 @@ def test_set_changes_rate_averaging_and_lowpass_at_run_time(rig):
 
 
 def test_reload_keeps_the_running_calibration_when_the_new_one_is_bad(tmp_path):
-    from ftsensord.service.config import builtin_path
+    from ftsensord.config.file import builtin_path
     cal = tmp_path / "cal1.json"
     cal.write_text(builtin_path("sim-sensor1.json").read_text())
     rig = Rig(tmp_path)
@@ -428,7 +429,7 @@ def test_a_bad_configuration_names_the_file_the_key_and_what_was_expected(tmp_pa
 def test_the_commented_example_configuration_loads(tmp_path):
     import shutil
 
-    from ftsensord.service.config import builtin_path
+    from ftsensord.config.file import builtin_path
     root = Path(__file__).resolve().parent.parent
     shutil.copy(root / "config" / "ftsensord.toml", tmp_path / "ftsensord.toml")
     shutil.copy(builtin_path("sim-sensor1.json"), tmp_path / "sensor1.json")
@@ -523,7 +524,7 @@ def test_configuring_the_nonlinear_estimator_needs_its_calibration(tmp_path):
     import json as json_
 
     from ftsensord.calibration.calfile import Calibration
-    from ftsensord.service.config import builtin_path
+    from ftsensord.config.file import builtin_path
     cal = Calibration.load(builtin_path("sim-sensor1.json"))
     cal.nonlinear = None
     cal.save(tmp_path / "linear-only.json")
@@ -548,7 +549,7 @@ def test_a_nonlinear_estimate_that_does_not_converge_falls_back_to_the_linear_fl
 
 
 def test_a_linear_estimate_beyond_the_calibrations_loads_is_flagged_extrapolated(tmp_path):
-    from ftsensord.service.pipeline import EXTRAPOLATION_MARGIN
+    from ftsensord.processing.pipeline import EXTRAPOLATION_MARGIN
     from ftsensord.sim.loads import StaticLoad
 
     def flags(n: int = 3) -> list[int]:

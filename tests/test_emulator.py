@@ -11,7 +11,10 @@ from smbus2 import i2c_msg
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.chip.driver import MLX90393
 from ftsensord.errors import ChipNotRespondingError, ChipRefusedError
-from ftsensord.sim import NoiseModel, StaticScene, VirtualClock, simulated_bus
+from ftsensord.sim import NoiseModel
+from ftsensord.sim import StaticScene
+from ftsensord.sim import VirtualClock
+from ftsensord.sim import simulated_bus
 
 from .conftest import ADDR
 

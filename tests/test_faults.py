@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from ftsensord.acquire.bound import cycle_bound
-from ftsensord.service import wire
-from ftsensord.sim import Fault, load_scene
+from ftsensord.protocol import wire
+from ftsensord.sim import Fault
+from ftsensord.sim import load_scene
 from ftsensord.sim.faults import random_faults
 
 from .conftest import assert_names_file_and_key

@@ -12,10 +12,10 @@ from ftsensord.acquire.readings import Readings
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.model.consistency import FoldedCheck
 from ftsensord.model.linear import EXTRAPOLATION_MARGIN, SENSOR_RANGE, LinearModel
-from ftsensord.service import wire
-from ftsensord.service.config import builtin_path, load_config
-from ftsensord.service.filters import WrenchFilter
-from ftsensord.service.pipeline import SensorPipeline, channel_sigma_t
+from ftsensord.protocol import wire
+from ftsensord.config.file import builtin_path, load_config
+from ftsensord.processing.filters import WrenchFilter
+from ftsensord.processing.pipeline import SensorPipeline, channel_sigma_t
 from ftsensord.sim.loads import StaticLoad
 from ftsensord.sim.scene import default_scene
 

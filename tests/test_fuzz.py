@@ -11,12 +11,14 @@ import time
 import numpy as np
 import zmq
 
-from ftsensord.service import wire
-from ftsensord.service.config import load_config
-from ftsensord.service.control import MAX_REQUEST
-from ftsensord.service.daemon import Daemon
-from ftsensord.service.run import make_sockets
-from ftsensord.sim import VirtualClock, load_scene, simulated_bus
+from ftsensord.protocol import wire
+from ftsensord.config.file import load_config
+from ftsensord.daemon.control import MAX_REQUEST
+from ftsensord.daemon.daemon import Daemon
+from ftsensord.daemon.run import make_sockets
+from ftsensord.sim import VirtualClock
+from ftsensord.sim import load_scene
+from ftsensord.sim import simulated_bus
 
 from .test_daemon import write_config
 

@@ -31,11 +31,11 @@ from ftsensord.calibration.fit import fit
 from ftsensord.calibration.procedure import calibrate, simulate_dataset
 from ftsensord.client import ControlClient, OrientationPublisher, Subscriber
 from ftsensord.model import se3
-from ftsensord.service import orientation as ori
-from ftsensord.service import wire
-from ftsensord.service.config import load_config
-from ftsensord.service.pipeline import SensorSample, tip_moves, tip_wrench
-from ftsensord.service.status import describe
+from ftsensord.protocol import orientation as ori
+from ftsensord.protocol import wire
+from ftsensord.config.file import load_config
+from ftsensord.processing.pipeline import SensorSample, tip_moves, tip_wrench
+from ftsensord.daemon.status import describe
 from ftsensord.sim import load_scene
 from ftsensord.sim.loads import FixedOrientation, fibonacci_directions, gravity_to_down
 
@@ -568,7 +568,7 @@ def test_a_quaternion_sent_must_name_its_order(tmp_path):
     w x y z. A bare 4-vector is refused (in the wrong order it is a valid rotation, off by
     up to 180 deg, right at the identity); each named order gives the same rotation."""
     from ftsensord.errors import WireError
-    from ftsensord.service.orientation import decode
+    from ftsensord.protocol.orientation import decode
 
     R = se3.exp_so3(np.array([0.3, -1.1, 0.7]))
     w = np.cos(np.linalg.norm([0.3, -1.1, 0.7]) / 2)
@@ -598,7 +598,7 @@ def test_a_tare_whose_orientations_stop_is_refused_within_a_second_saying_why(tm
     """The application stopped sending orientations: the tare is refused after
     TARE_STALE_RUN stale samples (1 s at 100 Hz) with the reason, not after 10 s of
     patience with a list of flags."""
-    from ftsensord.service.tare import TARE_STALE_RUN
+    from ftsensord.processing.tare import TARE_STALE_RUN
 
     t = Turning(tmp_path)
     t.turn(orientations(5)[1])

@@ -27,7 +27,7 @@ from ftsensord.sim import physics as sim_physics
 from ftsensord.sim.loads import StaticLoad
 from ftsensord.sim.physics import PhysicalScene, SimSensor, Tolerances
 from ftsensord.sim.scene import TEMPERATURE_RANGE_C, default_scene_path
-from ftsensord.sim.thermal import ChipDrift, TemperatureProfile
+from ftsensord.sim.heat import ChipDrift, TemperatureProfile
 
 from .conftest import assert_names_file_and_key
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import zmq
 
-from ftsensord.service import wire
+from ftsensord.protocol import wire
 
 from .test_c_client import build  # clients/c/build.py, loaded once
 

@@ -50,7 +50,7 @@ def test_the_daemon_takes_a_learnt_motor_out_through_the_orientation_stream(tmp_
 
     import numpy as np
 
-    from ftsensord.service.config import builtin_path
+    from ftsensord.config.file import builtin_path
 
     benchmark("accuracy")
     bench = benchmark("motor")

@@ -312,10 +312,10 @@ def test_a_moving_load_is_followed_to_the_same_end_in_fewer_iterations(monkeypat
 
 
 def test_a_motion_continued_stays_a_rigid_motion():
-    """`se3floats.continued` moves a pose on by the last motion exactly (constant velocity),
+    """`se3.continued` moves a pose on by the last motion exactly (constant velocity),
     and 500 continuations in a row stay rotations to round-off (as matrix products they
     drifted off by 1 % within 60 samples)."""
-    from ftsensord.model.se3floats import continued
+    from ftsensord.model.se3 import continued
     x = np.array([2e-4, -1e-4, 5e-5, 1e-3, -2e-3, 5e-4])
     T0 = se3.exp_se3(np.array([1e-3, 2e-3, -1e-3, 0.01, 0.02, -0.03]))
     T1 = se3.exp_se3(x) @ T0
@@ -376,7 +376,8 @@ def test_an_as_built_sensor_in_the_room_is_fitted_to_the_chips_noise():
     scales on the drawn magnets, left 3.4 uT field-free and was refused in the room."""
     from ftsensord.calibration.nlfit import fit_nonlinear
     from ftsensord.calibration.rig import record_dataset, simulated_robot
-    from ftsensord.sim import VirtualClock, simulated_bus
+    from ftsensord.sim import VirtualClock
+    from ftsensord.sim import simulated_bus
     from ftsensord.sim.loads import paper_plan
     from ftsensord.sim.physics import Tolerances
     geometry, gains = Tolerances(0.15e-3, 0.03, np.radians(1.5), 0.02, 0.1e-3, seed=1).build()
@@ -390,25 +391,13 @@ def test_an_as_built_sensor_in_the_room_is_fitted_to_the_chips_noise():
     assert np.max(np.linalg.norm(nl.magnet_p_m - SensorGeometry.ring().magnet_p, axis=1)) < 1e-3
 
 
-@pytest.mark.parametrize("angle", [0.0, 1e-9, 5e-3, 0.0099999, 0.01, 0.3, 1.2, 3.0, np.pi - 2e-3, np.pi - 1e-3, np.pi])
-def test_the_estimators_float_exp_and_log_are_se3s(angle):
-    """`_exp_se3` and `_log_se3` (the estimator's, in Python floats) against `se3`'s own,
-    across the series' switch (0.01 rad) and up to pi, where the log hands over to se3's."""
-    from ftsensord.model.nonlinear import _exp_se3, _log_se3
-    axis = np.array([0.3, -0.5, 0.81])
-    xi = np.concatenate([[2e-3, -1e-3, 4e-3], angle * axis / np.linalg.norm(axis)])
-    T = se3.exp_se3(xi)
-    assert np.allclose(_exp_se3(xi), T, rtol=0, atol=1e-15)
-    assert np.allclose(_log_se3(T), se3.log_se3(T), rtol=0, atol=1e-12)
-
-
 def test_a_calibration_file_says_which_field_model_it_was_fitted_with(tmp_path):
     """The packaged files say "dipole+octupole"; a file without the key was fitted with dipoles
     alone and is evaluated so; any other model names the file and key."""
     import json
 
     from ftsensord.calibration.calfile import Calibration, checksum
-    from ftsensord.service.config import builtin_path
+    from ftsensord.config.file import builtin_path
 
     from .conftest import assert_names_file_and_key
     packaged = Calibration.load(builtin_path("sim-sensor1.json"))

@@ -24,7 +24,7 @@ from ftsensord.model import nlcompiled, nonlinear, se3
 from ftsensord.model.geometry import SensorGeometry
 from ftsensord.model.linear import SENSOR_RANGE
 from ftsensord.model.nonlinear import FluxModel, NonlinearEstimator
-from ftsensord.model.se3floats import continued
+from ftsensord.model.se3 import continued
 from ftsensord.sim.physics import PAPER_STIFFNESS_DIAG, PhysicalScene, SimSensor
 
 G = SensorGeometry.ring()
@@ -286,8 +286,8 @@ def test_the_compiled_solve_runs_where_memory_may_not_be_written_and_executed(li
     assert done.returncode == 0 and done.stdout.split() == ["True"], (done.returncode, done.stdout, done.stderr)
 
 
-def test_the_motion_continued_is_se3floats(library):
-    """The warm start's prediction (`se3floats.continued`) in C: the same pose and sizes."""
+def test_the_motion_continued_is_se3s(library):
+    """The warm start's prediction (`se3.continued`) in C: the same pose and sizes."""
     solve = nlcompiled.solver_for("compiled", library)
     assert solve is not None
     rng = np.random.default_rng(5)
@@ -302,10 +302,10 @@ def test_the_motion_continued_is_se3floats(library):
 def test_status_says_which_solve_the_daemon_runs(library):
     """`status`' `nonlinear_solver`: numpy's without the library, compiled with it, null
     without a nonlinear calibration (an operator sees whether the install built it)."""
-    from ftsensord.service.config import builtin_path, load_config
-    from ftsensord.service.filters import WrenchFilter
-    from ftsensord.service.pipeline import SensorPipeline
-    from ftsensord.service.status import sensor_status
+    from ftsensord.config.file import builtin_path, load_config
+    from ftsensord.processing.filters import WrenchFilter
+    from ftsensord.processing.pipeline import SensorPipeline
+    from ftsensord.daemon.status import sensor_status
 
     s = load_config(builtin_path("sim.toml")).sensors[0]
     p = SensorPipeline.build(s, WrenchFilter(), 2)

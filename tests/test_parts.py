@@ -12,10 +12,12 @@ from ftsensord.acquire.health import ChipCare, ChipResult
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.chip.driver import MLX90393, Measurement
 from ftsensord.errors import ChipRefusedError
-from ftsensord.service.control import Control
-from ftsensord.service.loop import LATE_FRACTION, LoopTiming
-from ftsensord.service.status import ChipLedger
-from ftsensord.sim import VirtualClock, simulated_bus, two_sensor_scene
+from ftsensord.daemon.control import Control
+from ftsensord.daemon.loop import LATE_FRACTION, LoopTiming
+from ftsensord.daemon.status import ChipLedger
+from ftsensord.sim import VirtualClock
+from ftsensord.sim import simulated_bus
+from ftsensord.sim import two_sensor_scene
 
 
 # --- loop timing -------------------------------------------------------------------------
@@ -170,8 +172,8 @@ def test_a_reload_reuses_an_unchanged_calibration_and_reads_a_changed_one(tmp_pa
     from pathlib import Path
 
     from ftsensord.errors import ConfigError
-    from ftsensord.service.config import load_config
-    from ftsensord.service.sensorconf import Calibrations
+    from ftsensord.config.file import load_config
+    from ftsensord.config.sensors import Calibrations
 
     packaged = Path(__file__).resolve().parent.parent / "ftsensord" / "data" / "sim-sensor1.json"
     path = tmp_path / "cal.json"
@@ -192,4 +194,4 @@ def test_a_reload_reuses_an_unchanged_calibration_and_reads_a_changed_one(tmp_pa
     # The daemon's reload goes through it: the configuration's own calibrations are remembered.
     config = load_config()
     cal = config.sensors[0]
-    assert Calibrations().remember(config).load(cal.calibration_path) is cal.calibration
+    assert Calibrations().remember(config.sensors).load(cal.calibration_path) is cal.calibration

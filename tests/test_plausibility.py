@@ -22,7 +22,8 @@ from ftsensord.calibration.report import write_report
 from ftsensord.calibration.rig import record_dataset, simulate_sweeps, simulated_robot
 from ftsensord.errors import CalibrationError
 from ftsensord.model.geometry import SensorGeometry
-from ftsensord.sim import VirtualClock, simulated_bus
+from ftsensord.sim import VirtualClock
+from ftsensord.sim import simulated_bus
 from ftsensord.sim.loads import CalibrationPose, paper_plan
 from ftsensord.sim.physics import PhysicalScene, SimSensor
 

@@ -12,7 +12,7 @@ import pytest
 pytest.importorskip("matplotlib")
 
 from ftsensord.plot import FLAG_BITS, History, draw, make_figure, snapshot
-from ftsensord.service import wire
+from ftsensord.protocol import wire
 
 from .test_record import daemon  # noqa: F401  (the module's running daemon)
 

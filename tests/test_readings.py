@@ -14,10 +14,12 @@ from ftsensord.acquire.readings import Readings
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.chip.driver import MLX90393
 from ftsensord.errors import ChipProtocolError
-from ftsensord.service.config import builtin_path, load_config
-from ftsensord.service.filters import WrenchFilter
-from ftsensord.service.pipeline import SensorPipeline
-from ftsensord.sim import StaticScene, VirtualClock, simulated_bus
+from ftsensord.config.file import builtin_path, load_config
+from ftsensord.processing.filters import WrenchFilter
+from ftsensord.processing.pipeline import SensorPipeline
+from ftsensord.sim import StaticScene
+from ftsensord.sim import VirtualClock
+from ftsensord.sim import simulated_bus
 
 ADDRESSES = list(range(0x0C, 0x1C))
 

@@ -31,7 +31,7 @@ from ftsensord.recording import (
     recover_mcap,
 )
 from ftsensord.recording.ros2mcap import stamp
-from ftsensord.service import wire
+from ftsensord.protocol import wire
 
 from .test_daemon import write_config
 
@@ -448,7 +448,7 @@ DISK_FULL = """
 import resource, signal
 import numpy as np
 from ftsensord.recording import CsvWriter, record
-from ftsensord.service import wire
+from ftsensord.protocol import wire
 
 class Synthetic:  # tests/test_record.py's, without the test modules' imports
     i = 0
@@ -494,7 +494,7 @@ DISK_FULL_ANY = """
 import resource, signal
 import numpy as np
 from ftsensord.recording import open_writer, record
-from ftsensord.service import wire
+from ftsensord.protocol import wire
 
 class Synthetic:
     i = 0

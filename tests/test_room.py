@@ -16,7 +16,9 @@ from ftsensord.calibration.rig import record_dataset, simulate_sweeps, simulated
 from ftsensord.errors import CalibrationError
 from ftsensord.model import se3
 from ftsensord.model.geometry import SensorGeometry
-from ftsensord.sim import VirtualClock, load_scene, simulated_bus
+from ftsensord.sim import VirtualClock
+from ftsensord.sim import load_scene
+from ftsensord.sim import simulated_bus
 from ftsensord.sim.loads import (
     DOWN,
     CalibrationPose,

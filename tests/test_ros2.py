@@ -23,7 +23,7 @@ import pytest
 pytest.importorskip("cyclonedds")  # the ros2 extra, which the test extra includes
 
 from ftsensord.client import ControlClient  # noqa: E402
-from ftsensord.service.config import load_config  # noqa: E402
+from ftsensord.config.file import load_config  # noqa: E402
 
 from .conftest import StreamRecorder, assert_names_file_and_key, start_daemon  # noqa: E402
 from .test_daemon import Rig, write_config  # noqa: E402
@@ -220,7 +220,7 @@ def test_a_ros2_table_is_checked_and_names_the_extra_when_it_is_missing(tmp_path
 
 def test_a_failing_chip_or_a_flagged_wrench_raises_the_level_ros_tools_show():
     from ftsensord.ros2 import diagnostics as d
-    from ftsensord.service import wire
+    from ftsensord.protocol import wire
     chips = {"0x0C": {"sensor": "s1", "state": "ok", "last_error": None},
              "0x0D": {"sensor": "s1", "state": "failing", "last_error": "NACK"}}
     status = {"rate_hz": 100.0, "achieved_rate_hz": 99.9, "bus": "sim", "chips": chips,
@@ -240,8 +240,8 @@ def test_the_in_loop_diagnostics_show_what_the_status_reply_says(tmp_path):
     """In the loop's thread the statuses come from `health_reply`, not the whole `status` reply:
     the same statuses, with a chip failing too."""
     from ftsensord.ros2 import diagnostics as d
-    from ftsensord.service import wire
-    from ftsensord.service.status import health_reply
+    from ftsensord.protocol import wire
+    from ftsensord.daemon.status import health_reply
     rig = Rig(tmp_path)
     try:
         rig.bus.faults.nack(0x0E)
@@ -396,7 +396,7 @@ def test_a_frame_that_is_not_a_wrench_is_dropped_and_counted():
     from types import SimpleNamespace
 
     from ftsensord.ros2.bridge import Bridge
-    from ftsensord.service import wire
+    from ftsensord.protocol import wire
 
     written: list[tuple] = []
     bridge = SimpleNamespace(bad_frames=0, endpoint="ipc://test",

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from ftsensord.service.config import load_config
+from ftsensord.config.file import load_config
 
 from .conftest import benchmark
 

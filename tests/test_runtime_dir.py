@@ -15,10 +15,10 @@ import zmq
 
 from ftsensord import client
 from ftsensord.errors import ConfigError
-from ftsensord.service import config as config_module
-from ftsensord.service.config import load_config
-from ftsensord.service.paths import check_private_dir, ensure_private_dir
-from ftsensord.service.run import LOCK_NAME, bind, lock_runtime
+from ftsensord.config import file as config_module
+from ftsensord.config.file import load_config
+from ftsensord.protocol.paths import check_private_dir, ensure_private_dir
+from ftsensord.daemon.run import LOCK_NAME, bind, lock_runtime
 
 from .test_daemon import write_config
 

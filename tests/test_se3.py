@@ -136,3 +136,17 @@ def test_an_overflowing_or_non_finite_rotation_gives_nan_not_an_exception(angle)
         T = se3.exp_se3(np.array([0.0, 0.0, 0.0, 0.0, angle, 0.0]))
     assert R.shape == (3, 3) and T.shape == (4, 4)
     assert not np.isfinite(R).all() or not np.isfinite(T).all() or np.allclose(R @ R.T, np.eye(3))
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-9, 5e-3, se3.SMALL_ANGLE * (1 - 1e-7), se3.SMALL_ANGLE, 0.3, 1.2, 3.0,
+                                   np.pi - 2 * se3.NEAR_PI, np.pi - se3.NEAR_PI * (1 + 1e-7), np.pi - se3.NEAR_PI,
+                                   np.pi])
+def test_the_se3_log_is_exps_inverse_on_each_side_of_its_branches(angle):
+    """`log_se3` in floats switches to its series below `SMALL_ANGLE` and hands over to
+    `log_so3`'s symmetric part within `NEAR_PI` of pi: on each side of both, it takes
+    `exp_se3`'s pose back to its twist (the independent Rodrigues for the rotation)."""
+    axis = np.array([0.3, -0.5, 0.81]) / np.linalg.norm([0.3, -0.5, 0.81])
+    xi = np.concatenate([[2e-3, -1e-3, 4e-3], angle * axis])
+    T = se3.exp_se3(xi)
+    assert np.allclose(T[:3, :3], rot_about(axis, angle), rtol=0, atol=1e-15)
+    assert np.allclose(se3.log_se3(T), xi, rtol=0, atol=1e-9 if angle == np.pi else 1e-12)

@@ -20,8 +20,8 @@ from ftsensord.calibration.fit import AXES
 from ftsensord.client import ControlClient, Subscriber
 from ftsensord.errors import ControlError, DaemonNotAnswering
 from ftsensord.recording import read_meta
-from ftsensord.service.config import builtin_path
-from ftsensord.service.sdnotify import Notifier
+from ftsensord.config.file import builtin_path
+from ftsensord.daemon.sdnotify import Notifier
 
 from .test_daemon import LOAD, SCENE, write_config
 
@@ -238,10 +238,12 @@ def test_curve_control_lets_in_only_known_clients(tmp_path, zmq_context):
     import zmq
     import zmq.auth
 
-    from ftsensord.service.config import load_config
-    from ftsensord.service.daemon import Daemon
-    from ftsensord.service.run import make_sockets
-    from ftsensord.sim import VirtualClock, load_scene, simulated_bus
+    from ftsensord.config.file import load_config
+    from ftsensord.daemon.daemon import Daemon
+    from ftsensord.daemon.run import make_sockets
+    from ftsensord.sim import VirtualClock
+    from ftsensord.sim import load_scene
+    from ftsensord.sim import simulated_bus
     keys, clients = tmp_path / "keys", tmp_path / "clients"
     keys.mkdir()
     clients.mkdir()
@@ -281,10 +283,12 @@ def test_a_recorder_loses_no_sample_while_the_daemons_io_thread_cannot_run(tmp_p
     the old queue of 8 messages, streams lost their last 13-30 of the 100 cycles."""
     import zmq
 
-    from ftsensord.service.config import load_config
-    from ftsensord.service.daemon import Daemon
-    from ftsensord.service.run import make_sockets
-    from ftsensord.sim import VirtualClock, load_scene, simulated_bus
+    from ftsensord.config.file import load_config
+    from ftsensord.daemon.daemon import Daemon
+    from ftsensord.daemon.run import make_sockets
+    from ftsensord.sim import VirtualClock
+    from ftsensord.sim import load_scene
+    from ftsensord.sim import simulated_bus
     cpu = min(os.sched_getaffinity(0))
     zmq_context.set(zmq.THREAD_SCHED_POLICY, os.SCHED_IDLE)  # before its first socket starts the thread
     zmq_context.set(zmq.THREAD_AFFINITY_CPU_ADD, cpu)
@@ -328,9 +332,9 @@ def test_the_daemon_binds_ipv6_loopback_endpoints(tmp_path, zmq_context, ipv6_lo
     only with ZMQ_IPV6 set ("No such device" before), and a subscriber receives from it."""
     import zmq
 
-    from ftsensord.service import wire
-    from ftsensord.service.config import load_config
-    from ftsensord.service.run import make_sockets
+    from ftsensord.protocol import wire
+    from ftsensord.config.file import load_config
+    from ftsensord.daemon.run import make_sockets
     probe = zmq_context.socket(zmq.PUB)
     probe.setsockopt(zmq.IPV6, 1)
     port = probe.bind_to_random_port("tcp://[::1]")

@@ -11,8 +11,8 @@ from ftsensord.model.viscoelastic import CreepFilter, CreepInverse, Relaxation
 from ftsensord.sim import load_scene
 from ftsensord.sim.loads import RecordedLoad, StaticLoad, StepLoad
 from ftsensord.sim.physics import PAPER_STIFFNESS_DIAG, PhysicalScene, SimSensor
-from ftsensord.service.status import sensor_status
-from ftsensord.sim.silicone import DEFAULT_RELAXATION
+from ftsensord.daemon.status import sensor_status
+from ftsensord.sim.memory import DEFAULT_RELAXATION
 
 from .conftest import assert_names_file_and_key
 
@@ -155,12 +155,12 @@ def _part_with_memory(relaxation: Relaxation) -> PhysicalScene:
 
 def _packaged_calibration():
     from ftsensord.calibration.calfile import Calibration
-    from ftsensord.service.paths import builtin_path
+    from ftsensord.protocol.paths import builtin_path
     return Calibration.load(builtin_path("sim-sensor1.json"))
 
 
 def test_the_relaxation_is_identified_from_a_simulated_step_and_hold():
-    from ftsensord.calibration.creep import identify
+    from ftsensord.calibration.relaxation import identify
     from ftsensord.calibration.procedure import hold_poses
     from ftsensord.calibration.rig import record_hold, simulated_robot
     from ftsensord.sim import simulated_bus
@@ -180,7 +180,7 @@ def test_the_relaxation_is_identified_from_a_simulated_step_and_hold():
 
 
 def test_a_hold_without_a_step_identifies_nothing_and_says_why():
-    from ftsensord.calibration.creep import identify
+    from ftsensord.calibration.relaxation import identify
     from ftsensord.calibration.dataset import Hold
     w = np.array([1.0, 0, 0, 0, 0, 0])
     hold = Hold(np.array([0.0, 1.0]), np.array([w, w]), np.linspace(0, 2, 50), np.zeros((50, 6)))
@@ -191,10 +191,10 @@ def test_a_hold_without_a_step_identifies_nothing_and_says_why():
 def _pipeline(silicone_scale: float = 1.0):
     from dataclasses import replace
 
-    from ftsensord.calibration.creep import SiliconeCalibration
-    from ftsensord.service.filters import WrenchFilter
-    from ftsensord.service.pipeline import SensorPipeline
-    from ftsensord.service.sensorconf import SensorConfig
+    from ftsensord.calibration.relaxation import SiliconeCalibration
+    from ftsensord.processing.filters import WrenchFilter
+    from ftsensord.processing.pipeline import SensorPipeline
+    from ftsensord.config.sensors import SensorConfig
     cal = replace(_packaged_calibration(), silicone=SiliconeCalibration(SERIES, silicone_scale, 0.0))
     config = SensorConfig("sensor1", ADDRESSES, __import__("pathlib").Path("sim-sensor1.json"), cal, "sensor")
     return SensorPipeline.build(config, WrenchFilter(), 2, thermal=False, rate_hz=100.0)
@@ -220,13 +220,13 @@ def _fluxes(scene: PhysicalScene, times: np.ndarray) -> np.ndarray:
 
 
 def test_the_daemon_stage_undoes_a_held_steps_creep_and_restarts_on_a_tare_and_a_fault():
-    from ftsensord.service import wire
+    from ftsensord.protocol import wire
     w = np.array([2.0, 0, 0, 0, 0, 0])
     scene = _part_with_memory(SERIES)
     scene.set_load("sensor1", StepLoad(1.0, np.zeros(6), w))
     times = np.arange(0.0, 6.0, 0.01)
     fluxes = _fluxes(scene, times)
-    from ftsensord.stages.silicone import CreepCompensation
+    from ftsensord.processing.creep import CreepCompensation
     plain = _pipeline()
     plain.creep = CreepCompensation(None, 100.0)  # the daemon as without the stage
     compensated = _pipeline()
@@ -265,8 +265,8 @@ def test_the_daemon_stage_undoes_a_held_steps_creep_and_restarts_on_a_tare_and_a
 
 
 def test_a_rate_change_restarts_the_stage_with_the_new_period():
-    from ftsensord.calibration.creep import SiliconeCalibration
-    from ftsensord.stages.silicone import CreepCompensation
+    from ftsensord.calibration.relaxation import SiliconeCalibration
+    from ftsensord.processing.creep import CreepCompensation
     stage = CreepCompensation(SiliconeCalibration(SERIES, 1.1, 0.0), 100.0)
     for _ in range(10):
         stage.apply(np.zeros(6), True)
@@ -281,7 +281,7 @@ def test_the_hold_and_the_series_survive_their_files(tmp_path):
     from dataclasses import replace
 
     from ftsensord.calibration.calfile import Calibration
-    from ftsensord.calibration.creep import SiliconeCalibration
+    from ftsensord.calibration.relaxation import SiliconeCalibration
     from ftsensord.calibration.dataset import Dataset, Hold
     cal = replace(_packaged_calibration(), silicone=SiliconeCalibration(SERIES, 1.05, 0.01))
     cal.save(tmp_path / "cal.json")
@@ -307,10 +307,12 @@ def test_the_hold_and_the_series_survive_their_files(tmp_path):
 def test_a_calibration_without_a_hold_says_so_and_the_daemon_runs_as_before():
     from ftsensord.calibration.procedure import calibrate
     from ftsensord.calibration.rig import record_dataset
-    from ftsensord.service.filters import WrenchFilter
-    from ftsensord.service.pipeline import SensorPipeline
-    from ftsensord.service.sensorconf import SensorConfig
-    from ftsensord.sim import VirtualClock, simulated_bus, two_sensor_scene
+    from ftsensord.processing.filters import WrenchFilter
+    from ftsensord.processing.pipeline import SensorPipeline
+    from ftsensord.config.sensors import SensorConfig
+    from ftsensord.sim import VirtualClock
+    from ftsensord.sim import simulated_bus
+    from ftsensord.sim import two_sensor_scene
     from ftsensord.sim.loads import paper_plan
     scene = two_sensor_scene()
     bus = simulated_bus(scene, clock=VirtualClock(), seed=3)
@@ -328,9 +330,9 @@ def test_a_calibration_without_a_hold_says_so_and_the_daemon_runs_as_before():
 def test_skipped_cycles_are_coasted_through_as_flagged_samples_not_a_restart():
     # A missed deadline (the loop skips its sample) must not throw minutes of creep away:
     # the state coasts as through a flagged sample, and is dropped only beyond MAX_COAST_S.
-    from ftsensord.calibration.creep import SiliconeCalibration
-    from ftsensord.service.loop import LoopTiming
-    from ftsensord.stages.silicone import MAX_COAST_S, CreepCompensation
+    from ftsensord.calibration.relaxation import SiliconeCalibration
+    from ftsensord.daemon.loop import LoopTiming
+    from ftsensord.processing.creep import MAX_COAST_S, CreepCompensation
     step = np.array([2.0, 0, 0, 0, 0, 0])
     skipped, flagged = (CreepCompensation(SiliconeCalibration(SERIES, 1.0, 0.0), 100.0) for _ in range(2))
     for stage in (skipped, flagged):

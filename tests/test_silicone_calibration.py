@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 
-from ftsensord.calibration.creep import dwell_loads
+from ftsensord.calibration.relaxation import dwell_loads
 from ftsensord.calibration.dataset import Dataset
 from ftsensord.calibration.procedure import calibrate, simulate_dataset
 from ftsensord.model.viscoelastic import CreepFilter, Relaxation

@@ -21,7 +21,9 @@ from ftsensord.acquire.bus import LinuxI2CBus, open_bus
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.chip.driver import MLX90393
 from ftsensord.errors import ChipNotRespondingError
-from ftsensord.sim import NOISELESS, VirtualClock, simulated_bus
+from ftsensord.sim import NOISELESS
+from ftsensord.sim import VirtualClock
+from ftsensord.sim import simulated_bus
 
 from .conftest import ADDR
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ftsensord.service.config import builtin_path, load_config
+from ftsensord.config.file import builtin_path, load_config
 from ftsensord.sim import load_scene
 
 from .conftest import benchmark

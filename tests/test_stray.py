@@ -13,11 +13,12 @@ from ftsensord.calibration.calfile import Calibration
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.model import se3
 from ftsensord.model.geometry import SensorGeometry, separable_gradient
-from ftsensord.service import wire
-from ftsensord.service.config import builtin_path
-from ftsensord.service.pipeline import channel_sigma_t
-from ftsensord.service.redundancy import GRADIENT_RESIDUAL_AT_RANGE, GRADIENT_RESIDUAL_AT_REST
-from ftsensord.sim import default_scene, load_scene
+from ftsensord.protocol import wire
+from ftsensord.config.file import builtin_path
+from ftsensord.processing.pipeline import channel_sigma_t
+from ftsensord.processing.redundancy import GRADIENT_RESIDUAL_AT_RANGE, GRADIENT_RESIDUAL_AT_REST
+from ftsensord.sim import default_scene
+from ftsensord.sim import load_scene
 from ftsensord.sim.loads import FixedOrientation, StaticLoad
 from ftsensord.sim.physics import PhysicalScene, SimSensor, StraySource
 

@@ -1,4 +1,4 @@
-"""Temperature (`calibration.thermal`, `stages.thermal`): the laws and drift undo
+"""Temperature (`calibration.thermal`, `processing.temperature`): the laws and drift undo
 themselves, the reference and span follow the calibration or the tare, a calibration across
 temperatures measures each channel's drift, and a warming sensor read through the daemon is
 compensated, then flagged beyond the span."""
@@ -13,7 +13,7 @@ import pytest
 from ftsensord.calibration.calfile import Calibration
 from ftsensord.calibration.thermal import CalibrationTemperature, ThermalLaws
 from ftsensord.chip import mlx90393 as mlx
-from ftsensord.stages.thermal import CALIBRATED_MARGIN_K, LAWS_MARGIN_K, ThermalCompensation
+from ftsensord.processing.temperature import CALIBRATED_MARGIN_K, LAWS_MARGIN_K, ThermalCompensation
 
 from .conftest import benchmark
 
@@ -107,7 +107,7 @@ def test_the_files_keep_the_temperatures(tmp_path):
     from ftsensord.calibration.calfile import Calibration as Cal
     from ftsensord.calibration.dataset import Dataset
     from ftsensord.errors import ConfigError
-    from ftsensord.service.config import builtin_path
+    from ftsensord.config.file import builtin_path
     cal = Cal.load(builtin_path("sim-sensor1.json"))
     assert cal.temperature is None  # recorded before temperatures were
     cal.temperature = CalibrationTemperature(30.0, 24.2, 35.8, np.linspace(-2e-6, 2e-6, 24))

@@ -9,7 +9,7 @@ import subprocess
 import sys
 
 from ftsensord.chip import mlx90393 as mlx
-from ftsensord.service.config import builtin_path, load_config
+from ftsensord.config.file import builtin_path, load_config
 from ftsensord.sim import two_sensor_scene
 
 from .conftest import BENCHMARKS, benchmark

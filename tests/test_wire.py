@@ -11,7 +11,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from ftsensord.errors import WireError
-from ftsensord.service import wire
+from ftsensord.protocol import wire
 
 PROTOCOL = Path(__file__).resolve().parent.parent / "docs" / "protocol.md"
 

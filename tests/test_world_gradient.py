@@ -1,4 +1,4 @@
-"""The stray stage (`stages.stray`, stray_field = "world"): a motor's gradient, fixed in the
+"""The stray stage (`processing.stray`, stray_field = "world"): a motor's gradient, fixed in the
 world, learnt from the two parts the ring tells from a load as the tool turns, then the
 three it cannot tell taken out of the flux."""
 
@@ -11,13 +11,13 @@ from ftsensord.calibration.calfile import Calibration
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.model import se3
 from ftsensord.model.geometry import SensorGeometry, gradient_basis
-from ftsensord.service import wire
-from ftsensord.service.config import builtin_path, load_config
-from ftsensord.service.pipeline import channel_sigma_t
+from ftsensord.protocol import wire
+from ftsensord.config.file import builtin_path, load_config
+from ftsensord.processing.pipeline import channel_sigma_t
 from ftsensord.sim import default_scene
 from ftsensord.sim.loads import FixedOrientation
 from ftsensord.sim.physics import StraySource
-from ftsensord.stages.stray import (
+from ftsensord.processing.stray import (
     CORRECT_WITHIN,
     WorldGradient,
     parts,

@@ -20,9 +20,9 @@ import statistics
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..chip import mlx90393 as mlx
-from ..chip.i2c import I2C_RDWR_MAX_MSGS, Bus, BusTiming, wire_bits
-from .bus import parse_bus
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.chip.i2c import I2C_RDWR_MAX_MSGS, Bus, BusTiming, wire_bits
+from ftsensord.acquire.bus import parse_bus
 
 #: Where the kernel lists I2C adapters.
 SYSFS_I2C = Path("/sys/class/i2c-adapter")

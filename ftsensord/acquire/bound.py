@@ -11,9 +11,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from ..chip import mlx90393 as mlx
-from ..chip.i2c import ADAPTER_RULES, BITS_PER_BYTE, I2C_RDWR_MAX_MSGS
-from ..errors import ConfigError
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.chip.i2c import ADAPTER_RULES, BITS_PER_BYTE, I2C_RDWR_MAX_MSGS
+from ftsensord.errors import ConfigError
 
 SCHEDULERS = ("naive", "overlapped", "burst")
 #: The chip's oscillator runs within +-20 % of nominal: wait for the slowest.

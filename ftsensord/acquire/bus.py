@@ -22,8 +22,8 @@ from dataclasses import dataclass, field
 
 from smbus2 import SMBus, i2c_msg
 
-from ..chip.i2c import ADAPTER_RULES, Bus, BusTiming
-from ..errors import ConfigError, FtsensordError
+from ftsensord.chip.i2c import ADAPTER_RULES, Bus, BusTiming
+from ftsensord.errors import ConfigError, FtsensordError
 
 log = logging.getLogger("ftsensord")
 
@@ -77,10 +77,7 @@ class BusSpec:
         wire clock (defaults: a Pi 4's, the configured clock); nothing for a real bus."""
         if self.kind != "sim":
             return BusTiming()
-        from ..sim.bus import (  # the simulator's defaults
-            DEFAULT_ADAPTER,
-            DEFAULT_IOCTL_S,
-        )
+        from ftsensord.sim.bus import DEFAULT_ADAPTER, DEFAULT_IOCTL_S
         ioctl_us = self.options.get("ioctl_us")
         return BusTiming(str(self.options.get("adapter", DEFAULT_ADAPTER)),
                          DEFAULT_IOCTL_S if ioctl_us is None else float(ioctl_us) * 1e-6,  # type: ignore[arg-type]
@@ -211,7 +208,7 @@ def open_bus(spec: str, *, exclusive: bool = False, force: bool = False, **sim_o
         if sim_options:
             raise ConfigError(f"bus {spec!r}: options {sorted(sim_options)} apply to the simulated bus only")
         return LinuxI2CBus(int(parsed.arg) if parsed.arg.isdigit() else parsed.arg, exclusive=exclusive, force=force)
-    from .. import sim  # the simulator is only imported when asked for
+    from ftsensord import sim  # the simulator is only imported when asked for
 
     timing = parsed.timing
     board = {"adapter": timing.adapter, "ioctl_s": timing.ioctl_s, "clock_hz": timing.clock_hz}

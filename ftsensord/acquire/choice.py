@@ -14,9 +14,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-from ..chip import mlx90393 as mlx
-from ..errors import ConfigError
-from .bound import SCHEDULERS, CycleBound, burst_readback_stays_fresh, cycle_bound
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.errors import ConfigError
+from ftsensord.acquire.bound import SCHEDULERS, CycleBound, burst_readback_stays_fresh, cycle_bound
 
 #: docs/performance.md's target for the loop: 20 % of the period spare (the host's work
 #: and the bus's jitter on a board fit in it).

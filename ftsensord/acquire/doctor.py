@@ -19,16 +19,16 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from ..chip import mlx90393 as mlx
-from ..chip.driver import MLX90393
-from ..chip.i2c import Bus
-from ..errors import ChipError, ConfigError
-from .board import know_board
-from . import choice
-from .bound import SCHEDULERS, Shapes, cycle_bound
-from .bus import open_bus, parse_bus
-from .reader import Reader, probe_shapes
-from .scan import scan
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.chip.driver import MLX90393
+from ftsensord.chip.i2c import Bus
+from ftsensord.errors import ChipError, ConfigError
+from ftsensord.acquire.board import know_board
+from ftsensord.acquire import choice
+from ftsensord.acquire.bound import SCHEDULERS, Shapes, cycle_bound
+from ftsensord.acquire.bus import open_bus, parse_bus
+from ftsensord.acquire.reader import Reader, probe_shapes
+from ftsensord.acquire.scan import scan
 
 #: Register reads per chip to count errors over (CONF1..CONF3 in turn).
 ERROR_READS = 300
@@ -143,7 +143,8 @@ def doctor(spec: str, schedulers: tuple[str, ...] = SCHEDULERS, *, bus_hz: float
     settings = settings or mlx.Settings()
     options: dict[str, object] = {}
     if parse_bus(spec).kind == "sim":
-        from ..sim import MonotonicClock, VirtualClock
+        from ftsensord.sim import MonotonicClock
+        from ftsensord.sim import VirtualClock
         options = {"clock": MonotonicClock() if real_time else VirtualClock(), "bus_hz": bus_hz}
     bus = open_bus(spec, exclusive=True, force=force, **options)
     try:

@@ -8,19 +8,16 @@ cycle, and reads one chip's registers back now and then. The `Reader`
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import logging
 import math
 from dataclasses import dataclass
 
-from ..chip import mlx90393 as mlx
-from ..chip.driver import MLX90393, T_AFTER_RT_S, Measurement
-from ..chip.i2c import Bus
-from ..errors import (
-    ChipError,
-    ChipNotRespondingError,
-    ChipProtocolError,
-    ChipRefusedError,
-)
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.chip.driver import MLX90393, T_AFTER_RT_S, Measurement
+from ftsensord.chip.i2c import Bus
+from ftsensord.errors import ChipError, ChipNotRespondingError, ChipProtocolError, ChipRefusedError
 
 log = logging.getLogger("ftsensord")
 
@@ -228,7 +225,7 @@ class ChipCare:
                     continue
             results[a] = judge(r, now)
 
-    def judge_words(self, addresses: tuple[int, ...], words: list[tuple[int, ...]],
+    def judge_words(self, addresses: tuple[int, ...], words: Sequence[tuple[int, ...]],
                     now: float) -> dict[int, ChipError]:
         """`judge` a clean cycle, every chip a measurement, from their X, Y, Z ``words``
         (in ``addresses``' order); the chips found stuck, with their errors."""

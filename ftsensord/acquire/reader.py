@@ -25,14 +25,14 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 
-from ..chip import mlx90393 as mlx
-from ..chip.driver import MLX90393
-from ..chip.i2c import BITS_PER_BYTE, Bus, BusTiming
-from ..errors import ChipError, ChipProtocolError, ConfigError
-from .bound import OSC_MARGIN, SCHEDULERS, Shapes, last_offset_s, overlapped_rm_at, rm_bits_for
-from .health import ChipCare, ChipHealth, ChipResult
-from .readings import Readings
-from .transfers import RMRead, Transfers, probe_shapes
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.chip.driver import MLX90393
+from ftsensord.chip.i2c import BITS_PER_BYTE, Bus, BusTiming
+from ftsensord.errors import ChipError, ChipProtocolError, ConfigError
+from ftsensord.acquire.bound import OSC_MARGIN, SCHEDULERS, Shapes, last_offset_s, overlapped_rm_at, rm_bits_for
+from ftsensord.acquire.health import ChipCare, ChipHealth, ChipResult
+from ftsensord.acquire.readings import Readings
+from ftsensord.acquire.transfers import RMRead, Transfers, probe_shapes
 
 __all__ = ["Readings", "Reader", "Transfers", "probe_shapes"]
 
@@ -175,7 +175,7 @@ class Reader:
         readings = None
         if rm is not None and not results:
             readings = Readings.of_block(rm, self.chips, self._addresses, self._index)
-        if readings is not None:
+        if readings is not None and readings.words is not None:  # (of_block's readings carry their words)
             for a, error in self.care.judge_words(readings.addresses, readings.words, now).items():
                 readings.fail(a, ChipResult(a, error=error))
         else:

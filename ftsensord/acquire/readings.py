@@ -9,17 +9,17 @@ wants the whole cycle at once (a sensor's stacked flux) takes rows of that array
 from __future__ import annotations
 
 import functools
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..chip import mlx90393 as mlx
-from ..chip.driver import MLX90393, Measurement
-from .health import ChipResult
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.chip.driver import MLX90393, Measurement
+from ftsensord.acquire.health import ChipResult
 
 if TYPE_CHECKING:
-    from .transfers import RMRead
+    from ftsensord.acquire.transfers import RMRead
 
 _XYZ = mlx.zyxt_items(mlx.ZYXT_XYZ)
 
@@ -37,7 +37,7 @@ class Readings(Mapping[int, ChipResult]):
 
     def __init__(self, addresses: tuple[int, ...], index: dict[int, int], *,
                  results: dict[int, ChipResult] | None = None, field: np.ndarray | None = None,
-                 words: list[tuple[int, ...]] | None = None, statuses: bytes | list[int] | None = None):
+                 words: Sequence[tuple[int, ...]] | None = None, statuses: bytes | list[int] | None = None):
         self.addresses, self.index = addresses, index  # index: address -> row, shared by every cycle
         self.field, self.words, self.statuses = field, words, statuses
         self._made: dict[int, ChipResult] = {} if results is None else results

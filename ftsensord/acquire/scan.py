@@ -8,10 +8,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from ..chip import mlx90393 as mlx
-from ..chip.driver import MLX90393, Measurement
-from ..chip.i2c import Bus
-from ..errors import ChipError, ChipNotRespondingError
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.chip.driver import MLX90393, Measurement
+from ftsensord.chip.i2c import Bus
+from ftsensord.errors import ChipError, ChipNotRespondingError
 
 
 @dataclass

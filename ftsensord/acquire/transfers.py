@@ -16,18 +16,18 @@ import ctypes
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from smbus2 import i2c_msg
 
-from ..chip import mlx90393 as mlx
-from ..chip.block import BlockDecoder
-from ..chip.driver import MLX90393, bus_error
-from ..chip.i2c import I2C_M_RD, SHAPE_REFUSED, Bus
-from ..errors import ChipError
-from .bound import Shapes
-from .health import ChipResult
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.chip.block import BlockDecoder
+from ftsensord.chip.driver import MLX90393, bus_error
+from ftsensord.chip.i2c import I2C_M_RD, SHAPE_REFUSED, Bus
+from ftsensord.errors import ChipError
+from ftsensord.acquire.bound import Shapes
+from ftsensord.acquire.health import ChipResult
 
 log = logging.getLogger("ftsensord")
 
@@ -269,7 +269,8 @@ class RMPlan:
                 return None
             if len(self._orders) >= MAX_ORDERS:  # faults make subsets: forget rather than grow
                 self._orders.clear()
-            got = self._orders[key] = (rows, self._grouped(rows))  # type: ignore[arg-type]
+            known = cast("list[int]", rows)  # (no None among them: returned above)
+            got = self._orders[key] = (known, self._grouped(known))
         return got
 
     def _grouped(self, rows: list[int]) -> list[Transfer]:

@@ -17,14 +17,14 @@ from typing import Any
 
 import numpy as np
 
-from ..chip import mlx90393 as mlx
-from ..docfile import Table, load_json
-from ..errors import ConfigError
-from ..model.linear import LinearModel, PositionMap
-from .creep import SiliconeCalibration
-from .dataset import parse_addresses
-from .nlfit import NonlinearCalibration
-from .thermal import CalibrationTemperature
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.docfile import Table, load_json
+from ftsensord.errors import ConfigError
+from ftsensord.model.linear import LinearModel, PositionMap
+from ftsensord.calibration.relaxation import SiliconeCalibration
+from ftsensord.calibration.dataset import parse_addresses
+from ftsensord.calibration.nlfit import NonlinearCalibration
+from ftsensord.calibration.thermal import CalibrationTemperature
 
 #: Largest calibration file read, bytes: the packaged ones (8 chips, nonlinear model
 #: included) are 22 KB; 64 KiB is three times that. A reload parses it in a worker thread,
@@ -53,10 +53,10 @@ class Calibration:
     #: a 1/r^3 field there, and a linear estimate far beyond it is flagged `extrapolated`.
     wrench_range: np.ndarray | None = None
     #: The chips' die temperature over the poses, and each channel's drift when they spanned
-    #: enough: the temperature stage compensates to it and flags beyond it (`stages.thermal`).
+    #: enough: the temperature stage compensates to it and flags beyond it (`processing.temperature`).
     temperature: CalibrationTemperature | None = None
     #: The silicone's relaxation, when the dataset had a step-and-hold to identify it from:
-    #: the daemon undoes its creep (`stages.silicone`); None: it runs as a perfect spring.
+    #: the daemon undoes its creep (`processing.creep`); None: it runs as a perfect spring.
     silicone: SiliconeCalibration | None = None
 
     def document(self) -> dict[str, Any]:

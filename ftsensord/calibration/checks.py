@@ -14,12 +14,12 @@ import math
 
 import numpy as np
 
-from ..errors import CalibrationError
-from ..model.fluxmodel import FluxModel
-from ..model.geometry import SensorGeometry
-from ..model.linear import SENSOR_RANGE
-from ..sim.loads import G
-from .dataset import AXES, AXIS_UNITS, STRONGEST_READING_MIN_T, Dataset, implausible_flux
+from ftsensord.errors import CalibrationError
+from ftsensord.model.fluxmodel import FluxModel
+from ftsensord.model.geometry import SensorGeometry
+from ftsensord.model.linear import SENSOR_RANGE
+from ftsensord.sim.loads import G
+from ftsensord.calibration.dataset import AXES, AXIS_UNITS, STRONGEST_READING_MIN_T, Dataset, implausible_flux
 
 #: A channel varying across the fit poses by less than this many times its mean's standard
 #: error carries no load: under the plan's 50 g and 200 g loads and the room's turning
@@ -65,7 +65,7 @@ def check_plausible(dataset: Dataset) -> None:
         why = implausible_flux(values, dataset.saturated)
         if why is not None:
             k, j = np.unravel_index(int(np.argmax(np.where(judged, np.abs(values), 0.0))), values.shape)
-            raise CalibrationError(f"{dataset.where()}poses[{k}].{name}: {chip_name(dataset, j // 3)} reads "
+            raise CalibrationError(f"{dataset.where()}poses[{k}].{name}: {chip_name(dataset, int(j) // 3)} reads "
                                    f"{values[k, j]:.4g} on {'xyz'[j % 3]}: {why}")
     for a, sweep in dataset.sweeps.items():
         why = implausible_flux(sweep.flux_t)
@@ -224,7 +224,7 @@ def _ranges(indices: np.ndarray) -> str:
     """'3, 10-39': sorted indices written as runs."""
     out, values = [], sorted(int(i) for i in indices)
     start = prev = values[0]
-    for v in values[1:] + [None]:  # type: ignore[list-item]
+    for v in [*values[1:], None]:
         if v is not None and v == prev + 1:
             prev = v
             continue

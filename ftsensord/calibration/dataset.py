@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..chip import mlx90393 as mlx
-from ..docfile import Table, load_json
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.docfile import Table, load_json
 
 DATASET_FORMAT = "ftsensord-calibration-dataset"
 DATASET_VERSION = 1
@@ -82,7 +82,7 @@ class Hold:
     """A step-and-hold segment (`rig.record_hold`): the loads the robot applied, each from
     ``load_times_s`` (s) on (``loads``, (k, 6) N, Nm in {0}), and every reading in between:
     ``times_s`` (m,) and ``flux_t`` (m, 3 * chips) T. What the silicone's relaxation is
-    identified from (`calibration.creep`)."""
+    identified from (`calibration.relaxation`)."""
 
     load_times_s: np.ndarray
     loads: np.ndarray
@@ -193,7 +193,9 @@ class Dataset:
         addresses = parse_addresses(sensor, "addresses")
         chips = len(addresses)
         columns: dict[str, list] = {name: [] for name in POSE_FIELDS}
-        rotations, temperatures, times = [], [], []
+        rotations: list[np.ndarray] = []
+        temperatures: list[float] = []
+        times: list[list[float]] = []
         rows = doc.tables("poses")
         for row in rows:
             row.only((*POSE_FIELDS, "rotation", "temperature_c", "times_s"))

@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..model.linear import SENSOR_RANGE
-from .dataset import AXES
+from ftsensord.model.linear import SENSOR_RANGE
+from ftsensord.calibration.dataset import AXES
 
 #: Excitation test on the wrenches, each axis scaled by the sensor's range and
 #: centred: a direction excited less than 1e-3 of the strongest is below what a

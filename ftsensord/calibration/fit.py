@@ -25,29 +25,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import CalibrationError
-from ..model.geometry import SensorGeometry
-from ..model.linear import (
-    LinearModel,
-    PositionMap,
-    deflection_twist,
-    fit_position_map,
-)
-from ..sim.chip import NOISELESS
-from .checks import (
-    check_chips,
-    check_finite,
-    check_flux_scale,
-    check_loads,
-    check_plausible,
-    check_polarity,
-    check_stiffness,
-    duplicate_poses,
-)
-from .dataset import AXES, Dataset
-from .excitation import CONDITION_WARN, check_excitation
-from .rig import simulate_sweeps
-from .screening import check_chip_order, leave_out_outliers
+from ftsensord.errors import CalibrationError
+from ftsensord.model.geometry import SensorGeometry
+from ftsensord.model.linear import LinearModel, PositionMap, deflection_twist, fit_position_map
+from ftsensord.sim.chip import NOISELESS
+from ftsensord.calibration.checks import check_chips, check_finite, check_flux_scale, check_loads, check_plausible, check_polarity, check_stiffness, duplicate_poses
+from ftsensord.calibration.dataset import AXES, Dataset
+from ftsensord.calibration.excitation import CONDITION_WARN, check_excitation
+from ftsensord.calibration.rig import simulate_sweeps
+from ftsensord.calibration.screening import check_chip_order, leave_out_outliers
 
 #: Parameters of one row of the affine flux-to-twist fit: 24 slopes and an offset.
 MIN_FIT_POSES = 26

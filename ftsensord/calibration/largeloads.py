@@ -17,10 +17,10 @@ from typing import Any
 
 import numpy as np
 
-from ..model.linear import LinearModel
-from .dataset import AXES, Dataset
-from .nlfit import NonlinearCalibration
-from .report import format_rmse
+from ftsensord.model.linear import LinearModel
+from ftsensord.calibration.dataset import AXES, Dataset
+from ftsensord.calibration.nlfit import NonlinearCalibration
+from ftsensord.calibration.report import format_rmse
 
 #: The flux model's residual on check poses (p50 over poses, RMS per channel) above which a
 #: part departs from it, with 4 standard errors of a pose's mean in quadrature (noisier

@@ -33,14 +33,14 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import CalibrationError
-from ..model import se3
-from ..model.geometry import SensorGeometry
-from ..model.linear import SENSOR_RANGE
-from ..model.magnet import MU0_OVER_4PI, dipole_pairs, octupole_field, octupole_ratio
-from ..model.nonlinear import FluxModel, NonlinearEstimator
-from .dataset import Dataset
-from .report import format_rmse
+from ftsensord.errors import CalibrationError
+from ftsensord.model import se3
+from ftsensord.model.geometry import SensorGeometry
+from ftsensord.model.linear import SENSOR_RANGE
+from ftsensord.model.magnet import MU0_OVER_4PI, dipole_pairs, octupole_field, octupole_ratio
+from ftsensord.model.nonlinear import FluxModel, NonlinearEstimator
+from ftsensord.calibration.dataset import Dataset
+from ftsensord.calibration.report import format_rmse
 
 #: Levenberg-Marquardt iterations of the joint fit: from the start below (the nominal
 #: part, K from the estimated deflections) the cost stops falling by 1e-6 of itself
@@ -167,7 +167,7 @@ class _Problem:
         shapes = {"S": (n, 3, 3), "o": (n, 3), "mp": (n, 3), "s": (n,), "C": (6, 6), "d": (6,)}
         return {k: theta[self.slices[k]].reshape(shapes[k]) for k in shapes}
 
-    def pack(self, S, o, mp, s, C, d) -> np.ndarray:  # type: ignore[no-untyped-def]
+    def pack(self, S, o, mp, s, C, d) -> np.ndarray:
         return np.concatenate([np.ravel(S), np.ravel(o), np.ravel(mp), np.ravel(s), np.ravel(C), np.ravel(d)])
 
     def evaluate(self, theta: np.ndarray, jacobian: bool = True

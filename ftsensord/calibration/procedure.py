@@ -9,19 +9,22 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ConfigError
-from ..model.geometry import SensorGeometry
-from ..sim import PhysicalScene, default_scene, load_scene, simulated_bus
-from ..sim.loads import CalibrationPose, gravity_to_down, paper_plan
-from . import largeloads
-from .calfile import Calibration
-from .creep import SiliconeCalibration, dwell_loads, identify
-from .dataset import Dataset
-from .fit import AXES, CalibrationResult, fit
-from .nlfit import FitProgress, fit_nonlinear, nonlinear_rmse
-from .report import format_rmse
-from .rig import record_dataset, record_hold, simulate_sweeps, simulated_robot
-from .thermal import CalibrationTemperature, thermal_fit
+from ftsensord.errors import ConfigError
+from ftsensord.model.geometry import SensorGeometry
+from ftsensord.sim import PhysicalScene
+from ftsensord.sim import default_scene
+from ftsensord.sim import load_scene
+from ftsensord.sim import simulated_bus
+from ftsensord.sim.loads import CalibrationPose, gravity_to_down, paper_plan
+from ftsensord.calibration import largeloads
+from ftsensord.calibration.calfile import Calibration
+from ftsensord.calibration.relaxation import SiliconeCalibration, dwell_loads, identify
+from ftsensord.calibration.dataset import Dataset
+from ftsensord.calibration.fit import AXES, CalibrationResult, fit
+from ftsensord.calibration.nlfit import FitProgress, fit_nonlinear, nonlinear_rmse
+from ftsensord.calibration.report import format_rmse
+from ftsensord.calibration.rig import record_dataset, record_hold, simulate_sweeps, simulated_robot
+from ftsensord.calibration.thermal import CalibrationTemperature, thermal_fit
 
 #: No-load poses a dataset records by default: 24, 12 % of the 193 loaded poses' robot
 #: time, twice the 12 docs/calibration.md asks of a real run (so that the room field's
@@ -57,9 +60,10 @@ def simulate_dataset(scene_path: str | Path | PhysicalScene | None, sensor_name:
     if isinstance(scene_path, PhysicalScene):
         scene, scene_path = scene_path, "given"
     else:
-        scene = load_scene(scene_path) if scene_path else default_scene()
-    if not isinstance(scene, PhysicalScene):
-        raise ConfigError(f"{scene_path}: a calibration dataset needs a scene of kind \"sensors\"")
+        loaded = load_scene(scene_path) if scene_path else default_scene()
+        if not isinstance(loaded, PhysicalScene):
+            raise ConfigError(f"{scene_path}: a calibration dataset needs a scene of kind \"sensors\"")
+        scene = loaded
     names = [s.name for s in scene.sensors]
     if sensor_name not in names:
         raise ConfigError(f"--sensor {sensor_name!r}: the scene's sensors are {', '.join(names)}")

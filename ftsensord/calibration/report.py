@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..model.linear import LinearModel
-from .dataset import AXES, AXIS_UNITS, Dataset
+from ftsensord.model.linear import LinearModel
+from ftsensord.calibration.dataset import AXES, AXIS_UNITS, Dataset
 
 #: The paper's Table II, RMS error per axis (N; mNm for torques).
 PAPER_TABLE_II = (0.2338, 0.1136, 0.3775, 4.1e-3, 10.6e-3, 8.5e-3)

@@ -12,15 +12,15 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from ..chip import mlx90393 as mlx
-from ..chip.driver import MLX90393
-from ..chip.i2c import Bus
-from ..model.geometry import SensorGeometry
-from ..model.magnet import cylinder_field, dipole_field
-from ..sim.chip import NoiseModel
-from ..sim.loads import CalibrationPose, FixedOrientation, StaticLoad
-from ..sim.physics import PhysicalScene
-from .dataset import Dataset, Hold, Sweep
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.chip.driver import MLX90393
+from ftsensord.chip.i2c import Bus
+from ftsensord.model.geometry import SensorGeometry
+from ftsensord.model.magnet import cylinder_field, dipole_field
+from ftsensord.sim.chip import NoiseModel
+from ftsensord.sim.loads import CalibrationPose, FixedOrientation, StaticLoad
+from ftsensord.sim.physics import PhysicalScene
+from ftsensord.calibration.dataset import Dataset, Hold, Sweep
 
 
 def record_dataset(bus: Bus, addresses: Sequence[int], poses: Sequence[tuple[CalibrationPose, str]],
@@ -51,7 +51,7 @@ def record_dataset(bus: Bus, addresses: Sequence[int], poses: Sequence[tuple[Cal
     times = np.zeros((n, 3))
     start = bus.monotonic()
     for k, (pose, _) in enumerate(poses):
-        celsius = []
+        celsius: list[float] = []
         if turn is not None:
             turn(pose.orientation())
         apply_load(pose.wrench())
@@ -99,13 +99,16 @@ def record_hold(bus: Bus, addresses: Sequence[int], poses: Sequence[CalibrationP
     """The step-and-hold segment (docs/calibration.md): each of ``poses`` in turn, held
     ``hold_s`` while every chip is read every ``period_s`` (0: as fast as the bus allows), each reading stamped
     with the bus's clock (s, from the first pose's start): the creep the silicone's
-    relaxation is identified from (`calibration.creep`)."""
+    relaxation is identified from (`calibration.relaxation`)."""
     chips = [MLX90393(bus, a, sleep=bus.sleep) for a in addresses]
     for chip in chips:
         chip.configure(settings)
     wait_s = settings.single_measurement_us(mlx.ZYXT_XYZ) * 1.2e-6  # +20 %: the oscillator's tolerance
     start = bus.monotonic()
-    load_times, times, rows, celsius = [], [], [], []
+    load_times: list[float] = []
+    times: list[float] = []
+    rows: list[np.ndarray] = []
+    celsius: list[float] = []
     for pose in poses:
         if turn is not None:
             turn(pose.orientation())

@@ -15,12 +15,12 @@ from itertools import combinations
 
 import numpy as np
 
-from ..errors import CalibrationError
-from ..model.fluxmodel import FluxModel
-from ..model.geometry import SensorGeometry
-from ..model.linear import SENSOR_RANGE
-from .checks import chip_name
-from .dataset import AXES, AXIS_UNITS, Dataset
+from ftsensord.errors import CalibrationError
+from ftsensord.model.fluxmodel import FluxModel
+from ftsensord.model.geometry import SensorGeometry
+from ftsensord.model.linear import SENSOR_RANGE
+from ftsensord.calibration.checks import chip_name
+from ftsensord.calibration.dataset import AXES, AXIS_UNITS, Dataset
 
 #: A pose whose residual on some axis exceeds this many robust sigmas is an outlier: on
 #: clean datasets (the default scene's sensors, 60 and 193 fit poses, 4 and 100 readings,

@@ -23,13 +23,13 @@ from typing import Any
 
 import numpy as np
 
-from ..chip import mlx90393 as mlx
-from ..errors import CalibrationError
-from ..model.geometry import SensorGeometry
-from ..model.linear import LinearModel
-from ..model.magnet import NDFEB_BR_TEMPCO_PER_K, remanence_factor
-from ..model.silicone import STIFFNESS_TEMPCO_PER_K, stiffness_factor
-from .dataset import Dataset
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.errors import CalibrationError
+from ftsensord.model.geometry import SensorGeometry
+from ftsensord.model.linear import LinearModel
+from ftsensord.model.magnet import NDFEB_BR_TEMPCO_PER_K, remanence_factor
+from ftsensord.model.silicone import STIFFNESS_TEMPCO_PER_K, stiffness_factor
+from ftsensord.calibration.dataset import Dataset
 
 #: The poses must span this many kelvin for a drift to be measured: the drift's standard
 #: error is the model's residual (a few uT a pose) over sqrt(poses) x the temperatures'
@@ -116,7 +116,8 @@ def fit_drift(dataset: Dataset, model: LinearModel, reference_c: float,
     poses = dataset.select(np.isin(dataset.split, ("fit", "no-load")) & ~dataset.saturated.any(axis=1))
     predicted = model.zero + np.linalg.solve(model.K, poses.wrench.T).T @ model.H.T
     residual = poses.flux_t - predicted
-    dt = poses.temperature_c - reference_c  # type: ignore[operator]
+    assert poses.temperature_c is not None  # (the selection keeps the dataset's temperatures)
+    dt: np.ndarray = poses.temperature_c - reference_c
     n, m = residual.shape
     if poses.rotation is None:
         room = (geometry or SensorGeometry.ring()).room_directions()

@@ -13,9 +13,9 @@ from typing import cast
 
 import numpy as np
 
-from ..errors import ChipError, ChipProtocolError
-from . import mlx90393 as mlx
-from .driver import MLX90393, Measurement
+from ftsensord.errors import ChipError, ChipProtocolError
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.chip.driver import MLX90393, Measurement
 
 
 #: An RM reply of X, Y, Z: the status byte, then three big-endian words.
@@ -59,7 +59,8 @@ class BlockDecoder:
         self.unsigned = not self.signed.any()
         self.clean = False  # the last `decode` found no error and no temperature: every entry a Measurement
         # The last `convert`'s arrays (see there); empty until the first.
-        self.status = self.words = self.field = self.saturated = np.empty(0)
+        empty: np.ndarray = np.empty(0)
+        self.status = self.words = self.field = self.saturated = empty
         self.bad: np.ndarray | None = np.empty(0, dtype=bool)
         self.replies = b""  # the block's bytes, when the last `convert` was of X, Y, Z alone
         # Saturated where |counts| reaches the span or the Hall limit: the least |counts|
@@ -125,8 +126,8 @@ class BlockDecoder:
         saturated, field, words = self.saturated, self.field, self.words
         bad = self.bad if self.bad is not None else self.bad_status[self.status]
         # Per row, as Python objects, each in one call (row views, lists): no per-chip numpy.
-        sat_any = saturated.any(axis=1).tolist() if saturated.any() else [False] * len(self.chips)
-        raw = list(map(tuple, words.tolist()))
+        sat_any = cast("list[bool]", saturated.any(axis=1).tolist()) if saturated.any() else [False] * len(self.chips)
+        raw = cast("list[tuple[int, ...]]", list(map(tuple, words.tolist())))
         statuses = self.status.tolist()
         fields, sats = list(field), list(saturated)
         items, status_of = self.items, mlx.STATUSES.__getitem__

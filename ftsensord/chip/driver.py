@@ -21,13 +21,8 @@ from typing import Protocol
 import numpy as np
 from smbus2 import i2c_msg
 
-from ..errors import (
-    ChipNotRespondingError,
-    ChipProtocolError,
-    ChipRefusedError,
-    RegisterVerifyError,
-)
-from . import mlx90393 as mlx
+from ftsensord.errors import ChipNotRespondingError, ChipProtocolError, ChipRefusedError, RegisterVerifyError
+from ftsensord.chip import mlx90393 as mlx
 
 #: Wait after RT before the next command: the datasheet asks for at least 1.5 ms.
 T_AFTER_RT_S = 2e-3

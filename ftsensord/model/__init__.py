@@ -6,7 +6,7 @@ against temperature), the silicone's laws (`silicone`) and memory (`viscoelastic
 series, its creep and the recursive filters both ways), the sensor's
 chip and magnet layout (`geometry`), the linear `K A` estimator with its degraded
 form and the tip wrench (`linear`), and the nonlinear flux-model estimator
-(`nonlinear`) with its forward model (`fluxmodel`) and its steps' exp and log in floats (`se3floats`),
+(`nonlinear`) with its forward model (`fluxmodel`),
 and the same solve compiled (`nlcompiled`: `_nlsolve.c`, plain C, called through ctypes). Units are SI: tesla,
 metres, newtons, newton-metres.
 

@@ -1,6 +1,6 @@
 /* The nonlinear estimator's forward model in C: fluxmodel.py's FluxModel (dipoles, each
  * chip's own magnet's octupole, per-chip response S R_chip^T and offset, a uniform
- * background field u) with its analytic Jacobian, and se3floats.py's exp and log: the same
+ * background field u) with its analytic Jacobian, and se3.py's exp and log: the same
  * formulas, in the same order where it matters. Part of the compiled solve (_nlsolve.c).
  * Units SI (T, m, rad); poses 4x4 row-major; frames as fluxmodel.py's. */
 #include <math.h>
@@ -121,7 +121,7 @@ static void coefficients(double theta, double small, double *a, double *b, doubl
     *a = s / theta, *b = (1 - co) / t2, *c = (theta - s) / (t2 * theta);
 }
 
-/* se3floats.exp_se3 of xi[:6], 3x4 rows into E. */
+/* se3.exp_se3 of xi[:6], 3x4 rows into E. */
 void nlm_exp_se3(const double *xi, double small, double *E)
 {
     double v0 = xi[0], v1 = xi[1], v2 = xi[2], w0 = xi[3], w1 = xi[4], w2 = xi[5];
@@ -136,7 +136,7 @@ void nlm_exp_se3(const double *xi, double small, double *E)
     memcpy(E, e, sizeof e);
 }
 
-/* se3.log_se3 (se3floats' formulas short of pi, se3.log_so3's symmetric part within NEAR_PI of it). */
+/* se3.log_se3 (the float formulas short of pi, se3.log_so3's symmetric part within NEAR_PI of it). */
 void nlm_log_se3(const double *T, double small, double near_pi, double *xi)
 {
     double r00 = T[0], r01 = T[1], r02 = T[2], r10 = T[4], r11 = T[5], r12 = T[6], r20 = T[8], r21 = T[9], r22 = T[10];
@@ -191,7 +191,7 @@ void nl_predict_and_jacobian(const nl_model *M, const double *T, const double *u
 
 void nl_predict(const nl_model *M, const double *T, const double *u, double *pred) { nlm_predict(M, T, u, pred); }
 
-/* se3floats.continued: ``pose`` moved on by the motion from ``before`` to it (4x4 each),
+/* se3.continued: ``pose`` moved on by the motion from ``before`` to it (4x4 each),
  * T_k (T_k-1)^-1 T_k taken as a twist, into ahead (4x4); that twist's translation (m) and
  * turn (rad) into sizes. */
 void nl_continued(const double *before, const double *pose, double small, double near_pi, double *ahead,

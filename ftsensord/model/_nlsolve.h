@@ -1,7 +1,7 @@
 /* The nonlinear estimator's compiled solve: what its two files share (nlcompiled.py
  * packs nl_model to this layout: its LAYOUT and the sizes exported in _nlsolve.c).
  * _nlmodel.c: the forward model (fluxmodel.py), its Jacobian, SE(3) exp and log
- * (se3floats.py); _nlsolve.c: the fit (nonlinear.py's _solve). Units SI (T, m, rad);
+ * (se3.py); _nlsolve.c: the fit (nonlinear.py's _solve). Units SI (T, m, rad);
  * poses 4x4 row-major. */
 #ifndef FTSENSORD_NLSOLVE_H
 #define FTSENSORD_NLSOLVE_H

@@ -175,7 +175,7 @@ class FoldedCheck:
     def __init__(self, maps: ConsistencyMaps, KA: np.ndarray, zero: np.ndarray, scale: np.ndarray | None,
                  shift: np.ndarray | None, load_offset: np.ndarray, load_scale: np.ndarray,
                  bound_scale: np.ndarray):
-        if not maps.all or maps.maps is None:
+        if not maps.all or maps.maps is None or maps.chip_rows is None:
             raise ValueError("a folded check needs every chip in use and redundancy to check")
         n, k = maps.n, maps.gradient_dof
         self.chips, self.dof, self.gradient_dof = n // 3, maps.dof, k

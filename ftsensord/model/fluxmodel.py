@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .geometry import SensorGeometry
-from .magnet import MU0_OVER_4PI, octupole_ratio
+from ftsensord.model.geometry import SensorGeometry
+from ftsensord.model.magnet import MU0_OVER_4PI, octupole_ratio
 
 _EYE3 = np.eye(3)
 #: hat(x) = (x @ _HAT).reshape(3, 3), so rows of vectors give their skew matrices in one

@@ -16,8 +16,8 @@ from functools import cached_property
 
 import numpy as np
 
-from . import se3
-from .magnet import cylinder_moment
+from ftsensord.model import se3
+from ftsensord.model.magnet import cylinder_moment
 
 #: The paper's magnet, K&J D101-N52: 1/16" diameter, 1/32" thick, Br about 1.45 T.
 D101_RADIUS_M = 1.5875e-3 / 2

@@ -15,10 +15,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import se3
-from .consistency import Consistency, ConsistencyMaps, FoldedCheck
-from .geometry import SensorGeometry, separable_gradient
-from .registration import Registration, register
+from ftsensord.model import se3
+from ftsensord.model.consistency import Consistency, ConsistencyMaps, FoldedCheck
+from ftsensord.model.geometry import SensorGeometry, separable_gradient
+from ftsensord.model.registration import Registration, register
 
 #: The sensor's range (paper): +-50 N in X and Y, +-20 N in Z, +-0.2 Nm, frame {0}.
 SENSOR_RANGE = np.array([50.0, 50.0, 20.0, 0.2, 0.2, 0.2])

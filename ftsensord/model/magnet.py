@@ -11,8 +11,12 @@ The cylinder field is Derby & Olbert's closed form (Am. J. Phys. 78, 229,
 from __future__ import annotations
 
 import math
+from typing import TypeVar
 
 import numpy as np
+
+#: A temperature difference (K) or an array of them: the laws act element by element.
+FloatOrArray = TypeVar("FloatOrArray", float, np.ndarray)
 
 _EYE3 = np.eye(3)
 
@@ -24,7 +28,7 @@ MU0_OVER_4PI = 1e-7
 NDFEB_BR_TEMPCO_PER_K = -1.2e-3
 
 
-def remanence_factor(delta_k: float) -> float:
+def remanence_factor(delta_k: FloatOrArray) -> FloatOrArray:
     """Br(T) / Br(25 degC) of NdFeB ``delta_k`` kelvin above 25 degC (both field models scale with it)."""
     return 1.0 + NDFEB_BR_TEMPCO_PER_K * delta_k
 

@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import ConfigError
-from . import se3
+from ftsensord.errors import ConfigError
+from ftsensord.model import se3
 
 __all__ = ["SOLVERS", "CompiledSolve", "attach", "compile_library", "library_path", "load", "solver_for"]
 
@@ -149,7 +149,7 @@ class CompiledSolve:
         return self._out[:6].copy(), T, converged, int(out[7]), out[6], u
 
     def continued(self, before: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, float, float]:
-        """`se3floats.continued` in C: ``pose`` moved on by the motion from ``before`` to it,
+        """`se3.continued` in C: ``pose`` moved on by the motion from ``before`` to it,
         that motion's translation (m) and turn (rad)."""
         before, pose = np.ascontiguousarray(before, dtype=float), np.ascontiguousarray(pose, dtype=float)
         ahead = np.empty((4, 4))

@@ -16,11 +16,10 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from . import se3
-from .fluxmodel import FluxModel
-from .se3floats import continued, exp_se3 as _exp_se3, log_se3 as _log_se3
-from .linear import SENSOR_RANGE
-from .nlcompiled import solver_for
+from ftsensord.model import se3
+from ftsensord.model.fluxmodel import FluxModel
+from ftsensord.model.linear import SENSOR_RANGE
+from ftsensord.model.nlcompiled import solver_for
 
 __all__ = ["Estimate", "FluxModel", "NonlinearEstimator"]
 
@@ -188,14 +187,14 @@ class NonlinearEstimator:
 
     def _ahead(self, pose: np.ndarray) -> np.ndarray:
         """Where the warm start begins: ``pose`` (the last fit's) moved on by the last
-        sample's motion (`se3floats.continued`) when it moved beyond `JACOBIAN_REUSE_M` or
+        sample's motion (`se3.continued`) when it moved beyond `JACOBIAN_REUSE_M` or
         4 mrad (a moving load: the next pose is that much further, its second difference
         some 40 times less at 1.3 Hz and 100 Hz) and within one step's limits (beyond is a
         jump, not a motion to go on with); else ``pose`` (at rest: the noise, doubled)."""
         motion = self._motion
         if motion is None or motion[1] is not pose or _near(pose, motion[0].tolist(), None, None):
             return pose  # none yet, the pose set since, or at rest
-        move_on = continued if self.compiled is None else self.compiled.continued  # the same in C
+        move_on = se3.continued if self.compiled is None else self.compiled.continued  # the same in C
         ahead, moved_m, turned_rad = move_on(motion[0], pose)
         return pose if moved_m > MAX_STEP_M or turned_rad > MAX_STEP_RAD else ahead
 
@@ -235,7 +234,8 @@ class NonlinearEstimator:
         # The flux predicted at T, once known: from a warm start, the last fit's at its end.
         kept = self._end
         pred = kept[3] if kept is not None and kept[0] is start and kept[1] is u0 and kept[2] == background else None
-        r, r_of = None, None  # the residual, and the prediction it is of
+        r: np.ndarray = np.empty(0)  # the residual (made at the first step),
+        r_of: np.ndarray | None = None  # and the prediction it is of
         for k in range(1, self.max_iterations + 1):
             pred, J_full, fresh = self._linearise(T, u, background, pred)
             if pred is not r_of:
@@ -266,7 +266,7 @@ class NonlinearEstimator:
                 scale = min(1.0, MAX_STEP_M / max(size[0], 1e-300), MAX_STEP_RAD / max(size[1], 1e-300))
                 if scale < 1.0:
                     step, size = step * scale, (size[0] * scale, size[1] * scale)
-                T_new = _exp_se3(step) @ T
+                T_new = se3.exp_se3(step) @ T
                 u_new = None if u is None else u + step[6:]
                 final = _within(size) or (last is not None and (last[1] is kind or last[2] is J_full)
                                           and _within(_left(size, last[0])))
@@ -300,7 +300,7 @@ class NonlinearEstimator:
                 break
             last = (size, kind, J_full) if scale == 1.0 else None  # a limited step says nothing of convergence
         rms = math.sqrt(max(cost - _prior(u), 0.0) / used)  # of the flux alone
-        xi = _log_se3(T)
+        xi = se3.log_se3(T)
         plausible = bool((np.abs(self.stiffness @ (xi - self.zero_twist)) <= PLAUSIBLE_WRENCH).all())
         plausible = plausible and (u is None or math.sqrt(float(u @ u)) <= BACKGROUND_LIMIT_T)
         converged = bool(math.isfinite(rms) and rms <= MAX_RESIDUAL_T and plausible

@@ -21,23 +21,15 @@ the file complete and returns a per-stream summary.
   flags, missed). A chunk is closed every `FLUSH_EVERY_S`; the summary and index
   come at a clean end. A file cut short still reads, chunk by chunk, with
   `read_mcap` (mcap's non-seeking reader) and `recover_mcap` rewrites it whole.
+
+May import: `client` (to subscribe), `protocol`, `errors`; never the daemon's floors.
 """
 
-from .columns import WRENCH_COLUMNS, Tally, value_columns
-from .csvfile import CsvWriter, read_meta
-from .loop import (
-    FLUSH_EVERY_S,
-    Outcome,
-    Receiver,
-    SampleWriter,
-    StopOnSignals,
-    daemon_frames,
-    open_writer,
-    record,
-    summary_line,
-)
-from .npz import CHUNK_ROWS, NpzWriter, finish_npz, gaps_of, load_rows
-from .ros2mcap import read_mcap, recover_mcap
+from ftsensord.recording.columns import WRENCH_COLUMNS, Tally, value_columns
+from ftsensord.recording.csvfile import CsvWriter, read_meta
+from ftsensord.recording.loop import FLUSH_EVERY_S, Outcome, Receiver, SampleWriter, StopOnSignals, daemon_frames, open_writer, record, summary_line
+from ftsensord.recording.npz import CHUNK_ROWS, NpzWriter, finish_npz, gaps_of, load_rows
+from ftsensord.recording.ros2mcap import read_mcap, recover_mcap
 
 __all__ = ["CHUNK_ROWS", "FLUSH_EVERY_S", "WRENCH_COLUMNS", "CsvWriter", "NpzWriter", "Outcome", "Receiver",
            "SampleWriter", "StopOnSignals", "Tally", "daemon_frames", "finish_npz", "gaps_of", "load_rows",

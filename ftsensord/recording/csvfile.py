@@ -21,9 +21,9 @@ import os
 from pathlib import Path
 from typing import Any
 
-from ..errors import ConfigError
-from ..service import wire
-from .columns import Tally, value_columns
+from ftsensord.errors import ConfigError
+from ftsensord.protocol import wire
+from ftsensord.recording.columns import Tally, value_columns
 
 FORMAT = "ftsensord-csv"
 #: The sidecar's size, one file-system block: the JSON is padded to it so that every

@@ -11,11 +11,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
-from ..errors import ConfigError
-from ..service import wire
-from .columns import Tally
-from .csvfile import CsvWriter
-from .npz import NpzWriter
+from ftsensord.errors import ConfigError
+from ftsensord.protocol import wire
+from ftsensord.recording.columns import Tally
+from ftsensord.recording.csvfile import CsvWriter
+from ftsensord.recording.npz import NpzWriter
 
 #: Longest a received sample waits in the process before it is handed to the
 #: kernel: half the one second a kill may cost, so a slow flush still meets it.
@@ -35,7 +35,7 @@ def open_writer(path: str | Path, streams: list[str], frames: dict[str, str] | N
     ``frames``: each stream's frame (`daemon_frames`), written into the file."""
     suffix = Path(path).suffix.lower()
     if suffix == ".mcap":
-        from .ros2mcap import McapWriter
+        from ftsensord.recording.ros2mcap import McapWriter
         return McapWriter(path, frames or {})
     if suffix not in (".csv", ".npz"):
         raise ConfigError(f"{path}: record writes .csv, .npz or .mcap (by the file's extension)")
@@ -158,9 +158,9 @@ def daemon_frames(streams: list[str], endpoint: str | None, control: str | None,
     (`ConfigError`, naming those it does)."""
     import sys
 
-    from ..client import ControlClient, control_beside, refuse_unpublished
-    from ..errors import FtsensordError
-    from .ros2mcap import frames_from_status
+    from ftsensord.client import ControlClient, control_beside, refuse_unpublished
+    from ftsensord.errors import FtsensordError
+    from ftsensord.recording.ros2mcap import frames_from_status
 
     publisher = control_beside(endpoint, control)  # None: the daemon asked may not be the publisher
     try:

@@ -10,9 +10,9 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import ConfigError
-from ..service import wire
-from .columns import Tally, value_columns
+from ftsensord.errors import ConfigError
+from ftsensord.protocol import wire
+from ftsensord.recording.columns import Tally, value_columns
 
 
 def _rows_dtype(count: int) -> np.dtype:

@@ -8,7 +8,7 @@ Topics (a stream ``wrench/sensor1`` becomes ``/wrench/sensor1``):
   chip's frame (``<sensor>/chip<i>``), covariance all zero (ROS: unknown); NaN for a
   chip that did not answer, as on the wire.
 - ``/<stream>/status``: ``ftsensord_msgs/msg/SampleStatus``, the sample's sequence
-  number, flags (``ftsensord.service.wire``) and sequence numbers missed before it,
+  number, flags (``ftsensord.protocol.wire``) and sequence numbers missed before it,
   stamped as the sample.
 
 Messages are CDR (little-endian), encoded here for these fixed layouts; each
@@ -24,9 +24,9 @@ from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
-from .. import __version__
-from ..errors import ConfigError
-from ..service import wire
+from ftsensord import __version__
+from ftsensord.errors import ConfigError
+from ftsensord.protocol import wire
 
 _SEP = "\n" + "=" * 80 + "\n"
 _TIME = "MSG: builtin_interfaces/Time\nint32 sec\nuint32 nanosec"
@@ -43,7 +43,7 @@ SCHEMAS = {
         "std_msgs/Header header\ngeometry_msgs/Vector3 magnetic_field\nfloat64[9] magnetic_field_covariance",
         _VECTOR3, _HEADER, _TIME]),
     "ftsensord_msgs/msg/SampleStatus": _SEP.join([
-        ("# One ftsensord sample's bookkeeping (ftsensord.service.wire).\n"
+        ("# One ftsensord sample's bookkeeping (ftsensord.protocol.wire).\n"
          "std_msgs/Header header\n"
          "uint64 seq     # the stream's sequence number: it counts the daemon's cycles\n"
          "uint32 flags   # FLAG_* bits: chip_missing 1, saturated 2, stale 4, overload 8, degraded 16, ...\n"
@@ -55,7 +55,7 @@ WRENCH, FLUX, STATUS = SCHEMAS
 
 #: CDR's encapsulation header: plain little-endian CDR (XCDR1), no options.
 CDR_LE = b"\x00\x01\x00\x00"
-_TIME = struct.Struct("<iI")  # builtin_interfaces/Time: int32 sec, uint32 nanosec
+_STAMP = struct.Struct("<iI")  # builtin_interfaces/Time: int32 sec, uint32 nanosec
 _WRENCH = struct.Struct("<6d")
 _STATUS = struct.Struct("<QII")  # SampleStatus after its header: uint64 seq, uint32 flags, uint32 missed
 
@@ -69,11 +69,11 @@ class Stamped:
     def __init__(self, frame_id: str):
         text = frame_id.encode() + b"\0"
         string = struct.pack("<I", len(text)) + text
-        self.tail = string + b"\0" * (-(_TIME.size + len(string)) % 8)
+        self.tail = string + b"\0" * (-(_STAMP.size + len(string)) % 8)
 
     def message(self, t_wall: float, body: bytes) -> bytes:
         """The message stamped ``t_wall`` (UNIX s) whose members after the header are ``body``."""
-        return CDR_LE + _TIME.pack(*stamp(t_wall)) + self.tail + body
+        return CDR_LE + _STAMP.pack(*stamp(t_wall)) + self.tail + body
 
 
 def stamp(t_wall: float) -> tuple[int, int]:

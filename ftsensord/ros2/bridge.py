@@ -24,11 +24,11 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from ..errors import ConfigError, FtsensordError, WireError
-from ..service import wire
+from ftsensord.errors import ConfigError, FtsensordError, WireError
+from ftsensord.protocol import wire
 
 if TYPE_CHECKING:
-    from ..client import ControlClient
+    from ftsensord.client import ControlClient
 
 log = logging.getLogger("ftsensord.ros2")
 
@@ -69,7 +69,7 @@ def wait_for_status(control: Any, stopped: Callable[[], bool], timeout_s: float)
 def tare(control: str) -> tuple[bool, str]:
     """A tare from ROS: the daemon on ``control`` asked by a client of its own (this runs in a
     thread of its own); whether it tared, and the Trigger response's message."""
-    from ..client import ControlClient
+    from ftsensord.client import ControlClient
 
     try:
         result = ControlClient(control, timeout_s=3.0).tare(samples=TARE_SAMPLES)
@@ -86,9 +86,9 @@ class Bridge:
 
     def __init__(self, namespace: str, domain_id: int, endpoint: str, control: ControlClient, status: dict[str, Any],
                  orientation: str | None, stopped: Callable[[], bool], realtime: int = 0):
-        from ..client import OrientationPublisher
-        from ..recording.ros2mcap import frames_from_status
-        from .node import Ros2Node
+        from ftsensord.client import OrientationPublisher
+        from ftsensord.recording.ros2mcap import frames_from_status
+        from ftsensord.ros2.node import Ros2Node
 
         self.stopped, self.realtime = stopped, realtime
         self.done = threading.Event()  # `run` has ended: the input thread ends too
@@ -120,7 +120,7 @@ class Bridge:
     def diagnose(self) -> None:
         """The daemon's status as /diagnostics (about 1 ms of Python: run between cycles, in
         the forwarding thread, so no sample waits for the GIL behind it)."""
-        from . import diagnostics
+        from ftsensord.ros2 import diagnostics
 
         try:
             status, why = self.control.status(), ""
@@ -135,7 +135,7 @@ class Bridge:
         end = None if seconds is None else time.monotonic() + seconds
         forwarded, due, ask = 0, time.monotonic(), time.monotonic()
         if self.realtime:  # this thread only: DDS's threads (made with the node) stay at the normal policy
-            from ..service.realtime import request_fifo
+            from ftsensord.daemon.realtime import request_fifo
 
             refused = request_fifo(self.realtime).refused
             if refused:
@@ -146,7 +146,7 @@ class Bridge:
             while not self.stopped() and (end is None or time.monotonic() < end):
                 # A cycle's streams come together: their wrenches first, as each arrives, then
                 # their statuses, so no wrench waits behind another stream's status.
-                cycle = []
+                cycle: list[Any] = []
                 while sock.poll(0 if cycle else POLL_MS):
                     sample = self.forward(sock.recv())
                     if sample is not None:
@@ -175,7 +175,7 @@ class Bridge:
         by the forwarding thread (at its scheduling policy), not by the control client's."""
         import zmq
 
-        from ..client import QUEUE_HWM
+        from ftsensord.client import QUEUE_HWM
 
         sock = zmq.Context().socket(zmq.SUB)
         sock.setsockopt(zmq.RCVHWM, QUEUE_HWM)
@@ -201,11 +201,11 @@ class Bridge:
 
 
 def cmd_ros2(args: argparse.Namespace) -> int:
-    from ..client import ControlClient, default_endpoint
-    from ..recording import StopOnSignals
-    from ..service.config import load_config
-    from ..service.realtime import FIFO_PRIORITIES
-    from ..service.ros2conf import Ros2Config, check_domain_id, default_domain_id, is_ros_name, needs_cyclonedds
+    from ftsensord.client import ControlClient, default_endpoint
+    from ftsensord.recording import StopOnSignals
+    from ftsensord.config.file import load_config
+    from ftsensord.daemon.realtime import FIFO_PRIORITIES
+    from ftsensord.config.ros2conf import Ros2Config, check_domain_id, default_domain_id, is_ros_name, needs_cyclonedds
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     ros2, orientation = None, None

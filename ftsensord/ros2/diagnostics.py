@@ -16,11 +16,11 @@ import struct
 from itertools import chain
 from typing import Any
 
-from ..recording.ros2mcap import CDR_LE, stamp
-from ..service import wire
+from ftsensord.recording.ros2mcap import CDR_LE, stamp
+from ftsensord.protocol import wire
 
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
-#: Chip states (`service.status`) and their levels: a chip being reset still answers the
+#: Chip states (`daemon.status`) and their levels: a chip being reset still answers the
 #: others' cycle (the sensor runs degraded); a failing one is out.
 CHIP_LEVELS = {"ok": OK, "resetting": WARN, "failing": ERROR}
 #: Sample flags that make a sensor's level ERROR: no estimate, or one from too few chips' data.

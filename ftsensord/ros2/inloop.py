@@ -1,12 +1,12 @@
 """``[ros2] output = "in-loop"``: the daemon's loop thread writes the samples to DDS itself.
 
-After each cycle's ZeroMQ sends (`service.daemon.Daemon.cycle`'s ``outputs``), one
+After each cycle's ZeroMQ sends (`daemon.daemon.Daemon.cycle`'s ``outputs``), one
 ``ddspy_write`` a stream whose topic some reader reads: the WrenchStamped's CDR bytes are
 made once a stream, and each cycle's stamp and six float64 are patched into them; its
 SampleStatus likewise. No thread, no process, no ZeroMQ subscriber between the loop and
 DDS. In the same place, outside every sample's path: which topics have readers (five
 times a second), ``/diagnostics`` from the part of the daemon's status it shows (once a
-second, over a few cycles: `service.status.health_reply` and the statuses in one, the message's
+second, over a few cycles: `daemon.status.health_reply` and the statuses in one, the message's
 bytes, `diagnostics.Encoder`, a few statuses a cycle in the next, the write with the last),
 and the inputs, taken without waiting (a waitset asked with a zero timeout): an orientation
 goes to the daemon's orientation receiver as a message on its socket would, a tare to its
@@ -28,18 +28,18 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..errors import ConfigError
-from ..recording.ros2mcap import missed_since, stamp, status_body
-from ..service import orientation as wire_orientation
-from ..service.status import health_reply, stream_frames
-from . import diagnostics
-from .bridge import DIAGNOSTICS_S, READERS_S, WRENCH_BYTES, tare
+from ftsensord.errors import ConfigError
+from ftsensord.recording.ros2mcap import missed_since, stamp, status_body
+from ftsensord.protocol import orientation as wire_orientation
+from ftsensord.daemon.status import health_reply, stream_frames
+from ftsensord.ros2 import diagnostics
+from ftsensord.ros2.bridge import DIAGNOSTICS_S, READERS_S, WRENCH_BYTES, tare
 
 if TYPE_CHECKING:
-    from ..service.daemon import Daemon
-    from ..service.pipeline import SensorSample
-    from ..service.ros2conf import Ros2Config
-    from .node import Ros2Node
+    from ftsensord.daemon.daemon import Daemon
+    from ftsensord.processing.pipeline import SensorSample
+    from ftsensord.config.ros2conf import Ros2Config
+    from ftsensord.ros2.node import Ros2Node
 
 log = logging.getLogger("ftsensord.ros2")
 
@@ -95,7 +95,7 @@ class InLoop:
 
         from cyclonedds.core import DDSException
 
-        from .node import Ros2Node
+        from ftsensord.ros2.node import Ros2Node
 
         self.daemon, self.namespace, self.domain_id = daemon, ros2.namespace, ros2.domain_id
         frames = {s: f for s, f in stream_frames(daemon).items() if s.startswith("wrench/")}

@@ -174,7 +174,7 @@ def _field_type(hint: object, ros_type: str | None = None) -> tuple[dict[str, ob
     if args and isinstance(args[1], bounded_str):  # string<=N
         return {"type_id": _BOUNDED_STRING + offset, "capacity": capacity, "string_capacity": args[1].max_length,
                 "nested_type_name": ""}, None
-    name = ros_type or (args[1] if args else hint.__name__)  # type: ignore[union-attr]
+    name = ros_type or (args[1] if args else hint.__name__)  # type: ignore[attr-defined]
     return {"type_id": _TYPE_IDS[name] + offset, "capacity": capacity, "string_capacity": 0,
             "nested_type_name": ""}, None
 

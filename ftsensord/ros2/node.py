@@ -33,9 +33,9 @@ from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 
-from ..recording.ros2mcap import Stamped, missed_since, status_body
-from . import diagnostics, msgs
-from .diagnostics import Status
+from ftsensord.recording.ros2mcap import Stamped, missed_since, status_body
+from ftsensord.ros2 import diagnostics, msgs
+from ftsensord.ros2.diagnostics import Status
 
 log = logging.getLogger("ftsensord.ros2")
 

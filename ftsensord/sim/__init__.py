@@ -13,12 +13,12 @@ May import: `chip` (the datasheet's facts), `model` (fields, geometry),
 
 from __future__ import annotations
 
-from .bus import BusFaults, SimulatedBus, simulated_bus
-from .chip import NOISELESS, EmulatedMLX90393, FieldSource, NoiseModel
-from .clock import MonotonicClock, VirtualClock
-from .faults import Fault, FaultScript
-from .physics import PhysicalScene, SimSensor, two_sensor_scene
-from .scene import StaticScene, default_scene, load_scene
+from ftsensord.sim.bus import BusFaults, SimulatedBus, simulated_bus
+from ftsensord.sim.chip import NOISELESS, EmulatedMLX90393, FieldSource, NoiseModel
+from ftsensord.sim.clock import MonotonicClock, VirtualClock
+from ftsensord.sim.faults import Fault, FaultScript
+from ftsensord.sim.physics import PhysicalScene, SimSensor, two_sensor_scene
+from ftsensord.sim.scene import StaticScene, default_scene, load_scene
 
 __all__ = ["Fault", "FaultScript", "BusFaults", "EmulatedMLX90393", "FieldSource", "MonotonicClock", "NOISELESS", "NoiseModel",
            "PhysicalScene", "SimSensor", "SimulatedBus", "StaticScene", "VirtualClock", "default_scene",

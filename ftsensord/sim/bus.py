@@ -28,52 +28,10 @@ import numpy as np
 from smbus2 import i2c_msg
 from smbus2.smbus2 import I2C_M_RD, I2C_SMBUS_BLOCK_MAX
 
-from ..chip.i2c import ADAPTER_RULES, BITS_PER_BYTE, I2C_RDWR_MAX_MSGS, BusTiming
-from .chip import EmulatedMLX90393, FieldSource, NoiseModel
-from .clock import MonotonicClock, VirtualClock
-from .faults import FaultScript
-
-
-@dataclass
-class BusFaults:
-    """Faults the simulated bus injects; tests and scenes set them.
-
-    ``nack_for[address]`` is how many more transfers touching that address are
-    NACKed (None: until cleared, i.e. a permanent fault); ``io_errors`` is how
-    many more transfers fail bus-wide with ``io_errno`` (EIO, or ETIMEDOUT for a
-    hung bus); ``slowdown`` multiplies the wire time (a bus slower than
-    configured: clock stretching, a longer cable, a lower real clock).
-    """
-
-    nack_for: dict[int, int | None] = field(default_factory=dict)
-    io_errors: int = 0
-    io_errno: int = errno.EIO
-    slowdown: float = 1.0
-
-    def nack(self, address: int, count: int | None = None) -> None:
-        """NACK ``address`` for the next ``count`` transfers (None: until `clear`)."""
-        self.nack_for[address] = count
-
-    def io_error(self, count: int = 1, err: int = errno.EIO) -> None:
-        """Fail the next ``count`` transfers bus-wide with ``err``."""
-        self.io_errors, self.io_errno = count, err
-
-    def clear(self) -> None:
-        self.nack_for.clear()
-        self.io_errors = 0
-        self.slowdown = 1.0
-
-    def take_nack(self, address: int) -> bool:
-        """Whether this transfer to ``address`` is NACKed (counts one transfer)."""
-        if address not in self.nack_for:
-            return False
-        remaining = self.nack_for[address]
-        if remaining is not None:
-            if remaining <= 1:
-                del self.nack_for[address]
-            else:
-                self.nack_for[address] = remaining - 1
-        return True
+from ftsensord.chip.i2c import ADAPTER_RULES, BITS_PER_BYTE, I2C_RDWR_MAX_MSGS, BusTiming
+from ftsensord.sim.chip import EmulatedMLX90393, FieldSource, NoiseModel
+from ftsensord.sim.clock import MonotonicClock, VirtualClock
+from ftsensord.sim.faults import BusFaults, FaultScript
 
 
 #: Default adapter: the most likely board is a Raspberry Pi 4 with its own driver.

@@ -16,32 +16,17 @@ from __future__ import annotations
 import enum
 import functools
 import math
-from typing import Protocol
+
 
 import numpy as np
 
-from ..chip import mlx90393 as mlx
-from .conversion import NOISELESS, Conversions, NoiseModel
-from .thermal import ChipDrift
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.sim.conversion import NOISELESS, Conversions, FieldSource, NoiseModel
+from ftsensord.sim.heat import ChipDrift
 
 __all__ = ["NOISELESS", "EmulatedMLX90393", "FieldSource", "Mode", "NoiseModel"]
 
 
-class FieldSource(Protocol):
-    """What the chips need of a scene: the field each sees and its temperature."""
-
-    @property
-    def addresses(self) -> tuple[int, ...]:
-        """The chip addresses the scene has a field for."""
-        ...
-
-    def field_t(self, address: int, t: float) -> np.ndarray:
-        """Flux density at the chip, in tesla, in the chip's frame, at time ``t`` (s)."""
-        ...
-
-    def temperature_c(self, address: int, t: float) -> float:
-        """Die temperature in degC at time ``t`` (s)."""
-        ...
 
 
 class Mode(enum.Enum):

@@ -8,15 +8,30 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
-from ..chip import mlx90393 as mlx
-from .thermal import ChipDrift
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.sim.heat import ChipDrift
 
-if TYPE_CHECKING:
-    from .chip import FieldSource
+
+
+class FieldSource(Protocol):
+    """What the chips need of a scene: the field each sees and its temperature."""
+
+    @property
+    def addresses(self) -> tuple[int, ...]:
+        """The chip addresses the scene has a field for."""
+        ...
+
+    def field_t(self, address: int, t: float) -> np.ndarray:
+        """Flux density at the chip, in tesla, in the chip's frame, at time ``t`` (s)."""
+        ...
+
+    def temperature_c(self, address: int, t: float) -> float:
+        """Die temperature in degC at time ``t`` (s)."""
+        ...
 
 
 @dataclass(frozen=True)

@@ -18,14 +18,67 @@ them on its own clock (s since it was made) at the start of every transfer:
 from __future__ import annotations
 
 import errno
-from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from .bus import SimulatedBus
-    from .chip import EmulatedMLX90393
+from ftsensord.sim.chip import EmulatedMLX90393
+
+@dataclass
+class BusFaults:
+    """Faults the simulated bus injects; tests and scenes set them.
+
+    ``nack_for[address]`` is how many more transfers touching that address are
+    NACKed (None: until cleared, i.e. a permanent fault); ``io_errors`` is how
+    many more transfers fail bus-wide with ``io_errno`` (EIO, or ETIMEDOUT for a
+    hung bus); ``slowdown`` multiplies the wire time (a bus slower than
+    configured: clock stretching, a longer cable, a lower real clock).
+    """
+
+    nack_for: dict[int, int | None] = field(default_factory=dict)
+    io_errors: int = 0
+    io_errno: int = errno.EIO
+    slowdown: float = 1.0
+
+    def nack(self, address: int, count: int | None = None) -> None:
+        """NACK ``address`` for the next ``count`` transfers (None: until `clear`)."""
+        self.nack_for[address] = count
+
+    def io_error(self, count: int = 1, err: int = errno.EIO) -> None:
+        """Fail the next ``count`` transfers bus-wide with ``err``."""
+        self.io_errors, self.io_errno = count, err
+
+    def clear(self) -> None:
+        self.nack_for.clear()
+        self.io_errors = 0
+        self.slowdown = 1.0
+
+    def take_nack(self, address: int) -> bool:
+        """Whether this transfer to ``address`` is NACKed (counts one transfer)."""
+        if address not in self.nack_for:
+            return False
+        remaining = self.nack_for[address]
+        if remaining is not None:
+            if remaining <= 1:
+                del self.nack_for[address]
+            else:
+                self.nack_for[address] = remaining - 1
+        return True
+
+
+
+class FaultedBus(Protocol):
+    """What a `FaultScript` acts on (`bus.SimulatedBus` is one): its chips by address, its
+    bus-wide faults, and a chip taken off and put back."""
+
+    chips: dict[int, EmulatedMLX90393]
+    faults: BusFaults
+
+    def detach(self, address: int) -> EmulatedMLX90393: ...
+
+    def attach(self, chip: EmulatedMLX90393) -> None: ...
+
 
 FAULT_KINDS = ("nack", "detach", "io_error", "timeout", "stuck", "saturate", "slow", "drift_register")
 NEEDS_ADDRESS = {"nack", "detach", "stuck", "saturate", "drift_register"}
@@ -60,7 +113,7 @@ class FaultScript:
         self.detached: dict[int, EmulatedMLX90393] = {}
         self.injected = 0
 
-    def apply(self, bus: SimulatedBus, t: float) -> None:
+    def apply(self, bus: FaultedBus, t: float) -> None:
         for i, f in enumerate(self.faults):
             on = f.at_s <= t < f.until_s
             if on and i not in self.active:
@@ -73,15 +126,17 @@ class FaultScript:
             if on and f.kind in ("io_error", "timeout"):
                 bus.faults.io_error(1, errno.EIO if f.kind == "io_error" else errno.ETIMEDOUT)
 
-    def _chip(self, bus: SimulatedBus, f: Fault) -> EmulatedMLX90393 | None:
-        return bus.chips.get(f.address) or self.detached.get(f.address)  # type: ignore[arg-type]
+    def _chip(self, bus: FaultedBus, f: Fault) -> EmulatedMLX90393 | None:
+        if f.address is None:
+            return None
+        return bus.chips.get(f.address) or self.detached.get(f.address)
 
-    def _start(self, bus: SimulatedBus, f: Fault) -> None:
+    def _start(self, bus: FaultedBus, f: Fault) -> None:
         chip = self._chip(bus, f) if f.address is not None else None
         if f.kind == "nack":
-            bus.faults.nack(f.address)  # type: ignore[arg-type]
+            bus.faults.nack(f.address)  # type: ignore[arg-type]  # a nack names its chip (NEEDS_ADDRESS)
         elif f.kind == "detach" and f.address in bus.chips:
-            self.detached[f.address] = bus.detach(f.address)  # type: ignore[index]
+            self.detached[f.address] = bus.detach(f.address)
         elif f.kind == "stuck" and chip:
             chip.stuck = True
         elif f.kind == "saturate" and chip:
@@ -91,12 +146,12 @@ class FaultScript:
         elif f.kind == "drift_register" and chip:
             chip.registers[f.register] = f.value
 
-    def _end(self, bus: SimulatedBus, f: Fault) -> None:
+    def _end(self, bus: FaultedBus, f: Fault) -> None:
         chip = self._chip(bus, f) if f.address is not None else None
         if f.kind == "nack":
-            bus.faults.nack_for.pop(f.address, None)  # type: ignore[arg-type]
+            bus.faults.nack_for.pop(f.address, None)  # type: ignore[arg-type]  # as in _start
         elif f.kind == "detach" and f.address in self.detached:
-            returning = self.detached.pop(f.address)  # type: ignore[arg-type]
+            returning = self.detached.pop(f.address)
             returning.power_on()  # it lost power: back at its power-on registers
             bus.attach(returning)
         elif f.kind == "stuck" and chip:

@@ -18,7 +18,7 @@ from typing import Protocol
 
 import numpy as np
 
-from ..model import se3
+from ftsensord.model import se3
 
 #: Standard gravity, m/s^2.
 G = 9.80665

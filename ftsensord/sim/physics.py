@@ -23,17 +23,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..chip import mlx90393 as mlx
-from ..model import se3
-from ..model.geometry import SensorGeometry, as_built
-from ..model.linear import SENSOR_RANGE
-from ..model.magnet import NDFEB_BR_TEMPCO_PER_K  # noqa: F401  (its old home: the name still works here)
-from ..model.magnet import cylinder_field, dipole_field, remanence_factor
-from ..model.silicone import stiffness_factor
-from ..model.viscoelastic import Relaxation
-from .loads import DOWN, IDENTITY, NO_LOAD, G, FixedOrientation, Load, Orientation, StaticLoad
-from .silicone import SiliconeMemory
-from .thermal import ChipDrift, TemperatureProfile
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.model import se3
+from ftsensord.model.geometry import SensorGeometry, as_built
+from ftsensord.model.linear import SENSOR_RANGE
+from ftsensord.model.magnet import NDFEB_BR_TEMPCO_PER_K  # noqa: F401  (its old home: the name still works here)
+from ftsensord.model.magnet import cylinder_field, dipole_field, remanence_factor
+from ftsensord.model.silicone import stiffness_factor
+from ftsensord.model.viscoelastic import Relaxation
+from ftsensord.sim.loads import DOWN, IDENTITY, NO_LOAD, G, FixedOrientation, Load, Orientation, StaticLoad
+from ftsensord.sim.memory import SiliconeMemory
+from ftsensord.sim.heat import ChipDrift, TemperatureProfile
 
 #: Stiffness default: the diagonal of the paper's K, in N/m and Nm/rad (their
 #: signs dropped: a stiffness is positive definite).
@@ -113,7 +113,7 @@ class SimSensor:
 
     ``relaxation``: the silicone's Prony series (None: a perfect spring); ``stiffness`` is
     then the long-term stiffness K_inf, and the load's history drives the deflection
-    (`sim.silicone`, docs/physics.md "The silicone's memory").
+    (`sim.memory`, docs/physics.md "The silicone's memory").
     """
 
     name: str

@@ -16,38 +16,15 @@ from pathlib import Path
 
 import numpy as np
 
-from ..chip import mlx90393 as mlx
-from ..docfile import Table, load_toml
-from ..errors import ConfigError
-from ..model.geometry import SensorGeometry
-from .faults import FAULT_KINDS, NEEDS_ADDRESS, Fault
-from .loads import (
-    IDENTITY,
-    NO_LOAD,
-    PLANS,
-    CalibrationRobotLoad,
-    FixedOrientation,
-    Load,
-    Orientation,
-    RecordedLoad,
-    RecordedOrientation,
-    StaticLoad,
-    StepLoad,
-    paper_plan,
-    ramp,
-)
-from .physics import (
-    CROSSTALK_MODELS,
-    FIELD_MODELS,
-    PAPER_STIFFNESS_DIAG,
-    STRAY_MIN_DISTANCE_M,
-    PhysicalScene,
-    SimSensor,
-    StraySource,
-    Tolerances,
-)
-from .silicone import parse_silicone
-from .thermal import TemperatureProfile
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.docfile import Table, load_toml
+from ftsensord.errors import ConfigError
+from ftsensord.model.geometry import SensorGeometry
+from ftsensord.sim.faults import FAULT_KINDS, NEEDS_ADDRESS, Fault
+from ftsensord.sim.loads import IDENTITY, NO_LOAD, PLANS, CalibrationRobotLoad, FixedOrientation, Load, Orientation, RecordedLoad, RecordedOrientation, StaticLoad, StepLoad, paper_plan, ramp
+from ftsensord.sim.physics import CROSSTALK_MODELS, FIELD_MODELS, PAPER_STIFFNESS_DIAG, STRAY_MIN_DISTANCE_M, PhysicalScene, SimSensor, StraySource, Tolerances
+from ftsensord.sim.memory import parse_silicone
+from ftsensord.sim.heat import TemperatureProfile
 
 SCENE_VERSION = 1
 

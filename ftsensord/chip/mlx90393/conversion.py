@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ...errors import ForbiddenSettingError
-from .protocol import TREF_TYPICAL
+from ftsensord.errors import ForbiddenSettingError
+from ftsensord.chip.mlx90393.protocol import TREF_TYPICAL
 
 # --- Sensitivity ---------------------------------------------------------------
 #: uT/LSB at GAIN_SEL 7, RES 0, HALLCONF 0xC. X/Y is 6.009 / 40, the datasheet's

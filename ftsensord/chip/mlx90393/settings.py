@@ -5,33 +5,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ...errors import ForbiddenSettingError
-from .conversion import RawFormat, raw_format, sensitivity_ut
-from .protocol import (
-    BURST_DATA_RATE,
-    BURST_SEL,
-    DIG_FILT,
-    GAIN_SEL,
-    HALLCONF,
-    OSR,
-    OSR2,
-    POWER_ON_DEFAULTS,
-    REG_CONF1,
-    REG_CONF2,
-    REG_CONF3,
-    RES_X,
-    RES_Y,
-    RES_Z,
-    TCMP_EN,
-    ZYXT_XYZ,
-)
-from .timing import (
-    FORBIDDEN_OSR_DIG_FILT,
-    burst_interval_us,
-    noise_ut,
-    single_measurement_us,
-    tconvm_us,
-)
+from ftsensord.errors import ForbiddenSettingError
+from ftsensord.chip.mlx90393.conversion import RawFormat, raw_format, sensitivity_ut
+from ftsensord.chip.mlx90393.protocol import BURST_DATA_RATE, BURST_SEL, DIG_FILT, GAIN_SEL, HALLCONF, OSR, OSR2, POWER_ON_DEFAULTS, REG_CONF1, REG_CONF2, REG_CONF3, RES_X, RES_Y, RES_Z, TCMP_EN, ZYXT_XYZ
+from ftsensord.chip.mlx90393.timing import FORBIDDEN_OSR_DIG_FILT, burst_interval_us, noise_ut, single_measurement_us, tconvm_us
 
 
 # --- Settings ------------------------------------------------------------------

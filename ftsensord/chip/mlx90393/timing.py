@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 
-from .protocol import ZYXT_T, axis_count
+from ftsensord.chip.mlx90393.protocol import ZYXT_T, axis_count
 
 # --- Timing (nominal; the chip's oscillator varies by about +-20 %) ---------------
 #: The slowest a chip's conversions may run, times nominal (the oscillator's +20 %): what a
