@@ -338,12 +338,27 @@ def test_skipped_cycles_are_coasted_through_as_flagged_samples_not_a_restart():
     for stage in (skipped, flagged):
         for _ in range(300):  # 3 s into a held step: the slow term is still creeping
             stage.apply(step, True)
-    skipped.skip(3)
+    skipped.gap(3)
     for _ in range(3):
         flagged.apply(step, False)
     assert skipped.restarts == flagged.restarts == 0
     assert np.array_equal(skipped.apply(step, True), flagged.apply(step, True))
-    skipped.skip(round(MAX_COAST_S * 100) + 1)  # longer than the state may coast: dropped
+    skipped.gap(round(MAX_COAST_S * 100) + 1)  # longer than the state may coast: dropped
     assert skipped.restarts == 1
     timing = LoopTiming()  # the loop's count of what a cycle skipped
     assert [timing.gap(s) for s in (0, 1, 5, 6, 2)] == [0, 0, 3, 0, -1]
+
+
+def test_a_step_back_in_time_drops_the_state_and_a_skip_coasts_it():
+    """`gap`: skipped cycles (positive) coast the state as flagged samples do; a loop whose
+    time went back (negative, `LoopTiming.gap`) drops it: nothing of the past is known to
+    be before now."""
+    from ftsensord.calibration.relaxation import SiliconeCalibration
+    from ftsensord.processing.creep import CreepCompensation
+    stage = CreepCompensation(SiliconeCalibration(SERIES, 1.0, 0.0), 100.0)
+    for _ in range(100):
+        stage.apply(np.array([2.0, 0, 0, 0, 0, 0]), True)
+    stage.gap(2)
+    assert stage.restarts == 0 and stage.inverse is not None and stage.inverse.last is not None
+    stage.gap(-1)
+    assert stage.restarts == 1 and stage.inverse.last is None

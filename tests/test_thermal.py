@@ -49,7 +49,7 @@ def test_reference_from_calibration_first_reading_or_tare():
     """The calibration's temperature wins; without it the first reading, then each tare."""
     own = ThermalCompensation(ThermalLaws(), 2, CalibrationTemperature(22.0, 20.0, 24.0))
     own.observe([30.0, 30.0])
-    own.tared()
+    own.tared(np.zeros(6))
     assert own.reference_c == 22.0 and own.span_c == (20.0 - LAWS_MARGIN_K, 24.0 + LAWS_MARGIN_K)
     drifted = ThermalCompensation(ThermalLaws(), 2, CalibrationTemperature(22.0, 20.0, 24.0, np.zeros(6)))
     assert drifted.span_c == (20.0 - CALIBRATED_MARGIN_K, 24.0 + CALIBRATED_MARGIN_K)
@@ -62,7 +62,7 @@ def test_reference_from_calibration_first_reading_or_tare():
     assert none.reference_c == 27.0 and np.allclose(none.flux_scale, (gain(np.array([27.0])) / gain(
         np.array([26.0, 28.0]))).ravel())
     none.observe([31.0, 31.0])
-    none.tared()
+    none.tared(np.zeros(6))
     assert none.reference_c == 31.0 and none.source == "tare" and np.allclose(none.flux_scale, 1.0)
     assert own.tare_c == 30.0 and own.status()["tare_c"] == 30.0  # kept, the reference unchanged
 

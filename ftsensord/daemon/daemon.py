@@ -185,10 +185,7 @@ class Daemon:
         gap = self.timing.gap(seq)
         if gap:  # a gap in the input (a stall, skipped deadlines): the filters' memory says
             for p in self.sensors:  # nothing of the load now; restart them
-                p.filter.reset()
-                # The silicone's memory spans minutes: coasted through the skipped periods
-                # as through flagged samples (dropped beyond its limit), not thrown away.
-                p.creep.skip(gap) if gap > 0 else p.creep.reset()
+                p.gap(gap)
             if self.gravity is not None:
                 self.gravity.restart()
         self.orientations.drain(start)
@@ -272,8 +269,7 @@ class Daemon:
         self.reader.readback_every = self.config.readback_every
         self.config.averaging, self.config.lowpass_hz = averaging, lowpass_hz
         for s in self.sensors:
-            s.filter.configure(averaging, lowpass_hz, rate_hz)
-            s.creep.configure(rate_hz)  # the silicone stage's coefficients are the period's: afresh
+            s.configure(averaging, lowpass_hz, rate_hz)
         if self.gravity is not None:
             self.gravity.configure(averaging, lowpass_hz, rate_hz)  # the weight lags as the wrench
         return {"rate_hz": rate_hz, "averaging": averaging, "lowpass_hz": lowpass_hz}

@@ -255,7 +255,5 @@ def sensor_status(p: SensorPipeline) -> dict[str, Any]:
         "estimate_cpu_us": {"mean": statistics.fmean(p.estimate_s) * 1e6,
                             "max": max(p.estimate_s) * 1e6} if p.estimate_s else None,
         "tare_wrench": p.tare_wrench.round(6).tolist(),
-        "temperature": None if p.thermal is None else p.thermal.status(),
-        "stray": None if p.stray is None else p.stray.status(),
-        "silicone": p.creep.status(),
+        **p.stages_status(),
     }

@@ -6,7 +6,7 @@ filtered wrench, and what acts on it.
 - `redundancy`: which chips agree with one deflection, sample by sample.
 - `temperature`, `stray`, `creep`: the stages, each one physical effect the calibration
   did not see (a warm sensor; a motor's gradient, fixed in the world; the silicone's
-  creep), applied by the pipeline.
+  creep), applied by the pipeline, each of one shape (`stage.Stage`).
 - `filters`: averaging and the low-pass; `tare`: a new zero from no-load samples;
   `gravity`: the tool's weight taken out as it turns.
 

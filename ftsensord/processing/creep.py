@@ -13,7 +13,7 @@ switch and a rate change start afresh (the zero, the estimate or the period chan
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -31,6 +31,8 @@ class CreepCompensation:
     """One sensor's inverse at ``rate_hz``; ``restarts`` counts the times its state was
     dropped (tares, estimator switches, faults and skipped cycles longer than `MAX_COAST_S`).
     Without a ``calibration`` (none identified) it passes every wrench through as it is."""
+
+    name: ClassVar[str] = "silicone"
 
     def __init__(self, calibration: SiliconeCalibration | None, rate_hz: float):
         self.calibration = calibration
@@ -54,9 +56,19 @@ class CreepCompensation:
         self.inverse.reset()
         self.coasted = 0
 
-    def skip(self, periods: int) -> None:
-        """``periods`` samples the loop skipped (missed deadlines): coasted through as flagged
-        samples are, the state dropped once the run passes `MAX_COAST_S`."""
+    def restart(self) -> None:
+        self.reset()  # the history is of the other estimator's wrenches
+
+    def tared(self, zero: np.ndarray) -> np.ndarray:
+        self.reset()  # the zero moved: the history the stage holds is of the old one
+        return zero
+
+    def gap(self, periods: int) -> None:
+        """``periods`` samples the loop skipped (missed deadlines): the silicone's memory spans
+        minutes, so coasted through as flagged samples are, the state dropped once the run
+        passes `MAX_COAST_S`; a step back in time drops it at once."""
+        if periods < 0:
+            self.reset()
         for _ in range(periods):
             if self.inverse is None or self.inverse.last is None:
                 return

@@ -15,6 +15,7 @@ import time
 from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -33,6 +34,7 @@ from ftsensord.protocol import wire
 from ftsensord.config.sensors import SensorConfig
 from ftsensord.processing.filters import WrenchFilter
 from ftsensord.processing.redundancy import RedundancyCheck, count_missing, every_chip
+from ftsensord.processing.stage import Stage
 
 #: Samples whose estimator CPU time `status` reports (mean, max): 10 s at 100 Hz, the loop's own
 #: statistics' window.
@@ -80,7 +82,14 @@ class SensorPipeline:
     thermal: ThermalCompensation | None = None  # None: temperatures not read (temperature_every = 0)
     stray: WorldGradient | None = None  # stray_field = "world": a motor's gradient learnt as the tool turns
     creep: CreepCompensation = field(default_factory=lambda: CreepCompensation(None, 100.0))  # the silicone's (`build`)
-    _extrapolation: tuple[np.ndarray | None, list[float] | None] | None = field(default=None, repr=False)
+    #: Counts the changes of what the redundancy check folds from the pipeline itself (the
+    #: model's zero, the tare's wrench): the fold is made again when it moves.
+    version: int = 0
+
+    def __post_init__(self) -> None:
+        fitted = self.config.calibration.wrench_range
+        # The extrapolation test's limits as Python floats (N, Nm; None: no calibrated loads).
+        self._extrapolation = None if fitted is None else (EXTRAPOLATION_MARGIN * fitted).tolist()
 
     @classmethod
     def build(cls, s: SensorConfig, smoothing: WrenchFilter, max_missing_chips: int,
@@ -102,6 +111,11 @@ class SensorPipeline:
     @property
     def name(self) -> str:
         return self.config.name
+
+    @property
+    def stages(self) -> tuple[Stage, ...]:
+        """The stages this sensor runs, in the order they act (`STAGE_TYPES`)."""
+        return tuple(s for s in (self.thermal, self.stray, self.creep) if s is not None)
 
     @property
     def wrench_range(self) -> np.ndarray | None:
@@ -221,13 +235,10 @@ class SensorPipeline:
     def _linear(self, wrench: np.ndarray, flags: int) -> tuple[np.ndarray, int]:
         """A linear estimate, flagged `extrapolated` where the load on the sensor (the
         wrench plus what a tare removed) is beyond the calibration's loads."""
-        fitted = self.wrench_range
-        kept = self._extrapolation
-        if kept is None or kept[0] is not fitted:  # worked out once per calibration, not every sample
-            kept = self._extrapolation = (fitted, None if fitted is None else (EXTRAPOLATION_MARGIN * fitted).tolist())
+        limits = self._extrapolation
         # Over six Python floats, in C (maps of builtins): four numpy calls on six values cost more.
-        if kept[1] is not None and any(map(operator.gt, map(abs, map(operator.add, wrench.tolist(),
-                                                                     self.tare_wrench.tolist())), kept[1])):
+        if limits is not None and any(map(operator.gt, map(abs, map(operator.add, wrench.tolist(),
+                                                                    self.tare_wrench.tolist())), limits)):
             flags |= wire.FLAG_EXTRAPOLATED
         return wrench, flags
 
@@ -236,11 +247,8 @@ class SensorPipeline:
         removes. ``gravity``: the mean gravity (m/s^2, sensor frame) while it was measured, None if
         unknown. With the temperature stage, the zero is taken at the tare's temperature and
         compensated like every sample after it."""
-        if self.thermal is not None:
-            self.thermal.tared()
-            zero = self.thermal.apply(zero)
-        if self.stray is not None:
-            self.stray.tared(zero)
+        for stage in self.stages:
+            zero = stage.tared(zero)
         self.tare_wrench = self.config.model.wrench(zero)
         self.tare_gravity = None if gravity is None else np.array(gravity, dtype=float)
         self.model = self.model.with_zero(zero)
@@ -249,9 +257,20 @@ class SensorPipeline:
             if e.converged:
                 self.zero_twist = e.xi
         self.filter.reset()
-        self.creep.reset()  # the zero moved: the history the silicone stage holds is of the old one
         self.tared = True
+        self.version += 1
         return self.tare_wrench
+
+    def untare(self) -> None:
+        """Back to the calibration's own zero."""
+        self.model = self.config.model
+        self.tare_wrench = np.zeros(6)
+        self.tare_gravity = np.zeros(3)
+        nl = self.config.calibration.nonlinear
+        self.zero_twist = nl.zero_twist.copy() if nl is not None else None
+        self.tared = False
+        self.filter.reset()
+        self.version += 1
 
     def use(self, estimator: str) -> None:
         """Switch the estimator ("linear" or "nonlinear"); the filter restarts."""
@@ -259,10 +278,32 @@ class SensorPipeline:
             raise ValueError(f"no nonlinear calibration for {self.name}")
         self.estimator = estimator
         self.filter.reset()
-        self.creep.reset()
+        for stage in self.stages:
+            stage.restart()
+
+    def configure(self, averaging: int, lowpass_hz: float, rate_hz: float) -> None:
+        """New loop settings: the filter's (restarted) and each stage's."""
+        self.filter.configure(averaging, lowpass_hz, rate_hz)
+        for stage in self.stages:
+            stage.configure(rate_hz)
+
+    def gap(self, periods: int) -> None:
+        """``periods`` cycles made no sample (`stage.Stage.gap`): the filter's memory says
+        nothing of the load now, and restarts; each stage keeps or drops its own."""
+        self.filter.reset()
+        for stage in self.stages:
+            stage.gap(periods)
+
+    def stages_status(self) -> dict[str, dict[str, Any] | None]:
+        """Each stage's part of the sensor's `status`, by its name; None where it is off."""
+        running = {type(s): s for s in self.stages}
+        return {kind.name: (s.status() if (s := running.get(kind)) is not None else None) for kind in STAGE_TYPES}
 
 
 _RANGE = SENSOR_RANGE.tolist()  # the overload test's limits as Python floats (N, Nm)
+
+#: The stages a pipeline may run, in the order they act on a sample (`stage.Stage`).
+STAGE_TYPES: tuple[type[Stage], ...] = (ThermalCompensation, WorldGradient, CreepCompensation)
 
 
 #: Flags of a sample the stray stage does not learn from: a chip not read or left out, a

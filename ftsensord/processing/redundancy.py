@@ -29,6 +29,7 @@ class Checked(Protocol):
     thermal: ThermalCompensation | None
     tare_wrench: np.ndarray
     max_missing_chips: int
+    version: int  # moves whenever the model's zero or the tare's wrench does
 
     @property
     def wrench_range(self) -> np.ndarray | None: ...
@@ -141,8 +142,10 @@ class RedundancyCheck:
         self.slow_tops = [0.0] * SLOW_WINDOW  # each sample's largest drop
         self.slow_count = 0  # samples in the window since it was last cleared
         self.slow_key = b""  # the chips the drops in the window were computed over
-        # The usual sample's `FoldedCheck` and what it was folded from (compared by identity).
-        self._folded: tuple[tuple[object, ...], FoldedCheck | None] = ((None,) * 6, None)
+        # The usual sample's `FoldedCheck` and the versions it was folded at: the sensor's
+        # (its zero and tare) and its temperature stage's (None: off). The channels' noise and
+        # the calibration's loads are a pipeline's for its life.
+        self._folded: tuple[tuple[int, int | None] | None, FoldedCheck | None] = (None, None)
 
     def usual(self, p: Checked, flux: np.ndarray, usable: np.ndarray) -> tuple[np.ndarray, bool] | None:
         """The usual sample in one product (`FoldedCheck`): with every chip usable and none
@@ -174,16 +177,16 @@ class RedundancyCheck:
     def _fold(self, p: Checked) -> FoldedCheck | None:
         """The `FoldedCheck` of ``p``'s model, noise, temperature stage and tare, made anew when one changed."""
         thermal = p.thermal
-        scale, shift = (None, None) if thermal is None else (thermal.flux_scale, thermal.flux_shift)
-        fitted = p.wrench_range
-        (model, sigma, s, h, tare, kept_fitted), folded = self._folded
-        if not (model is p.model and sigma is p.sigma_t and s is scale and h is shift and tare is p.tare_wrench
-                and kept_fitted is fitted):
+        key = (p.version, None if thermal is None else thermal.version)
+        kept, folded = self._folded
+        if kept != key:
+            scale, shift = (None, None) if thermal is None else (thermal.flux_scale, thermal.flux_shift)
+            fitted = p.wrench_range
             # With no calibrated loads nothing is extrapolated: a bound no load reaches.
             bound = np.zeros(6) if fitted is None else 1.0 / (EXTRAPOLATION_MARGIN * fitted)
             folded = p.model.folded(p.sigma_t, scale, shift, p.tare_wrench,  # type: ignore[arg-type]
                                     1.0 / (fitted if fitted is not None else SENSOR_RANGE), bound)
-            self._folded = ((p.model, p.sigma_t, scale, shift, p.tare_wrench, fitted), folded)
+            self._folded = (key, folded)
         return folded
 
     def chips(self, p: Checked, flux: np.ndarray, usable: np.ndarray) -> tuple[np.ndarray, int]:

@@ -35,7 +35,7 @@ parts may carry a false load of the same order.
 from __future__ import annotations
 
 from collections import deque
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -118,9 +118,11 @@ class WorldGradient:
         seen = np.trace(self.QF @ _ISOTROPIC @ self.QF.T)
         self.false_per_change = np.sqrt(np.diag(self.KA @ self.F @ _ISOTROPIC @ self.F.T @ self.KA.T) / seen)
         self.forget = 1.0 - 1.0 / MEMORY_SAMPLES
-        self.restart()
+        self.forget_all()
 
-    def restart(self) -> None:
+    name: ClassVar[str] = "stray"
+
+    def forget_all(self) -> None:
         """Forget everything: what was learnt and the tare."""
         self.forget_learnt()
         self.R: np.ndarray | None = None  # this sample's orientation
@@ -193,14 +195,25 @@ class WorldGradient:
                 same, off = self.tare_y - self.QF @ self.tare_T @ g - c, self.tare_y - c
                 self.tare_g = g.copy() if same @ same < off @ off else np.linalg.pinv(self.QF @ self.tare_T) @ off
 
-    def tared(self, zero: np.ndarray) -> None:
-        """The pipeline took ``zero`` (T, the stage's input) as its zero at the newest orientation."""
+    def tared(self, zero: np.ndarray) -> np.ndarray:
+        """The pipeline took ``zero`` (T, the stage's input) as its zero at the newest
+        orientation; the zero goes on as it is (the gradient's change is measured from it)."""
         self.tare_T = self.T
         self.tare_y = self.Q.T @ (zero - self.zero)
         self.tare_in_gradient = float(np.sqrt(self.tare_y @ self.tare_y)) > TARE_GRADIENT_T
         self.tare_g = None if self.theta is None else self.theta[:5].copy()
         self._clear_recent()
         self.alarm = False
+        return zero
+
+    def configure(self, rate_hz: float) -> None:
+        pass  # counted in samples, each learnt at its own orientation
+
+    def gap(self, periods: int) -> None:
+        pass  # the gradient is fixed in the world: a pause changes nothing of it
+
+    def restart(self) -> None:
+        pass  # it learns from the flux, whatever estimator reads it
 
     @property
     def correcting(self) -> bool:

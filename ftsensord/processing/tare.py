@@ -171,13 +171,7 @@ def unsteady(p: SensorPipeline, flux: np.ndarray) -> str | None:
 def untare(p: SensorPipeline) -> list[float]:
     """Back to the calibration's own zero; returns the wrench (N, Nm) the tare had removed."""
     removed = p.tare_wrench.round(6).tolist()
-    p.model = p.config.model
-    p.tare_wrench = np.zeros(6)
-    p.tare_gravity = np.zeros(3)
-    nl = p.config.calibration.nonlinear
-    p.zero_twist = nl.zero_twist.copy() if nl is not None else None
-    p.tared = False
-    p.filter.reset()
+    p.untare()
     return removed
 
 

@@ -16,7 +16,7 @@ it measured the drift, else the reference widened by `LAWS_MARGIN_K`.
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -43,8 +43,13 @@ class ThermalCompensation:
     whatever came before it).
     """
 
+    name: ClassVar[str] = "temperature"
+
     def __init__(self, laws: ThermalLaws, chips: int, calibration: CalibrationTemperature | None = None):
         self.laws = laws
+        #: Counts the changes of `flux_scale` and `flux_shift`: what is folded from them
+        #: (`redundancy.RedundancyCheck`) is made again when it moves.
+        self.version = 0
         self.calibration = calibration
         self.drift = None if calibration is None else calibration.drift_t_per_k
         self.celsius = np.full(chips, np.nan)
@@ -86,16 +91,26 @@ class ThermalCompensation:
             self.source = "first reading"
         self._update()
 
-    def tared(self) -> None:
+    def tared(self, zero: np.ndarray) -> np.ndarray:
         """A tare: its temperature is kept (`status`); without a calibration temperature it
-        becomes the reference."""
-        if not np.isfinite(self.celsius).any():
-            return
-        self.tare_c = float(np.nanmean(self.celsius))
-        if self.calibration is None:
-            self.reference_c = self.tare_c
-            self.source = "tare"
-            self._update()
+        becomes the reference. The ``zero`` is taken at it and compensated like every sample
+        after it."""
+        if np.isfinite(self.celsius).any():
+            self.tare_c = float(np.nanmean(self.celsius))
+            if self.calibration is None:
+                self.reference_c = self.tare_c
+                self.source = "tare"
+                self._update()
+        return self.apply(zero)
+
+    def configure(self, rate_hz: float) -> None:
+        pass  # the laws know no time
+
+    def gap(self, periods: int) -> None:
+        pass  # the last temperatures read stand until the next are
+
+    def restart(self) -> None:
+        pass  # nothing learnt from the estimate
 
     def _update(self) -> None:
         known = np.isfinite(self.celsius)
@@ -109,6 +124,7 @@ class ThermalCompensation:
         self.wrench_scale = self.laws.stiffness_gain(mean) / self.laws.stiffness_gain(ref)
         lo, hi = self.span_c  # type: ignore[misc]  # known once a reference is
         self.beyond_span = bool(np.any((now[known] < lo) | (now[known] > hi)))
+        self.version += 1
 
     def status(self) -> dict[str, Any]:
         known = np.isfinite(self.celsius)
