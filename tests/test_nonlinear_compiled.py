@@ -233,6 +233,26 @@ def test_the_solver_is_chosen_by_name(tmp_path, library):
     assert nlcompiled.solver_for("auto", library, chips=17) is None
 
 
+@pytest.mark.parametrize("edit", [
+    ("double chip_p[NMAX][3], magnet_p[NMAX][3];", "double magnet_p[NMAX][3], chip_p[NMAX][3];"),  # same size
+    ("X(MAX_STEP_M) X(MAX_STEP_RAD)", "X(MAX_STEP_RAD) X(MAX_STEP_M)"),  # two tunables swapped
+], ids=["fields swapped", "tunables swapped"])
+def test_a_library_whose_layout_differs_field_by_field_is_not_used(tmp_path, edit):
+    """Its total size the same, the library's nl_model or tunables in another order: the
+    loader compares each field's offset and each tunable's index, and takes numpy's solve."""
+    for source in (*nlcompiled.SOURCES, nlcompiled.SOURCES[0].with_name("_nlsolve.h")):
+        text = source.read_text()
+        if source.suffix == ".h":
+            assert edit[0] in text
+            text = text.replace(edit[0], edit[1])
+        (tmp_path / source.name).write_text(text)
+    out = tmp_path / "_nlsolve.so"
+    subprocess.run([nlcompiled.compiler(), "-std=c99", "-shared", "-fPIC", "-o", str(out),
+                    str(tmp_path / "_nlsolve.c"), str(tmp_path / "_nlmodel.c"), "-lm"], check=True)
+    assert nlcompiled.load(out) is None
+    assert nlcompiled.solver_for("auto", out) is None
+
+
 def test_an_install_carries_the_library_it_built():
     """CI installs the package with pip (`.ci/run`): setup.py must have compiled the solve
     into it (a compiler is there), beside the installed nlcompiled.py where `auto` looks.

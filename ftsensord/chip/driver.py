@@ -89,7 +89,7 @@ class MLX90393:
         self.settings = None
         self.tref = mlx.TREF_TYPICAL
         self._msgs: dict[tuple[bytes, int], tuple[i2c_msg, i2c_msg]] = {}  # per command (an i2c_msg: 2 buffers)
-        self._expected: tuple[mlx.Settings | None, tuple[int, ...], dict[int, int]] | None = None  # `_expected_for`
+        self._expected: tuple[mlx.Settings | None, tuple[int, ...], dict[int, int]] | None = None  # `_expected_for`'s
 
     def __repr__(self) -> str:
         return f"MLX90393(address=0x{self.address:02X})"
@@ -273,7 +273,16 @@ class MLX90393:
         if self.settings is None:
             raise ChipProtocolError(self.address, "not configured")
         current = self.read_configuration()  # CONF1, CONF2, CONF3, in this order
-        return current == _expected_for(self, tuple(current.values())) and tcmp_offsets_hold(self)
+        return current == self._expected_for(tuple(current.values())) and tcmp_offsets_hold(self)
+
+    def _expected_for(self, read: tuple[int, ...]) -> dict[int, int]:
+        """`_expected_registers` for this chip's settings and CONF1..CONF3 as ``read``, kept
+        while both stay (an lru_cache would hash the settings every read-back: 1 us)."""
+        kept = self._expected
+        if kept is None or kept[0] is not self.settings or kept[1] != read:
+            assert self.settings is not None  # (a read-back runs only on a configured chip)
+            kept = self._expected = (self.settings, read, _expected_registers(self.settings, *read))
+        return kept[2]
 
 
 def write_tcmp_offsets(chip: MLX90393, settings: mlx.Settings) -> None:
@@ -291,15 +300,6 @@ def tcmp_offsets_hold(chip: MLX90393) -> bool:
     `bound.cycle_bound` counts); True without TCMP_EN, reading nothing."""
     return chip.settings is None or not chip.settings.tcmp_en or all(
         chip.read_register(reg) == mlx.OFFSET_TCMP_ZERO for reg in mlx.REG_OFFSETS)
-
-
-def _expected_for(chip: MLX90393, read: tuple[int, ...]) -> dict[int, int]:
-    """`_expected_registers` for ``chip``'s settings and CONF1..CONF3 as ``read``, kept on the
-    chip while both stay (an lru_cache would hash the settings every read-back: 1 us)."""
-    kept = chip._expected
-    if kept is None or kept[0] is not chip.settings or kept[1] != read:
-        kept = chip._expected = (chip.settings, read, _expected_registers(chip.settings, *read))  # type: ignore[arg-type]
-    return kept[2]
 
 
 def _expected_registers(settings: mlx.Settings, conf1: int, conf2: int, conf3: int) -> dict[int, int]:

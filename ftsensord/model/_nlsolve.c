@@ -8,6 +8,7 @@
  * the caller owns. No allocation, no callbacks, no globals: reentrant per state.
  */
 #include <math.h>
+#include <stddef.h>
 #include <string.h>
 
 #include "_nlsolve.h"
@@ -30,6 +31,33 @@ typedef struct {
 
 size_t nl_state_bytes(void) { return sizeof(nl_state); }
 size_t nl_model_doubles(void) { return sizeof(nl_model) / sizeof(double); }
+
+/* nl_model's layout for the loader's check (nlcompiled.load), field by field as LAYOUT
+ * names them: the offset in doubles of the field called ``name``, or -1. */
+long nl_model_offset(const char *name) {
+    static const struct { const char *name; size_t at; } fields[] = {
+        {"head", offsetof(nl_model, n)}, {"chip_p", offsetof(nl_model, chip_p)},
+        {"magnet_p", offsetof(nl_model, magnet_p)}, {"m", offsetof(nl_model, m)},
+        {"axis", offsetof(nl_model, axis)}, {"half_q", offsetof(nl_model, half_q)},
+        {"inv_m", offsetof(nl_model, inv_m)}, {"resp", offsetof(nl_model, resp)},
+        {"offset", offsetof(nl_model, offset)}, {"K", offsetof(nl_model, K)},
+        {"zero_twist", offsetof(nl_model, zero_twist)}, {"plausible", offsetof(nl_model, plausible)},
+        {"tun", offsetof(nl_model, tun)},
+    };
+    for (size_t i = 0; i < sizeof fields / sizeof fields[0]; i++)
+        if (!strcmp(name, fields[i].name)) return (long)(fields[i].at / sizeof(double));
+    return -1;
+}
+
+/* The index of the tunable called ``name`` in nl_model.tun (NL_TUNABLES' order), or -1. */
+long nl_tunable_index(const char *name) {
+#define NL_NAME(n) #n,
+    static const char *const names[] = {NL_TUNABLES(NL_NAME)};
+#undef NL_NAME
+    for (long i = 0; i < NTUNABLES; i++)
+        if (!strcmp(name, names[i])) return i;
+    return -1;
+}
 
 /* Python's max(a, b) and min(a, b): the first unless the second is strictly beyond (NaN kept). */
 static double pymax(double a, double b) { return b > a ? b : a; }

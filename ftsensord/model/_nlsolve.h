@@ -13,14 +13,18 @@
 #define PI 3.141592653589793 /* math.pi */
 #define PMAX 9          /* unknowns: the pose's 6 and the background field's 3 */
 
-/* nonlinear.py's tunables, in this order (nlcompiled._tunables). */
-enum {
-    MAX_STEP_M, MAX_STEP_RAD, STEP_TOL, STEP_TOL_RAD, CONTRACTION, REUSE_M, REUSE_TRACE, REUSE_T,
-    MAX_RESIDUAL_T, BACKGROUND_LIMIT_T, PRIOR_WEIGHT, LINEAR_STEP_T, UNDAMPED, SMALL_ANGLE, NEAR_PI,
-    MAX_ITERATIONS, NTUNABLES
-};
+/* nonlinear.py's tunables, in this order: the enum and the names the loader checks
+ * (nl_tunable_index; nlcompiled._tunables packs them by these names) come from this list. */
+#define NL_TUNABLES(X) \
+    X(MAX_STEP_M) X(MAX_STEP_RAD) X(STEP_TOL) X(STEP_TOL_RAD) X(CONTRACTION) X(REUSE_M) X(REUSE_TRACE) \
+    X(REUSE_T) X(MAX_RESIDUAL_T) X(BACKGROUND_LIMIT_T) X(PRIOR_WEIGHT) X(LINEAR_STEP_T) X(UNDAMPED) \
+    X(SMALL_ANGLE) X(NEAR_PI) X(MAX_ITERATIONS)
+#define NL_ENUM(name) name,
+enum { NL_TUNABLES(NL_ENUM) NTUNABLES };
+#undef NL_ENUM
 
-/* The model and the estimator's constants, all doubles (nlcompiled.LAYOUT packs it). */
+/* The model and the estimator's constants, all doubles (nlcompiled.LAYOUT packs it; the
+ * loader checks each field's offset against nl_model_offset). */
 typedef struct {
     double n, octupole, own_only, spare;
     double chip_p[NMAX][3], magnet_p[NMAX][3];

@@ -31,7 +31,11 @@ SOURCES = (Path(__file__).with_name("_nlsolve.c"), Path(__file__).with_name("_nl
 STEM = "_nlsolve"
 SOLVERS = ("auto", "numpy", "compiled")
 NMAX = 16  # _nlsolve.h's NMAX: chips a sensor may have
-#: _nlsolve.h's nl_model, field by field, in doubles.
+#: _nlsolve.h's NL_TUNABLES, by name, in the order nl_model.tun holds them (checked at load).
+TUNABLES = ("MAX_STEP_M", "MAX_STEP_RAD", "STEP_TOL", "STEP_TOL_RAD", "CONTRACTION", "REUSE_M", "REUSE_TRACE",
+            "REUSE_T", "MAX_RESIDUAL_T", "BACKGROUND_LIMIT_T", "PRIOR_WEIGHT", "LINEAR_STEP_T", "UNDAMPED",
+            "SMALL_ANGLE", "NEAR_PI", "MAX_ITERATIONS")
+#: _nlsolve.h's nl_model, field by field, in doubles (checked at load against nl_model_offset).
 LAYOUT = {"head": 4, "chip_p": 3 * NMAX, "magnet_p": 3 * NMAX, "m": 3 * NMAX, "axis": 3 * NMAX, "half_q": NMAX,
           "inv_m": NMAX, "resp": 9 * NMAX, "offset": 3 * NMAX, "K": 36, "zero_twist": 6, "plausible": 6, "tun": 16}
 _AT = {name: sum(list(LAYOUT.values())[:i]) for i, name in enumerate(LAYOUT)}
@@ -61,9 +65,20 @@ def load(path: Path | None = None) -> ctypes.CDLL | None:
         lib.nl_solve.restype = ctypes.c_int
         lib.nl_continued.argtypes = [_P, _P, ctypes.c_double, ctypes.c_double, _P, _P]
         lib.nl_continued.restype = None
+        lib.nl_model_offset.argtypes = lib.nl_tunable_index.argtypes = [ctypes.c_char_p]
+        lib.nl_model_offset.restype = lib.nl_tunable_index.restype = ctypes.c_long
     except (OSError, AttributeError):  # not loadable, or built from another source (a call missing)
         return None
-    return lib if lib.nl_model_doubles() == _DOUBLES else None
+    return lib if _layout_matches(lib) else None
+
+
+def _layout_matches(lib: ctypes.CDLL) -> bool:
+    """Whether the library's nl_model is `LAYOUT`, field by field, and its tunables are
+    `TUNABLES`, name by name, in order: a library built from another source is not used."""
+    return (lib.nl_model_doubles() == _DOUBLES
+            and all(lib.nl_model_offset(name.encode()) == at for name, at in _AT.items())
+            and all(lib.nl_tunable_index(name.encode()) == i for i, name in enumerate(TUNABLES))
+            and lib.nl_tunable_index(b"") == -1 and LAYOUT["tun"] == len(TUNABLES))
 
 
 def compiler() -> str | None:
@@ -181,8 +196,12 @@ class CompiledSolve:
 
 
 def _tunables(nl: dict[str, Any], max_iterations: int) -> tuple[float, ...]:
-    """nonlinear.py's tolerances and limits (``nl``, its globals) in _nlsolve.c's enum's order."""
-    return (nl["MAX_STEP_M"], nl["MAX_STEP_RAD"], nl["STEP_TOL"], nl["STEP_TOL_RAD"], nl["CONTRACTION"],
-            nl["JACOBIAN_REUSE_M"], nl["JACOBIAN_REUSE_TRACE"], nl["JACOBIAN_REUSE_T"], nl["MAX_RESIDUAL_T"],
-            nl["BACKGROUND_LIMIT_T"], nl["PRIOR_WEIGHT"], nl["LINEAR_STEP_T"], nl["UNDAMPED"], se3.SMALL_ANGLE,
-            se3.NEAR_PI, float(max_iterations))
+    """nonlinear.py's tolerances and limits (``nl``, its globals) in `TUNABLES`' order."""
+    value = {"MAX_STEP_M": nl["MAX_STEP_M"], "MAX_STEP_RAD": nl["MAX_STEP_RAD"], "STEP_TOL": nl["STEP_TOL"],
+             "STEP_TOL_RAD": nl["STEP_TOL_RAD"], "CONTRACTION": nl["CONTRACTION"],
+             "REUSE_M": nl["JACOBIAN_REUSE_M"], "REUSE_TRACE": nl["JACOBIAN_REUSE_TRACE"],
+             "REUSE_T": nl["JACOBIAN_REUSE_T"], "MAX_RESIDUAL_T": nl["MAX_RESIDUAL_T"],
+             "BACKGROUND_LIMIT_T": nl["BACKGROUND_LIMIT_T"], "PRIOR_WEIGHT": nl["PRIOR_WEIGHT"],
+             "LINEAR_STEP_T": nl["LINEAR_STEP_T"], "UNDAMPED": nl["UNDAMPED"], "SMALL_ANGLE": se3.SMALL_ANGLE,
+             "NEAR_PI": se3.NEAR_PI, "MAX_ITERATIONS": float(max_iterations)}
+    return tuple(value[name] for name in TUNABLES)

@@ -149,22 +149,20 @@ class SensorPipeline:
         return SensorSample(flux, flags, filtered, wflags, valid)
 
     def flux(self, results: Mapping[int, ChipResult]) -> tuple[np.ndarray, int, np.ndarray]:
-        """The sensor's stacked flux (T), its flags, and which chips are usable."""
-        if type(results) is Readings and results.field is not None:  # a clean cycle: rows of its array
+        """The sensor's stacked flux (T), its flags, and which chips are usable: every chip's
+        reading, one stack when each was read and none saturated; else chip by chip, a stale
+        chip's last reading, a missing one's NaN."""
+        # A clean cycle (`Readings.clean`: each read, none saturated, no temperature) keeps its
+        # fields in one array: the same stack is rows of it. (`type is`: an ABC's isinstance
+        # costs more than the rest of this branch.)
+        if type(results) is Readings and results.field is not None:
             flux = results.field[results.rows(self.config.addresses)].reshape(-1)
             self.last_flux[:] = flux
             return flux, 0, every_chip(len(self.config.addresses))
         ms = [results[a].measurement for a in self.config.addresses]
-        for m in ms:
-            if m is None or m.temperature_c is not None or m.any_saturated:
-                break
-        else:  # the usual cycle, each chip read, none saturated, no temperature: one stack
-            flux = np.concatenate([m.field_t for m in ms])  # type: ignore[union-attr]
-            self.last_flux[:] = flux
-            return flux, 0, every_chip(len(ms))
         if self.thermal is not None and any(m is not None and m.temperature_c is not None for m in ms):
             self.thermal.observe([None if m is None else m.temperature_c for m in ms])
-        if all(m is not None and not m.any_saturated for m in ms):  # a temperature cycle: one stack, no loop
+        if all(m is not None and not m.any_saturated for m in ms):  # each read, none saturated: one stack
             flux = np.concatenate([m.field_t for m in ms])  # type: ignore[union-attr]
             self.last_flux[:] = flux
             return flux, 0, every_chip(len(ms))
