@@ -60,18 +60,23 @@ def endpoint(info: Any) -> dict[str, Any]:
 
 
 def graph(node: Node, step: dict) -> None:
-    """The graph once ``node_fqn`` is listed and each of ``topics`` has a publisher of that node
-    (or ``timeout_s`` passed): nodes, topics with their types, each topic's publishers."""
+    """The graph once ``node_fqn`` is listed and each of ``topics`` has a publisher (or
+    ``timeout_s`` passed), and each publisher is that node's (or ``attribution_s`` more
+    passed: discovery tells a publisher before the node that has it): nodes, topics with
+    their types, each topic's publishers and each of ``subscribed``'s subscriptions."""
     want_ns, _, want_name = step["node_fqn"].rpartition("/")
     want_ns = want_ns or "/"
 
-    def seen() -> bool:
-        if (want_name, want_ns) not in node.get_node_names_and_namespaces():
-            return False
+    def listed() -> bool:
+        return ((want_name, want_ns) in node.get_node_names_and_namespaces()
+                and all(node.get_publishers_info_by_topic(t) for t in step["topics"]))
+
+    def attributed() -> bool:
         return all(any((p.node_name, p.node_namespace) == (want_name, want_ns)
                        for p in node.get_publishers_info_by_topic(t)) for t in step["topics"])
 
-    spin_until(node, seen, step.get("timeout_s", 20.0))
+    spin_until(node, listed, step.get("timeout_s", 20.0))
+    spin_until(node, attributed, step.get("attribution_s", 3.0))
     print(json.dumps({"nodes": [list(n) for n in node.get_node_names_and_namespaces()],
                       "topics": {name: types for name, types in node.get_topic_names_and_types()},
                       "publishers": {t: [endpoint(p) for p in node.get_publishers_info_by_topic(t)]
