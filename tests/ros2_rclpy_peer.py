@@ -8,7 +8,8 @@ Steps (``do``): ``graph`` (node, topic and publisher listing), ``read`` (subscri
 ``count`` messages a topic, with the default profile or SensorDataQoS), ``publish``
 (QuaternionStamped, Imu, Empty), ``tare-topic`` (Empty, then /diagnostics until every sensor
 says it is tared), ``trigger`` (std_srvs/srv/Trigger called by a service client), ``spin``
-(stay on the graph, subscribed, for ``seconds``).
+(stay on the graph, subscribed, for ``seconds``), ``stamps`` (each message's stamp and
+arrival, for benchmarks/ros2_latency.py).
 """
 
 from __future__ import annotations
@@ -198,6 +199,18 @@ def spin(node: Node, step: dict) -> None:
     print(json.dumps({"spun": step["seconds"]}), flush=True)
 
 
+def stamps(node: Node, step: dict) -> None:
+    """Each WrenchStamped on ``topic`` until ``until`` (UNIX s): its stamp and when the callback
+    had it (UNIX s), as an rclpy user's callback has a message (deserialized into its object)."""
+    qos = qos_profile_sensor_data if step.get("qos") == "sensor_data" else DEFAULT
+    got: list[tuple[float, float]] = []
+    node.create_subscription(WrenchStamped, step["topic"], lambda m: got.append(
+        (m.header.stamp.sec + m.header.stamp.nanosec * 1e-9, time.time())), qos)
+    while time.time() < step["until"]:
+        rclpy.spin_once(node, timeout_sec=0.1)
+    print(json.dumps({"topic": step["topic"], "stamps": got}), flush=True)
+
+
 def main() -> int:
     os.environ["ROS_DOMAIN_ID"] = sys.argv[1]  # read by rclpy.init
     steps = json.loads(sys.argv[2])
@@ -206,7 +219,7 @@ def main() -> int:
     try:
         for step in steps:
             {"graph": graph, "read": read, "publish": publish, "tare-topic": tare_topic, "trigger": trigger,
-             "spin": spin}[step["do"]](node, step)
+             "spin": spin, "stamps": stamps}[step["do"]](node, step)
     finally:
         node.destroy_node()
         rclpy.shutdown()
