@@ -43,20 +43,28 @@ write a cycle: that write comes after the cycle's ZeroMQ sends, so it cannot del
 sample measured, and a DDS reader to make it happen would be the competing process this mode
 removes (``none`` shows what the rest of the output costs ZeroMQ). It prints each DDS
 variant's p99 minus ``zmq-alone``'s (and ``none``'s), pooled and round by round.
-DDS stays on the loopback interface (CYCLONEDDS_URI).
+``--rclpy DISTRO`` adds two variants to ``--alone``: ``rclpy-be-alone`` and ``rclpy-rel-alone``,
+one rclpy node a segment (tests/ros2_rclpy_peer.py, the distribution's own environment from
+tests/ros2_venvs.py, made on first use; rmw_fastrtps_cpp), its callback handed each
+WrenchStamped as a ROS 2 user's is: the message deserialized into its Python object, the
+clock read in the callback. Beside the minimal DDS subscriber it shows what a real ROS 2
+node adds on the same path.
+DDS stays on the loopback interface (CYCLONEDDS_URI; the rclpy node's discovery, this host).
 
-    python benchmarks/ros2_latency.py --seconds 10 --rounds 3 [--fifo 50] [--split | --in-daemon | --in-loop | --each-send | --alone]
+    python benchmarks/ros2_latency.py --seconds 10 --rounds 3 [--fifo 50] [--split | --in-daemon | --in-loop | --each-send | --alone [--rclpy jazzy]]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import multiprocessing as mp
 import os
 import struct
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -119,6 +127,34 @@ def dds_listen(topic: str, reliable: bool, stop_at: float, out: mp.Queue) -> Non
                 sec, nanosec = CDR_STAMP.unpack_from(data, 4)
                 got.append((sec + nanosec * 1e-9, time.time()))
     out.put((f"dds {'reliable' if reliable else 'best effort'}", got))
+
+
+class RclpyListener:
+    """An rclpy node (the ``distro`` environment's Python) taking ``topic``'s WrenchStamped
+    until ``stop_at``; a process as `listener`'s are (start, join), its receipts on ``out``."""
+
+    def __init__(self, distro: str, topic: str, reliable: bool, stop_at: float, out: mp.Queue):
+        self.name = f"rclpy {'reliable' if reliable else 'best effort'}"
+        self.distro, self.topic, self.reliable, self.stop_at, self.out = distro, topic, reliable, stop_at, out
+
+    def start(self) -> None:
+        sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+        from tests.ros2_venvs import PEER, peer_env, python_of
+
+        step = {"do": "stamps", "topic": self.topic, "qos": "default" if self.reliable else "sensor_data",
+                "until": self.stop_at}
+        proc = subprocess.Popen([str(python_of(self.distro)), str(PEER), str(DOMAIN), json.dumps([step])],
+                                env=peer_env(), stdout=subprocess.PIPE, text=True)
+
+        def collect() -> None:  # the receipts on the queue when the node ends, as a listener process's
+            out, _ = proc.communicate(timeout=self.stop_at - time.time() + 120)
+            self.out.put((self.name, [tuple(p) for p in json.loads(out.splitlines()[-1])["stamps"]]))
+
+        self.thread = threading.Thread(target=collect, daemon=True)
+        self.thread.start()
+
+    def join(self) -> None:
+        self.thread.join()
 
 
 def split_bridge(folder: Path, realtime: int, stop_at: float, out: mp.Queue) -> None:
@@ -191,12 +227,18 @@ EVERY = ("zmq", "dds best effort", "dds reliable")
 #: --alone: one subscriber process a segment.
 ALONE = {"none": ("zmq",), "zmq-alone": ("zmq",), "dds-be-alone": ("dds best effort",),
          "dds-rel-alone": ("dds reliable",)}
+#: --alone --rclpy: an rclpy node a segment.
+RCLPY = {"rclpy-be-alone": ("rclpy best effort",), "rclpy-rel-alone": ("rclpy reliable",)}
+#: --rclpy's distribution (`listener` starts its node).
+RCLPY_DISTRO: list[str] = []
 
 
 def listener(name: str, folder: Path, stop_at: float, queue: mp.Queue) -> mp.Process:
     """The subscriber process ``name`` (one of `EVERY`) to the daemon whose runtime folder is ``folder``."""
     if name == "zmq":
         return mp.Process(target=zmq_listen, args=(f"ipc://{folder / 'wrench'}", stop_at, queue))
+    if name.startswith("rclpy"):
+        return RclpyListener(RCLPY_DISTRO[0], f"/bench/{TOPIC}", name == "rclpy reliable", stop_at, queue)  # type: ignore[return-value]
     return mp.Process(target=dds_listen, args=(f"rt/bench/{TOPIC}", name == "dds reliable", stop_at, queue))
 
 
@@ -291,7 +333,12 @@ def main() -> int:
                         help="no DDS, in-loop, and in-loop writing each stream after its own send (a daemon a segment)")
     parser.add_argument("--alone", action="store_true",
                         help="in-loop, one subscriber process a segment: ZeroMQ, DDS best effort, DDS reliable")
+    parser.add_argument("--rclpy", metavar="DISTRO", choices=["jazzy", "kilted"],
+                        help="--alone: an rclpy node of this ROS 2 distribution too, best effort and reliable")
     args = parser.parse_args()
+    if args.rclpy:
+        ALONE.update(RCLPY)
+        RCLPY_DISTRO.append(args.rclpy)
     variants = (["bridge-rt", "in-daemon"] if args.in_daemon else ["none", "split", "split-rt"] if args.split
                 else ["none", "bridge-rt", "in-loop"] if args.in_loop else ["none", "in-loop", "each-send"]
                 if args.each_send else list(ALONE) if args.alone else ["none", "zmq3", "bridge", "bridge-rt"])
@@ -311,7 +358,7 @@ def main() -> int:
                 receipts.setdefault(name, []).extend(got)
         report(variants, segments, receipts)
         if args.alone:
-            for v in ("dds-be-alone", "dds-rel-alone"):
+            for v in ("dds-be-alone", "dds-rel-alone", *(RCLPY if args.rclpy else ())):
                 for base in ("zmq-alone", "none"):
                     pooled, by_round = p99_above(segments, v, base)
                     print(f"{v} p99 minus {base}'s: {pooled:+.0f} us pooled; by round "

@@ -19,6 +19,7 @@ USER_DATA ``typehash=RIHS01_...;`` (REP 2011); plain CDR (XCDR1), as the rmws re
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -28,7 +29,7 @@ from typing import Any
 # binding's major version for it; tests/test_ros2.py checks the bytes against its serializer).
 from cyclonedds._clayer import ddspy_write
 from cyclonedds.core import DDSException, InstanceState, Policy, Qos, ReadCondition, SampleState, ViewState, WaitSet
-from cyclonedds.domain import DomainParticipant
+from cyclonedds.domain import Domain, DomainParticipant
 from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
@@ -49,6 +50,40 @@ ENCLAVE = b"enclave=/;"
 #: How long a tare reply waits for the client's reply reader to be matched (rmw_cyclonedds's own
 #: rmw_send_response waits 100 ms; a tare takes a second, so this is rarely spent).
 REPLY_MATCH_S = 1.0
+
+
+#: Added to the user's CYCLONEDDS_URI for the node's domain: Fast DDS's (vendor 1.15) XTypes
+#: type information ignored, so its endpoints match on the type's name, as ROS 2's own rmws
+#: match (with REP 2011's type hash in USER_DATA). Fast DDS 3 (Kilted and later) advertises
+#: type identifiers that differ from the binding's for a sequence of structs
+#: (DiagnosticArray's statuses, ros_discovery_info's nodes): Cyclone must then resolve the
+#: remote type before it matches, and never does (its type lookup returns a complete type
+#: object whose collection element flags Cyclone's validation rejects, "invalid type
+#: object", and never the minimal one it asked for): such a reader was never matched.
+FAST_DDS_TYPES_IGNORED = ("<CycloneDDS><Domain Id='any'><Compatibility>"
+                          "<IgnoreTypeInformation>1.15</IgnoreTypeInformation>"
+                          "</Compatibility></Domain></CycloneDDS>")
+#: The domains made here, by id: kept for the process's life (deleting a Domain deletes every
+#: participant in it, another node's too).
+_domains: dict[int, Domain] = {}
+
+
+def domain_config() -> str:
+    """The node's domain configuration: the user's CYCLONEDDS_URI (files or XML, in the order
+    Cyclone reads them), then `FAST_DDS_TYPES_IGNORED`, which overrides theirs on that setting."""
+    user = os.environ.get("CYCLONEDDS_URI", "").strip()
+    return f"{user},{FAST_DDS_TYPES_IGNORED}" if user else FAST_DDS_TYPES_IGNORED
+
+
+def join_domain(domain_id: int) -> None:
+    """Domain ``domain_id`` made with `domain_config`, once a process; a domain this process
+    already has (a participant of the binding's made before, without this) is left as it is."""
+    if domain_id not in _domains:
+        try:
+            _domains[domain_id] = Domain(domain_id, domain_config())
+        except DDSException as exc:
+            if exc.code != DDSException.DDS_RETCODE_PRECONDITION_NOT_MET:  # it exists already
+                raise
 
 
 def writer_qos(cls: type, extra: str = "", latched: bool = False) -> Qos:
@@ -74,6 +109,7 @@ class Ros2Node:
 
     def __init__(self, namespace: str, domain_id: int, frames: dict[str, str], orientation_frames: list[str]):
         self.namespace, self.frames = namespace, frames
+        join_domain(domain_id)
         self.participant = DomainParticipant(domain_id, qos=Qos(Policy.Userdata(ENCLAVE)))
         self.writers: dict[str, tuple[DataWriter, DataWriter, Stamped]] = {}
         self.last_seq: dict[str, int] = {}
