@@ -85,9 +85,9 @@ def test_unit_has_what_the_service_needs():
     assert not any(key.startswith("CPUScheduling") for key in s)
     asked = s["ExecStart"][0].split()
     assert int(s["LimitRTPRIO"][0]) >= int(asked[asked.index("--realtime") + 1]) > 0
-    # README's install puts the daemon where the unit runs it.
+    # The service guide's install puts the daemon where the unit runs it.
     assert s["ExecStart"][0].split()[0].startswith("/opt/ftsensord/") and "/opt/ftsensord/bin/pip install ." in (
-        UNIT.parent.parent / "README.md").read_text()
+        UNIT.parent.parent / "docs" / "guide" / "service.md").read_text()
 
 
 @pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze is not installed")
