@@ -259,7 +259,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rate", type=_rate_hz, help="loop rate, Hz")
     p.add_argument("--averaging", type=int, help="samples in the moving average (1: off)")
     p.add_argument("--lowpass", type=float, help="first-order low-pass cutoff, Hz (0: off)")
-    p.add_argument("--estimator", choices=ESTIMATORS, help="K A, or the flux model (docs/nonlinear.md)")
+    p.add_argument("--estimator", choices=ESTIMATORS, help="K A, or the flux model (docs/design/estimators.md)")
     p.add_argument("--sensor", help="with --estimator: only this sensor (default: all)")
     control_options(p)
     p.set_defaults(func=cmd_set)
@@ -276,7 +276,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("record", help="record streams to CSV, NPZ or MCAP (by the file's extension)",
                        description="Written as it arrives; Ctrl-C, SIGTERM or SIGHUP end it with the file "
-                                   "complete and a summary. docs/clients.md, Recording.")
+                                   "complete and a summary. docs/guide/clients.md, Recording.")
     p.add_argument("streams", nargs="+", metavar="STREAM", help="wrench/<sensor>, wrench/tip or flux/<sensor>")
     p.add_argument("file", help="output file: .csv, .npz or .mcap")
     p.add_argument("--endpoint", help="publish endpoint (default: the running daemon's ipc socket)")
@@ -329,7 +329,8 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Run the paper's calibration procedure (section VII-B) on a simulated "
                                    "sensor: for each pose of the plan, apply the weight's wrench and average "
                                    "the chips' readings; also simulate each chip's position-map sweep. The "
-                                   "file has the format a real calibration run records (docs/calibration.md).")
+                                   "file has the format a real calibration run records "
+                                   "(docs/guide/calibration.md).")
     p.add_argument("-o", "--output", required=True, help="dataset file to write (JSON)")
     p.add_argument("--scene", help="scene file of kind \"sensors\" (default: two as-built sensors in the room)")
     p.add_argument("--sensor", default="sensor1", help="which sensor of the scene (default: sensor1)")
@@ -345,7 +346,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "at least 6 for the fit to use them, 12 or more advised)")
     p.add_argument("--check-poses", type=int, default=24, help="poses with 1, 2 and 4 kg at the flange's centre, "
                    "on which the model is judged at large loads (default: 24; 0: none)")
-    p.add_argument("--hold-s", type=float, default=0.0, help="s a step-and-hold pose is held (0: none; docs/calibration.md)")
+    p.add_argument("--hold-s", type=float, default=0.0, help="s a step-and-hold pose is held "
+                   "(0: none; docs/guide/calibration.md)")
     p.set_defaults(func=cmd_dataset)
 
     p = sub.add_parser("calibrate", help="fit K, A and the zero from a dataset",

@@ -250,7 +250,7 @@ class Subscriber:
 
 
 class OrientationPublisher:
-    """Tell the daemon how the tool is turned, for gravity compensation (docs/clients.md).
+    """Tell the daemon how the tool is turned, for gravity compensation (docs/guide/clients.md).
 
         with OrientationPublisher() as pub:
             pub.send("sensor1", R_world_sensor)        # 3 x 3, or scipy's Rotation; or "tip"

@@ -13,7 +13,7 @@ the daemon like any other (a `Subscriber`): a slow viewer slows the bridge, neve
 
 The SDK's server speaks the WebSocket subprotocol ``foxglove.sdk.v1`` only: a viewer offering
 just the protocol's older name, ``foxglove.websocket.v1`` (older Foxglove and Lichtblick
-releases), is refused with HTTP 400 (docs/clients.md, Bridges to live viewers).
+releases), is refused with HTTP 400 (docs/guide/clients.md, Bridges to live viewers).
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ if TYPE_CHECKING:  # cli.py imports this module for its parser: nothing heavy un
 #: What a failed handshake means, added to the server's own log line ("handshake failed").
 HANDSHAKE_HINT = ("a viewer must offer the WebSocket subprotocol foxglove.sdk.v1; older Foxglove app and "
                   "Lichtblick releases offer only foxglove.websocket.v1 and get HTTP 400: update the viewer "
-                  "(docs/clients.md, Bridges to live viewers)")
+                  "(docs/guide/clients.md, Bridges to live viewers)")
 
 
 class _HandshakeHint(logging.Filter):
@@ -109,7 +109,7 @@ def add_parser(sub: Any) -> None:
     p = sub.add_parser("bridge", help="serve streams live to Foxglove (a Foxglove WebSocket server)",
                        description="The streams as ROS 2 messages, as `record` writes them to MCAP, on a "
                                    "Foxglove WebSocket server: open ws://HOST:PORT in Foxglove. "
-                                   "docs/clients.md, Bridges to live viewers.")
+                                   "docs/guide/clients.md, Bridges to live viewers.")
     p.add_argument("streams", nargs="+", metavar="STREAM", help="wrench/<sensor>, wrench/tip, flux/<sensor>, ...")
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1: this host)")
     p.add_argument("--port", type=int, default=8765, help="port (default 8765, Foxglove's; 0: any free one)")

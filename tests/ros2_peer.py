@@ -123,7 +123,7 @@ class TriggerResponse(IdlStruct, typename="std_srvs::srv::dds_::Trigger_Response
 
 @dataclass
 class SampleStatus(IdlStruct, typename="ftsensord_msgs::msg::dds_::SampleStatus_"):
-    header: Header  # ftsensord_msgs/msg/SampleStatus (docs/clients.md, Recording): Header header,
+    header: Header  # ftsensord_msgs/msg/SampleStatus (docs/guide/clients.md, Recording): Header header,
     seq: uint64  # uint64 seq, uint32 flags, uint32 missed
     flags: uint32
     missed: uint32

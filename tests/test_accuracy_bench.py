@@ -1,5 +1,5 @@
 """benchmarks/accuracy.py --quick: the structure of what it writes (sections, sensors,
-counts of loads and fall-backs), not its figures, which docs/accuracy-figures.md holds."""
+counts of loads and fall-backs), not its figures, which docs/results/accuracy-figures.md holds."""
 
 from __future__ import annotations
 

@@ -169,7 +169,7 @@ def test_the_probe_says_nothing_when_no_chip_answers(scene):
 
 
 # --- the chip answers like a real one --------------------------------------------------------
-CAPTURED = {  # logic captures of real chips (docs/simulator.md)
+CAPTURED = {  # logic captures of real chips (docs/design/simulator.md)
     "EX": {0x01, 0x02}, "WR": {0x01, 0x02}, "RT": {0x05, 0x06}, "SM": {0x21, 0x22}, "SB": {0x81, 0x82},
 }
 

@@ -174,7 +174,7 @@ def test_the_foxglove_apps_client_reads_the_streams_as_ros2_messages_at_the_samp
 def test_a_client_offering_only_the_old_subprotocol_is_refused_with_a_clear_error(check_mjs, bridge):
     # foxglove-sdk's server speaks foxglove.sdk.v1 only; a viewer offering just the protocol's
     # old name (older Foxglove app releases, the Lichtblick fork until late 2025) gets HTTP 400:
-    # docs/clients.md, Bridges to live viewers.
+    # docs/guide/clients.md, Bridges to live viewers.
     done = run_client(check_mjs, bridge.url, "--subprotocol", "foxglove.websocket.v1", "--timeout", "10",
                       "/wrench/tip")
     assert done.returncode == 1 and done.stdout == ""

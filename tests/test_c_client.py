@@ -27,7 +27,7 @@ from .test_daemon import LOAD, write_config
 
 ROOT = Path(__file__).resolve().parent.parent
 CDIR = ROOT / "clients" / "c"
-PROTOCOL = ROOT / "docs" / "protocol.md"
+PROTOCOL = ROOT / "docs" / "reference" / "protocol.md"
 
 from .conftest import start_daemon
 
@@ -412,7 +412,7 @@ def test_the_example_stops_on_ctrl_c(tools, daemon):
 # --- the protocol page's C --------------------------------------------------------------------
 def snippet(name: str) -> str:
     match = re.search(rf"<!-- snippet: {name} -->\n```c\n(.*?)```", PROTOCOL.read_text(), re.DOTALL)
-    assert match, f"docs/protocol.md has no snippet {name!r}"
+    assert match, f"docs/reference/protocol.md has no snippet {name!r}"
     return match.group(1)
 
 

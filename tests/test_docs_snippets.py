@@ -1,5 +1,5 @@
 """The first hour, as a new user copies it: every ```python block of README.md and
-docs/clients.md runs as written against `ftsensord run` (the packaged simulated daemon),
+docs/guide/clients.md runs as written against `ftsensord run` (the packaged simulated daemon),
 with only the values the text leaves to the user defined first (`USERS_OWN`). The CSV
 readers' block (indented in a list) is run by tests/test_record.py on a real recording."""
 
@@ -16,7 +16,7 @@ import pytest
 from .conftest import start_daemon
 
 ROOT = Path(__file__).resolve().parent.parent
-PAGES = (ROOT / "README.md", ROOT / "docs" / "clients.md")
+PAGES = (ROOT / "README.md", ROOT / "docs" / "guide" / "clients.md")
 #: What a snippet's text says is the user's own (a device's kinematics, a scipy rotation):
 #: stand-ins of the same kind. Anything else a snippet uses must be in the snippet.
 USERS_OWN = """

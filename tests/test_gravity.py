@@ -377,10 +377,11 @@ def test_tares_at_different_orientations_leave_the_tips_weight_at_tare_unknown(t
     t.close()
 
 
-#: The documented test vector (docs/clients.md): sensor1 turned 90 deg about z, as a
+#: The documented test vector (docs/guide/clients.md): sensor1 turned 90 deg about z, as a
 #: quaternion [sqrt(1/2), 0, 0, sqrt(1/2)], sent at t_sender 12.5 s.
 VECTOR = bytes.fromhex(re.search(r"<!-- vector: orientation -->\s*```\n(.*?)```",
-                                 (Path(__file__).parent.parent / "docs" / "clients.md").read_text(), re.DOTALL).group(1))
+                                 (Path(__file__).parent.parent / "docs" / "guide" / "clients.md").read_text(),
+                                 re.DOTALL).group(1))
 
 
 def test_the_orientation_message_matches_its_documented_test_vector():

@@ -30,7 +30,7 @@ from ftsensord.sim.physics import PAPER_STIFFNESS_DIAG, PhysicalScene, SimSensor
 G = SensorGeometry.ring()
 K = np.diag(PAPER_STIFFNESS_DIAG)
 SCENE = PhysicalScene([SimSensor("s", tuple(range(0x0C, 0x14)))])  # each chip's own magnet the exact cylinder
-NOISE_T = 1e-6  # a channel's noise (T): the MLX90393's 1-3 uT a reading at the daemon's settings, docs/physics.md
+NOISE_T = 1e-6  # a channel's noise (T): the MLX90393's 1-3 uT a reading at the daemon's settings, docs/design/physics.md
 #: End points within 1e-3 of the noise's own scatter of the estimate. Both solvers take the
 #: same steps, so they differ by round-off (1e-16 relative, measured 1e-9 of the scatter at
 #: most); where round-off tips a branch the other way at its threshold (a Jacobian kept or

@@ -287,7 +287,7 @@ def _matches(sample: wire.Sample, msg, topic: str, log_time: int, frames: dict[s
 
 @pytest.mark.parametrize("stream", ["wrench/sensor1", "flux/sensor1"])
 def test_a_csv_recording_reads_with_the_usual_readers_and_its_sidecar_says_what_it_is(daemon, tmp_path, stream):
-    """A recording from the daemon read as docs/clients.md says, each reader with its
+    """A recording from the daemon read as docs/guide/clients.md says, each reader with its
     defaults (numpy: the delimiter, as its default is whitespace): every row, each number
     the published sample's (to the CSV's digits: 9 significant, times to the us); the
     sidecar names the stream, frame, columns, units and flag bits and counts the rows."""
@@ -330,8 +330,8 @@ def test_a_csv_recording_reads_with_the_usual_readers_and_its_sidecar_says_what_
     assert list(frame.columns) == columns and frame["seq"].dtype.kind == "i"
     check(frame.to_numpy().tolist())
 
-    # docs/clients.md's snippet as written, in the recording's folder: the same rows.
-    doc = (Path(__file__).parent.parent / "docs" / "clients.md").read_text()
+    # docs/guide/clients.md's snippet as written, in the recording's folder: the same rows.
+    doc = (Path(__file__).parent.parent / "docs" / "guide" / "clients.md").read_text()
     snippet = re.search(r"```python\n( *import csv, numpy, pandas\n.*?) *```", doc, re.DOTALL).group(1)
     names_in_doc = {}
     cwd = Path.cwd()

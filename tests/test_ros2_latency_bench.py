@@ -1,6 +1,6 @@
 """benchmarks/ros2_latency.py's ``--alone`` without timing anything: which subscriber each
 variant's segment runs, the configuration its daemon gets, and how a DDS variant's p99 is
-set against ZeroMQ's, round by round (its figures live in docs/performance.md)."""
+set against ZeroMQ's, round by round (its figures live in docs/results/performance.md)."""
 
 from __future__ import annotations
 

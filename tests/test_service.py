@@ -85,9 +85,9 @@ def test_unit_has_what_the_service_needs():
     assert not any(key.startswith("CPUScheduling") for key in s)
     asked = s["ExecStart"][0].split()
     assert int(s["LimitRTPRIO"][0]) >= int(asked[asked.index("--realtime") + 1]) > 0
-    # README's install puts the daemon where the unit runs it.
+    # The service guide's install puts the daemon where the unit runs it.
     assert s["ExecStart"][0].split()[0].startswith("/opt/ftsensord/") and "/opt/ftsensord/bin/pip install ." in (
-        UNIT.parent.parent / "README.md").read_text()
+        UNIT.parent.parent / "docs" / "guide" / "service.md").read_text()
 
 
 @pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze is not installed")
@@ -130,7 +130,7 @@ def mean_of(sub: Subscriber, n: int) -> tuple[np.ndarray, list[int], np.ndarray]
 
 def assert_gaps_are_counted_misses(seqs: list[int], missed_before: int, missed_after: int) -> None:
     """Sequence numbers count cycles: every gap must be a deadline the daemon skipped and
-    counted (a loaded host can make it skip one; that is docs/performance.md's business),
+    counted (a loaded host can make it skip one; that is docs/results/performance.md's business),
     never a sample lost between a cycle and the subscriber."""
     gaps = sum(b - a - 1 for a, b in zip(seqs, seqs[1:]))
     assert all(b > a for a, b in zip(seqs, seqs[1:])), seqs
@@ -155,7 +155,7 @@ def test_end_to_end_load_rate_tare_and_clean_stop(running):
         rmse = Calibration.load(builtin_path("sim-sensor1.json")).report["validation_rmse"]
         assert np.all(np.abs(loaded - LOAD) < 4 * np.array([rmse[a] for a in AXES])), (loaded, rmse)
         status = control.status()
-        # Not a timing claim (docs/performance.md has those): the loop runs and reports it.
+        # Not a timing claim (docs/results/performance.md has those): the loop runs and reports it.
         assert status["rate_hz"] == 100 and status["achieved_rate_hz"] > 50
         assert status["cycles"] > 100 and status["bound_hz"] > 100
         text = subprocess.run([sys.executable, "-m", "ftsensord", "status", "--control", ctl],

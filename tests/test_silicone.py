@@ -165,7 +165,7 @@ def test_the_relaxation_is_identified_from_a_simulated_step_and_hold():
     from ftsensord.calibration.rig import record_hold, simulated_robot
     from ftsensord.sim import simulated_bus
     # A faster series than the default, so that a short hold shows both terms (the benchmark
-    # identifies the default from the full procedure: docs/accuracy.md).
+    # identifies the default from the full procedure: docs/results/accuracy.md).
     truth = Relaxation.from_pairs([[0.10, 0.3], [0.05, 4.0]])
     scene = _part_with_memory(truth)
     bus = simulated_bus(scene, seed=3)

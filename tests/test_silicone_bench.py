@@ -1,4 +1,4 @@
-"""The silicone benchmark's quick mode runs in CI (its figures live in docs/silicone-figures.md)."""
+"""The silicone benchmark's quick mode runs in CI (its figures live in docs/results/silicone-figures.md)."""
 
 from __future__ import annotations
 

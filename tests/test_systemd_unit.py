@@ -1,5 +1,5 @@
 """The shipped unit under this machine's own systemd (benchmarks/unit_systemd.py): installed
-as README's "As a service" says, started, asked for its status by a member of its group,
+as docs/guide/service.md says, started, asked for its status by a member of its group,
 reloaded and stopped; and started on a host whose kernel schedules real-time tasks by
 cgroup, where `CPUSchedulingPolicy=fifo` in the unit made systemd refuse to start it
 (status=214/SETSCHEDULER, restarted for ever)."""
@@ -53,7 +53,7 @@ def test_the_shipped_unit_starts_serves_reloads_and_stops():
         assert state["ActiveState"] == "active" and state["NRestarts"] == "0", (state, host.daemon_log()[-2000:])
         # Type=notify: active means the daemon said READY=1; its STATUS= line is systemctl's.
         assert " Hz of 100 Hz (bound " in state["StatusText"], state
-        # An operator in the service's group asks for the status (README: usermod -aG ftsensord).
+        # An operator in the service's group asks for the status (docs/guide/service.md: usermod -aG ftsensord).
         assert host.run("useradd", "--no-create-home", "--groups", "ftsensord", "haptics").returncode == 0
         out = host.run("setpriv", "--reuid", "haptics", "--regid", "haptics", "--init-groups",
                        "/opt/ftsensord/bin/ftsensord", "status", "--json")

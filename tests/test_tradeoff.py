@@ -1,5 +1,5 @@
 """The speed/accuracy benchmark: its quick mode runs in CI (its figures live in
-docs/tradeoff.md), and its no-truth path (a real bus) is checked on a static scene."""
+docs/results/tradeoff.md), and its no-truth path (a real bus) is checked on a static scene."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The wire format against the test vectors of docs/protocol.md."""
+"""The wire format against the test vectors of docs/reference/protocol.md."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from ftsensord.errors import WireError
 from ftsensord.protocol import wire
 
-PROTOCOL = Path(__file__).resolve().parent.parent / "docs" / "protocol.md"
+PROTOCOL = Path(__file__).resolve().parent.parent / "docs" / "reference" / "protocol.md"
 
 
 def vector(name: str) -> bytes:

@@ -25,7 +25,7 @@
  * restarted daemon's samples come back by themselves (FTS_NEW, r.restarted set).
  * fts_set_stale_after sets another limit in seconds.
  *
- * The wire format is docs/protocol.md's (ftsensord/protocol/wire.py writes it): one ZeroMQ
+ * The wire format is docs/reference/protocol.md's (ftsensord/protocol/wire.py writes it): one ZeroMQ
  * frame per sample, `topic NUL header(40 bytes) count*float64`, little-endian.
  *
  * How "the newest sample" is had: the publisher sends each sample as ONE frame whose
@@ -138,7 +138,7 @@ static inline int fts_ipv6_(void *sock, const char *endpoint)
     return strncmp(endpoint, "tcp://[", 7) == 0 ? zmq_setsockopt(sock, FTS_ZMQ_IPV6_, &one, sizeof one) : 0;
 }
 
-/* ---- the wire format (docs/protocol.md; ftsensord/protocol/wire.py) -------------------- */
+/* ---- the wire format (docs/reference/protocol.md; ftsensord/protocol/wire.py) -------------------- */
 #define FTS_MAGIC 0x5446u /* the bytes 46 54, "FT", read as a little-endian u16 */
 #define FTS_VERSION 1u
 #define FTS_KIND_WRENCH 1u
@@ -555,7 +555,7 @@ static inline int fts_wait(fts_sub *s, fts_reading *r, int timeout_ms)
     return fts_latest(s, r);
 }
 
-/* ---- the orientation stream: gravity compensation (docs/clients.md) ------------------------
+/* ---- the orientation stream: gravity compensation (docs/guide/clients.md) ------------------------
  * The haptic application tells the daemon how the tool is turned: a unit quaternion
  * [w x y z] (Hamilton) of R_world,frame for a sensor's name or "tip", with its own time.
  * PUB, connected to the daemon's ipc://<runtime>/orientation: a send never blocks. */

@@ -2,7 +2,7 @@
 
 `cycle_bound` computes the fastest cycle each can achieve from the chip
 settings, the bus clock and what the adapter accepts in one ioctl (`Shapes`:
-the ioctls a cycle really takes, each with its fixed cost; docs/performance.md
+the ioctls a cycle really takes, each with its fixed cost; docs/design/performance.md
 has the figures), so the daemon can refuse a rate it cannot meet.
 """
 

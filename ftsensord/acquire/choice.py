@@ -1,13 +1,13 @@
 """Which scheduler and register read-back hold a rate, and which levers move the bound.
 
 The daemon chooses what a configuration leaves unnamed (`choose`): ``scheduler`` and
-``readback_every``. The read-back (one chip's registers a cycle, docs/reliability.md)
+``readback_every``. The read-back (one chip's registers a cycle, docs/design/reliability.md)
 is what catches a chip that reset or lost its settings, so it is kept while some
 scheduler holds the rate with `TARGET_SPARE` of the period left; only when none does
 is it given up, for the option with the most spare (a near tie keeps it). When nothing
 holds, the error names every lever with the bound it would give (`levers`); where the
 daemon runs anyway (a board measured slower than its file said), it runs the fastest
-option (`fastest`). docs/performance.md, "The daemon's choice", has the figures.
+option (`fastest`). docs/design/performance.md, "The daemon's choice", has the figures.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from ftsensord.chip import mlx90393 as mlx
 from ftsensord.errors import ConfigError
 from ftsensord.acquire.bound import SCHEDULERS, CycleBound, burst_readback_stays_fresh, cycle_bound
 
-#: docs/performance.md's target for the loop: 20 % of the period spare (the host's work
+#: docs/design/performance.md's target for the loop: 20 % of the period spare (the host's work
 #: and the bus's jitter on a board fit in it).
 TARGET_SPARE = 0.2
 #: A burst chip read back restarts its burst (EX, RR, SB); where a cycle leaves it no time
@@ -27,7 +27,7 @@ SPARSE_READBACK_EVERY = 100
 #: The MLX90393's fastest clock: fast mode (the datasheet has no fast-mode plus).
 CHIP_MAX_CLOCK_HZ = 400e3
 #: Options whose spares differ by less than 1 % of the period are a tie (the loop's own
-#: jitter is larger: docs/performance.md), which the read-back wins.
+#: jitter is larger: docs/design/performance.md), which the read-back wins.
 TIE_SPARE = 0.01
 
 

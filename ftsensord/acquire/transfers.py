@@ -119,7 +119,7 @@ class Transfers:
         data back", and a chip that browned out and came back has reset without the
         driver knowing, so no SM can be known not to be the first. An SM sent as a write
         alone (the 42-a-ioctl batch bcm2835 would take) could return wrong data that
-        nothing flags; the emulator does not start it (docs/simulator.md).
+        nothing flags; the emulator does not start it (docs/design/simulator.md).
         """
         started = self.batch(chips, lambda c: c.sm_messages(zyxt), self._decode_sm)
         return {a: ChipResult(a, error=e) for a, e in started.items() if isinstance(e, ChipError)}

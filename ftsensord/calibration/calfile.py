@@ -3,7 +3,7 @@
 It holds K, A and the zero with their units and frame, the chip addresses (in
 the order of the flux vector), the sensor's serial, the per-chip position map,
 the fit report, and a SHA-256 checksum of everything else, so a file edited by
-hand or cut short is refused rather than used. Format: docs/calibration.md.
+hand or cut short is refused rather than used. Format: docs/guide/calibration.md.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from ftsensord.calibration.thermal import CalibrationTemperature
 #: Largest calibration file read, bytes: the packaged ones (8 chips, nonlinear model
 #: included) are 22 KB; 64 KiB is three times that. A reload parses it in a worker thread,
 #: but json.loads holds the GIL throughout: at this size about 2 ms, within a cycle's slack
-#: (docs/reliability.md); a 200 MB file stalled the loop for 7.75 s.
+#: (docs/design/reliability.md); a 200 MB file stalled the loop for 7.75 s.
 MAX_CALIBRATION_BYTES = 64 * 1024
 CAL_FORMAT = "ftsensord-calibration"
 CAL_VERSION = 1

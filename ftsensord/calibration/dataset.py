@@ -1,6 +1,6 @@
 """Calibration datasets: what a calibration run records, simulated or real.
 
-One JSON document (format in docs/calibration.md): per pose, the applied
+One JSON document (format in docs/guide/calibration.md): per pose, the applied
 wrench in the sensor frame {0} (N, Nm), the flux of each chip averaged over
 ``samples_per_pose`` readings (T, chip frames, stacked chip by chip), the
 standard error of each mean, which chips saturated, and how the pose was made
@@ -31,7 +31,7 @@ DATASET_VERSION = 1
 UNITS = {"flux": "T", "wrench": "N, Nm", "length": "m", "mass": "kg"}
 #: "no-load": the sensor alone (rod and mass off) at an orientation: what the room's field
 #: does to the chips; "check": a large load (kilograms at the flange's centre), fitted on by
-#: nothing, on which the flux model is judged beyond the fit's loads (docs/calibration.md).
+#: nothing, on which the flux model is judged beyond the fit's loads (docs/guide/calibration.md).
 SPLITS = ("fit", "validation", "no-load", "check")
 #: The wrench's axes and their units, in the order of ``wrench``.
 AXES = ("Fx", "Fy", "Fz", "Mx", "My", "Mz")

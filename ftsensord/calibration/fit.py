@@ -15,7 +15,7 @@ as the robot turns the sensor. Uniform, it adds R_i^T u to chip i (u the field
 in {0}): 3 directions of the 24-dim flux (`room_directions`). The fit can
 project them out of the flux before fitting A, so that K A rejects any uniform
 field; the directions are measured from no-load poses at several orientations,
-or taken from the nominal geometry (docs/calibration.md).
+or taken from the nominal geometry (docs/guide/calibration.md).
 """
 
 from __future__ import annotations
@@ -318,7 +318,7 @@ def fit(dataset: Dataset, geometry: SensorGeometry | None = None, *, room_field:
             f"({floor * 1e6:.3g} uT): chips missing, saturated or not moving with the load")
     check_stiffness(result.model.K, f"{dataset.where()}the fitted stiffness"
                     + ("" if room is not None else " (the room's field was not rejected: if the sensor was turned "
-                       "in it, record no-load poses, docs/calibration.md)"), excitation.explain() if weak else "")
+                       "in it, record no-load poses, docs/guide/calibration.md)"), excitation.explain() if weak else "")
     mismatch = check_chip_order(dataset, response, geometry)
     used = fit_set.select(~outliers)
     validation = dataset.select((dataset.split == "validation") & clean)

@@ -3,7 +3,7 @@ flange's centre: forces to tens of N with the torque in range), which no fit use
 
 At the paper's loads (50-200 g) the nonlinear fit absorbs magnets glued a few degrees
 tilted: its residual and validation stay a clean part's, and the tilt shows only at loads
-several times larger (docs/calibration.md). Check poses show it: the flux model, right for
+several times larger (docs/guide/calibration.md). Check poses show it: the flux model, right for
 a part as drawn, leaves 0.8-1.5 uT on them; a tilted part's leaves 2.6-4.6 uT. Silicone
 that stiffens leaves the flux nearly explained but the force wrong by 15 % of the load. Each warning
 names its figure and the error to expect at such loads; without check poses, `judge`
@@ -28,7 +28,7 @@ from ftsensord.calibration.report import format_rmse
 #: 9 as-built parts leave 0.82-1.47 uT (the dipole-and-octupole model's own error at 10-40
 #: N) and the same with magnets glued 2-7 deg tilted 2.55-5.31 uT: 1.35x to spare below,
 #: 1.29x above; at 25 readings (limit 2.81 uT) 2.06-2.19 against 4.2-4.6 uT
-#: (`python benchmarks/large_loads.py`, docs/calibration.md "Check poses").
+#: (`python benchmarks/large_loads.py`, docs/guide/calibration.md "Check poses").
 CHECK_RESIDUAL_T = 1.6e-6
 #: The nonlinear force error (RMS of |F error| over RMS of |F|) above which the silicone is
 #: not the model's: the same parts leave 0.6-1.8 % (tilted 1.6-2.0 %), silicone 30 % stiffer
@@ -37,7 +37,7 @@ CHECK_FORCE_SHARE = 0.05
 #: The summary's line when there are no check poses.
 NOT_JUDGED = ("no check poses: the model's accuracy beyond the calibration's loads was not measured, and magnets "
               "glued tilted or silicone that stiffens show only there (record kilograms at the flange's centre: "
-              "docs/calibration.md, \"Check poses\")")
+              "docs/guide/calibration.md, \"Check poses\")")
 
 
 def judge(dataset: Dataset, linear: LinearModel,

@@ -49,7 +49,7 @@ FIT_ITERATIONS = 30
 #: Nominal gap (m) the fit starts from: the paper's 6 mm; the magnets then move freely.
 GAP_M = 6e-3
 #: A magnet fitted more than 1 mm from its drawn place is no hand-made part (pockets
-#: printed to 0.1 mm, a magnet placed by hand to about as much: docs/scenes.md): the
+#: printed to 0.1 mm, a magnet placed by hand to about as much: docs/design/scenes.md): the
 #: fit has gone where the model does not fit this sensor.
 MAGNET_SHIFT_LIMIT_M = 1e-3
 #: The fit residual (RMS per channel) a right fit stays under: noise alone gives about
@@ -131,7 +131,7 @@ class NonlinearCalibration:
         return self.K @ (xi - self.zero_twist)
 
     def document(self) -> dict[str, Any]:
-        """The calibration file's ``nonlinear`` section (docs/calibration.md)."""
+        """The calibration file's ``nonlinear`` section (docs/guide/calibration.md)."""
         doc: dict[str, Any] = {"gap_m": self.gap_m, "ring_radius_m": self.ring_radius_m, "tilt_deg": self.tilt_deg,
                                "scale": np.asarray(self.scale).tolist(), "offset_t": self.offset_t.tolist(),
                                "K": self.K.tolist(), "zero_twist": self.zero_twist.tolist(),

@@ -27,7 +27,7 @@ from ftsensord.calibration.rig import record_dataset, record_hold, simulate_swee
 from ftsensord.calibration.thermal import CalibrationTemperature, thermal_fit
 
 #: No-load poses a dataset records by default: 24, 12 % of the 193 loaded poses' robot
-#: time, twice the 12 docs/calibration.md asks of a real run (so that the room field's
+#: time, twice the 12 docs/guide/calibration.md asks of a real run (so that the room field's
 #: 3 directions are measured with spare poses to test that no 4th varies).
 NO_LOAD_POSES = 24
 #: The step-and-hold segment's mass (kg) and lever arm (m, {0}): the plan's heavier mass on
@@ -36,7 +36,7 @@ HOLD_MASS_KG, HOLD_LEVER_M = 0.2, (0.07, 0.0, 0.07)
 
 
 def hold_poses() -> list[CalibrationPose]:
-    """The step-and-hold segment's two poses (docs/calibration.md): 200 g on the off-axis arm
+    """The step-and-hold segment's two poses (docs/guide/calibration.md): 200 g on the off-axis arm
     with gravity along (1, 1, 1) in {0}, then turned to the opposite: a step of twice the
     weight on every force and on Mx, Mz."""
     d = np.ones(3) / np.sqrt(3.0)
@@ -72,7 +72,8 @@ def simulate_dataset(scene_path: str | Path | PhysicalScene | None, sensor_name:
     robot = simulated_robot(scene, sensor.name)
     ordered = paper_plan(plan, n_fit=poses, n_validation=validation_poses, n_no_load=no_load_poses,
                          n_check=check_poses)
-    if hold_s > 0:  # a silicone with a memory: the no-load poses first, before any load (docs/calibration.md)
+    # A silicone with a memory: the no-load poses first, before any load (docs/guide/calibration.md).
+    if hold_s > 0:
         ordered = [p for p in ordered if p[1] == "no-load"] + [p for p in ordered if p[1] != "no-load"]
     dataset = record_dataset(bus, sensor.addresses, ordered,
                              robot["apply_load"], turn=robot["turn"], samples=samples,
@@ -130,14 +131,14 @@ def _fit_static(raw: Dataset) -> tuple[Dataset, CalibrationTemperature | None, C
     dataset, temperature, result = thermal_fit(raw, fit)
     if raw.hold is None:
         return dataset, temperature, result, None, ("not identified: the dataset has no step-and-hold segment "
-                                                    "(docs/calibration.md); the daemon runs without creep compensation")
+                                                    "(docs/guide/calibration.md); the daemon runs without creep compensation")
     silicone, said = identify(raw.hold, result.model.wrench)
     if silicone is None:
         return dataset, temperature, result, None, said
     if raw.times_s is None:
         return dataset, temperature, result, silicone, said + (
             "; the poses' times were not recorded: K fitted on the dwells' creeping averages, read through the scale "
-            "(the nonlinear estimator's own differs by 1-2 %: docs/calibration.md)")
+            "(the nonlinear estimator's own differs by 1-2 %: docs/guide/calibration.md)")
     # A dwell's average holds creep that depends on the poses before it. Fitted as a static load, K
     # is neither the instantaneous nor the long-term stiffness but each model's own mix: on the
     # default scene's part the nonlinear one read a long-held 2 N Fx 1 % higher than the linear one,

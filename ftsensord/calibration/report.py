@@ -102,7 +102,7 @@ def write_report(path: str | Path, model: LinearModel, report: dict, validation:
 def _room_line(room: dict | None) -> str:
     """How the fit treated the room's field, in words."""
     if not room or room.get("mode") == "none":
-        return ("not rejected (a field-free room assumed: record no-load poses, docs/calibration.md)"
+        return ("not rejected (a field-free room assumed: record no-load poses, docs/guide/calibration.md)"
                 if room is not None else "not recorded")
     text = f"{room['mode']} directions projected out ({room.get('source', '')}; {room['no_load_poses']} no-load poses)"
     if "singular_values_ut" in room:

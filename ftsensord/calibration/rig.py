@@ -96,7 +96,7 @@ def _read(bus: Bus, chips: list[MLX90393], zyxt: int, wait_s: float, out: np.nda
 def record_hold(bus: Bus, addresses: Sequence[int], poses: Sequence[CalibrationPose],
                 apply_load: Callable[[np.ndarray], None], *, hold_s: float, settings: mlx.Settings = mlx.Settings(),
                 turn: Callable[[np.ndarray], None] | None = None, period_s: float = 0.0) -> Hold:
-    """The step-and-hold segment (docs/calibration.md): each of ``poses`` in turn, held
+    """The step-and-hold segment (docs/guide/calibration.md): each of ``poses`` in turn, held
     ``hold_s`` while every chip is read every ``period_s`` (0: as fast as the bus allows), each reading stamped
     with the bus's clock (s, from the first pose's start): the creep the silicone's
     relaxation is identified from (`calibration.relaxation`)."""

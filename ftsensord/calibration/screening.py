@@ -48,7 +48,7 @@ BLAME_FACTOR = 5.0
 #: compliance for the whole sensor, explains its response to within this share: the
 #: default scene's as-built parts (chips tilted 1.5 deg, gains 2 %, magnets 0.15 mm off)
 #: leave 0.13-0.43 (median 0.22) over seeds 1-30 (0.4 refused seed 13's part, a false
-#: refusal: docs/calibration.md); two swapped chips leave 0.81 and 0.82, a chip turned more.
+#: refusal: docs/guide/calibration.md); two swapped chips leave 0.81 and 0.82, a chip turned more.
 MISMATCH_LIMIT = 0.6
 
 

@@ -2,7 +2,7 @@
 when its data span temperatures.
 
 Three laws act on a warm sensor, each a relative change per kelvin from 25 degC
-(docs/physics.md gives their sources): the magnets' remanence
+(docs/design/physics.md gives their sources): the magnets' remanence
 (`model.magnet.NDFEB_BR_TEMPCO_PER_K`) and each chip's sensitivity
 (`chip.mlx90393.SENSITIVITY_TEMPCO_PER_K`; the residual `SENSITIVITY_TEMPCO_TCMP_PER_K`
 with the chip's own compensation on) scale the flux a chip reads; the silicone's stiffness

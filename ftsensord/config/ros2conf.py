@@ -3,7 +3,7 @@
     [ros2]
     namespace = "ftsensord"   # topics /<namespace>/wrench/<stream>, service /<namespace>/tare
     domain_id = 0             # default: $ROS_DOMAIN_ID, else 0 (ROS's default)
-    output = "in-loop"        # or "bridge" (docs/performance.md, "The ROS 2 bridge")
+    output = "in-loop"        # or "bridge" (docs/results/performance.md, "The ROS 2 bridge")
 
 Parsed here; nothing is started here. ``output = "bridge"``: `daemon.ros2child.ros2_beside`
 starts the bridge (`ftsensord ros2`) for `ftsensord run` as a process of its own, by its
@@ -37,7 +37,7 @@ OUTPUTS = ("in-loop", "bridge")
 class Ros2Config:
     namespace: str = "ftsensord"  # without slashes at either end
     domain_id: int = 0
-    output: str = "in-loop"  # one of OUTPUTS: in-loop measured better (docs/performance.md)
+    output: str = "in-loop"  # one of OUTPUTS: in-loop measured better (docs/results/performance.md)
 
 
 def default_domain_id(environ: dict[str, str] | None = None) -> int:

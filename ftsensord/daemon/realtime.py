@@ -70,7 +70,7 @@ def refusal_cause(priority: int) -> str:
     if budget == 0:
         return ("the kernel schedules real-time tasks by cgroup (CONFIG_RT_GROUP_SCHED) and this "
                 "process's cpu cgroup has no real-time budget (cpu.rt_runtime_us = 0); running at the "
-                "normal priority (docs/reliability.md, \"The systemd unit\")")
+                "normal priority (docs/design/reliability.md, \"The systemd unit\")")
     return "refused by the kernel or a security policy (seccomp, SELinux)"
 
 

@@ -45,7 +45,7 @@ log = logging.getLogger("ftsensord")
 #: samples to a 20 ms hiccup. A haptic loop's freshness is its CONFLATE socket's job, and
 #: the kernel's socket buffer already holds ~1000 samples of any backlog. Cost: a message
 #: is shared by every queue, so 127 stalled subscribers pin 2.2 MiB more than with 8
-#: (docs/reliability.md, "Subscribers nobody reads").
+#: (docs/design/reliability.md, "Subscribers nobody reads").
 PUB_HWM = 1000
 #: Control requests queued before more are dropped (a flood cannot eat memory).
 CONTROL_HWM = 100

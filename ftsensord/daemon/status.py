@@ -1,6 +1,6 @@
 """What the daemon tells an operator: per-chip counters, the status reply and its one-line summary.
 
-The keys of the `status` reply are documented in docs/protocol.md.
+The keys of the `status` reply are documented in docs/reference/protocol.md.
 """
 
 from __future__ import annotations
@@ -171,7 +171,7 @@ def health_reply(d: Reported) -> dict[str, Any]:
 
 
 def status_reply(d: Reported) -> dict[str, Any]:
-    """The `status` reply (keys in docs/protocol.md): `health_reply` and the rest."""
+    """The `status` reply (keys in docs/reference/protocol.md): `health_reply` and the rest."""
     bound, t, board = d.config.bound(d.board_timing), d.timing, d.board_timing
     return {
         "version": __version__, **health_reply(d),

@@ -116,7 +116,7 @@ class SensorGeometry:
         On the drawn ring (chips in one plane, 8-fold symmetric) only the two in-plane
         parts xx - yy and xy are apart from a load and a uniform field: G_zz's pattern is an
         axial push's and a uniform B_z's, G_xz's and G_yz's a tilt's and a uniform B_x's,
-        B_y's (docs/physics.md, "A motor's field"). `separable_gradient` keeps those two.
+        B_y's (docs/design/physics.md, "A motor's field"). `separable_gradient` keeps those two.
         """
         q, _ = np.linalg.qr(self.gradient_flux())
         return q

@@ -65,7 +65,7 @@ MAX_RESIDUAL_T = 1e-3
 #: A warm-started fit left with more than 50 uT RMS may sit in a wrong minimum after a
 #: fast change of load: a cold start from the rest pose is tried too and the better fit
 #: kept. Right poses stay under 20 uT here for |F| up to 50 N along any direction (the
-#: dipole model's error at 6 mm is 29 uT, docs/physics.md); near the corners of the range
+#: dipole model's error at 6 mm is 29 uT, docs/design/physics.md); near the corners of the range
 #: and on a sensor whose model fits worse, the cold start is paid more often.
 RETRY_RESIDUAL_T = 50e-6
 #: The ring of 8 identical chips and magnets reads the same after a turn of 45 degrees

@@ -4,7 +4,7 @@ The sensor's compliance is a platinum silicone (Ecoflex 00-30 class) far above i
 transition (about -120 degC for silicones), in its rubbery plateau, where elasticity is
 entropic: a network's shear modulus is G = n k_B T (Treloar, The Physics of Rubber
 Elasticity, 3rd ed., 1975, ch. 4), proportional to the absolute temperature. The stiffness
-K of the layer scales with it. docs/physics.md ("Temperature") says what was taken and why.
+K of the layer scales with it. docs/design/physics.md ("Temperature") says what was taken and why.
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@ and the recursive filters that run it forwards (the simulator) and backwards (th
 
 The relaxation modulus, normalised, is G(t)/G(0) = 1 - sum g_i (1 - exp(-t/tau_i)): held at
 a deflection the layer's wrench falls from K0 xi to K_inf xi, K_inf = g_inf K0 with
-g_inf = 1 - sum g_i. The same series acts on every degree of freedom (docs/physics.md).
+g_inf = 1 - sum g_i. The same series acts on every degree of freedom (docs/design/physics.md).
 
 Held under a load the layer creeps instead. With w_eff = K_inf xi (the wrench a static
 calibration's K reads from the deflection: ``stiffness_diag`` is K_inf, the long-term
@@ -30,7 +30,7 @@ import numpy as np
 #: The most terms a series may have: three decades of time with one each; more is a fit, not a material.
 MAX_TERMS = 4
 #: The largest total fraction accepted: at 0.9 the layer would keep a tenth of its stiffness
-#: held, far softer than any platinum silicone at small strain (docs/physics.md), and the
+#: held, far softer than any platinum silicone at small strain (docs/design/physics.md), and the
 #: inverse would multiply the noise tenfold.
 MAX_TOTAL_FRACTION = 0.9
 

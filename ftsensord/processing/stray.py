@@ -3,7 +3,7 @@
 A field's first-order gradient G (T/m; 3 x 3, symmetric and traceless: 5 numbers) adds
 R_0i^T G p_i to chip i. Of its five parts the ring tells two from a load and a uniform field
 (the in-plane ones: `model.geometry.separable_gradient`); the other three read exactly as
-a load (docs/physics.md, "A motor's field"), so no estimator of one sample can take them
+a load (docs/design/physics.md, "A motor's field"), so no estimator of one sample can take them
 out. But a motor is fixed in the world, and so is its gradient G_w: the sensor sees
 R^T G_w R (R = R_world,sensor), which mixes G_w's parts differently at each orientation.
 The two parts the ring sees at each orientation, over a few orientations, give all five
@@ -60,7 +60,7 @@ CORRECT_WITHIN = np.array([0.0125, 0.0125, 0.0125, 0.5e-3, 0.5e-3, 0.5e-3])
 #: would make a false wrench beyond `ALARM_WRENCH` (N, Nm), 1.5 times issue 23's figure: at
 #: the figure itself a 2 A m^2 motor at 25 cm, whose false wrench is within it (1.3 mNm RMS
 #: uncorrected), raised it on two parts of three for the 7 s learning took; at 1.5 times it
-#: rises at 15 cm (8.7 mNm), not at 25 (benchmarks/motor.py; docs/accuracy.md).
+#: rises at 15 cm (8.7 mNm), not at 25 (benchmarks/motor.py; docs/results/accuracy.md).
 CHANGE_ODDS = 1e-6
 CHANGE_SAMPLES = 10
 #: A tare whose in-plane reading is further than this from the calibration's (T) was taken in

@@ -1,6 +1,6 @@
 """Floor 7, the protocol: what the daemon and every client share.
 
-- `wire`: the published samples' bytes (docs/protocol.md has them byte by byte), the
+- `wire`: the published samples' bytes (docs/reference/protocol.md has them byte by byte), the
   flags and the topics.
 - `orientation`: the orientation stream's message (a client tells the daemon how the tool
   is turned) and the latest-value receiver the daemon reads it with.

@@ -14,7 +14,7 @@ from ftsensord.protocol.paths import resolve_file
 
 @dataclass
 class Security:
-    """Who may reach the endpoints when they leave loopback (docs/protocol.md)."""
+    """Who may reach the endpoints when they leave loopback (docs/reference/protocol.md)."""
 
     curve_server_cert: Path | None = None  # zmq certificate with the server's secret key
     curve_clients_dir: Path | None = None  # public certificates of the clients allowed to control

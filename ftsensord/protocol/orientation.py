@@ -7,7 +7,7 @@ never blocks a 1 kHz servo loop, whether the daemon runs, restarts or lags
 is found again by ZeroMQ's reconnect. Latest value wins: each cycle the daemon
 reads every queued message and keeps the newest per frame.
 
-One frame per message, little-endian (docs/clients.md has the byte table and a
+One frame per message, little-endian (docs/guide/clients.md has the byte table and a
 test vector):
 
   offset  type      field

@@ -1,4 +1,4 @@
-"""The wire format of published samples (docs/protocol.md has it byte by byte).
+"""The wire format of published samples (docs/reference/protocol.md has it byte by byte).
 
 One ZeroMQ frame per sample: the topic (ASCII, e.g. ``wrench/sensor1``), one
 NUL byte, then a 40-byte little-endian header and ``count`` float64 values.

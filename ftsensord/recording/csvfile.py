@@ -34,7 +34,8 @@ MAX_KEPT_CHARS = 1000
 TIME_UNITS = {"seq": "the daemon's cycle number (a jump: samples missed)",
               "t_mono_s": "s, CLOCK_MONOTONIC of the daemon's host, when the cycle's data were in hand",
               "t_wall_s": "s, Unix time (UTC), the same moment",
-              "flags": "bit field, the sum of the flag_bits of the conditions that held (docs/protocol.md)"}
+              "flags": "bit field, the sum of the flag_bits of the conditions that held "
+                       "(docs/reference/protocol.md)"}
 VALUE_UNITS = {"_N": "N", "_Nm": "Nm", "_T": "T"}
 
 

@@ -101,7 +101,7 @@ class RegisterCommands:
 
     def _nop(self, opcode: int, zyxt: int, data: bytes, now: float) -> bytes:
         """NOP (0x00): the status, nothing else changes, in any mode (Melexis's own driver
-        defines MLX90393_CMD_NOP 0x00 and sends it like EX: docs/simulator.md). Only the
+        defines MLX90393_CMD_NOP 0x00 and sends it like EX: docs/design/simulator.md). Only the
         one byte 0x00: 0x01-0x0F, or more bytes, are no listed command (refused)."""
         return self._status(error=data != bytes([mlx.CMD_NOP]))
 

@@ -4,7 +4,7 @@ A sensor has one temperature (magnets, silicone and chips' dies alike: the part 
 grams and a hand warms it over minutes); `TemperatureProfile` gives it at any time. Each
 chip's sensitivity and offset drift by its own coefficients (`ChipDrift`), which the
 emulated chip applies itself, choosing by its TCMP_EN bit as a real chip does. The laws and
-their sources are in docs/physics.md ("Temperature").
+their sources are in docs/design/physics.md ("Temperature").
 """
 
 from __future__ import annotations

@@ -91,7 +91,7 @@ def ramp(from_s: float, to_s: float, start: np.ndarray, end: np.ndarray) -> Reco
 
 # --- orientation over time -------------------------------------------------------------
 #: World frame: z up, so gravity is -z (and x north, y west for a room field in
-#: north-east-down figures turned into it: docs/scenes.md).
+#: north-east-down figures turned into it: docs/design/scenes.md).
 DOWN = np.array([0.0, 0.0, -1.0])
 
 
@@ -287,7 +287,7 @@ def paper_plan(plan: str = "six-axis", n_fit: int = 193, n_validation: int = 60,
     Each pose carries the robot's full orientation: gravity along the pose's
     direction, turned about the vertical by `YAW_STEP_RAD` more at every pose.
     ``n_no_load`` poses (split "no-load", rod and mass off) at further orientations
-    record what the room's field alone does to the chips (docs/calibration.md); ``n_check``
+    record what the room's field alone does to the chips (docs/guide/calibration.md); ``n_check``
     poses (split "check", `CHECK_MASSES` on `CHECK_ARM`) the model's accuracy at large loads.
     """
     if plan not in PLANS:

@@ -1,8 +1,8 @@
 """The scene's silicone with a memory: a sensor's load history drives its deflection through
 the Prony series of `model.viscoelastic`, when the scene asks for it (``[sensor.silicone]``,
-docs/scenes.md); a scene without it pays nothing (`SimSensor.memory` is None).
+docs/design/scenes.md); a scene without it pays nothing (`SimSensor.memory` is None).
 
-The series' default and its sources are in docs/physics.md ("The silicone's memory").
+The series' default and its sources are in docs/design/physics.md ("The silicone's memory").
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from ftsensord.docfile import Table
 from ftsensord.model.viscoelastic import MAX_TERMS, CreepFilter, Relaxation
 
 #: The default series (fraction, time in s): 10 % relaxing in about a second, 5 % over half
-#: a minute, 15 % in all (docs/physics.md says why: no Prony coefficients of Ecoflex 00-30 at
+#: a minute, 15 % in all (docs/design/physics.md says why: no Prony coefficients of Ecoflex 00-30 at
 #: this sensor's few % strain were found; the published relaxation of virgin Ecoflex is of
 #: this order at large strain, seconds to minutes, and a generous default tests the
 #: compensation harder than the material likely will).
@@ -70,7 +70,7 @@ def parse_silicone(t: Table) -> Relaxation:
     t.only({"relaxation"})
     rows = t.get("relaxation", [list(r) for r in DEFAULT_RELAXATION])
     expected = (f"1 to {MAX_TERMS} pairs [fraction, time_s]: fractions > 0 summing below 0.9, distinct times > 0 s "
-                "(a Prony series of the stiffness, docs/scenes.md)")
+                "(a Prony series of the stiffness, docs/design/scenes.md)")
     if (not isinstance(rows, list) or not rows
             or not all(isinstance(r, list) and len(r) == 2 and all(_number(v) for v in r) for r in rows)):
         raise t.fail("relaxation", expected, rows)

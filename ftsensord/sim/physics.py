@@ -13,7 +13,7 @@ reads it with its own gain per axis.
 Model only what the scene requires: the own magnet defaults to the exact
 cylinder field (the dipole errs by about 30 uT at the 6 mm gap, ten times the
 reading noise) and crosstalk to dipoles (the neighbours are 10 mm or more away,
-where the dipole's error is below the noise). docs/physics.md has the figure.
+where the dipole's error is below the noise). docs/design/physics.md has the figure.
 """
 
 from __future__ import annotations
@@ -113,7 +113,7 @@ class SimSensor:
 
     ``relaxation``: the silicone's Prony series (None: a perfect spring); ``stiffness`` is
     then the long-term stiffness K_inf, and the load's history drives the deflection
-    (`sim.memory`, docs/physics.md "The silicone's memory").
+    (`sim.memory`, docs/design/physics.md "The silicone's memory").
     """
 
     name: str

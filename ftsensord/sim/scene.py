@@ -4,7 +4,7 @@ A scene gives, per chip address, the flux density in the chip's frame (T) and
 the die temperature (degC) at any time (`ftsensord.sim.chip.FieldSource`).
 Two kinds exist: `StaticScene` (a given field per chip) and the physical
 `ftsensord.sim.physics.PhysicalScene` (magnets, stiffness, loads over time).
-Scene files (TOML) are described in docs/scenes.md.
+Scene files (TOML) are described in docs/design/scenes.md.
 """
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ class StaticScene:
 
 
 #: The default scene's file, in the package's data: two as-built sensors (0x0C-0x13 and
-#: 0x14-0x1B) in the Earth's field, at rest (docs/scenes.md).
+#: 0x14-0x1B) in the Earth's field, at rest (docs/design/scenes.md).
 DEFAULT_SCENE = "scene-default.toml"
 
 
@@ -317,7 +317,7 @@ def _external_field(doc: Table) -> np.ndarray:
 
 
 def _stray_sources(doc: Table, sensors: list[SimSensor]) -> list[StraySource]:
-    """The `[[stray_source]]` tables: point dipoles fixed in the world (docs/scenes.md)."""
+    """The `[[stray_source]]` tables: point dipoles fixed in the world (docs/design/scenes.md)."""
     if "stray_source" not in doc.doc:
         return []
     sources = []

@@ -23,7 +23,7 @@ const { parse } = rosmsg;
 const { MessageReader } = rosmsg2;
 
 // The subprotocol the foxglove-sdk server accepts; FoxgloveClient.SUPPORTED_SUBPROTOCOL is
-// still the older "foxglove.websocket.v1", which that server refuses (docs/clients.md).
+// still the older "foxglove.websocket.v1", which that server refuses (docs/guide/clients.md).
 const DEFAULT_SUBPROTOCOL = "foxglove.sdk.v1";
 
 function usage(message) {

@@ -2,7 +2,7 @@
 
 Source: Melexis MLX90393 datasheet Rev 011 (Sep 2024): Table 9 (Magnetic Specification:
 SENS_THD, OFFS_THD and their footnotes 7 and 9), Tables 17 and 18 (sensitivity in uT/LSB,
-TC off, at 25 degC and at 35 degC). docs/physics.md ("Temperature") shows the arithmetic.
+TC off, at 25 degC and at 35 degC). docs/design/physics.md ("Temperature") shows the arithmetic.
 Every figure is per kelvin from `TEMPERATURE_REF_C`; tuples are per axis (x, y, z), where the
 datasheet gives X/Y and Z apart.
 """
