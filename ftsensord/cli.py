@@ -19,7 +19,7 @@ from .ros2 import InLoop, add_ros2_parser
 from .errors import ConfigError, DaemonNotAnswering, FtsensordError
 from .service.sensorconf import ESTIMATORS
 from .service.status import describe
-from .sim.loads import PLANS
+from .sim.loads import HOLD_PERIOD_S, HOLD_S, PLANS
 
 
 def cmd_scan(args: argparse.Namespace) -> int:
@@ -68,7 +68,7 @@ def cmd_dataset(args: argparse.Namespace) -> int:
     dataset = simulate_dataset(args.scene, args.sensor, args.plan, poses=args.poses,
                                validation_poses=args.validation_poses, samples=args.samples, seed=args.seed,
                                sweeps=not args.no_sweep, no_load_poses=args.no_load_poses,
-                               check_poses=args.check_poses, hold_s=args.hold_s)
+                               check_poses=args.check_poses, hold_s=args.hold_s, hold_period_s=args.hold_period_s)
     dataset.save(args.output)
     print(f"wrote {args.output}: {len(dataset)} poses ({args.plan}), {args.samples} samples each, "
           f"{int(dataset.saturated.any(axis=1).sum())} with a saturated chip" + (
@@ -351,7 +351,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "at least 6 for the fit to use them, 12 or more advised)")
     p.add_argument("--check-poses", type=int, default=24, help="poses with 1, 2 and 4 kg at the flange's centre, "
                    "on which the model is judged at large loads (default: 24; 0: none)")
-    p.add_argument("--hold-s", type=float, default=0.0, help="s a step-and-hold pose is held (0: none; docs/calibration.md)")
+    p.add_argument("--hold-s", type=float, default=HOLD_S,
+                   help=f"s each of the step-and-hold segment's two poses is held, the silicone's creep read "
+                        f"throughout (default: {HOLD_S:g}; 0: none; docs/calibration.md)")
+    p.add_argument("--hold-period-s", type=float, default=HOLD_PERIOD_S,
+                   help=f"s between the step-and-hold segment's readings (default: {HOLD_PERIOD_S:g}; 0: as fast "
+                        "as the bus allows)")
     p.set_defaults(func=cmd_dataset)
 
     p = sub.add_parser("calibrate", help="fit K, A and the zero from a dataset",
