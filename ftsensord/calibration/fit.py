@@ -87,7 +87,8 @@ def after_load_s(dataset: Dataset) -> float | None:
     if dataset.times_s is None:
         return None
     order = np.argsort(dataset.times_s[:, 0], kind="stable")
-    loaded = np.linalg.norm(dataset.wrench, axis=1) > 0
+    # A load: a pose of the plan that carries one (a no-load pose's own wrench is none by its split).
+    loaded = (dataset.split != "no-load") & (np.linalg.norm(dataset.wrench, axis=1) > 0)
     shortest, off = None, None  # off: when the last load came off
     for j, k in enumerate(order):
         if loaded[k]:

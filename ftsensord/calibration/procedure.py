@@ -53,6 +53,9 @@ def simulate_dataset(scene_path: str | Path | PhysicalScene | None, sensor_name:
     0: as fast as the bus allows)."""
     if not hold_s >= 0 or hold_s == float("inf"):  # NaN too
         raise ConfigError(f"--hold-s: expected the seconds a step is held, 0 (none) or more, got {hold_s!r}")
+    if not hold_period_s >= 0 or hold_period_s == float("inf"):  # NaN too
+        raise ConfigError(f"--hold-period-s: expected the seconds between the hold's readings, 0 (as fast as the "
+                          f"bus allows) or more, got {hold_period_s!r}")
     if check_poses < 0:
         raise ConfigError(f"--check-poses: expected 0 or more poses, got {check_poses}")
     if isinstance(scene_path, PhysicalScene):
@@ -171,8 +174,9 @@ def _after_effect(raw: Dataset, exc: RoomFieldError) -> CalibrationError:
     if silicone is None:
         return exc
     model, relaxation = first.model, silicone.relaxation
-    carried = dwell_loads(relaxation, raw.wrench, raw.times_s, raw.samples_per_pose)
     no_load = dataset.split == "no-load"
+    declared = np.where(no_load[:, None], 0.0, raw.wrench)  # a no-load pose carries none by its split
+    carried = dwell_loads(relaxation, declared, raw.times_s, raw.samples_per_pose)
     # The flux of what each no-load pose still carried: b - b0 = H xi, xi = K^-1 w (`LinearModel`).
     after = (model.H @ np.linalg.solve(model.K, carried[no_load].T)).T
     flux = dataset.flux_t.copy()
