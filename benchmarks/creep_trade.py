@@ -1,9 +1,9 @@
 """The trade, dynamic: moving loads at the chip settings and schedulers of docs/tradeoff.md on a
 part whose silicone relaxes; writes docs/tradeoff-dynamic.md and docs/tradeoff-dynamic.png.
 
-The part and its calibration are benchmarks/creep.py's (`creep.part`: the default scene's
-sensor1 with the default series, calibrated by the simulated procedure with its
-step-and-hold). For each chip setting (OSR, DIG_FILT) of docs/tradeoff.md and each scheduler
+The part and its calibration are benchmarks/creep.py's (`creep.calibrated_part`: the default
+scene's sensor1 with the default series, calibrated by `ftsensord dataset` and `ftsensord
+calibrate` at their defaults, the step-and-hold among them). For each chip setting (OSR, DIG_FILT) of docs/tradeoff.md and each scheduler
 (naive, overlapped, burst), the daemon runs in process on a virtual clock at that
 scheduler's computed bound for the setting (the simulated bus spends the wire's time, so the
 virtual loop reaches it) and publishes sensor1's wrench under one profile: rest, 2 N sines
@@ -51,6 +51,9 @@ from tradeoff import FULL_CHIP  # noqa: E402  (the settings of docs/tradeoff.md)
 
 DOCS = Path(__file__).resolve().parent.parent / "docs"
 SCHEDULERS = ("naive", "overlapped", "burst")
+#: The part: the default scene's own sensor1 (seed 1), with the default series, calibrated by the
+#: documented commands (`creep.calibrated_part`).
+PART = 1
 #: A sine is judged where the loop takes this many samples a period or more: fewer, and the
 #: fitted amplitude and phase are the sampling's (at 2 a period, Nyquist, nothing at all).
 MIN_SAMPLES_A_PERIOD = 4
@@ -148,7 +151,7 @@ def main() -> int:
     results = []
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
-        _, _, cal, _ = calibrated_part(quick, tmp)
+        _, _, cal = calibrated_part(quick, tmp, PART)
         assert cal.silicone is not None, cal.report["silicone"]
         checked = False
         for osr, dig in chips:
@@ -156,10 +159,10 @@ def main() -> int:
                 rate = math.floor(bound_hz(config, scheduler, osr, dig) * 10) / 10  # 0.1 Hz below: the cycle fits
                 setting = Setting(f"{osr}, {dig}", osr, dig, rate, scheduler=scheduler)
                 flags: list[int] = []
-                t, w, truth = run(config, cal, scene(True, tmp), load, where["end"], setting, False, flags)
+                t, w, truth = run(config, cal, scene(True, tmp, PART), load, where["end"], setting, False, flags)
                 comp = compensated(w, flags, cal, rate)
                 if not checked and scheduler == "burst":  # the stage's own, once: the same samples
-                    _, w_daemon, _ = run(config, cal, scene(True, tmp), load, where["end"], setting, True)
+                    _, w_daemon, _ = run(config, cal, scene(True, tmp, PART), load, where["end"], setting, True)
                     gap = float(np.nanmax(np.abs(w_daemon - comp)))
                     assert gap < 1e-9, f"the offline inverse departs from the daemon's stage by {gap:.3g} N"
                     checked = True

@@ -19,7 +19,7 @@ from ftsensord.ros2 import InLoop, add_ros2_parser
 from ftsensord.errors import ConfigError, DaemonNotAnswering, FtsensordError
 from ftsensord.config.sensors import ESTIMATORS
 from ftsensord.daemon.status import describe
-from ftsensord.sim.loads import PLANS
+from ftsensord.sim.loads import HOLD_PERIOD_S, HOLD_S, PLANS
 
 
 def cmd_scan(args: argparse.Namespace) -> int:
@@ -65,10 +65,9 @@ def cmd_doctor(args: argparse.Namespace) -> int:
 def cmd_dataset(args: argparse.Namespace) -> int:
     from ftsensord.calibration.procedure import simulate_dataset
 
-    dataset = simulate_dataset(args.scene, args.sensor, args.plan, poses=args.poses,
-                               validation_poses=args.validation_poses, samples=args.samples, seed=args.seed,
-                               sweeps=not args.no_sweep, no_load_poses=args.no_load_poses,
-                               check_poses=args.check_poses, hold_s=args.hold_s)
+    sizes = {k: getattr(args, k) for k in ("poses", "validation_poses", "samples", "seed", "no_load_poses",
+                                           "check_poses", "hold_s", "hold_period_s")}
+    dataset = simulate_dataset(args.scene, args.sensor, args.plan, sweeps=not args.no_sweep, **sizes)
     dataset.save(args.output)
     print(f"wrote {args.output}: {len(dataset)} poses ({args.plan}), {args.samples} samples each, "
           f"{int(dataset.saturated.any(axis=1).sum())} with a saturated chip" + (
@@ -346,8 +345,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "at least 6 for the fit to use them, 12 or more advised)")
     p.add_argument("--check-poses", type=int, default=24, help="poses with 1, 2 and 4 kg at the flange's centre, "
                    "on which the model is judged at large loads (default: 24; 0: none)")
-    p.add_argument("--hold-s", type=float, default=0.0, help="s a step-and-hold pose is held "
+    p.add_argument("--hold-s", type=float, default=HOLD_S, help="s each step-and-hold pose is held "
                    "(0: none; docs/guide/calibration.md)")
+    p.add_argument("--hold-period-s", type=float, default=HOLD_PERIOD_S, help="s between its readings (0: fastest)")
     p.set_defaults(func=cmd_dataset)
 
     p = sub.add_parser("calibrate", help="fit K, A and the zero from a dataset",

@@ -192,7 +192,7 @@ def test_dataset_and_calibrate_commands(tmp_path, capsys):
     # The default scene is a room: the fit needs no-load poses to measure its field, and
     # enough readings a pose that their noise floor is seen (2 often quantise alike).
     assert main(["dataset", "-o", str(ds), "--poses", "40", "--validation-poses", "10", "--samples", "5",
-                 "--no-load-poses", "12"]) == 0
+                 "--no-load-poses", "12", "--hold-s", "0"]) == 0  # a spring: no step-and-hold to pay for
     assert "86 poses (six-axis)" in capsys.readouterr().out  # 40 fit, 10 validation, 12 no-load, 24 check
     assert main(["calibrate", str(ds), "-o", str(cal), "--report", str(rep), "--serial", "SN-1"]) == 0
     out = capsys.readouterr().out
@@ -207,7 +207,7 @@ def test_dataset_and_calibrate_commands(tmp_path, capsys):
 def test_calibrate_refuses_the_one_arm_plan_with_the_reason(tmp_path, capsys):
     ds = tmp_path / "one.json"
     assert main(["dataset", "-o", str(ds), "--plan", "one-arm", "--poses", "30", "--validation-poses", "0",
-                 "--samples", "1", "--no-sweep"]) == 0
+                 "--samples", "1", "--no-sweep", "--hold-s", "0"]) == 0
     capsys.readouterr()
     assert main(["calibrate", str(ds), "-o", str(tmp_path / "cal.json")]) == 2
     err = capsys.readouterr().err

@@ -332,7 +332,8 @@ def test_calibrate_on_a_room_dataset_shows_progress_and_a_refusal_says_what_to_r
     from ftsensord.cli import main
     ds = tmp_path / "ds.json"
     assert main(["dataset", "-o", str(ds), "--scene", "config/scene-room.toml", "--poses", "60",
-                 "--validation-poses", "10", "--samples", "4", "--no-load-poses", "12", "--no-sweep"]) == 0
+                 "--validation-poses", "10", "--samples", "4", "--no-load-poses", "12", "--no-sweep",
+                 "--hold-s", "0"]) == 0  # a spring: no step-and-hold to pay for
     data = Dataset.load(ds)
     assert int(np.sum(data.split == "no-load")) == 12
     capsys.readouterr()

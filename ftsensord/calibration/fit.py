@@ -55,6 +55,36 @@ ROOM_SIGNAL_FACTOR = 10.0
 ROOM_EXTRA_FACTOR = 3.0
 
 
+class RoomFieldError(CalibrationError):
+    """The no-load check's refusal: a 4th flux direction varies at no load. ``after_load_s``:
+    how long after a load came off the first no-load pose that followed one was read (s), None
+    when none followed a load or the poses' times were not recorded (`after_load_s`);
+    ``figures``: the singular values and the noise floor as the message gives them (uT)."""
+
+    def __init__(self, message: str, after_load_s: float | None, figures: str):
+        super().__init__(message)
+        self.after_load_s, self.figures = after_load_s, figures
+
+
+def after_load_s(dataset: Dataset) -> float | None:
+    """The shortest time (s) from a load coming off (the next pose's applied time) to the first
+    reading of a no-load pose after it, over the no-load poses recorded after a loaded one;
+    None when none was, or the poses' times were not recorded."""
+    if dataset.times_s is None:
+        return None
+    order = np.argsort(dataset.times_s[:, 0], kind="stable")
+    # A load: a pose of the plan that carries one (a no-load pose's own wrench is none by its split).
+    loaded = (dataset.split != "no-load") & (np.linalg.norm(dataset.wrench, axis=1) > 0)
+    shortest, off = None, None  # off: when the last load came off
+    for j, k in enumerate(order):
+        if loaded[k]:
+            off = dataset.times_s[order[j + 1], 0] if j + 1 < len(order) else None
+        elif dataset.split[k] == "no-load" and off is not None:
+            wait = float(dataset.times_s[k, 1] - off)
+            shortest = wait if shortest is None else min(shortest, wait)
+    return shortest
+
+
 def noise_floor(flux_sem: np.ndarray) -> float:
     """Largest singular value pure noise reaches in an n x d flux matrix (T).
 
@@ -190,11 +220,12 @@ def room_directions(dataset: Dataset, geometry: SensorGeometry, mode: str = "aut
     report = {"mode": "measured", "no_load_poses": len(no_load), "noise_floor_ut": floor * 1e6,
               "singular_values_ut": (sv[:5] * 1e6).tolist()}
     if len(sv) > 3 and sv[3] > ROOM_EXTRA_FACTOR * floor:
-        raise CalibrationError(
-            f"{dataset.where()}the no-load poses vary in more than 3 flux directions (singular values "
-            + ", ".join(f"{v * 1e6:.3g}" for v in sv[:5]) + f" uT; noise floor {floor * 1e6:.3g} uT): not a "
+        figures = "singular values " + ", ".join(f"{v * 1e6:.3g}" for v in sv[:5]) + \
+            f" uT; noise floor {floor * 1e6:.3g} uT"
+        raise RoomFieldError(
+            f"{dataset.where()}the no-load poses vary in more than 3 flux directions ({figures}): not a "
             "uniform field alone. Take the rod and mass off for the no-load poses, and move steel and motors "
-            "away from the sensor")
+            "away from the sensor", after_load_s(dataset), figures)
     if sv[2] <= ROOM_EXTRA_FACTOR * floor < ROOM_SIGNAL_FACTOR * floor <= sv[0]:
         # A field stands well above the noise, but its 3rd direction is at the noise (where a
         # 4th must stay): the poses turned the sensor about one axis only, so the field along

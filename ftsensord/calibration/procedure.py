@@ -5,11 +5,12 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
-from ftsensord.errors import ConfigError
+from ftsensord.errors import CalibrationError, ConfigError
 from ftsensord.model.geometry import SensorGeometry
 from ftsensord.sim import PhysicalScene
 from ftsensord.sim import default_scene
@@ -18,9 +19,9 @@ from ftsensord.sim import simulated_bus
 from ftsensord.sim.loads import CalibrationPose, gravity_to_down, paper_plan
 from ftsensord.calibration import largeloads
 from ftsensord.calibration.calfile import Calibration
-from ftsensord.calibration.relaxation import SiliconeCalibration, dwell_loads, identify
+from ftsensord.calibration.relaxation import SiliconeCalibration, dwell_loads, identify, settle_s
 from ftsensord.calibration.dataset import Dataset
-from ftsensord.calibration.fit import AXES, CalibrationResult, fit
+from ftsensord.calibration.fit import AXES, CalibrationResult, RoomFieldError, fit, room_directions
 from ftsensord.calibration.nlfit import FitProgress, fit_nonlinear, nonlinear_rmse
 from ftsensord.calibration.report import format_rmse
 from ftsensord.calibration.rig import record_dataset, record_hold, simulate_sweeps, simulated_robot
@@ -55,6 +56,9 @@ def simulate_dataset(scene_path: str | Path | PhysicalScene | None, sensor_name:
     0: as fast as the bus allows)."""
     if not hold_s >= 0 or hold_s == float("inf"):  # NaN too
         raise ConfigError(f"--hold-s: expected the seconds a step is held, 0 (none) or more, got {hold_s!r}")
+    if not hold_period_s >= 0 or hold_period_s == float("inf"):  # NaN too
+        raise ConfigError(f"--hold-period-s: expected the seconds between the hold's readings, 0 (as fast as the "
+                          f"bus allows) or more, got {hold_period_s!r}")
     if check_poses < 0:
         raise ConfigError(f"--check-poses: expected 0 or more poses, got {check_poses}")
     if isinstance(scene_path, PhysicalScene):
@@ -72,9 +76,6 @@ def simulate_dataset(scene_path: str | Path | PhysicalScene | None, sensor_name:
     robot = simulated_robot(scene, sensor.name)
     ordered = paper_plan(plan, n_fit=poses, n_validation=validation_poses, n_no_load=no_load_poses,
                          n_check=check_poses)
-    # A silicone with a memory: the no-load poses first, before any load (docs/guide/calibration.md).
-    if hold_s > 0:
-        ordered = [p for p in ordered if p[1] == "no-load"] + [p for p in ordered if p[1] != "no-load"]
     dataset = record_dataset(bus, sensor.addresses, ordered,
                              robot["apply_load"], turn=robot["turn"], samples=samples,
                              serial=f"sim-{sensor.name}",
@@ -128,7 +129,12 @@ def _fit_static(raw: Dataset) -> tuple[Dataset, CalibrationTemperature | None, C
     dataset as fitted, its temperature, the fit, the series (None: not identified) and the
     report's line on it. With the poses' times, the fit is made again on the loads the
     silicone carried over each dwell (`dwell_loads`), and so is what follows it."""
-    dataset, temperature, result = thermal_fit(raw, fit)
+    try:
+        dataset, temperature, result = thermal_fit(raw, fit)
+    except RoomFieldError as exc:
+        if exc.after_load_s is None:  # no load before the no-load poses: no after-effect in them
+            raise
+        raise _after_effect(raw, exc) from exc
     if raw.hold is None:
         return dataset, temperature, result, None, ("not identified: the dataset has no step-and-hold segment "
                                                     "(docs/guide/calibration.md); the daemon runs without creep compensation")
@@ -149,6 +155,52 @@ def _fit_static(raw: Dataset) -> tuple[Dataset, CalibrationTemperature | None, C
     if again is None:  # K is now the long-term stiffness, and nothing undoes the creep
         said += "; K is the long-term stiffness, so without the series a changing load reads low until the silicone settles"
     return dataset, temperature, result, again, f"fitted on the loads the silicone carried over each dwell; {said}"
+
+
+def _after_effect(raw: Dataset, exc: RoomFieldError) -> CalibrationError:
+    """The no-load check's refusal of a dataset whose no-load poses followed a load, judged:
+    when the dataset's step-and-hold gives the silicone's series and the after-effect it
+    computes for those poses (`dwell_loads`) explains the extra directions (taken out, the
+    no-load poses vary in 3, as a uniform field does), the refusal names it and the time the
+    silicone needs; when it does not explain them, today's refusal as it was; without a
+    step-and-hold, today's refusal and what the dataset cannot tell."""
+    wait = f"{exc.after_load_s:.3g} s after a load came off"
+    if raw.hold is None or raw.times_s is None:
+        return CalibrationError(
+            f"{exc}. Or, as the no-load poses were recorded {wait}, a silicone's after-effect: this dataset has no "
+            "step-and-hold segment to tell its creep by. Record the no-load poses first, before any load, and a "
+            "step-and-hold segment (docs/calibration.md)")
+    try:  # a first fit that takes the room's directions from the geometry: the series from the hold
+        dataset, _, first = thermal_fit(raw, partial(fit, room_field="geometry"))
+    except CalibrationError:
+        return exc  # no fit to judge the after-effect by: the refusal as it stands
+    silicone, _ = identify(raw.hold, first.model.wrench)
+    if silicone is None:
+        return exc
+    model, relaxation = first.model, silicone.relaxation
+    no_load = dataset.split == "no-load"
+    declared = np.where(no_load[:, None], 0.0, raw.wrench)  # a no-load pose carries none by its split
+    carried = dwell_loads(relaxation, declared, raw.times_s, raw.samples_per_pose)
+    # The flux of what each no-load pose still carried: b - b0 = H xi, xi = K^-1 w (`LinearModel`).
+    after = (model.H @ np.linalg.solve(model.K, carried[no_load].T)).T
+    flux = dataset.flux_t.copy()
+    flux[no_load] -= after
+    try:
+        room_directions(replace(dataset, flux_t=flux), SensorGeometry.ring(), "measured")
+    except CalibrationError:
+        return exc  # the after-effect is not what varies: a rod, a mass or a field, as it says
+    # How long the silicone needs: until the largest load's after-effect is under a pose's noise.
+    loads = (model.H @ np.linalg.solve(model.K, raw.wrench[~no_load].T)).T
+    noise = float(np.median(dataset.flux_sem_t[no_load])) * np.sqrt(flux.shape[1])
+    largest = float(np.linalg.norm(loads, axis=1).max())
+    need = settle_s(relaxation, noise / largest)
+    return CalibrationError(
+        f"{raw.where()}the no-load poses carry the after-effect of the loads before them (the silicone's creep): "
+        f"recorded {wait}, they vary in more than 3 flux directions ({exc.figures}), and with the after-effect the dataset's step-and-hold gives (relaxation "
+        f"{[[round(g, 3), round(t, 3)] for g, t in relaxation.pairs()]}, fraction and s) taken out, in 3, as the "
+        f"room's uniform field does. This silicone needs {need:.0f} s after its largest load comes off before what "
+        f"it carries is under a no-load pose's noise: record the no-load poses first, before any load touches the "
+        f"sensor, or wait that long after the last load comes off (docs/calibration.md)")
 
 
 def summary(cal: Calibration) -> str:

@@ -91,6 +91,24 @@ def dwell_loads(relaxation: Relaxation, wrench: np.ndarray, times_s: np.ndarray,
     return out
 
 
+def settle_s(relaxation: Relaxation, fraction: float) -> float:
+    """How long (s) after a load long held comes off its after-effect, the creep's share still
+    carried, sum c_k exp(-t / rho_k), takes to fall to ``fraction`` of the load: 0 when it
+    starts there. What a robot waits after a load comes off before a no-load pose
+    (docs/calibration.md): the after-effect of a load held shorter is smaller."""
+    c, rho = relaxation.creep
+    left = lambda t: float(np.sum(c * np.exp(-t / rho)))  # noqa: E731
+    if left(0.0) <= fraction:
+        return 0.0
+    low, high = 0.0, float(rho.max())
+    while left(high) > fraction:
+        high *= 2.0
+    for _ in range(60):  # bisection to well under a ms over any span a silicone takes
+        mid = 0.5 * (low + high)
+        low, high = (mid, high) if left(mid) > fraction else (low, mid)
+    return high
+
+
 def identify(hold: Hold, wrench_of: Callable[[np.ndarray], np.ndarray],
              terms: int = 2) -> tuple[SiliconeCalibration | None, str]:
     """The silicone's series from ``hold`` with ``wrench_of`` the static calibration's
