@@ -33,7 +33,7 @@ class SensorConfig:
     calibration_path: Path
     calibration: Calibration
     frame: str  # the frame its wrench is expressed in (default: the calibration's)
-    estimator: str = "linear"  # "linear" (K A) or "nonlinear" (the flux model, docs/tradeoff.md)
+    estimator: str = "linear"  # "linear" (K A) or "nonlinear" (the flux model, docs/results/tradeoff.md)
     stray_field: str = "uniform"  # `STRAY_FIELDS`
     table: Table | None = field(default=None, repr=False, compare=False)  # where it was read: for errors naming it
 
