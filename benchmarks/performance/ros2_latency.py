@@ -26,12 +26,7 @@ hops. ``--in-loop`` sets, a daemon started for each segment, no DDS at all (``no
 daemon and the ZeroMQ subscriber alone), the bridge process as `run` starts it
 (``bridge-rt``, ``bridge`` under ``--fifo 0``) and ``[ros2] output = "in-loop"`` (the loop
 thread's own DDS writes, after the cycle's ZeroMQ sends): each one's latencies, the loop's
-start jitter and cycle time, the daemon's CPU (and the bridge process's). ``--each-send``
-likewise sets ``none``, ``in-loop`` and ``each-send``: the in-loop output writing each
-stream right after its own ZeroMQ send (benchmarks/performance/ros2_each_send.py). ``--in-daemon`` sets the bridge
-process as `run` starts it against the same `Bridge` in a thread of the daemon's own process
-(benchmarks/performance/ros2_in_daemon.py), a daemon started for each segment: the latency, and the
-loop's jitter and publish time each puts in.
+start jitter and cycle time, the daemon's CPU (and the bridge process's).
 
 ``--alone``, a daemon started for each segment, one subscriber process in each (`ALONE`), so
 none competes with another for the core the loop thread leaves: ``none`` (no [ros2]: plain
@@ -45,7 +40,7 @@ removes (``none`` shows what the rest of the output costs ZeroMQ). It prints eac
 variant's p99 minus ``zmq-alone``'s (and ``none``'s), pooled and round by round.
 DDS stays on the loopback interface (CYCLONEDDS_URI).
 
-    python -m benchmarks.performance.ros2_latency --seconds 10 --rounds 3 [--fifo 50] [--split | --in-daemon | --in-loop | --each-send | --alone]
+    python -m benchmarks.performance.ros2_latency --seconds 10 --rounds 3 [--fifo 50] [--split | --in-loop | --alone]
 """
 
 from __future__ import annotations
@@ -200,10 +195,9 @@ def listener(name: str, folder: Path, stop_at: float, queue: mp.Queue) -> mp.Pro
 
 def segment_config(variant: str, path: Path) -> Path:
     """The packaged configuration at ``path``, with the [ros2] table a daemon of ``variant`` runs:
-    ``output = "bridge"`` (``bridge*``), ``"in-loop"`` (``in-loop``, ``each-send``, ``*-alone``)
-    or none (``none``, ``in-daemon``: ros2_in_daemon.py runs the bridge itself)."""
+    ``output = "bridge"`` (``bridge*``), ``"in-loop"`` (``in-loop``, ``*-alone``) or none (``none``)."""
     config = packaged_config(path)
-    if variant.startswith("bridge") or variant in ("in-loop", "each-send") or variant.endswith("-alone"):
+    if variant.startswith("bridge") or variant == "in-loop" or variant.endswith("-alone"):
         output = "bridge" if variant.startswith("bridge") else "in-loop"
         config.write_text(config.read_text() + f'\n[ros2]\nnamespace = "bench"\ndomain_id = {DOMAIN}\n'
                                                f'output = "{output}"\n')
@@ -211,20 +205,14 @@ def segment_config(variant: str, path: Path) -> Path:
 
 
 def daemon_segment(variant: str, seconds: float, fifo: int, listen: tuple[str, ...] | None = None) -> dict:
-    """--in-daemon, --in-loop, --each-send, --alone: a daemon of its own for the segment
-    (`segment_config`; ``in-daemon``: the bridge a thread of its process, ros2_in_daemon.py;
-    ``each-send``: ros2_each_send.py) and ``listen``, the subscribers for the segment (default:
+    """--in-loop, --alone: a daemon of its own for the segment (`segment_config`) and
+    ``listen``, the subscribers for the segment (default:
     all of `EVERY`, ZeroMQ's alone for ``none``)."""
     listen = listen or (("zmq",) if variant == "none" else EVERY)
     with tempfile.TemporaryDirectory() as tmp:
         config = segment_config(variant, Path(tmp) / "ftsensord.toml")
-        program: tuple[str, ...] = ("-m", "ftsensord")
-        if variant == "in-daemon":
-            program = (str(Path(__file__).with_name("ros2_in_daemon.py")), "bench", str(DOMAIN), str(1 if fifo else 0))
-        elif variant == "each-send":  # the in-loop output, each stream written right after its own send
-            program = (str(Path(__file__).with_name("ros2_each_send.py")),)
         proc, notify = start_daemon(config, Path(tmp), args=["--realtime", str(fifo)] if fifo else [],
-                                    env={"CYCLONEDDS_URI": URI}, program=program)
+                                    env={"CYCLONEDDS_URI": URI})
         folder = Path(tmp) / "ftsensord"
         try:
             queue: mp.Queue = mp.Queue()
@@ -281,26 +269,21 @@ def main() -> int:
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--fifo", type=int, default=50, help="the daemon's --realtime (0: the normal priority)")
     parser.add_argument("--split", action="store_true", help="the bridge inside the benchmark, its hops timed")
-    parser.add_argument("--in-daemon", action="store_true",
-                        help="the bridge process against the bridge as a thread of the daemon (a daemon a segment)")
     parser.add_argument("--in-loop", action="store_true",
                         help="no DDS, the bridge process and the loop's own DDS writes (a daemon a segment)")
-    parser.add_argument("--each-send", action="store_true",
-                        help="no DDS, in-loop, and in-loop writing each stream after its own send (a daemon a segment)")
     parser.add_argument("--alone", action="store_true",
                         help="in-loop, one subscriber process a segment: ZeroMQ, DDS best effort, DDS reliable")
     args = parser.parse_args()
-    variants = (["bridge-rt", "in-daemon"] if args.in_daemon else ["none", "split", "split-rt"] if args.split
-                else ["none", "bridge-rt", "in-loop"] if args.in_loop else ["none", "in-loop", "each-send"]
-                if args.each_send else list(ALONE) if args.alone else ["none", "zmq3", "bridge", "bridge-rt"])
-    if not args.fifo and (args.in_daemon or args.in_loop):
+    variants = (["none", "split", "split-rt"] if args.split else ["none", "bridge-rt", "in-loop"] if args.in_loop
+                else list(ALONE) if args.alone else ["none", "zmq3", "bridge", "bridge-rt"])
+    if not args.fifo and args.in_loop:
         # at the normal priority, as `run` starts the bridge then
         variants = [v.replace("bridge-rt", "bridge") for v in variants]
     elif not args.fifo:
         variants = [v for v in variants if not v.endswith("-rt")]  # `run` gives no FIFO to the bridge then
     print(f"load {os.getloadavg()[0]:.2f} at start; {args.rounds} rounds of {', '.join(variants)}, "
           f"{args.seconds:g} s each; daemon --realtime {args.fifo}; {TOPIC} at 100 Hz")
-    if args.in_daemon or args.in_loop or args.each_send or args.alone:
+    if args.in_loop or args.alone:
         segments = [daemon_segment(v, args.seconds, args.fifo, ALONE[v] if args.alone else None)
                     for _ in range(args.rounds) for v in variants]
         receipts: dict[str, list] = {}
