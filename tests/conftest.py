@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import importlib.util
+import subprocess
 import sys
 import threading
 import weakref
@@ -104,23 +104,18 @@ def chip(bus: SimulatedBus) -> MLX90393:
     return drv
 
 
-BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
+ROOT = Path(__file__).resolve().parent.parent
 
 
-def benchmark(name: str) -> Any:
-    """A script of benchmarks/ as a module, loaded once and registered under its name: its
-    dataclasses look their module up there, and a test that loads it again gets the same
-    module, not a second copy."""
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, BENCHMARKS / f"{name}.py")
-        assert spec is not None and spec.loader is not None
-        sys.modules[name] = importlib.util.module_from_spec(spec)
-        try:
-            spec.loader.exec_module(sys.modules[name])
-        except BaseException:
-            del sys.modules[name]
-            raise
-    return sys.modules[name]
+@pytest.fixture(scope="session")
+def regenerated(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The folder `python -m benchmarks regenerate --quick` wrote every generated page into:
+    run once for the session, the tests of each page read it (the structure, not the figures)."""
+    out = tmp_path_factory.mktemp("results")
+    done = subprocess.run([sys.executable, "-m", "benchmarks", "regenerate", "--quick", "--out", str(out)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=900)
+    assert done.returncode == 0, done.stdout + done.stderr
+    return out
 
 
 # `start_daemon`: `ftsensord run --config CONFIG` in a subprocess, its runtime folder in

@@ -9,7 +9,7 @@ Steps (``do``): ``graph`` (node, topic and publisher listing), ``read`` (subscri
 (QuaternionStamped, Imu, Empty), ``tare-topic`` (Empty, then /diagnostics until every sensor
 says it is tared), ``trigger`` (std_srvs/srv/Trigger called by a service client), ``spin``
 (stay on the graph, subscribed, for ``seconds``), ``stamps`` (each message's stamp and
-arrival, for benchmarks/ros2_latency.py).
+arrival, for benchmarks/performance/ros2_latency.py).
 """
 
 from __future__ import annotations

@@ -1,18 +1,13 @@
-"""benchmarks/accuracy.py --quick: the structure of what it writes (sections, sensors,
+"""benchmarks/accuracy/accuracy.py --quick: the structure of what it writes (sections, sensors,
 counts of loads and fall-backs), not its figures, which docs/results/accuracy-figures.md holds."""
 
 from __future__ import annotations
 
 import re
 
-from .conftest import benchmark
 
-
-def test_the_quick_accuracy_benchmark_reports_every_section_and_count(tmp_path):
-    bench = benchmark("accuracy")
-    out = tmp_path / "figures.md"
-    assert bench.main(["--quick", "--out", str(out)]) == 0
-    text = out.read_text()
+def test_the_quick_accuracy_benchmark_reports_every_section_and_count(regenerated):
+    text = (regenerated / "accuracy-figures.md").read_text()
     for section in ("## As-built sensors in the Earth's field", "## Ablation (seed 1): which effect costs what"):
         assert section in text
     assert "10 loads of 100 g (100 readings" in text and "10 large loads" in text and "Sensors: seeds 1, 2." in text

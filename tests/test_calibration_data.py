@@ -1,5 +1,5 @@
 """Calibration says what is wrong with its data: each pathological kind of
-benchmarks/pathological.py, made from a real (small) dataset of the project's own
+benchmarks/robustness/pathological.py, made from a real (small) dataset of the project's own
 procedure, is refused or warned with its cause named; a fit kept after leaving poses out
 is the fit of the poses kept; and no option writes a spoilt dataset's calibration silently."""
 
@@ -18,9 +18,7 @@ from ftsensord.cli import main
 from ftsensord.errors import CalibrationError, ConfigError
 from ftsensord.sim.loads import paper_plan
 
-from .conftest import benchmark
-
-bench = benchmark("pathological")
+from benchmarks.robustness import pathological as bench
 
 
 @pytest.fixture(scope="module")
@@ -156,9 +154,11 @@ def test_the_quick_benchmark_refuses_or_warns_every_kind(capsys):
 
 def test_an_as_built_part_near_the_tolerances_edge_is_not_refused_as_misordered(tmp_path):
     """The default scene's part of seed 13 leaves 43 % of a chip's response to the nominal
-    model: an as-built part (benchmarks/chip_order.py: 0.11-0.43 over 60 parts), which the
+    model: an as-built part (benchmarks/accuracy/chip_order.py: 0.11-0.43 over 60 parts), which the
     chip-order check refused as "a chip mounted turned" while its limit was 40 %."""
     from ftsensord.calibration.screening import MISMATCH_LIMIT
 
-    share = benchmark("chip_order").mismatch(13, tmp_path)
+    from benchmarks.accuracy import chip_order
+
+    share = chip_order.mismatch(13, tmp_path)
     assert 0.4 < share < MISMATCH_LIMIT, share

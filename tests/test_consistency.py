@@ -38,7 +38,7 @@ SIGMA_T = channel_sigma_t(SETTINGS, 8)
 #: The moving load of the fault tests (N, Nm; periods s): about a twelfth of the calibration's
 #: largest load, where K A's own error stays within 1 sigma on the default scene's as-built
 #: sensor in the room (twice as much reached 1.9 sigma: with the noise, 5.1 sigma fault-free
-#: in 3000 draws; benchmarks/faults_truth.py).
+#: in 3000 draws; benchmarks/accuracy/faults_truth.py).
 AMPLITUDE = np.array([0.175, 0.15, 0.15, 0.01, 0.014, 0.01])
 PERIOD_S = np.array([4.0, 5.3, 3.1, 4.7, 6.1, 3.7])
 

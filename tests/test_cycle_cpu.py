@@ -161,8 +161,8 @@ def test_daemon_knows_a_real_board_at_start(tmp_path, caplog):
 
 
 def test_cycle_cpu_quick_mode_reports_the_ratio():
-    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "cycle_cpu.py"), "--quick", "--json"],
-                         capture_output=True, text=True, timeout=300, check=True).stdout
+    out = subprocess.run([sys.executable, "-m", "benchmarks.performance.cycle_cpu", "--quick", "--json"],
+                         capture_output=True, text=True, timeout=300, check=True, cwd=ROOT).stdout
     r = json.loads(out)
     for key in ("reference_us", "daemon_linear_us", "bus_us", "daemon_own_us", "daemon_nonlinear_us",
                 "nonlinear_per_sensor_us", "estimate_per_sensor_us", "pi_factor", "pi_estimate_linear_us",
@@ -214,8 +214,8 @@ def test_one_plan_reads_every_order_and_every_subset(adapter):
 
 
 def test_nonlinear_cpu_quick_mode_reports_moving_and_rest():
-    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "nonlinear_cpu.py"), "--quick", "--json"],
-                         capture_output=True, text=True, timeout=300, check=True).stdout
+    out = subprocess.run([sys.executable, "-m", "benchmarks.performance.nonlinear_cpu", "--quick", "--json"],
+                         capture_output=True, text=True, timeout=300, check=True, cwd=ROOT).stdout
     r = json.loads(out)
     assert r["samples"] == round(2 * 100 / 1.3) and r["fraction"] == 0.4 and r["hz"] == 1.3
     for name in ("moving", "rest"):
@@ -230,8 +230,8 @@ def test_nonlinear_cpu_quick_mode_reports_moving_and_rest():
 def test_board_mode_adds_bus_and_scaled_cpu_per_configuration(tmp_path):
     from ftsensord.acquire.bound import cycle_bound
     path = tmp_path / "board.json"
-    subprocess.run([sys.executable, str(ROOT / "benchmarks" / "board.py"), "--quick", "--pi-factor", "5",
-                    "--out", str(path)], capture_output=True, text=True, timeout=300, check=True)
+    subprocess.run([sys.executable, "-m", "benchmarks.performance.board", "--quick", "--pi-factor", "5",
+                    "--out", str(path)], capture_output=True, text=True, timeout=300, check=True, cwd=ROOT)
     r = json.loads(path.read_text())
     assert r["facts"]["python"] and r["pi_factor"] == 5 and "doctor" not in r
     own = r["cycle_cpu"]["daemon_own_us"]

@@ -16,12 +16,12 @@ from ftsensord.calibration.procedure import calibrate, simulate_dataset, summary
 from ftsensord.errors import ConfigError
 from ftsensord.sim.loads import CHECK_ARM, CHECK_MASSES
 
-from .conftest import benchmark
-
 
 @pytest.fixture(scope="module")
 def rows():
-    return {r.kind: r for r in benchmark("large_loads").quick()}
+    from benchmarks.accuracy import large_loads
+
+    return {r.kind: r for r in large_loads.quick()}
 
 
 def test_a_part_as_drawn_is_not_warned_and_its_large_load_error_is_reported(rows):

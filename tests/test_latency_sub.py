@@ -1,4 +1,4 @@
-"""benchmarks/latency_sub.c, the C subscribers of benchmarks/latency.py: built as
+"""benchmarks/performance/latency_sub.c, the C subscribers of benchmarks/performance/latency.py: built as
 clients/c/build.py builds the example, fed known frames over a real ipc socket, it must
 report every sample after its settle time once per subscriber, with the sample's own
 sequence number and its age at receipt."""
@@ -29,7 +29,7 @@ def program(tmp_path_factory):
     except LookupError as exc:
         pytest.skip(str(exc))
     out = tmp_path_factory.mktemp("latency_sub") / "latency_sub"
-    build.build([ROOT / "benchmarks" / "latency_sub.c"], out, "c", libzmq)
+    build.build([ROOT / "benchmarks" / "performance" / "latency_sub.c"], out, "c", libzmq)
     return out
 
 

@@ -1,4 +1,4 @@
-"""benchmarks/motor.py --quick: what it writes (every scenario for the three stray_field
+"""benchmarks/accuracy/motor.py --quick: what it writes (every scenario for the three stray_field
 settings, the price table) and two figures that could come out wrong: the motor's false
 wrench falls with distance, and estimating the gradient leaves K A's noise gain alone."""
 
@@ -6,15 +6,11 @@ from __future__ import annotations
 
 import re
 
-from .conftest import benchmark
+from benchmarks.accuracy import motor as bench
 
 
-def test_the_quick_motor_benchmark_reports_every_scenario_and_its_price(tmp_path):
-    benchmark("accuracy")  # motor.py takes the sweep and Table II from its sibling
-    bench = benchmark("motor")
-    out = tmp_path / "figures.md"
-    assert bench.main(["--quick", "--out", str(out)]) == 0
-    text = out.read_text()
+def test_the_quick_motor_benchmark_reports_every_scenario_and_its_price(regenerated):
+    text = (regenerated / "motor-figures.md").read_text()
     number = r"([\d.e+-]+)"
     rows = {}
     for stray in ("uniform", "gradient"):
@@ -52,8 +48,6 @@ def test_the_daemon_takes_a_learnt_motor_out_through_the_orientation_stream(tmp_
 
     from ftsensord.config.file import builtin_path
 
-    benchmark("accuracy")
-    bench = benchmark("motor")
     args = argparse.Namespace(orientations=20, hold=1.0, loads=4)
     r = bench.run(1, builtin_path("sim-sensor1.json"), "linear", "world", "on after tare", 0.15, tmp_path, args)
     assert r.tare == "ok"

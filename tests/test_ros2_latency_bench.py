@@ -1,4 +1,4 @@
-"""benchmarks/ros2_latency.py's ``--alone`` without timing anything: which subscriber each
+"""benchmarks/performance/ros2_latency.py's ``--alone`` without timing anything: which subscriber each
 variant's segment runs, the configuration its daemon gets, and how a DDS variant's p99 is
 set against ZeroMQ's, round by round (its figures live in docs/results/performance.md)."""
 
@@ -10,9 +10,8 @@ import pytest
 
 from ftsensord.config.file import load_config
 
-from .conftest import benchmark
 
-bench = benchmark("ros2_latency")
+from benchmarks.performance import ros2_latency as bench
 
 
 def test_alone_runs_one_subscriber_a_segment_the_one_its_name_says():

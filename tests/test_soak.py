@@ -9,11 +9,10 @@ import numpy as np
 from ftsensord.config.file import builtin_path, load_config
 from ftsensord.sim import load_scene
 
-from .conftest import benchmark
 
 
 def test_quick_soak_survives_flags_and_lets_no_wrong_sample_through():
-    soak = benchmark("soak")
+    from benchmarks.robustness import soak
     report = soak.soak(0.25, seed=3, per_minute=30)
     assert report["alive_at_end"] and report["exit_code"] == 0
     assert report["faults_injected"] >= 3
@@ -41,7 +40,7 @@ def test_quick_soak_survives_flags_and_lets_no_wrong_sample_through():
 def test_a_wrong_sample_is_told_from_noise_by_its_chips(tmp_path):
     """soak.wrong_samples on made-up streams: a wrench beyond 5 sigma whose chips all read
     within their noise is the noise's; one with a chip off, or with no flux to tell, is wrong."""
-    soak = benchmark("soak")
+    from benchmarks.robustness import soak
     config = load_config(builtin_path("sim.toml"))
     (tmp_path / "scene.toml").write_text(soak.scene_text([]))
     rng = np.random.default_rng(0)

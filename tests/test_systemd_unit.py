@@ -1,4 +1,4 @@
-"""The shipped unit under this machine's own systemd (benchmarks/unit_systemd.py): installed
+"""The shipped unit under this machine's own systemd (benchmarks/robustness/unit_systemd.py): installed
 as docs/guide/service.md says, started, asked for its status by a member of its group,
 reloaded and stopped; and started on a host whose kernel schedules real-time tasks by
 cgroup, where `CPUSchedulingPolicy=fifo` in the unit made systemd refuse to start it
@@ -13,9 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from .conftest import benchmark
 
-units = benchmark("unit_systemd")
+from benchmarks.robustness import unit_systemd as units
 CONFIG = units.REPO / "ftsensord" / "data" / "sim.toml"
 WORK = units.REPO / "build" / "test-systemd-unit"  # the boot script and systemd's own log
 

@@ -15,7 +15,6 @@ from ftsensord.calibration.thermal import CalibrationTemperature, ThermalLaws
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.processing.temperature import CALIBRATED_MARGIN_K, LAWS_MARGIN_K, ThermalCompensation
 
-from .conftest import benchmark
 
 
 def test_the_laws_and_drift_undo_what_they_do():
@@ -78,13 +77,13 @@ def test_the_span_edge():
 
 
 def test_a_calibration_across_temperatures_measures_each_channels_drift(tmp_path):
-    """benchmarks/warm.py's quick run, the drift variant: a part calibrated while its
+    """benchmarks/accuracy/warm.py's quick run, the drift variant: a part calibrated while its
     temperature cycles 24-36 degC records its span and each channel's drift (the file and
     the dataset keep them); warmed 10 K after its tare it reads zero at rest within 0.05 N
     and 2 mNm with every sample unflagged, the 100 g validation within Table II, and at
     +15 K every sample is flagged `temperature`. The laws alone do not hold: their span
     flags most of the warming."""
-    warm = benchmark("warm")
+    from benchmarks.accuracy import warm
     cal_path = warm.calibrate_part(31, tmp_path, True, quick=True)
     cal = Calibration.load(cal_path)
     t = cal.temperature

@@ -5,32 +5,26 @@ from __future__ import annotations
 
 import math
 import re
-import subprocess
-import sys
 
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.config.file import builtin_path, load_config
 from ftsensord.sim import two_sensor_scene
 
-from .conftest import BENCHMARKS, benchmark
-
-SCRIPT = BENCHMARKS / "tradeoff.py"
+from benchmarks.accuracy import tradeoff as bench
 
 
-def test_quick_tradeoff_produces_every_section():
-    out = subprocess.run([sys.executable, str(SCRIPT), "--quick"], capture_output=True, text=True, timeout=300)
-    assert out.returncode == 0, out.stderr
-    text = out.stdout
+def test_quick_tradeoff_produces_every_section(regenerated):
+    text = (regenerated / "tradeoff.md").read_text()
     for heading in ("## Rate", "## Accuracy", "## The Pareto front", "## Cost and latency"):
         assert heading in text
     # Bounds as computed for the default (Pi 4) adapter: naive 14.5, overlapped 116.2, burst 176.4 Hz.
     assert re.search(r"\| 1, 2 \| 835 \| 14\.5 / [\d.]+ \| 116\.2 / [\d.]+ \| .* \| 176\.4 / [\d.]+ \|", text)
     assert text.count("| nonlinear |") == 4 and text.count("| linear |") == 4
-    assert "Recommended for 100 Hz" in text or "reaches 100 Hz" not in text
+    # A verdict either way: which one is the measured rates' (a loaded host's may reach none).
+    assert ("**Recommended for 100 Hz with 16 chips**" in text) != ("No setting measured reaches 100 Hz" in text)
 
 
 def test_pareto_keeps_only_points_nothing_beats():
-    bench = benchmark("tradeoff")
     points = [(100, 0.5, "a"), (50, 0.2, "b"), (100, 0.6, "beaten by a"), (40, 0.3, "beaten by b"), (200, 1, "c")]
     assert sorted(p[2] for p in bench.pareto(points)) == ["a", "b", "c"]
 
@@ -46,7 +40,6 @@ def test_a_bus_without_truth_gives_noise_and_no_rmse(tmp_path):
         f'version = 1\nbus = "sim:scene.toml"\n[[sensor]]\nname = "s"\naddresses = {list(range(0x0C, 0x14))}\n'
         f'calibration = "{builtin_path("sim-sensor1.json")}"\n')
     config = load_config(tmp_path / "cfg.toml")
-    bench = benchmark("tradeoff")
     rows = bench.accuracy(config, mlx.Settings(), 1, 2)
     assert [r.estimator for r in rows] == ["linear", "nonlinear"]
     with_truth = bench.accuracy(load_config(builtin_path("sim.toml")), mlx.Settings(), 1, 1)

@@ -1,4 +1,4 @@
-"""The daemon under its own systemd unit's restrictions (benchmarks/unit_sandbox.py): the
+"""The daemon under its own systemd unit's restrictions (benchmarks/robustness/unit_sandbox.py): the
 system call filter installed with seccomp before exec, the unit's limits, and the real-time
 priority its ExecStart= asks for. `systemd-analyze verify` and `security` (tests/test_service.py) read the unit; only
 running the program under it shows whether the program survives it: libzmq's threads call
@@ -17,10 +17,12 @@ import pytest
 
 from ftsensord.client import ControlClient, Subscriber
 
-from .conftest import benchmark, start_daemon
+from benchmarks.robustness import hostile
+from benchmarks.robustness import unit_sandbox as sandbox
+
+from .conftest import start_daemon
 from .test_daemon import write_config
 
-sandbox = benchmark("unit_sandbox")
 UNIT = Path(__file__).resolve().parent.parent / "systemd" / "ftsensord.service"
 
 pytestmark = pytest.mark.skipif(not sandbox.seccomp_available() and not os.environ.get("CI"),
@@ -117,9 +119,6 @@ def test_the_groups_copy_matches_this_hosts_systemd():
     live = sandbox.syscall_groups()
     for group in ("@system-service", "@privileged", "@resources", "@default"):
         assert sandbox.expand([group], copy) == sandbox.expand([group], live), group
-
-
-hostile = benchmark("hostile")
 
 
 @pytest.fixture

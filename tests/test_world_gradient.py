@@ -29,7 +29,7 @@ from .conftest import assert_names_file_and_key
 SIGMA_T = channel_sigma_t(mlx.Settings(), 8)
 #: Issue 23's figure: the median of each hold within 0.05 N and 2 mNm (RMS over holds).
 TARGET = np.array([0.05, 0.05, 0.05, 2e-3, 2e-3, 2e-3])
-#: Samples of a hold's start left out, as benchmarks/motor.py leaves out its first 50 ms:
+#: Samples of a hold's start left out, as benchmarks/accuracy/motor.py leaves out its first 50 ms:
 #: the turn's end (here also the motor's switching on, at the first hold).
 SETTLE = 5
 

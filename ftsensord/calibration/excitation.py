@@ -25,7 +25,7 @@ PARTNER_SHARE = 0.1
 #: Condition number above which a plan is warned of (and a K that is not positive
 #: definite is explained by it): K's error along the weakest direction grows with it.
 #: The paper's six-axis plan stands at 85-90 (its forces reach 4 % of their range, its
-#: torques all of theirs: benchmarks/pathological.py's sources); above 150 a direction
+#: torques all of theirs: benchmarks/robustness/pathological.py's sources); above 150 a direction
 #: is excited little more than half as well as that plan's weakest.
 CONDITION_WARN = 150.0
 #: A component of a weak direction is named when it is at least this share of it:

@@ -28,7 +28,7 @@ from ftsensord.calibration.report import format_rmse
 #: 9 as-built parts leave 0.82-1.47 uT (the dipole-and-octupole model's own error at 10-40
 #: N) and the same with magnets glued 2-7 deg tilted 2.55-5.31 uT: 1.35x to spare below,
 #: 1.29x above; at 25 readings (limit 2.81 uT) 2.06-2.19 against 4.2-4.6 uT
-#: (`python benchmarks/large_loads.py`, docs/guide/calibration.md "Check poses").
+#: (`python -m benchmarks.accuracy.large_loads`, docs/guide/calibration.md "Check poses").
 CHECK_RESIDUAL_T = 1.6e-6
 #: The nonlinear force error (RMS of |F error| over RMS of |F|) above which the silicone is
 #: not the model's: the same parts leave 0.6-1.8 % (tilted 1.6-2.0 %), silicone 30 % stiffer

@@ -67,7 +67,7 @@ MIN_DAMPING = 1e-6
 #: A kept fit whose residual is above this many times the readings' noise (a mean's
 #: standard error) departs from the model in a way its parameters cannot absorb: the
 #: default scene's as-built sensor1 leaves 1.2x (0.36 against 0.29 uT); silicone 30 %
-#: stiffer at range leaves 2.5x (benchmarks/pathological.py).
+#: stiffer at range leaves 2.5x (benchmarks/robustness/pathological.py).
 DEPARTURE_NOISE_FACTOR = 2.0
 #: Its error on the heaviest poses growing more than this many times its error on the
 #: lightest names the silicone's stiffening: the model's compliance is linear, so its
@@ -261,7 +261,7 @@ def fit_nonlinear(dataset: Dataset, *, progress: Callable[[FitProgress], None] |
     fit with a magnet beyond `MAGNET_SHIFT_LIMIT_M` of its drawn place or a residual
     far above the noise, unless ``allow_poor_fit``: then it is kept, the reasons in
     ``warnings``. Refuses a K not positive definite. ``octupole=False`` fits the dipole
-    model alone (the earlier one: benchmarks/accuracy.py measures what the octupole buys).
+    model alone (the earlier one: benchmarks/accuracy/accuracy.py measures what the octupole buys).
     """
     rows = (dataset.split == "fit") & ~dataset.saturated.any(axis=1)
     flux, wrench = dataset.flux_t[rows], dataset.wrench[rows]

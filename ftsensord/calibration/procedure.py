@@ -169,7 +169,7 @@ def _after_effect(raw: Dataset, exc: RoomFieldError) -> CalibrationError:
         return CalibrationError(
             f"{exc}. Or, as the no-load poses were recorded {wait}, a silicone's after-effect: this dataset has no "
             "step-and-hold segment to tell its creep by. Record the no-load poses first, before any load, and a "
-            "step-and-hold segment (docs/calibration.md)")
+            "step-and-hold segment (docs/guide/calibration.md)")
     try:  # a first fit that takes the room's directions from the geometry: the series from the hold
         dataset, _, first = thermal_fit(raw, partial(fit, room_field="geometry"))
     except CalibrationError:
@@ -200,7 +200,7 @@ def _after_effect(raw: Dataset, exc: RoomFieldError) -> CalibrationError:
         f"{[[round(g, 3), round(t, 3)] for g, t in relaxation.pairs()]}, fraction and s) taken out, in 3, as the "
         f"room's uniform field does. This silicone needs {need:.0f} s after its largest load comes off before what "
         f"it carries is under a no-load pose's noise: record the no-load poses first, before any load touches the "
-        f"sensor, or wait that long after the last load comes off (docs/calibration.md)")
+        f"sensor, or wait that long after the last load comes off (docs/guide/calibration.md)")
 
 
 def summary(cal: Calibration) -> str:

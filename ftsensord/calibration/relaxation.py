@@ -95,7 +95,7 @@ def settle_s(relaxation: Relaxation, fraction: float) -> float:
     """How long (s) after a load long held comes off its after-effect, the creep's share still
     carried, sum c_k exp(-t / rho_k), takes to fall to ``fraction`` of the load: 0 when it
     starts there. What a robot waits after a load comes off before a no-load pose
-    (docs/calibration.md): the after-effect of a load held shorter is smaller."""
+    (docs/guide/calibration.md): the after-effect of a load held shorter is smaller."""
     c, rho = relaxation.creep
     left = lambda t: float(np.sum(c * np.exp(-t / rho)))  # noqa: E731
     if left(0.0) <= fraction:

@@ -32,7 +32,7 @@ COMMANDS = ("status", "tare", "untare", "reload", "set")
 #: Deepest nesting in a request: the deepest valid request is a flat object (depth 1).
 MAX_REQUEST_DEPTH = 8
 #: Requests answered per cycle at most, all clients together: 32 status replies cost
-#: about 0.3 ms from the per-cycle cache (benchmarks/flood.py), a few % of a 100 Hz period.
+#: about 0.3 ms from the per-cycle cache (benchmarks/robustness/flood.py), a few % of a 100 Hz period.
 MAX_PER_CYCLE = 32
 #: Share of the period that control work may take per cycle (the rest is the loop's):
 #: at 100 Hz, 2.5 ms, ten uncached status replies (0.28 ms each, measured).

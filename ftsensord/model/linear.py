@@ -24,7 +24,7 @@ from ftsensord.model.registration import Registration, register
 SENSOR_RANGE = np.array([50.0, 50.0, 20.0, 0.2, 0.2, 0.2])
 #: A linear estimate is flagged `extrapolated` past this multiple of the calibration's
 #: largest load on an axis: up to 1.5x no axis's error relative to the load has grown
-#: 1.5-fold, by 3x one has nearly tripled (benchmarks/extrapolation.py, docs/guide/calibration.md).
+#: 1.5-fold, by 3x one has nearly tripled (benchmarks/accuracy/extrapolation.py, docs/guide/calibration.md).
 EXTRAPOLATION_MARGIN = 1.5
 @dataclass(frozen=True)
 class PositionMap:

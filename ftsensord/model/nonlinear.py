@@ -53,7 +53,7 @@ CONTRACTION = 0.1
 #: sample 10 ms after the last moves the pose by about 6 um and 0.7 mrad (noise, at rest):
 #: its fit needs no new Jacobian. A moving load's warm start (`_ahead`) lands 22 um and
 #: 1.5 mrad from the fit's answer at p50, 35 um and 2.5 mrad at p90 (1.3 Hz, 40 % of range,
-#: benchmarks/nonlinear_cpu.py): one new Jacobian a sample, 1.1 on average.
+#: benchmarks/performance/nonlinear_cpu.py): one new Jacobian a sample, 1.1 on average.
 JACOBIAN_REUSE_M = 40e-6
 JACOBIAN_REUSE_TRACE = 1 + 2 * math.cos(4e-3)  # tr(R_J^T R) = 1 + 2 cos(angle): the 4 mrad test
 JACOBIAN_REUSE_T = 10e-6

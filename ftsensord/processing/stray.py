@@ -60,7 +60,7 @@ CORRECT_WITHIN = np.array([0.0125, 0.0125, 0.0125, 0.5e-3, 0.5e-3, 0.5e-3])
 #: would make a false wrench beyond `ALARM_WRENCH` (N, Nm), 1.5 times issue 23's figure: at
 #: the figure itself a 2 A m^2 motor at 25 cm, whose false wrench is within it (1.3 mNm RMS
 #: uncorrected), raised it on two parts of three for the 7 s learning took; at 1.5 times it
-#: rises at 15 cm (8.7 mNm), not at 25 (benchmarks/motor.py; docs/results/accuracy.md).
+#: rises at 15 cm (8.7 mNm), not at 25 (benchmarks/accuracy/motor.py; docs/results/accuracy.md).
 CHANGE_ODDS = 1e-6
 CHANGE_SAMPLES = 10
 #: A tare whose in-plane reading is further than this from the calibration's (T) was taken in

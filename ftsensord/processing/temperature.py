@@ -24,10 +24,10 @@ from ftsensord.calibration.thermal import CalibrationTemperature, ThermalLaws
 
 #: Beyond the temperatures a calibration measured the drift at, a linear drift is
 #: extrapolated; 2 K past them kept a sensor at rest within 0.05 N on the as-built parts of
-#: benchmarks/warm.py (docs/results/accuracy.md, "Warmth").
+#: benchmarks/accuracy/warm.py (docs/results/accuracy.md, "Warmth").
 CALIBRATED_MARGIN_K = 2.0
 #: With the laws alone, each chip's own offset drift (up to 2.5 uT/K on X and Y within the
-#: datasheet's bound) stays: on benchmarks/warm.py's parts, 0.05 N at rest is reached at
+#: datasheet's bound) stays: on benchmarks/accuracy/warm.py's parts, 0.05 N at rest is reached at
 #: about 2 K from the reference (docs/results/accuracy.md, "Warmth").
 LAWS_MARGIN_K = 1.5
 

@@ -48,7 +48,7 @@ STAMP_AT = 4  # header.stamp: right after CDR's 4-byte encapsulation
 _STATUS_BODY = len(status_body(0, 0, 0))
 #: /diagnostics' statuses encoded a cycle: 7 of the packaged configuration's 19 (the daemon,
 #: 2 sensors, 16 chips) are about 0.6M instructions, less than the cycle that makes the
-#: statuses (0.94M; benchmarks/ros2_instructions.py), where all 19 at once were 2.2M.
+#: statuses (0.94M; benchmarks/performance/ros2_instructions.py), where all 19 at once were 2.2M.
 DIAGNOSTICS_A_CYCLE = 7
 
 

@@ -264,7 +264,7 @@ CHECK_MASSES = (1.0, 2.0, 4.0)
 CHECK_ARM = (0.0, 0.0, 0.004)
 
 
-#: The step-and-hold segment a calibration run ends with (docs/calibration.md): each of its
+#: The step-and-hold segment a calibration run ends with (docs/guide/calibration.md): each of its
 #: two poses held this long (s), the chips read every `HOLD_PERIOD_S` (s). 60 s: the
 #: identification searches retardation times up to the hold, and the default series' slower
 #: one is 32 s; 10 ms: the daemon's own period, 2.6x fewer readings than the bus's fastest.
@@ -316,5 +316,5 @@ def paper_plan(plan: str = "six-axis", n_fit: int = 193, n_validation: int = 60,
         add(d, CHECK_MASSES[k % len(CHECK_MASSES)], np.array(CHECK_ARM), "check")
     # The robot's order: the no-load poses first, before any mass touches the rod (the same
     # orientations, drawn above): a silicone that creeps carries a load's after-effect into
-    # the poses after it for minutes, where the room check would see it (docs/calibration.md).
+    # the poses after it for minutes, where the room check would see it (docs/guide/calibration.md).
     return [p for p in poses if p[1] == "no-load"] + [p for p in poses if p[1] != "no-load"]

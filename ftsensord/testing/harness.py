@@ -44,7 +44,7 @@ def start_daemon(config: Path, folder: Path, *, fifo: int = 0, nice: int = 0, ar
     """`ftsensord run --config CONFIG [ARGS]` with its runtime folder in ``folder``, SCHED_FIFO
     at ``fifo`` (0: not; as `--realtime` asks it, from the start) or at ``nice``;
     ``env``: more variables; ``program``: what Python runs (a script that wraps ftsensord's
-    command line, benchmarks/ros2_in_daemon.py); ``popen``: the output's routing (subprocess.Popen's keywords,
+    command line); ``popen``: the output's routing (subprocess.Popen's keywords,
     default: discarded). Returned with its notify socket (the caller's from then on:
     WATCHDOG=1 pings arrive there) once it said READY=1; `stop` ends both. The tests start
     the daemon with this too (tests/conftest.py)."""

@@ -1,0 +1,38 @@
+"""`python -m benchmarks regenerate --quick --out DIR`: every generated page of docs/results/
+written into DIR, none empty, docs/results/ left alone; and docs/results/ holds the pages of
+the generators and nothing else, so that the command regenerates every one of them."""
+
+from __future__ import annotations
+
+import pytest
+
+from benchmarks.__main__ import GENERATORS, main
+
+from .conftest import ROOT
+
+RESULTS = ROOT / "docs" / "results"
+
+
+def test_the_quick_mode_writes_every_generated_page(regenerated):
+    pages = [page for g in GENERATORS for page in g.pages]
+    assert len(pages) == len(set(pages))  # no page written by two generators
+    for page in pages:
+        path = regenerated / page
+        assert path.is_file() and path.stat().st_size > 0, page
+        if page.endswith(".png"):
+            assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", page
+        else:
+            assert path.read_text().startswith("# "), page  # a page with its title
+    assert sorted(p.name for p in regenerated.iterdir()) == sorted(pages)  # and nothing beside them
+
+
+def test_docs_results_holds_exactly_the_generated_pages():
+    pages = {page for g in GENERATORS for page in g.pages}
+    assert {p.name for p in RESULTS.iterdir()} == pages
+
+
+def test_the_quick_mode_asks_for_a_folder_of_its_own(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["regenerate", "--quick"])
+    assert exc.value.code == 2
+    assert "--quick needs --out" in capsys.readouterr().err
