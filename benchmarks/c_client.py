@@ -7,7 +7,7 @@ duration per tick (p50, p99, max; all ticks, and the ticks that got a new sample
 decode and copy it), the two clock reads' own cost, and the age of each new sample when
 the loop first saw it. Run:
 
-    python benchmarks/c_client.py --ticks 10000     # the docs' figures (docs/clients.md)
+    python benchmarks/c_client.py --ticks 10000     # the docs' figures (docs/guide/clients.md)
 """
 
 from __future__ import annotations
