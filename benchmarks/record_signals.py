@@ -1,4 +1,4 @@
-"""`ftsensord record` stopped by each signal: received samples lost. Figures in docs/reliability.md.
+"""`ftsensord record` stopped by each signal: received samples lost. Figures in docs/results/reliability.md.
 
     python benchmarks/record_signals.py --runs 2 --seconds 3
 

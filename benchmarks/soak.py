@@ -1,7 +1,7 @@
 """Soak: the daemon at 100 Hz with 16 simulated chips under random faults, watched from outside.
 
 Writes a scene whose `[[fault]]` list is a random schedule (every kind but "slow": a bus
-slower than the rate needs is refused by design, see docs/reliability.md), runs
+slower than the rate needs is refused by design, see docs/design/reliability.md), runs
 `ftsensord run` on it with real 400 kHz wire time, subscribes to every wrench stream, and
 reports: faults injected; samples flagged; sequence gaps and the longest silence a
 subscriber saw; each silence over 1.5 periods and each skipped deadline, with the fault
