@@ -173,7 +173,7 @@ def test_a_missing_chip_degrades_its_sensor_only_and_recovers_without_restart(ri
     for s in out["wrench/sensor1"]:
         assert s.flags & wire.FLAG_CHIP_MISSING and s.flags & wire.FLAG_DEGRADED
         assert not s.flags & wire.FLAG_INVALID
-        # Estimated from the seven chips left (docs/design/reliability.md: within ~20 % of the full
+        # Estimated from the seven chips left (docs/results/reliability.md: within ~20 % of the full
         # set's error).
         assert np.allclose(s.values[:3], LOAD[:3], atol=0.4) and np.allclose(s.values[3:], LOAD[3:], atol=0.01)
     assert all(np.isnan(s.values[6:9]).all() for s in out["flux/sensor1"])

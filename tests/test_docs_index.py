@@ -13,29 +13,8 @@ ROOT = Path(__file__).resolve().parent.parent
 DOCS = ROOT / "docs"
 INDEX = DOCS / "index.md"
 
-#: The pages the benchmarks generate, whose home is docs/results/. While one still sits at
-#: its old place (docs/<name>, the benchmarks writing it there), a link to
-#: docs/results/<name> is taken to mean it, and its own links are read from results/.
-GENERATED = ("accuracy-figures.md", "motor-figures.md", "silicone-figures.md", "silicone.png",
-             "tradeoff.md", "tradeoff.png", "tradeoff-dynamic.md", "tradeoff-dynamic.png",
-             "field-model.png", "calibration-report.md", "calibration-report.png")
-
 LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)")
 FENCE = re.compile(r"^(```|~~~).*?^\1", re.DOTALL | re.MULTILINE)
-
-
-def where(path: Path) -> Path:
-    """The place a page is read as being at (a generated page not yet moved: results/)."""
-    if path.parent == DOCS and path.name in GENERATED:
-        return DOCS / "results" / path.name
-    return path
-
-
-def on_disk(path: Path) -> Path:
-    """The file a link's target is (a generated page not yet moved: its old place)."""
-    if not path.exists() and path.parent == DOCS / "results" and path.name in GENERATED:
-        return DOCS / path.name
-    return path
 
 
 def anchors(page: Path) -> set[str]:
@@ -62,7 +41,7 @@ def links(page: Path) -> list[tuple[str, Path | None, str]]:
             out.append((target, None, ""))
             continue
         name, _, fragment = target.partition("#")
-        path = page if not name else (where(page).parent / name).resolve()
+        path = page if not name else (page.parent / name).resolve()
         out.append((target, path, fragment))
     return out
 
@@ -76,7 +55,7 @@ def broken(page: Path) -> list[str]:
     for target, path, fragment in links(page):
         if path is None:
             continue
-        real = on_disk(path)
+        real = path
         if not real.exists():
             bad.append(f"{target} (no {path.relative_to(ROOT) if path.is_relative_to(ROOT) else path})")
         elif fragment and real.suffix == ".md" and fragment not in anchors(real):
@@ -93,7 +72,7 @@ def reachable(start: Path) -> set[Path]:
         seen.add(page)
         for _, path, _ in links(page):
             if path is not None and path.suffix == ".md":
-                real = on_disk(path)
+                real = path
                 if real.exists() and real.is_relative_to(DOCS):
                     todo.append(real)
     return seen

@@ -212,7 +212,7 @@ def test_the_daemons_log_nothing_wrong_for_these_peers(ros2, daemons):
 
 
 def test_the_trigger_service_is_not_answered_to_an_rmw_fastrtps_client(ros2, tmp_path):
-    """What docs/guide/clients.md says: the service's request id travels in rmw_fastrtps's sample
+    """What docs/guide/ros2.md says: the service's request id travels in rmw_fastrtps's sample
     identities (RTPS inline QoS), which Cyclone DDS neither reads nor writes. rclpy sees the
     service (its topics match by name), its request is dropped, no tare happens; the Empty
     topic is the way to tare from the default rmw."""

@@ -1,6 +1,6 @@
 """The soak benchmark's quick mode: random scripted faults for 15 s against a real daemon.
 It checks survival, flagging and that no unflagged sample is wrong; the timing figures
-live in docs/design/reliability.md."""
+live in docs/results/reliability.md."""
 
 from __future__ import annotations
 
@@ -32,7 +32,7 @@ def test_quick_soak_survives_flags_and_lets_no_wrong_sample_through():
     # mostly right; a chip trusted too early after a reset, a wrong subset map or a filter
     # carrying a fault's values would show here.
     # A sample beyond 5 sigma whose chips all read within their noise is the noise's
-    # (docs/design/reliability.md, "Noise tails"); one with a chip beyond is wrong, never allowed.
+    # (docs/results/reliability.md, "Noise tails"); one with a chip beyond is wrong, never allowed.
     assert wrong["unflagged_wrong"] == 0, wrong["wrong"]
     assert wrong["made_by_noise"] + wrong["unflagged_wrong"] == wrong["unflagged_beyond_5_sigma"]
 

@@ -225,7 +225,7 @@ def test_subscribers_that_never_read_cost_little_and_no_sample_of_a_reader(sandb
     assert out["alive"] and out["publish_connections_refused"] == 0, out
     assert out["recorder_received"] > 0.9 * 5 * 100 * 5, out  # five streams at 100 Hz
     assert all(g <= out["missed_cycles"] for g in out["recorder_gaps"].values()), out
-    # 9.7 MiB measured for 127 (docs/design/reliability.md): 16 MiB is room for the allocator's
+    # 9.7 MiB measured for 127 (docs/results/reliability.md): 16 MiB is room for the allocator's
     # granularity, against 127 x 1000 messages of 150-250 bytes copied (about 25 MiB).
     assert out["rss_loaded_mib"] - out["rss_before_mib"] < 16, out
     assert out["rss_after_mib"] - out["rss_before_mib"] < 0.5 * (out["rss_loaded_mib"] - out["rss_before_mib"]), out

@@ -7,7 +7,7 @@ channels dominate (Mz: the chips' X channels) is a sum of a few discrete steps: 
 than a Gaussian's. This draws the readings of a scene's chips at rest (true field at t = 0,
 noise and LSB as the emulator makes them) and counts, per wrench stream, samples beyond
 ``--sigma`` on any axis, beside a Gaussian's count; ``--res`` redoes it at another RES
-(range and conversion time do not change with RES; docs/design/reliability.md, "Noise tails").
+(range and conversion time do not change with RES; docs/results/reliability.md, "Noise tails").
 
     python -m benchmarks.accuracy.noise_tails [--samples 2000000] [--res 3 2 1]
 """

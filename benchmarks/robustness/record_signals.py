@@ -1,4 +1,4 @@
-"""`ftsensord record` stopped by each signal: received samples lost. Figures in docs/design/reliability.md.
+"""`ftsensord record` stopped by each signal: received samples lost. Figures in docs/results/reliability.md.
 
     python -m benchmarks.robustness.record_signals --runs 2 --seconds 3
 

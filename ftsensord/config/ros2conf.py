@@ -3,7 +3,7 @@
     [ros2]
     namespace = "ftsensord"   # topics /<namespace>/wrench/<stream>, service /<namespace>/tare
     domain_id = 0             # default: $ROS_DOMAIN_ID, else 0 (ROS's default)
-    output = "in-loop"        # or "bridge" (docs/results/performance.md, "The ROS 2 bridge")
+    output = "in-loop"        # or "bridge" (docs/results/performance.md, "ROS 2")
 
 Parsed here; nothing is started here. ``output = "bridge"``: `daemon.ros2child.ros2_beside`
 starts the bridge (`ftsensord ros2`) for `ftsensord run` as a process of its own, by its

@@ -23,7 +23,7 @@ BRIDGE_EXIT_S = 10.0
 
 #: The bridge's forwarding thread's SCHED_FIFO priority under a real-time daemon: the lowest,
 #: above every normal process (the subscribers it competes with on a busy host) and below the
-#: loop and anything else made real-time (docs/results/performance.md, "The ROS 2 bridge").
+#: loop and anything else made real-time (docs/results/performance.md, "ROS 2").
 BRIDGE_FIFO = 1
 
 #: prctl(2)'s PR_SET_PDEATHSIG: the signal the child gets when its parent dies.

@@ -4,7 +4,7 @@ Two outputs, chosen by ``[ros2] output``: ``"bridge"``, `ftsensord ros2` (`bridg
 process of its own, a client of the daemon like any other (its ZeroMQ streams, its control
 socket, its orientation input); ``"in-loop"`` (`inloop`), the daemon's loop thread writing to
 DDS right after its ZeroMQ sends, handed to `daemon.run` by the command line.
-docs/results/performance.md, "The ROS 2 bridge", measures both. Owns the ROS 2 message types as DDS
+docs/results/performance.md, "ROS 2", measures both. Owns the ROS 2 message types as DDS
 types and their type hashes (`msgs`), the diagnostics built from the daemon's status
 (`diagnostics`) and the node (`node`: writers, the tare service, the orientation readers).
 cyclonedds (the ``ros2`` extra) is imported only in `node` and `msgs`, only when an output runs.

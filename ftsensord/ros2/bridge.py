@@ -6,7 +6,7 @@ the topics some reader reads: the main thread does nothing else but, between two
 ask DDS which topics have readers and, once a second, turn the daemon's status into
 ``/diagnostics``. Under a real-time daemon `run` gives this thread alone (and its ZeroMQ
 I/O thread) SCHED_FIFO 1 (``--realtime``): on a busy host a sample then waits for the loop,
-never for other processes (docs/results/performance.md, "The ROS 2 bridge"). A second thread waits
+never for other processes (docs/results/performance.md, "ROS 2"). A second thread waits
 on DDS's inputs (orientations, tare requests). An orientation from ROS goes to the daemon's
 orientation socket as any client's would (`client.OrientationPublisher`); a tare to its
 control socket (`client.ControlClient`).
@@ -244,7 +244,7 @@ def add_parser(sub: Any) -> None:
     p = sub.add_parser("ros2", help="put the wrench streams on the ROS 2 graph (DDS, no ROS install needed)",
                        description="The daemon's wrench streams as geometry_msgs/msg/WrenchStamped topics, "
                                    "/diagnostics, a tare service and orientation inputs, over Eclipse Cyclone "
-                                   "DDS (the ros2 extra). docs/guide/clients.md, ROS 2.")
+                                   "DDS (the ros2 extra). docs/guide/ros2.md.")
     p.add_argument("--config", help="the daemon's configuration: its endpoints and [ros2] table")
     p.add_argument("--namespace", help="topic namespace (default: [ros2] namespace, else ftsensord)")
     p.add_argument("--domain-id", type=int, help="DDS domain (default: [ros2] domain_id, else $ROS_DOMAIN_ID, else 0)")

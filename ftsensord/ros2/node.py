@@ -187,7 +187,7 @@ class Ros2Node:
 
     # A sample's messages are written as CDR bytes made by `Stamped` (the wrench's values are
     # the wire's own float64 bytes): IdlStruct objects and their Python serializer cost about
-    # 0.15 ms a message on a cold cache, `struct` a tenth (docs/results/performance.md, The ROS 2 bridge).
+    # 0.15 ms a message on a cold cache, `struct` a tenth (docs/design/performance.md, "The ROS 2 output").
     def publish_wrench(self, topic: str, t_wall: float, values: bytes) -> None:
         """A wrench sample of stream ``topic`` as its WrenchStamped: ``values`` fx fy fz mx my mz
         (N, Nm; 48 bytes, little-endian float64 as on the wire), stamped ``t_wall`` (UNIX s)."""
