@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 
 from ftsensord.errors import ConfigError
 
-if TYPE_CHECKING:  # cli.py imports this module for its parser: nothing heavy until it runs
+if TYPE_CHECKING:  # the command line (`cli.parser`) imports this module for its parser: nothing heavy until it runs
     from ftsensord.protocol import wire
 
 
@@ -105,7 +105,7 @@ def cmd_bridge(args: argparse.Namespace) -> int:
 
 
 def add_parser(sub: Any) -> None:
-    """The ``bridge`` command (cli.py's parser calls this)."""
+    """The ``bridge`` command (`cli.parser` calls this)."""
     p = sub.add_parser("bridge", help="serve streams live to Foxglove (a Foxglove WebSocket server)",
                        description="The streams as ROS 2 messages, as `record` writes them to MCAP, on a "
                                    "Foxglove WebSocket server: open ws://HOST:PORT in Foxglove. "

@@ -240,7 +240,7 @@ def cmd_ros2(args: argparse.Namespace) -> int:
 
 
 def add_parser(sub: Any) -> None:
-    """The ``ros2`` command (cli.py's parser calls this)."""
+    """The ``ros2`` command (`cli.parser` calls this)."""
     p = sub.add_parser("ros2", help="put the wrench streams on the ROS 2 graph (DDS, no ROS install needed)",
                        description="The daemon's wrench streams as geometry_msgs/msg/WrenchStamped topics, "
                                    "/diagnostics, a tare service and orientation inputs, over Eclipse Cyclone "
