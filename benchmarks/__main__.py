@@ -46,18 +46,29 @@ def _run(cmd: list[str], *, cwd: Path = ROOT, env: dict[str, str] | None = None)
     """``cmd`` from ``cwd``; its output, or SystemExit with its last lines when it fails."""
     done = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True)
     if done.returncode != 0:
-        raise SystemExit(f"{' '.join(cmd)} failed ({done.returncode}):\n{(done.stdout + done.stderr)[-3000:]}")
+        raise SystemExit(
+            f"{' '.join(cmd)} failed ({done.returncode}):\n{(done.stdout + done.stderr)[-3000:]}"
+        )
     return done.stdout
 
 
-def _module(module: str, page: str | None = None, has_quick: bool = True) -> Callable[[Path, bool], list[str]]:
+def _module(
+    module: str, page: str | None = None, has_quick: bool = True
+) -> Callable[[Path, bool], list[str]]:
     """`python -m benchmarks.<module> [--quick] --out OUT` (OUT/<page> where the script's
     --out names a file, not a folder; ``has_quick``: the script has a quick mode)."""
+
     def run(out: Path, quick: bool) -> list[str]:
-        cmd = _python("-m", f"benchmarks.{module}", *(["--quick"] if quick and has_quick else []),
-                      "--out", str(out / page if page else out))
+        cmd = _python(
+            "-m",
+            f"benchmarks.{module}",
+            *(["--quick"] if quick and has_quick else []),
+            "--out",
+            str(out / page if page else out),
+        )
         _run(cmd)
         return [" ".join(cmd)]
+
     return run
 
 
@@ -71,10 +82,25 @@ def _calibration_report(out: Path, quick: bool) -> list[str]:
         (work / "docs" / "results").mkdir(parents=True)
         small = ["--poses", "40", "--validation-poses", "6", "--samples", "10"] if quick else []
         # -P: the scratch folder's ftsensord/ is not the package
-        dataset = _python("-P", "-m", "ftsensord", "dataset", "-o", "s1.json", "--sensor", "sensor1", "--seed", "1", *small)
-        calibrate = _python("-P", "-m", "ftsensord", "calibrate", "s1.json", "-o", "ftsensord/data/sim-sensor1.json",
-                            "--serial", "sim-sensor1", "--frame", "sensor1",
-                            "--report", "docs/results/calibration-report.md", *(["--allow-poor-fit"] if quick else []))
+        dataset = _python(
+            "-P", "-m", "ftsensord", "dataset", "-o", "s1.json", "--sensor", "sensor1", "--seed", "1", *small
+        )
+        calibrate = _python(
+            "-P",
+            "-m",
+            "ftsensord",
+            "calibrate",
+            "s1.json",
+            "-o",
+            "ftsensord/data/sim-sensor1.json",
+            "--serial",
+            "sim-sensor1",
+            "--frame",
+            "sensor1",
+            "--report",
+            "docs/results/calibration-report.md",
+            *(["--allow-poor-fit"] if quick else []),
+        )
         _run(dataset, cwd=work)
         _run(calibrate, cwd=work)
         for name in ("calibration-report.md", "calibration-report.png"):
@@ -94,8 +120,17 @@ def _plot(out: Path, quick: bool) -> list[str]:
         try:
             env = {**os.environ, "XDG_RUNTIME_DIR": str(folder)}
             env.pop("RUNTIME_DIRECTORY", None)
-            cmd = _python("-m", "ftsensord", "plot", "wrench/sensor1", "wrench/tip", "--seconds", seconds,
-                          "--png", str(out / "plot.png"))
+            cmd = _python(
+                "-m",
+                "ftsensord",
+                "plot",
+                "wrench/sensor1",
+                "wrench/tip",
+                "--seconds",
+                seconds,
+                "--png",
+                str(out / "plot.png"),
+            )
             _run(cmd, env=env)
         finally:
             stop(proc, notify)
@@ -103,20 +138,48 @@ def _plot(out: Path, quick: bool) -> list[str]:
 
 
 GENERATORS = (
-    Generator("accuracy", ("accuracy-figures.md",), _module("accuracy.accuracy", "accuracy-figures.md"),
-              "the estimators on as-built sensors in the Earth's field"),
-    Generator("motor", ("motor-figures.md",), _module("accuracy.motor", "motor-figures.md"),
-              "a motor's field a few cm from the tool, per stray-field model"),
-    Generator("tradeoff", ("tradeoff.md", "tradeoff.png"), _module("accuracy.tradeoff"),
-              "speed against accuracy: chip settings, averaging, schedulers, estimators"),
-    Generator("creep", ("silicone-figures.md", "silicone.png"), _module("accuracy.creep"),
-              "the silicone's memory, identified and compensated, through the daemon"),
-    Generator("creep_trade", ("tradeoff-dynamic.md", "tradeoff-dynamic.png"), _module("accuracy.creep_trade"),
-              "the trade under moving loads on a silicone that relaxes"),
-    Generator("field_models", ("field-model.png",), _module("accuracy.field_models", has_quick=False),
-              "the point dipole against the exact cylinder magnet"),
-    Generator("calibration_report", ("calibration-report.md", "calibration-report.png"), _calibration_report,
-              "the packaged calibration's report (ftsensord dataset and calibrate)"),
+    Generator(
+        "accuracy",
+        ("accuracy-figures.md",),
+        _module("accuracy.accuracy", "accuracy-figures.md"),
+        "the estimators on as-built sensors in the Earth's field",
+    ),
+    Generator(
+        "motor",
+        ("motor-figures.md",),
+        _module("accuracy.motor", "motor-figures.md"),
+        "a motor's field a few cm from the tool, per stray-field model",
+    ),
+    Generator(
+        "tradeoff",
+        ("tradeoff.md", "tradeoff.png"),
+        _module("accuracy.tradeoff"),
+        "speed against accuracy: chip settings, averaging, schedulers, estimators",
+    ),
+    Generator(
+        "creep",
+        ("silicone-figures.md", "silicone.png"),
+        _module("accuracy.creep"),
+        "the silicone's memory, identified and compensated, through the daemon",
+    ),
+    Generator(
+        "creep_trade",
+        ("tradeoff-dynamic.md", "tradeoff-dynamic.png"),
+        _module("accuracy.creep_trade"),
+        "the trade under moving loads on a silicone that relaxes",
+    ),
+    Generator(
+        "field_models",
+        ("field-model.png",),
+        _module("accuracy.field_models", has_quick=False),
+        "the point dipole against the exact cylinder magnet",
+    ),
+    Generator(
+        "calibration_report",
+        ("calibration-report.md", "calibration-report.png"),
+        _calibration_report,
+        "the packaged calibration's report (ftsensord dataset and calibrate)",
+    ),
     Generator("plot", ("plot.png",), _plot, "a headless `ftsensord plot` of the running daemon"),
 )
 
@@ -144,12 +207,21 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     regen = sub.add_parser("regenerate", help="write the generated pages (docs/results/ by default)")
-    regen.add_argument("--quick", action="store_true",
-                       help="short runs (the pages' structure, not their figures); needs --out")
+    regen.add_argument(
+        "--quick",
+        action="store_true",
+        help="short runs (the pages' structure, not their figures); needs --out",
+    )
     regen.add_argument("--out", type=Path, help="folder to write into (default: docs/results/)")
-    regen.add_argument("--only", nargs="+", choices=[g.name for g in GENERATORS], help="these generators alone")
-    regen.add_argument("--jobs", type=int, default=None,
-                       help="generators run at once (default: 1, --quick: the cores this process may use)")
+    regen.add_argument(
+        "--only", nargs="+", choices=[g.name for g in GENERATORS], help="these generators alone"
+    )
+    regen.add_argument(
+        "--jobs",
+        type=int,
+        default=None,
+        help="generators run at once (default: 1, --quick: the cores this process may use)",
+    )
     sub.add_parser("list", help="the generated pages and what makes each")
     args = parser.parse_args(argv)
     if args.command == "list":

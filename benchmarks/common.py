@@ -38,6 +38,7 @@ RESULTS = DOCS / "results"
 
 # --- the host --------------------------------------------------------------------------
 
+
 def machine() -> str:
     """The host in a few words: cores, architecture and Python."""
     return f"{os.cpu_count()}-core {platform.machine()}, Python {platform.python_version()}"
@@ -84,10 +85,19 @@ class InstantBus:
         self.replies: dict[tuple[int, int], list[bytes]] = {}
         for a in config.addresses:
             truth_ut = scene.field_t(a, 0.0) * 1e6
-            data = [b"".join(mlx.counts_to_raw(round((b + rng.normal(0.0, noise.sigma_ut(ax, settings.tconvm_us())))
-                                                     / settings.sensitivity_ut(ax)), settings.raw_format(ax))
-                             .to_bytes(2, "big") for b, ax in zip(truth_ut, "xyz"))
-                    for _ in range(READINGS)]
+            data = [
+                b"".join(
+                    mlx.counts_to_raw(
+                        round(
+                            (b + rng.normal(0.0, noise.sigma_ut(ax, settings.tconvm_us())))
+                            / settings.sensitivity_ut(ax)
+                        ),
+                        settings.raw_format(ax),
+                    ).to_bytes(2, "big")
+                    for b, ax in zip(truth_ut, "xyz")
+                )
+                for _ in range(READINGS)
+            ]
             self.replies[(a, 7)] = [bytes([0x02]) + d for d in data]
             self.replies[(a, 9)] = [bytes([0x03]) + (46244).to_bytes(2, "big") + d for d in data]
         self.turn = dict.fromkeys(config.addresses, 0)
@@ -151,17 +161,25 @@ FULL_CHIP = [(0, 2), (1, 2), (1, 3), (2, 0), (2, 1), (2, 2), (2, 4), (3, 4), (3,
 PAPER = np.array([0.2338, 0.1136, 0.3775, 4.1e-3, 10.6e-3, 8.5e-3])
 
 #: 48 orientations: the shaft along Fibonacci directions, turned about itself.
-SWEEP = [se3.exp_so3(np.cross([0, 0, 1.0], d) / max(np.linalg.norm(np.cross([0, 0, 1.0], d)), 1e-12)
-                     * np.arccos(np.clip(d[2], -1, 1))) @ se3.exp_so3(np.array([0, 0, 2.4 * k]))
-         for k, d in enumerate(fibonacci_directions(48))]
+SWEEP = [
+    se3.exp_so3(
+        np.cross([0, 0, 1.0], d)
+        / max(np.linalg.norm(np.cross([0, 0, 1.0], d)), 1e-12)
+        * np.arccos(np.clip(d[2], -1, 1))
+    )
+    @ se3.exp_so3(np.array([0, 0, 2.4 * k]))
+    for k, d in enumerate(fibonacci_directions(48))
+]
 
 
 def part_table(seed: int) -> str:
     """The default scene's room, and its sensor1's tolerances with ``seed``: one part."""
     tol = dict(SCENE["sensor"][0]["tolerances"], seed=seed)
-    return (f"version = 1\nkind = \"sensors\"\nexternal_field_ut = {SCENE['external_field_ut']}\n"
-            f"[[sensor]]\nname = \"sensor1\"\naddresses = [{SENSOR1}]\n[sensor.tolerances]\n"
-            + "".join(f"{k} = {v}\n" for k, v in tol.items()))
+    return (
+        f'version = 1\nkind = "sensors"\nexternal_field_ut = {SCENE["external_field_ut"]}\n'
+        f'[[sensor]]\nname = "sensor1"\naddresses = [{SENSOR1}]\n[sensor.tolerances]\n'
+        + "".join(f"{k} = {v}\n" for k, v in tol.items())
+    )
 
 
 def tilted(axis: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -177,8 +195,9 @@ def daemon_config(**keys: object) -> str:
     """The head of a configuration file for the simulated bus of ``scene.toml`` beside it,
     at 100 Hz with the overlapped scheduler, and ``keys`` (TOML values as Python writes
     them); the caller adds its ``[[sensor]]`` tables."""
-    return ('version = 1\nbus = "sim:scene.toml"\nrate_hz = 100\nscheduler = "overlapped"\n'
-            + "".join(f"{k} = {v}\n" for k, v in keys.items()))
+    return 'version = 1\nbus = "sim:scene.toml"\nrate_hz = 100\nscheduler = "overlapped"\n' + "".join(
+        f"{k} = {v}\n" for k, v in keys.items()
+    )
 
 
 # --- a wrench against its noise --------------------------------------------------------
@@ -188,7 +207,9 @@ def daemon_config(**keys: object) -> str:
 WRONG_SIGMA = 5.0
 
 
-def unflagged_error_sigma(values: np.ndarray, truth: np.ndarray, sigma: np.ndarray, clean: np.ndarray) -> np.ndarray:
+def unflagged_error_sigma(
+    values: np.ndarray, truth: np.ndarray, sigma: np.ndarray, clean: np.ndarray
+) -> np.ndarray:
     """Each sample's largest error over the axes, in ``sigma`` (one sample's noise per axis):
     ``values`` and ``truth`` (n, 6) in N, Nm; 0 where ``clean`` (n,) is false (a flagged
     sample is not judged), infinite for an unflagged NaN (a wrench that is not there)."""
@@ -199,8 +220,9 @@ def unflagged_error_sigma(values: np.ndarray, truth: np.ndarray, sigma: np.ndarr
 CHUNK = 200_000  # samples drawn at once: 200,000 x 24 doubles, 38 MB
 
 
-def wrench_noise(config: Config, scene: FieldSource, samples: int, settings: mlx.Settings | None = None,
-                 seed: int = 0) -> dict[str, np.ndarray]:
+def wrench_noise(
+    config: Config, scene: FieldSource, samples: int, settings: mlx.Settings | None = None, seed: int = 0
+) -> dict[str, np.ndarray]:
     """Per wrench stream (``wrench/<sensor>``, ``wrench/tip`` when the tool has poses), the
     deviation of ``samples`` simulated wrenches from their mean (samples, 6; N, Nm)."""
     settings = settings or config.settings
@@ -214,12 +236,16 @@ def wrench_noise(config: Config, scene: FieldSource, samples: int, settings: mlx
         KA = s.calibration.model.KA
         chunks = []
         for n in [CHUNK] * (samples // CHUNK) + [samples % CHUNK]:
-            readings = np.round((field_ut + rng.standard_normal((n, len(field_ut))) * sigma_ut) / lsb_ut) * lsb_ut
+            readings = (
+                np.round((field_ut + rng.standard_normal((n, len(field_ut))) * sigma_ut) / lsb_ut) * lsb_ut
+            )
             chunks.append(readings * 1e-6 @ KA.T)
         w = np.concatenate(chunks)
         out[f"wrench/{s.name}"] = w - w.mean(axis=0)
     if config.tool_poses:
-        out["wrench/tip"] = sum(out[f"wrench/{n}"] @ se3.wrench_transform(T).T for n, T in config.tool_poses.items())
+        out["wrench/tip"] = sum(
+            out[f"wrench/{n}"] @ se3.wrench_transform(T).T for n, T in config.tool_poses.items()
+        )
     return out
 
 

@@ -47,14 +47,22 @@ _EXPORTS = {
     "ControlClient": "ftsensord.client",
     "FtsensordError": "ftsensord.errors",
 }
-__all__ = ["ControlClient", "FtsensordError", "MLX90393", "Subscriber", "__version__", "load_config", "open_bus"]
+__all__ = [
+    "ControlClient",
+    "FtsensordError",
+    "MLX90393",
+    "Subscriber",
+    "__version__",
+    "load_config",
+    "open_bus",
+]
 
 if TYPE_CHECKING:
     from ftsensord.acquire.bus import open_bus
     from ftsensord.chip.driver import MLX90393
     from ftsensord.client import ControlClient, Subscriber
-    from ftsensord.errors import FtsensordError
     from ftsensord.config.file import load_config
+    from ftsensord.errors import FtsensordError
 
 
 def __getattr__(name: str) -> Any:

@@ -59,16 +59,23 @@ def connect(sock: zmq.Socket, endpoint: str) -> None:
         sock.connect(endpoint)
     except zmq.ZMQError as exc:
         sock.close(linger=0)
-        raise ConfigError(f"{endpoint}: ZeroMQ cannot connect to it ({exc.strerror}); "
-                          "expected ipc://PATH or tcp://HOST:PORT") from exc
+        raise ConfigError(
+            f"{endpoint}: ZeroMQ cannot connect to it ({exc.strerror}); "
+            "expected ipc://PATH or tcp://HOST:PORT"
+        ) from exc
 
 
 class ControlClient:
     """JSON requests to the daemon's control endpoint (a fresh REQ socket each,
     so a timed-out request never wedges the next)."""
 
-    def __init__(self, endpoint: str | None = None, timeout_s: float = 3.0, context: zmq.Context | None = None,
-                 curve: tuple[str, str] | None = None):
+    def __init__(
+        self,
+        endpoint: str | None = None,
+        timeout_s: float = 3.0,
+        context: zmq.Context | None = None,
+        curve: tuple[str, str] | None = None,
+    ):
         """``curve``: (this client's certificate with its secret key, the server's
         public certificate), for a daemon whose control endpoint uses CURVE."""
         self.endpoint = endpoint or default_endpoint("control")
@@ -86,6 +93,7 @@ class ControlClient:
         socket.setsockopt(zmq.LINGER, 0)
         if self.curve is not None:
             from zmq.auth import load_certificate
+
             socket.curve_publickey, socket.curve_secretkey = load_certificate(self.curve[0])
             socket.curve_serverkey, _ = load_certificate(self.curve[1])
         try:
@@ -93,8 +101,10 @@ class ControlClient:
             socket.send(json.dumps({"cmd": cmd, **args}).encode())
             wait = self.timeout_s if timeout_s is None else timeout_s
             if not socket.poll(int(wait * 1000)):
-                raise DaemonNotAnswering(f"no ftsensord answered on {self.endpoint} within {wait:g} s "
-                                         "(is it running? `systemctl status ftsensord`)")
+                raise DaemonNotAnswering(
+                    f"no ftsensord answered on {self.endpoint} within {wait:g} s "
+                    "(is it running? `systemctl status ftsensord`)"
+                )
             raw = socket.recv()
         finally:
             socket.close()
@@ -145,8 +155,9 @@ def control_beside(endpoint: str | None, control: str | None = None) -> str | No
     return None
 
 
-def check_streams(streams: Sequence[str], endpoint: str | None, control: str | None = None,
-                  timeout_s: float = 1.0) -> dict[str, Any] | None:
+def check_streams(
+    streams: Sequence[str], endpoint: str | None, control: str | None = None, timeout_s: float = 1.0
+) -> dict[str, Any] | None:
     """Refuse (`ConfigError`) a stream the daemon does not publish, naming those it does
     (its status's ``streams``): a misspelt name is otherwise only a wait for nothing.
     Returns the status, or None when no daemon could be asked or none answered; then,
@@ -171,8 +182,10 @@ def refuse_unpublished(streams: Sequence[str], status: dict[str, Any], control: 
         return
     unknown = [s for s in streams if s and s not in published]
     if unknown:
-        raise ConfigError(f"{', '.join(unknown)}: not a stream the daemon on {control} publishes; "
-                          f"it publishes: {', '.join(map(str, published))}")
+        raise ConfigError(
+            f"{', '.join(unknown)}: not a stream the daemon on {control} publishes; "
+            f"it publishes: {', '.join(map(str, published))}"
+        )
 
 
 class Subscriber:
@@ -186,8 +199,14 @@ class Subscriber:
     haptic mode conflates rather than keeping a short queue.
     """
 
-    def __init__(self, endpoint: str | None = None, streams: Sequence[str] | None = None, *,
-                 latest: bool = False, context: zmq.Context | None = None):
+    def __init__(
+        self,
+        endpoint: str | None = None,
+        streams: Sequence[str] | None = None,
+        *,
+        latest: bool = False,
+        context: zmq.Context | None = None,
+    ):
         self.endpoint = endpoint or default_endpoint("wrench")
         self.context = context or zmq.Context.instance()
         if latest and not streams:
@@ -269,8 +288,15 @@ class OrientationPublisher:
         self.socket.setsockopt(zmq.LINGER, 0)
         connect(self.socket, self.endpoint)
 
-    def send(self, frame: str, rotation: Any = None, t_sender: float | None = None, *,
-             q_wxyz: Any = None, q_xyzw: Any = None) -> None:
+    def send(
+        self,
+        frame: str,
+        rotation: Any = None,
+        t_sender: float | None = None,
+        *,
+        q_wxyz: Any = None,
+        q_xyzw: Any = None,
+    ) -> None:
         """How ``frame`` is turned, R_world,frame (it takes the frame's vectors into the world),
         given as exactly one of: ``rotation``, a 3 x 3 matrix or an object with ``as_matrix()``
         (scipy's Rotation); ``q_wxyz``, a unit quaternion w first (Eigen's Quaterniond(w, x,
@@ -284,17 +310,25 @@ class OrientationPublisher:
         if sum(given) != 1:
             raise WireError("orientation: give exactly one of rotation (3 x 3), q_wxyz or q_xyzw")
         if q_xyzw is not None:
-            value = np.roll(np.asarray(q_xyzw, dtype=float).ravel(), 1)  # w last to w first; its size checked below
+            value = np.roll(
+                np.asarray(q_xyzw, dtype=float).ravel(), 1
+            )  # w last to w first; its size checked below
         elif q_wxyz is not None:
             value = np.asarray(q_wxyz, dtype=float).ravel()
         else:
-            value = np.asarray(rotation.as_matrix() if hasattr(rotation, "as_matrix") else rotation, dtype=float)
+            value = np.asarray(
+                rotation.as_matrix() if hasattr(rotation, "as_matrix") else rotation, dtype=float
+            )
             if value.size == 4:
-                raise WireError("orientation: a quaternion's order is ambiguous: pass q_xyzw= (scipy's "
-                                "as_quat(), Eigen's coeffs(), ROS's geometry_msgs/Quaternion) or q_wxyz= (w first)")
+                raise WireError(
+                    "orientation: a quaternion's order is ambiguous: pass q_xyzw= (scipy's "
+                    "as_quat(), Eigen's coeffs(), ROS's geometry_msgs/Quaternion) or q_wxyz= (w first)"
+                )
         if value.size != (4 if rotation is None else 9):
-            raise WireError(f"orientation: expected {'4 quaternion' if rotation is None else '3 x 3 matrix'} "
-                            f"values, got {value.size}")
+            raise WireError(
+                f"orientation: expected {'4 quaternion' if rotation is None else '3 x 3 matrix'} "
+                f"values, got {value.size}"
+            )
         t = time.monotonic() if t_sender is None else t_sender
         try:
             self.socket.send(self._encode(frame, value, t), zmq.NOBLOCK)

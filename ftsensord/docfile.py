@@ -36,6 +36,7 @@ class _TooLong(str):
 def _bounded_number(convert: Any) -> Any:
     def parse(text: str) -> Any:
         return _TooLong(text) if len(text) > MAX_NUMBER_CHARS else convert(text)
+
     return parse
 
 
@@ -46,14 +47,18 @@ def _check_tree(doc: Any, max_depth: int) -> str | None:
     while stack:
         value, where, depth = stack.pop()
         if isinstance(value, _TooLong):
-            return (f"{where or 'the document'}: an integer of {len(value)} characters "
-                    f"(at most {MAX_NUMBER_CHARS})")
+            return (
+                f"{where or 'the document'}: an integer of {len(value)} characters "
+                f"(at most {MAX_NUMBER_CHARS})"
+            )
         if isinstance(value, dict):
-            items: Iterable[tuple[str, Any]] = ((f"{where}.{k}" if where else str(k)[:80], v)
-                                                for k, v in value.items())
+            items: Iterable[tuple[str, Any]] = (
+                (f"{where}.{k}" if where else str(k)[:80], v) for k, v in value.items()
+            )
         elif isinstance(value, list):
-            items = ((f"{where}[{i}]", v) for i, v in enumerate(value)
-                     if isinstance(v, (dict, list, _TooLong)))
+            items = (
+                (f"{where}[{i}]", v) for i, v in enumerate(value) if isinstance(v, (dict, list, _TooLong))
+            )
         else:
             continue
         if depth >= max_depth:
@@ -93,7 +98,9 @@ def _read(path: Path, max_bytes: int = MAX_FILE_BYTES, what: str = "file") -> by
         with path.open("rb") as f:
             size = os.fstat(f.fileno()).st_size
             if size > max_bytes:
-                raise ConfigError(f"{path}: {size} bytes, larger than the {max_bytes} bytes a {what} may hold")
+                raise ConfigError(
+                    f"{path}: {size} bytes, larger than the {max_bytes} bytes a {what} may hold"
+                )
             raw = f.read(max_bytes + 1)  # a file growing while read (or a pipe) is bounded too
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from exc
@@ -136,11 +143,15 @@ def load_toml(path: str | Path) -> dict[str, Any]:
     except RecursionError as exc:
         raise ConfigError(f"{path}: nested deeper than {MAX_DEPTH} levels") from exc
     except ValueError as exc:  # int() of more than 4300 digits: tomllib lets it through
-        raise ConfigError(f"{path}: {_toml_locate(text)}: an integer longer than {MAX_NUMBER_CHARS} "
-                          f"characters ({str(exc)[:80]})") from exc
+        raise ConfigError(
+            f"{path}: {_toml_locate(text)}: an integer longer than {MAX_NUMBER_CHARS} "
+            f"characters ({str(exc)[:80]})"
+        ) from exc
     problem = _check_tree(doc, MAX_DEPTH)
     if problem is None:
-        problem = next((f"{k}: an integer of more than {MAX_NUMBER_CHARS} digits" for k in _long_ints(doc)), None)
+        problem = next(
+            (f"{k}: an integer of more than {MAX_NUMBER_CHARS} digits" for k in _long_ints(doc)), None
+        )
     if problem is not None:
         raise ConfigError(f"{path}: {problem}")
     return doc
@@ -213,19 +224,37 @@ class Table:
             return default
         return self.doc[name]
 
-    def number(self, name: str, default: Any = _MISSING, *, low: float = -math.inf,
-               high: float = math.inf, unit: str = "") -> float:
+    def number(
+        self,
+        name: str,
+        default: Any = _MISSING,
+        *,
+        low: float = -math.inf,
+        high: float = math.inf,
+        unit: str = "",
+    ) -> float:
         value = self.get(name, default)
         if not _is_number(value) or not low <= value <= high:
             bounds = "" if (low, high) == (-math.inf, math.inf) else f" in [{low}, {high}]"
             raise self.fail(name, f"a finite number{bounds}{' (' + unit + ')' if unit else ''}", value)
         return float(value)
 
-    def integer(self, name: str, default: Any = _MISSING, *, low: int | None = None,
-                high: int | None = None, what: str = "an integer") -> int:
+    def integer(
+        self,
+        name: str,
+        default: Any = _MISSING,
+        *,
+        low: int | None = None,
+        high: int | None = None,
+        what: str = "an integer",
+    ) -> int:
         value = self.get(name, default)
-        if not isinstance(value, int) or isinstance(value, bool) \
-                or (low is not None and value < low) or (high is not None and value > high):
+        if (
+            not isinstance(value, int)
+            or isinstance(value, bool)
+            or (low is not None and value < low)
+            or (high is not None and value > high)
+        ):
             raise self.fail(name, what, value)
         return value
 
@@ -233,15 +262,22 @@ class Table:
         value = self.get(name, default)
         options = None if choices is None else list(choices)
         if not isinstance(value, str) or (options is not None and value not in options):
-            raise self.fail(name, "a string" if options is None else "one of " + ", ".join(
-                f'"{c}"' for c in options), value)
+            raise self.fail(
+                name,
+                "a string" if options is None else "one of " + ", ".join(f'"{c}"' for c in options),
+                value,
+            )
         return value
 
-    def numbers(self, name: str, length: int | None = None, default: Any = _MISSING, *,
-                unit: str = "") -> list[float]:
+    def numbers(
+        self, name: str, length: int | None = None, default: Any = _MISSING, *, unit: str = ""
+    ) -> list[float]:
         value = self.get(name, default)
-        if not isinstance(value, list) or (length is not None and len(value) != length) \
-                or not all(_is_number(v) for v in value):
+        if (
+            not isinstance(value, list)
+            or (length is not None and len(value) != length)
+            or not all(_is_number(v) for v in value)
+        ):
             count = f"{length} " if length is not None else ""
             raise self.fail(name, f"{count}finite numbers{' (' + unit + ')' if unit else ''}", value)
         return [float(v) for v in value]
@@ -249,11 +285,15 @@ class Table:
     def matrix(self, name: str, rows: int, cols: int, *, unit: str = "") -> list[list[float]]:
         """A rows x cols matrix of finite numbers, as a list of rows."""
         value = self.get(name)
-        ok = isinstance(value, list) and len(value) == rows and all(
-            isinstance(r, list) and len(r) == cols and all(_is_number(v) for v in r) for r in value)
+        ok = (
+            isinstance(value, list)
+            and len(value) == rows
+            and all(isinstance(r, list) and len(r) == cols and all(_is_number(v) for v in r) for r in value)
+        )
         if not ok:
-            raise self.fail(name, f"a {rows} x {cols} matrix of finite numbers"
-                            + (f" ({unit})" if unit else ""), value)
+            raise self.fail(
+                name, f"a {rows} x {cols} matrix of finite numbers" + (f" ({unit})" if unit else ""), value
+            )
         return [[float(v) for v in r] for r in value]
 
     def table(self, name: str, default: Any = _MISSING) -> Table:

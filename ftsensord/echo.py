@@ -5,8 +5,8 @@ from __future__ import annotations
 import sys
 
 from ftsensord.client import Subscriber, check_streams
-from ftsensord.recording.columns import value_columns
 from ftsensord.protocol import wire
+from ftsensord.recording.columns import value_columns
 
 #: A wrench's values as printed (N, Nm), and a flux's (uT: the tesla's digits are all leading zeros).
 WRENCH_WIDTH, FLUX_WIDTH = 10, 9
@@ -18,7 +18,10 @@ def header(sample: wire.Sample) -> str:
     if sample.kind == wire.KIND_WRENCH:
         values = [f"{n:>{WRENCH_WIDTH}}" for n in value_columns("wrench/", len(sample.values))]
     else:
-        values = [f"{n.removesuffix('_T') + '_uT':>{FLUX_WIDTH}}" for n in value_columns("flux/", len(sample.values))]
+        values = [
+            f"{n.removesuffix('_T') + '_uT':>{FLUX_WIDTH}}"
+            for n in value_columns("flux/", len(sample.values))
+        ]
     return f"#{'seq':>7} {'t_mono_s':>14} {' '.join(values)}  flags"
 
 

@@ -27,14 +27,18 @@ from typing import TYPE_CHECKING, Any
 
 from ftsensord.errors import ConfigError
 
-if TYPE_CHECKING:  # the command line (`cli.parser`) imports this module for its parser: nothing heavy until it runs
+if (
+    TYPE_CHECKING
+):  # the command line (`cli.parser`) imports this module for its parser: nothing heavy until it runs
     from ftsensord.protocol import wire
 
 
 #: What a failed handshake means, added to the server's own log line ("handshake failed").
-HANDSHAKE_HINT = ("a viewer must offer the WebSocket subprotocol foxglove.sdk.v1; older Foxglove app and "
-                  "Lichtblick releases offer only foxglove.websocket.v1 and get HTTP 400: update the viewer "
-                  "(docs/guide/clients.md, Bridges to live viewers)")
+HANDSHAKE_HINT = (
+    "a viewer must offer the WebSocket subprotocol foxglove.sdk.v1; older Foxglove app and "
+    "Lichtblick releases offer only foxglove.websocket.v1 and get HTTP 400: update the viewer "
+    "(docs/guide/clients.md, Bridges to live viewers)"
+)
 
 
 class _HandshakeHint(logging.Filter):
@@ -54,8 +58,9 @@ class FoxgloveSink:
         try:
             import foxglove
         except ImportError as exc:
-            raise ConfigError("the Foxglove bridge needs the foxglove-sdk package: "
-                              "pip install 'ftsensord[live]'") from exc
+            raise ConfigError(
+                "the Foxglove bridge needs the foxglove-sdk package: pip install 'ftsensord[live]'"
+            ) from exc
         from ftsensord.recording.ros2mcap import SCHEMAS, ros2_messages
 
         self._foxglove, self._messages = foxglove, ros2_messages
@@ -65,8 +70,10 @@ class FoxgloveSink:
         self.frames = frames
         self.server = foxglove.start_server(name="ftsensord", host=host, port=port)
         self.port: int = self.server.port
-        self.schemas = {name: foxglove.Schema(name=name, encoding="ros2msg", data=text.encode())
-                        for name, text in SCHEMAS.items()}
+        self.schemas = {
+            name: foxglove.Schema(name=name, encoding="ros2msg", data=text.encode())
+            for name, text in SCHEMAS.items()
+        }
         self.channels: dict[str, Any] = {}
         self.last_seq: dict[str, int] = {}
         self.file = None  # no file: a write that fails names none (`recording.SampleWriter`)
@@ -75,11 +82,14 @@ class FoxgloveSink:
         last = self.last_seq.get(sample.topic)
         self.last_seq[sample.topic] = sample.seq
         t_ns = round(sample.t_wall * 1e9)
-        for topic, schema, _frame, data in self._messages(sample, self.frames.get(sample.topic, sample.topic), last):
+        for topic, schema, _frame, data in self._messages(
+            sample, self.frames.get(sample.topic, sample.topic), last
+        ):
             channel = self.channels.get(topic)
             if channel is None:
-                channel = self.channels[topic] = self._foxglove.Channel(topic, message_encoding="cdr",
-                                                                        schema=self.schemas[schema])
+                channel = self.channels[topic] = self._foxglove.Channel(
+                    topic, message_encoding="cdr", schema=self.schemas[schema]
+                )
             channel.log(data, log_time=t_ns)
 
     def flush(self) -> None:
@@ -96,21 +106,33 @@ def cmd_bridge(args: argparse.Namespace) -> int:
     with StopOnSignals() as stopped:
         frames = daemon_frames(args.streams, args.endpoint, args.control, args.timeout)
         sink = FoxgloveSink(frames, args.host, args.port)
-        print(f"ftsensord: Foxglove live server on ws://{args.host}:{sink.port} "
-              f"({', '.join(args.streams)}); Ctrl-C stops it", flush=True)
+        print(
+            f"ftsensord: Foxglove live server on ws://{args.host}:{sink.port} "
+            f"({', '.join(args.streams)}); Ctrl-C stops it",
+            flush=True,
+        )
         with Subscriber(args.endpoint, args.streams) as sub:
-            outcome = record(sub, sink, args.streams, seconds=args.seconds, timeout_s=math.inf, stop=stopped.is_set)
-    print(summary_line(f"ws://{args.host}:{sink.port}", outcome, stopped.name, verb="served"), file=sys.stderr)
+            outcome = record(
+                sub, sink, args.streams, seconds=args.seconds, timeout_s=math.inf, stop=stopped.is_set
+            )
+    print(
+        summary_line(f"ws://{args.host}:{sink.port}", outcome, stopped.name, verb="served"), file=sys.stderr
+    )
     return 0
 
 
 def add_parser(sub: Any) -> None:
     """The ``bridge`` command (`cli.parser` calls this)."""
-    p = sub.add_parser("bridge", help="serve streams live to Foxglove (a Foxglove WebSocket server)",
-                       description="The streams as ROS 2 messages, as `record` writes them to MCAP, on a "
-                                   "Foxglove WebSocket server: open ws://HOST:PORT in Foxglove. "
-                                   "docs/guide/clients.md, Bridges to live viewers.")
-    p.add_argument("streams", nargs="+", metavar="STREAM", help="wrench/<sensor>, wrench/tip, flux/<sensor>, ...")
+    p = sub.add_parser(
+        "bridge",
+        help="serve streams live to Foxglove (a Foxglove WebSocket server)",
+        description="The streams as ROS 2 messages, as `record` writes them to MCAP, on a "
+        "Foxglove WebSocket server: open ws://HOST:PORT in Foxglove. "
+        "docs/guide/clients.md, Bridges to live viewers.",
+    )
+    p.add_argument(
+        "streams", nargs="+", metavar="STREAM", help="wrench/<sensor>, wrench/tip, flux/<sensor>, ..."
+    )
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1: this host)")
     p.add_argument("--port", type=int, default=8765, help="port (default 8765, Foxglove's; 0: any free one)")
     p.add_argument("--seconds", type=float, help="stop after this long (default: until Ctrl-C or SIGTERM)")

@@ -42,8 +42,10 @@ def require_matplotlib() -> None:
     try:
         import matplotlib  # noqa: F401
     except ImportError as exc:
-        raise ConfigError("plot needs matplotlib, the 'plot' extra: pip install 'ftsensord[plot]' "
-                          "(from a checkout: .venv/bin/pip install '.[plot]')") from exc
+        raise ConfigError(
+            "plot needs matplotlib, the 'plot' extra: pip install 'ftsensord[plot]' "
+            "(from a checkout: .venv/bin/pip install '.[plot]')"
+        ) from exc
 
 
 def require_display() -> None:
@@ -53,9 +55,11 @@ def require_display() -> None:
 
     backend = plt.get_backend().lower()
     if backend in NON_INTERACTIVE:
-        raise ConfigError(f"no display for a live plot (matplotlib's backend is {backend!r}: DISPLAY and "
-                          "WAYLAND_DISPLAY unset?). Without one: `ftsensord plot STREAM --png plot.png "
-                          "[--seconds 5]` writes a snapshot; or log in with `ssh -X`")
+        raise ConfigError(
+            f"no display for a live plot (matplotlib's backend is {backend!r}: DISPLAY and "
+            "WAYLAND_DISPLAY unset?). Without one: `ftsensord plot STREAM --png plot.png "
+            "[--seconds 5]` writes a snapshot; or log in with `ssh -X`"
+        )
 
 
 @dataclass
@@ -109,8 +113,9 @@ class StreamPlot:
             top.set_ylabel("|B| per chip (mT)")
             mid.set_ylabel("B_z per chip (mT)")
         top.set_title(stream)
-        self.flag_lines = [bottom.plot([], [], "|", markersize=8, label=wire.FLAG_NAMES[bit])[0]
-                           for bit in FLAG_BITS]
+        self.flag_lines = [
+            bottom.plot([], [], "|", markersize=8, label=wire.FLAG_NAMES[bit])[0] for bit in FLAG_BITS
+        ]
         bottom.set_yticks(range(len(FLAG_BITS)), [wire.FLAG_NAMES[b] for b in FLAG_BITS], fontsize=7)
         bottom.set_ylim(-0.7, len(FLAG_BITS) - 0.3)
         bottom.set_ylabel("flags")
@@ -138,7 +143,9 @@ class StreamPlot:
             ax.autoscale_view(scalex=False)
             if ax.get_legend() is None and any(not ln.get_label().startswith("_") for ln in ax.lines):
                 ax.legend(loc="upper left", fontsize=7, ncol=len(ax.lines))
-        self.axes[0].set_title(f"{self.stream}: {history.samples} samples, {history.missed} missed", fontsize=9)
+        self.axes[0].set_title(
+            f"{self.stream}: {history.samples} samples, {history.missed} missed", fontsize=9
+        )
         for ax in self.axes:
             ax.set_xlim(-history.window_s, 0)
 
@@ -147,10 +154,15 @@ def make_figure(streams: list[str], kinds: dict[str, int], fig: Any = None) -> t
     """A figure with a column per stream (a new Agg-backed Figure unless ``fig`` is given)."""
     if fig is None:
         from matplotlib.figure import Figure
+
         fig = Figure(figsize=(5.5 * len(streams), 7.5), layout="constrained")
     grid = fig.add_gridspec(3, len(streams), height_ratios=[3, 3, 2])
-    plots = [StreamPlot(fig, grid, i, s, kinds.get(s, wire.KIND_WRENCH if s.startswith("wrench/") else wire.KIND_FLUX))
-             for i, s in enumerate(streams)]
+    plots = [
+        StreamPlot(
+            fig, grid, i, s, kinds.get(s, wire.KIND_WRENCH if s.startswith("wrench/") else wire.KIND_FLUX)
+        )
+        for i, s in enumerate(streams)
+    ]
     return fig, plots
 
 
@@ -180,8 +192,14 @@ class Snapshot:
     histories: dict[str, History]
 
 
-def snapshot(streams: list[str], seconds: float, png: str | Path | None = None, *, endpoint: str | None = None,
-             timeout_s: float = 3.0) -> Snapshot:
+def snapshot(
+    streams: list[str],
+    seconds: float,
+    png: str | Path | None = None,
+    *,
+    endpoint: str | None = None,
+    timeout_s: float = 3.0,
+) -> Snapshot:
     """Collect ``seconds`` of the streams, draw them and write ``png`` (if given); headless."""
     require_matplotlib()
     histories = {s: History(seconds) for s in streams}

@@ -66,6 +66,7 @@ def zmq_context() -> Iterator[zmq.Context]:
 def ipv6_loopback() -> None:
     """Skips a test where this host has no IPv6 loopback (a container without ::1)."""
     import socket
+
     try:
         with socket.socket(socket.AF_INET6) as s:
             s.bind(("::1", 0))
@@ -77,6 +78,7 @@ def assert_names_file_and_key(load, path, key: str, expected: str) -> None:
     """``load(path)`` refuses the file with a ConfigError naming the file, the key and
     what was expected: the contract for every file the project reads."""
     from ftsensord.errors import ConfigError
+
     with pytest.raises(ConfigError) as exc:
         load(path)
     msg = str(exc.value)
@@ -86,8 +88,9 @@ def assert_names_file_and_key(load, path, key: str, expected: str) -> None:
 @pytest.fixture
 def scene() -> StaticScene:
     """Two chips with distinct fields (T, chip frame)."""
-    return StaticScene({0x0C: np.array([100e-6, -200e-6, 1500e-6]),
-                        0x14: np.array([-50e-6, 25e-6, -800e-6])}, {0x0C: 31.5})
+    return StaticScene(
+        {0x0C: np.array([100e-6, -200e-6, 1500e-6]), 0x14: np.array([-50e-6, 25e-6, -800e-6])}, {0x0C: 31.5}
+    )
 
 
 @pytest.fixture
@@ -112,8 +115,13 @@ def regenerated(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The folder `python -m benchmarks regenerate --quick` wrote every generated page into:
     run once for the session, the tests of each page read it (the structure, not the figures)."""
     out = tmp_path_factory.mktemp("results")
-    done = subprocess.run([sys.executable, "-m", "benchmarks", "regenerate", "--quick", "--out", str(out)],
-                          cwd=ROOT, capture_output=True, text=True, timeout=900)
+    done = subprocess.run(
+        [sys.executable, "-m", "benchmarks", "regenerate", "--quick", "--out", str(out)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
     assert done.returncode == 0, done.stdout + done.stderr
     return out
 
@@ -137,6 +145,7 @@ class StreamRecorder(threading.Thread):
 
     def run(self) -> None:
         from ftsensord.client import Subscriber
+
         with Subscriber(self.endpoint, self.streams) as sub:
             while not self.stop.is_set():
                 s = sub.receive(timeout_s=0.05)

@@ -7,7 +7,6 @@ prefix, rmw_cyclonedds_cpp/src/serdata.hpp ``cdds_request_header_t``).
     python ros2_peer.py DOMAIN PLAN_JSON     (one JSON line out per result)
 """
 
-
 import json
 import sys
 import threading
@@ -18,7 +17,18 @@ from cyclonedds.builtin import BuiltinDataReader, BuiltinTopicDcpsPublication, B
 from cyclonedds.core import Policy, Qos
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.idl import IdlStruct
-from cyclonedds.idl.types import array, bounded_str, byte, float64, int32, int64, sequence, uint8, uint32, uint64
+from cyclonedds.idl.types import (
+    array,
+    bounded_str,
+    byte,
+    float64,
+    int32,
+    int64,
+    sequence,
+    uint8,
+    uint32,
+    uint64,
+)
 from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
@@ -88,7 +98,8 @@ class KeyValue(IdlStruct, typename="diagnostic_msgs::msg::dds_::KeyValue_"):
 
 @dataclass
 class DiagnosticStatus(IdlStruct, typename="diagnostic_msgs::msg::dds_::DiagnosticStatus_"):
-    level: byte  # diagnostic_msgs/msg/DiagnosticStatus: byte level, string name, message, hardware_id, KeyValue[] values
+    # diagnostic_msgs/msg/DiagnosticStatus: byte level, string name, message, hardware_id, KeyValue[] values
+    level: byte
     name: str
     message: str
     hardware_id: str
@@ -148,23 +159,35 @@ class ParticipantEntitiesInfo(IdlStruct, typename="rmw_dds_common::msg::dds_::Pa
     node_entities_info_seq: sequence[NodeEntitiesInfo]
 
 
-TYPES = {"WrenchStamped": WrenchStamped, "SampleStatus": SampleStatus, "DiagnosticArray": DiagnosticArray, "QuaternionStamped": QuaternionStamped,
-         "Imu": Imu, "Empty": Empty}
+TYPES = {
+    "WrenchStamped": WrenchStamped,
+    "SampleStatus": SampleStatus,
+    "DiagnosticArray": DiagnosticArray,
+    "QuaternionStamped": QuaternionStamped,
+    "Imu": Imu,
+    "Empty": Empty,
+}
 
 
 def qos(reliable: bool, user_data: str = "") -> Qos:
     """ROS 2's default profile (reliable, keep last 10) or SensorDataQoS (best effort, keep last 5)."""
-    policies = [Policy.Reliability.Reliable(10**9) if reliable else Policy.Reliability.BestEffort,
-                Policy.Durability.Volatile, Policy.History.KeepLast(10 if reliable else 5),
-                Policy.DataRepresentation(use_cdrv0_representation=True)]
+    policies = [
+        Policy.Reliability.Reliable(10**9) if reliable else Policy.Reliability.BestEffort,
+        Policy.Durability.Volatile,
+        Policy.History.KeepLast(10 if reliable else 5),
+        Policy.DataRepresentation(use_cdrv0_representation=True),
+    ]
     return Qos(*policies, *([Policy.Userdata(user_data.encode())] if user_data else []))
 
 
 def wait_matched(entity, timeout_s: float = 10.0) -> bool:
     end = time.monotonic() + timeout_s
     while time.monotonic() < end:
-        status = (entity.get_publication_matched_status() if isinstance(entity, DataWriter)
-                  else entity.get_subscription_matched_status())
+        status = (
+            entity.get_publication_matched_status()
+            if isinstance(entity, DataWriter)
+            else entity.get_subscription_matched_status()
+        )
         if status.current_count > 0:
             return True
         time.sleep(0.02)
@@ -173,8 +196,10 @@ def wait_matched(entity, timeout_s: float = 10.0) -> bool:
 
 def read(dp, step: dict) -> None:
     """``count`` messages of each topic, with the writer's type name and USER_DATA as discovered."""
-    readers = {t: DataReader(dp, Topic(dp, t, TYPES[kind]), qos(step["reliable"]))
-               for t, kind in step["topics"].items()}
+    readers = {
+        t: DataReader(dp, Topic(dp, t, TYPES[kind]), qos(step["reliable"]))
+        for t, kind in step["topics"].items()
+    }
     publications = BuiltinDataReader(dp, BuiltinTopicDcpsPublication)
     got: dict[str, list] = {t: [] for t in readers}
     end = time.monotonic() + step.get("timeout_s", 20.0)
@@ -187,8 +212,10 @@ def read(dp, step: dict) -> None:
     seen = {}
     for p in publications.take(N=1000):
         if p.topic_name in readers:
-            seen[p.topic_name] = {"type_name": p.type_name,
-                                  "user_data": p.qos[Policy.Userdata].data.decode() if Policy.Userdata in p.qos else ""}
+            seen[p.topic_name] = {
+                "type_name": p.type_name,
+                "user_data": p.qos[Policy.Userdata].data.decode() if Policy.Userdata in p.qos else "",
+            }
     for t, msgs in got.items():
         print(json.dumps({"topic": t, "writer": seen.get(t), "messages": msgs}), flush=True)
 
@@ -197,8 +224,12 @@ def nodes(dp, step: dict) -> None:
     """The graph as rmw_cyclonedds reads it: ``ros_discovery_info`` (reliable, transient-local,
     keep all: rmw_node.cpp), each participant's nodes with their endpoints' GIDs, beside the
     GUIDs of the endpoints discovered on ``topics`` and of the participants that have them."""
-    qos = Qos(Policy.Reliability.Reliable(10**9), Policy.Durability.TransientLocal, Policy.History.KeepAll,
-              Policy.DataRepresentation(use_cdrv0_representation=True))
+    qos = Qos(
+        Policy.Reliability.Reliable(10**9),
+        Policy.Durability.TransientLocal,
+        Policy.History.KeepAll,
+        Policy.DataRepresentation(use_cdrv0_representation=True),
+    )
     reader = DataReader(dp, Topic(dp, "ros_discovery_info", ParticipantEntitiesInfo), qos)
     publications = BuiltinDataReader(dp, BuiltinTopicDcpsPublication)
     subscriptions = BuiltinDataReader(dp, BuiltinTopicDcpsSubscription)
@@ -207,13 +238,19 @@ def nodes(dp, step: dict) -> None:
     while time.monotonic() < end and not (infos and set(step["topics"]) <= set(endpoints)):
         for m in reader.take(N=100):
             infos[bytes(m.gid.data).hex()] = [
-                {"namespace": n.node_namespace, "name": n.node_name,
-                 "readers": [bytes(g.data).hex() for g in n.reader_gid_seq],
-                 "writers": [bytes(g.data).hex() for g in n.writer_gid_seq]} for n in m.node_entities_info_seq]
+                {
+                    "namespace": n.node_namespace,
+                    "name": n.node_name,
+                    "readers": [bytes(g.data).hex() for g in n.reader_gid_seq],
+                    "writers": [bytes(g.data).hex() for g in n.writer_gid_seq],
+                }
+                for n in m.node_entities_info_seq
+            ]
         for e in [*publications.take(N=1000), *subscriptions.take(N=1000)]:
             if e.topic_name in step["topics"]:
-                endpoints.setdefault(e.topic_name, []).append({"guid": e.key.bytes.hex(),
-                                                               "participant": e.participant_key.bytes.hex()})
+                endpoints.setdefault(e.topic_name, []).append(
+                    {"guid": e.key.bytes.hex(), "participant": e.participant_key.bytes.hex()}
+                )
         time.sleep(0.05)
     print(json.dumps({"participants": infos, "endpoints": endpoints}), flush=True)
 
@@ -224,9 +261,19 @@ def publish(dp, step: dict) -> None:
     writer = DataWriter(dp, Topic(dp, step["topic"], cls), qos(step.get("reliable", True)))
     matched = wait_matched(writer)
     m = step["message"]
-    msg = cls(**m) if step["type"] == "Empty" else cls(
-        Header(Time(*m["stamp"]), m.get("frame_id", "")), Quaternion(*m["q_xyzw"]),
-        *([[0.0] * 9, Vector3(0, 0, 0), [0.0] * 9, Vector3(0, 0, 0), [0.0] * 9] if step["type"] == "Imu" else []))
+    msg = (
+        cls(**m)
+        if step["type"] == "Empty"
+        else cls(
+            Header(Time(*m["stamp"]), m.get("frame_id", "")),
+            Quaternion(*m["q_xyzw"]),
+            *(
+                [[0.0] * 9, Vector3(0, 0, 0), [0.0] * 9, Vector3(0, 0, 0), [0.0] * 9]
+                if step["type"] == "Imu"
+                else []
+            ),
+        )
+    )
     if step["type"] == "Imu":
         msg.orientation_covariance = [m.get("covariance0", 0.0)] + [0.0] * 8
     for _ in range(step.get("times", 1)):
@@ -264,9 +311,13 @@ def call_trigger(dp, step: dict) -> None:
     reader = DataReader(dp, Topic(dp, f"rr{step['name']}Reply", TriggerResponse), qos(True, clientid))
     available = wait_matched(writer) and wait_matched(reader)
     keep = threading.Event()
-    if step.get("orient"):  # orientations kept coming during the call, as a tare under gravity compensation needs
+    if step.get(
+        "orient"
+    ):  # orientations kept coming during the call, as a tare under gravity compensation needs
         oriented(dp, step["orient"], keep)
-    guid = writer.get_instance_handle() & (2**64 - 1)  # rmw_send_request: header.guid = the writer's instance handle
+    guid = writer.get_instance_handle() & (
+        2**64 - 1
+    )  # rmw_send_request: header.guid = the writer's instance handle
     seqs = list(range(7, 7 + step.get("requests", 1)))  # back to back, as several callers would
     for seq in seqs:
         writer.write(TriggerRequest(guid, seq))
@@ -277,7 +328,10 @@ def call_trigger(dp, step: dict) -> None:
         time.sleep(0.01)
     keep.set()
     for r in sorted(replies, key=lambda r: r.seq):
-        print(json.dumps({"service": step["name"], "available": available, **asdict(r), "sent_guid": guid}), flush=True)
+        print(
+            json.dumps({"service": step["name"], "available": available, **asdict(r), "sent_guid": guid}),
+            flush=True,
+        )
 
 
 def tare_topic(dp, step: dict) -> None:
@@ -303,7 +357,13 @@ def tare_topic(dp, step: dict) -> None:
 def main() -> int:
     dp = DomainParticipant(int(sys.argv[1]))
     for step in json.loads(sys.argv[2]):
-        {"read": read, "nodes": nodes, "publish": publish, "trigger": call_trigger, "trigger-topic": tare_topic}[step["do"]](dp, step)
+        {
+            "read": read,
+            "nodes": nodes,
+            "publish": publish,
+            "trigger": call_trigger,
+            "trigger-topic": tare_topic,
+        }[step["do"]](dp, step)
     return 0
 
 

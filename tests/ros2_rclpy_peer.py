@@ -29,9 +29,16 @@ from sensor_msgs.msg import Imu
 from std_msgs.msg import Empty
 from std_srvs.srv import Trigger
 
-TYPES = {"WrenchStamped": WrenchStamped, "DiagnosticArray": DiagnosticArray, "QuaternionStamped": QuaternionStamped,
-         "Imu": Imu, "Empty": Empty}
-DEFAULT = QoSProfile(depth=10)  # rclpy's default publisher/subscriber profile: reliable, volatile, keep last 10
+TYPES = {
+    "WrenchStamped": WrenchStamped,
+    "DiagnosticArray": DiagnosticArray,
+    "QuaternionStamped": QuaternionStamped,
+    "Imu": Imu,
+    "Empty": Empty,
+}
+DEFAULT = QoSProfile(
+    depth=10
+)  # rclpy's default publisher/subscriber profile: reliable, volatile, keep last 10
 
 
 def plain(msg: Any) -> Any:
@@ -55,9 +62,13 @@ def spin_until(node: Node, done: Any, timeout_s: float) -> bool:
 
 
 def endpoint(info: Any) -> dict[str, Any]:
-    return {"node_name": info.node_name, "node_namespace": info.node_namespace, "topic_type": info.topic_type,
-            "reliability": info.qos_profile.reliability.name.lower(),
-            "durability": info.qos_profile.durability.name.lower()}
+    return {
+        "node_name": info.node_name,
+        "node_namespace": info.node_namespace,
+        "topic_type": info.topic_type,
+        "reliability": info.qos_profile.reliability.name.lower(),
+        "durability": info.qos_profile.durability.name.lower(),
+    }
 
 
 def graph(node: Node, step: dict) -> None:
@@ -69,21 +80,37 @@ def graph(node: Node, step: dict) -> None:
     want_ns = want_ns or "/"
 
     def listed() -> bool:
-        return ((want_name, want_ns) in node.get_node_names_and_namespaces()
-                and all(node.get_publishers_info_by_topic(t) for t in step["topics"]))
+        return (want_name, want_ns) in node.get_node_names_and_namespaces() and all(
+            node.get_publishers_info_by_topic(t) for t in step["topics"]
+        )
 
     def attributed() -> bool:
-        return all(any((p.node_name, p.node_namespace) == (want_name, want_ns)
-                       for p in node.get_publishers_info_by_topic(t)) for t in step["topics"])
+        return all(
+            any(
+                (p.node_name, p.node_namespace) == (want_name, want_ns)
+                for p in node.get_publishers_info_by_topic(t)
+            )
+            for t in step["topics"]
+        )
 
     spin_until(node, listed, step.get("timeout_s", 20.0))
     spin_until(node, attributed, step.get("attribution_s", 3.0))
-    print(json.dumps({"nodes": [list(n) for n in node.get_node_names_and_namespaces()],
-                      "topics": {name: types for name, types in node.get_topic_names_and_types()},
-                      "publishers": {t: [endpoint(p) for p in node.get_publishers_info_by_topic(t)]
-                                     for t in step["topics"]},
-                      "subscribers": {t: [endpoint(p) for p in node.get_subscriptions_info_by_topic(t)]
-                                      for t in step.get("subscribed", [])}}), flush=True)
+    print(
+        json.dumps(
+            {
+                "nodes": [list(n) for n in node.get_node_names_and_namespaces()],
+                "topics": {name: types for name, types in node.get_topic_names_and_types()},
+                "publishers": {
+                    t: [endpoint(p) for p in node.get_publishers_info_by_topic(t)] for t in step["topics"]
+                },
+                "subscribers": {
+                    t: [endpoint(p) for p in node.get_subscriptions_info_by_topic(t)]
+                    for t in step.get("subscribed", [])
+                },
+            }
+        ),
+        flush=True,
+    )
 
 
 def read(node: Node, step: dict) -> None:
@@ -96,6 +123,7 @@ def read(node: Node, step: dict) -> None:
         def take(msg: Any) -> None:
             if len(got[topic]) < step["count"]:
                 got[topic].append({**plain(msg), "received": time.time()})
+
         return take
 
     subs = [node.create_subscription(TYPES[kind], t, keep(t), qos) for t, kind in step["topics"].items()]
@@ -170,8 +198,12 @@ def tare_topic(node: Node, step: dict) -> None:
     pub.publish(Empty())
     tared = spin_until(node, lambda: bool(said) and said[-1], step.get("timeout_s", 20.0))
     timer.cancel()
-    print(json.dumps({"published": step["topic"], "matched": matched, "tared": tared,
-                      "diagnostics": len(said)}), flush=True)
+    print(
+        json.dumps(
+            {"published": step["topic"], "matched": matched, "tared": tared, "diagnostics": len(said)}
+        ),
+        flush=True,
+    )
 
 
 def trigger(node: Node, step: dict) -> None:
@@ -204,8 +236,12 @@ def stamps(node: Node, step: dict) -> None:
     had it (UNIX s), as an rclpy user's callback has a message (deserialized into its object)."""
     qos = qos_profile_sensor_data if step.get("qos") == "sensor_data" else DEFAULT
     got: list[tuple[float, float]] = []
-    node.create_subscription(WrenchStamped, step["topic"], lambda m: got.append(
-        (m.header.stamp.sec + m.header.stamp.nanosec * 1e-9, time.time())), qos)
+    node.create_subscription(
+        WrenchStamped,
+        step["topic"],
+        lambda m: got.append((m.header.stamp.sec + m.header.stamp.nanosec * 1e-9, time.time())),
+        qos,
+    )
     while time.time() < step["until"]:
         rclpy.spin_once(node, timeout_sec=0.1)
     print(json.dumps({"topic": step["topic"], "stamps": got}), flush=True)
@@ -218,8 +254,15 @@ def main() -> int:
     node = rclpy.create_node(os.environ.get("PEER_NODE", "ftsensord_test_peer"))
     try:
         for step in steps:
-            {"graph": graph, "read": read, "publish": publish, "tare-topic": tare_topic, "trigger": trigger,
-             "spin": spin, "stamps": stamps}[step["do"]](node, step)
+            {
+                "graph": graph,
+                "read": read,
+                "publish": publish,
+                "tare-topic": tare_topic,
+                "trigger": trigger,
+                "spin": spin,
+                "stamps": stamps,
+            }[step["do"]](node, step)
     finally:
         node.destroy_node()
         rclpy.shutdown()

@@ -28,12 +28,24 @@ PEER = Path(__file__).with_name("ros2_rclpy_peer.py")
 #: default rmw (rmw_fastrtps_cpp: Fast DDS 2.14 on Jazzy, 3.2 on Kilted) and the message
 #: packages of the daemon's topics and service.
 DISTRIBUTIONS = {
-    "jazzy": ["ros-jazzy-rclpy==7.1.6", "ros-jazzy-rmw-fastrtps-cpp==8.4.3", "ros-jazzy-geometry-msgs==5.3.6",
-              "ros-jazzy-diagnostic-msgs==5.3.6", "ros-jazzy-std-msgs==5.3.6", "ros-jazzy-sensor-msgs==5.3.6",
-              "ros-jazzy-std-srvs==5.3.6"],
-    "kilted": ["ros-kilted-rclpy==9.1.2", "ros-kilted-rmw-fastrtps-cpp==9.3.3", "ros-kilted-geometry-msgs==5.5.1",
-               "ros-kilted-diagnostic-msgs==5.5.1", "ros-kilted-std-msgs==5.5.1", "ros-kilted-sensor-msgs==5.5.1",
-               "ros-kilted-std-srvs==5.5.1"],
+    "jazzy": [
+        "ros-jazzy-rclpy==7.1.6",
+        "ros-jazzy-rmw-fastrtps-cpp==8.4.3",
+        "ros-jazzy-geometry-msgs==5.3.6",
+        "ros-jazzy-diagnostic-msgs==5.3.6",
+        "ros-jazzy-std-msgs==5.3.6",
+        "ros-jazzy-sensor-msgs==5.3.6",
+        "ros-jazzy-std-srvs==5.3.6",
+    ],
+    "kilted": [
+        "ros-kilted-rclpy==9.1.2",
+        "ros-kilted-rmw-fastrtps-cpp==9.3.3",
+        "ros-kilted-geometry-msgs==5.5.1",
+        "ros-kilted-diagnostic-msgs==5.5.1",
+        "ros-kilted-std-msgs==5.5.1",
+        "ros-kilted-sensor-msgs==5.5.1",
+        "ros-kilted-std-srvs==5.5.1",
+    ],
 }
 #: How long pip may take a distribution (about 40 s each from the index on the CI machine).
 INSTALL_TIMEOUT_S = 900
@@ -50,22 +62,43 @@ def python_of(distro: str) -> Path:
         fcntl.flock(lock, fcntl.LOCK_EX)
         if not (made.exists() and made.read_text() == wanted):
             start = time.monotonic()
-            steps = [[sys.executable, "-m", "venv", "--clear", str(venv)],
-                     [str(venv / "bin" / "python"), "-m", "pip", "install", "-q", *DISTRIBUTIONS[distro]]]
+            steps = [
+                [sys.executable, "-m", "venv", "--clear", str(venv)],
+                [str(venv / "bin" / "python"), "-m", "pip", "install", "-q", *DISTRIBUTIONS[distro]],
+            ]
             for step in steps:
-                done = subprocess.run(step, capture_output=True, text=True, timeout=INSTALL_TIMEOUT_S,
-                                      env={k: v for k, v in os.environ.items() if k != "PYTHONPATH"})
+                done = subprocess.run(
+                    step,
+                    capture_output=True,
+                    text=True,
+                    timeout=INSTALL_TIMEOUT_S,
+                    env={k: v for k, v in os.environ.items() if k != "PYTHONPATH"},
+                )
                 if done.returncode != 0:
-                    raise RuntimeError(f"{' '.join(step)} failed:\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}")
+                    raise RuntimeError(
+                        f"{' '.join(step)} failed:\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}"
+                    )
             made.write_text(wanted)
-            print(f"\n{distro}: ROS 2 wheels installed in {time.monotonic() - start:.0f} s ({venv})", file=sys.stderr)
+            print(
+                f"\n{distro}: ROS 2 wheels installed in {time.monotonic() - start:.0f} s ({venv})",
+                file=sys.stderr,
+            )
     return venv / "bin" / "python"
 
 
 def peer_env(**more: str) -> dict[str, str]:
     """A ROS 2 user's environment: the default rmw named, discovery kept to this host, the
     bootstrapper's mark of another environment left out."""
-    env = {k: v for k, v in os.environ.items()
-           if not k.startswith(("_ROS_WHEELS_BOOTSTRAP", "ROS_", "RMW_", "AMENT_", "CYCLONEDDS_", "FASTDDS_",
-                                "FASTRTPS_"))}
-    return {**env, "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", **more}
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if not k.startswith(
+            ("_ROS_WHEELS_BOOTSTRAP", "ROS_", "RMW_", "AMENT_", "CYCLONEDDS_", "FASTDDS_", "FASTRTPS_")
+        )
+    }
+    return {
+        **env,
+        "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
+        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+        **more,
+    }

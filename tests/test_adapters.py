@@ -27,10 +27,7 @@ from ftsensord.chip.driver import MLX90393
 from ftsensord.chip.i2c import ADAPTER_RULES
 from ftsensord.cli import main
 from ftsensord.errors import ChipNotRespondingError, ChipProtocolError, ConfigError
-from ftsensord.sim import NOISELESS
-from ftsensord.sim import VirtualClock
-from ftsensord.sim import simulated_bus
-from ftsensord.sim import two_sensor_scene
+from ftsensord.sim import NOISELESS, VirtualClock, simulated_bus, two_sensor_scene
 
 from .conftest import ADDR
 
@@ -52,8 +49,12 @@ def test_bcm2835_refuses_a_read_that_is_not_last_before_touching_any_chip(scene)
     first_read = i2c_msg.read(ADDR, 1)
     with pytest.raises(OSError) as exc:
         bus.i2c_rdwr(wr(ADDR, 0x42), first_read, wr(OTHER, 0x43), i2c_msg.read(OTHER, 1))
-    assert exc.value.errno == errno.EOPNOTSUPP and "only one read message supported, has to be last" in str(exc.value)
-    assert bus.chips[ADDR].registers[0x04] == 0 and bus.chips[OTHER].registers[0x04] == 0  # nothing reached a chip
+    assert exc.value.errno == errno.EOPNOTSUPP and "only one read message supported, has to be last" in str(
+        exc.value
+    )
+    assert (
+        bus.chips[ADDR].registers[0x04] == 0 and bus.chips[OTHER].registers[0x04] == 0
+    )  # nothing reached a chip
     assert bytes(first_read) == b"\x00" and bus.refused == 1
     assert bus.clock.now() == pytest.approx(80e-6)  # the ioctl's cost, no wire time
 
@@ -89,8 +90,10 @@ def test_designware_refuses_a_zero_length_message_as_its_quirk_says(scene):
     sim(scene, "bcm2835").i2c_rdwr(i2c_msg.write(ADDR, []))  # a quick-write probe elsewhere
 
 
-@pytest.mark.parametrize(("adapter", "err"), [("permissive", errno.ENXIO), ("bcm2835", errno.EREMOTEIO),
-                                              ("designware", errno.EREMOTEIO)])
+@pytest.mark.parametrize(
+    ("adapter", "err"),
+    [("permissive", errno.ENXIO), ("bcm2835", errno.EREMOTEIO), ("designware", errno.EREMOTEIO)],
+)
 def test_each_adapter_reports_a_nack_with_its_drivers_errno(scene, adapter, err):
     with pytest.raises(OSError) as exc:
         sim(scene, adapter).i2c_rdwr(i2c_msg.write(0x1B, [mlx.CMD_EX]), i2c_msg.read(0x1B, 1))
@@ -106,18 +109,27 @@ def test_bus_strings_carry_the_board():
     assert spec.timing.clock_hz == 250e3
     assert parse_bus("sim:scene.toml?adapter=permissive").arg == "scene.toml"
     default = parse_bus("sim").timing
-    assert default.adapter == "bcm2835" and default.ioctl_s == pytest.approx(60e-6) and default.clock_hz is None
+    assert (
+        default.adapter == "bcm2835" and default.ioctl_s == pytest.approx(60e-6) and default.clock_hz is None
+    )
     bus = open_bus("sim?adapter=permissive&ioctl_us=0&clock_hz=100000", clock=VirtualClock(), bus_hz=400e3)
     assert (bus.adapter, bus.ioctl_s, bus.wire_hz) == ("permissive", 0.0, 100e3)
 
 
-@pytest.mark.parametrize(("spec", "named"), [
-    ("sim?adapter=smbus", "permissive or bcm2835 or designware"),
-    ("sim?speed=1", "unknown option 'speed'"),
-    ("sim?ioctl_us=-1", "ioctl_us"), ("sim?ioctl_us=fast", "ioctl_us"), ("sim?clock_hz=nan", "clock_hz"),
-    ("sim?clock_hz=5e6", "clock_hz"), ("sim?adapter", "adapter"), ("sim?adapter=bcm2835&adapter=permissive", "adapter"),
-    ("i2c:1?adapter=bcm2835", "simulated bus only"),
-])
+@pytest.mark.parametrize(
+    ("spec", "named"),
+    [
+        ("sim?adapter=smbus", "permissive or bcm2835 or designware"),
+        ("sim?speed=1", "unknown option 'speed'"),
+        ("sim?ioctl_us=-1", "ioctl_us"),
+        ("sim?ioctl_us=fast", "ioctl_us"),
+        ("sim?clock_hz=nan", "clock_hz"),
+        ("sim?clock_hz=5e6", "clock_hz"),
+        ("sim?adapter", "adapter"),
+        ("sim?adapter=bcm2835&adapter=permissive", "adapter"),
+        ("i2c:1?adapter=bcm2835", "simulated bus only"),
+    ],
+)
 def test_a_bad_option_is_refused_naming_it_and_what_is_accepted(spec, named):
     with pytest.raises(ConfigError) as exc:
         parse_bus(spec)
@@ -128,7 +140,9 @@ def test_a_bad_option_is_refused_naming_it_and_what_is_accepted(spec, named):
 @pytest.mark.parametrize("adapter", ["permissive", "bcm2835", "designware"])
 @pytest.mark.parametrize("scheduler", ["overlapped", "burst"])
 def test_the_reader_pays_no_refused_ioctl_after_learning_the_adapter(adapter, scheduler):
-    bus = simulated_bus(two_sensor_scene(), clock=VirtualClock(), bus_hz=400e3, adapter=adapter, ioctl_s=80e-6)
+    bus = simulated_bus(
+        two_sensor_scene(), clock=VirtualClock(), bus_hz=400e3, adapter=adapter, ioctl_s=80e-6
+    )
     reader = Reader(bus, [MLX90393(bus, a, sleep=bus.sleep) for a in ALL], scheduler, mlx.Settings())
     assert reader.start() == {}
     learnt = bus.refused
@@ -170,7 +184,11 @@ def test_the_probe_says_nothing_when_no_chip_answers(scene):
 
 # --- the chip answers like a real one --------------------------------------------------------
 CAPTURED = {  # logic captures of real chips (docs/design/simulator.md)
-    "EX": {0x01, 0x02}, "WR": {0x01, 0x02}, "RT": {0x05, 0x06}, "SM": {0x21, 0x22}, "SB": {0x81, 0x82},
+    "EX": {0x01, 0x02},
+    "WR": {0x01, 0x02},
+    "RT": {0x05, 0x06},
+    "SM": {0x21, 0x22},
+    "SB": {0x81, 0x82},
 }
 
 
@@ -239,7 +257,9 @@ def test_the_measured_clock_and_ioctl_cost_and_the_warning(scene):
     assert report.measured.clock_hz == pytest.approx(250e3, rel=1e-6)
     assert report.measured.ioctl_s == pytest.approx(80e-6, rel=1e-6)
     (warning,) = report.warnings
-    assert "250 kHz" in warning and "400 kHz" in warning and "core_freq" in warning and "force_turbo" in warning
+    assert (
+        "250 kHz" in warning and "400 kHz" in warning and "core_freq" in warning and "force_turbo" in warning
+    )
     assert know_board(sim(scene, "bcm2835"), ADDR, 400e3).warnings == []  # the clock it was told
 
 
@@ -310,8 +330,11 @@ def test_doctor_runs_each_scheduler_at_its_bound(capsys):
     report = json.loads(capsys.readouterr().out)
     assert report["adapter"] == "bcm2835" and report["ioctl_us"] == pytest.approx(80, rel=1e-6)
     assert report["clock_hz"] == pytest.approx(400e3, rel=1e-6)
-    assert report["accepts"] == {"read_not_last": False, "several_addresses": True,
-                                 "transfers": report["accepts"]["transfers"]}
+    assert report["accepts"] == {
+        "read_not_last": False,
+        "several_addresses": True,
+        "transfers": report["accepts"]["transfers"],
+    }
     assert len(report["chips"]) == 16 and all(c["errors"]["no_answer"] == 0 for c in report["chips"])
     assert set(report["schedulers"]) == {"naive", "overlapped", "burst"}
     for run in report["schedulers"].values():

@@ -15,16 +15,17 @@ import pytest
 import zmq
 
 from ftsensord.calibration.calfile import MAX_CALIBRATION_BYTES, Calibration
-from ftsensord.docfile import MAX_DEPTH, load_toml, parse_json
-from ftsensord.errors import ConfigError
 from ftsensord.config.file import builtin_path
 from ftsensord.daemon.control import Budget, Control
-from ftsensord.protocol import wire
 from ftsensord.daemon.sdnotify import Notifier
+from ftsensord.docfile import MAX_DEPTH, load_toml, parse_json
+from ftsensord.errors import ConfigError
+from ftsensord.protocol import wire
 from ftsensord.sim import load_scene
 
 from .conftest import assert_names_file_and_key
 from .test_daemon import Rig
+
 
 @pytest.fixture
 def make_rig(tmp_path):
@@ -34,6 +35,7 @@ def make_rig(tmp_path):
     def make(**kwargs) -> Rig:
         made.append(Rig(tmp_path, **kwargs))
         return made[-1]
+
     yield make
     for rig in made:
         rig.close()
@@ -42,14 +44,17 @@ def make_rig(tmp_path):
 HUGE = "1" * 5000  # over Python's 4300-digit int-from-string limit: a plain ValueError
 
 
-@pytest.mark.parametrize("raw", [
-    '{"cmd":"status","n":' + HUGE + "}",  # killed the daemon: exit 1
-    '{"cmd":"set","rate_hz":' + HUGE + "}",
-    '{"cmd":"tare","samples":-' + HUGE + "}",
-    '{"cmd":"status","x":' + "[" * 5000 + "]" * 5000 + "}",
-    "[" * 5000 + "]" * 5000,
-    '{"cmd":"status","x":' + '{"a":' * 9 + "1" + "}" * 9 + "}",  # over the request depth
-])
+@pytest.mark.parametrize(
+    "raw",
+    [
+        '{"cmd":"status","n":' + HUGE + "}",  # killed the daemon: exit 1
+        '{"cmd":"set","rate_hz":' + HUGE + "}",
+        '{"cmd":"tare","samples":-' + HUGE + "}",
+        '{"cmd":"status","x":' + "[" * 5000 + "]" * 5000 + "}",
+        "[" * 5000 + "]" * 5000,
+        '{"cmd":"status","x":' + '{"a":' * 9 + "1" + "}" * 9 + "}",  # over the request depth
+    ],
+)
 def test_requests_that_used_to_kill_are_answered_with_an_error_and_the_loop_goes_on(make_rig, raw):
     rig = make_rig()
     rig.cycles(3)
@@ -81,12 +86,15 @@ def calibration_with(tmp_path, key: str, literal: str):
     return path
 
 
-@pytest.mark.parametrize(("key", "literal", "expected"), [
-    ("version", HUGE, "an integer of 5000 characters"),
-    ("wrench_range", "[" * (MAX_DEPTH + 2) + "]" * (MAX_DEPTH + 2), f"nested deeper than {MAX_DEPTH}"),
-    # Python's parser gives up (RecursionError) before saying where: the file is named, not the key.
-    ("", "[" * 5000 + "]" * 5000, "nested deeper than"),
-])
+@pytest.mark.parametrize(
+    ("key", "literal", "expected"),
+    [
+        ("version", HUGE, "an integer of 5000 characters"),
+        ("wrench_range", "[" * (MAX_DEPTH + 2) + "]" * (MAX_DEPTH + 2), f"nested deeper than {MAX_DEPTH}"),
+        # Python's parser gives up (RecursionError) before saying where: the file is named, not the key.
+        ("", "[" * 5000 + "]" * 5000, "nested deeper than"),
+    ],
+)
 def test_a_calibration_file_over_the_limits_is_refused_naming_file_and_key(tmp_path, key, literal, expected):
     path = calibration_with(tmp_path, key or "wrench_range", literal)
     assert_names_file_and_key(Calibration.load, path, key, expected)
@@ -125,12 +133,15 @@ def test_a_huge_calibration_file_is_refused_by_its_size_naming_file_limit_and_si
     rig.close()
 
 
-@pytest.mark.parametrize(("text", "expected"), [
-    ("version = 1\n[chip]\nosr = " + HUGE + "\n", "line 3, key chip.osr"),
-    ("version = 1\nx = " + "[" * 5000 + "]" * 5000 + "\n", "nested deeper than"),
-    ("version = 1\nx = " + "[" * 40 + "]" * 40 + "\n", "x[0]"),
-    ("version = 1\nrate_hz = 1" + "0" * 150 + "\n", "rate_hz: an integer of more than"),
-])
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        ("version = 1\n[chip]\nosr = " + HUGE + "\n", "line 3, key chip.osr"),
+        ("version = 1\nx = " + "[" * 5000 + "]" * 5000 + "\n", "nested deeper than"),
+        ("version = 1\nx = " + "[" * 40 + "]" * 40 + "\n", "x[0]"),
+        ("version = 1\nrate_hz = 1" + "0" * 150 + "\n", "rate_hz: an integer of more than"),
+    ],
+)
 def test_a_toml_file_over_the_limits_is_refused_naming_file_and_key(tmp_path, text, expected):
     path = tmp_path / "c.toml"
     path.write_text(text)
@@ -141,7 +152,10 @@ def test_reload_applies_stuck_cycles_and_readback_every(tmp_path, make_rig):
     rig = make_rig()
     assert rig.daemon.reader.readback_every == 1
     (tmp_path / "ftsensord.toml").write_text(
-        (tmp_path / "ftsensord.toml").read_text().replace("rate_hz = 100", "rate_hz = 100\nstuck_cycles = 0\nreadback_every = 5"))
+        (tmp_path / "ftsensord.toml")
+        .read_text()
+        .replace("rate_hz = 100", "rate_hz = 100\nstuck_cycles = 0\nreadback_every = 5")
+    )
     assert rig.request(cmd="reload")["ok"]
     assert rig.daemon.reader.readback_every == 5
     assert rig.daemon.reader.care.stuck_cycles == 0
@@ -149,7 +163,8 @@ def test_reload_applies_stuck_cycles_and_readback_every(tmp_path, make_rig):
     rig.cycles(10)
     per_cycle_5 = (rig.bus.transfers - transfers) / 10
     (tmp_path / "ftsensord.toml").write_text(
-        (tmp_path / "ftsensord.toml").read_text().replace("readback_every = 5", "readback_every = 1"))
+        (tmp_path / "ftsensord.toml").read_text().replace("readback_every = 5", "readback_every = 1")
+    )
     assert rig.request(cmd="reload")["ok"]
     transfers = rig.bus.transfers
     rig.cycles(10)
@@ -219,6 +234,7 @@ def test_a_nack_during_read_back_is_not_register_drift(make_rig, caplog):
 
 def test_a_chip_failing_and_returning_is_logged_once_per_transition(make_rig, caplog):
     from .test_faults import fault
+
     rig = make_rig(scene_extra=fault("nack", 0.3, 0.6, address=0x0E))
     with caplog.at_level(logging.INFO, logger="ftsensord"):
         rig.cycles(200)
@@ -232,8 +248,8 @@ def test_a_reload_reads_its_files_off_the_loop_and_a_flood_is_one_reload(tmp_pat
     file work is held up (a slow disk, a big file), the loop goes on publishing every
     cycle; the 50 requests that came meanwhile are answered by one reload after it, and
     the replies all say ok."""
-    from ftsensord.daemon import daemon as daemon_module
     from ftsensord.config.file import load_config
+    from ftsensord.daemon import daemon as daemon_module
 
     from .conftest import InProcess
     from .test_daemon import write_config
@@ -247,8 +263,12 @@ def test_a_reload_reads_its_files_off_the_loop_and_a_flood_is_one_reload(tmp_pat
         return real(*args, **kwargs)
 
     monkeypatch.setattr(daemon_module, "reload_config", slow_reload_config)
-    rig = InProcess(load_config(write_config(tmp_path)), load_scene(tmp_path / "scene.toml"),
-                    subscribe=b"wrench/sensor1\0", background_reload=True)
+    rig = InProcess(
+        load_config(write_config(tmp_path)),
+        load_scene(tmp_path / "scene.toml"),
+        subscribe=b"wrench/sensor1\0",
+        background_reload=True,
+    )
     d = rig.daemon
     dealer = zmq.Context.instance().socket(zmq.DEALER)
     dealer.connect(rig.router.getsockopt(zmq.LAST_ENDPOINT).decode())

@@ -61,8 +61,9 @@ def check_mjs() -> list[str]:
         missing(f"the Foxglove client test needs node >= 20, not {version}")
     pinned = json.loads((CLIENT / "package.json").read_text())["dependencies"]
     if any(installed(name) != want for name, want in pinned.items()):
-        done = subprocess.run([npm, "ci", "--no-audit", "--no-fund"], cwd=CLIENT, capture_output=True,
-                              text=True, timeout=600)  # a slow registry mirror, not a hang
+        done = subprocess.run(
+            [npm, "ci", "--no-audit", "--no-fund"], cwd=CLIENT, capture_output=True, text=True, timeout=600
+        )  # a slow registry mirror, not a hang
         if done.returncode != 0:
             missing(f"npm ci in {CLIENT} failed: {(done.stderr or done.stdout).strip()[-600:]}")
     return [node, str(CLIENT / "check.mjs")]
@@ -82,8 +83,12 @@ class Bridge:
         self.frames = ControlClient(f"ipc://{folder / 'control'}").status()["frames"]
         self.ref = Reference(pub)
         self.ref.start()
-        self.proc = subprocess.Popen([sys.executable, "-m", "ftsensord", "bridge", *STREAMS, "--port", "0",
-                                      "--endpoint", pub], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "ftsensord", "bridge", *STREAMS, "--port", "0", "--endpoint", pub],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         self.err = ""
         line = self.proc.stdout.readline() if self.proc.stdout else ""
         if "ws://127.0.0.1:" not in line:
@@ -103,8 +108,9 @@ class Bridge:
 
 @pytest.fixture
 def bridge(tmp_path) -> Iterator[Bridge]:
-    proc, notify = start_daemon(write_config(tmp_path), tmp_path, stdout=subprocess.DEVNULL,
-                                stderr=subprocess.DEVNULL)
+    proc, notify = start_daemon(
+        write_config(tmp_path), tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
     try:
         b = Bridge(tmp_path / "ftsensord")
         try:
@@ -125,7 +131,9 @@ def run_client(check_mjs: list[str], *args: str) -> subprocess.CompletedProcess:
 def test_the_foxglove_apps_client_reads_the_streams_as_ros2_messages_at_the_samples_time(check_mjs, bridge):
     # 30 s: node's start and the first samples, with room for a loaded machine
     done = run_client(check_mjs, bridge.url, "--count", str(COUNT), "--timeout", "30", *SCHEMAS)
-    assert bridge.stop() == 0 and "Traceback" not in bridge.err and "(stopped by SIGINT)" in bridge.err, bridge.err
+    assert bridge.stop() == 0 and "Traceback" not in bridge.err and "(stopped by SIGINT)" in bridge.err, (
+        bridge.err
+    )
     assert done.returncode == 0, done.stderr
     lines = [json.loads(line) for line in done.stdout.splitlines()]
     hello, messages = lines[0], [m for m in lines if "topic" in m]
@@ -136,8 +144,9 @@ def test_the_foxglove_apps_client_reads_the_streams_as_ros2_messages_at_the_samp
     assert len(messages) == COUNT and {m["topic"] for m in messages} == set(SCHEMAS)
 
     # Each wrench and its status are one sample's: pair them by log time, seq from the status.
-    status = {(m["topic"].removesuffix("/status"), m["log_time_ns"]): m for m in messages
-              if m["schema"] == STATUS}
+    status = {
+        (m["topic"].removesuffix("/status"), m["log_time_ns"]): m for m in messages if m["schema"] == STATUS
+    }
     wrenches = [m for m in messages if m["schema"] == WRENCH]
     checked = 0
     for m in wrenches:
@@ -165,8 +174,11 @@ def test_the_foxglove_apps_client_reads_the_streams_as_ros2_messages_at_the_samp
 
     # Every sample served, and `missed` says how many sequence numbers a status skipped.
     for stream in STREAMS:
-        seqs = [(int(m["message"]["seq"]), m["message"]["missed"]) for m in messages
-                if m["topic"] == f"/{stream}/status"]
+        seqs = [
+            (int(m["message"]["seq"]), m["message"]["missed"])
+            for m in messages
+            if m["topic"] == f"/{stream}/status"
+        ]
         for (prev, _), (seq, missed) in zip(seqs, seqs[1:]):
             assert missed == seq - prev - 1
 
@@ -175,10 +187,13 @@ def test_a_client_offering_only_the_old_subprotocol_is_refused_with_a_clear_erro
     # foxglove-sdk's server speaks foxglove.sdk.v1 only; a viewer offering just the protocol's
     # old name (older Foxglove app releases, the Lichtblick fork until late 2025) gets HTTP 400:
     # docs/guide/clients.md, Bridges to live viewers.
-    done = run_client(check_mjs, bridge.url, "--subprotocol", "foxglove.websocket.v1", "--timeout", "10",
-                      "/wrench/tip")
+    done = run_client(
+        check_mjs, bridge.url, "--subprotocol", "foxglove.websocket.v1", "--timeout", "10", "/wrench/tip"
+    )
     assert done.returncode == 1 and done.stdout == ""
     assert "400" in done.stderr and "foxglove.websocket.v1" in done.stderr, done.stderr
     # The bridge's own log says why (the SDK's server says only "handshake failed").
     bridge.stop()
-    assert "handshake failed: a viewer must offer the WebSocket subprotocol foxglove.sdk.v1" in bridge.err, bridge.err
+    assert "handshake failed: a viewer must offer the WebSocket subprotocol foxglove.sdk.v1" in bridge.err, (
+        bridge.err
+    )

@@ -31,8 +31,12 @@ def test_a_bridge_that_exits_is_logged_once_and_shown_in_status(caplog):
 
 
 def test_a_bridge_that_ignores_sigterm_is_killed_when_the_daemon_stops(monkeypatch, tmp_path, caplog):
-    stubborn = [sys.executable, "-c", "import signal, time; signal.signal(signal.SIGTERM, signal.SIG_IGN); "
-                "open(r'%s', 'w').close(); time.sleep(60)" % (tmp_path / "up")]
+    stubborn = [
+        sys.executable,
+        "-c",
+        "import signal, time; signal.signal(signal.SIGTERM, signal.SIG_IGN); "
+        "open(r'%s', 'w').close(); time.sleep(60)" % (tmp_path / "up"),
+    ]
     real = subprocess.Popen
     monkeypatch.setattr(ros2child.subprocess, "Popen", lambda args, **kw: real(stubborn, **kw))
     monkeypatch.setattr(ros2child, "BRIDGE_EXIT_S", 0.5)
@@ -52,8 +56,9 @@ def test_without_a_ros2_table_nothing_is_started(tmp_path):
 
 
 def test_a_domain_id_from_the_environment_or_the_flag_is_checked():
-    from ftsensord.errors import ConfigError
     from ftsensord.config.ros2conf import check_domain_id, default_domain_id
+    from ftsensord.errors import ConfigError
+
     assert default_domain_id({}) == 0 and default_domain_id({"ROS_DOMAIN_ID": " 42 "}) == 42
     for bad in ("300", "abc", "-1"):  # once silently domain 0: the bridge off the nodes' domain
         with pytest.raises(ConfigError, match=r"ROS_DOMAIN_ID \(environment\): expected a DDS domain id"):

@@ -41,10 +41,15 @@ temperature_c = 40.0
 """
 
 
-@pytest.mark.parametrize(("spec", "parsed"), [
-    ("sim", ("sim", None)), ("sim:scenes/a.toml", ("sim", "scenes/a.toml")),
-    ("i2c:1", ("i2c", "1")), ("i2c:/dev/i2c-3", ("i2c", "/dev/i2c-3")),
-])
+@pytest.mark.parametrize(
+    ("spec", "parsed"),
+    [
+        ("sim", ("sim", None)),
+        ("sim:scenes/a.toml", ("sim", "scenes/a.toml")),
+        ("i2c:1", ("i2c", "1")),
+        ("i2c:/dev/i2c-3", ("i2c", "/dev/i2c-3")),
+    ],
+)
 def test_accepted_bus_specs(spec, parsed):
     assert parse_bus_spec(spec) == parsed
 
@@ -75,8 +80,9 @@ def test_the_nominal_scene_is_two_symmetric_sensors_at_rest():
     assert np.allclose(bz, bz[0]) and 1.0e-3 < bz[0] < 2.0e-3
     # config/scene-nominal.toml is the same scene, for the command line.
     from_file = load_scene(Path(__file__).resolve().parent.parent / "config" / "scene-nominal.toml")
-    assert np.array_equal([from_file.field_t(a, 0.0) for a in scene.addresses],
-                          [scene.field_t(a, 0.0) for a in scene.addresses])
+    assert np.array_equal(
+        [from_file.field_t(a, 0.0) for a in scene.addresses], [scene.field_t(a, 0.0) for a in scene.addresses]
+    )
 
 
 def test_the_default_scene_is_two_as_built_sensors_at_rest_in_the_earths_field():
@@ -101,19 +107,22 @@ def test_scene_file_loads(tmp_path):
     assert scene.temperature_c(0x0D, 0.0) == 22.0 and scene.temperature_c(0x1A, 0.0) == 40.0
 
 
-@pytest.mark.parametrize(("edit", "key", "expected"), [
-    (("version = 1", "version = 2"), "version", "expected 1"),
-    (('kind = "static"', 'kind = "magic"'), "kind", 'expected one of "static", "sensors"'),
-    (("address = 0x0D", "address = 0x0B"), "chip[0].address", "0x0C-0x1B"),
-    (("address = 0x1A", "address = 0x0D"), "chip[1].address", "not used before"),
-    (("[10.0, -20.0, 1500.0]", "[10.0, 1500.0]"), "chip[0].field_ut", "3 finite numbers"),
-    (("[10.0, -20.0, 1500.0]", "[10.0, nan, 1500.0]"), "chip[0].field_ut", "3 finite numbers"),
-    (("temperature_c = 40.0", "temperature_c = \"hot\""), "chip[1].temperature_c", "finite number"),
-    (("temperature_c = 40.0", "colour = 1"), "chip[1].colour", "one of address"),
-    (("temperature_c = 22.0", "temprature_c = 22.0"), "temprature_c", "one of"),
-    (("[[chip]]", "[chips]"), "chips", "one of"),
-    (("version = 1", "version = = 1"), "not valid TOML", ""),
-])
+@pytest.mark.parametrize(
+    ("edit", "key", "expected"),
+    [
+        (("version = 1", "version = 2"), "version", "expected 1"),
+        (('kind = "static"', 'kind = "magic"'), "kind", 'expected one of "static", "sensors"'),
+        (("address = 0x0D", "address = 0x0B"), "chip[0].address", "0x0C-0x1B"),
+        (("address = 0x1A", "address = 0x0D"), "chip[1].address", "not used before"),
+        (("[10.0, -20.0, 1500.0]", "[10.0, 1500.0]"), "chip[0].field_ut", "3 finite numbers"),
+        (("[10.0, -20.0, 1500.0]", "[10.0, nan, 1500.0]"), "chip[0].field_ut", "3 finite numbers"),
+        (("temperature_c = 40.0", 'temperature_c = "hot"'), "chip[1].temperature_c", "finite number"),
+        (("temperature_c = 40.0", "colour = 1"), "chip[1].colour", "one of address"),
+        (("temperature_c = 22.0", "temprature_c = 22.0"), "temprature_c", "one of"),
+        (("[[chip]]", "[chips]"), "chips", "one of"),
+        (("version = 1", "version = = 1"), "not valid TOML", ""),
+    ],
+)
 def test_a_bad_scene_file_names_the_file_the_key_and_what_was_expected(tmp_path, edit, key, expected):
     path = tmp_path / "bad.toml"
     path.write_text(SCENE.replace(*edit, 1))
@@ -149,7 +158,9 @@ def test_scan_of_a_scene_file_finds_its_chips_and_prints_a_table(tmp_path, capsy
     assert main(["scan", "--bus", f"sim:{path}"]) == 0
     out = capsys.readouterr().out
     lines = out.strip().splitlines()
-    assert lines[1].startswith("0x0D  MLX90393SLW-ABA-011") and lines[2].startswith("0x1A  MLX90393SLW-ABA-014")
+    assert lines[1].startswith("0x0D  MLX90393SLW-ABA-011") and lines[2].startswith(
+        "0x1A  MLX90393SLW-ABA-014"
+    )
     assert "2 chip(s) found" in lines[-1]
     assert float(lines[2].split()[8]) == pytest.approx(40.0, abs=0.5)  # T/degC column
 
@@ -169,12 +180,18 @@ def test_scan_exit_codes_on_errors(capsys):
     assert main(["scan", "--bus", "nonsense"]) == 2
     assert "accepted forms" in capsys.readouterr().err
     assert main(["scan", "--bus", "i2c:/dev/i2c-does-not-exist"]) == 2
-    assert "does not exist" in capsys.readouterr().err  # and how a board gets it: test_a_missing_i2c_device_names_the_fix
+    assert (
+        "does not exist" in capsys.readouterr().err
+    )  # and how a board gets it: test_a_missing_i2c_device_names_the_fix
 
 
 def test_console_entry_point_runs_as_a_module():
-    out = subprocess.run([sys.executable, "-m", "ftsensord", "scan", "--bus", "sim"],
-                         capture_output=True, text=True, timeout=60)
+    out = subprocess.run(
+        [sys.executable, "-m", "ftsensord", "scan", "--bus", "sim"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip().splitlines()[-1] == "16 chip(s) found on sim"
 
@@ -191,13 +208,32 @@ def test_dataset_and_calibrate_commands(tmp_path, capsys):
     ds, cal, rep = tmp_path / "ds.json", tmp_path / "cal.json", tmp_path / "report.md"
     # The default scene is a room: the fit needs no-load poses to measure its field, and
     # enough readings a pose that their noise floor is seen (2 often quantise alike).
-    assert main(["dataset", "-o", str(ds), "--poses", "40", "--validation-poses", "10", "--samples", "5",
-                 "--no-load-poses", "12", "--hold-s", "0"]) == 0  # a spring: no step-and-hold to pay for
+    assert (
+        main(
+            [
+                "dataset",
+                "-o",
+                str(ds),
+                "--poses",
+                "40",
+                "--validation-poses",
+                "10",
+                "--samples",
+                "5",
+                "--no-load-poses",
+                "12",
+                "--hold-s",
+                "0",
+            ]
+        )
+        == 0
+    )  # a spring: no step-and-hold to pay for
     assert "86 poses (six-axis)" in capsys.readouterr().out  # 40 fit, 10 validation, 12 no-load, 24 check
     assert main(["calibrate", str(ds), "-o", str(cal), "--report", str(rep), "--serial", "SN-1"]) == 0
     out = capsys.readouterr().out
     assert "validation RMSE: Fx" in out and "isotropy" in out
     from ftsensord.calibration.calfile import Calibration
+
     loaded = Calibration.load(cal)
     assert loaded.serial == "SN-1" and loaded.addresses == tuple(range(0x0C, 0x14))
     text = rep.read_text()
@@ -206,8 +242,27 @@ def test_dataset_and_calibrate_commands(tmp_path, capsys):
 
 def test_calibrate_refuses_the_one_arm_plan_with_the_reason(tmp_path, capsys):
     ds = tmp_path / "one.json"
-    assert main(["dataset", "-o", str(ds), "--plan", "one-arm", "--poses", "30", "--validation-poses", "0",
-                 "--samples", "1", "--no-sweep", "--hold-s", "0"]) == 0
+    assert (
+        main(
+            [
+                "dataset",
+                "-o",
+                str(ds),
+                "--plan",
+                "one-arm",
+                "--poses",
+                "30",
+                "--validation-poses",
+                "0",
+                "--samples",
+                "1",
+                "--no-sweep",
+                "--hold-s",
+                "0",
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
     assert main(["calibrate", str(ds), "-o", str(tmp_path / "cal.json")]) == 2
     err = capsys.readouterr().err

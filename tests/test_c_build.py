@@ -24,7 +24,9 @@ VENV_PYTHON = ".venv/bin/python clients/c/build.py"
 
 def test_the_system_libzmq_wins_and_only_pyzmqs_copy_carries_a_venv_note():
     system = build.Libzmq([], ["-lzmq"], "system")
-    bundled = build.Libzmq(["-DFTSENSORD_NO_ZMQ_H"], ["/v/pyzmq.libs/libzmq-abc.so.5"], "pyzmq", venv=Path("/v"))
+    bundled = build.Libzmq(
+        ["-DFTSENSORD_NO_ZMQ_H"], ["/v/pyzmq.libs/libzmq-abc.so.5"], "pyzmq", venv=Path("/v")
+    )
     assert build.choose(system, bundled) is system
     assert build.choose(system, None) is system
     assert build.venv_note(system) is None
@@ -44,11 +46,16 @@ def test_pyzmq_is_looked_at_only_when_no_system_libzmq_is_found(monkeypatch):
         def find():
             asked.append(name)
             return found[name] if result else None
+
         return find
 
     # The dynamic loader's runtime libzmq is the system's too: it outlives any venv.
-    for present in (("pkg", "compiler", "loader", "pyzmq"), ("compiler", "loader", "pyzmq"), ("loader", "pyzmq"),
-                    ("pyzmq",)):
+    for present in (
+        ("pkg", "compiler", "loader", "pyzmq"),
+        ("compiler", "loader", "pyzmq"),
+        ("loader", "pyzmq"),
+        ("pyzmq",),
+    ):
         asked.clear()
         monkeypatch.setattr(build, "_pkg_config", finder("pkg", "pkg" in present))
         monkeypatch.setattr(build, "_compiler_default", finder("compiler", "compiler" in present))
@@ -58,20 +65,30 @@ def test_pyzmq_is_looked_at_only_when_no_system_libzmq_is_found(monkeypatch):
         assert ("pyzmq" in asked) == (present == ("pyzmq",)), (present, asked)
 
 
-def run_build(tmp_path: Path, *python_flags: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+def run_build(
+    tmp_path: Path, *python_flags: str, env: dict[str, str] | None = None
+) -> subprocess.CompletedProcess:
     """build.py run as a user runs it, pkg-config finding nothing (its search path an empty folder)."""
     empty = tmp_path / "no-pkgconfig"
     empty.mkdir(exist_ok=True)
     out = tmp_path / "out"
     out.mkdir(exist_ok=True)
     full = {**os.environ, "PKG_CONFIG_LIBDIR": str(empty), "PKG_CONFIG_PATH": "", **(env or {})}
-    return subprocess.run([sys.executable, *python_flags, str(CDIR / "build.py"), "--out", str(out)],
-                          env=full, capture_output=True, text=True, timeout=120, check=False)
+    return subprocess.run(
+        [sys.executable, *python_flags, str(CDIR / "build.py"), "--out", str(out)],
+        env=full,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
 
 
 def runpath(program: Path) -> str:
     """The program's RPATH/RUNPATH entries, "" when it has none."""
-    dynamic = subprocess.run(["readelf", "-d", str(program)], capture_output=True, text=True, check=True).stdout
+    dynamic = subprocess.run(
+        ["readelf", "-d", str(program)], capture_output=True, text=True, check=True
+    ).stdout
     return " ".join(line for line in dynamic.splitlines() if "RPATH" in line or "RUNPATH" in line)
 
 
@@ -144,8 +161,10 @@ def test_pkg_config_libzmq_is_preferred_to_pyzmqs_copy(tmp_path):
     system = fake_system_libzmq(tmp_path)
     pc = tmp_path / "pkgconfig"
     pc.mkdir()
-    (pc / "libzmq.pc").write_text(f"Name: libzmq\nDescription: libzmq\nVersion: 4.3.5\n"
-                                  f"Cflags: -I{system / 'include'}\nLibs: -L{system / 'lib'} -lzmq\n")
+    (pc / "libzmq.pc").write_text(
+        f"Name: libzmq\nDescription: libzmq\nVersion: 4.3.5\n"
+        f"Cflags: -I{system / 'include'}\nLibs: -L{system / 'lib'} -lzmq\n"
+    )
     done = run_build(tmp_path, env={"PKG_CONFIG_PATH": str(pc)})
     assert done.returncode == 0, done.stderr
     assert "pkg-config" in done.stdout.splitlines()[0] and "note:" not in done.stdout, done.stdout

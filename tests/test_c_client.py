@@ -63,8 +63,12 @@ class Toolchain:
         self.driver_cxx = self._build([CDIR / "test_driver.c"], "driver_cxx", "c++", z)
         try:  # the undefined-behaviour sanitizer traps any misaligned access
             self.driver_ubsan: Path | None = self._build(
-                [CDIR / "test_driver.c"], "driver_ubsan", "c", z,
-                ["-fsanitize=undefined,alignment", "-fno-sanitize-recover=all"])
+                [CDIR / "test_driver.c"],
+                "driver_ubsan",
+                "c",
+                z,
+                ["-fsanitize=undefined,alignment", "-fno-sanitize-recover=all"],
+            )
         except RuntimeError as exc:
             self.driver_ubsan, self.ubsan_missing = None, str(exc).splitlines()[-1]
 
@@ -82,7 +86,9 @@ def tools(tmp_path_factory) -> Toolchain:
 
 
 def run(*args, **kw) -> str:
-    done = subprocess.run([str(a) for a in args], capture_output=True, text=True, timeout=60, check=False, **kw)
+    done = subprocess.run(
+        [str(a) for a in args], capture_output=True, text=True, timeout=60, check=False, **kw
+    )
     assert done.returncode == 0, done.stderr
     return done.stdout
 
@@ -101,8 +107,10 @@ def test_the_header_compiles_as_c_and_cpp_and_says_what_c_needs(tools, tmp_path)
     assert all(p.exists() for p in (tools.example, tools.example_cxx, *tools.drivers()))
     # Twice in one C++ unit, after libzmq's functions were declared once already (as zmq.h would).
     tu = tmp_path / "twice.cpp"
-    tu.write_text('#include "ftsensord.h"\n#include "ftsensord.h"\n'
-                  "int main() { fts_sample s{}; return fts_decode(nullptr, 0, nullptr, 0, &s) == FTS_E_ARG ? 0 : 1; }\n")
+    tu.write_text(
+        '#include "ftsensord.h"\n#include "ftsensord.h"\n'
+        "int main() { fts_sample s{}; return fts_decode(nullptr, 0, nullptr, 0, &s) == FTS_E_ARG ? 0 : 1; }\n"
+    )
     build.build([tu], tmp_path / "twice", "c++", tools.libzmq)
     assert subprocess.run([tmp_path / "twice"], check=False).returncode == 0
     # Strict C11 without POSIX: the header stops the build with what to do.
@@ -113,8 +121,10 @@ def test_the_header_compiles_as_c_and_cpp_and_says_what_c_needs(tools, tmp_path)
 
 
 def test_constants_match_the_wire_format_and_libzmq(tools):
-    table = {name: (int(value), flag) for name, value, flag in
-             (line.split() for line in run(tools.driver, "constants").splitlines())}
+    table = {
+        name: (int(value), flag)
+        for name, value, flag in (line.split() for line in run(tools.driver, "constants").splitlines())
+    }
     for name in ("MAGIC", "VERSION", "KIND_WRENCH", "KIND_FLUX"):
         assert table[name][0] == getattr(wire, name), name
     assert table["HEADER_SIZE"][0] == wire.HEADER.size
@@ -128,7 +138,9 @@ def test_constants_match_the_wire_format_and_libzmq(tools):
     assert table["errno.EAGAIN"][0] == zmq.EAGAIN
 
 
-def test_the_c_orientation_sender_writes_the_documented_vector_and_the_daemons_receiver_takes_it(tools, tmp_path):
+def test_the_c_orientation_sender_writes_the_documented_vector_and_the_daemons_receiver_takes_it(
+    tools, tmp_path
+):
     from ftsensord.protocol.orientation import OrientationReceiver
 
     from .test_gravity import VECTOR
@@ -156,8 +168,15 @@ def test_the_c_orientation_sender_writes_the_documented_vector_and_the_daemons_r
 
 
 # --- decoding -------------------------------------------------------------------------------------
-def frame(topic="wrench/sensor1", kind=wire.KIND_WRENCH, seq=42, t_mono=1234.5, t_wall=1763836800.25,
-          flags=0x24, values=(1.0, -0.5, 0.8, 0.02, -0.01, 0.015)) -> bytes:
+def frame(
+    topic="wrench/sensor1",
+    kind=wire.KIND_WRENCH,
+    seq=42,
+    t_mono=1234.5,
+    t_wall=1763836800.25,
+    flags=0x24,
+    values=(1.0, -0.5, 0.8, 0.02, -0.01, 0.015),
+) -> bytes:
     return wire.encode(topic, kind, seq, t_mono, t_wall, flags, np.array(values, dtype=float))
 
 
@@ -168,17 +187,28 @@ def decode_c(driver: Path, data: bytes) -> dict[str, str]:
 @pytest.mark.parametrize("topic", ["w", "wrench/sensor1", "flux/s2", "wrench/tip", "wrench/sensor10x"])
 def test_the_decoder_gives_what_the_python_encoder_wrote_at_any_alignment(tools, topic):
     rng = np.random.default_rng(len(topic))
-    cases = [(wire.KIND_WRENCH, rng.normal(size=6) * 10.0**rng.integers(-6, 6, size=6)),
-             (wire.KIND_FLUX, rng.normal(scale=1e-3, size=24)),
-             (wire.KIND_WRENCH, np.array([np.nan] * 6)),
-             (wire.KIND_FLUX, np.zeros(0))]
+    cases = [
+        (wire.KIND_WRENCH, rng.normal(size=6) * 10.0 ** rng.integers(-6, 6, size=6)),
+        (wire.KIND_FLUX, rng.normal(scale=1e-3, size=24)),
+        (wire.KIND_WRENCH, np.array([np.nan] * 6)),
+        (wire.KIND_FLUX, np.zeros(0)),
+    ]
     for kind, values in cases:
-        data = frame(topic, kind, seq=2**63 + 5, t_mono=float(rng.uniform(0, 1e6)), t_wall=1.7e9 + 0.125,
-                     flags=0x1FF, values=values)
+        data = frame(
+            topic,
+            kind,
+            seq=2**63 + 5,
+            t_mono=float(rng.uniform(0, 1e6)),
+            t_wall=1.7e9 + 0.125,
+            flags=0x1FF,
+            values=values,
+        )
         for driver in tools.drivers():
             got = decode_c(driver, data)
             assert got["rc"] == "0", (driver.name, got)
-            assert int(got["seq"]) == 2**63 + 5 and int(got["flags"], 16) == 0x1FF and int(got["kind"]) == kind
+            assert (
+                int(got["seq"]) == 2**63 + 5 and int(got["flags"], 16) == 0x1FF and int(got["kind"]) == kind
+            )
             py = wire.decode(data)
             assert float(got["t_mono"]) == py.t_mono and float(got["t_wall"]) == py.t_wall
             assert int(got["count"]) == len(values)
@@ -189,7 +219,7 @@ def test_the_decoder_gives_what_the_python_encoder_wrote_at_any_alignment(tools,
 BAD = {  # a bad frame, and the header's error for it
     "truncated by one byte": (frame()[:-1], "-11"),
     "one byte too many": (frame() + b"\0", "-11"),
-    "ends inside the header": (frame()[:15 + 39], "-6"),
+    "ends inside the header": (frame()[: 15 + 39], "-6"),
     "topic only": (b"wrench/sensor1\0", "-6"),
     "no NUL after the topic": (b"wrench/sensor1", "-4"),
     "wrong magic": (frame().replace(b"\0FT", b"\0FU", 1), "-7"),
@@ -223,8 +253,9 @@ class Driven:
     """The C driver subscribed to a stream, one command per call."""
 
     def __init__(self, driver: Path, endpoint: str, topic: str):
-        self.proc = subprocess.Popen([str(driver), "sub", endpoint, topic], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, text=True)
+        self.proc = subprocess.Popen(
+            [str(driver), "sub", endpoint, topic], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+        )
         assert self.proc.stdout is not None and self.proc.stdin is not None
         assert self.proc.stdout.readline().startswith("open rc=0")
 
@@ -319,8 +350,12 @@ def daemon(tmp_path):
 
 
 def example(tools: Toolchain, endpoint: str, *args: str) -> subprocess.Popen:
-    return subprocess.Popen([str(tools.example), "-e", endpoint, "-t", "wrench/sensor1", *args],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [str(tools.example), "-e", endpoint, "-t", "wrench/sensor1", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 def collect_while(procs: list[subprocess.Popen], sub: Subscriber) -> dict[int, wire.Sample]:
@@ -354,7 +389,9 @@ def test_the_example_reads_the_same_wrenches_as_the_python_client(tools, daemon)
         for s in samples:  # same seq -> the very same doubles, flags and stamp
             py = python[int(s["seq"])]
             np.testing.assert_array_equal(values_of(s["values"]), py.values)
-            assert int(s["flags"], 16) == py.flags and math.isclose(float(s["t_mono"]), py.t_mono, abs_tol=1e-9)
+            assert int(s["flags"], 16) == py.flags and math.isclose(
+                float(s["t_mono"]), py.t_mono, abs_tol=1e-9
+            )
         seqs = [int(s["seq"]) for s in samples]
         # Each sample's missed count is the gap in the sequence before it.
         assert [int(s["missed"]) for s in samples[1:]] == [b - a - 1 for a, b in itertools.pairwise(seqs)]
@@ -420,13 +457,15 @@ def test_the_protocol_pages_c_compiles_as_c_and_cpp_and_decodes_its_vector(tools
     vector = re.search(r"<!-- vector: wrench -->\n```\n(.*?)```", PROTOCOL.read_text(), re.DOTALL)
     assert vector
     data = bytes.fromhex(vector.group(1).replace("\n", " "))
-    main = (snippet("decode") + "\n#include <stdio.h>\nint main(void)\n{\n"
-            f"    static const unsigned char frame[] = {{{', '.join(str(b) for b in data)}}};\n"
-            "    uint64_t seq; uint32_t flags; double t, v[6];\n"
-            "    int n = ft_decode(frame, sizeof frame, &seq, &flags, &t, v, 6);\n"
-            '    printf("%d %llu %x %.17g", n, (unsigned long long)seq, (unsigned)flags, t);\n'
-            '    for (int i = 0; i < n; ++i) printf(" %.17g", v[i]);\n'
-            "    return ft_decode(frame, sizeof frame - 1, &seq, &flags, &t, v, 6) == -1 ? 0 : 1;\n}\n")
+    main = (
+        snippet("decode") + "\n#include <stdio.h>\nint main(void)\n{\n"
+        f"    static const unsigned char frame[] = {{{', '.join(str(b) for b in data)}}};\n"
+        "    uint64_t seq; uint32_t flags; double t, v[6];\n"
+        "    int n = ft_decode(frame, sizeof frame, &seq, &flags, &t, v, 6);\n"
+        '    printf("%d %llu %x %.17g", n, (unsigned long long)seq, (unsigned)flags, t);\n'
+        '    for (int i = 0; i < n; ++i) printf(" %.17g", v[i]);\n'
+        "    return ft_decode(frame, sizeof frame - 1, &seq, &flags, &t, v, 6) == -1 ? 0 : 1;\n}\n"
+    )
     (tmp_path / "decode.c").write_text(main)
     (tmp_path / "loop.c").write_text(snippet("loop"))
     py = wire.decode(data)

@@ -126,14 +126,18 @@ def test_a_killed_daemon_is_reported_stale_and_its_restart_flows_again(tools, tm
         # average by its delay over the span, far less than half a period.
         assert 0.5 / RATE_HZ < float(stale["period"]) < 1.5 / RATE_HZ, stale
         assert limit == max(const["periods"] * float(stale["period"]), const["min"])
-        assert float(stale["silent"]) > limit and all(float(r["silent"]) <= limit for r in same if r["rc"] == "0")
+        assert float(stale["silent"]) > limit and all(
+            float(r["silent"]) <= limit for r in same if r["rc"] == "0"
+        )
         assert int(stale["seq"]) >= int(live["seq"])  # the last sample, still handed out with the code
 
         notify.close()
         (tmp_path / "notify").unlink()
         proc, notify = start_daemon(config, tmp_path)
         back = c("wait 30000")  # the client reconnects by itself
-        assert back["rc"] == "1" and back["restarted"] == "1" and float(back["t_mono"]) > float(stale["t_mono"])
+        assert (
+            back["rc"] == "1" and back["restarted"] == "1" and float(back["t_mono"]) > float(stale["t_mono"])
+        )
         assert c("wait 5000")["rc"] == "1"  # and samples flow again
     finally:
         c.close()
@@ -146,8 +150,15 @@ def test_a_killed_daemon_is_reported_stale_and_its_restart_flows_again(tools, tm
 def test_the_example_fails_saying_so_when_no_sample_came(tools, tmp_path):
     endpoint = f"ipc://{tmp_path}/nothing-here"
     for args in (["-s", "0.5"], ["-w", "0.5"]):  # the run ends, or its wait for a first sample does
-        done = subprocess.run([str(tools.example), "-e", endpoint, "-t", "wrench/sensor1", *args],
-                              capture_output=True, text=True, timeout=30, check=False)
+        done = subprocess.run(
+            [str(tools.example), "-e", endpoint, "-t", "wrench/sensor1", *args],
+            capture_output=True,
+            text=True,
+            timeout=30,
+            check=False,
+        )
         assert done.returncode == 1, (args, done.returncode, done.stderr)
-        assert endpoint in done.stderr and "wrench/sensor1" in done.stderr and "no sample" in done.stderr, done.stderr
+        assert endpoint in done.stderr and "wrench/sensor1" in done.stderr and "no sample" in done.stderr, (
+            done.stderr
+        )
         assert "new samples 0" in done.stdout.splitlines()[-1]

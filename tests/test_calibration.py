@@ -21,6 +21,7 @@ from ftsensord.calibration.fit import (
 )
 from ftsensord.calibration.rig import record_dataset, simulate_sweeps
 from ftsensord.chip import mlx90393 as mlx
+from ftsensord.config.file import builtin_path
 from ftsensord.errors import CalibrationError, ConfigError
 from ftsensord.model import se3
 from ftsensord.model.geometry import SensorGeometry
@@ -31,11 +32,7 @@ from ftsensord.model.linear import (
     fit_position_map,
     tip_wrench,
 )
-from ftsensord.config.file import builtin_path
-from ftsensord.sim import NOISELESS
-from ftsensord.sim import VirtualClock
-from ftsensord.sim import simulated_bus
-from ftsensord.sim import two_sensor_scene
+from ftsensord.sim import NOISELESS, VirtualClock, simulated_bus, two_sensor_scene
 from ftsensord.sim.loads import StaticLoad, paper_plan
 
 from .conftest import assert_names_file_and_key
@@ -114,8 +111,11 @@ def test_one_arm_plan_names_the_tied_axes_and_the_remedy():
     W = np.array([p.wrench() for p, s in paper_plan("one-arm") if s == "fit"])
     e = check_excitation(W)
     assert e.rank == 3
-    assert e.describe() == ["Mz is not excited", "Fx and My always vary together",
-                            "Fy and Mx always vary together"]
+    assert e.describe() == [
+        "Mz is not excited",
+        "Fx and My always vary together",
+        "Fy and Mx always vary together",
+    ]
     assert "lever arm points off the shaft axis" in e.advice()
     six = check_excitation(np.array([p.wrench() for p, s in paper_plan("six-axis") if s == "fit"]))
     assert six.identifiable and six.condition < 1 / EXCITATION_TOL
@@ -127,8 +127,14 @@ def small_dataset() -> Dataset:
     scene = two_sensor_scene()
     bus = simulated_bus(scene, clock=VirtualClock(), seed=3)
     addrs = scene.sensors[0].addresses
-    ds = record_dataset(bus, addrs, paper_plan("six-axis", n_fit=60, n_validation=20),
-                        lambda w: scene.set_load(0, StaticLoad(w)), samples=4, serial="sim-1")
+    ds = record_dataset(
+        bus,
+        addrs,
+        paper_plan("six-axis", n_fit=60, n_validation=20),
+        lambda w: scene.set_load(0, StaticLoad(w)),
+        samples=4,
+        serial="sim-1",
+    )
     ds.sweeps = simulate_sweeps(addrs, SensorGeometry.ring(), samples=4)
     return ds
 
@@ -150,7 +156,7 @@ def test_saturated_chips_are_flagged_and_their_poses_not_used(small_dataset, row
     tainted = Dataset(**{**ds.__dict__, "flux_t": ds.flux_t.copy(), "saturated": ds.saturated.copy()})
     fit_rows = np.flatnonzero(ds.split == "fit")[sorted(rows)]
     tainted.saturated[fit_rows, chip] = True
-    tainted.flux_t[fit_rows, 3 * chip:3 * chip + 3] = junk  # whatever a clipped chip reports
+    tainted.flux_t[fit_rows, 3 * chip : 3 * chip + 3] = junk  # whatever a clipped chip reports
     result = fit(tainted)
     assert result.report["left_out_saturated"] == len(rows)
     clean = fit(ds.select(~np.isin(np.arange(len(ds)), fit_rows)))
@@ -162,10 +168,14 @@ def test_recording_flags_a_saturated_chip():
     bus = simulated_bus(scene, clock=VirtualClock(), noise=NOISELESS)
     # GAIN_SEL 7, RES 0 spans +-4.9 mT on X/Y; 30 N along x gives chip 0 (on +x) By = 6 mT.
     narrow = mlx.Settings(gain_sel=7, res_x=0, res_y=0, res_z=0)
-    ds = record_dataset(bus, scene.sensors[0].addresses,
-                        [(p, "fit") for p, _ in paper_plan("six-axis", n_fit=1, n_validation=0)],
-                        lambda w: scene.set_load(0, StaticLoad(np.array([30.0, 0, 0, 0, 0, 0]))),
-                        settings=narrow, samples=2)
+    ds = record_dataset(
+        bus,
+        scene.sensors[0].addresses,
+        [(p, "fit") for p, _ in paper_plan("six-axis", n_fit=1, n_validation=0)],
+        lambda w: scene.set_load(0, StaticLoad(np.array([30.0, 0, 0, 0, 0, 0]))),
+        settings=narrow,
+        samples=2,
+    )
     assert ds.saturated[0, 0] and not ds.saturated[0].all()
 
 
@@ -220,8 +230,15 @@ def test_dataset_round_trips_and_bad_files_name_the_key(small_dataset, tmp_path)
 
 
 def calibration(result, ds) -> Calibration:
-    return Calibration(result.model, ds.addresses, "SN-7", "sensor1", result.position_map, result.report,
-                       wrench_range=result.wrench_range)
+    return Calibration(
+        result.model,
+        ds.addresses,
+        "SN-7",
+        "sensor1",
+        result.position_map,
+        result.report,
+        wrench_range=result.wrench_range,
+    )
 
 
 def test_calibration_file_round_trips(small_dataset, tmp_path):
@@ -236,23 +253,26 @@ def test_calibration_file_round_trips(small_dataset, tmp_path):
     assert np.array_equal(cal.wrench_range, np.abs(fitted.wrench).max(axis=0))
 
 
-@pytest.mark.parametrize(("change", "key", "expected"), [
-    (lambda d: d.update(version=2), "version", "1 (this ftsensord reads version 1)"),
-    (lambda d: d["K"][2].__setitem__(3, float("nan")), "K", "6 x 6 matrix of finite numbers"),
-    (lambda d: d["A"].pop(), "A", "6 x 24 matrix"),
-    (lambda d: d["units"].update(zero_flux="uT"), "units", "expected"),
-    (lambda d: d["sensor"]["addresses"].__setitem__(1, "0x0C"), "sensor.addresses", "not used twice"),
-    (lambda d: d["sensor"]["addresses"].__setitem__(0, "0x40"), "sensor.addresses[0]", "0x0C-0x1B"),
-    (lambda d: d.update(colour="red"), "colour", "one of"),
-    (lambda d: d["zero_flux"].__setitem__(0, 1.0), "checksum", "changed after it was written"),
-    (lambda d: d.pop("checksum"), "checksum", "missing"),
-    (lambda d: d["wrench_range"].pop(), "wrench_range", "6 finite numbers (N, Nm)"),
-    (lambda d: d["wrench_range"].__setitem__(2, 0.0), "wrench_range", "6 numbers over 0"),
-    # NaN or Infinity in a part no parser reads (json.loads takes them): before, the checksum's
-    # canonical JSON raised a bare "Out of range float values are not JSON compliant".
-    (lambda d: d["fit_report"].update(note=float("nan")), "fit_report.note", "finite numbers"),
-    (lambda d: d["sensor"].update(serial=float("inf")), "sensor.serial", "finite numbers"),
-])
+@pytest.mark.parametrize(
+    ("change", "key", "expected"),
+    [
+        (lambda d: d.update(version=2), "version", "1 (this ftsensord reads version 1)"),
+        (lambda d: d["K"][2].__setitem__(3, float("nan")), "K", "6 x 6 matrix of finite numbers"),
+        (lambda d: d["A"].pop(), "A", "6 x 24 matrix"),
+        (lambda d: d["units"].update(zero_flux="uT"), "units", "expected"),
+        (lambda d: d["sensor"]["addresses"].__setitem__(1, "0x0C"), "sensor.addresses", "not used twice"),
+        (lambda d: d["sensor"]["addresses"].__setitem__(0, "0x40"), "sensor.addresses[0]", "0x0C-0x1B"),
+        (lambda d: d.update(colour="red"), "colour", "one of"),
+        (lambda d: d["zero_flux"].__setitem__(0, 1.0), "checksum", "changed after it was written"),
+        (lambda d: d.pop("checksum"), "checksum", "missing"),
+        (lambda d: d["wrench_range"].pop(), "wrench_range", "6 finite numbers (N, Nm)"),
+        (lambda d: d["wrench_range"].__setitem__(2, 0.0), "wrench_range", "6 numbers over 0"),
+        # NaN or Infinity in a part no parser reads (json.loads takes them): before, the checksum's
+        # canonical JSON raised a bare "Out of range float values are not JSON compliant".
+        (lambda d: d["fit_report"].update(note=float("nan")), "fit_report.note", "finite numbers"),
+        (lambda d: d["sensor"].update(serial=float("inf")), "sensor.serial", "finite numbers"),
+    ],
+)
 def test_a_bad_calibration_file_names_the_file_and_key(small_dataset, tmp_path, change, key, expected):
     path = tmp_path / "cal.json"
     doc = calibration(fit(small_dataset), small_dataset).document()
@@ -300,9 +320,18 @@ def test_fit_refuses_rank_deficient_data_rather_than_returning_a_matrix(seed, ki
         W[:, 3] = -0.1 * W[:, 1]
     else:
         W[:] = W[0]
-    ds = Dataset((*range(0x0C, 0x14),), W, rng.normal(size=(n, 24)) * 1e-3, np.full((n, 24), 1e-7),
-                 np.zeros((n, 8), dtype=bool), np.array(["fit"] * n), np.zeros(n), np.zeros((n, 3)),
-                 np.zeros((n, 3)), samples_per_pose=10)
+    ds = Dataset(
+        (*range(0x0C, 0x14),),
+        W,
+        rng.normal(size=(n, 24)) * 1e-3,
+        np.full((n, 24), 1e-7),
+        np.zeros((n, 8), dtype=bool),
+        np.array(["fit"] * n),
+        np.zeros(n),
+        np.zeros((n, 3)),
+        np.zeros((n, 3)),
+        samples_per_pose=10,
+    )
     with pytest.raises(CalibrationError, match="not identifiable"):
         fit(ds)
 

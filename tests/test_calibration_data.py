@@ -10,6 +10,7 @@ import json
 import numpy as np
 import pytest
 
+from benchmarks.robustness import pathological as bench
 from ftsensord.calibration.checks import check_stiffness
 from ftsensord.calibration.dataset import Dataset
 from ftsensord.calibration.excitation import CONDITION_WARN, check_excitation
@@ -17,8 +18,6 @@ from ftsensord.calibration.fit import fit
 from ftsensord.cli import main
 from ftsensord.errors import CalibrationError, ConfigError
 from ftsensord.sim.loads import paper_plan
-
-from benchmarks.robustness import pathological as bench
 
 
 @pytest.fixture(scope="module")
@@ -68,19 +67,22 @@ def test_flux_1000x_too_small_is_a_unit_error(src):
     assert "unit error" in message
 
 
-@pytest.mark.parametrize(("kind", "words"), [
-    ("dead-chip", "chip 0x0F (index 3) reads 0 in every fit pose"),
-    ("stuck-chip", "chip 0x0F (index 3) does not follow the loads on x, y, z"),
-    ("stuck-channel", "chip 0x0F (index 3) does not follow the loads on z"),
-    ("swapped-chips", "chip 0x0F (index 3) and chip 0x11 (index 5) respond to the loads as each other's"),
-    ("torques-in-Nmm", "torques 1000x too large, written in N mm; the file wants N m"),
-    ("masses-in-g", "A unit: masses in g for kg"),
-    ("sign-flip-Fy", "the sign of Fy is flipped"),
-    ("wrench-one-pose-behind", "the wrench log is one pose behind the poses"),
-    ("gravity-up", "K is negative definite"),
-    ("nan-row", f"poses[{bench.POSE}].flux_t: nan is no number"),
-    ("inf-wrench", f"poses[{bench.POSE}].wrench: inf is no number"),
-])
+@pytest.mark.parametrize(
+    ("kind", "words"),
+    [
+        ("dead-chip", "chip 0x0F (index 3) reads 0 in every fit pose"),
+        ("stuck-chip", "chip 0x0F (index 3) does not follow the loads on x, y, z"),
+        ("stuck-channel", "chip 0x0F (index 3) does not follow the loads on z"),
+        ("swapped-chips", "chip 0x0F (index 3) and chip 0x11 (index 5) respond to the loads as each other's"),
+        ("torques-in-Nmm", "torques 1000x too large, written in N mm; the file wants N m"),
+        ("masses-in-g", "A unit: masses in g for kg"),
+        ("sign-flip-Fy", "the sign of Fy is flipped"),
+        ("wrench-one-pose-behind", "the wrench log is one pose behind the poses"),
+        ("gravity-up", "K is negative definite"),
+        ("nan-row", f"poses[{bench.POSE}].flux_t: nan is no number"),
+        ("inf-wrench", f"poses[{bench.POSE}].wrench: inf is no number"),
+    ],
+)
 def test_each_kind_is_refused_naming_its_cause(src, kind, words):
     assert words in refusal(src, kind)
 
@@ -100,8 +102,12 @@ def test_poses_logged_twice_are_left_out_and_the_fit_is_the_clean_one(src):
     result = fit(spoilt(src, "duplicated-poses"))
     (warning,) = result.warnings
     n = len(src.clean)
-    rows = bench.fit_rows(src.clean)[10:40]  # the fit poses copied (after the no-load poses the plan records first)
-    assert "30 poses repeat" in warning and f"(poses {n}-{n + 29} repeat poses {rows[0]}-{rows[-1]})" in warning
+    rows = bench.fit_rows(src.clean)[
+        10:40
+    ]  # the fit poses copied (after the no-load poses the plan records first)
+    assert (
+        "30 poses repeat" in warning and f"(poses {n}-{n + 29} repeat poses {rows[0]}-{rows[-1]})" in warning
+    )
     assert np.array_equal(result.model.KA, fit(src.clean).model.KA)
 
 
@@ -110,19 +116,25 @@ def test_a_near_dependent_plan_is_explained_by_its_condition_and_the_direction_i
     A K fitted on it that is not positive definite is explained by the plan, not by signs."""
     plan = [p for p, s in paper_plan(n_fit=193) if s == "fit"]
     arm = plan[0].lever_m
-    wrench = np.array([p.wrench() for p in plan if np.all(p.lever_m == arm)]
-                      + [p.wrench() for p in plan if not np.all(p.lever_m == arm)][:3])
+    wrench = np.array(
+        [p.wrench() for p in plan if np.all(p.lever_m == arm)]
+        + [p.wrench() for p in plan if not np.all(p.lever_m == arm)][:3]
+    )
     e = check_excitation(wrench)
     assert e.identifiable and e.condition > CONDITION_WARN
     assert f"condition number {e.condition:.3g}" in e.explain() and "Fy" in e.weakest()
-    with pytest.raises(CalibrationError, match=r"K is not positive definite.*nearly dependent \(condition number"):
+    with pytest.raises(
+        CalibrationError, match=r"K is not positive definite.*nearly dependent \(condition number"
+    ):
         check_stiffness(np.diag([1.0, -1.0, 1.0, 1.0, 1.0, 1.0]), "the fitted stiffness", e.explain())
 
 
 def test_rotations_in_degrees_are_refused_on_load_with_the_angle(src, tmp_path):
     path = tmp_path / "ds.json"
     spoilt(src, "rotation-degrees").save(path)
-    with pytest.raises(ConfigError, match=r"poses\[0\].rotation: .*disagree by [\d.]+ deg: angles in degrees"):
+    with pytest.raises(
+        ConfigError, match=r"poses\[0\].rotation: .*disagree by [\d.]+ deg: angles in degrees"
+    ):
         Dataset.load(path)
 
 
@@ -156,9 +168,8 @@ def test_an_as_built_part_near_the_tolerances_edge_is_not_refused_as_misordered(
     """The default scene's part of seed 13 leaves 43 % of a chip's response to the nominal
     model: an as-built part (benchmarks/accuracy/chip_order.py: 0.11-0.43 over 60 parts), which the
     chip-order check refused as "a chip mounted turned" while its limit was 40 %."""
-    from ftsensord.calibration.screening import MISMATCH_LIMIT
-
     from benchmarks.accuracy import chip_order
+    from ftsensord.calibration.screening import MISMATCH_LIMIT
 
     share = chip_order.mismatch(13, tmp_path)
     assert 0.4 < share < MISMATCH_LIMIT, share

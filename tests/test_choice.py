@@ -5,7 +5,6 @@ holds with the target's spare; every lever named with its bound when nothing hol
 from __future__ import annotations
 
 import logging
-import re
 
 import pytest
 from hypothesis import given, settings
@@ -14,13 +13,11 @@ from hypothesis import strategies as st
 from ftsensord.acquire import choice
 from ftsensord.acquire.bound import SCHEDULERS, cycle_bound
 from ftsensord.chip import mlx90393 as mlx
-from ftsensord.errors import ConfigError
+from ftsensord.chip.i2c import BusTiming
 from ftsensord.config.file import load_config, reload_config
 from ftsensord.daemon.daemon import Daemon
-from ftsensord.chip.i2c import BusTiming
-from ftsensord.sim import VirtualClock
-from ftsensord.sim import load_scene
-from ftsensord.sim import simulated_bus
+from ftsensord.errors import ConfigError
+from ftsensord.sim import VirtualClock, load_scene, simulated_bus
 from ftsensord.sim.bus import SimulatedBus
 
 from .test_daemon import write_config
@@ -79,14 +76,37 @@ def test_a_named_lever_is_kept(tmp_path):
 
 def _oracle(bus: choice.Bus, rate_hz: float) -> list[tuple[str, bool, float]]:
     """Every option's spare, from `cycle_bound` directly."""
-    return [(s, r, 1 - rate_hz * cycle_bound(s, bus.n_chips, bus.settings, bus.clock_hz, bus.ioctl_s, readback=r,
-                                             temperature=bus.temperature, adapter=bus.adapter).cycle_s)
-            for s in SCHEDULERS for r in (True, False)]
+    return [
+        (
+            s,
+            r,
+            1
+            - rate_hz
+            * cycle_bound(
+                s,
+                bus.n_chips,
+                bus.settings,
+                bus.clock_hz,
+                bus.ioctl_s,
+                readback=r,
+                temperature=bus.temperature,
+                adapter=bus.adapter,
+            ).cycle_s,
+        )
+        for s in SCHEDULERS
+        for r in (True, False)
+    ]
 
 
 @settings(max_examples=150, deadline=None)
-@given(clock=st.floats(100e3, 400e3), ioctl=st.floats(0, 300e-6), adapter=st.sampled_from(["permissive", "bcm2835",
-       "designware", None]), n=st.integers(1, 16), rate=st.floats(5, 400), temperature=st.booleans())
+@given(
+    clock=st.floats(100e3, 400e3),
+    ioctl=st.floats(0, 300e-6),
+    adapter=st.sampled_from(["permissive", "bcm2835", "designware", None]),
+    n=st.integers(1, 16),
+    rate=st.floats(5, 400),
+    temperature=st.booleans(),
+)
 def test_the_choice_holds_the_rate_with_the_most_margin(clock, ioctl, adapter, n, rate, temperature):
     bus = choice.Bus(n, mlx.Settings(), clock, ioctl, adapter, temperature)
     options = _oracle(bus, rate)
@@ -110,8 +130,14 @@ def test_the_daemon_chooses_again_from_the_bus_measured_at_start(tmp_path, caplo
     config = load_config(write_config(tmp_path))
     assert (config.scheduler, config.readback_every) == ("burst", 1)
     clock = VirtualClock()
-    bus = simulated_bus(load_scene(tmp_path / "scene.toml"), clock=clock, bus_hz=400e3, adapter="bcm2835",
-                        ioctl_s=150e-6, clock_hz=250e3)
+    bus = simulated_bus(
+        load_scene(tmp_path / "scene.toml"),
+        clock=clock,
+        bus_hz=400e3,
+        adapter="bcm2835",
+        ioctl_s=150e-6,
+        clock_hz=250e3,
+    )
     bus.__class__ = _AdapterLike  # the daemon measures it at start (sysfs: none, rules unknown)
     daemon = Daemon(config, bus, _Null(), clock=clock.now)
     with caplog.at_level(logging.INFO, logger="ftsensord"):
@@ -119,11 +145,16 @@ def test_the_daemon_chooses_again_from_the_bus_measured_at_start(tmp_path, caplo
     measured = daemon.board_timing
     assert measured is not None and measured.ioctl_s == pytest.approx(150e-6, rel=0.1)
     expected = choice.choose(config.bus_levers(measured), 100.0)
-    assert (daemon.config.scheduler, daemon.config.readback_every) == (expected.scheduler, expected.readback_every)
+    assert (daemon.config.scheduler, daemon.config.readback_every) == (
+        expected.scheduler,
+        expected.readback_every,
+    )
     assert expected.readback_every == 0  # the measured board needs it dropped
     assert (daemon.reader.scheduler, daemon.reader.readback_every) == (expected.scheduler, 0)
-    assert any(r.levelno == logging.WARNING and "schedule: burst, no register read-back" in r.getMessage()
-               for r in caplog.records)  # under the 20 % target: said loudly, with the levers
+    assert any(
+        r.levelno == logging.WARNING and "schedule: burst, no register read-back" in r.getMessage()
+        for r in caplog.records
+    )  # under the 20 % target: said loudly, with the levers
     assert daemon.status()["schedule"] == daemon.config.choice
     # A reload keeps the running scheduler (a restart chooses again) and chooses the read-back again.
     reloaded = reload_config(daemon.config, timing=measured)

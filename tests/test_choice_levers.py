@@ -11,12 +11,10 @@ import pytest
 from ftsensord import cli
 from ftsensord.acquire import choice
 from ftsensord.chip import mlx90393 as mlx
-from ftsensord.errors import ConfigError
 from ftsensord.config.file import load_config
 from ftsensord.daemon.daemon import Daemon
-from ftsensord.sim import VirtualClock
-from ftsensord.sim import load_scene
-from ftsensord.sim import simulated_bus
+from ftsensord.errors import ConfigError
+from ftsensord.sim import VirtualClock, load_scene, simulated_bus
 
 from .test_choice import PESSIMISTIC, _AdapterLike, _Null, _with_bus
 from .test_daemon import write_config
@@ -26,8 +24,14 @@ def _on_a_slow_board(tmp_path, extra: str = "") -> Daemon:
     """The daemon started on a board that measures 300 us ioctls at 100 kHz: nothing holds 100 Hz."""
     config = load_config(write_config(tmp_path, extra))
     clock = VirtualClock()
-    bus = simulated_bus(load_scene(tmp_path / "scene.toml"), clock=clock, bus_hz=400e3, adapter="bcm2835",
-                        ioctl_s=300e-6, clock_hz=100e3)
+    bus = simulated_bus(
+        load_scene(tmp_path / "scene.toml"),
+        clock=clock,
+        bus_hz=400e3,
+        adapter="bcm2835",
+        ioctl_s=300e-6,
+        clock_hz=100e3,
+    )
     bus.__class__ = _AdapterLike
     daemon = Daemon(config, bus, _Null(), clock=clock.now)
     daemon.start()
@@ -44,10 +48,18 @@ def test_where_nothing_holds_on_the_measured_board_status_does_not_show_the_file
 def test_where_nothing_holds_on_the_measured_board_the_fastest_option_runs(tmp_path):
     # main: burst with the read-back (37 Hz) runs where burst without it reaches 44 Hz.
     daemon = _on_a_slow_board(tmp_path)
-    fastest = max((choice.option(daemon.config.bus_levers(daemon.board_timing), s, r, 100.0)
-                   for s in ("naive", "overlapped", "burst") for r in (True, False)),
-                  key=lambda o: o.bound.rate_hz)
-    assert (daemon.reader.scheduler, daemon.reader.readback_every) == (fastest.scheduler, fastest.readback_every)
+    fastest = max(
+        (
+            choice.option(daemon.config.bus_levers(daemon.board_timing), s, r, 100.0)
+            for s in ("naive", "overlapped", "burst")
+            for r in (True, False)
+        ),
+        key=lambda o: o.bound.rate_hz,
+    )
+    assert (daemon.reader.scheduler, daemon.reader.readback_every) == (
+        fastest.scheduler,
+        fastest.readback_every,
+    )
 
 
 def test_a_reload_on_a_slow_board_that_changes_only_averaging_is_taken(tmp_path):
@@ -77,14 +89,21 @@ def test_doctor_refuses_a_rate_of_zero_without_a_traceback(capsys):
 
 
 def _lower_rate(msg: str) -> tuple[float, float]:
-    m = re.search(r"a lower rate \(at most [\d.]+ Hz for 20% spare, ([\d.]+) Hz at the bound; now ([\d.]+) Hz\)", msg)
+    m = re.search(
+        r"a lower rate \(at most [\d.]+ Hz for 20% spare, ([\d.]+) Hz at the bound; now ([\d.]+) Hz\)", msg
+    )
     assert m is not None, msg
     return float(m.group(1)), float(m.group(2))
 
 
-@pytest.mark.parametrize(("bus", "extra", "rate"), [("sim?adapter=bcm2835", 'scheduler = "overlapped"', 110),
-                                                    (PESSIMISTIC, 'scheduler = "overlapped"', 100),
-                                                    (PESSIMISTIC, "readback_every = 1", 100)])
+@pytest.mark.parametrize(
+    ("bus", "extra", "rate"),
+    [
+        ("sim?adapter=bcm2835", 'scheduler = "overlapped"', 110),
+        (PESSIMISTIC, 'scheduler = "overlapped"', 100),
+        (PESSIMISTIC, "readback_every = 1", 100),
+    ],
+)
 def test_a_lower_rate_lever_names_a_rate_below_the_refused_one(tmp_path, bus, extra, rate):
     # main: "110 Hz cannot be met on this bus ... a lower rate (at most 185 Hz, now 110 Hz)"
     with pytest.raises(ConfigError) as exc:
@@ -117,8 +136,9 @@ def test_status_schedule_follows_a_rate_set_over_the_control_socket(tmp_path):
     # main: after `set --rate 50`, status still says "... spare at 100 Hz".
     config = load_config(write_config(tmp_path))
     clock = VirtualClock()
-    daemon = Daemon(config, simulated_bus(load_scene(tmp_path / "scene.toml"), clock=clock), _Null(),
-                    clock=clock.now)
+    daemon = Daemon(
+        config, simulated_bus(load_scene(tmp_path / "scene.toml"), clock=clock), _Null(), clock=clock.now
+    )
     daemon.start()
     daemon.set_loop(50.0, 1, 0.0)
     assert "at 50 Hz" in daemon.status()["schedule"], daemon.status()["schedule"]

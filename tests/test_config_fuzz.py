@@ -15,34 +15,83 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from ftsensord.calibration.calfile import Calibration, checksum
-from ftsensord.errors import ConfigError
 from ftsensord.config.file import load_config
-from ftsensord.protocol.paths import builtin_path
 from ftsensord.config.sensors import Calibrations
+from ftsensord.errors import ConfigError
+from ftsensord.protocol.paths import builtin_path
 
 CONFIG = {
-    "version": 1, "bus": "sim", "bus_hz": 400000, "rate_hz": 100, "averaging": 1, "lowpass_hz": 0.0,
-    "temperature_every": 100, "readback_every": 1, "max_missing_chips": 2,
+    "version": 1,
+    "bus": "sim",
+    "bus_hz": 400000,
+    "rate_hz": 100,
+    "averaging": 1,
+    "lowpass_hz": 0.0,
+    "temperature_every": 100,
+    "readback_every": 1,
+    "max_missing_chips": 2,
     "chip": {"gain_sel": 0, "hallconf": 12, "res": [3, 3, 3], "osr": 1, "dig_filt": 2, "osr2": 0},
-    "sensor": [{"name": "sensor1", "addresses": list(range(0x0C, 0x14)), "calibration": "builtin:sim-sensor1.json",
-                "frame": "s1", "estimator": "linear", "stray_field": "uniform"},
-               {"name": "sensor2", "addresses": list(range(0x14, 0x1C)), "calibration": "builtin:sim-sensor2.json"}],
+    "sensor": [
+        {
+            "name": "sensor1",
+            "addresses": list(range(0x0C, 0x14)),
+            "calibration": "builtin:sim-sensor1.json",
+            "frame": "s1",
+            "estimator": "linear",
+            "stray_field": "uniform",
+        },
+        {"name": "sensor2", "addresses": list(range(0x14, 0x1C)), "calibration": "builtin:sim-sensor2.json"},
+    ],
     "tool": {"frame": "tip", "offsets_m": {"sensor1": [0.0, 0.0, -0.2], "sensor2": [0.0, 0.0, -0.1]}},
-    "gravity": {"orientation": "stream", "stale_after_s": 0.1, "gravity_mps2": [0, 0, -9.81],
-                "sensor1": {"mass_kg": 0.1, "com_m": [0, 0, 0.01]}},
+    "gravity": {
+        "orientation": "stream",
+        "stale_after_s": 0.1,
+        "gravity_mps2": [0, 0, -9.81],
+        "sensor1": {"mass_kg": 0.1, "com_m": [0, 0, 0.01]},
+    },
     "security": {"allow_insecure_control": False, "public_stream": False},
 }
 VALUES = st.recursive(
-    st.one_of(st.integers(-2**64, 2**64), st.floats(), st.booleans(), st.text(max_size=12),
-              st.sampled_from(["", "builtin:", "ipc://", "tcp://127.0.0.1:*", "tcp://0.0.0.0:1", "ipc://@x", "nonlinear",
-                               "world", "mount", "sensor1", "tip", "\u00e9", 0.5, 2.5, -0.0, 1e308, 12, 27, 28])),
-    lambda inner: st.one_of(st.lists(inner, max_size=9), st.dictionaries(st.sampled_from(["name", "x", "sensor1"]), inner,
-                                                                         max_size=2)), max_leaves=8)
+    st.one_of(
+        st.integers(-(2**64), 2**64),
+        st.floats(),
+        st.booleans(),
+        st.text(max_size=12),
+        st.sampled_from(
+            [
+                "",
+                "builtin:",
+                "ipc://",
+                "tcp://127.0.0.1:*",
+                "tcp://0.0.0.0:1",
+                "ipc://@x",
+                "nonlinear",
+                "world",
+                "mount",
+                "sensor1",
+                "tip",
+                "\u00e9",
+                0.5,
+                2.5,
+                -0.0,
+                1e308,
+                12,
+                27,
+                28,
+            ]
+        ),
+    ),
+    lambda inner: st.one_of(
+        st.lists(inner, max_size=9),
+        st.dictionaries(st.sampled_from(["name", "x", "sensor1"]), inner, max_size=2),
+    ),
+    max_leaves=8,
+)
 
 
 def _paths(doc, prefix=()) -> list[tuple]:
     out = []
-    for k, v in (doc.items() if isinstance(doc, dict) else enumerate(doc)):
+    for k, v in doc.items() if isinstance(doc, dict) else enumerate(doc):
         out.append(prefix + (k,))
         if isinstance(v, (dict, list)) and not (isinstance(v, list) and len(v) > 9):
             out += _paths(v, prefix + (k,))
@@ -53,7 +102,15 @@ def _toml(value) -> str:
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, float):
-        return "nan" if math.isnan(value) else "inf" if value == math.inf else "-inf" if value == -math.inf else repr(value)
+        return (
+            "nan"
+            if math.isnan(value)
+            else "inf"
+            if value == math.inf
+            else "-inf"
+            if value == -math.inf
+            else repr(value)
+        )
     if isinstance(value, int):
         return str(value)
     if isinstance(value, str):  # JSON's escapes are TOML's, but for surrogate pairs (kept raw) and DEL
@@ -109,8 +166,15 @@ CALIBRATION = json.loads(builtin_path("sim-sensor1.json").read_text())
 
 
 @settings(max_examples=200, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck))
-@given(st.lists(st.tuples(st.sampled_from([p for p in _paths(CALIBRATION) if p[0] != "checksum"]), st.booleans(),
-                          VALUES), min_size=1, max_size=2))
+@given(
+    st.lists(
+        st.tuples(
+            st.sampled_from([p for p in _paths(CALIBRATION) if p[0] != "checksum"]), st.booleans(), VALUES
+        ),
+        min_size=1,
+        max_size=2,
+    )
+)
 def test_a_mutated_calibration_loads_or_names_its_file_and_key(tmp_path_factory, mutations):
     doc = copy.deepcopy(CALIBRATION)
     mutated = _mutate(doc, mutations)

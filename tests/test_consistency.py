@@ -12,9 +12,8 @@ from hypothesis import strategies as st
 
 from ftsensord.calibration.calfile import Calibration
 from ftsensord.chip import mlx90393 as mlx
-from ftsensord.model.consistency import Consistency, chi2_quantile
-from ftsensord.protocol import wire
 from ftsensord.config.file import builtin_path
+from ftsensord.model.consistency import Consistency, chi2_quantile
 from ftsensord.processing.filters import WrenchFilter
 from ftsensord.processing.pipeline import channel_sigma_t
 from ftsensord.processing.redundancy import (
@@ -27,6 +26,7 @@ from ftsensord.processing.redundancy import (
     _slow_limit,
     every_chip,
 )
+from ftsensord.protocol import wire
 from ftsensord.sim.loads import StaticLoad
 from ftsensord.sim.scene import default_scene
 
@@ -73,8 +73,11 @@ def test_the_model_error_bounds_cover_the_calibrations_largest_loads(name, index
             scene.set_load(index, StaticLoad(u / np.max(np.abs(u)) * s * cal.wrench_range))
             b = np.concatenate([scene.field_t(a, 0.0) for a in cal.addresses])
             c = cal.model.consistency(b, SIGMA_T, np.ones(8, bool))
-            assert np.sqrt(c.chi2) < MODEL_RESIDUAL_AT_REST + MODEL_RESIDUAL_AT_RANGE * s ** 2
-            assert np.sqrt(np.max(c.chi2 - c.chi2_without)) < CHIP_RESIDUAL_AT_REST + CHIP_RESIDUAL_AT_RANGE * s ** 2
+            assert np.sqrt(c.chi2) < MODEL_RESIDUAL_AT_REST + MODEL_RESIDUAL_AT_RANGE * s**2
+            assert (
+                np.sqrt(np.max(c.chi2 - c.chi2_without))
+                < CHIP_RESIDUAL_AT_REST + CHIP_RESIDUAL_AT_RANGE * s**2
+            )
 
 
 def test_no_false_alarm_at_the_calibrations_largest_loads_with_noise(tmp_path):
@@ -150,7 +153,9 @@ def test_a_still_stuck_chip_stays_out_after_its_reset(tmp_path):
 
 def test_a_silent_gain_change_is_flagged_from_its_first_sample(tmp_path):
     # CONF1 to GAIN_SEL 7 at 0.3 s: the chip reads a fifth of the field it should.
-    rig, w, sigma = moving_rig(tmp_path, fault("drift_register", 0.3, address=0x10, register=0, value=0x007C), 1.0)
+    rig, w, sigma = moving_rig(
+        tmp_path, fault("drift_register", 0.3, address=0x10, register=0, value=0x007C), 1.0
+    )
     after = [s for s in w if s.t_mono > 0.31]
     first = next(i for i, s in enumerate(after) if s.flags)
     assert after[first].flags & wire.FLAG_INCONSISTENT and after[first].t_mono < 0.33
@@ -166,11 +171,13 @@ def test_a_filtered_output_carries_the_flag_of_every_input_in_it():
         assert f.update(clean)[1] == 0
     out = [f.update(bad, wire.FLAG_INCONSISTENT)] + [f.update(clean) for _ in range(f.reach + 5)]
     carried = [flags for _, flags in out]
-    assert all(flags & wire.FLAG_INCONSISTENT for flags in carried[:f.reach])
-    assert not any(carried[f.reach:])
+    assert all(flags & wire.FLAG_INCONSISTENT for flags in carried[: f.reach])
+    assert not any(carried[f.reach :])
     # Once unflagged, what is left of the 4 N input is below a fifth of the noise (0.005 N).
     assert np.max(np.abs(out[f.reach][0])) < 4.0 * 1e-3
-    assert f.update(clean, wire.FLAG_LATE)[1] == wire.FLAG_LATE and f.update(clean)[1] == 0  # late: not carried
+    assert (
+        f.update(clean, wire.FLAG_LATE)[1] == wire.FLAG_LATE and f.update(clean)[1] == 0
+    )  # late: not carried
 
 
 def test_the_daemon_carries_a_flag_through_averaging_and_lowpass(tmp_path):
@@ -317,8 +324,12 @@ def test_the_consistency_maps_give_the_least_squares_residuals(room):
         assert c.gradient_chi2 == pytest.approx(gradient, rel=1e-9, abs=1e-9)
         np.testing.assert_allclose(c.wrench, wrench, rtol=1e-8, atol=1e-12)
         finite = np.isfinite(without)
-        np.testing.assert_allclose(c.chi2_without[finite], without[finite], rtol=1e-9, atol=1e-9 * (1 + whole))
-        np.testing.assert_allclose(c.drop, np.where(finite, c.chi2 - c.chi2_without, 0.0), atol=1e-9 * (1 + whole))
+        np.testing.assert_allclose(
+            c.chi2_without[finite], without[finite], rtol=1e-9, atol=1e-9 * (1 + whole)
+        )
+        np.testing.assert_allclose(
+            c.drop, np.where(finite, c.chi2 - c.chi2_without, 0.0), atol=1e-9 * (1 + whole)
+        )
 
 
 def test_filtered_streams_restart_after_a_stall(tmp_path):
@@ -357,8 +368,8 @@ def _slow_reference(drops: list[list[float]], loads: list[float]) -> list[int | 
             out.append(None)
             continue
         total = [sum(row[i] for row, _ in last) for i in range(len(d))]
-        limit = _slow_limit(len(d), max(l for _, l in last))
-        found = int(np.argmax(total)) if max(total) > limit ** 2 else None
+        limit = _slow_limit(len(d), max(load2 for _, load2 in last))
+        found = int(np.argmax(total)) if max(total) > limit**2 else None
         out.append(found)
         if found is not None:
             window = []
@@ -366,8 +377,13 @@ def _slow_reference(drops: list[list[float]], loads: list[float]) -> list[int | 
 
 
 @settings(max_examples=200, deadline=None)
-@given(st.lists(st.tuples(st.lists(st.floats(-1e-9, 40.0), min_size=8, max_size=8), st.floats(0.0, 0.3)),
-                min_size=SLOW_WINDOW, max_size=4 * SLOW_WINDOW))
+@given(
+    st.lists(
+        st.tuples(st.lists(st.floats(-1e-9, 40.0), min_size=8, max_size=8), st.floats(0.0, 0.3)),
+        min_size=SLOW_WINDOW,
+        max_size=4 * SLOW_WINDOW,
+    )
+)
 def test_the_slow_tests_shortcut_finds_what_the_whole_sum_finds(samples):
     """The slow test skips the per-chip sum when the samples' largest drops add up to less than
     its least limit: it must find the same chips, on the same samples, as summing every time
@@ -375,9 +391,11 @@ def test_the_slow_tests_shortcut_finds_what_the_whole_sum_finds(samples):
     chips; -1e-9: a drop's round-off below zero)."""
     check = RedundancyCheck()
     chips = every_chip(8)
-    got = [check._slow_culprit(Consistency(0.0, 18, np.zeros(6), np.zeros(8), 15, np.array(d)), chips, 8, load2)
-           for d, load2 in samples]
-    assert got == _slow_reference([d for d, _ in samples], [l for _, l in samples])
+    got = [
+        check._slow_culprit(Consistency(0.0, 18, np.zeros(6), np.zeros(8), 15, np.array(d)), chips, 8, load2)
+        for d, load2 in samples
+    ]
+    assert got == _slow_reference([d for d, _ in samples], [load2 for _, load2 in samples])
 
 
 def test_the_slow_test_finds_a_chip_below_one_samples_limit():
@@ -386,6 +404,8 @@ def test_the_slow_test_finds_a_chip_below_one_samples_limit():
     check = RedundancyCheck()
     d = np.full(8, 2.0)
     d[3] = 25.0
-    got = [check._slow_culprit(Consistency(0.0, 18, np.zeros(6), np.zeros(8), 15, d), every_chip(8), 8, 0.0)
-           for _ in range(SLOW_WINDOW)]
+    got = [
+        check._slow_culprit(Consistency(0.0, 18, np.zeros(6), np.zeros(8), 15, d), every_chip(8), 8, 0.0)
+        for _ in range(SLOW_WINDOW)
+    ]
     assert got == [None] * (SLOW_WINDOW - 1) + [3]

@@ -9,20 +9,18 @@ import json
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from ftsensord.calibration.calfile import Calibration
-from ftsensord.calibration.relaxation import settle_s
 from ftsensord.calibration.dataset import Dataset
 from ftsensord.calibration.procedure import hold_poses
+from ftsensord.calibration.relaxation import settle_s
 from ftsensord.calibration.rig import record_dataset, record_hold, simulated_robot
 from ftsensord.cli import main
 from ftsensord.model.viscoelastic import Relaxation
-from ftsensord.sim import load_scene
-from ftsensord.sim import simulated_bus
+from ftsensord.sim import load_scene, simulated_bus
 from ftsensord.sim.loads import CalibrationPose, paper_plan
-from ftsensord.sim.scene import default_scene_path
 from ftsensord.sim.memory import DEFAULT_RELAXATION
+from ftsensord.sim.scene import default_scene_path
 
 #: The paper's Table II (N x3, Nm x3): the 100 g validation's RMSE.
 TABLE_II = np.array([0.2338, 0.1136, 0.3775, 4.1e-3, 10.6e-3, 8.5e-3])
@@ -53,14 +51,25 @@ def _recorded(scene_path: Path, *, samples: int, hold_s: float, rod_on: bool = F
     robot = simulated_robot(scene, sensor.name)
     plan = paper_plan(n_fit=40, n_validation=0, n_no_load=24)
     if rod_on:
-        plan = [(CalibrationPose(p.gravity_dir, 0.05, np.array([0.0, 0.0, 0.1]), p.rotation), s)
-                if s == "no-load" else (p, s) for p, s in plan]
+        plan = [
+            (CalibrationPose(p.gravity_dir, 0.05, np.array([0.0, 0.0, 0.1]), p.rotation), s)
+            if s == "no-load"
+            else (p, s)
+            for p, s in plan
+        ]
     late = [p for p in plan if p[1] != "no-load"] + [p for p in plan if p[1] == "no-load"]
     ds = record_dataset(bus, sensor.addresses, late, robot["apply_load"], turn=robot["turn"], samples=samples)
     no_load = ds.split == "no-load"
     ds.wrench[no_load], ds.mass_kg[no_load] = 0.0, 0.0  # as the run's file has them: the rod forgotten
-    ds.hold = record_hold(bus, sensor.addresses, hold_poses(), robot["apply_load"], hold_s=hold_s,
-                          turn=robot["turn"], period_s=0.01)
+    ds.hold = record_hold(
+        bus,
+        sensor.addresses,
+        hold_poses(),
+        robot["apply_load"],
+        hold_s=hold_s,
+        turn=robot["turn"],
+        period_s=0.01,
+    )
     return ds
 
 
@@ -68,11 +77,35 @@ def test_the_two_commands_at_their_defaults_calibrate_a_creeping_part_in_a_room(
     # A quick run of the documented path: fewer poses, readings and check poses and a shorter hold
     # than the defaults (CI's time); the order, the room check and the identification as they are.
     ds, cal = tmp_path / "ds.json", tmp_path / "cal.json"
-    assert main(["dataset", "--scene", str(_scene(tmp_path)), "--sensor", "sensor1", "-o", str(ds), "--poses", "40",
-                 "--validation-poses", "8", "--samples", "10", "--check-poses", "3", "--hold-s", "15"]) == 0
+    assert (
+        main(
+            [
+                "dataset",
+                "--scene",
+                str(_scene(tmp_path)),
+                "--sensor",
+                "sensor1",
+                "-o",
+                str(ds),
+                "--poses",
+                "40",
+                "--validation-poses",
+                "8",
+                "--samples",
+                "10",
+                "--check-poses",
+                "3",
+                "--hold-s",
+                "15",
+            ]
+        )
+        == 0
+    )
     data = Dataset.load(ds)
-    first = np.argsort(data.times_s[:, 0])[:int(np.sum(data.split == "no-load"))]
-    assert np.all(data.split[first] == "no-load") and data.hold is not None  # before any load; the hold recorded
+    first = np.argsort(data.times_s[:, 0])[: int(np.sum(data.split == "no-load"))]
+    assert (
+        np.all(data.split[first] == "no-load") and data.hold is not None
+    )  # before any load; the hold recorded
     assert main(["calibrate", str(ds), "-o", str(cal), "--linear-only"]) == 0
     part = Calibration.load(cal)
     assert part.report["room_field"]["source"] == "no-load poses"
@@ -107,7 +140,10 @@ def test_a_rod_left_on_is_refused_as_before_on_a_creeping_part_even_after_loads(
     # computes does not explain a rod's weight: today's refusal.
     rod = _recorded(_scene(tmp_path), samples=10, hold_s=12.0, rod_on=True)
     rod.save(tmp_path / "rod.json")
-    assert main(["calibrate", str(tmp_path / "rod.json"), "-o", str(tmp_path / "cal.json"), "--linear-only"]) == 2
+    assert (
+        main(["calibrate", str(tmp_path / "rod.json"), "-o", str(tmp_path / "cal.json"), "--linear-only"])
+        == 2
+    )
     err = capsys.readouterr().err
     assert "after-effect" not in err
     assert __import__("re").search(TODAY, err), err
@@ -115,8 +151,28 @@ def test_a_rod_left_on_is_refused_as_before_on_a_creeping_part_even_after_loads(
 
 def test_a_motor_near_the_sensor_is_refused_as_before_on_the_documented_path(tmp_path, capsys):
     ds = tmp_path / "ds.json"
-    assert main(["dataset", "--scene", str(_scene(tmp_path, extra=MOTOR)), "-o", str(ds), "--poses", "40",
-                 "--validation-poses", "0", "--samples", "10", "--check-poses", "0", "--hold-s", "0"]) == 0
+    assert (
+        main(
+            [
+                "dataset",
+                "--scene",
+                str(_scene(tmp_path, extra=MOTOR)),
+                "-o",
+                str(ds),
+                "--poses",
+                "40",
+                "--validation-poses",
+                "0",
+                "--samples",
+                "10",
+                "--check-poses",
+                "0",
+                "--hold-s",
+                "0",
+            ]
+        )
+        == 0
+    )
     assert main(["calibrate", str(ds), "-o", str(tmp_path / "cal.json"), "--linear-only"]) == 2
     err = capsys.readouterr().err
     assert __import__("re").search(TODAY, err) and "after-effect" not in err, err

@@ -18,9 +18,7 @@ from ftsensord.chip import mlx90393 as mlx
 from ftsensord.chip.block import BlockDecoder
 from ftsensord.chip.driver import MLX90393
 from ftsensord.errors import ChipError
-from ftsensord.sim import StaticScene
-from ftsensord.sim import VirtualClock
-from ftsensord.sim import simulated_bus
+from ftsensord.sim import StaticScene, VirtualClock, simulated_bus
 
 from .test_daemon import Rig
 
@@ -35,8 +33,13 @@ def _scene() -> StaticScene:
 
 def _reader(adapter: str = "permissive") -> Reader:
     bus = simulated_bus(_scene(), clock=VirtualClock(), bus_hz=400e3, adapter=adapter, seed=1)
-    reader = Reader(bus, [MLX90393(bus, a, sleep=bus.sleep) for a in ADDRESSES], "overlapped", mlx.Settings(),
-                    readback_every=0)
+    reader = Reader(
+        bus,
+        [MLX90393(bus, a, sleep=bus.sleep) for a in ADDRESSES],
+        "overlapped",
+        mlx.Settings(),
+        readback_every=0,
+    )
     assert reader.start() == {}
     return reader
 
@@ -53,7 +56,8 @@ def test_messages_are_built_once_and_reused(adapter):
     assert reader.xfer._plans.keys() == plans.keys()
     assert all(reader.xfer._plans[k] is plans[k] for k in plans)  # the same RM messages every cycle
     assert [c.sm_messages()[0] for c in reader.chips] == firsts and all(
-        a is b for a, b in zip((c.sm_messages()[0] for c in reader.chips), firsts))
+        a is b for a, b in zip((c.sm_messages()[0] for c in reader.chips), firsts)
+    )
 
 
 def _one_by_one(chips: list[MLX90393], block: np.ndarray, zyxt: int) -> list:
@@ -85,8 +89,11 @@ def test_block_decoding_equals_one_chip_at_a_time(zyxt, res):
         block[1, 0] = rng.choice([0x10, 0x10 | (k - 1), (k % 4)])  # ... except: ERROR, or D1:D0 wrong
         block[2, 1:3] = rng.choice([[0x80, 0x00], [0x7F, 0xFF], [0xFF, 0xFF], [0, 0]])  # the rails
         slow = _one_by_one(chips, block, zyxt)
-        rows = [int(i) for i in rng.permutation(len(chips))[:len(chips) - 3]]  # some read, in another order
-        for fast, want in ((decoder.decode(block), slow), (decoder.decode(block, rows), [slow[i] for i in rows])):
+        rows = [int(i) for i in rng.permutation(len(chips))[: len(chips) - 3]]  # some read, in another order
+        for fast, want in (
+            (decoder.decode(block), slow),
+            (decoder.decode(block, rows), [slow[i] for i in rows]),
+        ):
             _assert_same(fast, want)
 
 
@@ -143,13 +150,17 @@ def test_daemon_knows_a_real_board_at_start(tmp_path, caplog):
     rig = Rig(tmp_path)
     try:
         sim = rig.daemon.status()
-        assert sim["adapter"] == "bcm2835" and sim["clock_hz"] == 400e3 and sim["ioctl_us"] == pytest.approx(60)
+        assert (
+            sim["adapter"] == "bcm2835" and sim["clock_hz"] == 400e3 and sim["ioctl_us"] == pytest.approx(60)
+        )
         slow = simulated_bus(rig.scene, clock=rig.clock, bus_hz=400e3, clock_hz=250e3, ioctl_s=80e-6, seed=5)
         rig.daemon.__init__(rig.config, BoardBus(slow), rig.pub, rig.router, clock=rig.clock.now)
         assert rig.daemon.status()["ioctl_us"] is None  # not measured before start
         with caplog.at_level(logging.WARNING, logger="ftsensord"):
             rig.daemon.start()
-        assert any("measures 250 kHz" in r.getMessage() and "core_freq" in r.getMessage() for r in caplog.records)
+        assert any(
+            "measures 250 kHz" in r.getMessage() and "core_freq" in r.getMessage() for r in caplog.records
+        )
         status = rig.daemon.status()
         assert status["clock_hz"] == pytest.approx(250e3, rel=0.02)
         assert status["ioctl_us"] == pytest.approx(80, abs=5)
@@ -161,12 +172,28 @@ def test_daemon_knows_a_real_board_at_start(tmp_path, caplog):
 
 
 def test_cycle_cpu_quick_mode_reports_the_ratio():
-    out = subprocess.run([sys.executable, "-m", "benchmarks.performance.cycle_cpu", "--quick", "--json"],
-                         capture_output=True, text=True, timeout=300, check=True, cwd=ROOT).stdout
+    out = subprocess.run(
+        [sys.executable, "-m", "benchmarks.performance.cycle_cpu", "--quick", "--json"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=True,
+        cwd=ROOT,
+    ).stdout
     r = json.loads(out)
-    for key in ("reference_us", "daemon_linear_us", "bus_us", "daemon_own_us", "daemon_nonlinear_us",
-                "nonlinear_per_sensor_us", "estimate_per_sensor_us", "pi_factor", "pi_estimate_linear_us",
-                "pinned_cpu", "load_1min"):
+    for key in (
+        "reference_us",
+        "daemon_linear_us",
+        "bus_us",
+        "daemon_own_us",
+        "daemon_nonlinear_us",
+        "nonlinear_per_sensor_us",
+        "estimate_per_sensor_us",
+        "pi_factor",
+        "pi_estimate_linear_us",
+        "pinned_cpu",
+        "load_1min",
+    ):
         assert np.isfinite(r[key]), key
     assert r["reference_us"] > 0 and r["daemon_linear_us"] > 0
     # The stand-in bus is measured apart and taken out of the daemon's side only: the
@@ -193,15 +220,20 @@ def test_one_plan_reads_every_order_and_every_subset(adapter):
     rng = np.random.default_rng(5)
     scene = StaticScene({a: rng.uniform(-2e-3, 2e-3, 3) for a in addresses}, dict.fromkeys(addresses, 30.0))
     bus = simulated_bus(scene, clock=VirtualClock(), bus_hz=400e3, adapter=adapter, seed=1)
-    reader = Reader(bus, [MLX90393(bus, a, sleep=bus.sleep) for a in addresses], "overlapped", mlx.Settings(),
-                    readback_every=1)
+    reader = Reader(
+        bus,
+        [MLX90393(bus, a, sleep=bus.sleep) for a in addresses],
+        "overlapped",
+        mlx.Settings(),
+        readback_every=1,
+    )
     assert reader.start() == {}
     assert all(r.ok for r in reader.read().values())
     (plan,) = reader.xfer._plans.values()
     for _ in range(2 * len(addresses)):
         assert all(r.ok for r in reader.read().values())
     for _ in range(20):
-        chips = [reader.chips[i] for i in rng.permutation(len(addresses))[:rng.integers(1, len(addresses))]]
+        chips = [reader.chips[i] for i in rng.permutation(len(addresses))[: rng.integers(1, len(addresses))]]
         for c in chips:
             c.start_single(mlx.ZYXT_XYZ)
         bus.sleep(reader.conversion_s(mlx.ZYXT_XYZ))
@@ -214,8 +246,14 @@ def test_one_plan_reads_every_order_and_every_subset(adapter):
 
 
 def test_nonlinear_cpu_quick_mode_reports_moving_and_rest():
-    out = subprocess.run([sys.executable, "-m", "benchmarks.performance.nonlinear_cpu", "--quick", "--json"],
-                         capture_output=True, text=True, timeout=300, check=True, cwd=ROOT).stdout
+    out = subprocess.run(
+        [sys.executable, "-m", "benchmarks.performance.nonlinear_cpu", "--quick", "--json"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=True,
+        cwd=ROOT,
+    ).stdout
     r = json.loads(out)
     assert r["samples"] == round(2 * 100 / 1.3) and r["fraction"] == 0.4 and r["hz"] == 1.3
     for name in ("moving", "rest"):
@@ -229,21 +267,45 @@ def test_nonlinear_cpu_quick_mode_reports_moving_and_rest():
 
 def test_board_mode_adds_bus_and_scaled_cpu_per_configuration(tmp_path):
     from ftsensord.acquire.bound import cycle_bound
+
     path = tmp_path / "board.json"
-    subprocess.run([sys.executable, "-m", "benchmarks.performance.board", "--quick", "--pi-factor", "5",
-                    "--out", str(path)], capture_output=True, text=True, timeout=300, check=True, cwd=ROOT)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "benchmarks.performance.board",
+            "--quick",
+            "--pi-factor",
+            "5",
+            "--out",
+            str(path),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=True,
+        cwd=ROOT,
+    )
     r = json.loads(path.read_text())
     assert r["facts"]["python"] and r["pi_factor"] == 5 and "doctor" not in r
     own = r["cycle_cpu"]["daemon_own_us"]
     p99 = {k: r["nonlinear"][k]["cpu_us"]["p99"] for k in ("moving", "rest")}
-    extra = {"linear (default)": 0.0, "nonlinear, one sensor, load moving": p99["moving"],
-             "nonlinear, both sensors, at rest": 2 * p99["rest"], "nonlinear, both sensors, load moving": 2 * p99["moving"]}
+    extra = {
+        "linear (default)": 0.0,
+        "nonlinear, one sensor, load moving": p99["moving"],
+        "nonlinear, both sensors, at rest": 2 * p99["rest"],
+        "nonlinear, both sensors, load moving": 2 * p99["moving"],
+    }
     rows = r["table"]
     assert len(rows) == 3 * 3 * 4  # boards x bus levers x configurations
     for row in rows:
         assert row["cpu_ms"] == pytest.approx((own + extra[row["configuration"]]) * 5 * 1e-3)
         assert row["cycle_ms"] == pytest.approx(row["bus_ms"] + row["cpu_ms"])
         assert row["holds"] == (row["cycle_ms"] <= 8.0)  # 20 % of a 10 ms period spare
-    pessimistic = [x for x in rows if x["board"].startswith("pessimistic") and not x["readback"] and not x["temperature"]]
-    bound = cycle_bound("burst", 16, mlx.Settings(), 250e3, 150e-6, readback=False, temperature=False, adapter="bcm2835")
+    pessimistic = [
+        x for x in rows if x["board"].startswith("pessimistic") and not x["readback"] and not x["temperature"]
+    ]
+    bound = cycle_bound(
+        "burst", 16, mlx.Settings(), 250e3, 150e-6, readback=False, temperature=False, adapter="bcm2835"
+    )
     assert pessimistic[0]["bus_ms"] == pytest.approx(bound.cycle_s * 1e3)

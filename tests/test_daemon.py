@@ -15,12 +15,11 @@ import numpy as np
 import pytest
 import zmq
 
-from ftsensord.errors import ConfigError
-from ftsensord.protocol import wire
 from ftsensord.config.file import load_config
 from ftsensord.daemon.sdnotify import Notifier
-from ftsensord.sim import VirtualClock
-from ftsensord.sim import load_scene
+from ftsensord.errors import ConfigError
+from ftsensord.protocol import wire
+from ftsensord.sim import VirtualClock, load_scene
 from ftsensord.sim.scene import default_scene_text
 
 from .conftest import InProcess, assert_names_file_and_key
@@ -39,10 +38,18 @@ sensor2 = [0.0, 0.0, -0.1]
 """
 
 
-def write_config(folder: Path, extra: str = "", sensor1_cal: str = "builtin:sim-sensor1.json",
-                 sensor2_cal: str = "builtin:sim-sensor2.json",
-                 rate_hz: float = 100, chip: str = "", scene_extra: str = "", scheduler: str | None = None,
-                 scene: str = SCENE, tool: str = TOOL) -> Path:
+def write_config(
+    folder: Path,
+    extra: str = "",
+    sensor1_cal: str = "builtin:sim-sensor1.json",
+    sensor2_cal: str = "builtin:sim-sensor2.json",
+    rate_hz: float = 100,
+    chip: str = "",
+    scene_extra: str = "",
+    scheduler: str | None = None,
+    scene: str = SCENE,
+    tool: str = TOOL,
+) -> Path:
     (folder / "scene.toml").write_text(scene + scene_extra)
     path = folder / "ftsensord.toml"
     path.write_text(f"""
@@ -70,12 +77,22 @@ class Rig(InProcess):
     """A daemon on a virtual clock, a subscriber to every stream, and a REQ client on its
     control socket, from `write_config`'s files."""
 
-    def __init__(self, folder: Path, extra: str = "", notifier: Notifier | None = None,
-                 orientation: zmq.Socket | None = None, **config):
+    def __init__(
+        self,
+        folder: Path,
+        extra: str = "",
+        notifier: Notifier | None = None,
+        orientation: zmq.Socket | None = None,
+        **config,
+    ):
         if "scheduler" not in extra:
             config.setdefault("scheduler", "overlapped")  # the cycle these tests reason about
-        super().__init__(load_config(write_config(folder, extra, **config)), load_scene(folder / "scene.toml"),
-                         notifier=notifier, orientation=orientation)
+        super().__init__(
+            load_config(write_config(folder, extra, **config)),
+            load_scene(folder / "scene.toml"),
+            notifier=notifier,
+            orientation=orientation,
+        )
 
     def cycles(self, n: int = 1) -> dict[str, list[wire.Sample]]:
         """Run n cycles on the deadline grid; return what was published, by topic."""
@@ -161,8 +178,9 @@ def test_the_wrench_is_the_applied_one_within_the_calibrations_error(rig):
     assert np.allclose(w1[:3], LOAD[:3], atol=0.3) and np.allclose(w1[3:], LOAD[3:], atol=0.006)
     assert np.allclose(w2[:3], 0, atol=0.3) and np.allclose(w2[3:], 0, atol=0.006)
     tip = np.mean([s.values for s in out["wrench/tip"]], axis=0)
-    expected = np.concatenate([w1[:3] + w2[:3], w1[3:] + w2[3:] + np.cross([0, 0, -0.2], w1[:3])
-                               + np.cross([0, 0, -0.1], w2[:3])])
+    expected = np.concatenate(
+        [w1[:3] + w2[:3], w1[3:] + w2[3:] + np.cross([0, 0, -0.2], w1[:3]) + np.cross([0, 0, -0.1], w2[:3])]
+    )
     assert np.allclose(tip, expected, atol=1e-9)
     assert all(s.flags == 0 for s in out["wrench/sensor1"])
 
@@ -175,7 +193,9 @@ def test_a_missing_chip_degrades_its_sensor_only_and_recovers_without_restart(ri
         assert not s.flags & wire.FLAG_INVALID
         # Estimated from the seven chips left (docs/results/reliability.md: within ~20 % of the full
         # set's error).
-        assert np.allclose(s.values[:3], LOAD[:3], atol=0.4) and np.allclose(s.values[3:], LOAD[3:], atol=0.01)
+        assert np.allclose(s.values[:3], LOAD[:3], atol=0.4) and np.allclose(
+            s.values[3:], LOAD[3:], atol=0.01
+        )
     assert all(np.isnan(s.values[6:9]).all() for s in out["flux/sensor1"])
     assert all(s.flags == 0 and np.all(np.isfinite(s.values)) for s in out["wrench/sensor2"])
     assert out["wrench/tip"][-1].flags & wire.FLAG_DEGRADED
@@ -186,7 +206,7 @@ def test_a_missing_chip_degrades_its_sensor_only_and_recovers_without_restart(ri
     samples = rig.cycles(100)["wrench/sensor1"]
     back = next(s for s in samples if s.flags == 0)
     assert back.t_mono - cleared < 1.0  # back within 1 s of the fault clearing, no restart
-    assert all(s.flags == 0 for s in samples[samples.index(back):])
+    assert all(s.flags == 0 for s in samples[samples.index(back) :])
     # Its registers were intact: it rejoined after a read-back, without a reset.
     assert rig.daemon.status()["chips"]["0x0E"]["ok"] and rig.daemon.reader.health[0x0E].reinits == 0
 
@@ -282,14 +302,24 @@ def test_status_reports_rate_bound_jitter_chips_and_calibrations(rig):
     assert st["sensors"]["sensor1"]["serial"] == "sim-sensor1" and not st["sensors"]["sensor1"]["tared"]
 
 
-@pytest.mark.parametrize(("request_", "error"), [
-    (b"not json", "not JSON"), (b"\xff\xfe\x00", "not JSON"), (b"[1, 2]", 'string "cmd"'),
-    (b'{"cmd": 5}', 'string "cmd"'), (b'{"cmd": "launch"}', "unknown command"),
-    (b'{"cmd": "tare", "samples": "many"}', "samples"), (b'{"cmd": "tare", "samples": 0}', "samples"),
-    (b'{"cmd": "tare", "sensor": "sensor9"}', "sensor9"), (b'{"cmd": "status", "verbose": true}', "unknown argument"),
-    (b'{"cmd": "set", "rate_hz": 500}', "cannot be met"), (b'{"cmd": "set", "averaging": 0}', "averaging"),
-    (b'{"cmd": "set", "lowpass_hz": 80}', "below half the rate"), (b"[" * 100_000, "not JSON"),
-])
+@pytest.mark.parametrize(
+    ("request_", "error"),
+    [
+        (b"not json", "not JSON"),
+        (b"\xff\xfe\x00", "not JSON"),
+        (b"[1, 2]", 'string "cmd"'),
+        (b'{"cmd": 5}', 'string "cmd"'),
+        (b'{"cmd": "launch"}', "unknown command"),
+        (b'{"cmd": "tare", "samples": "many"}', "samples"),
+        (b'{"cmd": "tare", "samples": 0}', "samples"),
+        (b'{"cmd": "tare", "sensor": "sensor9"}', "sensor9"),
+        (b'{"cmd": "status", "verbose": true}', "unknown argument"),
+        (b'{"cmd": "set", "rate_hz": 500}', "cannot be met"),
+        (b'{"cmd": "set", "averaging": 0}', "averaging"),
+        (b'{"cmd": "set", "lowpass_hz": 80}', "below half the rate"),
+        (b"[" * 100_000, "not JSON"),
+    ],
+)
 def test_bad_requests_get_an_error_reply_and_the_loop_goes_on(rig, request_, error):
     rig.req.send(request_)
     rig.daemon.handle_control()
@@ -311,6 +341,7 @@ def test_set_changes_rate_averaging_and_lowpass_at_run_time(rig):
 
 def test_reload_keeps_the_running_calibration_when_the_new_one_is_bad(tmp_path):
     from ftsensord.config.file import builtin_path
+
     cal = tmp_path / "cal1.json"
     cal.write_text(builtin_path("sim-sensor1.json").read_text())
     rig = Rig(tmp_path)
@@ -373,14 +404,18 @@ def test_ready_after_the_first_cycle_and_watchdog_only_as_cycles_complete(tmp_pa
 
 
 @pytest.mark.parametrize(("rate_hz", "every"), [(100, 1), (120, 100), (150, 0)])
-def test_burst_reads_registers_back_every_cycle_where_the_period_leaves_a_new_result_time(tmp_path, rate_hz, every):
+def test_burst_reads_registers_back_every_cycle_where_the_period_leaves_a_new_result_time(
+    tmp_path, rate_hz, every
+):
     # The burst bound is 6.39 ms on the default adapter (its slowest cycle, which reads T);
     # a result 4.13 ms after SB (X, Y, Z and T, with the oscillator's margin): 10.5 ms, so
     # 100 Hz has the time and 120 Hz does not. Beyond 125 Hz the read-back leaves less than
     # 20 % of the period spare (bound 156.5 Hz; 185.2 Hz without): the daemon drops it.
     config = load_config(write_config(tmp_path, 'scheduler = "burst"', rate_hz=rate_hz))
     assert config.readback_every == every
-    assert ("no register read-back" in config.choice) == (every == 0) and "chosen: readback_every" in config.choice
+    assert ("no register read-back" in config.choice) == (
+        every == 0
+    ) and "chosen: readback_every" in config.choice
     given = load_config(write_config(tmp_path, 'scheduler = "burst"\nreadback_every = 7', rate_hz=rate_hz))
     assert given.readback_every == 7  # what the file says wins
 
@@ -393,34 +428,56 @@ def test_config_refuses_a_rate_above_the_bound_naming_it(tmp_path):
     assert "rate_hz: 150 Hz cannot be met" in msg and "103.7 Hz at most" in msg and "burst 156.5 Hz" in msg
     # Every lever with its bound (issue 26): the register read-back's too.
     bare = re.search(r"readback_every = 0 \(naive [\d.]+, overlapped ([\d.]+), burst ([\d.]+) Hz\)", msg)
-    assert bare is not None and float(bare.group(1)) < 150 < float(bare.group(2)), msg  # burst without it holds
+    assert bare is not None and float(bare.group(1)) < 150 < float(bare.group(2)), (
+        msg
+    )  # burst without it holds
 
 
-@pytest.mark.parametrize(("edit", "key", "expected"), [
-    (("rate_hz = 100", "rate_hz = -1"), "rate_hz", "finite number in [0.1"),
-    (('bus = "sim:scene.toml"', 'bus = "spi:0"'), "bus", "accepted forms"),
-    (('bus = "sim:scene.toml"', 'bus = "sim:nope.toml"'), "bus", "an existing file"),
-    (("0x12, 0x13]", "0x12, 0x12]"), "sensor[0].addresses", "not used twice"),
-    (("[[sensor]]\nname = \"sensor2\"\naddresses = [0x14", "[[sensor]]\nname = \"sensor2\"\naddresses = [0x13"),
-     "sensor[1].addresses", "no other sensor uses"),
-    (('calibration = "builtin:sim-sensor2.json"', 'calibration = "builtin:sim-sensor1.json"'),
-     "sensor[1].calibration", "for the chips"),
-    (("rate_hz = 100", 'rate_hz = 100\nscheduler = "fast"'), "scheduler", 'one of "naive"'),
-    (("[chip]\n", "[chip]\nosr = 0\ndig_filt = 0\n"), "chip", "OSR 0 with DIG_FILT 0"),
-    (("rate_hz = 100", "rate_hz = 100\npublish_tcp = \"tcp://0.0.0.0:5555\""), "publish_tcp", "loopback"),
-    (("sensor2 = [0.0, 0.0, -0.1]", "sensor3 = [0.0, 0.0, -0.1]"), "tool.offsets_m.sensor3", "one of the sensors"),
-    (("rate_hz = 100", "rate_hz = 100\nratehz = 5"), "ratehz", "one of"),
-    (('bus = "sim:scene.toml"', ""), "bus", "missing"),
-    (('calibration = "builtin:sim-sensor2.json"', ""), "sensor[1].calibration", "missing"),
-    (("rate_hz = 100", "rate_hz = nan"), "rate_hz", "finite number"),
-    (("rate_hz = 100", "rate_hz = inf"), "rate_hz", "finite number"),
-    (("version = 1", "version = 2"), "version", "expected 1"),
-    # RES is a 2-bit field: 2.5 was read as RES 2 (int() of the float), 1e-300 as RES 0
-    (("[chip]\n", "[chip]\nres = [2.5, 3, 3]\n"), "chip.res", "3 integers"),
-    (("[chip]\n", "[chip]\nres = [3, 3, 1e-300]\n"), "chip.res", "3 integers"),
-    # a sensor 1e12 m from the tip (a unit mistake, or worse) was taken: moments of 1e12 N m
-    (("sensor2 = [0.0, 0.0, -0.1]", "sensor2 = [0.0, 0.0, -1e12]"), "tool.offsets_m.sensor2", "within 2 m"),
-])
+@pytest.mark.parametrize(
+    ("edit", "key", "expected"),
+    [
+        (("rate_hz = 100", "rate_hz = -1"), "rate_hz", "finite number in [0.1"),
+        (('bus = "sim:scene.toml"', 'bus = "spi:0"'), "bus", "accepted forms"),
+        (('bus = "sim:scene.toml"', 'bus = "sim:nope.toml"'), "bus", "an existing file"),
+        (("0x12, 0x13]", "0x12, 0x12]"), "sensor[0].addresses", "not used twice"),
+        (
+            (
+                '[[sensor]]\nname = "sensor2"\naddresses = [0x14',
+                '[[sensor]]\nname = "sensor2"\naddresses = [0x13',
+            ),
+            "sensor[1].addresses",
+            "no other sensor uses",
+        ),
+        (
+            ('calibration = "builtin:sim-sensor2.json"', 'calibration = "builtin:sim-sensor1.json"'),
+            "sensor[1].calibration",
+            "for the chips",
+        ),
+        (("rate_hz = 100", 'rate_hz = 100\nscheduler = "fast"'), "scheduler", 'one of "naive"'),
+        (("[chip]\n", "[chip]\nosr = 0\ndig_filt = 0\n"), "chip", "OSR 0 with DIG_FILT 0"),
+        (("rate_hz = 100", 'rate_hz = 100\npublish_tcp = "tcp://0.0.0.0:5555"'), "publish_tcp", "loopback"),
+        (
+            ("sensor2 = [0.0, 0.0, -0.1]", "sensor3 = [0.0, 0.0, -0.1]"),
+            "tool.offsets_m.sensor3",
+            "one of the sensors",
+        ),
+        (("rate_hz = 100", "rate_hz = 100\nratehz = 5"), "ratehz", "one of"),
+        (('bus = "sim:scene.toml"', ""), "bus", "missing"),
+        (('calibration = "builtin:sim-sensor2.json"', ""), "sensor[1].calibration", "missing"),
+        (("rate_hz = 100", "rate_hz = nan"), "rate_hz", "finite number"),
+        (("rate_hz = 100", "rate_hz = inf"), "rate_hz", "finite number"),
+        (("version = 1", "version = 2"), "version", "expected 1"),
+        # RES is a 2-bit field: 2.5 was read as RES 2 (int() of the float), 1e-300 as RES 0
+        (("[chip]\n", "[chip]\nres = [2.5, 3, 3]\n"), "chip.res", "3 integers"),
+        (("[chip]\n", "[chip]\nres = [3, 3, 1e-300]\n"), "chip.res", "3 integers"),
+        # a sensor 1e12 m from the tip (a unit mistake, or worse) was taken: moments of 1e12 N m
+        (
+            ("sensor2 = [0.0, 0.0, -0.1]", "sensor2 = [0.0, 0.0, -1e12]"),
+            "tool.offsets_m.sensor2",
+            "within 2 m",
+        ),
+    ],
+)
 def test_a_bad_configuration_names_the_file_the_key_and_what_was_expected(tmp_path, edit, key, expected):
     path = write_config(tmp_path)
     path.write_text(path.read_text().replace(*edit, 1))
@@ -431,6 +488,7 @@ def test_the_commented_example_configuration_loads(tmp_path):
     import shutil
 
     from ftsensord.config.file import builtin_path
+
     root = Path(__file__).resolve().parent.parent
     shutil.copy(root / "config" / "ftsensord.toml", tmp_path / "ftsensord.toml")
     shutil.copy(builtin_path("sim-sensor1.json"), tmp_path / "sensor1.json")
@@ -441,15 +499,22 @@ def test_the_commented_example_configuration_loads(tmp_path):
     # Its commented [gravity] block, switched on as written (the mount is for "mount" only).
     text = (tmp_path / "ftsensord.toml").read_text()
     start, end = text.index("# [gravity]"), text.index("# Who may connect")
-    block = "\n".join(line[2:] if line.startswith("# ") and not line.startswith("#  ") and "mount_rotvec" not in line
-                      else line for line in text[start:end].splitlines())
+    block = "\n".join(
+        line[2:]
+        if line.startswith("# ") and not line.startswith("#  ") and "mount_rotvec" not in line
+        else line
+        for line in text[start:end].splitlines()
+    )
     (tmp_path / "ftsensord.toml").write_text(text[:start] + block + "\n" + text[end:])
     gravity = load_config(tmp_path / "ftsensord.toml").gravity
-    assert gravity is not None and gravity.source == "stream" and sorted(gravity.payloads) == ["sensor1", "tip"]
+    assert (
+        gravity is not None and gravity.source == "stream" and sorted(gravity.payloads) == ["sensor1", "tip"]
+    )
 
 
 def test_shutdown_puts_every_chip_back_to_idle(tmp_path):
     from ftsensord.sim.chip import Mode
+
     rig = Rig(tmp_path, 'scheduler = "burst"')
     rig.cycles(2)
     assert all(chip.mode is Mode.BURST for chip in rig.bus.chips.values())
@@ -462,8 +527,12 @@ def test_shutdown_puts_every_chip_back_to_idle(tmp_path):
 def test_sensor_frame_defaults_to_the_calibrations_and_can_be_named(tmp_path):
     path = write_config(tmp_path)
     assert [s.frame for s in load_config(path).sensors] == ["sensor1", "sensor2"]
-    path.write_text(path.read_text().replace('calibration = "builtin:sim-sensor2.json"',
-                                             'calibration = "builtin:sim-sensor2.json"\nframe = "lower"'))
+    path.write_text(
+        path.read_text().replace(
+            'calibration = "builtin:sim-sensor2.json"',
+            'calibration = "builtin:sim-sensor2.json"\nframe = "lower"',
+        )
+    )
     rig_config = load_config(path)
     assert rig_config.sensors[1].frame == "lower"
 
@@ -473,9 +542,14 @@ def test_endpoints_stay_on_loopback_unless_secured_or_made_public_on_purpose(tmp
         load_config(write_config(tmp_path, extra='control = "tcp://0.0.0.0:5556"'))
     with pytest.raises(ConfigError, match="publish_tcp: expected a loopback.*public_stream"):
         load_config(write_config(tmp_path, extra='publish_tcp = "tcp://0.0.0.0:5555"'))
-    ok = load_config(write_config(tmp_path, extra='publish_tcp = "tcp://0.0.0.0:5555"\n'
-                                                  'control = "tcp://0.0.0.0:5556"\n[security]\n'
-                                                  'public_stream = true\nallow_insecure_control = true'))
+    ok = load_config(
+        write_config(
+            tmp_path,
+            extra='publish_tcp = "tcp://0.0.0.0:5555"\n'
+            'control = "tcp://0.0.0.0:5556"\n[security]\n'
+            "public_stream = true\nallow_insecure_control = true",
+        )
+    )
     assert ok.security.public_stream and ok.security.allow_insecure_control and not ok.security.curve
     with pytest.raises(ConfigError, match="both curve_server_cert and curve_clients_dir"):
         (tmp_path / "server.key_secret").write_text("x")
@@ -491,8 +565,12 @@ def test_an_abstract_socket_endpoint_is_refused_naming_the_file_and_key(tmp_path
 
 
 def test_no_control_command_takes_a_path(rig):
-    for request in ({"cmd": "reload", "path": "/etc/shadow"}, {"cmd": "tare", "file": "/tmp/x"},
-                    {"cmd": "status", "config": "/root/x.toml"}, {"cmd": "set", "calibration": "../x.json"}):
+    for request in (
+        {"cmd": "reload", "path": "/etc/shadow"},
+        {"cmd": "tare", "file": "/tmp/x"},
+        {"cmd": "status", "config": "/root/x.toml"},
+        {"cmd": "set", "calibration": "../x.json"},
+    ):
         reply = rig.request(**request)
         assert not reply["ok"] and "unknown argument" in reply["error"]
 
@@ -526,12 +604,17 @@ def test_configuring_the_nonlinear_estimator_needs_its_calibration(tmp_path):
 
     from ftsensord.calibration.calfile import Calibration
     from ftsensord.config.file import builtin_path
+
     cal = Calibration.load(builtin_path("sim-sensor1.json"))
     cal.nonlinear = None
     cal.save(tmp_path / "linear-only.json")
     path = write_config(tmp_path, sensor1_cal=str(tmp_path / "linear-only.json"))
-    path.write_text(path.read_text().replace(f'calibration = "{tmp_path / "linear-only.json"}"',
-                                             f'calibration = "{tmp_path / "linear-only.json"}"\nestimator = "nonlinear"'))
+    path.write_text(
+        path.read_text().replace(
+            f'calibration = "{tmp_path / "linear-only.json"}"',
+            f'calibration = "{tmp_path / "linear-only.json"}"\nestimator = "nonlinear"',
+        )
+    )
     with pytest.raises(ConfigError, match="sensor\\[0\\].estimator.*no nonlinear calibration"):
         load_config(path)
     assert json_.loads((tmp_path / "linear-only.json").read_text()).get("nonlinear") is None
@@ -598,37 +681,60 @@ print(sorted(set(sys.modules) - before))
     assert out.stdout.strip() == "[]", out.stdout
 
 
-@pytest.mark.parametrize("value,expected", [
-    # libzmq binds these without a word, elsewhere than written: 99999 -> 34463, -1 -> 65535,
-    # 5e3 -> 5, * and 0 -> a port of the kernel's choosing, 5555/x -> 5555
-    ("tcp://127.0.0.1:99999", "a port from 1 to 65535"), ("tcp://127.0.0.1:-1", "a port from 1 to 65535"),
-    ("tcp://127.0.0.1:5e3", "a port from 1 to 65535"), ("tcp://127.0.0.1:*", "a port from 1 to 65535"),
-    ("tcp://127.0.0.1:0", "a port from 1 to 65535"), ("tcp://127.0.0.1:5555/x", "a port from 1 to 65535"),
-    ("tcp://127.0.0.1:5555 ", "a port from 1 to 65535"), ("tcp://localhost", "a port from 1 to 65535"),
-    # loaded, then refused at bind ("No such device"): a host libzmq cannot parse
-    ("tcp://127.0.0.1:5555:1", "a port from 1 to 65535"), ("tcp://[::1:5558", "a port from 1 to 65535"),
-    # these ended `ftsensord run` with a ZMQError traceback at bind
-    ("tcp://127.0.0.1:", "a port from 1 to 65535"), ("ipc://", "an absolute path"),
-    ("ipc://" + "/tmp/" + "x" * 110, "at most 107 bytes"),
-    ("ipc://run/ftsensord/wrench", "an absolute path"),  # relative: to whatever folder the daemon starts in
-])
+@pytest.mark.parametrize(
+    "value,expected",
+    [
+        # libzmq binds these without a word, elsewhere than written: 99999 -> 34463, -1 -> 65535,
+        # 5e3 -> 5, * and 0 -> a port of the kernel's choosing, 5555/x -> 5555
+        ("tcp://127.0.0.1:99999", "a port from 1 to 65535"),
+        ("tcp://127.0.0.1:-1", "a port from 1 to 65535"),
+        ("tcp://127.0.0.1:5e3", "a port from 1 to 65535"),
+        ("tcp://127.0.0.1:*", "a port from 1 to 65535"),
+        ("tcp://127.0.0.1:0", "a port from 1 to 65535"),
+        ("tcp://127.0.0.1:5555/x", "a port from 1 to 65535"),
+        ("tcp://127.0.0.1:5555 ", "a port from 1 to 65535"),
+        ("tcp://localhost", "a port from 1 to 65535"),
+        # loaded, then refused at bind ("No such device"): a host libzmq cannot parse
+        ("tcp://127.0.0.1:5555:1", "a port from 1 to 65535"),
+        ("tcp://[::1:5558", "a port from 1 to 65535"),
+        # these ended `ftsensord run` with a ZMQError traceback at bind
+        ("tcp://127.0.0.1:", "a port from 1 to 65535"),
+        ("ipc://", "an absolute path"),
+        ("ipc://" + "/tmp/" + "x" * 110, "at most 107 bytes"),
+        (
+            "ipc://run/ftsensord/wrench",
+            "an absolute path",
+        ),  # relative: to whatever folder the daemon starts in
+    ],
+)
 @pytest.mark.parametrize("key", ["control", "publish_tcp"])
-def test_an_endpoint_zeromq_would_bind_elsewhere_or_refuse_is_refused_naming_file_and_key(tmp_path, key, value, expected):
+def test_an_endpoint_zeromq_would_bind_elsewhere_or_refuse_is_refused_naming_file_and_key(
+    tmp_path, key, value, expected
+):
     if key == "publish_tcp" and value.startswith("ipc://"):
         key = "publish"
     path = write_config(tmp_path, extra=f'{key} = "{value}"')
     assert_names_file_and_key(load_config, path, key, expected)
 
 
-@pytest.mark.parametrize("name,expected", [
-    # loaded, then the first cycle died: UnicodeEncodeError publishing wrench/s\u00e9nsor1
-    ("s\\u00e9nsor1", "letters, digits and underscores"),
-    # loaded, and wrench/tip carried two wrenches in turn, the sensor's and the tool tip's
-    ("tip", "not tip"),
-    ("sensor1\\u0000", "letters, digits and underscores"),  # a NUL in the topic: frames that do not decode
-    ("sensor 1", "letters, digits and underscores"), ("a/b", "letters, digits and underscores"),
-    ("", "letters, digits and underscores"), ("x" * 40, "at most 31"), ("1st", "letters, digits and underscores"),
-])
+@pytest.mark.parametrize(
+    "name,expected",
+    [
+        # loaded, then the first cycle died: UnicodeEncodeError publishing wrench/s\u00e9nsor1
+        ("s\\u00e9nsor1", "letters, digits and underscores"),
+        # loaded, and wrench/tip carried two wrenches in turn, the sensor's and the tool tip's
+        ("tip", "not tip"),
+        (
+            "sensor1\\u0000",
+            "letters, digits and underscores",
+        ),  # a NUL in the topic: frames that do not decode
+        ("sensor 1", "letters, digits and underscores"),
+        ("a/b", "letters, digits and underscores"),
+        ("", "letters, digits and underscores"),
+        ("x" * 40, "at most 31"),
+        ("1st", "letters, digits and underscores"),
+    ],
+)
 def test_a_sensor_name_that_cannot_be_a_stream_is_refused_naming_file_and_key(tmp_path, name, expected):
     path = write_config(tmp_path)
     path.write_text(path.read_text().replace('name = "sensor1"', f'name = "{name}"', 1))

@@ -97,16 +97,20 @@ def test_the_checks_can_fail(tmp_path):
     """A broken link, a missing heading and an orphan page are each found."""
     docs = tmp_path / "docs"
     (docs / "guide").mkdir(parents=True)
-    (docs / "index.md").write_text("# Index\n\n[guide](guide/a.md) [gone](guide/gone.md)\n"
-                                   "[bad anchor](guide/a.md#nowhere) [good](guide/a.md#a-page)\n")
+    (docs / "index.md").write_text(
+        "# Index\n\n[guide](guide/a.md) [gone](guide/gone.md)\n"
+        "[bad anchor](guide/a.md#nowhere) [good](guide/a.md#a-page)\n"
+    )
     (docs / "guide" / "a.md").write_text("# A page\n\n```\n[not a link](x.md)\n```\n")
     (docs / "guide" / "orphan.md").write_text("# Nobody links here\n")
     global DOCS, ROOT
     saved = DOCS, ROOT
     DOCS, ROOT = docs, tmp_path
     try:
-        assert broken(docs / "index.md") == ["guide/gone.md (no docs/guide/gone.md)",
-                                             "guide/a.md#nowhere (no heading #nowhere in docs/guide/a.md)"]
+        assert broken(docs / "index.md") == [
+            "guide/gone.md (no docs/guide/gone.md)",
+            "guide/a.md#nowhere (no heading #nowhere in docs/guide/a.md)",
+        ]
         assert broken(docs / "guide" / "a.md") == []
         assert docs / "guide" / "orphan.md" not in reachable(docs / "index.md")
         assert docs / "guide" / "a.md" in reachable(docs / "index.md")

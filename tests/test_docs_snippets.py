@@ -35,7 +35,7 @@ def blocks() -> list[tuple[str, int, str]]:
     for page in PAGES:
         text = page.read_text()
         for m in re.finditer(r"^```python\n(.*?)^```", text, re.DOTALL | re.MULTILINE):
-            out.append((page.name, text[:m.start()].count("\n") + 1, m.group(1)))
+            out.append((page.name, text[: m.start()].count("\n") + 1, m.group(1)))
     return out
 
 
@@ -63,6 +63,12 @@ def daemon(tmp_path_factory):
 def test_a_python_block_runs_as_written(daemon, page, line, code):
     env = {**os.environ, "XDG_RUNTIME_DIR": str(daemon)}
     env.pop("RUNTIME_DIRECTORY", None)
-    out = subprocess.run([sys.executable, "-c", USERS_OWN + "\n" + code], capture_output=True, text=True,
-                         env=env, timeout=60, cwd=ROOT)  # this checkout's package, as the other tests
+    out = subprocess.run(
+        [sys.executable, "-c", USERS_OWN + "\n" + code],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=60,
+        cwd=ROOT,
+    )  # this checkout's package, as the other tests
     assert out.returncode == 0 and "Traceback" not in out.stderr, f"{page}:{line}\n{out.stderr[-2000:]}"

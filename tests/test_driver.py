@@ -106,8 +106,13 @@ def test_decode_uses_each_axis_resolution_and_the_chips_tref():
     drv = configured(ScriptedBus({}))
     drv.settings = mlx.Settings(gain_sel=7, res_x=0, res_y=2, res_z=3)
     drv.tref = 46000
-    reply = bytes([0x03]) + (46000 + 452).to_bytes(2, "big") + (0xFFFF).to_bytes(2, "big") \
-        + (32768 + 100).to_bytes(2, "big") + (16384 - 11000).to_bytes(2, "big")
+    reply = (
+        bytes([0x03])
+        + (46000 + 452).to_bytes(2, "big")
+        + (0xFFFF).to_bytes(2, "big")
+        + (32768 + 100).to_bytes(2, "big")
+        + (16384 - 11000).to_bytes(2, "big")
+    )
     m = drv.decode_measurement(reply, mlx.ZYXT_XYZT)
     assert m.temperature_c == pytest.approx(45.0)
     assert m.field_t[0] == pytest.approx(-1 * mlx.sensitivity_ut(7, 0, "x") * 1e-6)

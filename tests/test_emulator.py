@@ -11,10 +11,7 @@ from smbus2 import i2c_msg
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.chip.driver import MLX90393
 from ftsensord.errors import ChipNotRespondingError, ChipRefusedError
-from ftsensord.sim import NoiseModel
-from ftsensord.sim import StaticScene
-from ftsensord.sim import VirtualClock
-from ftsensord.sim import simulated_bus
+from ftsensord.sim import NoiseModel, StaticScene, VirtualClock, simulated_bus
 
 from .conftest import ADDR
 
@@ -54,13 +51,16 @@ def test_write_then_read_register(bus):
     assert xfer(bus, bytes([mlx.CMD_RR, 0x04 << 2]), 3)[1:] == b"\x12\x34"
 
 
-@pytest.mark.parametrize("command", [
-    bytes([mlx.CMD_WR, 0, 1, mlx.REG_TREF << 2]),  # Melexis area is read only
-    bytes([mlx.CMD_WR, 0, 1, (0x02 << 2) | 1]),  # malformed address byte
-    bytes([mlx.CMD_RR, (0x02 << 2) | 2]),
-    bytes([mlx.CMD_RR]),  # missing address byte
-    bytes([mlx.CMD_WR, 0, 1]),
-])
+@pytest.mark.parametrize(
+    "command",
+    [
+        bytes([mlx.CMD_WR, 0, 1, mlx.REG_TREF << 2]),  # Melexis area is read only
+        bytes([mlx.CMD_WR, 0, 1, (0x02 << 2) | 1]),  # malformed address byte
+        bytes([mlx.CMD_RR, (0x02 << 2) | 2]),
+        bytes([mlx.CMD_RR]),  # missing address byte
+        bytes([mlx.CMD_WR, 0, 1]),
+    ],
+)
 def test_register_address_out_of_range_or_malformed_is_refused(bus, command):
     assert status(bus, command).error
 
@@ -222,14 +222,20 @@ def test_measurement_refused_with_nothing_selected_or_forbidden_settings(bus):
     assert s.error and not s.sm_mode
 
 
-@pytest.mark.parametrize(("first", "second"), [
-    (mlx.CMD_SM, mlx.CMD_SM), (mlx.CMD_SM, mlx.CMD_SB), (mlx.CMD_SB, mlx.CMD_SM),
-    (mlx.CMD_SB, mlx.CMD_SB), (mlx.CMD_SB, mlx.CMD_SW), (mlx.CMD_SW, mlx.CMD_SB),
-])
+@pytest.mark.parametrize(
+    ("first", "second"),
+    [
+        (mlx.CMD_SM, mlx.CMD_SM),
+        (mlx.CMD_SM, mlx.CMD_SB),
+        (mlx.CMD_SB, mlx.CMD_SM),
+        (mlx.CMD_SB, mlx.CMD_SB),
+        (mlx.CMD_SB, mlx.CMD_SW),
+        (mlx.CMD_SW, mlx.CMD_SB),
+    ],
+)
 def test_a_mode_command_while_another_mode_is_active_is_refused(bus, first, second):
     configure_raw(bus)
-    bit = {mlx.CMD_SM: mlx.STATUS_SM_MODE, mlx.CMD_SB: mlx.STATUS_BURST_MODE,
-           mlx.CMD_SW: mlx.STATUS_WOC_MODE}
+    bit = {mlx.CMD_SM: mlx.STATUS_SM_MODE, mlx.CMD_SB: mlx.STATUS_BURST_MODE, mlx.CMD_SW: mlx.STATUS_WOC_MODE}
     assert status(bus, bytes([first | mlx.ZYXT_XYZ])).byte & bit[first]
     s = status(bus, bytes([second | mlx.ZYXT_XYZ]))
     assert s.error
@@ -269,8 +275,14 @@ def test_burst_results_follow_a_changing_field(bus, scene):
 
 
 # --- what the conversion produces --------------------------------------------------------
-@pytest.mark.parametrize("settings", [mlx.Settings(), mlx.Settings(gain_sel=7, res_x=0, res_y=1, res_z=2),
-                                      mlx.Settings(gain_sel=4, res_x=1, res_y=1, res_z=1, tcmp_en=True)])
+@pytest.mark.parametrize(
+    "settings",
+    [
+        mlx.Settings(),
+        mlx.Settings(gain_sel=7, res_x=0, res_y=1, res_z=2),
+        mlx.Settings(gain_sel=4, res_x=1, res_y=1, res_z=1, tcmp_en=True),
+    ],
+)
 def test_noiseless_readings_are_the_field_quantised_to_the_lsb(bus, scene, settings):
     drv = MLX90393(bus, ADDR, sleep=bus.sleep)
     drv.reset()
@@ -289,7 +301,10 @@ def test_a_conversion_keeps_the_settings_it_started_with(bus, scene, when_s):
     does not rescale them (until 2026-11-27 the emulator coded them at RM time with the
     registers then, so a driver that changed the gain and decoded with the new one read
     the right field here and a wrong one, 5x off, on a chip)."""
-    started, changed = mlx.Settings(gain_sel=7, res_x=0, res_y=0, res_z=0), mlx.Settings(gain_sel=0, res_x=0, res_y=0, res_z=0)
+    started, changed = (
+        mlx.Settings(gain_sel=7, res_x=0, res_y=0, res_z=0),
+        mlx.Settings(gain_sel=0, res_x=0, res_y=0, res_z=0),
+    )
     configure_raw(bus, started)
     assert not status(bus, bytes([mlx.CMD_SM | mlx.ZYXT_XYZ])).error
     bus.sleep(when_s)
@@ -300,7 +315,9 @@ def test_a_conversion_keeps_the_settings_it_started_with(bus, scene, when_s):
     reply = xfer(bus, bytes([mlx.CMD_RM | mlx.ZYXT_XYZ]), 7)
     assert not mlx.Status(reply[0]).error
     x = mlx.raw_to_counts((reply[1] << 8) | reply[2], started.raw_format("x"))
-    assert x == round(scene.fields_t[ADDR][0] * 1e6 / started.sensitivity_ut("x"))  # 667 counts at GAIN_SEL 7, not 133
+    assert x == round(
+        scene.fields_t[ADDR][0] * 1e6 / started.sensitivity_ut("x")
+    )  # 667 counts at GAIN_SEL 7, not 133
     # the next conversion takes the new gain (written again once idle, where it was refused)
     assert not status(bus, bytes([mlx.CMD_WR, conf1 >> 8, conf1 & 0xFF, mlx.REG_CONF1 << 2])).error
     assert rm_counts(bus, changed)[0] == round(scene.fields_t[ADDR][0] * 1e6 / changed.sensitivity_ut("x"))
@@ -315,8 +332,10 @@ def rm_counts(bus, settings: mlx.Settings) -> list[int]:
     bus.sleep(settings.single_measurement_us() * 1.2e-6)
     reply = xfer(bus, bytes([mlx.CMD_RM | mlx.ZYXT_XYZ]), 7)
     assert not mlx.Status(reply[0]).error
-    return [mlx.raw_to_counts((reply[1 + 2 * i] << 8) | reply[2 + 2 * i], settings.raw_format(a))
-            for i, a in enumerate("xyz")]
+    return [
+        mlx.raw_to_counts((reply[1 + 2 * i] << 8) | reply[2 + 2 * i], settings.raw_format(a))
+        for i, a in enumerate("xyz")
+    ]
 
 
 def test_with_tcmp_the_output_is_referenced_to_the_offset_registers(bus, scene):

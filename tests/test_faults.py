@@ -10,8 +10,7 @@ import pytest
 
 from ftsensord.acquire.bound import cycle_bound
 from ftsensord.protocol import wire
-from ftsensord.sim import Fault
-from ftsensord.sim import load_scene
+from ftsensord.sim import Fault, load_scene
 from ftsensord.sim.faults import random_faults
 
 from .conftest import assert_names_file_and_key
@@ -19,7 +18,7 @@ from .test_daemon import LOAD, Rig
 
 
 def fault(kind: str, at: float, until: float | None = None, **extra) -> str:
-    lines = ['[[fault]]', f'kind = "{kind}"', f"at_s = {at}"]
+    lines = ["[[fault]]", f'kind = "{kind}"', f"at_s = {at}"]
     if until is not None:
         lines.append(f"until_s = {until}")
     lines += [f"{k} = {v}" for k, v in extra.items()]
@@ -86,8 +85,12 @@ def test_a_stuck_chip_is_detected_flagged_and_reinitialised(tmp_path):
 @pytest.mark.parametrize("scheduler", ["overlapped", "burst"])
 def test_a_register_the_chip_accepts_silently_is_found_by_read_back(tmp_path, scheduler):
     # CONF1 to GAIN_SEL 7: the chip converts happily, at a fifth of the expected LSB.
-    rig, out = run(tmp_path, fault("drift_register", 0.3, address=0x10, register=0, value=0x007C), 1.0,
-                   extra=f'scheduler = "{scheduler}"')
+    rig, out = run(
+        tmp_path,
+        fault("drift_register", 0.3, address=0x10, register=0, value=0x007C),
+        1.0,
+        extra=f'scheduler = "{scheduler}"',
+    )
     assert rig.config.readback_every == 1  # burst at 100 Hz has the time (test_config_...burst...)
     assert not any(s.flags & wire.FLAG_STALE for s in out["wrench/sensor1"])
     h = rig.daemon.reader.health[0x10]
@@ -95,7 +98,9 @@ def test_a_register_the_chip_accepts_silently_is_found_by_read_back(tmp_path, sc
     w = out["wrench/sensor1"]
     found = next(s for s in w if s.t_mono > 0.3 and s.flags & wire.FLAG_CHIP_MISSING)
     assert found.t_mono - 0.3 <= 0.17  # one chip read back a cycle: each within 16 cycles
-    assert w[-1].flags == 0 and np.allclose(np.mean([s.values for s in w[-30:]], axis=0)[:3], LOAD[:3], atol=0.3)
+    assert w[-1].flags == 0 and np.allclose(
+        np.mean([s.values for s in w[-30:]], axis=0)[:3], LOAD[:3], atol=0.3
+    )
     rig.close()
 
 
@@ -124,8 +129,15 @@ def test_a_slow_bus_lengthens_cycles_but_loses_nothing(tmp_path):
     t0 = rig.clock.now()
     rig.daemon.cycle()  # the first cycle reads the temperature too
     # The wire takes 1.5 times as long; the chips' conversions do not.
-    slow = cycle_bound("overlapped", 16, rig.config.settings, 400e3 / 1.5, rig.bus.ioctl_s, temperature=True,
-                       adapter=rig.bus.adapter)
+    slow = cycle_bound(
+        "overlapped",
+        16,
+        rig.config.settings,
+        400e3 / 1.5,
+        rig.bus.ioctl_s,
+        temperature=True,
+        adapter=rig.bus.adapter,
+    )
     # Within 1 %: the reader times its wait by the configured bus, so a slower wire
     # shortens it by a fraction of a byte (still safe: the RM's own bits come first).
     assert rig.clock.now() - t0 == pytest.approx(slow.cycle_s, rel=0.01)
@@ -135,11 +147,14 @@ def test_a_slow_bus_lengthens_cycles_but_loses_nothing(tmp_path):
 
 def test_fault_files_name_the_key_at_fault(tmp_path):
     from .test_daemon import SCENE
+
     path = tmp_path / "s.toml"
-    for extra, key, expected in ((fault("nack", 0.1, 0.2), "fault[0].address", "missing"),
-                                 (fault("melt", 0.1), "fault[0].kind", "one of"),
-                                 (fault("nack", 0.3, 0.2, address=0x0C), "fault[0].until_s", "after at_s"),
-                                 (fault("nack", 0.1, 0.2, address=0x1B, colour=1), "fault[0].colour", "one of")):
+    for extra, key, expected in (
+        (fault("nack", 0.1, 0.2), "fault[0].address", "missing"),
+        (fault("melt", 0.1), "fault[0].kind", "one of"),
+        (fault("nack", 0.3, 0.2, address=0x0C), "fault[0].until_s", "after at_s"),
+        (fault("nack", 0.1, 0.2, address=0x1B, colour=1), "fault[0].colour", "one of"),
+    ):
         path.write_text(SCENE + extra)
         assert_names_file_and_key(load_scene, path, key, expected)
 

@@ -10,12 +10,12 @@ import pytest
 
 from ftsensord.acquire.readings import Readings
 from ftsensord.chip import mlx90393 as mlx
+from ftsensord.config.file import builtin_path, load_config
 from ftsensord.model.consistency import FoldedCheck
 from ftsensord.model.linear import EXTRAPOLATION_MARGIN, SENSOR_RANGE, LinearModel
-from ftsensord.protocol import wire
-from ftsensord.config.file import builtin_path, load_config
 from ftsensord.processing.filters import WrenchFilter
 from ftsensord.processing.pipeline import SensorPipeline, channel_sigma_t
+from ftsensord.protocol import wire
 from ftsensord.sim.loads import StaticLoad
 from ftsensord.sim.scene import default_scene
 
@@ -52,8 +52,9 @@ def test_the_folded_sums_are_the_checks(room):
         w = model.wrench(reference)
         np.testing.assert_allclose(y[f.wrench], w, rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(sums[10:16], ((c.wrench + tare) / fitted) ** 2, rtol=1e-9, atol=1e-15)
-        np.testing.assert_allclose(sums[16:22], ((w + tare) / (EXTRAPOLATION_MARGIN * fitted)) ** 2,
-                                   rtol=1e-9, atol=1e-15)
+        np.testing.assert_allclose(
+            sums[16:22], ((w + tare) / (EXTRAPOLATION_MARGIN * fitted)) ** 2, rtol=1e-9, atol=1e-15
+        )
 
 
 def test_chips_that_cannot_leave_drop_nothing():
@@ -89,8 +90,9 @@ def _pair():
     """Two pipelines of the packaged sensor 1, the second never taking the one product."""
     config = load_config(builtin_path("sim.toml"))
     s = config.sensors[0]
-    usual, separate = (SensorPipeline.build(s, WrenchFilter(), config.max_missing_chips, config.settings)
-                       for _ in range(2))
+    usual, separate = (
+        SensorPipeline.build(s, WrenchFilter(), config.max_missing_chips, config.settings) for _ in range(2)
+    )
     separate.check.usual = lambda *args: None  # type: ignore[method-assign]
     return s, usual, separate
 

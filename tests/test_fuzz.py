@@ -11,14 +11,12 @@ import time
 import numpy as np
 import zmq
 
-from ftsensord.protocol import wire
 from ftsensord.config.file import load_config
 from ftsensord.daemon.control import MAX_REQUEST
 from ftsensord.daemon.daemon import Daemon
 from ftsensord.daemon.run import make_sockets
-from ftsensord.sim import VirtualClock
-from ftsensord.sim import load_scene
-from ftsensord.sim import simulated_bus
+from ftsensord.protocol import wire
+from ftsensord.sim import VirtualClock, load_scene, simulated_bus
 
 from .test_daemon import write_config
 
@@ -39,7 +37,9 @@ def hostile(rng: np.random.Generator) -> bytes:
     if kind == 10:  # a float literal far longer than any double needs
         return ('{"cmd":"tare","samples":1.' + "3" * int(rng.integers(101, 60_000)) + "e3}").encode()
     if kind == 2:
-        return json.dumps(rng.normal(size=int(rng.integers(0, 20))).tolist()).encode()  # valid JSON, not an object
+        return json.dumps(
+            rng.normal(size=int(rng.integers(0, 20))).tolist()
+        ).encode()  # valid JSON, not an object
     junk = [None, True, -1, 1e308, "x", [], {}, [1, [2]], {"a": {"b": 1}}, 10**30, float("nan")]
     request = {"cmd": COMMANDS[rng.integers(len(COMMANDS))]}
     for _ in range(int(rng.integers(0, 4))):
@@ -68,7 +68,9 @@ def ask_status(ctx: zmq.Context, endpoint: str, daemon: Daemon) -> dict:
 
 
 def test_twenty_thousand_hostile_requests_are_all_answered_and_publishing_stays_intact(tmp_path, zmq_context):
-    config_path = write_config(tmp_path, extra=f'publish = "ipc://{tmp_path}/pub"\ncontrol = "ipc://{tmp_path}/ctl"')
+    config_path = write_config(
+        tmp_path, extra=f'publish = "ipc://{tmp_path}/pub"\ncontrol = "ipc://{tmp_path}/ctl"'
+    )
     config = load_config(config_path)
     clock = VirtualClock()
     bus = simulated_bus(load_scene(tmp_path / "scene.toml"), clock=clock, bus_hz=400e3, seed=2)
@@ -132,7 +134,10 @@ def test_twenty_thousand_hostile_requests_are_all_answered_and_publishing_stays_
     # Every request under the size limit answered, none lost: a reply is dropped (and counted)
     # only when ZeroMQ's queue to the client is full, which on a starved host (the io thread
     # behind by 1000 replies) happened to 10-61 of 20,000 here; the loop never blocks on it.
-    assert replies + daemon.control.dropped == sent and daemon.control.dropped <= 0.01 * sent, (replies, daemon.control.dropped)
+    assert replies + daemon.control.dropped == sent and daemon.control.dropped <= 0.01 * sent, (
+        replies,
+        daemon.control.dropped,
+    )
     assert errors >= 0.9 * replies  # nearly all refused (a few valid commands among the junk)
     assert not oversized.poll(100)  # the oversized one: dropped, unanswered
     cycles = daemon.timing.cycles
@@ -147,8 +152,9 @@ def test_clients_flooding_status_do_not_starve_the_loop(tmp_path, zmq_context):
     `serve_until`) with a virtual clock in which building a status costs 1 ms: before, the
     loop answered every waiting request before its next cycle, and the sequence numbers
     jumped by whole periods; now no cycle is skipped, and every client is answered."""
-    config = load_config(write_config(tmp_path, extra=f'publish = "ipc://{tmp_path}/pub"\n'
-                                                      f'control = "ipc://{tmp_path}/ctl"'))
+    config = load_config(
+        write_config(tmp_path, extra=f'publish = "ipc://{tmp_path}/pub"\ncontrol = "ipc://{tmp_path}/ctl"')
+    )
     clock = VirtualClock()
     bus = simulated_bus(load_scene(tmp_path / "scene.toml"), clock=clock, bus_hz=400e3, seed=2)
     ctx = zmq_context  # terminated at teardown, with any socket an assert left open
@@ -212,7 +218,9 @@ def test_an_oversized_request_is_dropped_and_the_next_one_answered(tmp_path, zmq
     config = load_config(write_config(tmp_path, extra=f'control = "ipc://{tmp_path}/ctl"'))
     ctx = zmq_context  # terminated at teardown, with any socket an assert left open
     pub, ctl, _ = make_sockets(ctx, config)
-    daemon = Daemon(config, simulated_bus(load_scene(tmp_path / "scene.toml"), clock=VirtualClock()), pub, ctl)
+    daemon = Daemon(
+        config, simulated_bus(load_scene(tmp_path / "scene.toml"), clock=VirtualClock()), pub, ctl
+    )
     req = ctx.socket(zmq.REQ)
     req.setsockopt(zmq.LINGER, 0)
     req.connect(config.control)

@@ -30,12 +30,12 @@ from ftsensord.calibration.calfile import Calibration
 from ftsensord.calibration.fit import fit
 from ftsensord.calibration.procedure import calibrate, simulate_dataset
 from ftsensord.client import ControlClient, OrientationPublisher, Subscriber
+from ftsensord.config.file import load_config
+from ftsensord.daemon.status import describe
 from ftsensord.model import se3
+from ftsensord.processing.pipeline import SensorSample, tip_moves, tip_wrench
 from ftsensord.protocol import orientation as ori
 from ftsensord.protocol import wire
-from ftsensord.config.file import load_config
-from ftsensord.processing.pipeline import SensorSample, tip_moves, tip_wrench
-from ftsensord.daemon.status import describe
 from ftsensord.sim import load_scene
 from ftsensord.sim.loads import FixedOrientation, fibonacci_directions, gravity_to_down
 
@@ -45,7 +45,10 @@ from .test_room import ADDRS as ROOM_ADDRS
 from .test_room import EARTH_T, calibration_run
 from .test_room import sensor as room_sensor
 
-ADDRESSES = ("[0x0C, 0x0D, 0x0E, 0x0F, 0x10, 0x11, 0x12, 0x13]", "[0x14, 0x15, 0x16, 0x17, 0x18, 0x19, 0x1A, 0x1B]")
+ADDRESSES = (
+    "[0x0C, 0x0D, 0x0E, 0x0F, 0x10, 0x11, 0x12, 0x13]",
+    "[0x14, 0x15, 0x16, 0x17, 0x18, 0x19, 0x1A, 0x1B]",
+)
 M1, C1 = 0.05, np.array([0.005, -0.003, 0.03])  # sensor1's tool part: kg, m in its frame
 M2, C2 = 0.04, np.array([0.0, 0.004, 0.025])
 #: Sensors' poses in the tip frame: turned about z (and x), so the tip sees rotated wrenches.
@@ -70,8 +73,17 @@ def nominal_calibrations() -> tuple[str, str]:
     atexit.register(shutil.rmtree, folder, ignore_errors=True)  # cached for the session, removed after it
     paths = []
     for i, name in enumerate(("sensor1", "sensor2")):
-        dataset = simulate_dataset(NOMINAL_SCENE, name, "six-axis", poses=193, validation_poses=60, samples=20,
-                                   seed=3 + i, sweeps=False, no_load_poses=0)
+        dataset = simulate_dataset(
+            NOMINAL_SCENE,
+            name,
+            "six-axis",
+            poses=193,
+            validation_poses=60,
+            samples=20,
+            seed=3 + i,
+            sweeps=False,
+            no_load_poses=0,
+        )
         calibration, _ = calibrate(dataset, serial=f"nominal-{name}", frame=name, nonlinear=False)
         calibration.save(folder / f"{name}.json")
         paths.append(str(folder / f"{name}.json"))
@@ -122,8 +134,20 @@ class Turning:
     """A daemon whose tool the test turns: the scene's sensors turned with the tip, and
     the tip's orientation sent as the haptic application would, every cycle."""
 
-    def __init__(self, folder, load=None, source="stream", scale=1.0, extra="", *, scene_text: str | None = None,
-                 gravity_text: str | None = None, tool: str = TOOL, frame: str = "tip", **config):
+    def __init__(
+        self,
+        folder,
+        load=None,
+        source="stream",
+        scale=1.0,
+        extra="",
+        *,
+        scene_text: str | None = None,
+        gravity_text: str | None = None,
+        tool: str = TOOL,
+        frame: str = "tip",
+        **config,
+    ):
         ctx = zmq.Context.instance()
         self.sub, self.pub = ctx.socket(zmq.SUB), ctx.socket(zmq.PUB)
         self.sub.setsockopt(zmq.SUBSCRIBE, b"")
@@ -139,8 +163,14 @@ class Turning:
         nominal = nominal_calibrations()
         config.setdefault("sensor1_cal", nominal[0])
         config.setdefault("sensor2_cal", nominal[1])
-        self.rig = Rig(folder, gravity_text or gravity(source, scale, extra), orientation=self.sub,
-                       scene=scene_text or scene(load), tool=tool, **config)
+        self.rig = Rig(
+            folder,
+            gravity_text or gravity(source, scale, extra),
+            orientation=self.sub,
+            scene=scene_text or scene(load),
+            tool=tool,
+            **config,
+        )
         self.R_tip = np.eye(3)
         self.frame = frame
 
@@ -149,7 +179,9 @@ class Turning:
         turns each sensor to R_w,tip R_tip,s in the scene, a sensor's turns both alike."""
         self.R_tip = R
         for name, T in (("sensor1", T1), ("sensor2", T2)):
-            self.rig.scene.set_orientation(name, FixedOrientation(R @ T[:3, :3] if self.frame == "tip" else R))
+            self.rig.scene.set_orientation(
+                name, FixedOrientation(R @ T[:3, :3] if self.frame == "tip" else R)
+            )
 
     def cycles(self, n: int, send: bool = True) -> dict[str, list[wire.Sample]]:
         out: dict[str, list[wire.Sample]] = {}
@@ -178,7 +210,7 @@ def noise_sigma(t: Turning) -> dict[str, np.ndarray]:
     cov = {}
     for p in t.rig.daemon.sensors:
         KA = p.model.KA
-        cov[p.name] = KA @ np.diag(p.sigma_t ** 2) @ KA.T
+        cov[p.name] = KA @ np.diag(p.sigma_t**2) @ KA.T
     X1, X2 = se3.wrench_transform(T1), se3.wrench_transform(T2)
     cov["tip"] = X1 @ cov["sensor1"] @ X1.T + X2 @ cov["sensor2"] @ X2.T
     return {f"wrench/{name}/compensated": np.sqrt(np.diag(c)) for name, c in cov.items()}
@@ -203,8 +235,10 @@ def test_a_rotated_tool_pose_gives_the_rotated_wrench_by_hand_and_by_the_adjoint
 def test_the_daemon_sums_rotated_sensor_wrenches_at_the_tip(tmp_path):
     t = Turning(tmp_path, load=LOAD)
     out = t.cycles(20)
-    w1, w2, tip = (np.mean([s.values for s in out[k]], axis=0) for k in ("wrench/sensor1", "wrench/sensor2",
-                                                                         "wrench/tip"))
+    w1, w2, tip = (
+        np.mean([s.values for s in out[k]], axis=0)
+        for k in ("wrench/sensor1", "wrench/sensor2", "wrench/tip")
+    )
     assert np.allclose(tip, se3.wrench_transform(T1) @ w1 + se3.wrench_transform(T2) @ w2, atol=1e-9)
     # Not the parallel frames' sum: the rotation matters here.
     parallel = se3.wrench_transform(se3.pose(p=P1)) @ w1 + se3.wrench_transform(se3.pose(p=P2)) @ w2
@@ -239,20 +273,30 @@ def test_at_no_load_the_compensated_wrench_stays_within_noise_as_the_tool_turns_
     # calibration's validated error (0.1 N, 2 mNm; tests/test_daemon.py), which it has at the
     # weight's swing (up to 1 N here) whatever the compensation does; the tip: both sensors'
     # errors, the forces' moved 0.2 m.
-    allowed = {"sensor1": np.array([0.1] * 3 + [0.002] * 3), "sensor2": np.array([0.1] * 3 + [0.002] * 3),
-               "tip": np.array([0.2] * 3 + [0.004 + 0.2 * 0.2] * 3)}
+    allowed = {
+        "sensor1": np.array([0.1] * 3 + [0.002] * 3),
+        "sensor2": np.array([0.1] * 3 + [0.002] * 3),
+        "tip": np.array([0.2] * 3 + [0.004 + 0.2 * 0.2] * 3),
+    }
     for name, calibration_error in allowed.items():
         topic = f"wrench/{name}/compensated"
-        assert np.all(worst_mean[topic] < 3 * sigma[topic] / np.sqrt(10) + calibration_error), (name, worst_mean)
+        assert np.all(worst_mean[topic] < 3 * sigma[topic] / np.sqrt(10) + calibration_error), (
+            name,
+            worst_mean,
+        )
     # Without compensation the tared wrench moves by the whole weight as the tool turns.
     raw_swing = np.ptp(raw_means, axis=0)
-    assert np.all(raw_swing[:3] > 0.6) and np.all(raw_swing[:3] / sigma["wrench/sensor1/compensated"][:3] > 20)
+    assert np.all(raw_swing[:3] > 0.6) and np.all(
+        raw_swing[:3] / sigma["wrench/sensor1/compensated"][:3] > 20
+    )
     t.close()
 
 
 #: config/scene-room.toml's part (seed 1) and the Earth's field, for sensor1.
-ROOM_PART = ("[sensor.tolerances]\nmagnet_position_mm = 0.15\nmagnet_remanence_pct = 3\nchip_tilt_deg = 1.5\n"
-             "chip_gain_pct = 2\nring_radius_mm = 0.1\nseed = 1\n")
+ROOM_PART = (
+    "[sensor.tolerances]\nmagnet_position_mm = 0.15\nmagnet_remanence_pct = 3\nchip_tilt_deg = 1.5\n"
+    "chip_gain_pct = 2\nring_radius_mm = 0.1\nseed = 1\n"
+)
 
 
 def test_on_the_realistic_scene_the_compensated_wrench_stays_within_noise_and_calibration_error(tmp_path):
@@ -260,13 +304,20 @@ def test_on_the_realistic_scene_the_compensated_wrench_stays_within_noise_and_ca
     calibrated there by the paper's procedure (its calibration rejects the room's field),
     a 50 g tool part on it; tared at a tilt, turned through 24 orientations, 10 samples each."""
     result = fit(calibration_run(room_sensor(1), EARTH_T, seed=5))
-    Calibration(result.model, ROOM_ADDRS, "room-1", position_map=result.position_map,
-                report=result.report).save(tmp_path / "cal.json")
+    Calibration(
+        result.model, ROOM_ADDRS, "room-1", position_map=result.position_map, report=result.report
+    ).save(tmp_path / "cal.json")
     validation = np.array(list(result.report["validation_rmse"].values()))  # N x3, Nm x3
     text = scene().replace('kind = "sensors"\n', 'kind = "sensors"\nexternal_field_ut = [22.3, 1.4, -42.6]\n')
-    t = Turning(tmp_path, scene_text=text.replace("[sensor.tool]", ROOM_PART + "[sensor.tool]", 1),
-                gravity_text=f"[gravity]\norientation = \"stream\"\n[gravity.sensor1]\nmass_kg = {M1}\n"
-                             f"com_m = {C1.tolist()}\n", tool="", frame="sensor1", sensor1_cal=str(tmp_path / "cal.json"))
+    t = Turning(
+        tmp_path,
+        scene_text=text.replace("[sensor.tool]", ROOM_PART + "[sensor.tool]", 1),
+        gravity_text=f'[gravity]\norientation = "stream"\n[gravity.sensor1]\nmass_kg = {M1}\n'
+        f"com_m = {C1.tolist()}\n",
+        tool="",
+        frame="sensor1",
+        sensor1_cal=str(tmp_path / "cal.json"),
+    )
     sigma = noise_sigma(t)["wrench/sensor1/compensated"]
     t.turn(orientations(7)[3])
     t.cycles(3)
@@ -302,7 +353,9 @@ def test_with_a_load_the_compensated_wrench_is_the_load_at_every_orientation(tmp
         # its untared zero: 0.3 N as tests/test_daemon.py allows, 12 mNm (10.6 mNm measured on
         # My where the weight adds 1.2 N to Fz and Fx); the tip's moments, 0.2 m further.
         assert np.allclose(comp[:3], LOAD[:3], atol=0.3) and np.allclose(comp[3:], LOAD[3:], atol=0.012), comp
-        assert np.allclose(tip[:3], load_at_tip[:3], atol=0.3) and np.allclose(tip[3:], load_at_tip[3:], atol=0.072)
+        assert np.allclose(tip[:3], load_at_tip[:3], atol=0.3) and np.allclose(
+            tip[3:], load_at_tip[3:], atol=0.072
+        )
         worst_raw = max(worst_raw, float(np.max(np.abs(raw[:3] - LOAD[:3]))))
     assert worst_raw > 0.4  # the weight (0.49 N) is what the compensation took off
     t.close()
@@ -311,7 +364,9 @@ def test_with_a_load_the_compensated_wrench_is_the_load_at_every_orientation(tmp
 def test_mount_orientation_compensates_without_a_stream(tmp_path):
     R = orientations(5)[2]
     mount = np.degrees(se3.log_so3(R @ T1[:3, :3])).tolist()  # sensor1's mount; the rest through the tool
-    extra = gravity("mount").replace(f"com_m = {C1.tolist()}\n", f"com_m = {C1.tolist()}\nmount_rotvec_deg = {mount}\n", 1)
+    extra = gravity("mount").replace(
+        f"com_m = {C1.tolist()}\n", f"com_m = {C1.tolist()}\nmount_rotvec_deg = {mount}\n", 1
+    )
     nominal = nominal_calibrations()
     rig = Rig(tmp_path, extra, scene=scene(), tool=TOOL, sensor1_cal=nominal[0], sensor2_cal=nominal[1])
     assert rig.config.gravity is not None and rig.config.gravity.endpoint is None
@@ -328,11 +383,15 @@ def test_mount_orientation_compensates_without_a_stream(tmp_path):
     rig.close()
 
 
-def test_before_any_orientation_the_compensated_wrench_is_nan_and_flagged_then_stale_after_the_timeout(tmp_path):
+def test_before_any_orientation_the_compensated_wrench_is_nan_and_flagged_then_stale_after_the_timeout(
+    tmp_path,
+):
     t = Turning(tmp_path)
     first = t.cycles(2, send=False)["wrench/sensor1/compensated"]
-    assert all(np.all(np.isnan(s.values)) and s.flags == wire.FLAG_ORIENTATION_STALE | wire.FLAG_INVALID
-               for s in first)
+    assert all(
+        np.all(np.isnan(s.values)) and s.flags == wire.FLAG_ORIENTATION_STALE | wire.FLAG_INVALID
+        for s in first
+    )
     t.turn(orientations(5)[1])
     fresh = t.cycles(5)["wrench/sensor1/compensated"]
     assert [s.flags for s in fresh] == [0] * 5
@@ -341,7 +400,9 @@ def test_before_any_orientation_the_compensated_wrench_is_nan_and_flagged_then_s
     quiet = t.cycles(9, send=False)
     flags = [s.flags for s in quiet["wrench/sensor1/compensated"]]
     assert flags[:4] == [0] * 4 and all(f == wire.FLAG_ORIENTATION_STALE for f in flags[5:]), flags
-    assert all(np.all(np.isfinite(s.values)) for s in quiet["wrench/sensor1/compensated"])  # the last orientation
+    assert all(
+        np.all(np.isfinite(s.values)) for s in quiet["wrench/sensor1/compensated"]
+    )  # the last orientation
     assert all(s.flags == 0 for s in quiet["wrench/sensor1"])  # the raw stream does not depend on it
     assert [s.flags for s in t.cycles(2)["wrench/tip/compensated"]] == [0, 0]  # a message: fresh again
     t.close()
@@ -368,7 +429,9 @@ def test_tares_at_different_orientations_leave_the_tips_weight_at_tare_unknown(t
         t.cycles(7)
         assert json.loads(t.rig.req.recv())["ok"]
     out = t.cycles(3)
-    assert all(np.all(np.isnan(s.values)) and s.flags & wire.FLAG_INVALID for s in out["wrench/tip/compensated"])
+    assert all(
+        np.all(np.isnan(s.values)) and s.flags & wire.FLAG_INVALID for s in out["wrench/tip/compensated"]
+    )
     assert all(s.flags == 0 for s in out["wrench/sensor2/compensated"])  # each sensor knows its own
     assert t.rig.daemon.status()["gravity"]["frames"]["tip"]["tare_gravity_mps2"] is None
     t.rig.request(cmd="untare")
@@ -379,9 +442,13 @@ def test_tares_at_different_orientations_leave_the_tips_weight_at_tare_unknown(t
 
 #: The documented test vector (docs/guide/clients.md): sensor1 turned 90 deg about z, as a
 #: quaternion [sqrt(1/2), 0, 0, sqrt(1/2)], sent at t_sender 12.5 s.
-VECTOR = bytes.fromhex(re.search(r"<!-- vector: orientation -->\s*```\n(.*?)```",
-                                 (Path(__file__).parent.parent / "docs" / "guide" / "clients.md").read_text(),
-                                 re.DOTALL).group(1))
+VECTOR = bytes.fromhex(
+    re.search(
+        r"<!-- vector: orientation -->\s*```\n(.*?)```",
+        (Path(__file__).parent.parent / "docs" / "guide" / "clients.md").read_text(),
+        re.DOTALL,
+    ).group(1)
+)
 
 
 def test_the_orientation_message_matches_its_documented_test_vector():
@@ -402,14 +469,20 @@ def _bad(message: bytes, offset: int, fmt: str, *values) -> bytes:
 
 
 QUAT_SCALE = {  # norms either side of the tolerance (1e-3): accepted (normalised) and refused
-    1 + 0.9e-3: True, 1 - 0.9e-3: True, 1 + 1.1e-3: False, 1 - 1.1e-3: False}
+    1 + 0.9e-3: True,
+    1 - 0.9e-3: True,
+    1 + 1.1e-3: False,
+    1 - 1.1e-3: False,
+}
 
 
 @pytest.mark.parametrize("scale,accepted", QUAT_SCALE.items())
 def test_a_quaternion_beyond_the_unit_tolerance_is_refused(scale, accepted):
     q = np.array([np.cos(0.3), np.sin(0.3), 0.0, 0.0]) * scale
     if accepted:
-        assert np.allclose(ori.decode(ori.encode("tip", q, 0.0)).R, ori.quaternion_matrix(q / scale), atol=1e-12)
+        assert np.allclose(
+            ori.decode(ori.encode("tip", q, 0.0)).R, ori.quaternion_matrix(q / scale), atol=1e-12
+        )
     else:
         with pytest.raises(ValueError, match="not_unit"):
             ori.decode(ori.encode("tip", q, 0.0))
@@ -419,13 +492,24 @@ def test_malformed_orientation_messages_are_dropped_and_counted_and_the_daemon_g
     t = Turning(tmp_path)
     good = ori.encode("tip", np.eye(3), 0.0)
     reflection = np.diag([1.0, 1.0, -1.0])
-    bad = {"size": [b"", b"FTOR", VECTOR[:-1], VECTOR + b"\0"], "magic": [_bad(VECTOR, 0, "4s", b"FTOX")],
-           "version": [_bad(VECTOR, 4, "B", 2)], "representation": [_bad(VECTOR, 5, "B", 3)],
-           "frame": [_bad(VECTOR, 8, "32s", b""), _bad(VECTOR, 8, "32s", b"a\0b"), _bad(VECTOR, 8, "32s", b"\xff")],
-           "unknown_frame": [ori.encode("sensor9", np.eye(3), 0.0)],
-           "not_finite": [_bad(VECTOR, 48, "<d", float("nan")), _bad(VECTOR, 40, "<d", float("inf"))],
-           "not_unit": [ori.encode("tip", [0.0] * 4, 0.0), ori.encode("tip", reflection, 0.0),
-                        ori.encode("tip", 1.01 * np.eye(3), 0.0)]}
+    bad = {
+        "size": [b"", b"FTOR", VECTOR[:-1], VECTOR + b"\0"],
+        "magic": [_bad(VECTOR, 0, "4s", b"FTOX")],
+        "version": [_bad(VECTOR, 4, "B", 2)],
+        "representation": [_bad(VECTOR, 5, "B", 3)],
+        "frame": [
+            _bad(VECTOR, 8, "32s", b""),
+            _bad(VECTOR, 8, "32s", b"a\0b"),
+            _bad(VECTOR, 8, "32s", b"\xff"),
+        ],
+        "unknown_frame": [ori.encode("sensor9", np.eye(3), 0.0)],
+        "not_finite": [_bad(VECTOR, 48, "<d", float("nan")), _bad(VECTOR, 40, "<d", float("inf"))],
+        "not_unit": [
+            ori.encode("tip", [0.0] * 4, 0.0),
+            ori.encode("tip", reflection, 0.0),
+            ori.encode("tip", 1.01 * np.eye(3), 0.0),
+        ],
+    }
     t.turn(np.eye(3))
     for messages in bad.values():
         for m in messages:
@@ -437,27 +521,58 @@ def test_malformed_orientation_messages_are_dropped_and_counted_and_the_daemon_g
     assert stream["dropped"] == {**{k: len(v) for k, v in bad.items()}, "parts": 1}
     dropped = sum(map(len, bad.values())) + 1
     assert f"orientation messages 3 received, {dropped} dropped" in describe(status)  # `ftsensord status`
-    assert stream["received"] == 3 and stream["frames"]["tip"]["t_sender"] == pytest.approx(t.rig.clock.now() - 0.01, abs=0.011)
-    assert len(out["wrench/sensor1/compensated"]) == 3 and all(s.flags == 0 for s in out["wrench/tip/compensated"])
+    assert stream["received"] == 3 and stream["frames"]["tip"]["t_sender"] == pytest.approx(
+        t.rig.clock.now() - 0.01, abs=0.011
+    )
+    assert len(out["wrench/sensor1/compensated"]) == 3 and all(
+        s.flags == 0 for s in out["wrench/tip/compensated"]
+    )
     t.close()
 
 
-@pytest.mark.parametrize("old,new,key,expected", [
-    ("[tool.pose.sensor1]", "[tool.offsets_m]\nsensor1 = [0.0, 0.0, -0.2]\n[tool.pose.sensor1]", "tool.pose", "either"),
-    ("rotvec_deg = [0.0, 0.0, 90.0]", "rotvec_deg = [0.0, 90.0]", "tool.pose.sensor1.rotvec_deg", "3 finite numbers"),
-    ("[tool.pose.sensor2]", "[tool.pose.sensor3]", "tool.pose.sensor3", "one of the sensors"),
-    ('orientation = "stream"', 'orientation = "imu"', "gravity.orientation", "one of"),
-    ("stale_after_s = 0.05", "gravity_mps2 = [0.0, 0.0, -9810.0]", "gravity.gravity_mps2", "|g| 9.7-9.9"),
-    (f"mass_kg = {M1}", "mass_kg = 50.0", "gravity.sensor1.mass_kg", "kg"),
-    # 30 for 30 mm: was taken, and the compensated moment was -49 N m, unflagged (1e308: -4.9e307)
-    (f"com_m = {C1.tolist()}", "com_m = [0.0, 0.0, 30.0]", "gravity.sensor1.com_m", "within 2 m"),
-    (f"com_m = {C_TIP.tolist()}", "com_m = [0.0, 0.0, 1e308]", "gravity.tip.com_m", "within 2 m"),
-    (f"position_m = {P1.tolist()}", "position_m = [1e12, 0.0, 0.0]", "tool.pose.sensor1.position_m", "within 2 m"),
-    ('orientation = "stream"', 'orientation = "mount"', "gravity.sensor1.mount_rotvec_deg", "orientation in the world"),
-    ("[tool]", "[toolx]", "gravity.tip", "one of"),  # no [tool]: no tip
-    (f"mass_kg = {M2}", f"mass_kg = {M2}\nmount_rotvec_deg = [0.0, 0.0, 0.0]", "gravity.sensor2.mount_rotvec_deg",
-     'no mount with orientation = "stream"'),
-])
+@pytest.mark.parametrize(
+    "old,new,key,expected",
+    [
+        (
+            "[tool.pose.sensor1]",
+            "[tool.offsets_m]\nsensor1 = [0.0, 0.0, -0.2]\n[tool.pose.sensor1]",
+            "tool.pose",
+            "either",
+        ),
+        (
+            "rotvec_deg = [0.0, 0.0, 90.0]",
+            "rotvec_deg = [0.0, 90.0]",
+            "tool.pose.sensor1.rotvec_deg",
+            "3 finite numbers",
+        ),
+        ("[tool.pose.sensor2]", "[tool.pose.sensor3]", "tool.pose.sensor3", "one of the sensors"),
+        ('orientation = "stream"', 'orientation = "imu"', "gravity.orientation", "one of"),
+        ("stale_after_s = 0.05", "gravity_mps2 = [0.0, 0.0, -9810.0]", "gravity.gravity_mps2", "|g| 9.7-9.9"),
+        (f"mass_kg = {M1}", "mass_kg = 50.0", "gravity.sensor1.mass_kg", "kg"),
+        # 30 for 30 mm: was taken, and the compensated moment was -49 N m, unflagged (1e308: -4.9e307)
+        (f"com_m = {C1.tolist()}", "com_m = [0.0, 0.0, 30.0]", "gravity.sensor1.com_m", "within 2 m"),
+        (f"com_m = {C_TIP.tolist()}", "com_m = [0.0, 0.0, 1e308]", "gravity.tip.com_m", "within 2 m"),
+        (
+            f"position_m = {P1.tolist()}",
+            "position_m = [1e12, 0.0, 0.0]",
+            "tool.pose.sensor1.position_m",
+            "within 2 m",
+        ),
+        (
+            'orientation = "stream"',
+            'orientation = "mount"',
+            "gravity.sensor1.mount_rotvec_deg",
+            "orientation in the world",
+        ),
+        ("[tool]", "[toolx]", "gravity.tip", "one of"),  # no [tool]: no tip
+        (
+            f"mass_kg = {M2}",
+            f"mass_kg = {M2}\nmount_rotvec_deg = [0.0, 0.0, 0.0]",
+            "gravity.sensor2.mount_rotvec_deg",
+            'no mount with orientation = "stream"',
+        ),
+    ],
+)
 def test_bad_tool_and_gravity_keys_are_refused_naming_file_and_key(tmp_path, old, new, key, expected):
     text = (gravity() + TOOL).replace(old, new, 1)
     if new == "[toolx]":
@@ -480,21 +595,27 @@ def test_a_scene_tool_is_read_and_refused_beside_a_robot(tmp_path):
     # Upright (identity): the weight pulls along -z of {0}, its moment c x f.
     f = np.array([0.0, 0.0, -M1 * 9.80665])
     assert np.allclose(s.wrench(0.0), np.concatenate([f, np.cross(C1, f)]))
-    path.write_text(scene().replace("[sensor.tool]", '[sensor.load]\nkind = "robot"\nposes = 3\n[sensor.tool]', 1))
+    path.write_text(
+        scene().replace("[sensor.tool]", '[sensor.load]\nkind = "robot"\nposes = 3\n[sensor.tool]', 1)
+    )
     assert_names_file_and_key(load_scene, path, "sensor[0].tool", 'no tool with a load of kind "robot"')
 
 
 def test_ftsensord_run_compensates_with_orientations_from_the_python_publisher(tmp_path):
     nominal = nominal_calibrations()
-    config = write_config(tmp_path, gravity(), scene=scene(), tool=TOOL, sensor1_cal=nominal[0], sensor2_cal=nominal[1])
+    config = write_config(
+        tmp_path, gravity(), scene=scene(), tool=TOOL, sensor1_cal=nominal[0], sensor2_cal=nominal[1]
+    )
     proc, notify = start_daemon(config, tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     rt = tmp_path / "ftsensord"
     try:
         assert (rt / "orientation").exists() and oct((rt / "orientation").stat().st_mode & 0o777) == "0o660"
         streams = ["wrench/sensor1", "wrench/sensor1/compensated"]
         got: dict[str, list] = {s: [] for s in streams}
-        with OrientationPublisher(f"ipc://{rt}/orientation") as pub, \
-                Subscriber(f"ipc://{rt}/wrench", streams) as sub:
+        with (
+            OrientationPublisher(f"ipc://{rt}/orientation") as pub,
+            Subscriber(f"ipc://{rt}/wrench", streams) as sub,
+        ):
             deadline = time.monotonic() + 20
             while min(len(v) for v in got.values()) < 20 and time.monotonic() < deadline:
                 pub.send("sensor1", q_wxyz=[1.0, 0.0, 0.0, 0.0])  # upright, as the scene holds it
@@ -510,9 +631,14 @@ def test_ftsensord_run_compensates_with_orientations_from_the_python_publisher(t
     assert min(len(v) for v in got.values()) == 20
     raw, comp = (np.mean(got[s], axis=0) for s in streams)
     assert raw[2] < -0.35 and abs(comp[2]) < 0.15  # the 0.49 N weight taken off (untared: the zero's error)
-    assert status["gravity"]["stream"]["received"] > 0 and status["frames"]["wrench/tip/compensated"] == "tool_tip"
+    assert (
+        status["gravity"]["stream"]["received"] > 0
+        and status["frames"]["wrench/tip/compensated"] == "tool_tip"
+    )
     # The gravity applied now, in sensor1's frame: upright, straight down its -z.
-    assert np.allclose(status["gravity"]["frames"]["sensor1"]["gravity_now_mps2"], [0, 0, -9.80665], atol=1e-6)
+    assert np.allclose(
+        status["gravity"]["frames"]["sensor1"]["gravity_now_mps2"], [0, 0, -9.80665], atol=1e-6
+    )
     assert not (rt / "orientation").exists()  # removed at exit
 
 
@@ -540,8 +666,10 @@ def test_a_reload_keeps_the_tare_and_its_gravity(tmp_path):
     assert t.tare()["ok"]
     before = t.rig.daemon.status()["gravity"]["frames"]
     reply = t.rig.request(cmd="reload")
-    assert reply["ok"] and reply["result"]["tare"] == {"sensor1": "kept (calibration unchanged)",
-                                                       "sensor2": "kept (calibration unchanged)"}
+    assert reply["ok"] and reply["result"]["tare"] == {
+        "sensor1": "kept (calibration unchanged)",
+        "sensor2": "kept (calibration unchanged)",
+    }
     assert t.rig.daemon.status()["gravity"]["frames"] == before
     t.turn(orientations(7)[5])
     out = t.cycles(10)
@@ -573,7 +701,11 @@ def test_a_quaternion_sent_must_name_its_order(tmp_path):
 
     R = se3.exp_so3(np.array([0.3, -1.1, 0.7]))
     w = np.cos(np.linalg.norm([0.3, -1.1, 0.7]) / 2)
-    xyz = np.sin(np.linalg.norm([0.3, -1.1, 0.7]) / 2) * np.array([0.3, -1.1, 0.7]) / np.linalg.norm([0.3, -1.1, 0.7])
+    xyz = (
+        np.sin(np.linalg.norm([0.3, -1.1, 0.7]) / 2)
+        * np.array([0.3, -1.1, 0.7])
+        / np.linalg.norm([0.3, -1.1, 0.7])
+    )
     with OrientationPublisher(f"ipc://{tmp_path}/orientation") as pub:
         pub.socket.close()
         pub.socket = _Sent()  # type: ignore[assignment]

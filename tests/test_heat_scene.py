@@ -24,10 +24,10 @@ from ftsensord.sim import (
     simulated_bus,
 )
 from ftsensord.sim import physics as sim_physics
+from ftsensord.sim.heat import ChipDrift, TemperatureProfile
 from ftsensord.sim.loads import StaticLoad
 from ftsensord.sim.physics import PhysicalScene, SimSensor, Tolerances
 from ftsensord.sim.scene import TEMPERATURE_RANGE_C, default_scene_path
-from ftsensord.sim.heat import ChipDrift, TemperatureProfile
 
 from .conftest import assert_names_file_and_key
 
@@ -50,8 +50,10 @@ def test_the_profile_interpolates_holds_its_ends_and_refuses_bad_times():
 
 
 def test_the_magnets_of_each_sensor_follow_its_own_profile():
-    scene = PhysicalScene([SimSensor("warm", ADDRESSES, temperature=WARMING),
-                           SimSensor("cool", tuple(range(0x14, 0x1C)))], temperature_c=25.0)
+    scene = PhysicalScene(
+        [SimSensor("warm", ADDRESSES, temperature=WARMING), SimSensor("cool", tuple(range(0x14, 0x1C)))],
+        temperature_c=25.0,
+    )
     for t, celsius in ((70.0, 30.0), (300.0, 35.0)):
         ratio = scene.field_t(0x0C, t) / scene.field_t(0x0C, 0.0)
         # At rest, in a field-free room, every field is the magnets': it scales with Br alone.
@@ -69,7 +71,9 @@ def test_warm_silicone_deflects_less_under_the_same_load(stiffening):
     cold.set_load(0, StaticLoad(load.wrench(0.0) / stiffness_factor(10.0)))
     for a in ADDRESSES:
         assert warm.field_t(a, 0.0) == pytest.approx(remanence_factor(10.0) * cold.field_t(a, 0.0), rel=1e-12)
-    xi_cold, xi_warm = (warm.sensors[0].deflection(load.wrench(0.0) / f) for f in (1.0, stiffness_factor(10.0)))
+    xi_cold, xi_warm = (
+        warm.sensors[0].deflection(load.wrench(0.0) / f) for f in (1.0, stiffness_factor(10.0))
+    )
     assert np.linalg.norm(xi_warm) < np.linalg.norm(xi_cold)
     assert STIFFNESS_TEMPCO_PER_K == pytest.approx(1 / 298.15)  # entropic: stiffer by T in kelvin
 
@@ -84,8 +88,9 @@ def chip_bus(temperature_c: float, drift: ChipDrift, field_ut=(3000.0, -2000.0, 
 
 @pytest.mark.parametrize("tcmp", [False, True])
 def test_the_chip_drifts_by_its_own_tcmp_en(tcmp):
-    drift = ChipDrift(np.array([-4e-3, -5e-3, -6e-3]), np.array([4e-4, -3e-4, 1e-4]),
-                      np.array([2e-6, -2.5e-6, 4e-6]))
+    drift = ChipDrift(
+        np.array([-4e-3, -5e-3, -6e-3]), np.array([4e-4, -3e-4, 1e-4]), np.array([2e-6, -2.5e-6, 4e-6])
+    )
     # TCMP_EN = 1 allows RES 0 and 1 only; RES 0 at GAIN_SEL 0 is 0.751 uT/LSB (X/Y).
     settings = mlx.Settings(res_x=0, res_y=0, res_z=0, tcmp_en=tcmp)
     field = np.array([3000.0, -2000.0, 9000.0]) * 1e-6
@@ -147,7 +152,9 @@ def test_a_scene_held_at_25_degc_reads_exactly_as_today(tmp_path):
     times = [0.5, 1.0, 2.0]
     assert words(load_scene(tmp_path / "held.toml"), times) == words(load_scene(default_scene_path()), times)
     # config/scene-warm.toml is the default scene until it starts warming at 20 s.
-    assert words(load_scene(CONFIG / "scene-warm.toml"), times) == words(load_scene(default_scene_path()), times)
+    assert words(load_scene(CONFIG / "scene-warm.toml"), times) == words(
+        load_scene(default_scene_path()), times
+    )
 
 
 def test_the_die_temperature_read_through_the_driver_follows_the_profile():
@@ -178,23 +185,57 @@ celsius = [25.0, 25.0, 35.0]
 """
 
 
-@pytest.mark.parametrize(("edit", "key", "expected"), [
-    (('kind = "recorded"', 'kind = "ramp"'), "sensor[0].temperature.kind", '"constant", "linear", "recorded"'),
-    (("times_s = [0.0, 20.0, 140.0]", "times_s = [0.0, 140.0, 20.0]"), "sensor[0].temperature.times_s",
-     "strictly increasing"),
-    (("times_s = [0.0, 20.0, 140.0]", "times_s = []"), "sensor[0].temperature.times_s", "at least one"),
-    (("celsius = [25.0, 25.0, 35.0]", "celsius = [25.0, 35.0]"), "sensor[0].temperature.celsius",
-     "3 finite numbers (degC, one per time"),
-    (("celsius = [25.0, 25.0, 35.0]", "celsius = [25.0, 25.0, 308.15]"), "sensor[0].temperature.celsius",
-     "temperatures in [-20.0, 85.0]"),
-    (('kind = "recorded"', 'kind = "constant"'), "sensor[0].temperature.times_s", "one of celsius, kind"),
-    (('kind = "recorded"\ntimes_s = [0.0, 20.0, 140.0]\ncelsius = [25.0, 25.0, 35.0]',
-      'kind = "constant"\ncelsius = 400'), "sensor[0].temperature.celsius", "finite number in [-20.0, 85.0]"),
-    (('kind = "recorded"\ntimes_s = [0.0, 20.0, 140.0]\ncelsius = [25.0, 25.0, 35.0]',
-      'kind = "linear"\ncelsius = 25.0'), "sensor[0].temperature.drift_c_per_s", "missing"),
-    (("[sensor.temperature]\nkind = \"recorded\"\ntimes_s = [0.0, 20.0, 140.0]\ncelsius = [25.0, 25.0, 35.0]",
-      "temperature = 30"), "sensor[0].temperature", "a table"),
-])
+@pytest.mark.parametrize(
+    ("edit", "key", "expected"),
+    [
+        (
+            ('kind = "recorded"', 'kind = "ramp"'),
+            "sensor[0].temperature.kind",
+            '"constant", "linear", "recorded"',
+        ),
+        (
+            ("times_s = [0.0, 20.0, 140.0]", "times_s = [0.0, 140.0, 20.0]"),
+            "sensor[0].temperature.times_s",
+            "strictly increasing",
+        ),
+        (("times_s = [0.0, 20.0, 140.0]", "times_s = []"), "sensor[0].temperature.times_s", "at least one"),
+        (
+            ("celsius = [25.0, 25.0, 35.0]", "celsius = [25.0, 35.0]"),
+            "sensor[0].temperature.celsius",
+            "3 finite numbers (degC, one per time",
+        ),
+        (
+            ("celsius = [25.0, 25.0, 35.0]", "celsius = [25.0, 25.0, 308.15]"),
+            "sensor[0].temperature.celsius",
+            "temperatures in [-20.0, 85.0]",
+        ),
+        (('kind = "recorded"', 'kind = "constant"'), "sensor[0].temperature.times_s", "one of celsius, kind"),
+        (
+            (
+                'kind = "recorded"\ntimes_s = [0.0, 20.0, 140.0]\ncelsius = [25.0, 25.0, 35.0]',
+                'kind = "constant"\ncelsius = 400',
+            ),
+            "sensor[0].temperature.celsius",
+            "finite number in [-20.0, 85.0]",
+        ),
+        (
+            (
+                'kind = "recorded"\ntimes_s = [0.0, 20.0, 140.0]\ncelsius = [25.0, 25.0, 35.0]',
+                'kind = "linear"\ncelsius = 25.0',
+            ),
+            "sensor[0].temperature.drift_c_per_s",
+            "missing",
+        ),
+        (
+            (
+                '[sensor.temperature]\nkind = "recorded"\ntimes_s = [0.0, 20.0, 140.0]\ncelsius = [25.0, 25.0, 35.0]',
+                "temperature = 30",
+            ),
+            "sensor[0].temperature",
+            "a table",
+        ),
+    ],
+)
 def test_a_bad_temperature_table_names_file_key_and_expectation(tmp_path, edit, key, expected):
     path = tmp_path / "bad.toml"
     text = TEMPERATURE_SCENE.replace(*edit, 1)
@@ -203,20 +244,32 @@ def test_a_bad_temperature_table_names_file_key_and_expectation(tmp_path, edit, 
     assert_names_file_and_key(load_scene, path, key, expected)
 
 
-@pytest.mark.parametrize(("text", "key"), [
-    (TEMPERATURE_SCENE.replace("kind = \"sensors\"", "kind = \"sensors\"\ntemperature_c = 298.15"), "temperature_c"),
-    ("version = 1\nkind = \"static\"\ntemperature_c = 298.15\n[[chip]]\naddress = 0x0C\nfield_ut = [1, 2, 3]\n",
-     "temperature_c"),
-    ("version = 1\nkind = \"static\"\n[[chip]]\naddress = 0x0C\nfield_ut = [1, 2, 3]\ntemperature_c = -30\n",
-     "chip[0].temperature_c"),
-])
+@pytest.mark.parametrize(
+    ("text", "key"),
+    [
+        (
+            TEMPERATURE_SCENE.replace('kind = "sensors"', 'kind = "sensors"\ntemperature_c = 298.15'),
+            "temperature_c",
+        ),
+        (
+            'version = 1\nkind = "static"\ntemperature_c = 298.15\n[[chip]]\naddress = 0x0C\nfield_ut = [1, 2, 3]\n',
+            "temperature_c",
+        ),
+        (
+            'version = 1\nkind = "static"\n[[chip]]\naddress = 0x0C\nfield_ut = [1, 2, 3]\ntemperature_c = -30\n',
+            "chip[0].temperature_c",
+        ),
+    ],
+)
 def test_every_scene_temperature_is_in_the_chips_operating_range(tmp_path, text, key):
     """A kelvin figure (298.15) or a temperature the parts are not specified at, written in
     any of a scene's temperature keys, is refused as in ``[sensor.temperature]``: before,
     the scene-wide and the static scene's keys took any number, and the chips read 298 degC."""
     path = tmp_path / "bad.toml"
     path.write_text(text)
-    assert_names_file_and_key(load_scene, path, key, f"in [{mlx.OPERATING_RANGE_C[0]}, {mlx.OPERATING_RANGE_C[1]}]")
+    assert_names_file_and_key(
+        load_scene, path, key, f"in [{mlx.OPERATING_RANGE_C[0]}, {mlx.OPERATING_RANGE_C[1]}]"
+    )
 
 
 def test_a_dataset_recorded_at_the_scenes_coldest_loads_for_calibration(tmp_path):
@@ -226,8 +279,9 @@ def test_a_dataset_recorded_at_the_scenes_coldest_loads_for_calibration(tmp_path
     `ftsensord dataset` had written)."""
     low = TEMPERATURE_RANGE_C[0]  # the coldest a scene file takes
     scene = PhysicalScene([SimSensor("s", ADDRESSES, temperature=TemperatureProfile.constant(low + 0.2))])
-    ds = simulate_dataset(scene, "s", "six-axis", poses=30, validation_poses=0, samples=2, seed=1, sweeps=False,
-                          no_load_poses=0)
+    ds = simulate_dataset(
+        scene, "s", "six-axis", poses=30, validation_poses=0, samples=2, seed=1, sweeps=False, no_load_poses=0
+    )
     assert ds.temperature_c is not None and ds.temperature_c.min() < low + 0.5
     ds.save(tmp_path / "cold.json")
     assert np.array_equal(Dataset.load(tmp_path / "cold.json").temperature_c, ds.temperature_c)

@@ -44,12 +44,23 @@ def test_tilted_magnets_are_warned_with_the_residual_that_shows_them(rows):
 def test_stiffening_silicone_is_warned_with_its_force_error(rows):
     r = rows["silicone stiffening"]
     assert r.warned and r.report["nonlinear_force_share"] > largeloads.CHECK_FORCE_SHARE
-    assert f"off by {r.report['nonlinear_force_share']:.1%} of the load" in r.summary and "stiffens" in r.summary
+    assert (
+        f"off by {r.report['nonlinear_force_share']:.1%} of the load" in r.summary and "stiffens" in r.summary
+    )
 
 
 def test_without_check_poses_the_summary_says_the_model_was_not_judged_there():
-    ds = simulate_dataset(None, "sensor1", "six-axis", poses=60, validation_poses=6, samples=10, seed=3,
-                          no_load_poses=12, sweeps=False)
+    ds = simulate_dataset(
+        None,
+        "sensor1",
+        "six-axis",
+        poses=60,
+        validation_poses=6,
+        samples=10,
+        seed=3,
+        no_load_poses=12,
+        sweeps=False,
+    )
     cal, _ = calibrate(ds, nonlinear=False)
     assert cal.report["large_loads"] is None
     assert largeloads.NOT_JUDGED in summary(cal)
@@ -57,8 +68,18 @@ def test_without_check_poses_the_summary_says_the_model_was_not_judged_there():
 
 
 def test_check_poses_travel_through_the_dataset_file_and_the_calibration_file(tmp_path):
-    ds = simulate_dataset(None, "sensor1", "six-axis", poses=60, validation_poses=6, samples=10, seed=3,
-                          no_load_poses=12, check_poses=6, sweeps=False)
+    ds = simulate_dataset(
+        None,
+        "sensor1",
+        "six-axis",
+        poses=60,
+        validation_poses=6,
+        samples=10,
+        seed=3,
+        no_load_poses=12,
+        check_poses=6,
+        sweeps=False,
+    )
     checks = ds.split == "check"
     assert checks.sum() == 6 and set(ds.mass_kg[checks]) == set(CHECK_MASSES)
     assert (ds.lever_m[checks] == CHECK_ARM).all()
@@ -72,8 +93,17 @@ def test_check_poses_travel_through_the_dataset_file_and_the_calibration_file(tm
 
 
 def test_an_unknown_split_names_the_accepted_ones(tmp_path):
-    ds = simulate_dataset(None, "sensor1", "six-axis", poses=30, validation_poses=3, samples=5, seed=3,
-                          no_load_poses=6, sweeps=False)
+    ds = simulate_dataset(
+        None,
+        "sensor1",
+        "six-axis",
+        poses=30,
+        validation_poses=3,
+        samples=5,
+        seed=3,
+        no_load_poses=6,
+        sweeps=False,
+    )
     ds.save(tmp_path / "ds.json")
     doc = json.loads((tmp_path / "ds.json").read_text())
     doc["poses"][0]["split"] = "heavy"
@@ -85,5 +115,14 @@ def test_an_unknown_split_names_the_accepted_ones(tmp_path):
 @pytest.mark.parametrize(("key", "value"), [("hold_s", float("nan")), ("hold_s", -5.0), ("check_poses", -2)])
 def test_a_bad_hold_or_check_count_is_refused_naming_the_option(key, value):
     with pytest.raises(ConfigError, match=f"--{key.replace('_', '-')}: expected"):
-        simulate_dataset(None, "sensor1", "six-axis", poses=30, validation_poses=3, samples=5, seed=3,
-                         sweeps=False, **{key: value})
+        simulate_dataset(
+            None,
+            "sensor1",
+            "six-axis",
+            poses=30,
+            validation_poses=3,
+            samples=5,
+            seed=3,
+            sweeps=False,
+            **{key: value},
+        )

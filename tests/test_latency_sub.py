@@ -40,8 +40,20 @@ def test_every_subscriber_reports_each_sample_with_its_age(program, tmp_path, sh
     endpoint = f"ipc://{tmp_path / 'wrench'}"
     pub.bind(endpoint)
     settle, seconds = 0.3, 0.6
-    proc = subprocess.Popen([str(program), endpoint, "wrench/sensor1", "3", str(settle), str(seconds),
-                             *(["shared"] if shared else [])], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [
+            str(program),
+            endpoint,
+            "wrench/sensor1",
+            "3",
+            str(settle),
+            str(seconds),
+            *(["shared"] if shared else []),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     ages = 0.002  # each sample's t_mono this long before its send: the age the program must report at least
     sent = []
     try:
@@ -64,7 +76,7 @@ def test_every_subscriber_reports_each_sample_with_its_age(program, tmp_path, sh
     seqs, delays_s = rows[:, 0], rows[:, 1] * 1e-9
     # Every counted sample reached all three subscribers, once each (the first and the last
     # may straddle the settle's or the run's end: some subscribers took them, others not).
-    counts = np.bincount(seqs)[seqs.min() + 1:seqs.max()]
+    counts = np.bincount(seqs)[seqs.min() + 1 : seqs.max()]
     assert len(counts) >= 20 and set(counts) == {3}
     # Counted from the settle on (by the sample's t_mono against the program's start), ...
     first_counted = dict(sent)[int(seqs.min())]

@@ -14,10 +14,28 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "ftsensord"
 #: Floor of each top-level part, lowest first (the package docstring lists them).
-FLOORS = {"errors": 1, "docfile": 1, "model": 2, "chip": 3, "sim": 4, "acquire": 5, "calibration": 6,
-          "protocol": 7, "config": 8, "processing": 9, "daemon": 10, "client": 11,
-          "recording": 12, "plot": 12, "foxglove": 12, "ros2": 12, "echo": 12, "cli": 13, "__main__": 13,
-          "testing": 14}
+FLOORS = {
+    "errors": 1,
+    "docfile": 1,
+    "model": 2,
+    "chip": 3,
+    "sim": 4,
+    "acquire": 5,
+    "calibration": 6,
+    "protocol": 7,
+    "config": 8,
+    "processing": 9,
+    "daemon": 10,
+    "client": 11,
+    "recording": 12,
+    "plot": 12,
+    "foxglove": 12,
+    "ros2": 12,
+    "echo": 12,
+    "cli": 13,
+    "__main__": 13,
+    "testing": 14,
+}
 
 
 def _modules() -> dict[str, Path]:
@@ -41,7 +59,9 @@ def _face_exports() -> dict[str, str]:
     """The package face's lazy names and the module each comes from (its ``_EXPORTS``):
     ``from ftsensord import Subscriber`` imports ftsensord.client when it runs."""
     for node in ast.parse((PACKAGE / "__init__.py").read_text()).body:
-        if isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id == "_EXPORTS" for t in node.targets):
+        if isinstance(node, ast.Assign) and any(
+            isinstance(t, ast.Name) and t.id == "_EXPORTS" for t in node.targets
+        ):
             return ast.literal_eval(node.value)
     return {}
 
@@ -53,8 +73,12 @@ def _literal_import(node: ast.Call) -> str | None:
     """The module an ``importlib.import_module("...")`` or ``__import__("...")`` call names."""
     func = node.func
     name = func.attr if isinstance(func, ast.Attribute) else func.id if isinstance(func, ast.Name) else None
-    if name in ("import_module", "__import__") and node.args and isinstance(node.args[0], ast.Constant) \
-            and isinstance(node.args[0].value, str):
+    if (
+        name in ("import_module", "__import__")
+        and node.args
+        and isinstance(node.args[0], ast.Constant)
+        and isinstance(node.args[0].value, str)
+    ):
         return node.args[0].value
     return None
 
@@ -65,9 +89,17 @@ def _imports(name: str, path: Path, annotations: bool = False) -> set[str]:
     type checkers read (the body of ``if TYPE_CHECKING:``, not its else) only with
     ``annotations``."""
     tree = ast.parse(path.read_text())
-    skip = set() if annotations else {
-        id(n) for node in ast.walk(tree) if isinstance(node, ast.If) and _is_type_checking(node)
-        for statement in node.body for n in ast.walk(statement)}
+    skip = (
+        set()
+        if annotations
+        else {
+            id(n)
+            for node in ast.walk(tree)
+            if isinstance(node, ast.If) and _is_type_checking(node)
+            for statement in node.body
+            for n in ast.walk(statement)
+        }
+    )
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     found = set()
     faces = set()  # the names the package face is bound to (import ftsensord [as f])
@@ -79,7 +111,7 @@ def _imports(name: str, path: Path, annotations: bool = False) -> set[str]:
             faces |= {a.asname or a.name for a in node.names if a.name == "ftsensord"}
         elif isinstance(node, ast.ImportFrom) and node.module != "__future__":
             if node.level:
-                base = package.split(".")[:len(package.split(".")) - node.level + 1]
+                base = package.split(".")[: len(package.split(".")) - node.level + 1]
                 target = ".".join(base + ([node.module] if node.module else []))
             else:
                 target = node.module or ""
@@ -87,13 +119,23 @@ def _imports(name: str, path: Path, annotations: bool = False) -> set[str]:
                 continue
             for alias in node.names:  # `from pkg import module` imports the module
                 module = f"{target}.{alias.name}"
-                found.add(module if module in MODULES else
-                          FACE_EXPORTS.get(alias.name, target) if target == "ftsensord" else target)
+                found.add(
+                    module
+                    if module in MODULES
+                    else FACE_EXPORTS.get(alias.name, target)
+                    if target == "ftsensord"
+                    else target
+                )
         elif isinstance(node, ast.Call) and (literal := _literal_import(node)) is not None:
             found.add(literal)
     for node in ast.walk(tree):  # ftsensord.Subscriber after `import ftsensord`
-        if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id in faces \
-                and node.attr in FACE_EXPORTS and id(node) not in skip:
+        if (
+            isinstance(node, ast.Attribute)
+            and isinstance(node.value, ast.Name)
+            and node.value.id in faces
+            and node.attr in FACE_EXPORTS
+            and id(node) not in skip
+        ):
             found.add(FACE_EXPORTS[node.attr])
     return {m for m in found if m in MODULES and m != name}
 
@@ -128,7 +170,7 @@ def test_no_import_circle():
         seen[m] = 1
         for n in sorted(TYPED_GRAPH[m]):
             if seen.get(n) == 1:
-                pytest.fail("import circle: " + " -> ".join(path[path.index(n):] + [n]))
+                pytest.fail("import circle: " + " -> ".join(path[path.index(n) :] + [n]))
             if n not in seen:
                 visit(n, path + [n])
         seen[m] = 2
@@ -145,29 +187,40 @@ def test_the_package_face_imports_nothing_of_the_package_eagerly():
 def test_each_floor_says_what_it_owns_and_may_import():
     for part in sorted(p for p in FLOORS if (PACKAGE / p / "__init__.py").exists()):
         doc = ast.get_docstring(ast.parse((PACKAGE / part / "__init__.py").read_text())) or ""
-        assert "May import" in doc, f"ftsensord/{part}/__init__.py: its docstring says nothing of what it may import"
+        assert "May import" in doc, (
+            f"ftsensord/{part}/__init__.py: its docstring says nothing of what it may import"
+        )
 
 
 def test_the_public_face():
-    code = ("import sys, ftsensord as f; assert 'zmq' not in sys.modules; "
-            "f.open_bus, f.MLX90393, f.load_config, f.Subscriber, f.ControlClient, f.FtsensordError; "
-            "assert issubclass(f.FtsensordError, Exception) and callable(f.open_bus)")
+    code = (
+        "import sys, ftsensord as f; assert 'zmq' not in sys.modules; "
+        "f.open_bus, f.MLX90393, f.load_config, f.Subscriber, f.ControlClient, f.FtsensordError; "
+        "assert issubclass(f.FtsensordError, Exception) and callable(f.open_bus)"
+    )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
 
 
-@pytest.mark.parametrize("source,imported", [
-    # the face's lazy names are its floors' modules: ControlClient is the client's (9)
-    ("from .. import ControlClient\n", "ftsensord.client"),
-    ("from ftsensord import Subscriber as S\n", "ftsensord.client"),
-    ("import ftsensord\n\ndef f():\n    return ftsensord.load_config\n", "ftsensord.config.file"),
-    # run at run time: an else beside TYPE_CHECKING, importlib with a literal name
-    ("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    pass\nelse:\n    from ..protocol import wire\n",
-     "ftsensord.protocol.wire"),
-    ("import importlib\n\ndef f():\n    return importlib.import_module('ftsensord.protocol.wire')\n",
-     "ftsensord.protocol.wire"),
-    ("def f():\n    return __import__('ftsensord.client')\n", "ftsensord.client"),
-])
+@pytest.mark.parametrize(
+    "source,imported",
+    [
+        # the face's lazy names are its floors' modules: ControlClient is the client's (9)
+        ("from .. import ControlClient\n", "ftsensord.client"),
+        ("from ftsensord import Subscriber as S\n", "ftsensord.client"),
+        ("import ftsensord\n\ndef f():\n    return ftsensord.load_config\n", "ftsensord.config.file"),
+        # run at run time: an else beside TYPE_CHECKING, importlib with a literal name
+        (
+            "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    pass\nelse:\n    from ..protocol import wire\n",
+            "ftsensord.protocol.wire",
+        ),
+        (
+            "import importlib\n\ndef f():\n    return importlib.import_module('ftsensord.protocol.wire')\n",
+            "ftsensord.protocol.wire",
+        ),
+        ("def f():\n    return __import__('ftsensord.client')\n", "ftsensord.client"),
+    ],
+)
 def test_the_floor_check_sees_imports_that_run_whatever_their_form(tmp_path, source, imported):
     """Until 2026-11-27 each of these passed the floors as an import of the package face
     (floor 1) or of nothing, while it imports a floor-8 or floor-9 module when it runs."""
@@ -191,6 +244,8 @@ def test_the_circle_check_sees_imports_only_type_checkers_read(tmp_path):
     """An import under ``if TYPE_CHECKING:`` closes no circle when the code runs, but it
     ties the two modules' designs together as much as one that runs: the checks count it."""
     path = tmp_path / "fake.py"
-    path.write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from ftsensord.daemon.daemon import Daemon\n")
+    path.write_text(
+        "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from ftsensord.daemon.daemon import Daemon\n"
+    )
     assert "ftsensord.daemon.daemon" not in _imports("ftsensord.daemon.fake", path)
     assert "ftsensord.daemon.daemon" in _imports("ftsensord.daemon.fake", path, annotations=True)

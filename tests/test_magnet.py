@@ -101,14 +101,17 @@ def test_cylinder_field_on_the_side_face_is_the_mean_of_its_two_sides():
     z = 0.2e-3
     inside, outside = (cylinder_field(np.array([A * f, 0.0, z]), A, L, BR) for f in (1 - 1e-12, 1 + 1e-12))
     assert inside[2] - outside[2] == pytest.approx(BR, rel=1e-6)
-    assert cylinder_field(np.array([A, 0.0, z]), A, L, BR)[2] == pytest.approx(0.5 * (inside[2] + outside[2]),
-                                                                               rel=1e-9)
+    assert cylinder_field(np.array([A, 0.0, z]), A, L, BR)[2] == pytest.approx(
+        0.5 * (inside[2] + outside[2]), rel=1e-9
+    )
     with pytest.raises(ValueError):
         cylinder_field(np.array([A, 0.0, L / 2]), A, L, BR)
 
 
-@pytest.mark.parametrize(("distance_m", "octupole_limit", "dipole_floor"),
-                         [(2e-3, 0.009, 0.15), (3e-3, 0.0014, 0.06), (6e-3, 7e-5, 0.015)])
+@pytest.mark.parametrize(
+    ("distance_m", "octupole_limit", "dipole_floor"),
+    [(2e-3, 0.009, 0.15), (3e-3, 0.0014, 0.06), (6e-3, 7e-5, 0.015)],
+)
 def test_the_octupole_brings_the_dipole_to_the_cylinders_field(distance_m, octupole_limit, dipole_floor):
     """The D101 (L = D/2) is no point dipole near its chip: 18 % off at 2 mm, 1.8 % at the
     6 mm gap. With the octupole (the next term of its axial field's series) the largest
@@ -124,7 +127,9 @@ def test_the_octupole_brings_the_dipole_to_the_cylinders_field(distance_m, octup
         dipole = dipole_field(r, m * axis)
         scale = np.linalg.norm(exact)
         worst_dipole = max(worst_dipole, np.linalg.norm(dipole - exact) / scale)
-        worst_octupole = max(worst_octupole, np.linalg.norm(dipole + octupole_field(r, axis, q)[0] - exact) / scale)
+        worst_octupole = max(
+            worst_octupole, np.linalg.norm(dipole + octupole_field(r, axis, q)[0] - exact) / scale
+        )
     assert worst_octupole < octupole_limit and worst_dipole > dipole_floor
 
 
@@ -134,14 +139,22 @@ def test_octupole_ratio_vanishes_for_the_dipole_like_cylinder():
     assert octupole_ratio(1e-3, 1e-3) == pytest.approx(-0.5e-6)
 
 
-@given(st.tuples(*[st.floats(-4e-3, 4e-3)] * 3).filter(lambda r: np.linalg.norm(r) > 1.5e-3).map(np.array),
-       st.tuples(*[st.floats(-1, 1)] * 3).filter(lambda n: np.linalg.norm(n) > 0.1).map(np.array))
+@given(
+    st.tuples(*[st.floats(-4e-3, 4e-3)] * 3).filter(lambda r: np.linalg.norm(r) > 1.5e-3).map(np.array),
+    st.tuples(*[st.floats(-1, 1)] * 3).filter(lambda n: np.linalg.norm(n) > 0.1).map(np.array),
+)
 def test_octupole_gradient_matches_finite_differences(r, n):
     axis = n / np.linalg.norm(n)
     q = np.array(-2e-14)
     _, G = octupole_field(r, axis, q)
     h = 1e-9  # central differences: error ~h^2 x third derivative, far below 1e-5 here
-    numeric = np.stack([(octupole_field(r + h * e, axis, q, False)[0] - octupole_field(r - h * e, axis, q, False)[0])
-                        / (2 * h) for e in np.eye(3)], axis=1)
+    numeric = np.stack(
+        [
+            (octupole_field(r + h * e, axis, q, False)[0] - octupole_field(r - h * e, axis, q, False)[0])
+            / (2 * h)
+            for e in np.eye(3)
+        ],
+        axis=1,
+    )
     assert np.allclose(G, numeric, rtol=1e-5, atol=1e-6 * np.abs(numeric).max())
     assert np.allclose(G, G.T, atol=1e-9 * np.abs(G).max())  # curl-free

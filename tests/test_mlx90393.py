@@ -10,8 +10,16 @@ from ftsensord.chip import mlx90393 as mlx
 from ftsensord.errors import ForbiddenSettingError
 
 # Datasheet sensitivity table, HALLCONF 0xC, RES 0 column: (X/Y, Z) in uT/LSB per GAIN_SEL.
-DATASHEET_RES0 = [(0.751, 1.210), (0.601, 0.968), (0.451, 0.726), (0.376, 0.605),
-                  (0.300, 0.484), (0.250, 0.403), (0.200, 0.323), (0.150, 0.242)]
+DATASHEET_RES0 = [
+    (0.751, 1.210),
+    (0.601, 0.968),
+    (0.451, 0.726),
+    (0.376, 0.605),
+    (0.300, 0.484),
+    (0.250, 0.403),
+    (0.200, 0.323),
+    (0.150, 0.242),
+]
 
 
 @pytest.mark.parametrize(("gain_sel", "res", "xy", "z"), [(0, 3, 6.009, 9.680), (7, 0, 0.150, 0.242)])
@@ -89,13 +97,26 @@ def test_settings_refuse_tcmp_with_res_2_or_3_and_out_of_range_fields():
 
 
 # --- raw word decoding, every RES and TCMP_EN form ----------------------------------
-@pytest.mark.parametrize(("res", "tcmp", "word", "counts"), [
-    (0, False, 0x0000, 0), (0, False, 0x7FFF, 32767), (0, False, 0x8000, -32768), (0, False, 0xFFFF, -1),
-    (1, False, 0x0010, 16), (1, False, 0xFFF0, -16),
-    (2, False, 32768, 0), (2, False, 32768 + 21999, 21999), (2, False, 32768 - 22000, -22000),
-    (3, False, 16384, 0), (3, False, 16384 + 10999, 10999), (3, False, 16384 - 11000, -11000),
-    (0, True, 32768, 0), (0, True, 0, -32768), (1, True, 40000, 40000 - 32768),
-])
+@pytest.mark.parametrize(
+    ("res", "tcmp", "word", "counts"),
+    [
+        (0, False, 0x0000, 0),
+        (0, False, 0x7FFF, 32767),
+        (0, False, 0x8000, -32768),
+        (0, False, 0xFFFF, -1),
+        (1, False, 0x0010, 16),
+        (1, False, 0xFFF0, -16),
+        (2, False, 32768, 0),
+        (2, False, 32768 + 21999, 21999),
+        (2, False, 32768 - 22000, -22000),
+        (3, False, 16384, 0),
+        (3, False, 16384 + 10999, 10999),
+        (3, False, 16384 - 11000, -11000),
+        (0, True, 32768, 0),
+        (0, True, 0, -32768),
+        (1, True, 40000, 40000 - 32768),
+    ],
+)
 def test_raw_words_decode_per_res_and_tcmp(res, tcmp, word, counts):
     assert mlx.raw_to_counts(word, mlx.raw_format(res, tcmp)) == counts
 
@@ -122,8 +143,10 @@ def test_raw_to_tesla_uses_the_papers_lsb_and_flags_saturation():
     assert value == pytest.approx(-11000 * 6.009e-6, rel=1e-4) and sat
 
 
-@given(st.sampled_from([(0, False), (1, False), (2, False), (3, False), (0, True), (1, True)]),
-       st.integers(-40000, 40000))
+@given(
+    st.sampled_from([(0, False), (1, False), (2, False), (3, False), (0, True), (1, True)]),
+    st.integers(-40000, 40000),
+)
 def test_counts_round_trip_within_16_bits_and_clamp_outside(form, counts):
     fmt = mlx.raw_format(*form)
     word = mlx.counts_to_raw(counts, fmt)
@@ -145,7 +168,14 @@ def test_temperature_conversion_both_datasheet_forms():
 # --- status byte, registers, zyxt, addresses ----------------------------------------
 def test_status_byte_fields():
     s = mlx.Status(0b1011_0110)
-    assert (s.burst_mode, s.woc_mode, s.sm_mode, s.error, s.sed, s.rs) == (True, False, True, True, False, True)
+    assert (s.burst_mode, s.woc_mode, s.sm_mode, s.error, s.sed, s.rs) == (
+        True,
+        False,
+        True,
+        True,
+        False,
+        True,
+    )
     assert s.d == 2 and s.data_bytes == 6
     assert mlx.Status(0x03).data_bytes == 8 and mlx.Status(0x00).data_bytes == 2
     assert "ERROR" in str(s) and "BURST_MODE" in str(s)
@@ -162,8 +192,17 @@ def test_register_fields_sit_at_the_datasheets_bit_positions():
 
 
 def test_settings_round_trip_through_registers_and_keep_reserved_bits():
-    s = mlx.Settings(gain_sel=3, res_x=1, res_y=2, res_z=3, osr=2, dig_filt=5, osr2=1,
-                     burst_sel=mlx.ZYXT_XYZT, burst_data_rate=7)
+    s = mlx.Settings(
+        gain_sel=3,
+        res_x=1,
+        res_y=2,
+        res_z=3,
+        osr=2,
+        dig_filt=5,
+        osr2=1,
+        burst_sel=mlx.ZYXT_XYZT,
+        burst_data_rate=7,
+    )
     regs = s.to_registers({mlx.REG_CONF1: 0xFE00 | 0x007C, mlx.REG_CONF2: 0, mlx.REG_CONF3: 0xE000})
     assert regs[mlx.REG_CONF1] & 0xFE00 == 0xFE00  # reserved bits kept as read
     assert regs[mlx.REG_CONF3] & 0xE000 == 0xE000
@@ -179,8 +218,10 @@ def test_zyxt_items_come_in_rm_order():
         mlx.zyxt_items(0x10)
 
 
-@pytest.mark.parametrize(("address", "code"), [(0x0C, "011"), (0x0F, "011"), (0x10, "012"),
-                                               (0x17, "013"), (0x18, "014"), (0x1B, "014")])
+@pytest.mark.parametrize(
+    ("address", "code"),
+    [(0x0C, "011"), (0x0F, "011"), (0x10, "012"), (0x17, "013"), (0x18, "014"), (0x1B, "014")],
+)
 def test_part_variant_from_address(address, code):
     assert mlx.part_variant(address) == f"MLX90393SLW-ABA-{code}"
 

@@ -14,10 +14,18 @@ def test_the_quick_motor_benchmark_reports_every_scenario_and_its_price(regenera
     number = r"([\d.e+-]+)"
     rows = {}
     for stray in ("uniform", "gradient"):
-        for scenario, distance in (("on after tare", 15), ("on after tare", 25), ("tared on", 15),
-                                   ("100 g, tared on", 15)):
-            found = re.search(rf"\| 11 \| linear, {stray} \| {scenario} \| {distance} cm \| "
-                              + r" \| ".join([number] * 6) + r" \| .* \| (\d+) of 4 \| (\d+) of (\d+) \| ok \|", text)
+        for scenario, distance in (
+            ("on after tare", 15),
+            ("on after tare", 25),
+            ("tared on", 15),
+            ("100 g, tared on", 15),
+        ):
+            found = re.search(
+                rf"\| 11 \| linear, {stray} \| {scenario} \| {distance} cm \| "
+                + r" \| ".join([number] * 6)
+                + r" \| .* \| (\d+) of 4 \| (\d+) of (\d+) \| ok \|",
+                text,
+            )
             assert found, (stray, scenario, distance)
             rows[stray, scenario, distance] = [float(x) for x in found.groups()]
             assert int(found.group(9)) > 0  # holds' samples were read
@@ -27,8 +35,11 @@ def test_the_quick_motor_benchmark_reports_every_scenario_and_its_price(regenera
     # "world" runs through the daemon with the orientation stream fed every cycle: its rows
     # are there, each hold read (the quick mode's 4 short holds may all be flagged: learning).
     for scenario, distance in (("on after tare", 15), ("on after tare", 25), ("tared on", 15)):
-        found = re.search(rf"\| 11 \| linear, world \| {scenario} \| {distance} cm \| .* \| (\d+) of 4 \| "
-                          r"(\d+) of (\d+) \| ok \|", text)
+        found = re.search(
+            rf"\| 11 \| linear, world \| {scenario} \| {distance} cm \| .* \| (\d+) of 4 \| "
+            r"(\d+) of (\d+) \| ok \|",
+            text,
+        )
         assert found and int(found.group(3)) > 0, (scenario, distance)
     price = dict(re.findall(r"\| 11 \| (uniform|gradient) \| ([\d.e+-]+) \| ", text))
     assert set(price) == {"uniform", "gradient"}
@@ -49,7 +60,9 @@ def test_the_daemon_takes_a_learnt_motor_out_through_the_orientation_stream(tmp_
     from ftsensord.config.file import builtin_path
 
     args = argparse.Namespace(orientations=20, hold=1.0, loads=4)
-    r = bench.run(1, builtin_path("sim-sensor1.json"), "linear", "world", "on after tare", 0.15, tmp_path, args)
+    r = bench.run(
+        1, builtin_path("sim-sensor1.json"), "linear", "world", "on after tare", 0.15, tmp_path, args
+    )
     assert r.tare == "ok"
     learnt = ~np.isnan(r.errors).any(axis=1)
     assert learnt.sum() >= 8, r.errors  # flagged while learning (the first 9 holds here), then corrected

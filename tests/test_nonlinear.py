@@ -54,16 +54,26 @@ def count_calls(monkeypatch, obj: object, name: str) -> dict[str, int]:
 
 def test_forward_model_is_the_dipole_scene():
     T = se3.exp_se3(np.array([1e-3, -5e-4, 3e-4, 0.01, -0.005, 0.008]))
-    assert np.allclose(FluxModel(G, G.magnet_moment_am2, octupole=False).predict(T), SCENE.chip_fields(G, T).ravel(),
-                       rtol=1e-12)
+    assert np.allclose(
+        FluxModel(G, G.magnet_moment_am2, octupole=False).predict(T),
+        SCENE.chip_fields(G, T).ravel(),
+        rtol=1e-12,
+    )
 
 
 #: The default physics: each chip's own magnet the exact cylinder, the others dipoles.
 CYLINDER = PhysicalScene([SimSensor("s", tuple(range(0x0C, 0x14)))])
 
 
-@pytest.mark.parametrize("w", [np.zeros(6), np.array([45.0, 0, 12.0, 0, 0.1, 0]), np.array([0, -40.0, -15, 0.1, 0, 0]),
-                               np.array([35.0, -35, 14, 0.14, -0.14, 0.14])])
+@pytest.mark.parametrize(
+    "w",
+    [
+        np.zeros(6),
+        np.array([45.0, 0, 12.0, 0, 0.1, 0]),
+        np.array([0, -40.0, -15, 0.1, 0, 0]),
+        np.array([35.0, -35, 14, 0.14, -0.14, 0.14]),
+    ],
+)
 def test_with_the_octupole_the_model_is_the_cylinder_scene(w):
     """What the model leaves out of the cylinder magnets: at rest (6 mm) the dipole alone is
     29 uT off, with the octupole 0.1 uT (the chips' noise is 2-3 uT a reading); near the
@@ -71,8 +81,10 @@ def test_with_the_octupole_the_model_is_the_cylinder_scene(w):
     T = se3.exp_se3(np.linalg.solve(K, w))
     exact = CYLINDER.chip_fields(G, T).ravel()
     unsaturated = np.repeat(np.all(np.abs(exact.reshape(-1, 3)) < 50e-3, axis=1), 3)
-    worst = {o: np.abs(FluxModel(G, G.magnet_moment_am2, octupole=o).predict(T) - exact)[unsaturated].max()
-             for o in (False, True)}
+    worst = {
+        o: np.abs(FluxModel(G, G.magnet_moment_am2, octupole=o).predict(T) - exact)[unsaturated].max()
+        for o in (False, True)
+    }
     assert worst[True] < 0.02 * worst[False] and worst[True] < (0.5e-6 if not w.any() else 20e-6), worst
 
 
@@ -106,10 +118,21 @@ def test_the_models_kept_constants_follow_its_arrays_changed_in_place():
     assert np.all(change > 0) and np.argmax(change) == 0 and change[0] > 1e-4, change
 
 
-EXTREMES = [np.array(w, float) for w in (
-    [50, 0, 0, 0, 0, 0], [-50, 0, 0, 0, 0, 0], [0, 50, 0, 0, 0, 0], [0, -50, 0, 0, 0, 0],
-    [0, 0, 20, 0, 0, 0], [0, 0, -20, 0, 0, 0], [0, 0, 0, 0.2, 0, 0], [0, 0, 0, 0, -0.2, 0],
-    [0, 0, 0, 0, 0, 0.2], [35, -35, 14, 0.14, -0.14, 0.14])]
+EXTREMES = [
+    np.array(w, float)
+    for w in (
+        [50, 0, 0, 0, 0, 0],
+        [-50, 0, 0, 0, 0, 0],
+        [0, 50, 0, 0, 0, 0],
+        [0, -50, 0, 0, 0, 0],
+        [0, 0, 20, 0, 0, 0],
+        [0, 0, -20, 0, 0, 0],
+        [0, 0, 0, 0.2, 0, 0],
+        [0, 0, 0, 0, -0.2, 0],
+        [0, 0, 0, 0, 0, 0.2],
+        [35, -35, 14, 0.14, -0.14, 0.14],
+    )
+]
 
 
 @pytest.mark.parametrize("w", EXTREMES, ids=lambda w: " ".join(f"{v:g}" for v in w))
@@ -139,7 +162,7 @@ def test_missing_or_saturated_chips_are_left_out(left_out):
     usable = np.ones(8, dtype=bool)
     usable[list(left_out)] = False
     for i in left_out:
-        flux[3 * i:3 * i + 3] = [0.05, -0.05, np.nan][: 3] if i % 2 else [0.05, 0.05, 0.05]  # junk
+        flux[3 * i : 3 * i + 3] = [0.05, -0.05, np.nan][:3] if i % 2 else [0.05, 0.05, 0.05]  # junk
     e = estimator().estimate(flux, usable=usable, start=np.eye(4))
     assert e.converged and np.allclose(e.xi, xi, atol=TOL)
 
@@ -173,7 +196,11 @@ def test_nan_or_too_few_channels_is_a_refusal_not_an_exception():
     flux, _ = flux_at(np.zeros(6))
     flux[4] = np.nan
     assert not estimator().estimate(flux).converged
-    assert not estimator().estimate(flux_at(np.zeros(6))[0], usable=np.array([1, 0, 0, 0, 0, 0, 0, 0], bool)).converged
+    assert (
+        not estimator()
+        .estimate(flux_at(np.zeros(6))[0], usable=np.array([1, 0, 0, 0, 0, 0, 0, 0], bool))
+        .converged
+    )
 
 
 def test_noise_gives_an_error_the_size_the_jacobian_says():
@@ -230,6 +257,7 @@ def test_kept_jacobians_give_the_fresh_ones_answer_in_two_iterations(monkeypatch
     the Jacobian's drift within `JACOBIAN_REUSE_M` (3 %) is what moves the end point, and
     3 % of the noise adds 0.05 % to the error's RMS in quadrature."""
     import ftsensord.model.nonlinear as nonlinear
+
     rng = np.random.default_rng(4)
     flux0, _ = flux_at(np.array([3.0, -2.0, 1.0, 0.01, 0.0, -0.01]))
     samples = [flux0 + rng.normal(0, 1e-6, flux0.shape) for _ in range(60)]
@@ -240,9 +268,14 @@ def test_kept_jacobians_give_the_fresh_ones_answer_in_two_iterations(monkeypatch
     iterations = np.mean([kept.estimate(b).iterations for b in samples])
     jacobians = counted["calls"]
     monkeypatch.setattr(nonlinear, "JACOBIAN_REUSE_M", -1.0)  # never near: a new Jacobian every iteration
-    fresh = np.array([estimator().estimate(b, start=se3.exp_se3(x)).xi for b, x in zip(samples, reused, strict=True)])
+    fresh = np.array(
+        [estimator().estimate(b, start=se3.exp_se3(x)).xi for b, x in zip(samples, reused, strict=True)]
+    )
     scatter = reused.std(axis=0)
-    assert np.all(np.abs(reused - fresh).max(axis=0) < 0.03 * scatter), (np.abs(reused - fresh).max(axis=0), scatter)
+    assert np.all(np.abs(reused - fresh).max(axis=0) < 0.03 * scatter), (
+        np.abs(reused - fresh).max(axis=0),
+        scatter,
+    )
     assert iterations <= 2.2 and jacobians < 0.2 * 2 * len(samples)
 
 
@@ -251,6 +284,7 @@ def test_the_last_steps_flux_from_the_jacobian_ends_where_evaluating_it_does(mon
     the Jacobian's flux instead of the field's: one field evaluation a sample instead of
     two, and the same end point within 1 % of the estimate's own noise."""
     import ftsensord.model.nonlinear as nonlinear
+
     rng = np.random.default_rng(5)
     flux0, _ = flux_at(np.array([-4.0, 2.0, 3.0, 0.0, 0.01, 0.01]))
     samples = [flux0 + rng.normal(0, 1e-6, flux0.shape) for _ in range(60)]
@@ -268,8 +302,10 @@ def test_the_last_steps_flux_from_the_jacobian_ends_where_evaluating_it_does(mon
     monkeypatch.setattr(nonlinear, "LINEAR_STEP_T", -1.0)  # every step's flux from the field
     evaluated, per_sample_evaluated = run()
     scatter = evaluated.std(axis=0)
-    assert np.all(np.abs(linear - evaluated).max(axis=0) < 0.01 * scatter), (np.abs(linear - evaluated).max(axis=0),
-                                                                              scatter)
+    assert np.all(np.abs(linear - evaluated).max(axis=0) < 0.01 * scatter), (
+        np.abs(linear - evaluated).max(axis=0),
+        scatter,
+    )
     assert per_sample <= 1.1 and per_sample_evaluated >= 1.9, (per_sample, per_sample_evaluated)
 
 
@@ -284,6 +320,7 @@ def test_a_moving_load_is_followed_to_the_same_end_in_fewer_iterations(monkeypat
     for another BLAS's round-off to take another path."""
     import ftsensord.model.nonlinear as nonlinear
     from ftsensord.model.linear import SENSOR_RANGE
+
     rng = np.random.default_rng(seed)
     t = np.arange(80) / 100.0
     loads = 0.4 * SENSOR_RANGE * np.sin(2 * np.pi * 1.3 * t[:, None] + np.arange(6) * np.pi / 3)
@@ -301,13 +338,21 @@ def test_a_moving_load_is_followed_to_the_same_end_in_fewer_iterations(monkeypat
     with monkeypatch.context() as m:
         m.setattr(NonlinearEstimator, "_ahead", lambda self, pose: pose)  # from the last pose
         _, iterations_plain = run()
-    for name, value in (("JACOBIAN_REUSE_M", -1.0), ("LINEAR_STEP_T", -1.0), ("STEP_TOL", 1e-12),
-                        ("STEP_TOL_RAD", 1e-12)):
+    for name, value in (
+        ("JACOBIAN_REUSE_M", -1.0),
+        ("LINEAR_STEP_T", -1.0),
+        ("STEP_TOL", 1e-12),
+        ("STEP_TOL_RAD", 1e-12),
+    ):
         monkeypatch.setattr(nonlinear, name, value)  # the exact fit: new Jacobians, every step evaluated
-    exact = np.array([estimator().estimate(b, start=se3.exp_se3(x)).xi for b, x in zip(samples[1:], followed)])
+    exact = np.array(
+        [estimator().estimate(b, start=se3.exp_se3(x)).xi for b, x in zip(samples[1:], followed)]
+    )
     scatter = (exact - np.array([xi for _, xi in truth[1:]])).std(axis=0)  # the noise's part of the error
-    assert np.all(np.abs(followed - exact).max(axis=0) < 0.05 * scatter), (np.abs(followed - exact).max(axis=0),
-                                                                            scatter)
+    assert np.all(np.abs(followed - exact).max(axis=0) < 0.05 * scatter), (
+        np.abs(followed - exact).max(axis=0),
+        scatter,
+    )
     assert iterations < 0.8 * iterations_plain, (iterations, iterations_plain)
 
 
@@ -316,6 +361,7 @@ def test_a_motion_continued_stays_a_rigid_motion():
     and 500 continuations in a row stay rotations to round-off (as matrix products they
     drifted off by 1 % within 60 samples)."""
     from ftsensord.model.se3 import continued
+
     x = np.array([2e-4, -1e-4, 5e-5, 1e-3, -2e-3, 5e-4])
     T0 = se3.exp_se3(np.array([1e-3, 2e-3, -1e-3, 0.01, 0.02, -0.03]))
     T1 = se3.exp_se3(x) @ T0
@@ -349,8 +395,12 @@ def test_turning_the_sensor_in_a_50_ut_field_gives_no_false_wrench(field_ut):
     margin, 25 and 40 times under the issue's 0.05 N and 2 mNm. Without the background
     term the same sweep gives tenths of a newton."""
     from ftsensord.sim.loads import fibonacci_directions, gravity_to_down
+
     u_world = np.array(field_ut) * 1e-6
-    est, plain = estimator(), NonlinearEstimator(FluxModel(G, G.magnet_moment_am2, octupole=False), K, background=False)
+    est, plain = (
+        estimator(),
+        NonlinearEstimator(FluxModel(G, G.magnet_moment_am2, octupole=False), K, background=False),
+    )
     rest = FluxModel(G, G.magnet_moment_am2, octupole=False).predict(np.eye(4))
     worst, worst_plain, xi0, xi0_plain = np.zeros(6), np.zeros(6), None, None
     for k, d in enumerate(fibonacci_directions(48)):
@@ -376,15 +426,20 @@ def test_an_as_built_sensor_in_the_room_is_fitted_to_the_chips_noise():
     scales on the drawn magnets, left 3.4 uT field-free and was refused in the room."""
     from ftsensord.calibration.nlfit import fit_nonlinear
     from ftsensord.calibration.rig import record_dataset, simulated_robot
-    from ftsensord.sim import VirtualClock
-    from ftsensord.sim import simulated_bus
+    from ftsensord.sim import VirtualClock, simulated_bus
     from ftsensord.sim.loads import paper_plan
     from ftsensord.sim.physics import Tolerances
+
     geometry, gains = Tolerances(0.15e-3, 0.03, np.radians(1.5), 0.02, 0.1e-3, seed=1).build()
     s = SimSensor("s", tuple(range(0x0C, 0x14)), geometry, chip_gain=gains)
     scene = PhysicalScene([s], external_field_t=np.array([22.3, 1.4, -42.6]) * 1e-6)
-    ds = record_dataset(simulated_bus(scene, clock=VirtualClock(), seed=7), s.addresses,
-                        paper_plan(n_fit=60, n_validation=0, n_no_load=12), samples=10, **simulated_robot(scene, "s"))
+    ds = record_dataset(
+        simulated_bus(scene, clock=VirtualClock(), seed=7),
+        s.addresses,
+        paper_plan(n_fit=60, n_validation=0, n_no_load=12),
+        samples=10,
+        **simulated_robot(scene, "s"),
+    )
     nl = fit_nonlinear(ds)  # refused if a magnet lands far off or the residual is far above noise
     noise = float(np.median(ds.flux_sem_t))
     assert nl.warnings == () and 0.7 * noise < nl.fit_rms_residual_t < 1.3 * noise
@@ -400,6 +455,7 @@ def test_a_calibration_file_says_which_field_model_it_was_fitted_with(tmp_path):
     from ftsensord.config.file import builtin_path
 
     from .conftest import assert_names_file_and_key
+
     packaged = Calibration.load(builtin_path("sim-sensor1.json"))
     assert packaged.nonlinear is not None and packaged.nonlinear.octupole
     assert packaged.nonlinear.estimator().model.octupole
@@ -413,7 +469,11 @@ def test_a_calibration_file_says_which_field_model_it_was_fitted_with(tmp_path):
         doc["checksum"] = checksum(doc)
         path.write_text(json.dumps(doc))
         loaded = Calibration.load(path).nonlinear
-        assert loaded is not None and loaded.octupole == octupole and loaded.estimator().model.octupole == octupole
+        assert (
+            loaded is not None
+            and loaded.octupole == octupole
+            and loaded.estimator().model.octupole == octupole
+        )
     doc["nonlinear"]["field_model"] = "quadrupole"
     doc["checksum"] = checksum(doc)
     path.write_text(json.dumps(doc))
@@ -449,11 +509,12 @@ def test_the_undamped_gains_step_is_the_warm_damped_one(background):
     worst = 0.0
     for _ in range(200):
         w = rng.uniform(-0.4, 0.4, 6) * np.array([10, 10, 20, 0.15, 0.15, 0.1])
-        _, J = model.predict_and_jacobian(se3.exp_se3(np.linalg.solve(K, w)), np.zeros(3) if background else None,
-                                          background)
+        _, J = model.predict_and_jacobian(
+            se3.exp_se3(np.linalg.solve(K, w)), np.zeros(3) if background else None, background
+        )
         JtJ, Jtr = _normal(J, rng.normal(0, 3e-6, J.shape[0]), np.zeros(3) if background else None)
         damped = JtJ.copy()
-        damped.flat[::damped.shape[0] + 1] *= 1 + WARM_DAMPING
+        damped.flat[:: damped.shape[0] + 1] *= 1 + WARM_DAMPING
         undamped = np.linalg.solve(JtJ, Jtr)
         worst = max(worst, np.linalg.norm(np.linalg.solve(damped, Jtr) - undamped) / np.linalg.norm(undamped))
     assert worst < 2e-5

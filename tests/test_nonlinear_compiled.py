@@ -30,7 +30,8 @@ from ftsensord.sim.physics import PAPER_STIFFNESS_DIAG, PhysicalScene, SimSensor
 G = SensorGeometry.ring()
 K = np.diag(PAPER_STIFFNESS_DIAG)
 SCENE = PhysicalScene([SimSensor("s", tuple(range(0x0C, 0x14)))])  # each chip's own magnet the exact cylinder
-NOISE_T = 1e-6  # a channel's noise (T): the MLX90393's 1-3 uT a reading at the daemon's settings, docs/design/physics.md
+# A channel's noise (T): the MLX90393's 1-3 uT a reading at the daemon's settings, docs/design/physics.md.
+NOISE_T = 1e-6
 #: End points within 1e-3 of the noise's own scatter of the estimate. Both solvers take the
 #: same steps, so they differ by round-off (1e-16 relative, measured 1e-9 of the scatter at
 #: most); where round-off tips a branch the other way at its threshold (a Jacobian kept or
@@ -62,7 +63,9 @@ def flux(w: np.ndarray, rng: np.random.Generator | None = None) -> np.ndarray:
     return b if rng is None else b + rng.normal(0, NOISE_T, b.shape)
 
 
-def compare(reference: NonlinearEstimator, compiled: NonlinearEstimator, samples, usable=None, start=None) -> dict:
+def compare(
+    reference: NonlinearEstimator, compiled: NonlinearEstimator, samples, usable=None, start=None
+) -> dict:
     """Each sample through both in turn: the same decision, iterations and background
     field's presence; end points gathered for the caller's tolerance."""
     xi_a, xi_b, converged, iterations = [], [], [], []
@@ -70,7 +73,10 @@ def compare(reference: NonlinearEstimator, compiled: NonlinearEstimator, samples
         chips = usable[k] if isinstance(usable, list) else usable
         a, c = reference.estimate(b, chips, start), compiled.estimate(b, chips, start)
         assert (a.converged, a.iterations) == (c.converged, c.iterations), (k, a, c)
-        assert np.array_equal(np.isfinite(a.xi), np.isfinite(c.xi)) and a.background_t.shape == c.background_t.shape
+        assert (
+            np.array_equal(np.isfinite(a.xi), np.isfinite(c.xi))
+            and a.background_t.shape == c.background_t.shape
+        )
         xi_a.append(a.xi)
         xi_b.append(c.xi)
         converged.append(a.converged)
@@ -78,13 +84,17 @@ def compare(reference: NonlinearEstimator, compiled: NonlinearEstimator, samples
         if a.converged:
             # The field as the pose: the same steps, round-off apart; a thousandth of a channel's noise.
             assert np.allclose(a.background_t, c.background_t, rtol=0, atol=1e-3 * NOISE_T), k
-    return {"reference": np.array(xi_a), "compiled": np.array(xi_b),
-            "converged": converged, "iterations": np.mean(iterations)}
+    return {
+        "reference": np.array(xi_a),
+        "compiled": np.array(xi_b),
+        "converged": converged,
+        "iterations": np.mean(iterations),
+    }
 
 
 def assert_within_scatter(result: dict, scatter: np.ndarray) -> None:
     diff = np.abs(result["reference"] - result["compiled"]).max(axis=0)
-    assert np.all(diff < SCATTER_FRACTION * scatter), (diff / scatter)
+    assert np.all(diff < SCATTER_FRACTION * scatter), diff / scatter
 
 
 def rest_scatter(model: FluxModel, w: np.ndarray) -> np.ndarray:
@@ -102,19 +112,29 @@ def c_model(library, model: FluxModel) -> tuple[nlcompiled.CompiledSolve, object
     return solve, ctypes.c_void_p(solve._model.ctypes.data)
 
 
-@pytest.mark.parametrize("octupole,crosstalk,matrix", [(True, True, True), (False, True, False), (True, False, False)])
+@pytest.mark.parametrize(
+    "octupole,crosstalk,matrix", [(True, True, True), (False, True, False), (True, False, False)]
+)
 def test_the_forward_model_and_its_jacobian_are_fluxmodels(library, octupole, crosstalk, matrix):
     rng = np.random.default_rng(1)
-    scale = rng.normal(1, 0.05, (8, 3, 3)) if matrix else rng.normal(1, 0.05, (8, 3))  # a full response per chip
-    model = FluxModel(G, G.magnet_moment_am2, scale, rng.normal(0, 20e-6, (8, 3)), crosstalk=crosstalk,
-                      octupole=octupole)
+    scale = (
+        rng.normal(1, 0.05, (8, 3, 3)) if matrix else rng.normal(1, 0.05, (8, 3))
+    )  # a full response per chip
+    model = FluxModel(
+        G, G.magnet_moment_am2, scale, rng.normal(0, 20e-6, (8, 3)), crosstalk=crosstalk, octupole=octupole
+    )
     solve, at = c_model(library, model)
     for _ in range(20):
         T = se3.exp_se3(rng.uniform(-1, 1, 6) * [3e-3, 3e-3, 2e-3, 0.03, 0.03, 0.03])
         u = rng.normal(0, 50e-6, 3)
         pred, J = np.empty(24), np.empty((48, 9))  # rows for _nlsolve.c's 16 chips
-        solve.lib.nl_predict_and_jacobian(at, ctypes.c_void_p(T.ctypes.data), ctypes.c_void_p(u.ctypes.data),
-                                          ctypes.c_void_p(pred.ctypes.data), ctypes.c_void_p(J.ctypes.data))
+        solve.lib.nl_predict_and_jacobian(
+            at,
+            ctypes.c_void_p(T.ctypes.data),
+            ctypes.c_void_p(u.ctypes.data),
+            ctypes.c_void_p(pred.ctypes.data),
+            ctypes.c_void_p(J.ctypes.data),
+        )
         want, want_J = model.predict_and_jacobian(T, u, True)
         # The same formulas summed in another order: round-off, 1e-15 of the largest term.
         assert np.allclose(pred, want, rtol=0, atol=1e-12 * np.abs(want).max())
@@ -163,8 +183,15 @@ def test_chips_leaving_and_coming_back_give_the_same_fits(library):
     assert_within_scatter(result, rest_scatter(model, loads[-1]))
 
 
-@pytest.mark.parametrize("w", [[45.0, 0, 12.0, 0, 0.1, 0], [0, -40.0, -15, 0.1, 0, 0],
-                               [35.0, -35, 14, 0.14, -0.14, 0.14], [0, 0, 0, 0, 0, 0.2]])
+@pytest.mark.parametrize(
+    "w",
+    [
+        [45.0, 0, 12.0, 0, 0.1, 0],
+        [0, -40.0, -15, 0.1, 0, 0],
+        [35.0, -35, 14, 0.14, -0.14, 0.14],
+        [0, 0, 0, 0, 0, 0.2],
+    ],
+)
 def test_cold_starts_at_full_range_give_the_same_fits(library, w):
     samples = [flux(np.array(w), np.random.default_rng(2))]
     model = FluxModel(G, G.magnet_moment_am2)
@@ -221,7 +248,9 @@ def test_the_solver_is_chosen_by_name(tmp_path, library):
     assert nlcompiled.solver_for("auto", tmp_path / "none.so") is None  # absent: numpy's, silently
     other = tmp_path / "other.c"  # a library that is not this source's (a stale or foreign build)
     other.write_text("int nl_model_doubles(void) { return 0; }\n")
-    subprocess.run([nlcompiled.compiler(), "-shared", "-fPIC", "-o", str(tmp_path / "other.so"), str(other)], check=True)
+    subprocess.run(
+        [nlcompiled.compiler(), "-shared", "-fPIC", "-o", str(tmp_path / "other.so"), str(other)], check=True
+    )
     assert nlcompiled.load(tmp_path / "other.so") is None
     assert nlcompiled.solver_for("auto", tmp_path / "other.so") is None
     with pytest.raises(ConfigError, match="compiled.*none.so.*C compiler"):
@@ -233,10 +262,17 @@ def test_the_solver_is_chosen_by_name(tmp_path, library):
     assert nlcompiled.solver_for("auto", library, chips=17) is None
 
 
-@pytest.mark.parametrize("edit", [
-    ("double chip_p[NMAX][3], magnet_p[NMAX][3];", "double magnet_p[NMAX][3], chip_p[NMAX][3];"),  # same size
-    ("X(MAX_STEP_M) X(MAX_STEP_RAD)", "X(MAX_STEP_RAD) X(MAX_STEP_M)"),  # two tunables swapped
-], ids=["fields swapped", "tunables swapped"])
+@pytest.mark.parametrize(
+    "edit",
+    [
+        (
+            "double chip_p[NMAX][3], magnet_p[NMAX][3];",
+            "double magnet_p[NMAX][3], chip_p[NMAX][3];",
+        ),  # same size
+        ("X(MAX_STEP_M) X(MAX_STEP_RAD)", "X(MAX_STEP_RAD) X(MAX_STEP_M)"),  # two tunables swapped
+    ],
+    ids=["fields swapped", "tunables swapped"],
+)
 def test_a_library_whose_layout_differs_field_by_field_is_not_used(tmp_path, edit):
     """Its total size the same, the library's nl_model or tunables in another order: the
     loader compares each field's offset and each tunable's index, and takes numpy's solve."""
@@ -247,8 +283,20 @@ def test_a_library_whose_layout_differs_field_by_field_is_not_used(tmp_path, edi
             text = text.replace(edit[0], edit[1])
         (tmp_path / source.name).write_text(text)
     out = tmp_path / "_nlsolve.so"
-    subprocess.run([nlcompiled.compiler(), "-std=c99", "-shared", "-fPIC", "-o", str(out),
-                    str(tmp_path / "_nlsolve.c"), str(tmp_path / "_nlmodel.c"), "-lm"], check=True)
+    subprocess.run(
+        [
+            nlcompiled.compiler(),
+            "-std=c99",
+            "-shared",
+            "-fPIC",
+            "-o",
+            str(out),
+            str(tmp_path / "_nlsolve.c"),
+            str(tmp_path / "_nlmodel.c"),
+            "-lm",
+        ],
+        check=True,
+    )
     assert nlcompiled.load(out) is None
     assert nlcompiled.solver_for("auto", out) is None
 
@@ -263,7 +311,9 @@ def test_an_install_carries_the_library_it_built():
     installed = Path(sysconfig.get_paths()["platlib"]) / "ftsensord" / "model"
     assert (installed / "nlcompiled.py").is_file(), f"ftsensord is not installed in {installed.parent.parent}"
     built = nlcompiled.library_path(installed)
-    assert built is not None and nlcompiled.load(built) is not None, sorted(p.name for p in installed.iterdir())
+    assert built is not None and nlcompiled.load(built) is not None, sorted(
+        p.name for p in installed.iterdir()
+    )
 
 
 PR_SET_MDWE, PR_MDWE_REFUSE_EXEC_GAIN = 65, 1  # linux/prctl.h (Linux 6.3): what MemoryDenyWriteExecute= sets
@@ -301,9 +351,19 @@ def test_the_compiled_solve_runs_where_memory_may_not_be_written_and_executed(li
         if libc.prctl(PR_SET_MDWE, PR_MDWE_REFUSE_EXEC_GAIN, 0, 0, 0) != 0:
             raise OSError(ctypes.get_errno(), "prctl(PR_SET_MDWE)")
 
-    done = subprocess.run([sys.executable, "-c", MDWE_CHILD, str(library)], preexec_fn=deny, capture_output=True,
-                          text=True, timeout=120, cwd=Path(__file__).resolve().parent.parent)
-    assert done.returncode == 0 and done.stdout.split() == ["True"], (done.returncode, done.stdout, done.stderr)
+    done = subprocess.run(
+        [sys.executable, "-c", MDWE_CHILD, str(library)],
+        preexec_fn=deny,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=Path(__file__).resolve().parent.parent,
+    )
+    assert done.returncode == 0 and done.stdout.split() == ["True"], (
+        done.returncode,
+        done.stdout,
+        done.stderr,
+    )
 
 
 def test_the_motion_continued_is_se3s(library):
@@ -316,16 +376,18 @@ def test_the_motion_continued_is_se3s(library):
         pose = se3.exp_se3(rng.normal(0, scale, 6) * [1e-3, 1e-3, 1e-3, 0.5, 0.5, 0.5]) @ before
         want, c = continued(before, pose), solve.continued(before, pose)
         assert np.allclose(c[0], want[0], rtol=0, atol=1e-15)  # round-off of unit-size entries
-        assert np.allclose(c[1:], want[1:], rtol=1e-12, atol=1e-20)  # norms of the same twist, round-off apart
+        assert np.allclose(
+            c[1:], want[1:], rtol=1e-12, atol=1e-20
+        )  # norms of the same twist, round-off apart
 
 
 def test_status_says_which_solve_the_daemon_runs(library):
     """`status`' `nonlinear_solver`: numpy's without the library, compiled with it, null
     without a nonlinear calibration (an operator sees whether the install built it)."""
     from ftsensord.config.file import builtin_path, load_config
+    from ftsensord.daemon.status import sensor_status
     from ftsensord.processing.filters import WrenchFilter
     from ftsensord.processing.pipeline import SensorPipeline
-    from ftsensord.daemon.status import sensor_status
 
     s = load_config(builtin_path("sim.toml")).sensors[0]
     p = SensorPipeline.build(s, WrenchFilter(), 2)

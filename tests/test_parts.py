@@ -11,13 +11,11 @@ import pytest
 from ftsensord.acquire.health import ChipCare, ChipResult
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.chip.driver import MLX90393, Measurement
-from ftsensord.errors import ChipRefusedError
 from ftsensord.daemon.control import Control
 from ftsensord.daemon.loop import LATE_FRACTION, LoopTiming
 from ftsensord.daemon.status import ChipLedger
-from ftsensord.sim import VirtualClock
-from ftsensord.sim import simulated_bus
-from ftsensord.sim import two_sensor_scene
+from ftsensord.errors import ChipRefusedError
+from ftsensord.sim import VirtualClock, simulated_bus, two_sensor_scene
 
 
 # --- loop timing -------------------------------------------------------------------------
@@ -54,13 +52,14 @@ def _measurement(words: tuple[int, int, int]) -> Measurement:
 def _care(stuck_cycles: int) -> tuple[ChipCare, VirtualClock]:
     clock = VirtualClock()
     bus = simulated_bus(two_sensor_scene(), clock=clock)
-    return ChipCare(bus, [MLX90393(bus, 0x0C, sleep=bus.sleep)], mlx.Settings(), burst=False,
-                    stuck_cycles=stuck_cycles), clock
+    return ChipCare(
+        bus, [MLX90393(bus, 0x0C, sleep=bus.sleep)], mlx.Settings(), burst=False, stuck_cycles=stuck_cycles
+    ), clock
 
 
 def test_identical_words_for_the_stuck_count_make_a_chip_fail_with_a_reset_due():
     care, clock = _care(stuck_cycles=3)
-    for i in range(3):
+    for _ in range(3):
         assert care.judge(ChipResult(0x0C, _measurement((1, 2, 3))), clock.now()).ok  # 0, 1, 2 repeats
     stuck = care.judge(ChipResult(0x0C, _measurement((1, 2, 3))), clock.now())
     assert not stuck.ok and "stuck" in str(stuck.error)
@@ -78,6 +77,7 @@ def test_no_new_data_is_stale_for_a_while_then_a_failure():
     care, clock = _care(stuck_cycles=0)
     stale = ChipRefusedError(0x0C, "no new data", mlx.Status(0x10), command="RM")
     from ftsensord.acquire.health import STALE_LIMIT
+
     for _ in range(STALE_LIMIT):
         care.judge(ChipResult(0x0C, error=stale), clock.now())
     assert not care.failing
@@ -87,6 +87,7 @@ def test_no_new_data_is_stale_for_a_while_then_a_failure():
 
 def test_backoff_doubles_up_to_its_ceiling():
     from ftsensord.acquire.health import BACKOFF_FIRST_S, BACKOFF_MAX_S
+
     care, _ = _care(stuck_cycles=0)
     care.fail(0x0C, 0.0)
     assert care.health[0x0C].retry_at == 0.0  # the first retry: the next cycle
@@ -152,14 +153,24 @@ def test_control_dispatches_checked_arguments_to_the_daemon():
     assert ask(control, cmd="tare", samples=5, sensor="sensor2") is None  # answered when done
     assert ask(control, cmd="set", lowpass_hz=10) == {"ok": True, "result": {"rate_hz": 100.0}}
     assert ask(control, cmd="set", estimator="nonlinear") == {"ok": True, "result": {}}
-    assert target.calls == [("tare", ["sensor2"], 5), ("set", 100.0, 1, 10.0), ("estimator", "nonlinear", None)]
+    assert target.calls == [
+        ("tare", ["sensor2"], 5),
+        ("set", 100.0, 1, 10.0),
+        ("estimator", "nonlinear", None),
+    ]
 
 
-@pytest.mark.parametrize(("request_", "error"), [
-    ({"cmd": "tare", "sensor": "sensor9"}, "sensor9"), ({"cmd": "set", "rate_hz": True}, "rate_hz"),
-    ({"cmd": "set", "lowpass_hz": 60}, "below half the rate"), ({"cmd": "set", "estimator": "magic"}, "estimator"),
-    ({"cmd": "set", "sensor": "sensor1", "rate_hz": 50}, "sensor"), ({"cmd": "reload"}, "the new file is bad"),
-])
+@pytest.mark.parametrize(
+    ("request_", "error"),
+    [
+        ({"cmd": "tare", "sensor": "sensor9"}, "sensor9"),
+        ({"cmd": "set", "rate_hz": True}, "rate_hz"),
+        ({"cmd": "set", "lowpass_hz": 60}, "below half the rate"),
+        ({"cmd": "set", "estimator": "magic"}, "estimator"),
+        ({"cmd": "set", "sensor": "sensor1", "rate_hz": 50}, "sensor"),
+        ({"cmd": "reload"}, "the new file is bad"),
+    ],
+)
 def test_control_refuses_what_the_daemon_must_not_see(request_, error):
     target = StandIn()
     reply = ask(Control(None, target), **request_)
@@ -171,9 +182,9 @@ def test_control_refuses_what_the_daemon_must_not_see(request_, error):
 def test_a_reload_reuses_an_unchanged_calibration_and_reads_a_changed_one(tmp_path):
     from pathlib import Path
 
-    from ftsensord.errors import ConfigError
     from ftsensord.config.file import load_config
     from ftsensord.config.sensors import Calibrations
+    from ftsensord.errors import ConfigError
 
     packaged = Path(__file__).resolve().parent.parent / "ftsensord" / "data" / "sim-sensor1.json"
     path = tmp_path / "cal.json"
@@ -184,6 +195,7 @@ def test_a_reload_reuses_an_unchanged_calibration_and_reads_a_changed_one(tmp_pa
     doc = json.loads(path.read_text())
     doc["sensor"]["serial"] = doc["sensor"]["serial"][::-1]  # same size, other content
     from ftsensord.calibration.calfile import checksum
+
     doc["checksum"] = checksum(doc)
     path.write_text(json.dumps(doc, indent=1) + "\n")
     again = cache.load(path)

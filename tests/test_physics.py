@@ -51,7 +51,10 @@ def test_linear_mechanics_is_hookes_law_and_stiffening_stiffens():
     full = stiff.deflection(1.3 * SENSOR_RANGE)
     assert np.allclose(full, SENSOR_RANGE / np.array(PAPER_STIFFNESS_DIAG), rtol=1e-9)
     assert np.allclose(stiff.deflection(-1.3 * SENSOR_RANGE), -full)
-    assert np.all(np.abs(stiff.deflection(w)) <= np.abs(xi)) and np.abs(stiff.deflection(w)).sum() < np.abs(xi).sum()
+    assert (
+        np.all(np.abs(stiff.deflection(w)) <= np.abs(xi))
+        and np.abs(stiff.deflection(w)).sum() < np.abs(xi).sum()
+    )
 
 
 def test_stiffness_must_be_spd():
@@ -65,7 +68,11 @@ def test_loads_over_time():
     step = StepLoad(1.0, w1, w2)
     assert np.array_equal(step.wrench(0.999), w1) and np.array_equal(step.wrench(1.0), w2)
     r = ramp(1.0, 3.0, w1, w2)
-    assert np.allclose(r.wrench(2.0), 0.0) and np.array_equal(r.wrench(0.0), w1) and np.array_equal(r.wrench(9), w2)
+    assert (
+        np.allclose(r.wrench(2.0), 0.0)
+        and np.array_equal(r.wrench(0.0), w1)
+        and np.array_equal(r.wrench(9), w2)
+    )
     with pytest.raises(ValueError):
         RecordedLoad(np.array([0.0, 0.0]), np.zeros((2, 6)))
     with pytest.raises(ValueError):
@@ -77,7 +84,9 @@ def test_calibration_pose_is_gravity_moved_by_the_adjoint():
     w = pose.wrench()
     assert np.allclose(w[:3], [0, 0, -0.2 * G])
     assert np.allclose(w[3:], np.cross([0.1, 0, 0], [0, 0, -0.2 * G]))  # My = +0.196 Nm
-    robot = CalibrationRobotLoad([pose, CalibrationPose(np.array([1.0, 0, 0]), 0.05, np.zeros(3))], dwell_s=2.0)
+    robot = CalibrationRobotLoad(
+        [pose, CalibrationPose(np.array([1.0, 0, 0]), 0.05, np.zeros(3))], dwell_s=2.0
+    )
     assert np.allclose(robot.wrench(1.9), w) and np.allclose(robot.wrench(2.0)[:3], [0.05 * G, 0, 0])
     assert np.allclose(robot.wrench(100.0)[:3], [0.05 * G, 0, 0])
 
@@ -100,7 +109,9 @@ def test_chip_fields_follow_the_deflection():
 def test_own_magnet_cylinder_against_dipole_and_crosstalk():
     cyl = PhysicalScene([SimSensor("s", tuple(range(0x0C, 0x14)))], field_model="cylinder", crosstalk="off")
     dip = PhysicalScene([SimSensor("s", tuple(range(0x0C, 0x14)))], field_model="dipole", crosstalk="off")
-    both = PhysicalScene([SimSensor("s", tuple(range(0x0C, 0x14)))], field_model="cylinder", crosstalk="dipole")
+    both = PhysicalScene(
+        [SimSensor("s", tuple(range(0x0C, 0x14)))], field_model="cylinder", crosstalk="dipole"
+    )
     diff = np.linalg.norm(cyl.field_t(0x0C, 0) - dip.field_t(0x0C, 0))
     assert 10e-6 < diff < 60e-6  # about 30 uT at the 6 mm gap: more than the chip's noise
     crosstalk = np.linalg.norm(both.field_t(0x0C, 0) - cyl.field_t(0x0C, 0))
@@ -160,18 +171,24 @@ def test_sensors_scene_file(tmp_path):
     assert np.allclose(scene.sensors[1].load.wrench(0.5), [0, 0, -0.5, 0, 0, 0])
 
 
-@pytest.mark.parametrize(("edit", "key", "expected"), [
-    (('crosstalk = "dipole"', 'crosstalk = "full"'), "crosstalk", 'one of "off", "dipole", "cylinder"'),
-    (("0x12, 0x13]", "0x12]"), "sensor[0].addresses", "8 chip addresses"),
-    (("0x1A, 0x1B]", "0x1A, 0x13]"), "sensor[1].addresses", "not used before"),
-    (("stiffening = 0.2", "stiffening = -1"), "sensor[0].stiffening", "finite number in [0.0"),
-    (("at_s = 1.0", "at = 1.0"), "sensor[0].load.at", "one of"),
-    (("after = [2.0, 0, 0, 0, 0, 0]", "after = [2.0, 0, 0]"), "sensor[0].load.after", "6 finite numbers"),
-    (("times_s = [0.0, 1.0]", "times_s = [1.0, 0.0]"), "sensor[1].load.times_s", "strictly increasing"),
-    (("[[0, 0, 0, 0, 0, 0], [0, 0, -1.0, 0, 0, 0]]", "[[0, 0, 0, 0, 0, 0]]"), "sensor[1].load.wrenches",
-     "2 rows"),
-    (("gap_mm = 5.0", "gap_mm = 0"), "sensor[1].gap_mm", "finite number"),
-])
+@pytest.mark.parametrize(
+    ("edit", "key", "expected"),
+    [
+        (('crosstalk = "dipole"', 'crosstalk = "full"'), "crosstalk", 'one of "off", "dipole", "cylinder"'),
+        (("0x12, 0x13]", "0x12]"), "sensor[0].addresses", "8 chip addresses"),
+        (("0x1A, 0x1B]", "0x1A, 0x13]"), "sensor[1].addresses", "not used before"),
+        (("stiffening = 0.2", "stiffening = -1"), "sensor[0].stiffening", "finite number in [0.0"),
+        (("at_s = 1.0", "at = 1.0"), "sensor[0].load.at", "one of"),
+        (("after = [2.0, 0, 0, 0, 0, 0]", "after = [2.0, 0, 0]"), "sensor[0].load.after", "6 finite numbers"),
+        (("times_s = [0.0, 1.0]", "times_s = [1.0, 0.0]"), "sensor[1].load.times_s", "strictly increasing"),
+        (
+            ("[[0, 0, 0, 0, 0, 0], [0, 0, -1.0, 0, 0, 0]]", "[[0, 0, 0, 0, 0, 0]]"),
+            "sensor[1].load.wrenches",
+            "2 rows",
+        ),
+        (("gap_mm = 5.0", "gap_mm = 0"), "sensor[1].gap_mm", "finite number"),
+    ],
+)
 def test_a_bad_sensors_scene_names_file_key_and_expectation(tmp_path, edit, key, expected):
     path = tmp_path / "bad.toml"
     path.write_text(SENSORS.replace(*edit, 1))
@@ -191,6 +208,7 @@ def test_the_scene_moves_on_its_time_grid():
 
 def test_robot_load_in_a_scene_file_and_the_example_config(tmp_path):
     from pathlib import Path
+
     path = Path(__file__).resolve().parent.parent / "config" / "scene-two-sensors.toml"
     scene = load_scene(path)
     robot = scene.sensors[1].load

@@ -22,8 +22,7 @@ from ftsensord.calibration.report import write_report
 from ftsensord.calibration.rig import record_dataset, simulate_sweeps, simulated_robot
 from ftsensord.errors import CalibrationError
 from ftsensord.model.geometry import SensorGeometry
-from ftsensord.sim import VirtualClock
-from ftsensord.sim import simulated_bus
+from ftsensord.sim import VirtualClock, simulated_bus
 from ftsensord.sim.loads import CalibrationPose, paper_plan
 from ftsensord.sim.physics import PhysicalScene, SimSensor
 
@@ -37,8 +36,13 @@ def run(field_t: np.ndarray, plan=None, seed: int = 3) -> Dataset:
     s = SimSensor("s", ADDRS)
     scene = PhysicalScene([s], external_field_t=field_t)
     bus = simulated_bus(scene, clock=VirtualClock(), seed=seed)
-    ds = record_dataset(bus, ADDRS, plan or paper_plan(n_fit=60, n_validation=20, n_no_load=12), samples=4,
-                        **simulated_robot(scene, "s"))
+    ds = record_dataset(
+        bus,
+        ADDRS,
+        plan or paper_plan(n_fit=60, n_validation=20, n_no_load=12),
+        samples=4,
+        **simulated_robot(scene, "s"),
+    )
     ds.sweeps = simulate_sweeps(ADDRS, SensorGeometry.ring(), samples=4)
     return ds
 
@@ -58,8 +62,10 @@ def copy(ds: Dataset, **changes) -> Dataset:
 
 
 # --- flux a chip cannot read -----------------------------------------------------------------
-@pytest.mark.parametrize(("factor", "unit"), [(1e3, "written in mT (x 0.001)"), (1e4, "gauss (x 0.0001)"),
-                                            (1e6, "written in uT (x 1e-06)")])
+@pytest.mark.parametrize(
+    ("factor", "unit"),
+    [(1e3, "written in mT (x 0.001)"), (1e4, "gauss (x 0.0001)"), (1e6, "written in uT (x 1e-06)")],
+)
 def test_flux_in_the_wrong_unit_is_refused_at_load_naming_the_unit(clean, tmp_path, factor, unit):
     path = tmp_path / "ds.json"
     copy(clean, flux_t=clean.flux_t * factor).save(path)
@@ -69,7 +75,9 @@ def test_flux_in_the_wrong_unit_is_refused_at_load_naming_the_unit(clean, tmp_pa
 def test_flux_beyond_the_hall_elements_range_is_refused_by_the_fit_naming_the_chip(clean):
     bad = copy(clean, flux_t=clean.flux_t.copy())
     bad.flux_t[7, 3 * 2 + 1] = 0.0612  # 61 mT on chip 3's y: past the 50 mT the element saturates at
-    with pytest.raises(CalibrationError, match=r"poses\[7\].flux_t: chip 0x0E \(index 2\) reads 0.0612 on y: .*50 mT"):
+    with pytest.raises(
+        CalibrationError, match=r"poses\[7\].flux_t: chip 0x0E \(index 2\) reads 0.0612 on y: .*50 mT"
+    ):
         fit(bad)
 
 
@@ -87,7 +95,9 @@ def test_a_saturated_chip_that_leaves_too_few_poses_is_named(clean):
     ds = copy(clean, saturated=clean.saturated.copy())
     fit_rows = np.flatnonzero(ds.split == "fit")
     ds.saturated[fit_rows[:40], 3] = True
-    with pytest.raises(CalibrationError, match=r"20 usable fit poses.*40 left out for saturation: chip 0x0F in 40"):
+    with pytest.raises(
+        CalibrationError, match=r"20 usable fit poses.*40 left out for saturation: chip 0x0F in 40"
+    ):
         fit(ds)
 
 
@@ -95,7 +105,9 @@ def test_a_saturated_chip_that_leaves_too_few_poses_is_named(clean):
 def test_a_k_that_is_not_positive_definite_is_refused_by_the_fit(clean):
     # Wrenches recorded with the wrong sign, gravity too (so the masses agree with them).
     flipped = copy(clean, wrench=-clean.wrench, gravity_dir=-clean.gravity_dir)
-    with pytest.raises(CalibrationError, match="K is negative definite.*magnets face the other way.*gravity_dir"):
+    with pytest.raises(
+        CalibrationError, match="K is negative definite.*magnets face the other way.*gravity_dir"
+    ):
         fit(flipped)
     with pytest.raises(CalibrationError, match=r"the sign of Fx, Fy, Fz, Mx, My, Mz is flipped"):
         fit(copy(clean, wrench=-clean.wrench))  # the masses, lever arms and gravity say otherwise
@@ -114,9 +126,16 @@ def test_a_calibration_file_with_a_k_not_positive_definite_names_file_and_key(cl
 def test_a_nonlinear_k_not_positive_definite_is_refused_on_load(clean, tmp_path):
     result = fit(clean)
     doc = Calibration(result.model, ADDRS, "SN-1").document()
-    doc["nonlinear"] = {"gap_m": 6e-3, "ring_radius_m": 8e-3, "tilt_deg": 25.0, "scale": np.ones((8, 3)).tolist(),
-                        "offset_t": np.zeros((8, 3)).tolist(), "K": np.diag([1e4, 1e4, 1e4, 10, 10, -10.0]).tolist(),
-                        "zero_twist": [0.0] * 6, "fit_rms_residual_t": 1e-6}
+    doc["nonlinear"] = {
+        "gap_m": 6e-3,
+        "ring_radius_m": 8e-3,
+        "tilt_deg": 25.0,
+        "scale": np.ones((8, 3)).tolist(),
+        "offset_t": np.zeros((8, 3)).tolist(),
+        "K": np.diag([1e4, 1e4, 1e4, 10, 10, -10.0]).tolist(),
+        "zero_twist": [0.0] * 6,
+        "fit_rms_residual_t": 1e-6,
+    }
     doc["checksum"] = checksum(doc)
     path = tmp_path / "cal.json"
     path.write_text(json.dumps(doc))
@@ -126,8 +145,11 @@ def test_a_nonlinear_k_not_positive_definite_is_refused_on_load(clean, tmp_path)
 # --- sweeps that cannot give a position map ---------------------------------------------------------
 def test_a_rank_deficient_sweep_names_the_chip_and_the_file(clean, tmp_path):
     sweep = clean.sweeps[0x0E]
-    along_x = np.abs(sweep.position_m[:, 1] - sweep.position_m[0, 1]) + np.abs(sweep.position_m[:, 2]
-                                                                             - sweep.position_m[0, 2]) < 1e-12
+    along_x = (
+        np.abs(sweep.position_m[:, 1] - sweep.position_m[0, 1])
+        + np.abs(sweep.position_m[:, 2] - sweep.position_m[0, 2])
+        < 1e-12
+    )
     flat = copy(clean, sweeps={**clean.sweeps, 0x0E: Sweep(sweep.position_m[along_x], sweep.flux_t[along_x])})
     path = tmp_path / "ds.json"
     flat.save(path)
@@ -168,16 +190,22 @@ def test_no_load_poses_with_the_rod_left_on_are_refused():
     """The rod's weight turns with the sensor: its deflection adds directions no uniform
     field makes, and projecting them out would remove the loads' own signal."""
     plan = paper_plan(n_fit=60, n_validation=0, n_no_load=12)
-    rod_on = [(CalibrationPose(p.gravity_dir, 0.05, np.array([0.0, 0.0, 0.1]), p.rotation), split)
-              if split == "no-load" else (p, split) for p, split in plan]
+    rod_on = [
+        (CalibrationPose(p.gravity_dir, 0.05, np.array([0.0, 0.0, 0.1]), p.rotation), split)
+        if split == "no-load"
+        else (p, split)
+        for p, split in plan
+    ]
     ds = run(EARTH_T, rod_on)
     with pytest.raises(CalibrationError, match="more than 3 flux directions.*rod and mass off"):
         fit(ds)
 
 
 def test_measuring_the_room_needs_enough_no_load_poses(room):
-    few = room.select(np.flatnonzero(room.split != "no-load").tolist() + np.flatnonzero(room.split == "no-load")[:3]
-                      .tolist())
+    few = room.select(
+        np.flatnonzero(room.split != "no-load").tolist()
+        + np.flatnonzero(room.split == "no-load")[:3].tolist()
+    )
     with pytest.raises(CalibrationError, match="3 unsaturated no-load poses.*at least 6"):
         fit(few, room_field="measured")
     # "auto" with too few: no rejection; the corrupted K is refused, and the refusal names the room.
@@ -232,11 +260,15 @@ def test_a_poor_fit_kept_on_request_carries_its_warnings_into_file_and_report(cl
     travels in the calibration file and heads the report."""
     bad = copy(clean, flux_t=clean.flux_t.copy())
     bad.flux_t[:, 12:15] += np.random.default_rng(0).normal(0, 60e-6, (len(bad), 3))
-    with pytest.raises(CalibrationError, match=r"refused: magnet 5 was fitted [\d.]+ mm from its drawn place"):
+    with pytest.raises(
+        CalibrationError, match=r"refused: magnet 5 was fitted [\d.]+ mm from its drawn place"
+    ):
         fit_nonlinear(bad)
     nl = fit_nonlinear(bad, allow_poor_fit=True)
     assert "magnet 5" in nl.warnings[0]
-    assert len(nl.warnings) == 2 and "departs from this part" in nl.warnings[1]  # its residual, 60 uT of garbage
+    assert (
+        len(nl.warnings) == 2 and "departs from this part" in nl.warnings[1]
+    )  # its residual, 60 uT of garbage
     result = fit(clean)
     report = {**result.report, "nonlinear": {"warnings": list(nl.warnings)}}
     path = tmp_path / "cal.json"

@@ -26,7 +26,9 @@ def sample(topic: str, seq: int, t: float, flags: int = 0, values: list[float] |
 def test_wrench_panels_units_and_traces():
     h = History(window_s=2.0)
     for i in range(300):  # 128 Hz (times exact in binary), 2.3 s: the first 42 fall out of the window
-        h.add(sample("wrench/sensor1", i + (i >= 150), i / 128, flags=wire.FLAG_SATURATED if i % 50 == 0 else 0))
+        h.add(
+            sample("wrench/sensor1", i + (i >= 150), i / 128, flags=wire.FLAG_SATURATED if i % 50 == 0 else 0)
+        )
     fig, plots = make_figure(["wrench/sensor1"], {"wrench/sensor1": wire.KIND_WRENCH})
     draw(plots, {"wrench/sensor1": h})
     force, moment, flags = fig.axes
@@ -35,14 +37,17 @@ def test_wrench_panels_units_and_traces():
     assert [ln.get_label() for ln in force.lines] == ["fx", "fy", "fz"]
     assert [ln.get_label() for ln in moment.lines] == ["mx", "my", "mz"]
     assert len(flags.lines) == len(FLAG_BITS) and [t.get_text() for t in flags.get_yticklabels()] == [
-        wire.FLAG_NAMES[b] for b in FLAG_BITS]
+        wire.FLAG_NAMES[b] for b in FLAG_BITS
+    ]
     x, y = force.lines[0].get_data()
     assert len(x) == 257 and x[-1] == 0 and x[0] == -2.0  # the window's samples (i 43-299), 0 the newest
     np.testing.assert_allclose(y, [(i + (i >= 150)) * 0.1 for i in range(43, 300)])
     assert force.get_xlim() == (-2.0, 0.0) and force.get_ylim()[1] >= y.max()
     row = FLAG_BITS.index(wire.FLAG_SATURATED)
     marks = flags.lines[row].get_data()[1]
-    assert np.sum(np.isfinite(marks)) == 5 and np.all(marks[np.isfinite(marks)] == row)  # i = 50, 100, 150, 200, 250
+    assert np.sum(np.isfinite(marks)) == 5 and np.all(
+        marks[np.isfinite(marks)] == row
+    )  # i = 50, 100, 150, 200, 250
     assert all(np.all(np.isnan(ln.get_data()[1])) for i, ln in enumerate(flags.lines) if i != row)
     assert "1 missed" in force.get_title()
 
@@ -87,22 +92,57 @@ def test_snapshot_of_the_running_daemon(daemon, tmp_path):  # noqa: F811
 def test_plot_cli_writes_a_png(daemon, tmp_path):  # noqa: F811
     pub, _ = daemon
     png = tmp_path / "cli.png"
-    done = subprocess.run([sys.executable, "-m", "ftsensord", "plot", "wrench/sensor1", "--endpoint", pub,
-                           "--seconds", "1", "--png", str(png)], capture_output=True, text=True, timeout=60)
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "ftsensord",
+            "plot",
+            "wrench/sensor1",
+            "--endpoint",
+            pub,
+            "--seconds",
+            "1",
+            "--png",
+            str(png),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert done.returncode == 0 and done.stdout.startswith(f"wrote {png}: wrench/sensor1 "), done.stderr
     assert png.stat().st_size > 10_000
 
 
 def _plot(tmp_path, *args: str, blocked_matplotlib: bool = False) -> subprocess.CompletedProcess:
     """`ftsensord plot` as a user on ssh runs it: no display, no daemon (nothing to wait for)."""
-    env = {k: v for k, v in __import__("os").environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY", "MPLBACKEND")}
+    env = {
+        k: v
+        for k, v in __import__("os").environ.items()
+        if k not in ("DISPLAY", "WAYLAND_DISPLAY", "MPLBACKEND")
+    }
     if blocked_matplotlib:  # an install without the 'plot' extra
         (tmp_path / "matplotlib").mkdir()
         (tmp_path / "matplotlib" / "__init__.py").write_text("raise ImportError('no matplotlib here')\n")
         env["PYTHONPATH"] = str(tmp_path)
-    return subprocess.run([sys.executable, "-m", "ftsensord", "plot", "wrench/sensor1", "--endpoint",
-                           f"ipc://{tmp_path}/nobody", "--timeout", "1", *args],
-                          capture_output=True, text=True, env=env, timeout=60)
+    return subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "ftsensord",
+            "plot",
+            "wrench/sensor1",
+            "--endpoint",
+            f"ipc://{tmp_path}/nobody",
+            "--timeout",
+            "1",
+            *args,
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=60,
+    )
 
 
 def test_a_live_plot_without_a_display_fails_naming_the_snapshot(tmp_path):

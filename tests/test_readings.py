@@ -13,13 +13,11 @@ from ftsensord.acquire.reader import Reader
 from ftsensord.acquire.readings import Readings
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.chip.driver import MLX90393
-from ftsensord.errors import ChipProtocolError
 from ftsensord.config.file import builtin_path, load_config
+from ftsensord.errors import ChipProtocolError
 from ftsensord.processing.filters import WrenchFilter
 from ftsensord.processing.pipeline import SensorPipeline
-from ftsensord.sim import StaticScene
-from ftsensord.sim import VirtualClock
-from ftsensord.sim import simulated_bus
+from ftsensord.sim import StaticScene, VirtualClock, simulated_bus
 
 ADDRESSES = list(range(0x0C, 0x1C))
 
@@ -32,8 +30,13 @@ def _scene() -> StaticScene:
 
 def _reader(scheduler: str, scene: StaticScene) -> Reader:
     bus = simulated_bus(scene, clock=VirtualClock(), bus_hz=400e3, seed=2)
-    reader = Reader(bus, [MLX90393(bus, a, sleep=bus.sleep) for a in ADDRESSES], scheduler, mlx.Settings(),
-                    readback_every=1)
+    reader = Reader(
+        bus,
+        [MLX90393(bus, a, sleep=bus.sleep) for a in ADDRESSES],
+        scheduler,
+        mlx.Settings(),
+        readback_every=1,
+    )
     assert reader.start() == {}
     return reader
 
@@ -72,7 +75,9 @@ def test_a_clean_cycle_holds_what_each_chip_replied(scheduler):
             np.testing.assert_array_equal(m.field_t, want.field_t)
             assert m.words == want.words and m.status == want.status and not m.any_saturated
             drifted = a == 0x13 and k >= 20 and not found_before  # read at the wrong gain until read back
-            assert m.temperature_c is None and (drifted or np.allclose(m.field_t, scene.field_t(a, 0.0), atol=50e-6))
+            assert m.temperature_c is None and (
+                drifted or np.allclose(m.field_t, scene.field_t(a, 0.0), atol=50e-6)
+            )
     assert reader.health[0x13].register_drifts == 1
     assert clean_after >= 50 and readings.clean and not reader.failing
 

@@ -21,6 +21,7 @@ import pytest
 from ftsensord import recording
 from ftsensord.client import ControlClient, Subscriber
 from ftsensord.errors import ConfigError
+from ftsensord.protocol import wire
 from ftsensord.recording import (
     Tally,
     finish_npz,
@@ -31,7 +32,6 @@ from ftsensord.recording import (
     recover_mcap,
 )
 from ftsensord.recording.ros2mcap import stamp
-from ftsensord.protocol import wire
 
 from .test_daemon import write_config
 
@@ -89,8 +89,13 @@ class Reference(threading.Thread):
 
 
 def cli(*args: str, **kw) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "ftsensord", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, **kw)
+    return subprocess.Popen(
+        [sys.executable, "-m", "ftsensord", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        **kw,
+    )
 
 
 def seqs_in(path: Path, killed: bool) -> dict[str, list[int]]:
@@ -114,7 +119,7 @@ def seqs_in(path: Path, killed: bool) -> dict[str, list[int]]:
     out: dict[str, list[int]] = {s: [] for s in STREAMS}
     for topic, msg, _ in read_mcap(path):
         if topic.endswith("/status"):
-            out[topic[1:-len("/status")]].append(msg.seq)
+            out[topic[1 : -len("/status")]].append(msg.seq)
     return out
 
 
@@ -137,8 +142,11 @@ def check_kept(path: Path, ref: Reference, streams: list[str], t_stop: float, ki
 
 
 @pytest.mark.parametrize("fmt", ["csv", "npz", "mcap"])
-@pytest.mark.parametrize("how", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGKILL],
-                         ids=["SIGINT", "SIGTERM", "SIGHUP", "kill-9"])
+@pytest.mark.parametrize(
+    "how",
+    [signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGKILL],
+    ids=["SIGINT", "SIGTERM", "SIGHUP", "kill-9"],
+)
 def test_record_stopped_keeps_every_received_sample(daemon, tmp_path, fmt, how):
     pub, _ = daemon
     streams = STREAMS if fmt == "mcap" else STREAMS[:1]
@@ -170,6 +178,7 @@ def test_record_stopped_keeps_every_received_sample(daemon, tmp_path, fmt, how):
             assert meta["samples"] == meta["received"] == counts[STREAMS[0]]
         if fmt == "mcap":  # complete: summary and index, read by the seeking reader
             from mcap.reader import make_reader
+
             with open(path, "rb") as f:
                 summary = make_reader(f).get_summary()
             assert summary is not None and summary.chunk_indexes
@@ -181,6 +190,7 @@ def test_record_stopped_keeps_every_received_sample(daemon, tmp_path, fmt, how):
         fixed = tmp_path / "fixed.mcap"
         assert recover_mcap(path, fixed) == 2 * sum(counts.values())
         from mcap.reader import make_reader
+
         with open(fixed, "rb") as f:
             assert make_reader(f).get_summary().statistics.message_count == 2 * sum(counts.values())
 
@@ -196,8 +206,15 @@ class Synthetic:
             return None
         self.i += 1
         kind = wire.KIND_WRENCH if self.stream.startswith("wrench/") else wire.KIND_FLUX
-        return wire.Sample(self.stream, kind, self.i, self.i * 0.01, 1.7e9 + self.i * 0.01, 0,
-                           np.full(self.values, self.i * 1e-3))
+        return wire.Sample(
+            self.stream,
+            kind,
+            self.i,
+            self.i * 0.01,
+            1.7e9 + self.i * 0.01,
+            0,
+            np.full(self.values, self.i * 1e-3),
+        )
 
 
 @pytest.mark.parametrize("fmt", ["csv", "npz", "mcap"])
@@ -214,8 +231,14 @@ def test_record_memory_stays_flat(tmp_path, fmt):
         writer = open_writer(tmp_path / f"m{n}.{fmt}", ["wrench/sensor1"])
         source = Synthetic(n, "wrench/sensor1", 6)
         tracemalloc.start()
-        outcome = record(source, writer, ["wrench/sensor1"], timeout_s=1e9, clock=clock,
-                         stop=lambda source=source: source.i >= source.n)
+        outcome = record(
+            source,
+            writer,
+            ["wrench/sensor1"],
+            timeout_s=1e9,
+            clock=clock,
+            stop=lambda source=source: source.i >= source.n,
+        )
         peaks.append(tracemalloc.get_traced_memory()[1])
         tracemalloc.stop()
         assert outcome.reason == "stopped" and outcome.tallies["wrench/sensor1"].samples == n
@@ -235,8 +258,23 @@ def test_mcap_holds_ros2_messages_matching_what_was_published(daemon, tmp_path):
     ref.start()
     try:
         ref.wait_for(5)
-        done = subprocess.run([sys.executable, "-m", "ftsensord", "record", *streams, str(path), "--endpoint", pub,
-                               "--count", "150"], capture_output=True, text=True, timeout=60)
+        done = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "ftsensord",
+                "record",
+                *streams,
+                str(path),
+                "--endpoint",
+                pub,
+                "--count",
+                "150",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
         time.sleep(0.3)
     finally:
         ref.stop()
@@ -248,22 +286,29 @@ def test_mcap_holds_ros2_messages_matching_what_was_published(daemon, tmp_path):
         types = {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values()}
         assert types["/wrench/sensor1"] == types["/wrench/tip"] == "geometry_msgs/msg/WrenchStamped"
         assert types["/flux/sensor1/chip7"] == "sensor_msgs/msg/MagneticField"
-        assert set(types) == {"/wrench/sensor1", "/wrench/tip", "/wrench/sensor1/status", "/wrench/tip/status",
-                              "/flux/sensor1/status", *(f"/flux/sensor1/chip{i}" for i in range(8))}
+        assert set(types) == {
+            "/wrench/sensor1",
+            "/wrench/tip",
+            "/wrench/sensor1/status",
+            "/wrench/tip/status",
+            "/flux/sensor1/status",
+            *(f"/flux/sensor1/chip{i}" for i in range(8)),
+        }
         checked = dict.fromkeys(types, 0)
         pending: dict[str, list] = {}
         for _, channel, message, msg in reader.iter_decoded_messages(log_time_order=False):
             topic = channel.topic
             checked[topic] += 1
             if topic.endswith("/status"):
-                sample = ref.samples[topic[1:-len("/status")]][msg.seq]
+                sample = ref.samples[topic[1 : -len("/status")]][msg.seq]
                 assert msg.flags == sample.flags and message.sequence == msg.seq & 0xFFFFFFFF
-                for other in pending.pop(topic[1:-len("/status")], []):  # the values before it: same sample
+                for other in pending.pop(topic[1 : -len("/status")], []):  # the values before it: same sample
                     other(sample)
             else:
                 stream = topic[1:] if topic.startswith("/wrench/") else topic[1:].rsplit("/", 1)[0]
-                pending.setdefault(stream, []).append(lambda s, m=msg, t=topic, lt=message.log_time:
-                                                      _matches(s, m, t, lt, frames))
+                pending.setdefault(stream, []).append(
+                    lambda s, m=msg, t=topic, lt=message.log_time: _matches(s, m, t, lt, frames)
+                )
     assert not any(pending.values())
     assert all(n > 0 for n in checked.values()), checked
     assert sum(checked[f"/{s}/status"] for s in streams) >= 150
@@ -281,12 +326,14 @@ def _matches(sample: wire.Sample, msg, topic: str, log_time: int, frames: dict[s
     else:
         chip = int(topic.rsplit("chip", 1)[1])
         b = msg.magnetic_field
-        np.testing.assert_array_equal([b.x, b.y, b.z], sample.values[3 * chip:3 * chip + 3])
+        np.testing.assert_array_equal([b.x, b.y, b.z], sample.values[3 * chip : 3 * chip + 3])
         assert msg.header.frame_id == f"sensor1/chip{chip}"
 
 
 @pytest.mark.parametrize("stream", ["wrench/sensor1", "flux/sensor1"])
-def test_a_csv_recording_reads_with_the_usual_readers_and_its_sidecar_says_what_it_is(daemon, tmp_path, stream):
+def test_a_csv_recording_reads_with_the_usual_readers_and_its_sidecar_says_what_it_is(
+    daemon, tmp_path, stream
+):
     """A recording from the daemon read as docs/guide/clients.md says, each reader with its
     defaults (numpy: the delimiter, as its default is whitespace): every row, each number
     the published sample's (to the CSV's digits: 9 significant, times to the us); the
@@ -301,14 +348,32 @@ def test_a_csv_recording_reads_with_the_usual_readers_and_its_sidecar_says_what_
     ref.start()
     try:
         ref.wait_for(5)
-        done = subprocess.run([sys.executable, "-m", "ftsensord", "record", stream, str(path), "--endpoint", pub,
-                               "--count", "40"], capture_output=True, text=True, timeout=60)
+        done = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "ftsensord",
+                "record",
+                stream,
+                str(path),
+                "--endpoint",
+                pub,
+                "--count",
+                "40",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
         time.sleep(0.3)
     finally:
         ref.stop()
     assert done.returncode == 0, done.stderr
-    names = ["fx_N", "fy_N", "fz_N", "mx_Nm", "my_Nm", "mz_Nm"] if stream.startswith("wrench/") else \
-        [f"b{i}{a}_T" for i in range(8) for a in "xyz"]
+    names = (
+        ["fx_N", "fy_N", "fz_N", "mx_Nm", "my_Nm", "mz_Nm"]
+        if stream.startswith("wrench/")
+        else [f"b{i}{a}_T" for i in range(8) for a in "xyz"]
+    )
     columns = ["seq", "t_mono_s", "t_wall_s", "flags", *names]
 
     def check(table: list[list[float]]) -> None:  # rows of the columns above, as a reader gave them
@@ -316,7 +381,9 @@ def test_a_csv_recording_reads_with_the_usual_readers_and_its_sidecar_says_what_
         for row in table:
             sample = ref.samples[stream][int(row[0])]
             assert row[0] == sample.seq and row[3] == sample.flags
-            assert row[1] == pytest.approx(sample.t_mono, abs=1e-6) and row[2] == pytest.approx(sample.t_wall, abs=1e-6)
+            assert row[1] == pytest.approx(sample.t_mono, abs=1e-6) and row[2] == pytest.approx(
+                sample.t_wall, abs=1e-6
+            )
             np.testing.assert_allclose(row[4:], sample.values, rtol=1e-8, atol=0)
 
     with path.open(newline="") as f:
@@ -349,7 +416,9 @@ def test_a_csv_recording_reads_with_the_usual_readers_and_its_sidecar_says_what_
     assert meta["stream"] == stream and meta["frame"] == ControlClient(ctl).status()["frames"][stream]
     assert meta["kind"] == stream.split("/")[0] and meta["columns"] == columns
     assert {c: meta["units"][c] for c in names} == {c: c.rsplit("_", 1)[1] for c in names}
-    assert meta["units"]["t_mono_s"].startswith("s, CLOCK_MONOTONIC") and meta["units"]["t_wall_s"].startswith("s, Unix")
+    assert meta["units"]["t_mono_s"].startswith("s, CLOCK_MONOTONIC") and meta["units"][
+        "t_wall_s"
+    ].startswith("s, Unix")
     assert meta["flag_bits"] == {name: bit for bit, name in wire.FLAG_NAMES.items()}
     assert (meta["state"], meta["samples"], meta["received"], meta["error"]) == ("complete", 40, 40, None)
     assert (meta["first_seq"], meta["last_seq"]) == (seqs[0], seqs[-1])
@@ -359,7 +428,9 @@ def test_a_csv_recording_reads_with_the_usual_readers_and_its_sidecar_says_what_
 def test_a_csv_sidecar_that_is_missing_or_not_ours_is_refused_naming_it(tmp_path):
     path = tmp_path / "run.csv"
     path.write_text("seq,t_mono_s\n1,2.0\n")
-    with pytest.raises(ConfigError, match=r"run\.csv\.json: missing: `ftsensord record` writes it beside run\.csv"):
+    with pytest.raises(
+        ConfigError, match=r"run\.csv\.json: missing: `ftsensord record` writes it beside run\.csv"
+    ):
         recording.read_meta(path)
     (tmp_path / "run.csv.json").write_text("# not json")
     with pytest.raises(ConfigError, match=r"run\.csv\.json: not JSON: expected the sidecar"):
@@ -392,12 +463,19 @@ def test_npz_sidecar_killed_before_and_after_its_first_sample(tmp_path):
 @pytest.mark.parametrize("stream", ["wrench/sensor1", "flux/sensor1"])
 def test_echo_prints_a_header_naming_each_column_and_its_unit_over_it(daemon, stream):
     pub, _ = daemon
-    done = subprocess.run([sys.executable, "-m", "ftsensord", "echo", stream, "--endpoint", pub, "--count", "3"],
-                          capture_output=True, text=True, timeout=30)
+    done = subprocess.run(
+        [sys.executable, "-m", "ftsensord", "echo", stream, "--endpoint", pub, "--count", "3"],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
     assert done.returncode == 0, done.stderr
     head, *rows = done.stdout.splitlines()
-    values = ["fx_N", "fy_N", "fz_N", "mx_Nm", "my_Nm", "mz_Nm"] if stream.startswith("wrench/") else \
-        [f"b{i}{a}_uT" for i in range(8) for a in "xyz"]  # flux is printed in uT
+    values = (
+        ["fx_N", "fy_N", "fz_N", "mx_Nm", "my_Nm", "mz_Nm"]
+        if stream.startswith("wrench/")
+        else [f"b{i}{a}_uT" for i in range(8) for a in "xyz"]
+    )  # flux is printed in uT
     assert head.startswith("#") and head[1:].split() == ["seq", "t_mono_s", *values, "flags"], head
     assert len(rows) == 3
     n = 2 + len(values)  # seq, t_mono_s and the values; then the flags' names, if any
@@ -412,12 +490,31 @@ def test_a_stream_the_daemon_does_not_publish_is_refused_naming_those_it_does(da
     pub, ctl = daemon
     published = ControlClient(ctl).status()["streams"]
     assert "wrench/sensor1" in published and "flux/sensor1" in published
-    extra = {"echo": [], "record": [str(tmp_path / "x.csv")], "plot": ["--png", str(tmp_path / "x.png")]}[command]
-    done = subprocess.run([sys.executable, "-m", "ftsensord", command, "wrench/sensr1", *extra, "--endpoint", pub,
-                           "--timeout", "2"], capture_output=True, text=True, timeout=60)
+    extra = {"echo": [], "record": [str(tmp_path / "x.csv")], "plot": ["--png", str(tmp_path / "x.png")]}[
+        command
+    ]
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "ftsensord",
+            command,
+            "wrench/sensr1",
+            *extra,
+            "--endpoint",
+            pub,
+            "--timeout",
+            "2",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert done.returncode == 2, done.stderr
-    assert done.stderr.strip() == (f"ftsensord: wrench/sensr1: not a stream the daemon on {ctl} publishes; "
-                                   f"it publishes: {', '.join(published)}"), done.stderr
+    assert done.stderr.strip() == (
+        f"ftsensord: wrench/sensr1: not a stream the daemon on {ctl} publishes; "
+        f"it publishes: {', '.join(published)}"
+    ), done.stderr
 
 
 def test_echo_into_a_closed_pipe_exits_quietly(daemon):
@@ -487,7 +584,9 @@ def test_a_csv_record_cut_by_a_write_error_says_how_many_samples_it_holds(tmp_pa
     assert meta["received"] >= len(rows) and meta["error"] == "File too large"
     n = len(rows) + 1  # the torn row's sample: DISK_FULL's values
     full = f"{n},{n * 0.01:.6f},{1.7e9:.6f},0," + ",".join([f"{n * 1e-3:.9g}"] * 6) + "\n"
-    assert meta["torn_row"] and full.startswith(meta["torn_row"]) and meta["torn_row"] != full, meta["torn_row"]
+    assert meta["torn_row"] and full.startswith(meta["torn_row"]) and meta["torn_row"] != full, meta[
+        "torn_row"
+    ]
 
 
 DISK_FULL_ANY = """
@@ -519,8 +618,12 @@ def test_a_write_error_names_the_file_it_could_not_write(tmp_path, fmt):
     OSError that names the file, so `ftsensord record`'s message ("ftsensord: [Errno 27]
     File too large: '.../run.csv'") says which file: a bare write() error names none."""
     path = tmp_path / f"r.{fmt}"
-    out = subprocess.run([sys.executable, "-c", DISK_FULL_ANY.format(path=str(path))], capture_output=True,
-                         text=True, timeout=60)
+    out = subprocess.run(
+        [sys.executable, "-c", DISK_FULL_ANY.format(path=str(path))],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     first, message = (out.stdout.splitlines() + ["", ""])[:2]
     assert first.startswith("error 27 "), out.stdout + out.stderr  # EFBIG
     named = path if fmt != "npz" else tmp_path / "r.npz.part"  # the NPZ's rows go to its sidecar first
@@ -549,16 +652,24 @@ def test_the_temperature_flag_reaches_every_recording(tmp_path, fmt):
     assert wire.flag_names(flags) == ["inconsistent", "temperature"]
 
 
-@pytest.mark.parametrize("args", [("status", "--control", "nonsense"), ("status", "--control", "tcp://127.0.0.1:*"),
-                                  ("echo", "wrench/sensor1", "--endpoint", "ipc://", "--timeout", "0.2"),
-                                  ("record", "wrench/sensor1", "{tmp}/x.csv", "--endpoint", "tcp://127.0.0.1:", "--timeout", "0.2")])
+@pytest.mark.parametrize(
+    "args",
+    [
+        ("status", "--control", "nonsense"),
+        ("status", "--control", "tcp://127.0.0.1:*"),
+        ("echo", "wrench/sensor1", "--endpoint", "ipc://", "--timeout", "0.2"),
+        ("record", "wrench/sensor1", "{tmp}/x.csv", "--endpoint", "tcp://127.0.0.1:", "--timeout", "0.2"),
+    ],
+)
 def test_an_endpoint_zeromq_cannot_connect_to_is_a_message_not_a_traceback(tmp_path, args):
     """`--control nonsense` ended every command with a ZMQError traceback ("Invalid argument")."""
     args = tuple(a.format(tmp=tmp_path) for a in args)
     proc = cli(*args)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 2 and "Traceback" not in err, err
-    endpoint = args[args.index("--control") + 1] if "--control" in args else args[args.index("--endpoint") + 1]
+    endpoint = (
+        args[args.index("--control") + 1] if "--control" in args else args[args.index("--endpoint") + 1]
+    )
     last = err.strip().splitlines()[-1]  # (record first says no daemon answered for the frames)
     assert last.startswith(f"ftsensord: {endpoint}: ") and "ipc://PATH or tcp://HOST:PORT" in last, err
     assert not (tmp_path / "x.csv").exists()  # record refused it before making its file
@@ -566,9 +677,12 @@ def test_an_endpoint_zeromq_cannot_connect_to_is_a_message_not_a_traceback(tmp_p
 
 def test_the_client_classes_refuse_an_endpoint_zeromq_cannot_connect_to(zmq_context):
     from ftsensord.client import OrientationPublisher
-    for make in (lambda: ControlClient("nonsense", context=zmq_context).status(),
-                 lambda: Subscriber("tcp://127.0.0.1:", ["wrench/sensor1"], context=zmq_context),
-                 lambda: OrientationPublisher("ipc://", context=zmq_context)):
+
+    for make in (
+        lambda: ControlClient("nonsense", context=zmq_context).status(),
+        lambda: Subscriber("tcp://127.0.0.1:", ["wrench/sensor1"], context=zmq_context),
+        lambda: OrientationPublisher("ipc://", context=zmq_context),
+    ):
         with pytest.raises(ConfigError, match="ipc://PATH or tcp://HOST:PORT"):
             make()
 
@@ -608,8 +722,18 @@ def test_the_npz_sidecar_reads_by_hand_as_docs_clients_md_lays_it_out(tmp_path):
     import struct
 
     writer = open_writer(tmp_path / "r.npz", ["flux/sensor1"])
-    sent = [wire.Sample("flux/sensor1", wire.KIND_FLUX, 7 + i, 0.5 * i, 1.7e9 + i, 0x41 * i,
-                        np.arange(24.0) * (i + 1) * 1e-6) for i in range(3)]
+    sent = [
+        wire.Sample(
+            "flux/sensor1",
+            wire.KIND_FLUX,
+            7 + i,
+            0.5 * i,
+            1.7e9 + i,
+            0x41 * i,
+            np.arange(24.0) * (i + 1) * 1e-6,
+        )
+        for i in range(3)
+    ]
     for s in sent:
         writer.write(s)
     writer.flush()  # as a kill leaves it: no close
@@ -620,7 +744,9 @@ def test_the_npz_sidecar_reads_by_hand_as_docs_clients_md_lays_it_out(tmp_path):
     assert count == 24 and len(body) == 3 * size
     for i, s in enumerate(sent):
         seq, t_mono, t_wall, flags, *values = struct.unpack_from(f"<qddq{count}d", body, i * size)
-        assert (seq, t_mono, t_wall, flags) == (s.seq, s.t_mono, s.t_wall, s.flags) and values == list(s.values)
+        assert (seq, t_mono, t_wall, flags) == (s.seq, s.t_mono, s.t_wall, s.flags) and values == list(
+            s.values
+        )
     writer.file.close()
 
 
@@ -636,8 +762,17 @@ def test_a_subscriber_reaches_a_publisher_on_ipv6_loopback(zmq_context, ipv6_loo
     with Subscriber(f"tcp://[::1]:{port}", ["wrench/sensor1"], context=zmq_context) as sub:
         got = None
         for _ in range(50):  # a slow joiner: publish until the subscription has arrived
-            pub.send(wire.encode(sample.topic, sample.kind, sample.seq, sample.t_mono, sample.t_wall, sample.flags,
-                                 sample.values))
+            pub.send(
+                wire.encode(
+                    sample.topic,
+                    sample.kind,
+                    sample.seq,
+                    sample.t_mono,
+                    sample.t_wall,
+                    sample.flags,
+                    sample.values,
+                )
+            )
             got = sub.receive(timeout_s=0.1)
             if got is not None:
                 break

@@ -88,11 +88,16 @@ def test_zero_weight_drops_a_point():
     assert np.allclose(reg.as_pose(), T, atol=1e-12)
 
 
-@pytest.mark.parametrize(("P", "Q", "w"), [
-    (np.zeros((3, 2)), np.zeros((3, 2)), None), (np.zeros((3, 3)), np.zeros((4, 3)), None),
-    (np.zeros((0, 3)), np.zeros((0, 3)), None), (np.zeros((2, 3)), np.zeros((2, 3)), np.zeros(2)),
-    (np.zeros((2, 3)), np.zeros((2, 3)), np.array([1.0, -1.0])),
-])
+@pytest.mark.parametrize(
+    ("P", "Q", "w"),
+    [
+        (np.zeros((3, 2)), np.zeros((3, 2)), None),
+        (np.zeros((3, 3)), np.zeros((4, 3)), None),
+        (np.zeros((0, 3)), np.zeros((0, 3)), None),
+        (np.zeros((2, 3)), np.zeros((2, 3)), np.zeros(2)),
+        (np.zeros((2, 3)), np.zeros((2, 3)), np.array([1.0, -1.0])),
+    ],
+)
 def test_bad_input_is_refused(P, Q, w):
     with pytest.raises(ValueError):
         register(P, Q, w)

@@ -16,9 +16,7 @@ from ftsensord.calibration.rig import record_dataset, simulate_sweeps, simulated
 from ftsensord.errors import CalibrationError
 from ftsensord.model import se3
 from ftsensord.model.geometry import SensorGeometry
-from ftsensord.sim import VirtualClock
-from ftsensord.sim import load_scene
-from ftsensord.sim import simulated_bus
+from ftsensord.sim import VirtualClock, load_scene, simulated_bus
 from ftsensord.sim.loads import (
     DOWN,
     CalibrationPose,
@@ -38,8 +36,13 @@ from .conftest import assert_names_file_and_key
 EARTH_T = np.array([22.3, 1.4, -42.6]) * 1e-6
 ADDRS = tuple(range(0x0C, 0x14))
 #: The tolerances of config/scene-room.toml, in SI.
-ROOM_PART = {"magnet_position_m": 0.15e-3, "magnet_remanence_rel": 0.03, "chip_tilt_rad": math.radians(1.5),
-             "chip_gain_rel": 0.02, "ring_radius_m": 0.1e-3}
+ROOM_PART = {
+    "magnet_position_m": 0.15e-3,
+    "magnet_remanence_rel": 0.03,
+    "chip_tilt_rad": math.radians(1.5),
+    "chip_gain_rel": 0.02,
+    "ring_radius_m": 0.1e-3,
+}
 
 
 def angle(R: np.ndarray) -> float:
@@ -117,8 +120,9 @@ def test_the_robot_turns_the_sensor_in_the_room():
     room = PhysicalScene([SimSensor("s", ADDRS, load=robot, orientation=robot)], external_field_t=EARTH_T)
     free = PhysicalScene([SimSensor("s", ADDRS, load=robot)])
     g = room.sensors[0].geometry
-    seen = np.array([[room.field_t(a, k + 0.5) - free.field_t(a, k + 0.5) for a in ADDRS]
-                     for k in range(len(poses))])
+    seen = np.array(
+        [[room.field_t(a, k + 0.5) - free.field_t(a, k + 0.5) for a in ADDRS] for k in range(len(poses))]
+    )
     for k, pose in enumerate(poses):
         assert np.allclose(seen[k], [R.T @ pose.rotation.T @ EARTH_T for R in g.chip_R], rtol=0, atol=1e-15)
     swing = np.ptp(seen, axis=0).max()
@@ -128,8 +132,12 @@ def test_the_robot_turns_the_sensor_in_the_room():
 # --- the part: tolerances drawn once per seed ----------------------------------------------------
 def test_a_part_is_drawn_once_per_seed():
     a, b, c = (Tolerances(**ROOM_PART, seed=s).build() for s in (4, 4, 5))
-    for x, y in ((a[0].magnet_p, b[0].magnet_p), (a[0].chip_R, b[0].chip_R), (a[1], b[1]),
-                 (a[0].strengths, b[0].strengths)):
+    for x, y in (
+        (a[0].magnet_p, b[0].magnet_p),
+        (a[0].chip_R, b[0].chip_R),
+        (a[1], b[1]),
+        (a[0].strengths, b[0].strengths),
+    ):
         assert np.array_equal(x, y)
     assert not np.allclose(a[0].magnet_p, c[0].magnet_p) and not np.allclose(a[1], c[1])
     # Setting one tolerance to 0 leaves the other draws of the seed as they were.
@@ -145,12 +153,19 @@ def test_tolerances_have_the_standard_deviations_asked_for():
     # Against the ring of each part's own drawn radius: the magnets ride out with it.
     drawn = [SensorGeometry.ring(radius_m=r) for r in radius]
     shifts = np.array([g.magnet_p - d.magnet_p for (g, _), d in zip(parts, drawn)]).reshape(-1, 3)
-    tilts = np.array([[se3.log_so3(R0.T @ R) for R0, R in zip(d.chip_R, g.chip_R)]
-                      for (g, _), d in zip(parts, drawn)]).reshape(-1, 3)
+    tilts = np.array(
+        [[se3.log_so3(R0.T @ R) for R0, R in zip(d.chip_R, g.chip_R)] for (g, _), d in zip(parts, drawn)]
+    ).reshape(-1, 3)
     strengths = np.array([g.strengths for g, _ in parts]).ravel()
     gains = np.array([gain for _, gain in parts]).ravel()
-    for draws, sd in ((shifts[:, 0], 0.15e-3), (shifts[:, 2], 0.15e-3), (radius, 0.1e-3),
-                      (tilts[:, 1], math.radians(1.5)), (strengths, 0.03), (gains, 0.02)):
+    for draws, sd in (
+        (shifts[:, 0], 0.15e-3),
+        (shifts[:, 2], 0.15e-3),
+        (radius, 0.1e-3),
+        (tilts[:, 1], math.radians(1.5)),
+        (strengths, 0.03),
+        (gains, 0.02),
+    ):
         spread = np.std(draws, ddof=1)
         assert abs(spread - sd) <= 3 * sd / math.sqrt(2 * len(draws)), (sd, spread)
 
@@ -177,30 +192,74 @@ addresses = [0x0C, 0x0D, 0x0E, 0x0F, 0x10, 0x11, 0x12, 0x13]
 """
 
 
-@pytest.mark.parametrize(("top", "sensor", "key", "expected"), [
-    ("external_field_ut = [22.3, 1.4]", "", "external_field_ut", "3 finite numbers (uT, world frame, z up)"),
-    ("external_field_ut = [0, 0, 48000]", "", "external_field_ut", "a room's field, |B| <= 5000 uT"),
-    ("", '[sensor.orientation]\nkind = "spinning"', "sensor[0].orientation.kind", '"fixed", "recorded"'),
-    ("", '[sensor.orientation]\nkind = "fixed"\nrotvec_deg = [1, 2]', "sensor[0].orientation.rotvec_deg",
-     "3 finite numbers (deg, rotation vector)"),
-    ("", '[sensor.orientation]\nkind = "recorded"\ntimes_s = [0, 1]\nrotvec_deg = [[0, 0, 0]]',
-     "sensor[0].orientation.rotvec_deg", "2 rows of 3 numbers"),
-    ("", '[sensor.orientation]\nkind = "recorded"\ntimes_s = [0, 0]\nrotvec_deg = [[0, 0, 0], [1, 0, 0]]',
-     "sensor[0].orientation.times_s", "strictly increasing"),
-    ("", '[sensor.orientation]\nkind = "recorded"\ntimes_s = [0, 1]\nrotvec_deg = [[0, 0, 0], [1, 0]]',
-     "sensor[0].orientation.rotvec_deg[1]", "3 finite numbers (deg)"),
-    ("", '[sensor.load]\nkind = "robot"\n[sensor.orientation]\nkind = "fixed"\nrotvec_deg = [0, 0, 0]',
-     "sensor[0].orientation", 'no orientation with a load of kind "robot"'),
-    ("", "[sensor.tolerances]\nseed = 1\nmagnet_position_um = 3", "sensor[0].tolerances.magnet_position_um",
-     "one of"),
-    ("", "[sensor.tolerances]\nseed = 1\nchip_tilt_deg = -1", "sensor[0].tolerances.chip_tilt_deg",
-     "a finite number in [0.0, 15.0] (deg, standard deviation)"),
-    ("", "[sensor.tolerances]\nseed = 1\nchip_gain_pct = 50", "sensor[0].tolerances.chip_gain_pct",
-     "in [0.0, 20.0] (pct, standard deviation)"),
-    ("", "[sensor.tolerances]\nmagnet_remanence_pct = 3", "sensor[0].tolerances.seed", "missing"),
-    ("", "[sensor.tolerances]\nseed = 1\nring_radius_mm = 400", "sensor[0].tolerances.ring_radius_mm",
-     "in [0.0, 1.0] (mm, standard deviation)"),
-])
+@pytest.mark.parametrize(
+    ("top", "sensor", "key", "expected"),
+    [
+        (
+            "external_field_ut = [22.3, 1.4]",
+            "",
+            "external_field_ut",
+            "3 finite numbers (uT, world frame, z up)",
+        ),
+        ("external_field_ut = [0, 0, 48000]", "", "external_field_ut", "a room's field, |B| <= 5000 uT"),
+        ("", '[sensor.orientation]\nkind = "spinning"', "sensor[0].orientation.kind", '"fixed", "recorded"'),
+        (
+            "",
+            '[sensor.orientation]\nkind = "fixed"\nrotvec_deg = [1, 2]',
+            "sensor[0].orientation.rotvec_deg",
+            "3 finite numbers (deg, rotation vector)",
+        ),
+        (
+            "",
+            '[sensor.orientation]\nkind = "recorded"\ntimes_s = [0, 1]\nrotvec_deg = [[0, 0, 0]]',
+            "sensor[0].orientation.rotvec_deg",
+            "2 rows of 3 numbers",
+        ),
+        (
+            "",
+            '[sensor.orientation]\nkind = "recorded"\ntimes_s = [0, 0]\nrotvec_deg = [[0, 0, 0], [1, 0, 0]]',
+            "sensor[0].orientation.times_s",
+            "strictly increasing",
+        ),
+        (
+            "",
+            '[sensor.orientation]\nkind = "recorded"\ntimes_s = [0, 1]\nrotvec_deg = [[0, 0, 0], [1, 0]]',
+            "sensor[0].orientation.rotvec_deg[1]",
+            "3 finite numbers (deg)",
+        ),
+        (
+            "",
+            '[sensor.load]\nkind = "robot"\n[sensor.orientation]\nkind = "fixed"\nrotvec_deg = [0, 0, 0]',
+            "sensor[0].orientation",
+            'no orientation with a load of kind "robot"',
+        ),
+        (
+            "",
+            "[sensor.tolerances]\nseed = 1\nmagnet_position_um = 3",
+            "sensor[0].tolerances.magnet_position_um",
+            "one of",
+        ),
+        (
+            "",
+            "[sensor.tolerances]\nseed = 1\nchip_tilt_deg = -1",
+            "sensor[0].tolerances.chip_tilt_deg",
+            "a finite number in [0.0, 15.0] (deg, standard deviation)",
+        ),
+        (
+            "",
+            "[sensor.tolerances]\nseed = 1\nchip_gain_pct = 50",
+            "sensor[0].tolerances.chip_gain_pct",
+            "in [0.0, 20.0] (pct, standard deviation)",
+        ),
+        ("", "[sensor.tolerances]\nmagnet_remanence_pct = 3", "sensor[0].tolerances.seed", "missing"),
+        (
+            "",
+            "[sensor.tolerances]\nseed = 1\nring_radius_mm = 400",
+            "sensor[0].tolerances.ring_radius_mm",
+            "in [0.0, 1.0] (mm, standard deviation)",
+        ),
+    ],
+)
 def test_a_bad_room_or_part_names_the_file_and_key(tmp_path, top, sensor, key, expected):
     path = tmp_path / "scene.toml"
     path.write_text(ROOM_SCENE.format(top=top, sensor=sensor))
@@ -212,9 +271,16 @@ def calibration_run(s: SimSensor, field_t: np.ndarray, seed: int, samples: int =
     """The six-axis plan (60 fit, 20 validation poses) with 12 no-load poses, as a robot runs it."""
     scene = PhysicalScene([s], external_field_t=field_t)
     bus = simulated_bus(scene, clock=VirtualClock(), seed=seed)
-    ds = record_dataset(bus, ADDRS, paper_plan(n_fit=60, n_validation=20, n_no_load=12), samples=samples,
-                        **simulated_robot(scene, "s"))
-    ds.sweeps = simulate_sweeps(ADDRS, SensorGeometry.ring(), samples=samples, rng=np.random.default_rng(seed))
+    ds = record_dataset(
+        bus,
+        ADDRS,
+        paper_plan(n_fit=60, n_validation=20, n_no_load=12),
+        samples=samples,
+        **simulated_robot(scene, "s"),
+    )
+    ds.sweeps = simulate_sweeps(
+        ADDRS, SensorGeometry.ring(), samples=samples, rng=np.random.default_rng(seed)
+    )
     return ds
 
 
@@ -245,8 +311,13 @@ def turned_at_no_load(s: SimSensor, seed: int = 1):
     """48 orientations (every sensor axis through the field), no load, 16 readings each."""
     scene = PhysicalScene([s], external_field_t=EARTH_T)
     bus = simulated_bus(scene, clock=VirtualClock(), seed=seed)
-    return record_dataset(bus, ADDRS, paper_plan(n_fit=0, n_validation=0, n_no_load=48), samples=16,
-                          **simulated_robot(scene, "s"))
+    return record_dataset(
+        bus,
+        ADDRS,
+        paper_plan(n_fit=0, n_validation=0, n_no_load=48),
+        samples=16,
+        **simulated_robot(scene, "s"),
+    )
 
 
 def false_wrench_z(model, ds) -> np.ndarray:
@@ -255,8 +326,8 @@ def false_wrench_z(model, ds) -> np.ndarray:
     standard error (the orientation's reading and the tare's both carry it)."""
     m = model.with_zero(ds.flux_t[0])
     w = m.wrench(ds.flux_t[1:])
-    s2 = np.mean(ds.flux_sem_t ** 2, axis=0)
-    sigma = np.sqrt((m.KA ** 2) @ (2 * s2))
+    s2 = np.mean(ds.flux_sem_t**2, axis=0)
+    sigma = np.sqrt((m.KA**2) @ (2 * s2))
     return np.abs(w).max(axis=0) / sigma
 
 
@@ -267,8 +338,13 @@ def test_turning_the_sensor_in_the_earths_field_gives_no_false_wrench():
     beyond is 7e-6 each), against tens of sigma (up to 0.8 N) without."""
     s = sensor()
     scene = PhysicalScene([s])
-    ds = record_dataset(simulated_bus(scene, clock=VirtualClock(), seed=5), ADDRS,
-                        paper_plan(n_fit=193, n_validation=0, n_no_load=0), samples=10, **simulated_robot(scene, "s"))
+    ds = record_dataset(
+        simulated_bus(scene, clock=VirtualClock(), seed=5),
+        ADDRS,
+        paper_plan(n_fit=193, n_validation=0, n_no_load=0),
+        samples=10,
+        **simulated_robot(scene, "s"),
+    )
     cal = fit(ds, room_field="none")
     ds = turned_at_no_load(s)
     assert np.all(false_wrench_z(cal.model.rejecting_room_field(), ds) <= 4.5)
@@ -307,12 +383,16 @@ def test_the_room_directions_travel_in_the_calibration_file(tmp_path):
     s = sensor(1)
     result = fit(calibration_run(s, EARTH_T, seed=5))
     path = tmp_path / "cal.json"
-    Calibration(result.model, ADDRS, "SN-1", position_map=result.position_map, report=result.report).save(path)
+    Calibration(result.model, ADDRS, "SN-1", position_map=result.position_map, report=result.report).save(
+        path
+    )
     back = Calibration.load(path)
     for name in ("K", "A", "room"):  # JSON keeps every double exactly
         assert np.array_equal(getattr(back.model, name), getattr(result.model, name)), name
     # The product is recomputed on load: BLAS may sum in another order for another memory layout.
-    np.testing.assert_allclose(back.model.KA, result.model.KA, rtol=1e-12, atol=1e-12 * np.abs(result.model.KA).max())
+    np.testing.assert_allclose(
+        back.model.KA, result.model.KA, rtol=1e-12, atol=1e-12 * np.abs(result.model.KA).max()
+    )
 
 
 def test_a_pose_with_rotation_and_gravity_that_disagree_is_refused():
@@ -322,7 +402,9 @@ def test_a_pose_with_rotation_and_gravity_that_disagree_is_refused():
 
 
 # --- the command line in the room -------------------------------------------------------------------------------
-def test_calibrate_on_a_room_dataset_shows_progress_and_a_refusal_says_what_to_run(tmp_path, capsys, monkeypatch):
+def test_calibrate_on_a_room_dataset_shows_progress_and_a_refusal_says_what_to_run(
+    tmp_path, capsys, monkeypatch
+):
     """`dataset` records no-load poses (--no-load-poses) on the room scene; `calibrate`
     prints the nonlinear fit's progress and measures the room's directions from them. A
     nonlinear fit that is refused (here for its residual, against a limit set below the noise) writes no file and
@@ -330,10 +412,31 @@ def test_calibrate_on_a_room_dataset_shows_progress_and_a_refusal_says_what_to_r
     from ftsensord.calibration.dataset import Dataset
     from ftsensord.calibration.nlfit import FIT_ITERATIONS
     from ftsensord.cli import main
+
     ds = tmp_path / "ds.json"
-    assert main(["dataset", "-o", str(ds), "--scene", "config/scene-room.toml", "--poses", "60",
-                 "--validation-poses", "10", "--samples", "4", "--no-load-poses", "12", "--no-sweep",
-                 "--hold-s", "0"]) == 0  # a spring: no step-and-hold to pay for
+    assert (
+        main(
+            [
+                "dataset",
+                "-o",
+                str(ds),
+                "--scene",
+                "config/scene-room.toml",
+                "--poses",
+                "60",
+                "--validation-poses",
+                "10",
+                "--samples",
+                "4",
+                "--no-load-poses",
+                "12",
+                "--no-sweep",
+                "--hold-s",
+                "0",
+            ]
+        )
+        == 0
+    )  # a spring: no step-and-hold to pay for
     data = Dataset.load(ds)
     assert int(np.sum(data.split == "no-load")) == 12
     capsys.readouterr()
@@ -342,6 +445,7 @@ def test_calibrate_on_a_room_dataset_shows_progress_and_a_refusal_says_what_to_r
     assert out.err.count("nonlinear fit: iteration") == FIT_ITERATIONS and (tmp_path / "cal.json").exists()
     # A fit judged against a residual limit below the noise: refused as one far above it would be.
     from ftsensord.calibration import nlfit
+
     monkeypatch.setattr(nlfit, "RESIDUAL_LIMIT_T", 0.0)
     monkeypatch.setattr(nlfit, "RESIDUAL_NOISE_FACTOR", 0.1)
     (tmp_path / "bad.json").write_text(ds.read_text())
@@ -349,8 +453,18 @@ def test_calibrate_on_a_room_dataset_shows_progress_and_a_refusal_says_what_to_r
     err = capsys.readouterr().err
     assert "nonlinear fit is refused" in err and "No file written" in err
     assert "--linear-only" in err and "--allow-poor-fit" in err and not (tmp_path / "bad-cal.json").exists()
-    assert main(["calibrate", str(tmp_path / "bad.json"), "-o", str(tmp_path / "bad-cal.json"),
-                 "--allow-poor-fit"]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                str(tmp_path / "bad.json"),
+                "-o",
+                str(tmp_path / "bad-cal.json"),
+                "--allow-poor-fit",
+            ]
+        )
+        == 0
+    )
     assert (tmp_path / "bad-cal.json").exists()
 
 
@@ -359,11 +473,23 @@ def _no_load(rotations: list[np.ndarray], field_t: np.ndarray, sem_t: float = 0.
     stacked R_Si^T R_w0^T u, plus each mean's noise (standard error ``sem_t``), 100 readings."""
     stacked = np.concatenate([R.T for R in SensorGeometry.ring().chip_R], axis=0)
     rng = np.random.default_rng(4)
-    flux = np.array([stacked @ (R.T @ field_t) for R in rotations]) + rng.normal(0, sem_t, (len(rotations), 24))
+    flux = np.array([stacked @ (R.T @ field_t) for R in rotations]) + rng.normal(
+        0, sem_t, (len(rotations), 24)
+    )
     n = len(rotations)
-    return Dataset(ADDRS, np.zeros((n, 6)), flux, np.full((n, 24), sem_t), np.zeros((n, 8), dtype=bool),
-                   np.array(["no-load"] * n), np.zeros(n), np.zeros((n, 3)),
-                   np.array([R.T @ DOWN for R in rotations]), samples_per_pose=100, path="planar.json")
+    return Dataset(
+        ADDRS,
+        np.zeros((n, 6)),
+        flux,
+        np.full((n, 24), sem_t),
+        np.zeros((n, 8), dtype=bool),
+        np.array(["no-load"] * n),
+        np.zeros(n),
+        np.zeros((n, 3)),
+        np.array([R.T @ DOWN for R in rotations]),
+        samples_per_pose=100,
+        path="planar.json",
+    )
 
 
 def test_no_load_poses_turned_about_one_axis_are_refused_not_taken_for_a_field_free_room():
@@ -379,7 +505,9 @@ def test_no_load_poses_turned_about_one_axis_are_refused_not_taken_for_a_field_f
         with pytest.raises(CalibrationError) as exc:
             room_directions(_no_load(rotations, EARTH_T), SensorGeometry.ring())
         assert "planar.json" in str(exc.value) and "one axis" in str(exc.value)
-    spread = [gravity_to_down(d) @ se3.exp_so3(np.array([0, 0, 2.4 * k]))
-              for k, d in enumerate(fibonacci_directions(24))]
+    spread = [
+        gravity_to_down(d) @ se3.exp_so3(np.array([0, 0, 2.4 * k]))
+        for k, d in enumerate(fibonacci_directions(24))
+    ]
     assert room_directions(_no_load(spread, EARTH_T), SensorGeometry.ring())[1]["source"] == "no-load poses"
     assert room_directions(_no_load(turns, np.zeros(3)), SensorGeometry.ring())[1]["mode"] == "geometry"

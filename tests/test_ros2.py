@@ -31,10 +31,12 @@ from .test_daemon import Rig, write_config  # noqa: E402
 PEER = Path(__file__).with_name("ros2_peer.py")
 DOMAIN = 100 + os.getpid() % 100  # 100-199: clear of ROS's default 0 and of other runs' domains
 NS = "fts_test"
-URI = ("<CycloneDDS><Domain Id='any'><General><Interfaces><NetworkInterface address='127.0.0.1'/></Interfaces>"
-       "<AllowMulticast>false</AllowMulticast></General><Discovery><ParticipantIndex>auto</ParticipantIndex>"
-       "<MaxAutoParticipantIndex>30</MaxAutoParticipantIndex><Peers><Peer address='127.0.0.1'/></Peers>"
-       "</Discovery></Domain></CycloneDDS>")
+URI = (
+    "<CycloneDDS><Domain Id='any'><General><Interfaces><NetworkInterface address='127.0.0.1'/></Interfaces>"
+    "<AllowMulticast>false</AllowMulticast></General><Discovery><ParticipantIndex>auto</ParticipantIndex>"
+    "<MaxAutoParticipantIndex>30</MaxAutoParticipantIndex><Peers><Peer address='127.0.0.1'/></Peers>"
+    "</Discovery></Domain></CycloneDDS>"
+)
 ENV = {**os.environ, "CYCLONEDDS_URI": URI}
 STREAMS = ["wrench/sensor1", "wrench/tip"]
 GRAVITY = """
@@ -48,19 +50,28 @@ com_m = [0.0, 0.0, 0.01]
 mass_kg = 0.05
 com_m = [0.0, 0.0, 0.01]
 """
-RAW = {"WrenchStamped": "geometry_msgs/msg/WrenchStamped", "DiagnosticArray": "diagnostic_msgs/msg/DiagnosticArray"}
+RAW = {
+    "WrenchStamped": "geometry_msgs/msg/WrenchStamped",
+    "DiagnosticArray": "diagnostic_msgs/msg/DiagnosticArray",
+}
 
 
 def rosbags_hash(name: str) -> str:
     """The RIHS01 hash of a ROS 2 Jazzy message by rosbags' own implementation (from .msg files)."""
     from rosbags.typesys import Stores, get_typestore
+
     return get_typestore(Stores.ROS2_JAZZY).hash_rihs01(name)
 
 
 def peer(*steps: dict, timeout_s: float = 60) -> list[dict]:
     """Run the ROS 2 peer with ``steps``; its JSON lines."""
-    done = subprocess.run([sys.executable, str(PEER), str(DOMAIN), json.dumps(list(steps))], env=ENV,
-                          capture_output=True, text=True, timeout=timeout_s)
+    done = subprocess.run(
+        [sys.executable, str(PEER), str(DOMAIN), json.dumps(list(steps))],
+        env=ENV,
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+    )
     assert done.returncode == 0, done.stderr
     return [json.loads(line) for line in done.stdout.splitlines()]
 
@@ -74,10 +85,13 @@ def Reference(endpoint: str) -> StreamRecorder:  # noqa: N802 (a class's name to
 def daemon(tmp_path_factory, request) -> Iterator[tuple[Path, StreamRecorder]]:
     """A daemon with ``[ros2]``, each output in turn: the bridge process, the loop's own writes."""
     folder = tmp_path_factory.mktemp("ros2")
-    config = write_config(folder, extra=f'[ros2]\nnamespace = "{NS}"\ndomain_id = {DOMAIN}\n'
-                                        f'output = "{request.param}"\n' + GRAVITY)
-    proc, notify = start_daemon(config, folder, env={"CYCLONEDDS_URI": URI}, stdout=subprocess.DEVNULL,
-                                stderr=subprocess.DEVNULL)
+    config = write_config(
+        folder,
+        extra=f'[ros2]\nnamespace = "{NS}"\ndomain_id = {DOMAIN}\noutput = "{request.param}"\n' + GRAVITY,
+    )
+    proc, notify = start_daemon(
+        config, folder, env={"CYCLONEDDS_URI": URI}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
     ref = Reference(f"ipc://{folder / 'ftsensord' / 'wrench'}")
     ref.start()
     try:
@@ -91,8 +105,15 @@ def daemon(tmp_path_factory, request) -> Iterator[tuple[Path, StreamRecorder]]:
 
 def test_the_type_hashes_are_those_an_independent_implementation_computes():
     from ftsensord.ros2 import msgs
-    for cls in (msgs.WrenchStamped, msgs.DiagnosticArray, msgs.QuaternionStamped, msgs.Imu, msgs.Empty,
-                msgs.ParticipantEntitiesInfo):  # its Gid's char[16] and string<=256: FieldType ids of their own
+
+    for cls in (
+        msgs.WrenchStamped,
+        msgs.DiagnosticArray,
+        msgs.QuaternionStamped,
+        msgs.Imu,
+        msgs.Empty,
+        msgs.ParticipantEntitiesInfo,
+    ):  # its Gid's char[16] and string<=256: FieldType ids of their own
         name = cls.__idl_typename__.replace("::dds_::", "::").rstrip("_").replace("::", "/")
         assert msgs.type_hash(cls) == rosbags_hash(name), name
 
@@ -102,7 +123,10 @@ def test_a_ros2_subscriber_reads_every_wrench_as_the_zeromq_stream_has_it(daemon
     folder, ref = daemon
     control = ControlClient(f"ipc://{folder / 'control'}")
     frames = control.status()["frames"]
-    topics = {**{f"rt/{NS}/{s}": "WrenchStamped" for s in STREAMS}, f"rt/{NS}/wrench/tip/status": "SampleStatus"}
+    topics = {
+        **{f"rt/{NS}/{s}": "WrenchStamped" for s in STREAMS},
+        f"rt/{NS}/wrench/tip/status": "SampleStatus",
+    }
     lines = peer({"do": "read", "topics": topics, "count": 30, "reliable": reliable})
     outputs = control.status()["outputs"]  # in-loop: what it wrote, for an operator
     if outputs:
@@ -116,7 +140,11 @@ def test_a_ros2_subscriber_reads_every_wrench_as_the_zeromq_stream_has_it(daemon
     for m in status["messages"]:
         stamp = m["header"]["stamp"]
         sample = ref.samples[("wrench/tip", stamp["sec"] * 10**9 + stamp["nanosec"])]
-        assert (m["seq"], m["flags"], m["header"]["frame_id"]) == (sample.seq, sample.flags, frames["wrench/tip"])
+        assert (m["seq"], m["flags"], m["header"]["frame_id"]) == (
+            sample.seq,
+            sample.flags,
+            frames["wrench/tip"],
+        )
     seqs = [m["seq"] for m in status["messages"]]
     # missed: seqs the bridge did not get; a best-effort reader may also lose some on DDS
     gaps = [(m["missed"], b - a - 1) for a, b, m in zip(seqs, seqs[1:], status["messages"][1:])]
@@ -125,8 +153,10 @@ def test_a_ros2_subscriber_reads_every_wrench_as_the_zeromq_stream_has_it(daemon
         if line is status:
             continue
         stream = line["topic"].removeprefix(f"rt/{NS}/")
-        assert line["writer"] == {"type_name": "geometry_msgs::msg::dds_::WrenchStamped_",
-                                  "user_data": f"typehash={rosbags_hash(RAW['WrenchStamped'])};"}
+        assert line["writer"] == {
+            "type_name": "geometry_msgs::msg::dds_::WrenchStamped_",
+            "user_data": f"typehash={rosbags_hash(RAW['WrenchStamped'])};",
+        }
         assert len(line["messages"]) == 30, line["topic"]
         for m in line["messages"]:
             stamp = m["header"]["stamp"]
@@ -134,11 +164,15 @@ def test_a_ros2_subscriber_reads_every_wrench_as_the_zeromq_stream_has_it(daemon
             assert m["header"]["frame_id"] == frames[stream]
             w = m["wrench"]
             # float64 from end to end: exactly equal
-            np.testing.assert_array_equal([w[p][a] for p in ("force", "torque") for a in "xyz"], sample.values)
+            np.testing.assert_array_equal(
+                [w[p][a] for p in ("force", "torque") for a in "xyz"], sample.values
+            )
 
 
 def test_diagnostics_name_the_daemon_each_sensor_and_each_chip(daemon):
-    (line,) = peer({"do": "read", "topics": {"rt/diagnostics": "DiagnosticArray"}, "count": 1, "reliable": True})
+    (line,) = peer(
+        {"do": "read", "topics": {"rt/diagnostics": "DiagnosticArray"}, "count": 1, "reliable": True}
+    )
     assert line["writer"]["type_name"] == "diagnostic_msgs::msg::dds_::DiagnosticArray_"
     assert line["writer"]["user_data"] == f"typehash={rosbags_hash(RAW['DiagnosticArray'])};"
     status = {s["name"]: s for s in line["messages"][0]["status"]}
@@ -158,19 +192,37 @@ def test_ros2_node_list_finds_the_node_with_the_endpoints_discovery_finds(daemon
     (node,) = graph["participants"][bridge]  # its ros_discovery_info: one node
     assert (node["namespace"], node["name"]) == (f"/{NS}", "ftsensord")
     for topic in wrenches + ["rt/diagnostics"]:  # the node's writer GIDs are the writers' own GUIDs
-        assert [e["guid"] for e in endpoints[topic] if e["participant"] == bridge][0] in node["writers"], topic
+        assert [e["guid"] for e in endpoints[topic] if e["participant"] == bridge][0] in node["writers"], (
+            topic
+        )
     (tare,) = [e["guid"] for e in endpoints[f"rt/{NS}/tare"] if e["participant"] == bridge]
     assert tare in node["readers"] and tare not in node["writers"]
-    assert len(node["writers"]) == len(set(node["writers"])) >= 2 * len(STREAMS) + 2  # + statuses, diagnostics, tare reply
+    assert (
+        len(node["writers"]) == len(set(node["writers"])) >= 2 * len(STREAMS) + 2
+    )  # + statuses, diagnostics, tare reply
 
 
 def test_an_orientation_from_ros_reaches_the_gravity_compensation(daemon):
     folder, _ = daemon
     s45 = float(np.sqrt(0.5))
-    out = peer({"do": "publish", "topic": f"rt/{NS}/orientation/tip", "type": "QuaternionStamped", "times": 10,
-                "period_s": 0.02, "message": {"stamp": [123, 456_000_000], "q_xyzw": [s45, 0.0, 0.0, s45]}},
-               {"do": "publish", "topic": f"rt/{NS}/imu/sensor1", "type": "Imu", "times": 5, "period_s": 0.02,
-                "message": {"stamp": [77, 0], "q_xyzw": [0.0, 0.0, 0.0, 1.0], "covariance0": -1.0}})
+    out = peer(
+        {
+            "do": "publish",
+            "topic": f"rt/{NS}/orientation/tip",
+            "type": "QuaternionStamped",
+            "times": 10,
+            "period_s": 0.02,
+            "message": {"stamp": [123, 456_000_000], "q_xyzw": [s45, 0.0, 0.0, s45]},
+        },
+        {
+            "do": "publish",
+            "topic": f"rt/{NS}/imu/sensor1",
+            "type": "Imu",
+            "times": 5,
+            "period_s": 0.02,
+            "message": {"stamp": [77, 0], "q_xyzw": [0.0, 0.0, 0.0, 1.0], "covariance0": -1.0},
+        },
+    )
     assert all(o["matched"] for o in out)
     gravity = ControlClient(f"ipc://{folder / 'control'}").status()["gravity"]
     assert gravity["stream"]["frames"]["tip"]["t_sender"] == pytest.approx(123.456)
@@ -204,44 +256,70 @@ def test_the_trigger_service_and_the_tare_topic_tare_the_sensors(daemon):
 def test_a_ros2_table_is_checked_and_names_the_extra_when_it_is_missing(tmp_path, monkeypatch):
     path = write_config(tmp_path, extra='[ros2]\nnamespace = "9lives"\n')
     assert_names_file_and_key(load_config, path, "ros2.namespace", "a ROS 2 name")
-    path = write_config(tmp_path, extra='[ros2]\ndomain_id = 300\n')
+    path = write_config(tmp_path, extra="[ros2]\ndomain_id = 300\n")
     assert_names_file_and_key(load_config, path, "ros2.domain_id", "0 to 232")
     path = write_config(tmp_path, extra='[ros2]\noutput = "thread"\n')
     assert_names_file_and_key(load_config, path, "ros2.output", '"in-loop" or "bridge"')
     monkeypatch.setenv("ROS_DOMAIN_ID", "42")
     assert load_config(write_config(tmp_path, extra="[ros2]\n")).ros2.domain_id == 42
-    assert load_config(write_config(tmp_path, extra="[ros2]\n")).ros2.output == "in-loop"  # the default: measured
+    assert (
+        load_config(write_config(tmp_path, extra="[ros2]\n")).ros2.output == "in-loop"
+    )  # the default: measured
     import importlib.util
+
     real = importlib.util.find_spec
-    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "cyclonedds" else real(name, *a))
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *a: None if name == "cyclonedds" else real(name, *a)
+    )
     with pytest.raises(Exception, match=r"ftsensord\.toml: ros2: .*pip install 'ftsensord\[ros2\]'"):
         load_config(write_config(tmp_path, extra="[ros2]\n"))
 
 
 def test_a_failing_chip_or_a_flagged_wrench_raises_the_level_ros_tools_show():
-    from ftsensord.ros2 import diagnostics as d
     from ftsensord.protocol import wire
-    chips = {"0x0C": {"sensor": "s1", "state": "ok", "last_error": None},
-             "0x0D": {"sensor": "s1", "state": "failing", "last_error": "NACK"}}
-    status = {"rate_hz": 100.0, "achieved_rate_hz": 99.9, "bus": "sim", "chips": chips,
-              "sensors": {"s1": {"serial": "x", "temperature": {"beyond_span": False}}}}
+    from ftsensord.ros2 import diagnostics as d
+
+    chips = {
+        "0x0C": {"sensor": "s1", "state": "ok", "last_error": None},
+        "0x0D": {"sensor": "s1", "state": "failing", "last_error": "NACK"},
+    }
+    status = {
+        "rate_hz": 100.0,
+        "achieved_rate_hz": 99.9,
+        "bus": "sim",
+        "chips": chips,
+        "sensors": {"s1": {"serial": "x", "temperature": {"beyond_span": False}}},
+    }
     levels = {name: level for level, name, *_ in d.statuses(status, {"s1": 0}, "ns")}
-    assert levels == {"ns: daemon": d.OK, "ns: s1": d.ERROR, "ns: s1 chip 0x0C": d.OK, "ns: s1 chip 0x0D": d.ERROR}
+    assert levels == {
+        "ns: daemon": d.OK,
+        "ns: s1": d.ERROR,
+        "ns: s1 chip 0x0C": d.OK,
+        "ns: s1 chip 0x0D": d.ERROR,
+    }
     chips["0x0D"]["state"] = "ok"
-    for flags, level in ((0, d.OK), (wire.FLAG_LATE, d.OK), (wire.FLAG_DEGRADED, d.WARN), (wire.FLAG_INVALID, d.ERROR)):
+    for flags, level in (
+        (0, d.OK),
+        (wire.FLAG_LATE, d.OK),
+        (wire.FLAG_DEGRADED, d.WARN),
+        (wire.FLAG_INVALID, d.ERROR),
+    ):
         (sensor,) = [s for s in d.statuses(status, {"s1": flags}, "ns") if s[1] == "ns: s1"]
         assert sensor[0] == level, (flags, sensor)
     status["achieved_rate_hz"] = 90.0  # below 95 % of the rate
     assert d.statuses(status, {}, "ns")[0][0] == d.WARN
-    assert d.statuses(None, {}, "ns", "timed out") == [(d.STALE, "ns: daemon", "no answer from the daemon: timed out", "", [])]
+    assert d.statuses(None, {}, "ns", "timed out") == [
+        (d.STALE, "ns: daemon", "no answer from the daemon: timed out", "", [])
+    ]
 
 
 def test_the_in_loop_diagnostics_show_what_the_status_reply_says(tmp_path):
     """In the loop's thread the statuses come from `health_reply`, not the whole `status` reply:
     the same statuses, with a chip failing too."""
-    from ftsensord.ros2 import diagnostics as d
-    from ftsensord.protocol import wire
     from ftsensord.daemon.status import health_reply
+    from ftsensord.protocol import wire
+    from ftsensord.ros2 import diagnostics as d
+
     rig = Rig(tmp_path)
     try:
         rig.bus.faults.nack(0x0E)
@@ -251,15 +329,18 @@ def test_the_in_loop_diagnostics_show_what_the_status_reply_says(tmp_path):
         flags = {"sensor1": wire.FLAG_CHIP_MISSING, "sensor2": 0}
         shown = d.statuses(health, flags, "ns")
         assert shown == d.statuses(status, flags, "ns")
-        assert {name: level for level, name, *_ in shown if level} == {"ns: sensor1": d.ERROR,
-                                                                        "ns: sensor1 chip 0x0E": d.ERROR}
+        assert {name: level for level, name, *_ in shown if level} == {
+            "ns: sensor1": d.ERROR,
+            "ns: sensor1 chip 0x0E": d.ERROR,
+        }
     finally:
         rig.close()
 
 
 def test_the_bridge_stops_with_the_daemon_even_when_it_is_killed(tmp_path):
-    config = write_config(tmp_path, extra=f'[ros2]\nnamespace = "{NS}_kill"\ndomain_id = {DOMAIN}\n'
-                                                   'output = "bridge"\n')
+    config = write_config(
+        tmp_path, extra=f'[ros2]\nnamespace = "{NS}_kill"\ndomain_id = {DOMAIN}\noutput = "bridge"\n'
+    )
     proc, notify = start_daemon(config, tmp_path, env={"CYCLONEDDS_URI": URI})
     try:
         (child,) = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()
@@ -286,29 +367,50 @@ def process_state(pid: str) -> str:
 def test_the_bridges_cdr_bytes_are_cyclones_own_serialization(frame_id):
     from ftsensord.recording.ros2mcap import Stamped, stamp, status_body
     from ftsensord.ros2 import msgs
+
     t_wall, values = 1_764_100_000.123456789, [1.5, -2.25, 3e-3, -4e5, 5.0, float("nan")]
     header = msgs.Header(msgs.Time(*stamp(t_wall)), frame_id)
     wrench = msgs.WrenchStamped(header, msgs.Wrench(msgs.Vector3(*values[:3]), msgs.Vector3(*values[3:])))
     # the frame's padding to the first float64 depends on the frame_id's length: each length is one case
-    assert Stamped(frame_id).message(t_wall, np.array(values).tobytes()) == wrench.serialize(use_version_2=False)
+    assert Stamped(frame_id).message(t_wall, np.array(values).tobytes()) == wrench.serialize(
+        use_version_2=False
+    )
     status = msgs.SampleStatus(header, 2**40 + 3, 0x41, 7)
-    assert Stamped(frame_id).message(t_wall, status_body(2**40 + 3, 0x41, 7)) == status.serialize(use_version_2=False)
+    assert Stamped(frame_id).message(t_wall, status_body(2**40 + 3, 0x41, 7)) == status.serialize(
+        use_version_2=False
+    )
 
 
-@pytest.mark.parametrize("statuses", [
-    [],
-    [(0, "ns: daemon", "100 Hz", "", [])],
-    [(3, "ns: daemon", "no answer", "", []), (2, "ns: s1 chip 0x0D", "failing: NACK", "MLX90393 0x0D",
-                                               [("state", "failing"), ("errors", "12"), ("é", "")])],
-    [(1, "n" * k, "m" * (k + 1), "h" * (k + 2), [("k" * k, "v" * (k + 3))] * k) for k in range(6)],
-])
+@pytest.mark.parametrize(
+    "statuses",
+    [
+        [],
+        [(0, "ns: daemon", "100 Hz", "", [])],
+        [
+            (3, "ns: daemon", "no answer", "", []),
+            (
+                2,
+                "ns: s1 chip 0x0D",
+                "failing: NACK",
+                "MLX90393 0x0D",
+                [("state", "failing"), ("errors", "12"), ("é", "")],
+            ),
+        ],
+        [(1, "n" * k, "m" * (k + 1), "h" * (k + 2), [("k" * k, "v" * (k + 3))] * k) for k in range(6)],
+    ],
+)
 def test_the_diagnostics_cdr_bytes_are_cyclones_own_serialization(statuses):
     from ftsensord.recording.ros2mcap import stamp
     from ftsensord.ros2 import diagnostics, msgs
+
     t_wall = 1_764_100_000.987654321
-    array = msgs.DiagnosticArray(msgs.Header(msgs.Time(*stamp(t_wall)), ""), [
-        msgs.DiagnosticStatus(level, name, message, hardware_id, [msgs.KeyValue(k, v) for k, v in values])
-        for level, name, message, hardware_id, values in statuses])
+    array = msgs.DiagnosticArray(
+        msgs.Header(msgs.Time(*stamp(t_wall)), ""),
+        [
+            msgs.DiagnosticStatus(level, name, message, hardware_id, [msgs.KeyValue(k, v) for k, v in values])
+            for level, name, message, hardware_id, values in statuses
+        ],
+    )
     # the strings' lengths 0-5 move every later length's 4-byte alignment: each is a case
     assert diagnostics.cdr(statuses, t_wall) == array.serialize(use_version_2=False)
     for count in (1, 2):  # a few statuses a cycle, as the in-loop output encodes them
@@ -323,42 +425,68 @@ def can_be_realtime() -> bool:
     return subprocess.run(["chrt", "-f", "1", "true"], capture_output=True).returncode == 0
 
 
-@pytest.mark.skipif(not can_be_realtime(), reason="SCHED_FIFO not allowed here (needs CAP_SYS_NICE or RLIMIT_RTPRIO)")
+@pytest.mark.skipif(
+    not can_be_realtime(), reason="SCHED_FIFO not allowed here (needs CAP_SYS_NICE or RLIMIT_RTPRIO)"
+)
 def test_under_a_realtime_daemon_only_the_bridges_forwarding_is_realtime_below_the_loop(tmp_path):
-    config = write_config(tmp_path, extra=f'[ros2]\nnamespace = "{NS}_rt"\ndomain_id = {DOMAIN}\n'
-                                                   'output = "bridge"\n')
+    config = write_config(
+        tmp_path, extra=f'[ros2]\nnamespace = "{NS}_rt"\ndomain_id = {DOMAIN}\noutput = "bridge"\n'
+    )
     proc, notify = start_daemon(config, tmp_path, env={"CYCLONEDDS_URI": URI}, args=["--realtime", "50"])
     try:
         (child,) = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()
-        end = time.monotonic() + 30  # the bridge's start: imports, the daemon's status, the node, then the raise
+        end = (
+            time.monotonic() + 30
+        )  # the bridge's start: imports, the daemon's status, the node, then the raise
         while time.monotonic() < end and os.sched_getscheduler(int(child)) != os.SCHED_FIFO:
             time.sleep(0.1)
         time.sleep(0.5)  # its ZeroMQ context made just after the raise
-        threads = {int(t): Path(f"/proc/{child}/task/{t}/comm").read_text().strip()
-                   for t in os.listdir(f"/proc/{child}/task")}
+        threads = {
+            int(t): Path(f"/proc/{child}/task/{t}/comm").read_text().strip()
+            for t in os.listdir(f"/proc/{child}/task")
+        }
         policy = {t: (os.sched_getscheduler(t), os.sched_getparam(t).sched_priority) for t in threads}
-        assert (os.sched_getscheduler(proc.pid), os.sched_getparam(proc.pid).sched_priority) == (os.SCHED_FIFO, 50)
+        assert (os.sched_getscheduler(proc.pid), os.sched_getparam(proc.pid).sched_priority) == (
+            os.SCHED_FIFO,
+            50,
+        )
         assert policy[int(child)] == (os.SCHED_FIFO, 1), threads  # the forwarding (main) thread
-        assert any(policy[t] == (os.SCHED_FIFO, 1) for t, name in threads.items() if name.startswith("ZMQbg/IO"))
-        others = {name: policy[t] for t, name in threads.items() if t != int(child) and not name.startswith("ZMQbg")}
-        assert len(others) >= 3 and all(p == (os.SCHED_OTHER, 0) for p in others.values()), others  # DDS's, inputs
+        assert any(
+            policy[t] == (os.SCHED_FIFO, 1) for t, name in threads.items() if name.startswith("ZMQbg/IO")
+        )
+        others = {
+            name: policy[t] for t, name in threads.items() if t != int(child) and not name.startswith("ZMQbg")
+        }
+        assert len(others) >= 3 and all(p == (os.SCHED_OTHER, 0) for p in others.values()), (
+            others
+        )  # DDS's, inputs
     finally:
         proc.terminate()
         proc.wait(timeout=20)
         notify.close()
 
 
-@pytest.mark.skipif(not can_be_realtime(), reason="SCHED_FIFO not allowed here (needs CAP_SYS_NICE or RLIMIT_RTPRIO)")
+@pytest.mark.skipif(
+    not can_be_realtime(), reason="SCHED_FIFO not allowed here (needs CAP_SYS_NICE or RLIMIT_RTPRIO)"
+)
 def test_in_loop_under_a_realtime_daemon_ddss_own_threads_stay_at_the_normal_policy(tmp_path):
-    config = write_config(tmp_path, extra=f'[ros2]\nnamespace = "{NS}_rt"\ndomain_id = {DOMAIN}\noutput = "in-loop"\n')
+    config = write_config(
+        tmp_path, extra=f'[ros2]\nnamespace = "{NS}_rt"\ndomain_id = {DOMAIN}\noutput = "in-loop"\n'
+    )
     proc, notify = start_daemon(config, tmp_path, env={"CYCLONEDDS_URI": URI}, args=["--realtime", "50"])
     try:
         assert not Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()  # no bridge process
-        threads = {int(t): Path(f"/proc/{proc.pid}/task/{t}/comm").read_text().strip()
-                   for t in os.listdir(f"/proc/{proc.pid}/task")}
+        threads = {
+            int(t): Path(f"/proc/{proc.pid}/task/{t}/comm").read_text().strip()
+            for t in os.listdir(f"/proc/{proc.pid}/task")
+        }
         policy = {t: (os.sched_getscheduler(t), os.sched_getparam(t).sched_priority) for t in threads}
         assert policy[proc.pid] == (os.SCHED_FIFO, 50)  # the loop's thread, which makes the DDS writes
-        dds = {name: policy[t] for t, name in threads.items() if name in ("gc", "dq.builtins", "dq.user", "tev", "recv")}
+        dds = {
+            name: policy[t]
+            for t, name in threads.items()
+            if name in ("gc", "dq.builtins", "dq.user", "tev", "recv")
+        }
         assert len(dds) == 5 and all(p == (os.SCHED_OTHER, 0) for p in dds.values()), (dds, threads)
     finally:
         proc.terminate()
@@ -370,8 +498,10 @@ def test_in_loop_without_a_dds_participant_the_zeromq_streams_go_on(tmp_path):
     """A Cyclone DDS configuration it cannot use (an interface this host does not have): the
     daemon says so in its log and publishes on ZeroMQ as without ``[ros2]``."""
     config = write_config(tmp_path, extra=f'[ros2]\nnamespace = "{NS}_bad"\ndomain_id = {DOMAIN}\n')
-    bad = "<CycloneDDS><Domain Id='any'><General><Interfaces><NetworkInterface address='192.0.2.77'/>" \
-          "</Interfaces></General></Domain></CycloneDDS>"  # TEST-NET-1: never a local address
+    bad = (
+        "<CycloneDDS><Domain Id='any'><General><Interfaces><NetworkInterface address='192.0.2.77'/>"
+        "</Interfaces></General></Domain></CycloneDDS>"
+    )  # TEST-NET-1: never a local address
     log = tmp_path / "log"
     with log.open("w") as out:
         proc, notify = start_daemon(config, tmp_path, env={"CYCLONEDDS_URI": bad}, stderr=out)
@@ -395,12 +525,15 @@ def test_a_frame_that_is_not_a_wrench_is_dropped_and_counted():
     first logged), never written to DDS; a wrench is written and handed on for its status."""
     from types import SimpleNamespace
 
-    from ftsensord.ros2.bridge import Bridge
     from ftsensord.protocol import wire
+    from ftsensord.ros2.bridge import Bridge
 
     written: list[tuple] = []
-    bridge = SimpleNamespace(bad_frames=0, endpoint="ipc://test",
-                             node=SimpleNamespace(publish_wrench=lambda *args: written.append(args)))
+    bridge = SimpleNamespace(
+        bad_frames=0,
+        endpoint="ipc://test",
+        node=SimpleNamespace(publish_wrench=lambda *args: written.append(args)),
+    )
     flux = wire.encode("wrench/sensor1", wire.KIND_FLUX, 1, 0.0, 0.0, 0, np.zeros(24))
     assert Bridge.forward(bridge, flux) is None and Bridge.forward(bridge, b"garbage") is None
     assert bridge.bad_frames == 2 and not written

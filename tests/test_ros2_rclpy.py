@@ -49,15 +49,19 @@ class Daemon:
 
     def __init__(self, folder: Path, namespace: str, output: str):
         self.folder, self.namespace = folder, namespace
-        config = write_config(folder, extra=f'[ros2]\nnamespace = "{namespace}"\ndomain_id = {DOMAIN}\n'
-                                            f'output = "{output}"\n' + GRAVITY)
+        config = write_config(
+            folder,
+            extra=f'[ros2]\nnamespace = "{namespace}"\ndomain_id = {DOMAIN}\noutput = "{output}"\n' + GRAVITY,
+        )
         self.log = folder / "daemon.log"
         with open(self.log, "w") as log:
-            self.proc, self.notify = start_daemon(config, folder, env={"CYCLONEDDS_URI": URI}, stdout=log,
-                                                  stderr=subprocess.STDOUT)
+            self.proc, self.notify = start_daemon(
+                config, folder, env={"CYCLONEDDS_URI": URI}, stdout=log, stderr=subprocess.STDOUT
+            )
         self.control = ControlClient(f"ipc://{folder / 'ftsensord' / 'control'}")
-        self.ref = StreamRecorder(f"ipc://{folder / 'ftsensord' / 'wrench'}", STREAMS,
-                                  lambda s: (s.topic, round(s.t_wall * 1e9)))
+        self.ref = StreamRecorder(
+            f"ipc://{folder / 'ftsensord' / 'wrench'}", STREAMS, lambda s: (s.topic, round(s.t_wall * 1e9))
+        )
         self.ref.start()
 
     def close(self) -> None:
@@ -95,17 +99,32 @@ def daemons(tmp_path_factory) -> Iterator[tuple[Daemon, Daemon]]:
 
 def peer(python: Path, *steps: dict, timeout_s: float = 90) -> list[dict]:
     """The rclpy node run with ``steps``; its JSON lines."""
-    done = subprocess.run([str(python), str(PEER), str(DOMAIN), json.dumps(list(steps))], env=peer_env(),
-                          capture_output=True, text=True, timeout=timeout_s)
+    done = subprocess.run(
+        [str(python), str(PEER), str(DOMAIN), json.dumps(list(steps))],
+        env=peer_env(),
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     return [json.loads(line) for line in done.stdout.splitlines()]
 
 
 def test_ros2_lists_each_daemons_node_its_topics_and_which_node_publishes_them(ros2, daemons):
     topics = {f"/{ns}/{s}{tail}" for ns in (NS, NS_BRIDGE) for s in STREAMS for tail in ("", "/status")}
-    graphs = peer(ros2, *({"do": "graph", "node_fqn": f"/{ns}/ftsensord", "topics": sorted(topics), "timeout_s": 30,
-                           "subscribed": [f"/{ns}/tare", f"/{ns}/orientation/tip", f"/{ns}/imu/sensor1"]}
-                          for ns in (NS, NS_BRIDGE)))
+    graphs = peer(
+        ros2,
+        *(
+            {
+                "do": "graph",
+                "node_fqn": f"/{ns}/ftsensord",
+                "topics": sorted(topics),
+                "timeout_s": 30,
+                "subscribed": [f"/{ns}/tare", f"/{ns}/orientation/tip", f"/{ns}/imu/sensor1"],
+            }
+            for ns in (NS, NS_BRIDGE)
+        ),
+    )
     graph = graphs[-1]  # after both nodes were seen
     assert {(f"/{ns}", "ftsensord") for ns in (NS, NS_BRIDGE)} <= {(n[1], n[0]) for n in graph["nodes"]}
     types = graph["topics"]
@@ -136,8 +155,11 @@ def test_a_default_and_a_sensor_data_subscriber_read_each_wrench_as_the_zeromq_s
     daemon = daemons[0]
     frames = daemon.control.status()["frames"]
     topics = {f"/{NS}/{s}": "WrenchStamped" for s in STREAMS}
-    lines = peer(ros2, {"do": "read", "topics": topics, "count": 100, "qos": "default"},
-                 {"do": "read", "topics": topics, "count": 100, "qos": "sensor_data"})
+    lines = peer(
+        ros2,
+        {"do": "read", "topics": topics, "count": 100, "qos": "default"},
+        {"do": "read", "topics": topics, "count": 100, "qos": "sensor_data"},
+    )
     time.sleep(0.1)  # the reference's last samples in
     assert len(lines) == 2 * len(STREAMS)
     for line in lines:
@@ -151,7 +173,9 @@ def test_a_default_and_a_sensor_data_subscriber_read_each_wrench_as_the_zeromq_s
             assert m["header"]["frame_id"] == frames[stream]
             w = m["wrench"]
             # float64 from end to end: exactly equal
-            np.testing.assert_array_equal([w[p][a] for p in ("force", "torque") for a in "xyz"], sample.values)
+            np.testing.assert_array_equal(
+                [w[p][a] for p in ("force", "torque") for a in "xyz"], sample.values
+            )
         assert stamps == sorted(set(stamps))  # in order, none twice
 
 
@@ -171,22 +195,48 @@ def test_orientations_from_rclpy_reach_the_gravity_compensation(ros2, daemons):
     daemon = daemons[0]
     s45 = float(np.sqrt(0.5))
     # one frame at a time: the tip's orientation follows from a sensor's and the other way round
-    (out,) = peer(ros2, {"do": "publish", "topic": f"/{NS}/orientation/tip", "type": "QuaternionStamped", "times": 10,
-                         "period_s": 0.02, "message": {"stamp": [123, 456_000_000], "q_xyzw": [s45, 0.0, 0.0, s45]}})
+    (out,) = peer(
+        ros2,
+        {
+            "do": "publish",
+            "topic": f"/{NS}/orientation/tip",
+            "type": "QuaternionStamped",
+            "times": 10,
+            "period_s": 0.02,
+            "message": {"stamp": [123, 456_000_000], "q_xyzw": [s45, 0.0, 0.0, s45]},
+        },
+    )
     gravity = daemon.control.status()["gravity"]
     assert out["matched"] and gravity["stream"]["frames"]["tip"]["t_sender"] == pytest.approx(123.456)
     # 90 deg about x: the world's gravity [0, 0, -g] is along -y in the tip frame
     np.testing.assert_allclose(gravity["frames"]["tip"]["gravity_now_mps2"], [0.0, -9.80665, 0.0], atol=1e-5)
     before = gravity["stream"]["frames"].get("sensor2")  # (an earlier test's orientation, or none)
-    out = peer(ros2, {"do": "publish", "topic": f"/{NS}/imu/sensor1", "type": "Imu", "times": 10, "period_s": 0.02,
-                      "message": {"stamp": [77, 250_000_000], "q_xyzw": [0.0, s45, 0.0, s45]}},
-               {"do": "publish", "topic": f"/{NS}/imu/sensor2", "type": "Imu", "times": 5, "period_s": 0.02,
-                "message": {"stamp": [78, 0], "q_xyzw": [0.0, 0.0, 0.0, 1.0], "covariance0": -1.0}})
+    out = peer(
+        ros2,
+        {
+            "do": "publish",
+            "topic": f"/{NS}/imu/sensor1",
+            "type": "Imu",
+            "times": 10,
+            "period_s": 0.02,
+            "message": {"stamp": [77, 250_000_000], "q_xyzw": [0.0, s45, 0.0, s45]},
+        },
+        {
+            "do": "publish",
+            "topic": f"/{NS}/imu/sensor2",
+            "type": "Imu",
+            "times": 5,
+            "period_s": 0.02,
+            "message": {"stamp": [78, 0], "q_xyzw": [0.0, 0.0, 0.0, 1.0], "covariance0": -1.0},
+        },
+    )
     gravity = daemon.control.status()["gravity"]
     frames = gravity["stream"]["frames"]
     assert all(o["matched"] for o in out) and frames["sensor1"]["t_sender"] == pytest.approx(77.25)
     # 90 deg about y: along +x in sensor1's frame
-    np.testing.assert_allclose(gravity["frames"]["sensor1"]["gravity_now_mps2"], [9.80665, 0.0, 0.0], atol=1e-5)
+    np.testing.assert_allclose(
+        gravity["frames"]["sensor1"]["gravity_now_mps2"], [9.80665, 0.0, 0.0], atol=1e-5
+    )
     # an Imu whose covariance[0] is -1 has no orientation: sensor2's is what it was
     assert (frames.get("sensor2") or {}).get("t_sender") == (before or {}).get("t_sender")
 
@@ -220,10 +270,14 @@ def test_the_trigger_service_is_not_answered_to_an_rmw_fastrtps_client(ros2, tmp
     try:
         daemon.control.untare()
         orient = [f"/{daemon.namespace}/orientation/{f}" for f in ("sensor1", "sensor2", "tip")]
-        (out,) = peer(ros2, {"do": "trigger", "name": f"/{daemon.namespace}/tare", "orient": orient,
-                             "timeout_s": 5})
+        (out,) = peer(
+            ros2, {"do": "trigger", "name": f"/{daemon.namespace}/tare", "orient": orient, "timeout_s": 5}
+        )
         assert out["available"] and not out["answered"], out
         assert not any(s["tared"] for s in daemon.control.status()["sensors"].values())
     finally:
         daemon.close()
-    assert "rq/fts_rclpy_trigger/tareRequest/std_srvs::srv::dds_::Trigger_Request_ failed" in daemon.log.read_text()
+    assert (
+        "rq/fts_rclpy_trigger/tareRequest/std_srvs::srv::dds_::Trigger_Request_ failed"
+        in daemon.log.read_text()
+    )

@@ -14,11 +14,11 @@ import pytest
 import zmq
 
 from ftsensord import client
-from ftsensord.errors import ConfigError
 from ftsensord.config import file as config_module
 from ftsensord.config.file import load_config
-from ftsensord.protocol.paths import check_private_dir, ensure_private_dir
 from ftsensord.daemon.run import LOCK_NAME, bind, lock_runtime
+from ftsensord.errors import ConfigError
+from ftsensord.protocol.paths import check_private_dir, ensure_private_dir
 
 from .test_daemon import write_config
 
@@ -51,7 +51,9 @@ def test_the_fallback_folder_is_created_private(fallback):
     assert client.default_endpoint("wrench") == f"ipc://{fallback}/wrench"
 
 
-def test_a_folder_taken_over_by_another_user_is_refused_by_daemon_and_client(fallback, monkeypatch, zmq_context):
+def test_a_folder_taken_over_by_another_user_is_refused_by_daemon_and_client(
+    fallback, monkeypatch, zmq_context
+):
     fallback.mkdir(mode=0o755)
     ctx = zmq_context  # terminated at teardown, with any socket an assert left open
     impostor = ctx.socket(zmq.PUB)  # the attacker's publisher, in place before the victim
@@ -112,8 +114,11 @@ def test_the_service_folder_may_be_the_service_users_but_must_sit_in_roots_folde
 
 
 def test_a_lock_file_planted_as_a_symlink_is_not_followed(tmp_path):
-    config = load_config(write_config(tmp_path, extra=f'publish = "ipc://{tmp_path}/rt/pub"\n'
-                                                      f'control = "ipc://{tmp_path}/rt/ctl"'))
+    config = load_config(
+        write_config(
+            tmp_path, extra=f'publish = "ipc://{tmp_path}/rt/pub"\ncontrol = "ipc://{tmp_path}/rt/ctl"'
+        )
+    )
     (tmp_path / "rt").mkdir(mode=0o700)
     target = tmp_path / "victim-file"
     target.write_text("precious")
@@ -128,13 +133,22 @@ def test_a_second_daemon_refuses_to_start_naming_the_first(tmp_path):
     config_path = write_config(tmp_path, extra=f'publish = "ipc://{rt}/pub"\ncontrol = "ipc://{rt}/ctl"')
     # The first daemon: a real process holding the lock (the flock is per open file, so
     # a second lock in this process would be refused as well; a process is the honest test).
-    first = subprocess.Popen([sys.executable, "-m", "ftsensord", "run", "--config", str(config_path)],
-                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    first = subprocess.Popen(
+        [sys.executable, "-m", "ftsensord", "run", "--config", str(config_path)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     try:
         ctl = client.ControlClient(f"ipc://{rt}/ctl", timeout_s=10)
         assert ctl.status()["cycles"] >= 0  # the first one serves
-        second = subprocess.run([sys.executable, "-m", "ftsensord", "run", "--config", str(config_path)],
-                                check=False, capture_output=True, text=True, timeout=60)
+        second = subprocess.run(
+            [sys.executable, "-m", "ftsensord", "run", "--config", str(config_path)],
+            check=False,
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
         assert second.returncode != 0
         assert f"another ftsensord (pid {first.pid}) runs here" in second.stderr + second.stdout
         assert ctl.status()["cycles"] > 0  # the first one still has its endpoints
@@ -168,7 +182,9 @@ def test_a_deleted_folder_ends_the_daemon_and_a_second_one_keeps_its_sockets(tmp
         assert first.returncode == 1, out[-2000:]
         assert f"{rt}/" in out and "deleted" in out, out[-2000:]
         status = client.ControlClient(f"ipc://{rt}/ctl", timeout_s=10).status()
-        assert status["cycles"] >= 0 and second.poll() is None  # the second's sockets survived the first's exit
+        assert (
+            status["cycles"] >= 0 and second.poll() is None
+        )  # the second's sockets survived the first's exit
         assert (rt / "ctl").exists() and (rt / "pub").exists()
     finally:
         for proc in (first, second):
@@ -194,10 +210,17 @@ def test_a_sigterm_while_starting_is_a_clean_exit(tmp_path, when):
     no socket left behind, never a death by the signal."""
     rt = tmp_path / "rt"
     config_path = write_config(tmp_path, extra=f'publish = "ipc://{rt}/pub"\ncontrol = "ipc://{rt}/ctl"')
-    proc = subprocess.Popen([sys.executable, "-m", "ftsensord", "run", "--config", str(config_path)],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    ready = {"handler": lambda: _caught(proc.pid, signal.SIGTERM), "lock": (rt / LOCK_NAME).exists,
-             "sockets": (rt / "ctl").exists}[when]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "ftsensord", "run", "--config", str(config_path)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    ready = {
+        "handler": lambda: _caught(proc.pid, signal.SIGTERM),
+        "lock": (rt / LOCK_NAME).exists,
+        "sockets": (rt / "ctl").exists,
+    }[when]
     try:
         while not ready():
             assert proc.poll() is None, proc.communicate()[0]

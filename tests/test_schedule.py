@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import numpy as np
-from smbus2.smbus2 import I2C_M_RD
 import pytest
+from smbus2.smbus2 import I2C_M_RD
 
 from ftsensord.acquire.bound import burst_readback_stays_fresh, cycle_bound
 from ftsensord.acquire.health import stuck_cycles_for
@@ -59,8 +59,13 @@ def test_an_overlapped_cycle_of_few_chips_takes_exactly_the_bound(n, adapter):
     the read's address byte, and cycles of 2-4 chips took 0.4-1.3 % longer than the bound."""
     clock = VirtualClock()
     bus = simulated_bus(two_sensor_scene(), clock=clock, bus_hz=400e3, adapter=adapter, ioctl_s=80e-6)
-    reader = Reader(bus, [MLX90393(bus, a, sleep=bus.sleep) for a in range(0x0C, 0x0C + n)], "overlapped",
-                    mlx.Settings(), 400e3)
+    reader = Reader(
+        bus,
+        [MLX90393(bus, a, sleep=bus.sleep) for a in range(0x0C, 0x0C + n)],
+        "overlapped",
+        mlx.Settings(),
+        400e3,
+    )
     assert reader.start() == {}
     bound = cycle_bound("overlapped", n, mlx.Settings(), 400e3, 80e-6, adapter=adapter)
     clock.sleep(0.1)
@@ -78,18 +83,24 @@ def test_with_tcmp_the_read_back_of_the_offsets_is_in_the_bound(scheduler):
     settings = mlx.Settings(gain_sel=4, res_x=1, res_y=1, res_z=1, tcmp_en=True)
     clock = VirtualClock()
     bus = simulated_bus(two_sensor_scene(), clock=clock, bus_hz=400e3, ioctl_s=80e-6)
-    reader = Reader(bus, [MLX90393(bus, a, sleep=bus.sleep) for a in range(0x0C, 0x1C)], scheduler, settings, 400e3)
+    reader = Reader(
+        bus, [MLX90393(bus, a, sleep=bus.sleep) for a in range(0x0C, 0x1C)], scheduler, settings, 400e3
+    )
     assert reader.start() == {}
     bound = cycle_bound(scheduler, 16, settings, 400e3, 80e-6, adapter=bus.adapter)
-    plain = cycle_bound(scheduler, 16, mlx.Settings(gain_sel=4, res_x=1, res_y=1, res_z=1), 400e3, 80e-6,
-                        adapter=bus.adapter)
+    plain = cycle_bound(
+        scheduler, 16, mlx.Settings(gain_sel=4, res_x=1, res_y=1, res_z=1), 400e3, 80e-6, adapter=bus.adapter
+    )
     assert bound.ioctls == plain.ioctls + 3
     clock.sleep(0.1)
     for _ in range(3):
         t0, ioctls = clock.now(), bus.transfers
         results = reader.read()
         reader.upkeep()
-        assert clock.now() - t0 == pytest.approx(bound.cycle_s, rel=1e-9) and bus.transfers - ioctls == bound.ioctls
+        assert (
+            clock.now() - t0 == pytest.approx(bound.cycle_s, rel=1e-9)
+            and bus.transfers - ioctls == bound.ioctls
+        )
         assert scheduler == "burst" or all(r.ok for r in results.values())
         clock.wait_until(t0 + bound.cycle_s)
 
@@ -120,7 +131,9 @@ def test_burst_read_back_after_the_publish_leaves_no_chip_stale(adapter):
 
 def _burst_reader(n: int, clock: VirtualClock) -> Reader:
     bus = simulated_bus(two_sensor_scene(), clock=clock, bus_hz=400e3, adapter="bcm2835", ioctl_s=80e-6)
-    reader = Reader(bus, [MLX90393(bus, a, sleep=bus.sleep) for a in range(0x0C, 0x0C + n)], "burst", mlx.Settings())
+    reader = Reader(
+        bus, [MLX90393(bus, a, sleep=bus.sleep) for a in range(0x0C, 0x0C + n)], "burst", mlx.Settings()
+    )
     assert reader.start() == {}
     clock.sleep(0.1)
     return reader
@@ -159,7 +172,10 @@ def test_a_reader_without_upkeep_reads_back_after_its_reads():
 
 def test_the_bound_matches_the_design_notes():
     settings = mlx.Settings()
-    no_check = {s: cycle_bound(s, 16, settings, 400e3, readback=False).rate_hz for s in ("naive", "overlapped", "burst")}
+    no_check = {
+        s: cycle_bound(s, 16, settings, 400e3, readback=False).rate_hz
+        for s in ("naive", "overlapped", "burst")
+    }
     assert no_check["naive"] < 20 and 125 < no_check["overlapped"] < 150 and 250 < no_check["burst"] < 290
     assert cycle_bound("overlapped", 16, settings, 100e3).rate_hz < 100  # 16 chips at 100 Hz need 400 kHz
 
@@ -178,15 +194,24 @@ def test_the_temperature_cycle_is_counted_in_the_bound():
 def test_a_temperature_cycle_takes_exactly_its_bound(adapter):
     clock = VirtualClock()
     bus = simulated_bus(two_sensor_scene(), clock=clock, bus_hz=400e3, adapter=adapter)
-    reader = Reader(bus, [MLX90393(bus, a, sleep=bus.sleep) for a in range(0x0C, 0x1C)], "overlapped",
-                    mlx.Settings(), 400e3)
+    reader = Reader(
+        bus,
+        [MLX90393(bus, a, sleep=bus.sleep) for a in range(0x0C, 0x1C)],
+        "overlapped",
+        mlx.Settings(),
+        400e3,
+    )
     reader.start()
     clock.sleep(0.1)
     t0 = clock.now()
     results = reader.read(mlx.ZYXT_XYZT)
     assert all(r.ok and r.measurement.temperature_c is not None for r in results.values())
-    assert clock.now() - t0 == pytest.approx(cycle_bound("overlapped", 16, mlx.Settings(), 400e3, bus.ioctl_s,
-                                                         temperature=True, adapter=adapter).cycle_s, rel=1e-9)
+    assert clock.now() - t0 == pytest.approx(
+        cycle_bound(
+            "overlapped", 16, mlx.Settings(), 400e3, bus.ioctl_s, temperature=True, adapter=adapter
+        ).cycle_s,
+        rel=1e-9,
+    )
 
 
 @pytest.mark.parametrize("scheduler", ["overlapped", "burst"])
@@ -198,10 +223,18 @@ def test_a_reset_goes_one_command_a_cycle_and_no_cycle_overruns(scheduler):
     scene.faults = [Fault("detach", 0.05, 0.1, address=0x0F)]
     clock = VirtualClock()
     bus = simulated_bus(scene, clock=clock, bus_hz=400e3)
-    reader = Reader(bus, [MLX90393(bus, a, sleep=bus.sleep) for a in range(0x0C, 0x1C)], scheduler,
-                    mlx.Settings(), 400e3, readback_every=0)
+    reader = Reader(
+        bus,
+        [MLX90393(bus, a, sleep=bus.sleep) for a in range(0x0C, 0x1C)],
+        scheduler,
+        mlx.Settings(),
+        400e3,
+        readback_every=0,
+    )
     reader.start()
-    bound = cycle_bound(scheduler, 16, mlx.Settings(), 400e3, bus.ioctl_s, readback=False, adapter=bus.adapter)
+    bound = cycle_bound(
+        scheduler, 16, mlx.Settings(), 400e3, bus.ioctl_s, readback=False, adapter=bus.adapter
+    )
     clock.sleep(0.02)
     longest, back_at = 0.0, None
     while clock.now() < 0.6 and back_at is None:
@@ -288,8 +321,9 @@ def test_every_command_has_its_status_read_at_start_and_after_a_recovery(schedul
     clock = VirtualClock()
     bus = simulated_bus(scene, clock=clock, bus_hz=400e3, adapter=adapter)
     audit = StatusAudit(bus)
-    reader = Reader(bus, [MLX90393(bus, a, sleep=bus.sleep) for a in range(0x0C, 0x1C)], scheduler,
-                    mlx.Settings(), 400e3)
+    reader = Reader(
+        bus, [MLX90393(bus, a, sleep=bus.sleep) for a in range(0x0C, 0x1C)], scheduler, mlx.Settings(), 400e3
+    )
     assert reader.start() == {}
     first = reader.read()
     assert all(r.ok for r in first.values()), [hex(r.address) for r in first.values() if not r.ok]
@@ -303,9 +337,15 @@ def test_every_command_has_its_status_read_at_start_and_after_a_recovery(schedul
     assert audit.modes[mlx.CMD_SB if scheduler == "burst" else mlx.CMD_SM] > 16  # so it looked at some
 
 
-@pytest.mark.parametrize("oscillator,scheduler,adapter", [
-    (o, s, a) for o in (0.8, 1.2) for s in ("naive", "overlapped", "burst")
-    for a in ("permissive", "bcm2835", "designware")])
+@pytest.mark.parametrize(
+    "oscillator,scheduler,adapter",
+    [
+        (o, s, a)
+        for o in (0.8, 1.2)
+        for s in ("naive", "overlapped", "burst")
+        for a in ("permissive", "bcm2835", "designware")
+    ],
+)
 def test_the_reader_reads_chips_at_either_end_of_the_oscillators_spread(scheduler, adapter, oscillator):
     """The datasheet's conversion times are nominal, +-20 %: the reader waits for the slowest
     (`OSC_MARGIN`), so every chip at 0.8 or 1.2 times nominal gives a reading every cycle,
@@ -316,8 +356,9 @@ def test_the_reader_reads_chips_at_either_end_of_the_oscillators_spread(schedule
     bus = simulated_bus(two_sensor_scene(), clock=clock, bus_hz=400e3, adapter=adapter)
     for chip in bus.chips.values():
         chip.oscillator = oscillator
-    reader = Reader(bus, [MLX90393(bus, a, sleep=bus.sleep) for a in range(0x0C, 0x1C)], scheduler,
-                    mlx.Settings(), 400e3)
+    reader = Reader(
+        bus, [MLX90393(bus, a, sleep=bus.sleep) for a in range(0x0C, 0x1C)], scheduler, mlx.Settings(), 400e3
+    )
     assert reader.start() == {}
     failed = []
     for cycle in range(300):

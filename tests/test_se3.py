@@ -9,8 +9,12 @@ from hypothesis import strategies as st
 
 from ftsensord.model import se3
 
-unit_vectors = st.tuples(*[st.floats(-1, 1)] * 3).map(np.array).filter(
-    lambda v: np.linalg.norm(v) > 1e-3).map(lambda v: v / np.linalg.norm(v))
+unit_vectors = (
+    st.tuples(*[st.floats(-1, 1)] * 3)
+    .map(np.array)
+    .filter(lambda v: np.linalg.norm(v) > 1e-3)
+    .map(lambda v: v / np.linalg.norm(v))
+)
 
 
 def rot_about(axis: np.ndarray, angle: float) -> np.ndarray:
@@ -85,8 +89,12 @@ def test_log_at_exactly_pi_and_identity():
 
 
 @settings(max_examples=200)
-@given(unit_vectors, st.floats(0, np.pi - 1e-6), st.tuples(*[st.floats(-10, 10)] * 3).map(np.array),
-       st.sampled_from([1e-12, 1e-6, 1.0, 1e3]))
+@given(
+    unit_vectors,
+    st.floats(0, np.pi - 1e-6),
+    st.tuples(*[st.floats(-10, 10)] * 3).map(np.array),
+    st.sampled_from([1e-12, 1e-6, 1.0, 1e3]),
+)
 def test_se3_round_trip_for_tiny_and_large_translations(axis, angle, v, scale):
     xi = np.concatenate([v * scale, axis * angle])
     T = se3.exp_se3(xi)
@@ -138,9 +146,23 @@ def test_an_overflowing_or_non_finite_rotation_gives_nan_not_an_exception(angle)
     assert not np.isfinite(R).all() or not np.isfinite(T).all() or np.allclose(R @ R.T, np.eye(3))
 
 
-@pytest.mark.parametrize("angle", [0.0, 1e-9, 5e-3, se3.SMALL_ANGLE * (1 - 1e-7), se3.SMALL_ANGLE, 0.3, 1.2, 3.0,
-                                   np.pi - 2 * se3.NEAR_PI, np.pi - se3.NEAR_PI * (1 + 1e-7), np.pi - se3.NEAR_PI,
-                                   np.pi])
+@pytest.mark.parametrize(
+    "angle",
+    [
+        0.0,
+        1e-9,
+        5e-3,
+        se3.SMALL_ANGLE * (1 - 1e-7),
+        se3.SMALL_ANGLE,
+        0.3,
+        1.2,
+        3.0,
+        np.pi - 2 * se3.NEAR_PI,
+        np.pi - se3.NEAR_PI * (1 + 1e-7),
+        np.pi - se3.NEAR_PI,
+        np.pi,
+    ],
+)
 def test_the_se3_log_is_exps_inverse_on_each_side_of_its_branches(angle):
     """`log_se3` in floats switches to its series below `SMALL_ANGLE` and hands over to
     `log_so3`'s symmetric part within `NEAR_PI` of pi: on each side of both, it takes

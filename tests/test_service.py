@@ -18,10 +18,10 @@ import pytest
 from ftsensord.calibration.calfile import Calibration
 from ftsensord.calibration.fit import AXES
 from ftsensord.client import ControlClient, Subscriber
-from ftsensord.errors import ControlError, DaemonNotAnswering
-from ftsensord.recording import read_meta
 from ftsensord.config.file import builtin_path
 from ftsensord.daemon.sdnotify import Notifier
+from ftsensord.errors import ControlError, DaemonNotAnswering
+from ftsensord.recording import read_meta
 
 from .test_daemon import LOAD, SCENE, write_config
 
@@ -56,7 +56,10 @@ def test_notify_reaches_an_abstract_socket():
 def test_notify_outside_systemd_and_watchdog_rules(tmp_path):
     assert not Notifier({}).ready() and not Notifier({}).watchdog()
     # WATCHDOG_PID naming another process: the watchdog is not ours to ping.
-    assert Notifier({"NOTIFY_SOCKET": "/x", "WATCHDOG_USEC": "1000", "WATCHDOG_PID": "1"}).watchdog_interval_s is None
+    assert (
+        Notifier({"NOTIFY_SOCKET": "/x", "WATCHDOG_USEC": "1000", "WATCHDOG_PID": "1"}).watchdog_interval_s
+        is None
+    )
     assert Notifier({"NOTIFY_SOCKET": "/x", "WATCHDOG_USEC": "3000000"}).watchdog_interval_s == 1.5
     assert not Notifier({"NOTIFY_SOCKET": str(tmp_path / "gone")}).ready()  # no listener: no crash
 
@@ -76,8 +79,13 @@ def test_unit_has_what_the_service_needs():
     assert s["Type"] == ["notify"] and s["Restart"] == ["on-failure"] and "WatchdogSec" in s
     assert s["ExecReload"] == ["/bin/kill -HUP $MAINPID"] and s["RuntimeDirectory"] == ["ftsensord"]
     assert s["User"] == ["ftsensord"] and s["SupplementaryGroups"] == ["i2c"]
-    for key, value in (("ProtectSystem", "strict"), ("PrivateTmp", "yes"), ("NoNewPrivileges", "yes"),
-                       ("DevicePolicy", "closed"), ("DeviceAllow", "char-i2c rw")):
+    for key, value in (
+        ("ProtectSystem", "strict"),
+        ("PrivateTmp", "yes"),
+        ("NoNewPrivileges", "yes"),
+        ("DevicePolicy", "closed"),
+        ("DeviceAllow", "char-i2c rw"),
+    ):
         assert s[key] == [value], key
     assert s["ExecStart"][0].split()[1:3] == ["run", "--config"]
     # Real time asked for by the daemon, within the limit the unit grants: systemd's own
@@ -86,8 +94,11 @@ def test_unit_has_what_the_service_needs():
     asked = s["ExecStart"][0].split()
     assert int(s["LimitRTPRIO"][0]) >= int(asked[asked.index("--realtime") + 1]) > 0
     # The service guide's install puts the daemon where the unit runs it.
-    assert s["ExecStart"][0].split()[0].startswith("/opt/ftsensord/") and "/opt/ftsensord/bin/pip install ." in (
-        UNIT.parent.parent / "docs" / "guide" / "service.md").read_text()
+    assert (
+        s["ExecStart"][0].split()[0].startswith("/opt/ftsensord/")
+        and "/opt/ftsensord/bin/pip install ."
+        in (UNIT.parent.parent / "docs" / "guide" / "service.md").read_text()
+    )
 
 
 @pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze is not installed")
@@ -108,8 +119,12 @@ def test_systemd_analyze_verifies_the_unit(tmp_path):
 def running(tmp_path):
     """`ftsensord run` in a subprocess on a scene where sensor1's load steps at 1.5 s."""
     config = write_config(tmp_path)
-    (tmp_path / "scene.toml").write_text(SCENE.replace(
-        f'kind = "static"\nwrench = {LOAD}', f'kind = "step"\nat_s = 1.5\nbefore = [0, 0, 0, 0, 0, 0]\nafter = {LOAD}'))
+    (tmp_path / "scene.toml").write_text(
+        SCENE.replace(
+            f'kind = "static"\nwrench = {LOAD}',
+            f'kind = "step"\nat_s = 1.5\nbefore = [0, 0, 0, 0, 0, 0]\nafter = {LOAD}',
+        )
+    )
     proc, notify = start_daemon(config, tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     try:
         folder = tmp_path / "ftsensord"
@@ -158,8 +173,12 @@ def test_end_to_end_load_rate_tare_and_clean_stop(running):
         # Not a timing claim (docs/results/performance.md has those): the loop runs and reports it.
         assert status["rate_hz"] == 100 and status["achieved_rate_hz"] > 50
         assert status["cycles"] > 100 and status["bound_hz"] > 100
-        text = subprocess.run([sys.executable, "-m", "ftsensord", "status", "--control", ctl],
-                              capture_output=True, text=True, timeout=30).stdout
+        text = subprocess.run(
+            [sys.executable, "-m", "ftsensord", "status", "--control", ctl],
+            capture_output=True,
+            text=True,
+            timeout=30,
+        ).stdout
         assert "of a 10000 us period" in text and "chips: 16, failing 0" in text  # what an operator reads
         result = control.tare(samples=20)
         assert np.allclose(result["tare_wrench"]["sensor1"][:3], LOAD[:3], atol=0.3)
@@ -174,12 +193,25 @@ def test_end_to_end_load_rate_tare_and_clean_stop(running):
     assert proc.wait(timeout=10) == 0
     log = proc.stdout.read()
     assert "stopped after" in log
-    assert not Path(ctl[len("ipc://"):]).exists()  # sockets cleaned up
+    assert not Path(ctl[len("ipc://") :]).exists()  # sockets cleaned up
 
 
 def test_status_without_a_daemon_is_a_clear_nonzero_exit(tmp_path):
-    out = subprocess.run([sys.executable, "-m", "ftsensord", "status", "--control", f"ipc://{tmp_path}/none",
-                          "--timeout", "0.3"], capture_output=True, text=True, timeout=30)
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "ftsensord",
+            "status",
+            "--control",
+            f"ipc://{tmp_path}/none",
+            "--timeout",
+            "0.3",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
     assert out.returncode == 1 and "no ftsensord answered" in out.stderr
     with pytest.raises(DaemonNotAnswering):
         ControlClient(f"ipc://{tmp_path}/none", timeout_s=0.2).status()
@@ -187,20 +219,54 @@ def test_status_without_a_daemon_is_a_clear_nonzero_exit(tmp_path):
 
 def test_cli_echo_record_and_sighup(running, tmp_path):
     proc, pub, ctl = running
-    echo = subprocess.run([sys.executable, "-m", "ftsensord", "echo", "wrench/sensor2", "--endpoint", pub,
-                           "--count", "3"], capture_output=True, text=True, timeout=30)
+    echo = subprocess.run(
+        [sys.executable, "-m", "ftsensord", "echo", "wrench/sensor2", "--endpoint", pub, "--count", "3"],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
     assert echo.returncode == 0 and len(echo.stdout.splitlines()) == 1 + 3  # the header, 3 samples
     csv = tmp_path / "rec.csv"
-    rec = subprocess.run([sys.executable, "-m", "ftsensord", "record", "flux/sensor1", str(csv), "--endpoint", pub,
-                          "--count", "20"], capture_output=True, text=True, timeout=30)
+    rec = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "ftsensord",
+            "record",
+            "flux/sensor1",
+            str(csv),
+            "--endpoint",
+            pub,
+            "--count",
+            "20",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
     assert rec.returncode == 0, rec.stderr
     lines = csv.read_text().splitlines()
     meta = read_meta(csv)
     assert (meta["stream"], meta["frame"], meta["samples"]) == ("flux/sensor1", "sensor1/chip<i>", 20)
     assert lines[0].split(",")[:5] == ["seq", "t_mono_s", "t_wall_s", "flags", "b0x_T"] and len(lines) == 21
     npz = tmp_path / "rec.npz"
-    subprocess.run([sys.executable, "-m", "ftsensord", "record", "wrench/sensor1", str(npz), "--endpoint", pub,
-                    "--count", "10"], check=True, capture_output=True, timeout=30)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "ftsensord",
+            "record",
+            "wrench/sensor1",
+            str(npz),
+            "--endpoint",
+            pub,
+            "--count",
+            "10",
+        ],
+        check=True,
+        capture_output=True,
+        timeout=30,
+    )
     data = np.load(npz)
     assert data["values"].shape == (10, 6) and int(data["gaps"]) >= 0
     assert np.all(np.diff(data["seq"]) >= 1)
@@ -215,8 +281,12 @@ def test_cli_set_and_reload(running):
     proc, pub, ctl = running
 
     def cli(*args: str) -> subprocess.CompletedProcess:
-        return subprocess.run([sys.executable, "-m", "ftsensord", *args, "--control", ctl], capture_output=True,
-                              text=True, timeout=30)
+        return subprocess.run(
+            [sys.executable, "-m", "ftsensord", *args, "--control", ctl],
+            capture_output=True,
+            text=True,
+            timeout=30,
+        )
 
     out = cli("set", "--rate", "50", "--averaging", "4")
     assert out.returncode == 0 and "rate 50 Hz, averaging 4" in out.stdout, out.stderr
@@ -241,9 +311,8 @@ def test_curve_control_lets_in_only_known_clients(tmp_path, zmq_context):
     from ftsensord.config.file import load_config
     from ftsensord.daemon.daemon import Daemon
     from ftsensord.daemon.run import make_sockets
-    from ftsensord.sim import VirtualClock
-    from ftsensord.sim import load_scene
-    from ftsensord.sim import simulated_bus
+    from ftsensord.sim import VirtualClock, load_scene, simulated_bus
+
     keys, clients = tmp_path / "keys", tmp_path / "clients"
     keys.mkdir()
     clients.mkdir()
@@ -251,19 +320,33 @@ def test_curve_control_lets_in_only_known_clients(tmp_path, zmq_context):
     good_public, good_secret = zmq.auth.create_certificates(str(keys), "good")
     _, bad_secret = zmq.auth.create_certificates(str(keys), "bad")
     shutil.copy(good_public, clients)
-    config = load_config(write_config(tmp_path, extra=(
-        'control = "tcp://0.0.0.0:45671"\n[security]\n'
-        f'curve_server_cert = "{server_secret}"\ncurve_clients_dir = "{clients}"')))
+    config = load_config(
+        write_config(
+            tmp_path,
+            extra=(
+                'control = "tcp://0.0.0.0:45671"\n[security]\n'
+                f'curve_server_cert = "{server_secret}"\ncurve_clients_dir = "{clients}"'
+            ),
+        )
+    )
     pub, ctl, auth = make_sockets(zmq_context, config)  # the fixture terminates the context
-    daemon = Daemon(config, simulated_bus(load_scene(tmp_path / "scene.toml"), clock=VirtualClock()), pub, ctl)
+    daemon = Daemon(
+        config, simulated_bus(load_scene(tmp_path / "scene.toml"), clock=VirtualClock()), pub, ctl
+    )
     import threading
+
     stop = threading.Event()
-    server = threading.Thread(target=lambda: [daemon.handle_control() or time.sleep(0.005)
-                                              for _ in iter(lambda: stop.is_set(), True)])
+    server = threading.Thread(
+        target=lambda: [
+            daemon.handle_control() or time.sleep(0.005) for _ in iter(lambda: stop.is_set(), True)
+        ]
+    )
     server.start()
     try:
         endpoint = "tcp://127.0.0.1:45671"
-        assert ControlClient(endpoint, curve=(good_secret, server_public), timeout_s=3).status()["cycles"] == 0
+        assert (
+            ControlClient(endpoint, curve=(good_secret, server_public), timeout_s=3).status()["cycles"] == 0
+        )
         with pytest.raises(DaemonNotAnswering):
             ControlClient(endpoint, curve=(bad_secret, server_public), timeout_s=0.5).status()
         with pytest.raises(DaemonNotAnswering):
@@ -286,20 +369,25 @@ def test_a_recorder_loses_no_sample_while_the_daemons_io_thread_cannot_run(tmp_p
     from ftsensord.config.file import load_config
     from ftsensord.daemon.daemon import Daemon
     from ftsensord.daemon.run import make_sockets
-    from ftsensord.sim import VirtualClock
-    from ftsensord.sim import load_scene
-    from ftsensord.sim import simulated_bus
+    from ftsensord.sim import VirtualClock, load_scene, simulated_bus
+
     cpu = min(os.sched_getaffinity(0))
     zmq_context.set(zmq.THREAD_SCHED_POLICY, os.SCHED_IDLE)  # before its first socket starts the thread
     zmq_context.set(zmq.THREAD_AFFINITY_CPU_ADD, cpu)
-    config = load_config(write_config(tmp_path, extra=f'publish = "ipc://{tmp_path}/wrench"\n'
-                                                     f'control = "ipc://{tmp_path}/control"'))
+    config = load_config(
+        write_config(
+            tmp_path, extra=f'publish = "ipc://{tmp_path}/wrench"\ncontrol = "ipc://{tmp_path}/control"'
+        )
+    )
     pub, ctl, _ = make_sockets(zmq_context, config)
     clock = VirtualClock()
-    daemon = Daemon(config, simulated_bus(load_scene(tmp_path / "scene.toml"), clock=clock), pub, ctl, clock=clock.now)
+    daemon = Daemon(
+        config, simulated_bus(load_scene(tmp_path / "scene.toml"), clock=clock), pub, ctl, clock=clock.now
+    )
     daemon.start()
     recorder_context = zmq.Context()  # an I/O thread of its own, free to run
     with Subscriber(f"ipc://{tmp_path}/wrench", context=recorder_context) as recorder:
+
         def cycle() -> None:  # one period of virtual time each: the chips' results come as they would
             t0 = clock.now()
             daemon.cycle()
@@ -332,16 +420,22 @@ def test_the_daemon_binds_ipv6_loopback_endpoints(tmp_path, zmq_context, ipv6_lo
     only with ZMQ_IPV6 set ("No such device" before), and a subscriber receives from it."""
     import zmq
 
-    from ftsensord.protocol import wire
     from ftsensord.config.file import load_config
     from ftsensord.daemon.run import make_sockets
+    from ftsensord.protocol import wire
+
     probe = zmq_context.socket(zmq.PUB)
     probe.setsockopt(zmq.IPV6, 1)
     port = probe.bind_to_random_port("tcp://[::1]")
     probe.close(linger=0)  # a free port: the configuration names it
-    config = load_config(write_config(tmp_path, extra=f'publish = "ipc://{tmp_path}/wrench"\n'
-                                                     f'publish_tcp = "tcp://[::1]:{port}"\n'
-                                                     f'control = "ipc://{tmp_path}/control"'))
+    config = load_config(
+        write_config(
+            tmp_path,
+            extra=f'publish = "ipc://{tmp_path}/wrench"\n'
+            f'publish_tcp = "tcp://[::1]:{port}"\n'
+            f'control = "ipc://{tmp_path}/control"',
+        )
+    )
     pub, ctl, _ = make_sockets(zmq_context, config)
     with Subscriber(f"tcp://[::1]:{port}", ["wrench/sensor1"], context=zmq_context) as sub:
         frame = wire.encode("wrench/sensor1", wire.KIND_WRENCH, 7, 0.0, 0.0, 0, np.zeros(6))

@@ -6,13 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from ftsensord.daemon.status import sensor_status
 from ftsensord.model import se3
 from ftsensord.model.viscoelastic import CreepFilter, CreepInverse, Relaxation
 from ftsensord.sim import load_scene
 from ftsensord.sim.loads import RecordedLoad, StaticLoad, StepLoad
-from ftsensord.sim.physics import PAPER_STIFFNESS_DIAG, PhysicalScene, SimSensor
-from ftsensord.daemon.status import sensor_status
 from ftsensord.sim.memory import DEFAULT_RELAXATION
+from ftsensord.sim.physics import PAPER_STIFFNESS_DIAG, PhysicalScene, SimSensor
 
 from .conftest import assert_names_file_and_key
 
@@ -103,23 +103,30 @@ def test_the_inverse_starts_afresh_after_a_reset():
     assert inverse.apply(np.array([1.7]))[0] == pytest.approx(1.7)
 
 
-@pytest.mark.parametrize("relaxation, expected", [
-    ("[[0.5, 1.0], [0.5, 2.0]]", "summing below 0.9"),
-    ("[[0.1, -1.0]]", "times > 0"),
-    ("[[0.1]]", "pairs [fraction, time_s]"),
-    ("0.1", "pairs [fraction, time_s]"),
-])
+@pytest.mark.parametrize(
+    "relaxation, expected",
+    [
+        ("[[0.5, 1.0], [0.5, 2.0]]", "summing below 0.9"),
+        ("[[0.1, -1.0]]", "times > 0"),
+        ("[[0.1]]", "pairs [fraction, time_s]"),
+        ("0.1", "pairs [fraction, time_s]"),
+    ],
+)
 def test_a_bad_series_is_refused_naming_file_and_key(tmp_path, relaxation, expected):
     path = tmp_path / "scene.toml"
-    path.write_text(f'version = 1\nkind = "sensors"\n[[sensor]]\naddresses = {list(ADDRESSES)}\n'
-                    f'[sensor.silicone]\nrelaxation = {relaxation}\n')
+    path.write_text(
+        f'version = 1\nkind = "sensors"\n[[sensor]]\naddresses = {list(ADDRESSES)}\n'
+        f"[sensor.silicone]\nrelaxation = {relaxation}\n"
+    )
     assert_names_file_and_key(load_scene, path, "relaxation", expected)
 
 
 def test_a_scene_file_asks_for_the_memory_and_gets_the_default(tmp_path):
     path = tmp_path / "scene.toml"
-    path.write_text(f'version = 1\nkind = "sensors"\n[[sensor]]\naddresses = {list(ADDRESSES)}\n'
-                    f'[sensor.silicone]\n[[sensor]]\naddresses = {list(range(0x14, 0x1C))}\n')
+    path.write_text(
+        f'version = 1\nkind = "sensors"\n[[sensor]]\naddresses = {list(ADDRESSES)}\n'
+        f"[sensor.silicone]\n[[sensor]]\naddresses = {list(range(0x14, 0x1C))}\n"
+    )
     scene = load_scene(path)
     assert isinstance(scene, PhysicalScene)
     assert scene.sensors[0].relaxation == SERIES and scene.sensors[1].memory is None
@@ -146,31 +153,44 @@ def _part_with_memory(relaxation: Relaxation) -> PhysicalScene:
     """The default scene's sensor1 (the part the packaged calibration was fitted on), its silicone
     given ``relaxation``."""
     from ftsensord.sim.scene import default_scene
+
     scene = default_scene()
     sensor = scene.sensors[0]
     sensor.relaxation = relaxation
-    return PhysicalScene(scene.sensors, field_model=scene.field_model, crosstalk=scene.crosstalk,
-                         external_field_t=scene.external_field_t)
+    return PhysicalScene(
+        scene.sensors,
+        field_model=scene.field_model,
+        crosstalk=scene.crosstalk,
+        external_field_t=scene.external_field_t,
+    )
 
 
 def _packaged_calibration():
     from ftsensord.calibration.calfile import Calibration
     from ftsensord.protocol.paths import builtin_path
+
     return Calibration.load(builtin_path("sim-sensor1.json"))
 
 
 def test_the_relaxation_is_identified_from_a_simulated_step_and_hold():
-    from ftsensord.calibration.relaxation import identify
     from ftsensord.calibration.procedure import hold_poses
+    from ftsensord.calibration.relaxation import identify
     from ftsensord.calibration.rig import record_hold, simulated_robot
     from ftsensord.sim import simulated_bus
+
     # A faster series than the default, so that a short hold shows both terms (the benchmark
     # identifies the default from the full procedure: docs/results/accuracy.md).
     truth = Relaxation.from_pairs([[0.10, 0.3], [0.05, 4.0]])
     scene = _part_with_memory(truth)
     bus = simulated_bus(scene, seed=3)
-    hold = record_hold(bus, ADDRESSES, hold_poses(), simulated_robot(scene, "sensor1")["apply_load"],
-                       hold_s=12.0, period_s=0.01)
+    hold = record_hold(
+        bus,
+        ADDRESSES,
+        hold_poses(),
+        simulated_robot(scene, "sensor1")["apply_load"],
+        hold_s=12.0,
+        period_s=0.01,
+    )
     found, line = identify(hold, _packaged_calibration().model.wrench)
     assert found is not None, line
     got = found.relaxation
@@ -180,8 +200,9 @@ def test_the_relaxation_is_identified_from_a_simulated_step_and_hold():
 
 
 def test_a_hold_without_a_step_identifies_nothing_and_says_why():
-    from ftsensord.calibration.relaxation import identify
     from ftsensord.calibration.dataset import Hold
+    from ftsensord.calibration.relaxation import identify
+
     w = np.array([1.0, 0, 0, 0, 0, 0])
     hold = Hold(np.array([0.0, 1.0]), np.array([w, w]), np.linspace(0, 2, 50), np.zeros((50, 6)))
     found, line = identify(hold, lambda b: b)
@@ -192,9 +213,10 @@ def _pipeline(silicone_scale: float = 1.0):
     from dataclasses import replace
 
     from ftsensord.calibration.relaxation import SiliconeCalibration
+    from ftsensord.config.sensors import SensorConfig
     from ftsensord.processing.filters import WrenchFilter
     from ftsensord.processing.pipeline import SensorPipeline
-    from ftsensord.config.sensors import SensorConfig
+
     cal = replace(_packaged_calibration(), silicone=SiliconeCalibration(SERIES, silicone_scale, 0.0))
     config = SensorConfig("sensor1", ADDRESSES, __import__("pathlib").Path("sim-sensor1.json"), cal, "sensor")
     return SensorPipeline.build(config, WrenchFilter(), 2, thermal=False, rate_hz=100.0)
@@ -205,13 +227,15 @@ def _results(flux: np.ndarray, missing: int | None = None) -> dict:
     from ftsensord.chip import mlx90393 as mlx
     from ftsensord.chip.driver import Measurement
     from ftsensord.errors import ChipNotRespondingError
+
     out = {}
     for i, a in enumerate(ADDRESSES):
         if i == missing:
             out[a] = ChipResult(a, error=ChipNotRespondingError(a, "no answer"))
         else:
-            out[a] = ChipResult(a, Measurement(mlx.Status(0x02), flux[3 * i:3 * i + 3], np.zeros(3, dtype=bool),
-                                               None, {}))
+            out[a] = ChipResult(
+                a, Measurement(mlx.Status(0x02), flux[3 * i : 3 * i + 3], np.zeros(3, dtype=bool), None, {})
+            )
     return out
 
 
@@ -221,12 +245,14 @@ def _fluxes(scene: PhysicalScene, times: np.ndarray) -> np.ndarray:
 
 def test_the_daemon_stage_undoes_a_held_steps_creep_and_restarts_on_a_tare_and_a_fault():
     from ftsensord.protocol import wire
+
     w = np.array([2.0, 0, 0, 0, 0, 0])
     scene = _part_with_memory(SERIES)
     scene.set_load("sensor1", StepLoad(1.0, np.zeros(6), w))
     times = np.arange(0.0, 6.0, 0.01)
     fluxes = _fluxes(scene, times)
     from ftsensord.processing.creep import CreepCompensation
+
     plain = _pipeline()
     plain.creep = CreepCompensation(None, 100.0)  # the daemon as without the stage
     compensated = _pipeline()
@@ -267,13 +293,16 @@ def test_the_daemon_stage_undoes_a_held_steps_creep_and_restarts_on_a_tare_and_a
 def test_a_rate_change_restarts_the_stage_with_the_new_period():
     from ftsensord.calibration.relaxation import SiliconeCalibration
     from ftsensord.processing.creep import CreepCompensation
+
     stage = CreepCompensation(SiliconeCalibration(SERIES, 1.1, 0.0), 100.0)
     for _ in range(10):
         stage.apply(np.zeros(6), True)
     first_of_a_step = stage.apply(np.full(6, 1.1), True)
     assert first_of_a_step[0] > 1.0 + 1e-3  # the inverse reads the step's creep to come
     stage.configure(200.0)
-    assert stage.apply(np.full(6, 1.1), True) == pytest.approx(np.ones(6))  # afresh: held, divided by the scale
+    assert stage.apply(np.full(6, 1.1), True) == pytest.approx(
+        np.ones(6)
+    )  # afresh: held, divided by the scale
     assert stage.inverse.a[0, 0] == pytest.approx(np.exp(-0.005 / SERIES.creep[1][0]))
 
 
@@ -281,43 +310,69 @@ def test_the_hold_and_the_series_survive_their_files(tmp_path):
     from dataclasses import replace
 
     from ftsensord.calibration.calfile import Calibration
-    from ftsensord.calibration.relaxation import SiliconeCalibration
     from ftsensord.calibration.dataset import Dataset, Hold
+    from ftsensord.calibration.relaxation import SiliconeCalibration
+
     cal = replace(_packaged_calibration(), silicone=SiliconeCalibration(SERIES, 1.05, 0.01))
     cal.save(tmp_path / "cal.json")
     assert Calibration.load(tmp_path / "cal.json").silicone == cal.silicone
     from ftsensord.calibration.procedure import simulate_dataset
-    ds = simulate_dataset(_part_with_memory(SERIES), "sensor1", "six-axis", poses=12, validation_poses=2, samples=2,
-                          seed=0, sweeps=False, no_load_poses=0, hold_s=0.05)
+
+    ds = simulate_dataset(
+        _part_with_memory(SERIES),
+        "sensor1",
+        "six-axis",
+        poses=12,
+        validation_poses=2,
+        samples=2,
+        seed=0,
+        sweeps=False,
+        no_load_poses=0,
+        hold_s=0.05,
+    )
     assert ds.hold is not None and len(ds.hold.times_s) > 5
     ds.save(tmp_path / "ds.json")
     back = Dataset.load(tmp_path / "ds.json").hold
-    assert isinstance(back, Hold) and np.allclose(back.flux_t, ds.hold.flux_t) and np.allclose(back.loads, ds.hold.loads)
+    assert (
+        isinstance(back, Hold)
+        and np.allclose(back.flux_t, ds.hold.flux_t)
+        and np.allclose(back.loads, ds.hold.loads)
+    )
     import json
+
     doc = json.loads((tmp_path / "ds.json").read_text())
     doc["hold"]["load_times_s"][0] = doc["hold"]["times_s"][0] + 1e-3  # a reading before any load
     (tmp_path / "bad.json").write_text(json.dumps(doc))
-    assert_names_file_and_key(Dataset.load, tmp_path / "bad.json", "times_s", "readings from the first load's time on")
+    assert_names_file_and_key(
+        Dataset.load, tmp_path / "bad.json", "times_s", "readings from the first load's time on"
+    )
     doc = json.loads((tmp_path / "ds.json").read_text())
     doc["hold"]["load_times_s"][-1] = doc["hold"]["times_s"][-1] + 1.0  # a load no reading saw
     (tmp_path / "bad.json").write_text(json.dumps(doc))
-    assert_names_file_and_key(Dataset.load, tmp_path / "bad.json", "load_times_s", "loads applied before the last reading")
+    assert_names_file_and_key(
+        Dataset.load, tmp_path / "bad.json", "load_times_s", "loads applied before the last reading"
+    )
 
 
 def test_a_calibration_without_a_hold_says_so_and_the_daemon_runs_as_before():
     from ftsensord.calibration.procedure import calibrate
     from ftsensord.calibration.rig import record_dataset
+    from ftsensord.config.sensors import SensorConfig
     from ftsensord.processing.filters import WrenchFilter
     from ftsensord.processing.pipeline import SensorPipeline
-    from ftsensord.config.sensors import SensorConfig
-    from ftsensord.sim import VirtualClock
-    from ftsensord.sim import simulated_bus
-    from ftsensord.sim import two_sensor_scene
+    from ftsensord.sim import VirtualClock, simulated_bus, two_sensor_scene
     from ftsensord.sim.loads import paper_plan
+
     scene = two_sensor_scene()
     bus = simulated_bus(scene, clock=VirtualClock(), seed=3)
-    ds = record_dataset(bus, ADDRESSES, paper_plan("six-axis", n_fit=60, n_validation=10),
-                        lambda w: scene.set_load(0, StaticLoad(w)), samples=4, serial="sim-1")
+    ds = record_dataset(
+        bus,
+        ADDRESSES,
+        paper_plan("six-axis", n_fit=60, n_validation=10),
+        lambda w: scene.set_load(0, StaticLoad(w)),
+        samples=4,
+        serial="sim-1",
+    )
     cal, _ = calibrate(ds, nonlinear=False)
     assert cal.silicone is None and "no step-and-hold segment" in cal.report["silicone"]
     config = SensorConfig("sensor1", ADDRESSES, __import__("pathlib").Path("cal.json"), cal, "sensor")
@@ -333,6 +388,7 @@ def test_skipped_cycles_are_coasted_through_as_flagged_samples_not_a_restart():
     from ftsensord.calibration.relaxation import SiliconeCalibration
     from ftsensord.daemon.loop import LoopTiming
     from ftsensord.processing.creep import MAX_COAST_S, CreepCompensation
+
     step = np.array([2.0, 0, 0, 0, 0, 0])
     skipped, flagged = (CreepCompensation(SiliconeCalibration(SERIES, 1.0, 0.0), 100.0) for _ in range(2))
     for stage in (skipped, flagged):
@@ -355,6 +411,7 @@ def test_a_step_back_in_time_drops_the_state_and_a_skip_coasts_it():
     be before now."""
     from ftsensord.calibration.relaxation import SiliconeCalibration
     from ftsensord.processing.creep import CreepCompensation
+
     stage = CreepCompensation(SiliconeCalibration(SERIES, 1.0, 0.0), 100.0)
     for _ in range(100):
         stage.apply(np.array([2.0, 0, 0, 0, 0, 0]), True)

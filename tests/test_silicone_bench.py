@@ -10,9 +10,13 @@ def test_quick_creep_benchmark_identifies_and_compensates(regenerated):
     text = (regenerated / "silicone-figures.md").read_text()
     for heading in ("## Identification", "## Moving loads", "## Cost"):
         assert heading in text
-    assert re.search(r"\| 71 \| 2 \| 0\.050 \| 0\.0\d+ \|", text)  # both terms identified (a short hold: loosely)
-    rows = {label: row for label, row in
-            re.findall(r"\| 71 \| default \(burst, 100 Hz\) \| ([a-z, ]+) \| (.*) \|", text)}
+    assert re.search(
+        r"\| 71 \| 2 \| 0\.050 \| 0\.0\d+ \|", text
+    )  # both terms identified (a short hold: loosely)
+    rows = {
+        label: row
+        for label, row in re.findall(r"\| 71 \| default \(burst, 100 Hz\) \| ([a-z, ]+) \| (.*) \|", text)
+    }
     step = {label: float(row.split(" | ")[0]) for label, row in rows.items()}
     # Compensated, a held step's error is a fraction of what it is without (the full run's figures
     # are in the docs; the quick mode's hold is too short to identify the slow term well).
@@ -22,8 +26,10 @@ def test_quick_creep_benchmark_identifies_and_compensates(regenerated):
 def test_quick_dynamic_trade_compensates_each_scheduler_and_leaves_out_what_it_cannot_sample(regenerated):
     # Written: its check that the offline stage is the daemon's held too (the run fails otherwise).
     text = (regenerated / "tradeoff-dynamic.md").read_text()
-    rows = {scheduler: cells.split(" | ") for scheduler, cells in
-            re.findall(r"\| 3, 4 \| (naive|overlapped|burst) \| (.*) \|", text)}
+    rows = {
+        scheduler: cells.split(" | ")
+        for scheduler, cells in re.findall(r"\| 3, 4 \| (naive|overlapped|burst) \| (.*) \|", text)
+    }
     assert set(rows) == {"naive", "overlapped", "burst"}, text
     for scheduler in ("overlapped", "burst"):
         without, with_ = (float(v) for v in rows[scheduler][2].split(" / "))  # the held step's means, %

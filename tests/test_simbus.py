@@ -73,6 +73,7 @@ def test_a_failed_transfer_fills_no_read_buffer_as_i2c_dev(permissive):
 def test_nack_errno_is_configurable_for_adapters_that_say_eremoteio(scene):
     from ftsensord.sim import SimulatedBus
     from ftsensord.sim.chip import EmulatedMLX90393
+
     bus = SimulatedBus([EmulatedMLX90393(ADDR, scene)], nack_errno=errno.EREMOTEIO)
     with pytest.raises(OSError) as exc:
         bus.i2c_rdwr(*ex_msgs(0x0D))
@@ -171,7 +172,9 @@ def test_conversion_sees_the_time_its_command_was_on_the_wire(scene):
     drv.reset()
     drv.configure(mlx.Settings())
     sm_bits, rm_cmd_bits = 19, 19  # the command byte is on the wire 19 bits into a transfer
-    conversion = mlx.Settings().single_measurement_us() * 1e-6 * mlx.OSCILLATOR_SLOWEST  # the emulator's default
+    conversion = (
+        mlx.Settings().single_measurement_us() * 1e-6 * mlx.OSCILLATOR_SLOWEST
+    )  # the emulator's default
     for early, accepted in ((1e-6, False), (0.0, True)):
         start = clock.now()
         drv.start_single()

@@ -21,9 +21,7 @@ from ftsensord.acquire.bus import LinuxI2CBus, open_bus
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.chip.driver import MLX90393
 from ftsensord.errors import ChipNotRespondingError
-from ftsensord.sim import NOISELESS
-from ftsensord.sim import VirtualClock
-from ftsensord.sim import simulated_bus
+from ftsensord.sim import NOISELESS, VirtualClock, simulated_bus
 
 from .conftest import ADDR
 
@@ -63,8 +61,12 @@ class FakeKernel:
             return 0
         assert request == I2C_RDWR, f"unexpected ioctl 0x{request:04X}"
         msgs = [arg.msgs[i] for i in range(arg.nmsgs)]
-        self.transfers.append([(m.addr, m.flags, m.len, None if m.flags & I2C_M_RD
-                                else ctypes.string_at(m.buf, m.len)) for m in msgs])
+        self.transfers.append(
+            [
+                (m.addr, m.flags, m.len, None if m.flags & I2C_M_RD else ctypes.string_at(m.buf, m.len))
+                for m in msgs
+            ]
+        )
         if self.fail_with is not None:
             raise OSError(self.fail_with, os.strerror(self.fail_with))
         self.sim_bus.i2c_rdwr(*msgs)

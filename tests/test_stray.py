@@ -11,14 +11,13 @@ import pytest
 
 from ftsensord.calibration.calfile import Calibration
 from ftsensord.chip import mlx90393 as mlx
+from ftsensord.config.file import builtin_path
 from ftsensord.model import se3
 from ftsensord.model.geometry import SensorGeometry, separable_gradient
-from ftsensord.protocol import wire
-from ftsensord.config.file import builtin_path
 from ftsensord.processing.pipeline import channel_sigma_t
 from ftsensord.processing.redundancy import GRADIENT_RESIDUAL_AT_RANGE, GRADIENT_RESIDUAL_AT_REST
-from ftsensord.sim import default_scene
-from ftsensord.sim import load_scene
+from ftsensord.protocol import wire
+from ftsensord.sim import default_scene, load_scene
 from ftsensord.sim.loads import FixedOrientation, StaticLoad
 from ftsensord.sim.physics import PhysicalScene, SimSensor, StraySource
 
@@ -37,9 +36,13 @@ def independent_dipole(r: np.ndarray, m: np.ndarray) -> np.ndarray:
 
 
 def test_a_stray_dipole_is_seen_at_each_chips_turned_and_deflected_position():
-    sensor = SimSensor("s", ADDRS, centre_m=np.array([0.01, -0.02, 0.03]),
-                       load=StaticLoad(np.array([5.0, -3.0, 8.0, 0.05, -0.04, 0.1])),
-                       orientation=FixedOrientation(se3.exp_so3(np.array([0.4, -0.7, 1.1]))))
+    sensor = SimSensor(
+        "s",
+        ADDRS,
+        centre_m=np.array([0.01, -0.02, 0.03]),
+        load=StaticLoad(np.array([5.0, -3.0, 8.0, 0.05, -0.04, 0.1])),
+        orientation=FixedOrientation(se3.exp_so3(np.array([0.4, -0.7, 1.1]))),
+    )
     source = StraySource(np.array([0.12, 0.05, -0.06]), np.array([0.5, -1.2, 1.5]))
     with_source = PhysicalScene([sensor], stray_sources=[source])
     without = PhysicalScene([sensor])
@@ -56,11 +59,17 @@ def test_a_stray_dipole_is_seen_at_each_chips_turned_and_deflected_position():
 
 
 def test_the_moment_follows_its_scale_rows_linearly_and_is_held_at_the_ends():
-    source = StraySource(np.array([0.1, 0.0, 0.0]), np.array([0.0, 0.0, 2.0]),
-                         np.array([1.0, 2.0, 4.0]), np.array([0.0, 1.0, -0.5]))
+    source = StraySource(
+        np.array([0.1, 0.0, 0.0]),
+        np.array([0.0, 0.0, 2.0]),
+        np.array([1.0, 2.0, 4.0]),
+        np.array([0.0, 1.0, -0.5]),
+    )
     scene = PhysicalScene([SimSensor("s", ADDRS)], stray_sources=[source])
     quiet = PhysicalScene([SimSensor("s", ADDRS)])
-    full = PhysicalScene([SimSensor("s", ADDRS)], stray_sources=[StraySource(source.position_m, source.moment_am2)])
+    full = PhysicalScene(
+        [SimSensor("s", ADDRS)], stray_sources=[StraySource(source.position_m, source.moment_am2)]
+    )
     ref = full.field_t(0x0C, 0.0) - quiet.field_t(0x0C, 0.0)
     for t, factor in ((0.0, 0.0), (1.0, 0.0), (1.5, 0.5), (2.0, 1.0), (3.0, 0.25), (4.0, -0.5), (9.0, -0.5)):
         seen = scene.field_t(0x0C, t) - quiet.field_t(0x0C, t)
@@ -98,17 +107,30 @@ def test_a_scene_file_places_stray_sources_and_the_sensor(tmp_path):
     assert 50e-6 < seen < 70e-6, seen
 
 
-@pytest.mark.parametrize(("edit", "key", "expected"), [
-    (("position_m = [0.15, 0.0, 0.0]", "position_m = [0.0, 0.0, 0.025]"), "stray_source[0].position_m",
-     "at least 20 mm from each sensor's centre"),
-    (("moment_am2 = [0.0, 0.0, 2.0]", "moment_am2 = [0.0, 2.0]"), "stray_source[0].moment_am2",
-     "3 finite numbers (A m^2"),
-    (("scale = [0.0, 1.0]\n", ""), "stray_source[0].scale", "times_s and scale given together"),
-    (("scale = [0.0, 1.0]", "scale = [0.0]"), "stray_source[0].scale", "2 numbers, one per time"),
-    (("times_s = [0.0, 1.0]", "times_s = [1.0, 1.0]"), "stray_source[0].times_s", "strictly increasing"),
-    (("moment_am2", "moment"), "stray_source[0].moment", "one of"),
-    (("centre_m = [0.0, 0.0, 0.01]", "centre_m = [0.0, 0.01]"), "sensor[0].centre_m", "3 finite numbers (m"),
-])
+@pytest.mark.parametrize(
+    ("edit", "key", "expected"),
+    [
+        (
+            ("position_m = [0.15, 0.0, 0.0]", "position_m = [0.0, 0.0, 0.025]"),
+            "stray_source[0].position_m",
+            "at least 20 mm from each sensor's centre",
+        ),
+        (
+            ("moment_am2 = [0.0, 0.0, 2.0]", "moment_am2 = [0.0, 2.0]"),
+            "stray_source[0].moment_am2",
+            "3 finite numbers (A m^2",
+        ),
+        (("scale = [0.0, 1.0]\n", ""), "stray_source[0].scale", "times_s and scale given together"),
+        (("scale = [0.0, 1.0]", "scale = [0.0]"), "stray_source[0].scale", "2 numbers, one per time"),
+        (("times_s = [0.0, 1.0]", "times_s = [1.0, 1.0]"), "stray_source[0].times_s", "strictly increasing"),
+        (("moment_am2", "moment"), "stray_source[0].moment", "one of"),
+        (
+            ("centre_m = [0.0, 0.0, 0.01]", "centre_m = [0.0, 0.01]"),
+            "sensor[0].centre_m",
+            "3 finite numbers (m",
+        ),
+    ],
+)
 def test_a_bad_stray_source_names_file_key_and_expectation(tmp_path, edit, key, expected):
     path = tmp_path / "bad.toml"
     path.write_text(SCENE.replace(*edit, 1))
@@ -121,8 +143,11 @@ def _gradient_flux(geometry: SensorGeometry, G: np.ndarray) -> np.ndarray:
 
 
 IN_PLANE = (np.diag([1.0, -1.0, 0.0]), np.array([[0, 1.0, 0], [1.0, 0, 0], [0, 0, 0]]))
-OUT_OF_PLANE = (np.diag([-0.5, -0.5, 1.0]), np.array([[0, 0, 1.0], [0, 0, 0], [1.0, 0, 0]]),
-                np.array([[0, 0, 0], [0, 0, 1.0], [0, 1.0, 0]]))
+OUT_OF_PLANE = (
+    np.diag([-0.5, -0.5, 1.0]),
+    np.array([[0, 0, 1.0], [0, 0, 0], [1.0, 0, 0]]),
+    np.array([[0, 0, 0], [0, 0, 1.0], [0, 1.0, 0]]),
+)
 
 
 def test_of_a_gradients_five_parts_only_the_two_in_plane_ones_are_apart_from_a_load():
@@ -166,7 +191,7 @@ def test_the_gradient_allowance_covers_the_calibrations_largest_loads(name, inde
             assert c.gradient_dof == 2
             worst[s] = max(worst.get(s, 0.0), math.sqrt(c.gradient_chi2))
     for s, seen in worst.items():
-        assert seen < GRADIENT_RESIDUAL_AT_REST + GRADIENT_RESIDUAL_AT_RANGE * s ** 2, (s, seen)
+        assert seen < GRADIENT_RESIDUAL_AT_REST + GRADIENT_RESIDUAL_AT_RANGE * s**2, (s, seen)
 
 
 def test_an_in_plane_gradient_is_flagged_where_the_whole_residual_lets_it_through(tmp_path):

@@ -13,21 +13,24 @@ from pathlib import Path
 
 import pytest
 
-
 from benchmarks.robustness import unit_systemd as units
+
 CONFIG = units.REPO / "ftsensord" / "data" / "sim.toml"
 WORK = units.REPO / "build" / "test-systemd-unit"  # the boot script and systemd's own log
 
 _reason = units.why_not()
-pytestmark = pytest.mark.skipif(_reason is not None and not os.environ.get("CI"),
-                                reason=f"{_reason} (never skipped in CI)")
+pytestmark = pytest.mark.skipif(
+    _reason is not None and not os.environ.get("CI"), reason=f"{_reason} (never skipped in CI)"
+)
 
 
 def rt_group_scheduling() -> bool:
     """The kernel schedules real-time tasks by cgroup (CONFIG_RT_GROUP_SCHED): the cpu
     controller's cgroups have a real-time budget of their own."""
-    return any(Path(p).exists() for p in ("/sys/fs/cgroup/cpu/cpu.rt_runtime_us",
-                                          "/sys/fs/cgroup/cpu,cpuacct/cpu.rt_runtime_us"))
+    return any(
+        Path(p).exists()
+        for p in ("/sys/fs/cgroup/cpu/cpu.rt_runtime_us", "/sys/fs/cgroup/cpu,cpuacct/cpu.rt_runtime_us")
+    )
 
 
 def rtprio_limit(host, pid: str) -> int:
@@ -49,13 +52,25 @@ def logged(host, text: str, timeout_s: float = 10.0) -> bool:
 def test_the_shipped_unit_starts_serves_reloads_and_stops():
     with units.SystemdHost(WORK / "shipped", CONFIG) as host:
         state = host.wait_for("SubState", ("running",))
-        assert state["ActiveState"] == "active" and state["NRestarts"] == "0", (state, host.daemon_log()[-2000:])
+        assert state["ActiveState"] == "active" and state["NRestarts"] == "0", (
+            state,
+            host.daemon_log()[-2000:],
+        )
         # Type=notify: active means the daemon said READY=1; its STATUS= line is systemctl's.
         assert " Hz of 100 Hz (bound " in state["StatusText"], state
         # An operator in the service's group asks for the status (docs/guide/service.md: usermod -aG ftsensord).
         assert host.run("useradd", "--no-create-home", "--groups", "ftsensord", "haptics").returncode == 0
-        out = host.run("setpriv", "--reuid", "haptics", "--regid", "haptics", "--init-groups",
-                       "/opt/ftsensord/bin/ftsensord", "status", "--json")
+        out = host.run(
+            "setpriv",
+            "--reuid",
+            "haptics",
+            "--regid",
+            "haptics",
+            "--init-groups",
+            "/opt/ftsensord/bin/ftsensord",
+            "status",
+            "--json",
+        )
         assert out.returncode == 0, out.stderr
         status = json.loads(out.stdout)
         assert status["cycles"] > 0 and status["achieved_rate_hz"] > 0
@@ -77,7 +92,11 @@ def test_the_shipped_unit_starts_serves_reloads_and_stops():
         assert again["cycles"] > cycles
         assert host.systemctl("stop", "ftsensord").returncode == 0
         state = host.wait_for("ActiveState", ("inactive", "failed"))
-        assert (state["ActiveState"], state["Result"], state["ExecMainStatus"]) == ("inactive", "success", "0"), state
+        assert (state["ActiveState"], state["Result"], state["ExecMainStatus"]) == (
+            "inactive",
+            "success",
+            "0",
+        ), state
         assert logged(host, "stopped after "), host.daemon_log()[-2000:]
 
 
@@ -88,9 +107,14 @@ def test_the_unit_starts_where_the_kernel_refuses_real_time_to_its_cgroup():
     is refused. The daemon runs anyway, at the normal priority, and says why."""
     with units.SystemdHost(WORK / "rt-group", CONFIG, ["CPUWeight=100"]) as host:
         state = host.wait_for("SubState", ("running",))
-        assert state["ActiveState"] == "active" and state["NRestarts"] == "0", (state, host.daemon_log()[-2000:])
+        assert state["ActiveState"] == "active" and state["NRestarts"] == "0", (
+            state,
+            host.daemon_log()[-2000:],
+        )
         pid = host.show("MainPID")["MainPID"]
         assert "cpu" in host.run("grep", "system.slice/ftsensord.service", f"/proc/{pid}/cgroup").stdout
         status = json.loads(host.run("/opt/ftsensord/bin/ftsensord", "status", "--json").stdout)
         assert status["cycles"] > 0
-        assert status["scheduling"]["policy"] == "other" and status["scheduling"]["refused"], status["scheduling"]
+        assert status["scheduling"]["policy"] == "other" and status["scheduling"]["refused"], status[
+            "scheduling"
+        ]

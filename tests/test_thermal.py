@@ -16,7 +16,6 @@ from ftsensord.chip import mlx90393 as mlx
 from ftsensord.processing.temperature import CALIBRATED_MARGIN_K, LAWS_MARGIN_K, ThermalCompensation
 
 
-
 def test_the_laws_and_drift_undo_what_they_do():
     """A chip's flux made at 25 degC, warmed to 30-37 degC by the laws (magnet and chip)
     and each channel's drift, is brought back exactly; a stiffer silicone's under-read
@@ -58,8 +57,9 @@ def test_reference_from_calibration_first_reading_or_tare():
     assert none.reference_c is None
     none.observe([26.0, 28.0])
     gain = ThermalLaws().flux_gain
-    assert none.reference_c == 27.0 and np.allclose(none.flux_scale, (gain(np.array([27.0])) / gain(
-        np.array([26.0, 28.0]))).ravel())
+    assert none.reference_c == 27.0 and np.allclose(
+        none.flux_scale, (gain(np.array([27.0])) / gain(np.array([26.0, 28.0]))).ravel()
+    )
     none.observe([31.0, 31.0])
     none.tared(np.zeros(6))
     assert none.reference_c == 31.0 and none.source == "tare" and np.allclose(none.flux_scale, 1.0)
@@ -84,6 +84,7 @@ def test_a_calibration_across_temperatures_measures_each_channels_drift(tmp_path
     +15 K every sample is flagged `temperature`. The laws alone do not hold: their span
     flags most of the warming."""
     from benchmarks.accuracy import warm
+
     cal_path = warm.calibrate_part(31, tmp_path, True, quick=True)
     cal = Calibration.load(cal_path)
     t = cal.temperature
@@ -105,24 +106,39 @@ def test_the_files_keep_the_temperatures(tmp_path):
     and a load; a temperature no MLX90393 works at is refused naming the key."""
     from ftsensord.calibration.calfile import Calibration as Cal
     from ftsensord.calibration.dataset import Dataset
-    from ftsensord.errors import ConfigError
     from ftsensord.config.file import builtin_path
+    from ftsensord.errors import ConfigError
+
     cal = Cal.load(builtin_path("sim-sensor1.json"))
     assert cal.temperature is None  # recorded before temperatures were
     cal.temperature = CalibrationTemperature(30.0, 24.2, 35.8, np.linspace(-2e-6, 2e-6, 24))
     cal.save(tmp_path / "c.json")
     back = Cal.load(tmp_path / "c.json").temperature
-    assert back is not None and back.mean_c == 30.0 and np.array_equal(back.drift_t_per_k, cal.temperature.drift_t_per_k)
+    assert (
+        back is not None
+        and back.mean_c == 30.0
+        and np.array_equal(back.drift_t_per_k, cal.temperature.drift_t_per_k)
+    )
     doc = json.loads((tmp_path / "c.json").read_text())
     doc["temperature_c"]["highest"] = 120.0
     from ftsensord.calibration.calfile import checksum
+
     doc["checksum"] = checksum(doc)
     (tmp_path / "bad.json").write_text(json.dumps(doc))
     with pytest.raises(ConfigError, match=r"bad.json: temperature_c.highest: expected .*degC"):
         Cal.load(tmp_path / "bad.json")
-    ds = Dataset((0x0C,), np.zeros((2, 6)), np.full((2, 3), 1e-3), np.zeros((2, 3)), np.zeros((2, 1), bool),
-                 np.array(["fit", "fit"]), np.zeros(2), np.zeros((2, 3)), np.tile([0, 0, -1.0], (2, 1)),
-                 temperature_c=np.array([24.5, 31.0]))
+    ds = Dataset(
+        (0x0C,),
+        np.zeros((2, 6)),
+        np.full((2, 3), 1e-3),
+        np.zeros((2, 3)),
+        np.zeros((2, 1), bool),
+        np.array(["fit", "fit"]),
+        np.zeros(2),
+        np.zeros((2, 3)),
+        np.tile([0, 0, -1.0], (2, 1)),
+        temperature_c=np.array([24.5, 31.0]),
+    )
     ds.save(tmp_path / "d.json")
     assert np.array_equal(Dataset.load(tmp_path / "d.json").temperature_c, [24.5, 31.0])
     assert Dataset.load(tmp_path / "d.json").temperature_range() == (27.75, 24.5, 31.0)
@@ -133,6 +149,7 @@ def test_burst_reads_temperatures_too(tmp_path):
     temperatures are read, and the reads that ask for it take it: the stage has every
     chip's temperature after the first cycle; with temperature_every = 0 it has none."""
     from .test_daemon import Rig
+
     for every, known in ((100, True), (0, False)):
         rig = Rig(tmp_path, f"temperature_every = {every}", scheduler="burst")
         try:

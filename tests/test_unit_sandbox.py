@@ -15,18 +15,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ftsensord.client import ControlClient, Subscriber
-
 from benchmarks.robustness import hostile
 from benchmarks.robustness import unit_sandbox as sandbox
+from ftsensord.client import ControlClient, Subscriber
 
 from .conftest import start_daemon
 from .test_daemon import write_config
 
 UNIT = Path(__file__).resolve().parent.parent / "systemd" / "ftsensord.service"
 
-pytestmark = pytest.mark.skipif(not sandbox.seccomp_available() and not os.environ.get("CI"),
-                                reason="seccomp is unavailable here (never skipped in CI)")
+pytestmark = pytest.mark.skipif(
+    not sandbox.seccomp_available() and not os.environ.get("CI"),
+    reason="seccomp is unavailable here (never skipped in CI)",
+)
 
 
 @pytest.fixture(scope="module")
@@ -35,8 +36,9 @@ def unit():
 
 
 def run_child(code: str, preexec) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-c", code], preexec_fn=preexec, capture_output=True, text=True,
-                          timeout=60)
+    return subprocess.run(
+        [sys.executable, "-c", code], preexec_fn=preexec, capture_output=True, text=True, timeout=60
+    )
 
 
 def test_the_sandbox_filters_what_the_unit_denies(unit):
@@ -46,10 +48,12 @@ def test_the_sandbox_filters_what_the_unit_denies(unit):
     allowed = unit.allowed_calls(sandbox.syscall_groups())
     assert allowed is not None and "sethostname" not in allowed and "setpriority" not in allowed
     assert {"read", "epoll_wait", "ioctl", "openat"} <= allowed
-    code = ("import errno, os, socket\n"
-            "for f in (lambda: socket.sethostname('x'), lambda: os.setpriority(os.PRIO_PROCESS, 0, 1)):\n"
-            "    try:\n        f()\n        print('allowed')\n"
-            "    except PermissionError:\n        print('EPERM')\n")
+    code = (
+        "import errno, os, socket\n"
+        "for f in (lambda: socket.sethostname('x'), lambda: os.setpriority(os.PRIO_PROCESS, 0, 1)):\n"
+        "    try:\n        f()\n        print('allowed')\n"
+        "    except PermissionError:\n        print('EPERM')\n"
+    )
     out = run_child(code, unit.preexec())
     assert out.returncode == 0 and out.stdout.split() == ["EPERM", "EPERM"], out.stderr
     # Without the filter the same child is refused sethostname for want of the capability
@@ -61,8 +65,11 @@ def test_the_sandbox_filters_what_the_unit_denies(unit):
 def test_pyzmq_survives_the_filter(unit):
     """A bare ZeroMQ context and socket: libzmq's I/O thread sets its scheduling parameters
     when it starts, and aborts (exit 134) if the filter refuses sched_setscheduler."""
-    out = run_child("import zmq; c = zmq.Context(); s = c.socket(zmq.PUB); s.bind('inproc://x'); "
-                    "s.close(); c.term(); print('ok')", unit.preexec())
+    out = run_child(
+        "import zmq; c = zmq.Context(); s = c.socket(zmq.PUB); s.bind('inproc://x'); "
+        "s.close(); c.term(); print('ok')",
+        unit.preexec(),
+    )
     assert out.returncode == 0 and out.stdout.strip() == "ok", (out.returncode, out.stderr[-500:])
 
 
@@ -70,8 +77,14 @@ def test_the_daemon_runs_under_its_own_unit(tmp_path, unit):
     """Ready, publishing, status, tare, reload (SIGHUP) and a clean stop, all under the
     unit's filter, limits and policy."""
     config = write_config(tmp_path)
-    proc, notify = start_daemon(config, tmp_path, args=unit.run_args, preexec_fn=unit.preexec(),
-                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    proc, notify = start_daemon(
+        config,
+        tmp_path,
+        args=unit.run_args,
+        preexec_fn=unit.preexec(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
     try:
         folder = tmp_path / "ftsensord"
         control = ControlClient(f"ipc://{folder / 'control'}")
@@ -82,10 +95,16 @@ def test_the_daemon_runs_under_its_own_unit(tmp_path, unit):
         # (made after the request: they inherit it) have it. numpy's BLAS worker, made at
         # import, does not: small products never wake it.
         assert unit.realtime and unit.limit_rtprio >= unit.realtime
-        assert status["scheduling"] == {"policy": "fifo", "priority": unit.realtime, "asked": unit.realtime,
-                                        "refused": None}, status["scheduling"]
-        tasks = {int(t): Path(f"/proc/{proc.pid}/task/{t}/comm").read_text().strip()
-                 for t in os.listdir(f"/proc/{proc.pid}/task")}
+        assert status["scheduling"] == {
+            "policy": "fifo",
+            "priority": unit.realtime,
+            "asked": unit.realtime,
+            "refused": None,
+        }, status["scheduling"]
+        tasks = {
+            int(t): Path(f"/proc/{proc.pid}/task/{t}/comm").read_text().strip()
+            for t in os.listdir(f"/proc/{proc.pid}/task")
+        }
         zmq_threads = [t for t, name in tasks.items() if name.startswith("ZMQbg/")]
         assert len(zmq_threads) >= 2, tasks  # its I/O thread and reaper
         for task in [proc.pid, *zmq_threads]:
@@ -112,7 +131,9 @@ def test_the_daemon_runs_under_its_own_unit(tmp_path, unit):
         notify.close()
 
 
-@pytest.mark.skipif(sandbox.shutil.which("systemd-analyze") is None, reason="no systemd here to compare the copy with")
+@pytest.mark.skipif(
+    sandbox.shutil.which("systemd-analyze") is None, reason="no systemd here to compare the copy with"
+)
 def test_the_groups_copy_matches_this_hosts_systemd():
     """The copy used where systemd is missing expands the unit's groups as this host's does."""
     copy = sandbox.parse_groups(sandbox.GROUPS_FALLBACK.read_text())
@@ -167,9 +188,13 @@ def test_the_memory_group_enforces_its_limit(tmp_path, unit):
         pytest.skip("no memory cgroup without swap can be made here (no memory controller delegated to us)")
     try:
         config = hostile.packaged_config(tmp_path / "ftsensord.toml")
-        out = subprocess.run([sys.executable, "-m", "ftsensord", "run", "--config", str(config), *unit.run_args],
-                             env={**os.environ, "XDG_RUNTIME_DIR": str(tmp_path)}, capture_output=True,
-                             preexec_fn=unit.preexec(memory=group), timeout=60)
+        out = subprocess.run(
+            [sys.executable, "-m", "ftsensord", "run", "--config", str(config), *unit.run_args],
+            env={**os.environ, "XDG_RUNTIME_DIR": str(tmp_path)},
+            capture_output=True,
+            preexec_fn=unit.preexec(memory=group),
+            timeout=60,
+        )
         assert out.returncode == -signal.SIGKILL, out.stderr[-2000:]
         assert group.oom_kills() >= 1
     finally:
@@ -211,12 +236,15 @@ def test_clients_that_never_read_have_their_replies_dropped(sandboxed_daemon, un
     # granularity, against the 32 MB the default 1000-reply queues pin.
     assert out["rss_loaded_mib"] - out["rss_before_mib"] < 20, out
     # Given back once they left (malloc_trim): at least half of what they took (before: 1 %).
-    assert out["rss_after_mib"] - out["rss_before_mib"] < 0.5 * (out["rss_loaded_mib"] - out["rss_before_mib"]), out
+    assert out["rss_after_mib"] - out["rss_before_mib"] < 0.5 * (
+        out["rss_loaded_mib"] - out["rss_before_mib"]
+    ), out
     assert_within_memory_max(unit, memory_group, out)
 
 
-def test_subscribers_that_never_read_cost_little_and_no_sample_of_a_reader(sandboxed_daemon, unit,
-                                                                          memory_group):
+def test_subscribers_that_never_read_cost_little_and_no_sample_of_a_reader(
+    sandboxed_daemon, unit, memory_group
+):
     """127 subscribers of every stream that read nothing fill their queues in the daemon
     (1000 messages each) beside one recorder that reads: it loses nothing, the daemon's
     memory grows by about 80 KB a stalled subscriber and comes back when they leave."""
@@ -228,5 +256,7 @@ def test_subscribers_that_never_read_cost_little_and_no_sample_of_a_reader(sandb
     # 9.7 MiB measured for 127 (docs/results/reliability.md): 16 MiB is room for the allocator's
     # granularity, against 127 x 1000 messages of 150-250 bytes copied (about 25 MiB).
     assert out["rss_loaded_mib"] - out["rss_before_mib"] < 16, out
-    assert out["rss_after_mib"] - out["rss_before_mib"] < 0.5 * (out["rss_loaded_mib"] - out["rss_before_mib"]), out
+    assert out["rss_after_mib"] - out["rss_before_mib"] < 0.5 * (
+        out["rss_loaded_mib"] - out["rss_before_mib"]
+    ), out
     assert_within_memory_max(unit, memory_group, out)

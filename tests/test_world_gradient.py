@@ -9,20 +9,20 @@ import pytest
 
 from ftsensord.calibration.calfile import Calibration
 from ftsensord.chip import mlx90393 as mlx
+from ftsensord.config.file import builtin_path, load_config
 from ftsensord.model import se3
 from ftsensord.model.geometry import SensorGeometry, gradient_basis
-from ftsensord.protocol import wire
-from ftsensord.config.file import builtin_path, load_config
 from ftsensord.processing.pipeline import channel_sigma_t
-from ftsensord.sim import default_scene
-from ftsensord.sim.loads import FixedOrientation
-from ftsensord.sim.physics import StraySource
 from ftsensord.processing.stray import (
     CORRECT_WITHIN,
     WorldGradient,
     parts,
     turned,
 )
+from ftsensord.protocol import wire
+from ftsensord.sim import default_scene
+from ftsensord.sim.loads import FixedOrientation
+from ftsensord.sim.physics import StraySource
 
 from .conftest import assert_names_file_and_key
 
@@ -44,8 +44,11 @@ def test_the_parts_of_a_turned_gradient_are_those_of_r_t_g_r():
     """T(R) against the tensor turned directly, at random and at the singular-looking turns
     (the identity, half turns about each axis: sign flips only, nothing lost)."""
     rng = np.random.default_rng(4)
-    turns = [np.eye(3)] + [se3.exp_so3(np.pi * e) for e in np.eye(3)] + [se3.exp_so3(rng.normal(size=3))
-                                                                         for _ in range(20)]
+    turns = (
+        [np.eye(3)]
+        + [se3.exp_so3(np.pi * e) for e in np.eye(3)]
+        + [se3.exp_so3(rng.normal(size=3)) for _ in range(20)]
+    )
     for R in turns:
         G = random_gradient(rng)
         assert np.allclose(turned(R) @ parts(G), parts(R.T @ G @ R), atol=1e-12)
@@ -154,7 +157,10 @@ def test_without_a_gradient_nothing_is_flagged_or_corrected_beyond_noise():
 def test_world_needs_the_orientation_stream(tmp_path):
     (tmp_path / "c.toml").write_text(
         'version = 1\nbus = "sim"\n[[sensor]]\nname = "sensor1"\n'
-        'addresses = [0x0C, 0x0D, 0x0E, 0x0F, 0x10, 0x11, 0x12, 0x13]\n'
-        'calibration = "builtin:sim-sensor1.json"\nstray_field = "world"\n')
-    assert_names_file_and_key(load_config, tmp_path / "c.toml", "sensor[0].stray_field", 'orientation = "stream"')
+        "addresses = [0x0C, 0x0D, 0x0E, 0x0F, 0x10, 0x11, 0x12, 0x13]\n"
+        'calibration = "builtin:sim-sensor1.json"\nstray_field = "world"\n'
+    )
+    assert_names_file_and_key(
+        load_config, tmp_path / "c.toml", "sensor[0].stray_field", 'orientation = "stream"'
+    )
     assert wire.FLAG_INCONSISTENT  # the flag the stage uses before it has learnt

@@ -40,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import PAPER, RESULTS, SCENE, SWEEP
 from ftsensord.calibration.fit import fit
 from ftsensord.calibration.nlfit import NonlinearCalibration, fit_nonlinear
 from ftsensord.calibration.rig import record_dataset, simulate_sweeps, simulated_robot
@@ -47,18 +48,13 @@ from ftsensord.chip.mlx90393 import HALL_SATURATION_T
 from ftsensord.model import se3
 from ftsensord.model.geometry import SensorGeometry
 from ftsensord.model.linear import SENSOR_RANGE, LinearModel
-from ftsensord.sim import PhysicalScene
-from ftsensord.sim import SimSensor
-from ftsensord.sim import VirtualClock
-from ftsensord.sim import simulated_bus
+from ftsensord.sim import PhysicalScene, SimSensor, VirtualClock, simulated_bus
 from ftsensord.sim.loads import (
     FixedOrientation,
     StaticLoad,
     paper_plan,
 )
 from ftsensord.sim.physics import Tolerances
-
-from benchmarks.common import PAPER, RESULTS, SCENE, SWEEP
 
 EARTH_T = np.array(SCENE["external_field_ut"]) * 1e-6  # the default scene's room
 ADDRS = tuple(range(0x0C, 0x14))
@@ -74,8 +70,14 @@ def part(seed: int) -> Tolerances:
     """The tolerances of the default scene's sensor1, one part per seed (seed 1 is its
     sensor1, seed 2 its sensor2: the same figures)."""
     t = SCENE["sensor"][0]["tolerances"]
-    return Tolerances(t["magnet_position_mm"] * 1e-3, t["magnet_remanence_pct"] / 100, np.radians(t["chip_tilt_deg"]),
-                      t["chip_gain_pct"] / 100, t["ring_radius_mm"] * 1e-3, seed=seed)
+    return Tolerances(
+        t["magnet_position_mm"] * 1e-3,
+        t["magnet_remanence_pct"] / 100,
+        np.radians(t["chip_tilt_deg"]),
+        t["chip_gain_pct"] / 100,
+        t["ring_radius_mm"] * 1e-3,
+        seed=seed,
+    )
 
 
 @dataclass
@@ -96,15 +98,27 @@ def make_sensor(tol: Tolerances | None) -> SimSensor:
     return SimSensor("s", ADDRS, geometry, chip_gain=gains)
 
 
-def evaluate(name: str, tol: Tolerances | None, field_t: np.ndarray, args: argparse.Namespace, seed: int,
-             octupole: bool = True, noise: bool = True) -> Result:
+def evaluate(
+    name: str,
+    tol: Tolerances | None,
+    field_t: np.ndarray,
+    args: argparse.Namespace,
+    seed: int,
+    octupole: bool = True,
+    noise: bool = True,
+) -> Result:
     """One sensor's calibration run, fits and test classes (``octupole``: the nonlinear
     model's; ``noise``: in the test readings, not the calibration's)."""
     sensor = make_sensor(tol)
     scene = PhysicalScene([sensor], external_field_t=field_t)
     plan = paper_plan(n_fit=args.fit_poses, n_validation=args.loads, n_no_load=args.no_load_poses)
-    ds = record_dataset(simulated_bus(scene, clock=VirtualClock(), seed=seed), ADDRS, plan, samples=args.samples,
-                        **simulated_robot(scene, "s"))
+    ds = record_dataset(
+        simulated_bus(scene, clock=VirtualClock(), seed=seed),
+        ADDRS,
+        plan,
+        samples=args.samples,
+        **simulated_robot(scene, "s"),
+    )
     ds.sweeps = simulate_sweeps(ADDRS, SensorGeometry.ring(), samples=args.samples)
     linear = fit(ds).model
     nl = fit_nonlinear(ds, allow_poor_fit=True, octupole=octupole)
@@ -153,19 +167,32 @@ def evaluate(name: str, tol: Tolerances | None, field_t: np.ndarray, args: argpa
         rmse[(kind, "nonlinear, converged")] = np.sqrt(np.mean(np.square(err_c), axis=0))
         fallbacks[kind], loads[kind], saturated[kind], invalid[kind] = fb, len(pairs), sat, bad
     sweep = {}
-    for label, averaging in ((f"{PAPER_AVERAGING} readings", PAPER_AVERAGING), (f"{AVERAGING} readings", AVERAGING),
-                             ("noiseless", 0)):
-        found = sweep_false_wrench(linear, nl, lambda w, R, n=averaging: flux(w, R, n),
-                                   flux(np.zeros(6), SWEEP[0], TARE_READINGS if averaging else 0))
+    for label, averaging in (
+        (f"{PAPER_AVERAGING} readings", PAPER_AVERAGING),
+        (f"{AVERAGING} readings", AVERAGING),
+        ("noiseless", 0),
+    ):
+        found = sweep_false_wrench(
+            linear,
+            nl,
+            lambda w, R, n=averaging: flux(w, R, n),
+            flux(np.zeros(6), SWEEP[0], TARE_READINGS if averaging else 0),
+        )
         sweep.update({f"{k}, {label}": v for k, v in found.items()})
-    return Result(name, rmse, fallbacks, loads, sweep, nl.fit_rms_residual_t * 1e6, nl.warnings, saturated, invalid)
+    return Result(
+        name, rmse, fallbacks, loads, sweep, nl.fit_rms_residual_t * 1e6, nl.warnings, saturated, invalid
+    )
 
 
 #: The sweep's 48 orientations: `benchmarks.common.SWEEP`.
 
 
-def sweep_false_wrench(linear: LinearModel, nl: NonlinearCalibration, flux,  # type: ignore[no-untyped-def]
-                       tare: np.ndarray) -> dict[str, np.ndarray]:
+def sweep_false_wrench(
+    linear: LinearModel,
+    nl: NonlinearCalibration,
+    flux,  # type: ignore[no-untyped-def]
+    tare: np.ndarray,
+) -> dict[str, np.ndarray]:
     """No load, `SWEEP`'s orientations, tared at the first with ``tare`` (its flux): the
     largest false wrench per axis."""
     readings = [flux(np.zeros(6), R) for R in SWEEP]
@@ -189,53 +216,91 @@ def row(values: np.ndarray, spread: np.ndarray | None = None) -> str:
     return " | ".join(cells)
 
 
-SWEEP_ROWS = [f"{e}, {label}" for label in (f"{PAPER_AVERAGING} readings", f"{AVERAGING} readings", "noiseless")
-              for e in ("linear", "nonlinear")]
+SWEEP_ROWS = [
+    f"{e}, {label}"
+    for label in (f"{PAPER_AVERAGING} readings", f"{AVERAGING} readings", "noiseless")
+    for e in ("linear", "nonlinear")
+]
 
 
 def render(results: list[Result], ablation: list[Result], args: argparse.Namespace, elapsed: float) -> str:
     head = "| Fx (N) | Fy (N) | Fz (N) | Mx (mNm) | My (mNm) | Mz (mNm) |"
-    out = ["# Accuracy figures (generated by benchmarks/accuracy/accuracy.py)", "",
-           (f"Command: `python -m benchmarks.accuracy.accuracy{' --quick' if args.quick else ''}`; {elapsed:.0f} s "
+    out = [
+        "# Accuracy figures (generated by benchmarks/accuracy/accuracy.py)",
+        "",
+        (
+            f"Command: `python -m benchmarks.accuracy.accuracy{' --quick' if args.quick else ''}`; {elapsed:.0f} s "
             f"({args.workers} processes). Scene: the default's room and part (ftsensord/data/scene-default.toml). "
             f"Per sensor: {args.fit_poses} fit poses, {args.no_load_poses} no-load poses, {args.samples} readings "
             f"a pose; {results[0].loads['100 g']} loads of 100 g ({PAPER_AVERAGING} readings averaged, as the "
             f"paper's) and {results[0].loads['large']} large loads (|F| 10-50 N, {AVERAGING} readings); a no-load "
-            f"sweep of 48 orientations after a tare of {TARE_READINGS} readings."), "",
-           "## As-built sensors in the Earth's field", "",
-           (f"Sensors: seeds {', '.join(r.name for r in results)}. RMSE per axis, mean +- standard deviation "
-            "across sensors."), "",
-           "| class | estimator " + head, "|---|---" + "|---" * 6 + "|",
-           "| 100 g | paper, Table II | " + row(PAPER) + " |"]
+            f"sweep of 48 orientations after a tare of {TARE_READINGS} readings."
+        ),
+        "",
+        "## As-built sensors in the Earth's field",
+        "",
+        (
+            f"Sensors: seeds {', '.join(r.name for r in results)}. RMSE per axis, mean +- standard deviation "
+            "across sensors."
+        ),
+        "",
+        "| class | estimator " + head,
+        "|---|---" + "|---" * 6 + "|",
+        "| 100 g | paper, Table II | " + row(PAPER) + " |",
+    ]
     for kind in ("100 g", "large"):
         for estimator in ("linear", "nonlinear", "nonlinear, converged"):
             values = np.array([r.rmse[(kind, estimator)] for r in results])
             out.append(f"| {kind} | {estimator} | " + row(values.mean(axis=0), values.std(axis=0)) + " |")
-    out += ["", ("| sensor | fit residual (uT) | fall-backs 100 g | fall-backs large | large: a chip saturated "
-                 "| large: invalid | warnings |"), "|---|---|---|---|---|---|---|"]
+    out += [
+        "",
+        (
+            "| sensor | fit residual (uT) | fall-backs 100 g | fall-backs large | large: a chip saturated "
+            "| large: invalid | warnings |"
+        ),
+        "|---|---|---|---|---|---|---|",
+    ]
     for r in results:
-        out.append(f"| seed {r.name} | {r.residual_ut:.3g} | {r.fallbacks['100 g']} of {r.loads['100 g']} | "
-                   f"{r.fallbacks['large']} of {r.loads['large']} | {r.saturated['large']} | {r.invalid['large']} | "
-                   f"{'; '.join(r.warnings) or 'none'} |")
-    out += ["", ("No-load sweep, largest false wrench of the 48 orientations after a tare at the first, each "
-                 "orientation read with the readings named (mean across sensors; largest sensor in brackets):"), "",
-            "| estimator, readings a sample " + head, "|---" + "|---" * 6 + "|"]
+        out.append(
+            f"| seed {r.name} | {r.residual_ut:.3g} | {r.fallbacks['100 g']} of {r.loads['100 g']} | "
+            f"{r.fallbacks['large']} of {r.loads['large']} | {r.saturated['large']} | {r.invalid['large']} | "
+            f"{'; '.join(r.warnings) or 'none'} |"
+        )
+    out += [
+        "",
+        (
+            "No-load sweep, largest false wrench of the 48 orientations after a tare at the first, each "
+            "orientation read with the readings named (mean across sensors; largest sensor in brackets):"
+        ),
+        "",
+        "| estimator, readings a sample " + head,
+        "|---" + "|---" * 6 + "|",
+    ]
     for estimator in SWEEP_ROWS:
         values = np.array([r.sweep[estimator] for r in results])
         scale = np.array([1, 1, 1, 1e3, 1e3, 1e3])
-        cells = [f"{m * k:.3g} ({x * k:.3g})" for m, x, k in zip(values.mean(axis=0), values.max(axis=0), scale,
-                                                                    strict=True)]
+        cells = [
+            f"{m * k:.3g} ({x * k:.3g})"
+            for m, x, k in zip(values.mean(axis=0), values.max(axis=0), scale, strict=True)
+        ]
         out.append(f"| {estimator} | " + " | ".join(cells) + " |")
-    out += ["", "## Ablation (seed 1): which effect costs what", "",
-            "| sensor | class | estimator " + head, "|---|---|---" + "|---" * 6 + "|"]
+    out += [
+        "",
+        "## Ablation (seed 1): which effect costs what",
+        "",
+        "| sensor | class | estimator " + head,
+        "|---|---|---" + "|---" * 6 + "|",
+    ]
     for r in ablation:
         for kind in ("100 g", "large"):
             for estimator in ("linear", "nonlinear"):
                 out.append(f"| {r.name} | {kind} | {estimator} | " + row(r.rmse[(kind, estimator)]) + " |")
     out += ["", "| sensor | fit residual (uT) | fall-backs 100 g | fall-backs large |", "|---|---|---|---|"]
     for r in ablation:
-        out.append(f"| {r.name} | {r.residual_ut:.3g} | {r.fallbacks['100 g']} of {r.loads['100 g']} | "
-                   f"{r.fallbacks['large']} of {r.loads['large']} |")
+        out.append(
+            f"| {r.name} | {r.residual_ut:.3g} | {r.fallbacks['100 g']} of {r.loads['100 g']} | "
+            f"{r.fallbacks['large']} of {r.loads['large']} |"
+        )
     return "\n".join(out) + "\n"
 
 
@@ -246,7 +311,9 @@ def _run(job: tuple) -> Result:  # type: ignore[type-arg]
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--quick", action="store_true", help="few poses and loads, one extra seed: structure only")
+    parser.add_argument(
+        "--quick", action="store_true", help="few poses and loads, one extra seed: structure only"
+    )
     parser.add_argument("--workers", type=int, default=2, help="processes (default 2)")
     parser.add_argument("--out", default=str(RESULTS / "accuracy-figures.md"))
     args = parser.parse_args(argv)
@@ -257,17 +324,19 @@ def main(argv: list[str] | None = None) -> int:
         args.fit_poses, args.no_load_poses, args.samples, args.loads, seeds = 193, 24, 100, 200, (1, 2, 3)
     start = time.monotonic()
     jobs = [(str(s), part(s), EARTH_T, args, s, {}) for s in seeds]
-    jobs += [("nominal, field-free", None, np.zeros(3), args, 1, {}),
-             ("nominal, Earth's field", None, EARTH_T, args, 1, {}),
-             ("as-built, field-free", part(1), np.zeros(3), args, 1, {}),
-             ("as-built, Earth's field, dipole model", part(1), EARTH_T, args, 1, {"octupole": False}),
-             ("as-built, Earth's field, test readings noiseless", part(1), EARTH_T, args, 1, {"noise": False})]
+    jobs += [
+        ("nominal, field-free", None, np.zeros(3), args, 1, {}),
+        ("nominal, Earth's field", None, EARTH_T, args, 1, {}),
+        ("as-built, field-free", part(1), np.zeros(3), args, 1, {}),
+        ("as-built, Earth's field, dipole model", part(1), EARTH_T, args, 1, {"octupole": False}),
+        ("as-built, Earth's field, test readings noiseless", part(1), EARTH_T, args, 1, {"noise": False}),
+    ]
     if args.workers > 1:
         with ProcessPoolExecutor(args.workers) as pool:
             done = list(pool.map(_run, jobs))
     else:
         done = [_run(job) for job in jobs]
-    results, ablation = done[:len(seeds)], done[len(seeds):]
+    results, ablation = done[: len(seeds)], done[len(seeds) :]
     ablation.insert(3, replace(results[0], name="as-built, Earth's field"))
     text = render(results, ablation, args, time.monotonic() - start)
     Path(args.out).write_text(text)

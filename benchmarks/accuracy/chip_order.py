@@ -17,19 +17,19 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import part_table
 from ftsensord.calibration.procedure import calibrate, simulate_dataset
 from ftsensord.calibration.screening import MISMATCH_LIMIT
 from ftsensord.errors import CalibrationError
-
-from benchmarks.common import part_table
 
 
 def mismatch(seed: int, folder: Path) -> float:
     """The part's largest share (0-1), or, refused, the largest its message names."""
     scene = folder / f"part{seed}.toml"
     scene.write_text(part_table(seed))
-    ds = simulate_dataset(scene, "sensor1", "six-axis", poses=193, validation_poses=4, samples=10, seed=seed,
-                          sweeps=False)
+    ds = simulate_dataset(
+        scene, "sensor1", "six-axis", poses=193, validation_poses=4, samples=10, seed=seed, sweeps=False
+    )
     try:
         cal, _ = calibrate(ds, serial=f"part{seed}", frame="sensor1", nonlinear=False)
     except CalibrationError as exc:
@@ -49,10 +49,15 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for seed in range(first, last + 1):
             shares.append(mismatch(seed, Path(tmp)))
-            print(f"part {seed}: {shares[-1]:.3f}" + ("  (refused)" if shares[-1] > MISMATCH_LIMIT else ""), flush=True)
+            print(
+                f"part {seed}: {shares[-1]:.3f}" + ("  (refused)" if shares[-1] > MISMATCH_LIMIT else ""),
+                flush=True,
+            )
     s = np.array(shares)
-    print(f"{len(s)} parts: largest share {s.min():.2f}-{s.max():.2f}, median {np.median(s):.2f}; "
-          f"{int((s > MISMATCH_LIMIT).sum())} above the limit {MISMATCH_LIMIT}")
+    print(
+        f"{len(s)} parts: largest share {s.min():.2f}-{s.max():.2f}, median {np.median(s):.2f}; "
+        f"{int((s > MISMATCH_LIMIT).sum())} above the limit {MISMATCH_LIMIT}"
+    )
     return 0
 
 

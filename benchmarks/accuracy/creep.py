@@ -43,24 +43,20 @@ from pathlib import Path
 
 import numpy as np
 
-from ftsensord.acquire.health import stuck_cycles_for
+from benchmarks.common import RESULTS, Capture
 from ftsensord import cli
+from ftsensord.acquire.health import stuck_cycles_for
 from ftsensord.calibration.calfile import Calibration
 from ftsensord.calibration.dataset import Dataset
-from ftsensord.model.viscoelastic import CreepInverse, Relaxation
-from ftsensord.protocol import wire
 from ftsensord.config.file import Config, builtin_path, load_config
 from ftsensord.daemon.daemon import Daemon
-from ftsensord.sim import PhysicalScene
-from ftsensord.sim import VirtualClock
-from ftsensord.sim import load_scene
-from ftsensord.sim import simulated_bus
-from ftsensord.sim.loads import StepLoad
-from ftsensord.sim.scene import default_scene_path
-from ftsensord.sim.memory import DEFAULT_RELAXATION
+from ftsensord.model.viscoelastic import CreepInverse, Relaxation
 from ftsensord.processing.creep import CreepCompensation
-
-from benchmarks.common import RESULTS, Capture
+from ftsensord.protocol import wire
+from ftsensord.sim import PhysicalScene, VirtualClock, load_scene, simulated_bus
+from ftsensord.sim.loads import StepLoad
+from ftsensord.sim.memory import DEFAULT_RELAXATION
+from ftsensord.sim.scene import default_scene_path
 
 DOCS = RESULTS
 TRUTH = Relaxation.from_pairs(DEFAULT_RELAXATION)
@@ -102,8 +98,11 @@ class Sine:
         self.amplitude, self.f_hz, self.start_s = amplitude, f_hz, start_s
 
     def wrench(self, t: float) -> np.ndarray:
-        return self.amplitude * math.sin(2 * math.pi * self.f_hz * (t - self.start_s)) if t >= self.start_s \
+        return (
+            self.amplitude * math.sin(2 * math.pi * self.f_hz * (t - self.start_s))
+            if t >= self.start_s
             else np.zeros(6)
+        )
 
 
 class Training:
@@ -122,7 +121,9 @@ class Training:
             return np.zeros(6)
         s = t - self.start_s
         ramp = min(1.0, s)  # pressed in over a second
-        f = ramp * (np.sum(self.a * np.sin(2 * np.pi * self.f * s + self.phase), axis=1) + np.array([0.5, 0, 1.0]))
+        f = ramp * (
+            np.sum(self.a * np.sin(2 * np.pi * self.f * s + self.phase), axis=1) + np.array([0.5, 0, 1.0])
+        )
         return np.concatenate([f, np.zeros(3)])
 
 
@@ -137,19 +138,38 @@ class Setting:
     scheduler: str | None = None  # None: the configuration's
 
 
-def run(config: Config, cal: Calibration, sc: PhysicalScene, load, seconds: float, setting: Setting,
-        compensate: bool, flags: list | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def run(
+    config: Config,
+    cal: Calibration,
+    sc: PhysicalScene,
+    load,
+    seconds: float,
+    setting: Setting,
+    compensate: bool,
+    flags: list | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """sensor1's published wrench under ``load``: (times from the scene's start (s), wrench (n, 6),
     truth (n, 6)), the daemon in process on a virtual clock cycling at ``setting``'s rate; each
     sample's flags appended to ``flags`` when given."""
     sc.set_load(0, load)
     bus = simulated_bus(sc, clock=VirtualClock(), bus_hz=config.bus_hz, seed=11)
     settings = replace(config.settings, osr=setting.osr, dig_filt=setting.dig_filt)
-    sensors = [replace(s, calibration=cal, estimator=setting.estimator) if i == 0 else s
-               for i, s in enumerate(config.sensors)]
-    cfg = replace(config, settings=settings, averaging=setting.averaging, rate_hz=setting.rate_hz,
-                  temperature_every=0, readback_every=0, tool_poses={}, sensors=sensors,
-                  scheduler=setting.scheduler or config.scheduler, stuck_cycles=stuck_cycles_for(settings))
+    sensors = [
+        replace(s, calibration=cal, estimator=setting.estimator) if i == 0 else s
+        for i, s in enumerate(config.sensors)
+    ]
+    cfg = replace(
+        config,
+        settings=settings,
+        averaging=setting.averaging,
+        rate_hz=setting.rate_hz,
+        temperature_every=0,
+        readback_every=0,
+        tool_poses={},
+        sensors=sensors,
+        scheduler=setting.scheduler or config.scheduler,
+        stuck_cycles=stuck_cycles_for(settings),
+    )
     out = Capture()
     daemon = Daemon(cfg, bus, out, None, clock=bus.monotonic)  # type: ignore[arg-type]
     daemon.start()
@@ -189,8 +209,11 @@ def step_figures(t, w, truth, at_s: float) -> tuple[float, float, float]:
     windows = np.floor((t[after] - at_s - 0.5) / STEP_WINDOW_S)
     means = [np.nanmean(error[windows == k]) for k in np.unique(windows)]
     half = t[(t >= at_s) & (w[:, 0] - rest >= STEP_N / 2)]
-    return (float(np.max(np.abs(means))) / STEP_N * 100, float(np.nanmax(np.abs(error))) / STEP_N * 100,
-            (float(half[0]) - at_s) * 1e3 if len(half) else float("nan"))
+    return (
+        float(np.max(np.abs(means))) / STEP_N * 100,
+        float(np.nanmax(np.abs(error))) / STEP_N * 100,
+        (float(half[0]) - at_s) * 1e3 if len(half) else float("nan"),
+    )
 
 
 def sine_figures(t, w, f_hz: float, start_s: float) -> tuple[float, float]:
@@ -203,11 +226,16 @@ def sine_figures(t, w, f_hz: float, start_s: float) -> tuple[float, float]:
     return float(np.hypot(a, b)) / STEP_N, float(-np.arctan2(b, a)) / (2 * np.pi * f_hz) * 1e3
 
 
-def validation(config: Config, cal: Calibration, sc: PhysicalScene, dataset, setting: Setting,
-               compensate: bool) -> np.ndarray:
+def validation(
+    config: Config, cal: Calibration, sc: PhysicalScene, dataset, setting: Setting, compensate: bool
+) -> np.ndarray:
     """RMSE (6,) of each 100 g validation pose's mean published wrench (the pose held 1 s, the
     robot's dwell), the daemon running through the poses in the dataset's order."""
-    poses = [(dataset.wrench[k], dataset.rotation[k]) for k in range(len(dataset)) if dataset.split[k] == "validation"]
+    poses = [
+        (dataset.wrench[k], dataset.rotation[k])
+        for k in range(len(dataset))
+        if dataset.split[k] == "validation"
+    ]
 
     class Robot:  # the load and the orientation at once, as CalibrationRobotLoad
         def wrench(self, t: float) -> np.ndarray:
@@ -243,7 +271,18 @@ def cost(quick: bool) -> dict[str, float]:
 
 #: Quick (CI): the documented commands with fewer poses and readings and a shorter hold, the
 #: nonlinear fit skipped; the full run takes every default.
-QUICK_ARGS = ["--poses", "40", "--validation-poses", "12", "--samples", "20", "--check-poses", "3", "--hold-s", "20"]
+QUICK_ARGS = [
+    "--poses",
+    "40",
+    "--validation-poses",
+    "12",
+    "--samples",
+    "20",
+    "--check-poses",
+    "3",
+    "--hold-s",
+    "20",
+]
 
 
 def calibrated_part(quick: bool, tmp: Path, seed: int) -> tuple[list[str], Dataset, Calibration]:
@@ -252,7 +291,15 @@ def calibrated_part(quick: bool, tmp: Path, seed: int) -> tuple[list[str], Datas
     their defaults; quick: `QUICK_ARGS`, --linear-only): the two commands, the dataset and the
     calibration they wrote."""
     ds, cal = tmp / f"ds-{seed}.json", tmp / f"cal-{seed}.json"
-    dataset_args = ["dataset", "--scene", str(scene_path(True, tmp, seed)), "--sensor", "sensor1", "-o", str(ds)]
+    dataset_args = [
+        "dataset",
+        "--scene",
+        str(scene_path(True, tmp, seed)),
+        "--sensor",
+        "sensor1",
+        "-o",
+        str(ds),
+    ]
     calibrate_args = ["calibrate", str(ds), "-o", str(cal)]
     if quick:
         dataset_args += QUICK_ARGS
@@ -267,8 +314,12 @@ def calibrated_part(quick: bool, tmp: Path, seed: int) -> tuple[list[str], Datas
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="small and short; written only to --out")
-    parser.add_argument("--out", type=Path, help="folder for silicone-figures.md and silicone.png "
-                        "(default: docs/results/; --quick: none, nothing written)")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        help="folder for silicone-figures.md and silicone.png "
+        "(default: docs/results/; --quick: none, nothing written)",
+    )
     args = parser.parse_args()
     quick = args.quick
     t_start = time.monotonic()
@@ -281,10 +332,18 @@ def main() -> int:
         default = Setting("default (burst, 100 Hz)", config.settings.osr, config.settings.dig_filt, 100.0)
         settings = [default]
         if not quick:
-            settings += [Setting("faster (OSR 0, DIG_FILT 2, 140 Hz)", 0, 2, 140.0),
-                         Setting("default, averaging 4", config.settings.osr, config.settings.dig_filt, 100.0, 4),
-                         Setting("default, nonlinear estimator", config.settings.osr, config.settings.dig_filt, 100.0,
-                                 1, "nonlinear")]
+            settings += [
+                Setting("faster (OSR 0, DIG_FILT 2, 140 Hz)", 0, 2, 140.0),
+                Setting("default, averaging 4", config.settings.osr, config.settings.dig_filt, 100.0, 4),
+                Setting(
+                    "default, nonlinear estimator",
+                    config.settings.osr,
+                    config.settings.dig_filt,
+                    100.0,
+                    1,
+                    "nonlinear",
+                ),
+            ]
         # Each part compensated at the default loop; the first also without the compensation and at
         # the other loops; and the default scene's own part (seed 1) as a perfect spring with the
         # packaged calibration fitted on it: what a part does without its memory.
@@ -293,25 +352,45 @@ def main() -> int:
         rows = []
         traces: dict = {}
         hold = 8.0 if quick else 32.0
-        spring = Calibration.load(builtin_path("sim-sensor1.json"))  # the packaged one: fitted on seed 1, a spring
+        spring = Calibration.load(
+            builtin_path("sim-sensor1.json")
+        )  # the packaged one: fitted on seed 1, a spring
         for seed, st, memory, comp in cases:
-            label = "memory, compensated" if comp else ("memory, not compensated" if memory else "perfect spring")
+            label = (
+                "memory, compensated" if comp else ("memory, not compensated" if memory else "perfect spring")
+            )
             part = calibrated[seed][2] if memory else spring
             dataset = calibrated[seed if memory else parts[0]][1]
             first = seed == parts[0] and st is default
-            t, w, truth = run(config, part, scene(memory, tmp, seed), StepLoad(2.0, np.zeros(6),
-                              np.array([STEP_N, 0, 0, 0, 0, 0])), hold, st, comp)
+            t, w, truth = run(
+                config,
+                part,
+                scene(memory, tmp, seed),
+                StepLoad(2.0, np.zeros(6), np.array([STEP_N, 0, 0, 0, 0, 0])),
+                hold,
+                st,
+                comp,
+            )
             step_err, step_single, half_ms = step_figures(t, w, truth, 2.0)
             if first or not memory:
                 traces[("step", label)] = (t, w[:, 0], truth[:, 0])
             sines = []
-            for f in (FREQUENCIES_HZ[:2] if quick else FREQUENCIES_HZ):
-                t, w, truth = run(config, part, scene(memory, tmp, seed), Sine(np.array([STEP_N, 0, 0, 0, 0, 0]), f,
-                                  1.0), 1.0 + max(3.0, 4 / f) if quick else 1.0 + max(6.0, 10 / f), st, comp)
+            for f in FREQUENCIES_HZ[:2] if quick else FREQUENCIES_HZ:
+                t, w, truth = run(
+                    config,
+                    part,
+                    scene(memory, tmp, seed),
+                    Sine(np.array([STEP_N, 0, 0, 0, 0, 0]), f, 1.0),
+                    1.0 + max(3.0, 4 / f) if quick else 1.0 + max(6.0, 10 / f),
+                    st,
+                    comp,
+                )
                 sines.append(sine_figures(t, w, f, 1.0))
                 if (first or not memory) and f == 2.0:
                     traces[("sine", label)] = (t, w[:, 0], truth[:, 0])
-            t, w, truth = run(config, part, scene(memory, tmp, seed), Training(1.0), 6.0 if quick else 21.0, st, comp)
+            t, w, truth = run(
+                config, part, scene(memory, tmp, seed), Training(1.0), 6.0 if quick else 21.0, st, comp
+            )
             sel = t >= 2.0
             training = float(np.sqrt(np.nanmean(np.square(w[sel, :3] - truth[sel, :3]))))
             # The validation poses: the part's own dataset's (the spring's: the first part's poses).
@@ -319,14 +398,19 @@ def main() -> int:
             rows.append((seed, st.name, label, step_err, step_single, half_ms, sines, training, val))
         lines += report_rows(rows, quick)
     c = cost(quick)
-    lines += ["", "## Cost", "",
-              f"The stage: {c['stage_us']:.1f} us a sample (6 axes, 2 terms; `CreepInverse.apply` alone, "
-              f"{2000 if quick else 20000} samples). The scene: a simulated second of a moving load, sensor1's "
-              f"8 chips read every 1 ms step: {c['scene_ms_spring']:.0f} ms with a perfect spring, "
-              f"{c['scene_ms_memory']:.0f} ms with the memory; a static scene keeps no memory at all "
-              "(`SimSensor.memory` is None).",
-              "", f"Run: {time.monotonic() - t_start:.0f} s; `uptime` at the end: {os.getloadavg()[0]:.2f} "
-              f"(1 min load) on a {os.cpu_count()}-core {platform.machine()} machine."]
+    lines += [
+        "",
+        "## Cost",
+        "",
+        f"The stage: {c['stage_us']:.1f} us a sample (6 axes, 2 terms; `CreepInverse.apply` alone, "
+        f"{2000 if quick else 20000} samples). The scene: a simulated second of a moving load, sensor1's "
+        f"8 chips read every 1 ms step: {c['scene_ms_spring']:.0f} ms with a perfect spring, "
+        f"{c['scene_ms_memory']:.0f} ms with the memory; a static scene keeps no memory at all "
+        "(`SimSensor.memory` is None).",
+        "",
+        f"Run: {time.monotonic() - t_start:.0f} s; `uptime` at the end: {os.getloadavg()[0]:.2f} "
+        f"(1 min load) on a {os.cpu_count()}-core {platform.machine()} machine.",
+    ]
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out is not None or not quick:
@@ -340,6 +424,7 @@ def plot(traces: dict, path: Path) -> None:
     """The held step and the 2 Hz sine at the default loop: published Fx against the truth."""
     try:
         import matplotlib
+
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
@@ -369,22 +454,37 @@ def plot(traces: dict, path: Path) -> None:
 def report_header(quick: bool, calibrated: dict) -> list[str]:
     seed, (commands, dataset, cal) = next(iter(calibrated.items()))
     dwell = float(np.median(dataset.times_s[:, 2] - dataset.times_s[:, 0]))
-    sizes = ("the commands' defaults: 193 fit, 60 validation, 24 no-load (first, before any load) and 24 check "
-             "poses of 100 readings, the step-and-hold 60 s a pose read every 10 ms, the nonlinear fit" if not quick
-             else "quick: " + " ".join(QUICK_ARGS) + ", --linear-only")
-    lines = ["# The silicone's memory: figures", "",
-             f"Made by `python -m benchmarks.accuracy.creep`{' --quick' if quick else ''}. The parts: the default scene (the "
-             f"Earth's field, 48 uT: a room) with sensor1 the as-built part of seed {', '.join(map(str, calibrated))} "
-             f"and `[sensor.silicone]` (the default series {list(map(list, DEFAULT_RELAXATION))}), each calibrated "
-             f"by the two documented commands ({sizes}; a pose's dwell {dwell:.2f} s; the static fits made on the "
-             "loads the silicone carried over each dwell, docs/guide/calibration.md). For the part of seed "
-             f"{seed}:", "", "```", *commands, "```", "",
-             "(the scene file is the default scene with its `seed = 1` line of sensor1 replaced by "
-             "`seed = N` and `[sensor.silicone]`). The daemon then runs each calibration file as written; the "
-             "linear estimator, and the nonlinear one where a row says so.", "",
-             "## Identification", "",
-             "| part | term | fraction (scene) | fraction (identified) | error | time (scene, s) | time (identified, s) "
-             "| error | scale |", "|---|---|---|---|---|---|---|---|---|"]
+    sizes = (
+        "the commands' defaults: 193 fit, 60 validation, 24 no-load (first, before any load) and 24 check "
+        "poses of 100 readings, the step-and-hold 60 s a pose read every 10 ms, the nonlinear fit"
+        if not quick
+        else "quick: " + " ".join(QUICK_ARGS) + ", --linear-only"
+    )
+    lines = [
+        "# The silicone's memory: figures",
+        "",
+        f"Made by `python -m benchmarks.accuracy.creep`{' --quick' if quick else ''}. "
+        "The parts: the default scene (the "
+        f"Earth's field, 48 uT: a room) with sensor1 the as-built part of seed {', '.join(map(str, calibrated))} "
+        f"and `[sensor.silicone]` (the default series {list(map(list, DEFAULT_RELAXATION))}), each calibrated "
+        f"by the two documented commands ({sizes}; a pose's dwell {dwell:.2f} s; the static fits made on the "
+        "loads the silicone carried over each dwell, docs/guide/calibration.md). For the part of seed "
+        f"{seed}:",
+        "",
+        "```",
+        *commands,
+        "```",
+        "",
+        "(the scene file is the default scene with its `seed = 1` line of sensor1 replaced by "
+        "`seed = N` and `[sensor.silicone]`). The daemon then runs each calibration file as written; the "
+        "linear estimator, and the nonlinear one where a row says so.",
+        "",
+        "## Identification",
+        "",
+        "| part | term | fraction (scene) | fraction (identified) | error | time (scene, s) | time (identified, s) "
+        "| error | scale |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for seed, (_, _, cal) in calibrated.items():
         found = cal.silicone
         if found is None:
@@ -392,39 +492,61 @@ def report_header(quick: bool, calibrated: dict) -> list[str]:
             continue
         got = found.relaxation
         for k, (g0, t0) in enumerate(zip(TRUTH.fractions, TRUTH.times_s)):
-            g1, t1 = (got.fractions[k], got.times_s[k]) if k < len(got.fractions) else (float("nan"), float("nan"))
-            lines.append(f"| {seed} | {k + 1} | {g0:.3f} | {g1:.4f} | {100 * (g1 / g0 - 1):+.1f} % | {t0:g} | "
-                         f"{t1:.3f} | {100 * (t1 / t0 - 1):+.1f} % | {found.scale:.4f} |")
-    lines += ["", "Scale: how the static K reads a long-held load, per unit (1 when it is the long-term stiffness).",
-              "", "Validation RMSE of the static fit (the datasets' pose means):", ""]
+            g1, t1 = (
+                (got.fractions[k], got.times_s[k]) if k < len(got.fractions) else (float("nan"), float("nan"))
+            )
+            lines.append(
+                f"| {seed} | {k + 1} | {g0:.3f} | {g1:.4f} | {100 * (g1 / g0 - 1):+.1f} % | {t0:g} | "
+                f"{t1:.3f} | {100 * (t1 / t0 - 1):+.1f} % | {found.scale:.4f} |"
+            )
+    lines += [
+        "",
+        "Scale: how the static K reads a long-held load, per unit (1 when it is the long-term stiffness).",
+        "",
+        "Validation RMSE of the static fit (the datasets' pose means):",
+        "",
+    ]
     for seed, (_, _, cal) in calibrated.items():
-        lines.append(f"- part {seed}: " + ", ".join(f"{k} {v:.4f}" for k, v in cal.report["validation_rmse"].items())
-                     + (f"; nonlinear: " + ", ".join(f"{k} {v:.4f}" for k, v in
-                                                    cal.report["nonlinear"]["validation_rmse"].items())
-                        if cal.report.get("nonlinear") else ""))
+        lines.append(
+            f"- part {seed}: "
+            + ", ".join(f"{k} {v:.4f}" for k, v in cal.report["validation_rmse"].items())
+            + (
+                "; nonlinear: "
+                + ", ".join(f"{k} {v:.4f}" for k, v in cal.report["nonlinear"]["validation_rmse"].items())
+                if cal.report.get("nonlinear")
+                else ""
+            )
+        )
     return lines
 
 
 def report_rows(rows: list, quick: bool) -> list[str]:
     freqs = FREQUENCIES_HZ[:2] if quick else FREQUENCIES_HZ
-    out = ["", "## Moving loads", "",
-           "Step: 2 N on Fx at 2 s, held 30 s, tared at rest before it; the largest |error| from 0.5 s "
-           f"after it on (% of the step; the aim: 2 %) of {STEP_WINDOW_S:g} s means and of single samples "
-           "(their noise alone is 1.5-3 % of the step), and the time to half the step. Sines: 2 N on Fx; amplitude "
-           "(published / applied; the aim: within 3 %) and lag (ms), each fitted over whole periods. Training: RMSE "
-           "over the force axes (N). Validation: the 100 g poses' means through the daemon (each held 1 s), RMSE per "
-           "axis (N, mNm); Table II is 0.234, 0.114, 0.378 N, 4.1, 10.6, 8.5 mNm. The perfect spring: the default "
-           "scene's own part (seed 1) without the memory, with the packaged calibration fitted on it, on the first "
-           "part's validation poses.", "",
-           "| part | loop | silicone | step error, means (%) | single samples (%) | step to half (ms) | "
-           + " | ".join(f"{f:g} Hz amplitude / lag (ms)" for f in freqs)
-           + " | training RMSE (N) | 100 g validation RMSE (N x3, mNm x3) | within Table II |",
-           "|---|---|---|---|---|---|" + "---|" * len(freqs) + "---|---|---|"]
+    out = [
+        "",
+        "## Moving loads",
+        "",
+        "Step: 2 N on Fx at 2 s, held 30 s, tared at rest before it; the largest |error| from 0.5 s "
+        f"after it on (% of the step; the aim: 2 %) of {STEP_WINDOW_S:g} s means and of single samples "
+        "(their noise alone is 1.5-3 % of the step), and the time to half the step. Sines: 2 N on Fx; amplitude "
+        "(published / applied; the aim: within 3 %) and lag (ms), each fitted over whole periods. Training: RMSE "
+        "over the force axes (N). Validation: the 100 g poses' means through the daemon (each held 1 s), RMSE per "
+        "axis (N, mNm); Table II is 0.234, 0.114, 0.378 N, 4.1, 10.6, 8.5 mNm. The perfect spring: the default "
+        "scene's own part (seed 1) without the memory, with the packaged calibration fitted on it, on the first "
+        "part's validation poses.",
+        "",
+        "| part | loop | silicone | step error, means (%) | single samples (%) | step to half (ms) | "
+        + " | ".join(f"{f:g} Hz amplitude / lag (ms)" for f in freqs)
+        + " | training RMSE (N) | 100 g validation RMSE (N x3, mNm x3) | within Table II |",
+        "|---|---|---|---|---|---|" + "---|" * len(freqs) + "---|---|---|",
+    ]
     for seed, name, label, err, single, half, sines, training, val in rows:
         val_text = ", ".join([f"{v:.3f}" for v in val[:3]] + [f"{v * 1e3:.2f}" for v in val[3:]])
-        out.append(f"| {seed} | {name} | {label} | {err:.2f} | {single:.2f} | {half:.0f} | "
-                   + " | ".join(f"{a:.4f} / {lag:.1f}" for a, lag in sines)
-                   + f" | {training:.4f} | {val_text} | {'yes' if np.all(val <= TABLE_II) else 'no'} |")
+        out.append(
+            f"| {seed} | {name} | {label} | {err:.2f} | {single:.2f} | {half:.0f} | "
+            + " | ".join(f"{a:.4f} / {lag:.1f}" for a, lag in sines)
+            + f" | {training:.4f} | {val_text} | {'yes' if np.all(val <= TABLE_II) else 'no'} |"
+        )
     return out
 
 

@@ -3,9 +3,9 @@ part whose silicone relaxes; writes docs/results/tradeoff-dynamic.md and docs/re
 
 The part and its calibration are benchmarks/accuracy/creep.py's (`creep.calibrated_part`: the default
 scene's sensor1 with the default series, calibrated by `ftsensord dataset` and `ftsensord
-calibrate` at their defaults, the step-and-hold among them). For each chip setting (OSR, DIG_FILT) of docs/results/tradeoff.md and each scheduler
-(naive, overlapped, burst), the daemon runs in process on a virtual clock at that
-scheduler's computed bound for the setting (the simulated bus spends the wire's time, so the
+calibrate` at their defaults, the step-and-hold among them). For each chip setting (OSR, DIG_FILT) of
+docs/results/tradeoff.md and each scheduler (naive, overlapped, burst), the daemon runs in process on a
+virtual clock at that scheduler's computed bound for the setting (the simulated bus spends the wire's time, so the
 virtual loop reaches it) and publishes sensor1's wrench under one profile: rest, 2 N sines
 on Fx at 0.5, 1, 2 and 5 Hz, a 2 N step on Fx held 30 s, then the training-like profile.
 
@@ -21,7 +21,7 @@ sine's amplitude (published / applied) and lag (ms), where the loop takes at lea
 samples a period; the training profile's RMSE over the force axes (N).
 
     python -m benchmarks.accuracy.creep_trade           # the docs' figures
-    python -m benchmarks.accuracy.creep_trade --quick --out DIR  # CI (python -m benchmarks regenerate --quick): one setting
+    python -m benchmarks.accuracy.creep_trade --quick --out DIR  # one setting (regenerate --quick)
 """
 
 from __future__ import annotations
@@ -38,15 +38,23 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.accuracy.creep import (
+    STEP_N,
+    Setting,
+    Sine,
+    Training,
+    calibrated_part,
+    run,
+    scene,
+    sine_figures,
+    step_figures,
+)
+from benchmarks.common import FULL_CHIP, RESULTS  # FULL_CHIP: the settings of docs/results/tradeoff.md
 from ftsensord.acquire.board import bus_timing
 from ftsensord.acquire.bound import cycle_bound
 from ftsensord.config.file import builtin_path, load_config
-from ftsensord.processing.pipeline import _BREAKS_MEMORY  # the stage's rule of what a sample keeps out
 from ftsensord.processing.creep import CreepCompensation
-
-from benchmarks.accuracy.creep import (
-    STEP_N, Setting, Sine, Training, calibrated_part, run, scene, sine_figures, step_figures)
-from benchmarks.common import FULL_CHIP, RESULTS  # FULL_CHIP: the settings of docs/results/tradeoff.md
+from ftsensord.processing.pipeline import _BREAKS_MEMORY  # the stage's rule of what a sample keeps out
 
 DOCS = RESULTS
 SCHEDULERS = ("naive", "overlapped", "burst")
@@ -93,7 +101,7 @@ def profile(quick: bool) -> tuple[Profile, dict]:
     end), the training (start, end)."""
     t = 1.0
     sines, segments = [], []
-    for f in ((0.5, 2.0) if quick else (0.5, 1.0, 2.0, 5.0)):
+    for f in (0.5, 2.0) if quick else (0.5, 1.0, 2.0, 5.0):
         length = 1.0 + max(3.0 if quick else 4.0, (2 if quick else 4) / f)  # a second in, then whole periods
         segments.append(Segment(t, t + length, Sine(np.array([STEP_N, 0, 0, 0, 0, 0]), f, t)))
         sines.append((f, t, t + length))
@@ -122,7 +130,9 @@ def figures(t: np.ndarray, w: np.ndarray, truth: np.ndarray, where: dict, rate_h
         sel = (t >= start) & (t < end)
         sines.append(sine_figures(t[sel], w[sel], f, start) if rate_hz >= MIN_SAMPLES_A_PERIOD * f else None)
     a, b = where["training"]
-    sel = (t >= a + 1.0) & (t < b) & np.all(np.isfinite(w), axis=1)  # after the tool's first second pressing in
+    sel = (
+        (t >= a + 1.0) & (t < b) & np.all(np.isfinite(w), axis=1)
+    )  # after the tool's first second pressing in
     training = float(np.sqrt(np.mean(np.square(w[sel, :3] - truth[sel, :3])))) if sel.any() else float("nan")
     return {"step": step, "sines": sines, "training": training}
 
@@ -132,21 +142,35 @@ def bound_hz(config, scheduler: str, osr: int, dig_filt: int) -> float:
     runs turn it off), as docs/results/tradeoff.md's rate table computes it."""
     board = bus_timing(config.bus)
     settings = replace(config.settings, osr=osr, dig_filt=dig_filt)
-    return cycle_bound(scheduler, len(config.addresses), settings, board.clock_hz or config.bus_hz,
-                       config.bus_overhead_s if board.ioctl_s is None else board.ioctl_s, readback=False,
-                       adapter=board.adapter).rate_hz
+    return cycle_bound(
+        scheduler,
+        len(config.addresses),
+        settings,
+        board.clock_hz or config.bus_hz,
+        config.bus_overhead_s if board.ioctl_s is None else board.ioctl_s,
+        readback=False,
+        adapter=board.adapter,
+    ).rate_hz
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="one setting, a short profile; written only to --out")
-    parser.add_argument("--out", type=Path, help="folder for tradeoff-dynamic.md and tradeoff-dynamic.png "
-                        "(default: docs/results/; --quick: none, nothing written)")
+    parser.add_argument(
+        "--quick", action="store_true", help="one setting, a short profile; written only to --out"
+    )
+    parser.add_argument(
+        "--out",
+        type=Path,
+        help="folder for tradeoff-dynamic.md and tradeoff-dynamic.png "
+        "(default: docs/results/; --quick: none, nothing written)",
+    )
     args = parser.parse_args()
     quick = args.quick
     t_start = time.monotonic()
     config = load_config(builtin_path("sim.toml"))
-    chips = [(3, 4)] if quick else FULL_CHIP  # quick: the slow loops (CI's time), one under 4 samples a period
+    chips = (
+        [(3, 4)] if quick else FULL_CHIP
+    )  # quick: the slow loops (CI's time), one under 4 samples a period
     load, where = profile(quick)
     results = []
     with tempfile.TemporaryDirectory() as tmp_name:
@@ -156,20 +180,38 @@ def main() -> int:
         checked = False
         for osr, dig in chips:
             for scheduler in SCHEDULERS:
-                rate = math.floor(bound_hz(config, scheduler, osr, dig) * 10) / 10  # 0.1 Hz below: the cycle fits
+                rate = (
+                    math.floor(bound_hz(config, scheduler, osr, dig) * 10) / 10
+                )  # 0.1 Hz below: the cycle fits
                 setting = Setting(f"{osr}, {dig}", osr, dig, rate, scheduler=scheduler)
                 flags: list[int] = []
-                t, w, truth = run(config, cal, scene(True, tmp, PART), load, where["end"], setting, False, flags)
+                t, w, truth = run(
+                    config, cal, scene(True, tmp, PART), load, where["end"], setting, False, flags
+                )
                 comp = compensated(w, flags, cal, rate)
                 if not checked and scheduler == "burst":  # the stage's own, once: the same samples
-                    _, w_daemon, _ = run(config, cal, scene(True, tmp, PART), load, where["end"], setting, True)
+                    _, w_daemon, _ = run(
+                        config, cal, scene(True, tmp, PART), load, where["end"], setting, True
+                    )
                     gap = float(np.nanmax(np.abs(w_daemon - comp)))
                     assert gap < 1e-9, f"the offline inverse departs from the daemon's stage by {gap:.3g} N"
                     checked = True
                 flagged = sum(bool(f & _BREAKS_MEMORY) for f in flags)
-                results.append((osr, dig, scheduler, rate, len(t), flagged, figures(t, w, truth, where, rate),
-                                figures(t, comp, truth, where, rate)))
-                print(f"{osr}, {dig} {scheduler} {rate} Hz: {time.monotonic() - t_start:.0f} s", file=sys.stderr)
+                results.append(
+                    (
+                        osr,
+                        dig,
+                        scheduler,
+                        rate,
+                        len(t),
+                        flagged,
+                        figures(t, w, truth, where, rate),
+                        figures(t, comp, truth, where, rate),
+                    )
+                )
+                print(
+                    f"{osr}, {dig} {scheduler} {rate} Hz: {time.monotonic() - t_start:.0f} s", file=sys.stderr
+                )
     text = report(results, where, quick, time.monotonic() - t_start)
     print(text)
     if args.out is not None or not quick:
@@ -181,36 +223,49 @@ def main() -> int:
 
 def report(results: list, where: dict, quick: bool, elapsed: float) -> str:
     freqs = [f for f, _, _ in where["sines"]]
-    lines = ["# The trade, dynamic: moving loads at each setting and scheduler", "",
-             f"Made by `python -m benchmarks.accuracy.creep_trade`{' --quick' if quick else ''}: the part of "
-             "docs/results/silicone-figures.md (sensor1 of the default scene with the default series, calibrated with its "
-             "step-and-hold), the linear estimator, averaging 1, each loop at its scheduler's computed bound, one "
-             f"profile of {where['end']:.0f} s: 2 N sines on Fx at {', '.join(f'{f:g}' for f in freqs)} Hz, a 2 N "
-             f"step on Fx held {where['step'][1] - where['step'][0]:.0f} s, the training-like profile. Each cell "
-             "is without / with the compensation. Step: the largest |error| from 0.5 s after it of 0.25 s means "
-             "and of single samples (% of the step; the issue asks 2 %), and the time to half the step (ms). "
-             "nan: the loop, under 1 Hz, has no sample in the second before the step to tare on. "
-             "Sines: amplitude published / applied and lag (ms), where the loop takes 4 samples a period or more "
-             "(else -). Training: RMSE over the force axes (N). Samples flagged: those the stage keeps out of its "
-             "state (a chip missing, stale, saturated or left out, inconsistent, fallen back, invalid).", "",
-             "| OSR, DIG_FILT | scheduler | rate (Hz) | samples (flagged) | step, means (%) | step, single (%) | "
-             "to half (ms) | " + " | ".join(f"{f:g} Hz amplitude; lag (ms)" for f in freqs) + " | training (N) |",
-             "|---|---|---|---|---|---|---|" + "---|" * len(freqs) + "---|"]
+    lines = [
+        "# The trade, dynamic: moving loads at each setting and scheduler",
+        "",
+        f"Made by `python -m benchmarks.accuracy.creep_trade`{' --quick' if quick else ''}: the part of "
+        "docs/results/silicone-figures.md (sensor1 of the default scene with the default series, calibrated with its "
+        "step-and-hold), the linear estimator, averaging 1, each loop at its scheduler's computed bound, one "
+        f"profile of {where['end']:.0f} s: 2 N sines on Fx at {', '.join(f'{f:g}' for f in freqs)} Hz, a 2 N "
+        f"step on Fx held {where['step'][1] - where['step'][0]:.0f} s, the training-like profile. Each cell "
+        "is without / with the compensation. Step: the largest |error| from 0.5 s after it of 0.25 s means "
+        "and of single samples (% of the step; the issue asks 2 %), and the time to half the step (ms). "
+        "nan: the loop, under 1 Hz, has no sample in the second before the step to tare on. "
+        "Sines: amplitude published / applied and lag (ms), where the loop takes 4 samples a period or more "
+        "(else -). Training: RMSE over the force axes (N). Samples flagged: those the stage keeps out of its "
+        "state (a chip missing, stale, saturated or left out, inconsistent, fallen back, invalid).",
+        "",
+        "| OSR, DIG_FILT | scheduler | rate (Hz) | samples (flagged) | step, means (%) | step, single (%) | "
+        "to half (ms) | " + " | ".join(f"{f:g} Hz amplitude; lag (ms)" for f in freqs) + " | training (N) |",
+        "|---|---|---|---|---|---|---|" + "---|" * len(freqs) + "---|",
+    ]
     for osr, dig, scheduler, rate, n, flagged, raw, comp in results:
-        def pair(key: int) -> str:
+
+        def pair(key: int, raw: dict = raw, comp: dict = comp) -> str:
             return f"{raw['step'][key]:.2f} / {comp['step'][key]:.2f}"
 
-        def sine(k: int) -> str:
+        def sine(k: int, raw: dict = raw, comp: dict = comp) -> str:
             if raw["sines"][k] is None:
                 return "-"
-            return (f"{raw['sines'][k][0]:.3f} / {comp['sines'][k][0]:.3f}; "
-                    f"{raw['sines'][k][1]:.0f} / {comp['sines'][k][1]:.0f}")
-        lines.append(f"| {osr}, {dig} | {scheduler} | {rate:.1f} | {n} ({flagged}) | {pair(0)} | {pair(1)} | "
-                     f"{raw['step'][2]:.0f} / {comp['step'][2]:.0f} | "
-                     + " | ".join(sine(k) for k in range(len(freqs)))
-                     + f" | {raw['training']:.4f} / {comp['training']:.4f} |")
-    lines += ["", f"Run: {elapsed:.0f} s; 1 min load at the end {os.getloadavg()[0]:.2f} on a {os.cpu_count()}-core "
-                  f"{platform.machine()} machine (the figures are on a virtual clock: the load does not enter them)."]
+            return (
+                f"{raw['sines'][k][0]:.3f} / {comp['sines'][k][0]:.3f}; "
+                f"{raw['sines'][k][1]:.0f} / {comp['sines'][k][1]:.0f}"
+            )
+
+        lines.append(
+            f"| {osr}, {dig} | {scheduler} | {rate:.1f} | {n} ({flagged}) | {pair(0)} | {pair(1)} | "
+            f"{raw['step'][2]:.0f} / {comp['step'][2]:.0f} | "
+            + " | ".join(sine(k) for k in range(len(freqs)))
+            + f" | {raw['training']:.4f} / {comp['training']:.4f} |"
+        )
+    lines += [
+        "",
+        f"Run: {elapsed:.0f} s; 1 min load at the end {os.getloadavg()[0]:.2f} on a {os.cpu_count()}-core "
+        f"{platform.machine()} machine (the figures are on a virtual clock: the load does not enter them).",
+    ]
     return "\n".join(lines) + "\n"
 
 
@@ -219,6 +274,7 @@ def plot(results: list, path: Path) -> None:
     and the training RMSE, each scheduler a marker, with (filled) and without (open) the compensation."""
     try:
         import matplotlib
+
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
@@ -226,17 +282,32 @@ def plot(results: list, path: Path) -> None:
         return
     fig, axes = plt.subplots(1, 3, figsize=(13, 4.2))
     markers = {"naive": "s", "overlapped": "^", "burst": "o"}
-    panels = (("held step, single samples (% of 2 N)", lambda r: r["step"][1]),
-              ("2 Hz sine: lag (ms)", lambda r: r["sines"][2][1] if len(r["sines"]) > 2 and r["sines"][2] else np.nan),
-              ("training-like profile: RMSE (N)", lambda r: r["training"]))
+    panels = (
+        ("held step, single samples (% of 2 N)", lambda r: r["step"][1]),
+        (
+            "2 Hz sine: lag (ms)",
+            lambda r: r["sines"][2][1] if len(r["sines"]) > 2 and r["sines"][2] else np.nan,
+        ),
+        ("training-like profile: RMSE (N)", lambda r: r["training"]),
+    )
     for ax, (title, value) in zip(axes, panels):
         for scheduler, marker in markers.items():
             rows = [r for r in results if r[2] == scheduler]
             rate = [r[3] for r in rows]
-            ax.scatter(rate, [value(r[6]) for r in rows], marker=marker, facecolors="none", edgecolors="C0",
-                       label=f"{scheduler}, without")
-            ax.scatter(rate, [value(r[7]) for r in rows], marker=marker, color="C1", label=f"{scheduler}, with")
-        if not any(np.isfinite(value(r[k])) for r in results for k in (6, 7)):  # --quick: a figure not measured
+            ax.scatter(
+                rate,
+                [value(r[6]) for r in rows],
+                marker=marker,
+                facecolors="none",
+                edgecolors="C0",
+                label=f"{scheduler}, without",
+            )
+            ax.scatter(
+                rate, [value(r[7]) for r in rows], marker=marker, color="C1", label=f"{scheduler}, with"
+            )
+        if not any(
+            np.isfinite(value(r[k])) for r in results for k in (6, 7)
+        ):  # --quick: a figure not measured
             ax.text(0.5, 0.5, "not measured", ha="center", transform=ax.transAxes)
             continue
         ax.set_xscale("log")

@@ -18,9 +18,7 @@ import numpy as np
 from ftsensord.calibration.fit import AXES, fit
 from ftsensord.calibration.rig import record_dataset, simulate_sweeps
 from ftsensord.model.geometry import SensorGeometry
-from ftsensord.sim import VirtualClock
-from ftsensord.sim import simulated_bus
-from ftsensord.sim import two_sensor_scene
+from ftsensord.sim import VirtualClock, simulated_bus, two_sensor_scene
 from ftsensord.sim.loads import StaticLoad, paper_plan
 
 
@@ -35,15 +33,24 @@ def main() -> int:
     scene = two_sensor_scene()
     addresses = scene.sensors[0].addresses
     bus = simulated_bus(scene, clock=VirtualClock(), seed=1)
-    ds = record_dataset(bus, addresses, paper_plan("six-axis"), lambda w: scene.set_load(0, StaticLoad(w)),
-                        samples=args.samples)
+    ds = record_dataset(
+        bus,
+        addresses,
+        paper_plan("six-axis"),
+        lambda w: scene.set_load(0, StaticLoad(w)),
+        samples=args.samples,
+    )
     ds.sweeps = simulate_sweeps(addresses, SensorGeometry.ring(), samples=args.samples)
     model = fit(ds).model
     val = ds.select(ds.split == "validation")
     rows = [("all 8 chips, K A", rmse(model.wrench(val.flux_t) - val.wrench))]
     all_chips = np.ones(8, dtype=bool)
-    rows.append(("all 8 chips, K pinv(H)", rmse(np.array([model.wrench_from(b, all_chips) for b in val.flux_t])
-                                               - val.wrench)))
+    rows.append(
+        (
+            "all 8 chips, K pinv(H)",
+            rmse(np.array([model.wrench_from(b, all_chips) for b in val.flux_t]) - val.wrench),
+        )
+    )
 
     def degraded(missing: tuple[int, ...]) -> np.ndarray:
         chips = all_chips.copy()
@@ -53,14 +60,25 @@ def main() -> int:
     singles = np.array([degraded((i,)) for i in range(8)])
     adjacent = np.array([degraded((i, (i + 1) % 8)) for i in range(8)])
     opposite = np.array([degraded((i, i + 4)) for i in range(4)])
-    rows += [("one missing, mean of 8", singles.mean(0)), ("one missing, worst", singles.max(0)),
-             ("two adjacent, mean of 8", adjacent.mean(0)), ("two adjacent, worst", adjacent.max(0)),
-             ("two opposite, mean of 4", opposite.mean(0)), ("two opposite, worst", opposite.max(0))]
+    rows += [
+        ("one missing, mean of 8", singles.mean(0)),
+        ("one missing, worst", singles.max(0)),
+        ("two adjacent, mean of 8", adjacent.mean(0)),
+        ("two adjacent, worst", adjacent.max(0)),
+        ("two opposite, mean of 4", opposite.mean(0)),
+        ("two opposite, worst", opposite.max(0)),
+    ]
     print(f"{len(val)} validation poses, {args.samples} samples a pose")
-    print("| chips used | " + " | ".join(f"{a} ({'N' if k < 3 else 'mNm'})" for k, a in enumerate(AXES)) + " |")
+    print(
+        "| chips used | " + " | ".join(f"{a} ({'N' if k < 3 else 'mNm'})" for k, a in enumerate(AXES)) + " |"
+    )
     print("|---|" + "---|" * 6)
     for label, r in rows:
-        print(f"| {label} | " + " | ".join(f"{v:.4f}" if k < 3 else f"{v * 1e3:.2f}" for k, v in enumerate(r)) + " |")
+        print(
+            f"| {label} | "
+            + " | ".join(f"{v:.4f}" if k < 3 else f"{v * 1e3:.2f}" for k, v in enumerate(r))
+            + " |"
+        )
     three = list(itertools.combinations(range(8), 3))
     print(f"(three or more missing: refused, flagged invalid; {len(three)} such sets of three)")
     return 0

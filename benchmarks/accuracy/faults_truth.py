@@ -24,15 +24,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from ftsensord.testing.harness import InProcess
-
-from ftsensord.protocol import wire
-from ftsensord.config.file import load_config
-from ftsensord.processing.filters import WrenchFilter
-from ftsensord.sim import load_scene
-from ftsensord.sim.scene import default_scene_text
 
 from benchmarks.common import SENSOR1, SENSOR2, WRONG_SIGMA, daemon_config, unflagged_error_sigma
+from ftsensord.config.file import load_config
+from ftsensord.processing.filters import WrenchFilter
+from ftsensord.protocol import wire
+from ftsensord.sim import load_scene
+from ftsensord.sim.scene import default_scene_text
+from ftsensord.testing.harness import InProcess
 
 #: Amplitudes (N, Nm) and periods (s) of the moving load: about a twelfth of the calibration's
 #: largest load per axis (sim-sensor1: 1.96 N, 1.93 N Fz, 0.14-0.18 Nm). K A's own error
@@ -64,14 +63,22 @@ SCENARIOS: dict[str, tuple[str, float | None, float]] = {
     "stuck": (fault("stuck", 1.0, 5.0, address=0x0F), None, 0.0),
     "stuck_early": (fault("stuck", 0.5, 4.5, address=0x0F), None, 0.0),  # where the load moves faster
     "gain_change": (fault("drift_register", 1.0, address=0x10, register=0, value=0x007C), None, 0.0),
-    "nack_bursts": (fault("nack", 1.0, 1.3, address=0x0E) + fault("nack", 2.0, 2.1, address=0x0E)
-                    + fault("nack", 3.0, 3.6, address=0x0D), None, 0.0),
+    "nack_bursts": (
+        fault("nack", 1.0, 1.3, address=0x0E)
+        + fault("nack", 2.0, 2.1, address=0x0E)
+        + fault("nack", 3.0, 3.6, address=0x0D),
+        None,
+        0.0,
+    ),
     "chip_vanishes": (fault("detach", 1.0, 3.0, address=0x11), None, 0.0),
     "bus_errors": (fault("io_error", 1.0, 1.05) + fault("timeout", 2.5, 2.6), None, 0.0),
     "saturation": (fault("saturate", 1.0, 2.5, address=0x12, field_mt=70), None, 0.0),
     # A tare asked while a chip NACKs and another is stuck (the load held still, then moving).
-    "tare_during_fault": (fault("nack", 0.5, 0.9, address=0x0E) + fault("stuck", 0.4, 5.0, address=0x0F),
-                          0.5, 2.0),
+    "tare_during_fault": (
+        fault("nack", 0.5, 0.9, address=0x0E) + fault("stuck", 0.4, 5.0, address=0x0F),
+        0.5,
+        2.0,
+    ),
 }
 FILTERS = {"raw": (1, 0.0), "avg10": (10, 0.0), "lp5Hz": (1, 5.0), "avg10+lp5Hz": (10, 5.0)}
 
@@ -83,7 +90,9 @@ class Rig(InProcess):
     def __init__(self, folder: Path, faults: str, averaging: int, lowpass_hz: float, still_until: float):
         # The default scene: the room and the part the packaged calibrations were fitted on.
         (folder / "scene.toml").write_text(default_scene_text() + faults)
-        (folder / "ftsensord.toml").write_text(daemon_config(averaging=averaging, lowpass_hz=lowpass_hz) + f"""[[sensor]]
+        (folder / "ftsensord.toml").write_text(
+            daemon_config(averaging=averaging, lowpass_hz=lowpass_hz)
+            + f"""[[sensor]]
 name = "sensor1"
 addresses = [{SENSOR1}]
 calibration = "builtin:sim-sensor1.json"
@@ -91,7 +100,8 @@ calibration = "builtin:sim-sensor1.json"
 name = "sensor2"
 addresses = [{SENSOR2}]
 calibration = "builtin:sim-sensor2.json"
-""")
+"""
+        )
         moving = MovingLoad()
         self.still_until = still_until
         self.load = _Held(moving, still_until)
@@ -99,7 +109,9 @@ calibration = "builtin:sim-sensor2.json"
         scene.set_load("sensor1", self.load)  # type: ignore[union-attr]
         super().__init__(load_config(folder / "ftsensord.toml"), scene, subscribe=b"wrench/")
 
-    def run(self, seconds: float, tare_at: float | None = None) -> tuple[dict[str, list[wire.Sample]], dict | None]:
+    def run(
+        self, seconds: float, tare_at: float | None = None
+    ) -> tuple[dict[str, list[wire.Sample]], dict | None]:
         out: dict[str, list[wire.Sample]] = {}
         reply = None
         asked = False
@@ -137,8 +149,9 @@ def noise_at_rest(folder: Path) -> np.ndarray:
     return np.std([s.values for s in out["wrench/sensor2"]], axis=0)
 
 
-def truth(rig: Rig, samples: list[wire.Sample], averaging: int, lowpass_hz: float,
-          tare_wrench: np.ndarray) -> np.ndarray:
+def truth(
+    rig: Rig, samples: list[wire.Sample], averaging: int, lowpass_hz: float, tare_wrench: np.ndarray
+) -> np.ndarray:
     """The scene's load at each sample, through the stream's filter (restarted where the stream's was)."""
     f = WrenchFilter(averaging, lowpass_hz, 100.0)
     out = []
@@ -172,11 +185,18 @@ def measure(folder: Path, name: str, filt: str, sigma: np.ndarray, seconds: floa
     else:
         clean = flags == 0
     worst = unflagged_error_sigma(values, t, sigma, clean)
-    return {"scenario": name, "filter": filt, "samples": len(w), "flagged": int(np.sum(flags != 0)),
-            "inconsistent": int(np.sum(flags & wire.FLAG_INCONSISTENT != 0)),
-            "unflagged_over_5sigma": int(np.sum(worst > WRONG_SIGMA)), "worst_unflagged_sigma": float(np.max(worst)),
-            "tare": None if tare_at is None else (reply or {}).get("ok", reply), "tared_seq": tared_from,
-            "tare_error": (reply or {}).get("error")}
+    return {
+        "scenario": name,
+        "filter": filt,
+        "samples": len(w),
+        "flagged": int(np.sum(flags != 0)),
+        "inconsistent": int(np.sum(flags & wire.FLAG_INCONSISTENT != 0)),
+        "unflagged_over_5sigma": int(np.sum(worst > WRONG_SIGMA)),
+        "worst_unflagged_sigma": float(np.max(worst)),
+        "tare": None if tare_at is None else (reply or {}).get("ok", reply),
+        "tared_seq": tared_from,
+        "tare_error": (reply or {}).get("error"),
+    }
 
 
 def main() -> None:
@@ -188,15 +208,20 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         sigma = noise_at_rest(Path(tmp))
         print("sigma at rest (wrench/sensor2, 1000 samples):", " ".join(f"{v:.4g}" for v in sigma))
-        print(f"{'scenario':18} {'filter':12} {'samples':>7} {'flagged':>7} {'incons':>6} {'>5sig':>5} {'worst':>6}")
+        print(
+            f"{'scenario':18} {'filter':12} {'samples':>7} {'flagged':>7} {'incons':>6} {'>5sig':>5} {'worst':>6}"
+        )
         total = 0
         for name in [args.only] if args.only else SCENARIOS:
             for filt in FILTERS:
                 r = measure(Path(tmp), name, filt, sigma, args.seconds)
                 total += r["unflagged_over_5sigma"]
-                print(f"{name:18} {filt:12} {r['samples']:7d} {r['flagged']:7d} {r['inconsistent']:6d} "
-                      f"{r['unflagged_over_5sigma']:5d} {r['worst_unflagged_sigma']:6.2f}"
-                      + (f"  tare ok={r['tare']}" if r["tare"] is not None else ""), flush=True)
+                print(
+                    f"{name:18} {filt:12} {r['samples']:7d} {r['flagged']:7d} {r['inconsistent']:6d} "
+                    f"{r['unflagged_over_5sigma']:5d} {r['worst_unflagged_sigma']:6.2f}"
+                    + (f"  tare ok={r['tare']}" if r["tare"] is not None else ""),
+                    flush=True,
+                )
                 if r["tare_error"] and filt == "raw":
                     print("    tare reply:", r["tare_error"])
         print("unflagged samples > 5 sigma, all runs:", total)

@@ -16,13 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import RESULTS
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.model.geometry import SensorGeometry
 from ftsensord.model.magnet import cylinder_field, dipole_field
 from ftsensord.sim.chip import NoiseModel
-
-from benchmarks.common import RESULTS
-
 
 
 def errors(distances: np.ndarray, theta: float, g: SensorGeometry) -> np.ndarray:
@@ -54,12 +52,17 @@ def main(argv: list[str] | None = None) -> int:
     for d in (3e-3, gap, 8e-3, near[0], 12e-3, 15e-3, 20e-3):
         worst = max(errors(np.array([d]), th, g)[0] for th in np.linspace(0, np.pi / 2, 19)) * 1e6
         print(f"| {d * 1e3:.1f} | {worst:.2f} |")
-    print(f"reading noise (one reading, X/Y, paper settings): {noise:.2f} uT; "
-          f"averaged over 100: {noise / 10:.2f} uT")
-    print(f"own magnet at {gap * 1e3:.1f} mm; other magnets from {near[0] * 1e3:.1f} mm "
-          f"to {near[-1] * 1e3:.1f} mm")
+    print(
+        f"reading noise (one reading, X/Y, paper settings): {noise:.2f} uT; "
+        f"averaged over 100: {noise / 10:.2f} uT"
+    )
+    print(
+        f"own magnet at {gap * 1e3:.1f} mm; other magnets from {near[0] * 1e3:.1f} mm "
+        f"to {near[-1] * 1e3:.1f} mm"
+    )
     try:
         import matplotlib
+
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
@@ -72,12 +75,14 @@ def main(argv: list[str] | None = None) -> int:
     ax.axhline(noise / 10, color="k", ls=":", lw=1, label="reading noise, mean of 100")
     ax.axvline(gap * 1e3, color="tab:red", lw=1)
     ax.text(gap * 1e3 * 1.02, 3e3, "own magnet", color="tab:red", rotation=90, va="top")
-    ax.axvspan(near[0] * 1e3, near[-1] * 1e3, color="tab:green", alpha=0.12, label="other magnets (crosstalk)")
+    ax.axvspan(
+        near[0] * 1e3, near[-1] * 1e3, color="tab:green", alpha=0.12, label="other magnets (crosstalk)"
+    )
     ticks = [2, 3, 4, 6, 8, 10, 15, 20, 30]
     ax.set_xticks(ticks, [str(t) for t in ticks])
     ax.set_xlabel("distance from the magnet's centre (mm)")
     ax.set_ylabel("|B_dipole - B_cylinder| (uT)")
-    ax.set_title("D101-N52 (1/16\" x 1/32\", Br 1.45 T): point dipole against the exact cylinder")
+    ax.set_title('D101-N52 (1/16" x 1/32", Br 1.45 T): point dipole against the exact cylinder')
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8, loc="lower left")
     fig.tight_layout()

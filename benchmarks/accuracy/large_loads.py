@@ -20,10 +20,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from benchmarks.common import tilted
 from ftsensord.calibration.procedure import calibrate, simulate_dataset, summary
 from ftsensord.sim import default_scene
-
-from benchmarks.common import tilted
 
 KINDS = ("as drawn", "magnets tilted", "silicone stiffening")
 
@@ -45,10 +44,21 @@ def run(seed: int, kind: str, *, samples: int, poses: int, validation: int, no_l
         sensor.geometry = replace(g, magnet_axis=tilted(g.magnet_axis, np.random.default_rng(seed)))
     elif kind == "silicone stiffening":
         sensor.stiffening = 0.3
-    ds = simulate_dataset(scene, "sensor1", "six-axis", poses=poses, validation_poses=validation, samples=samples,
-                          seed=seed, no_load_poses=no_load, check_poses=check)
+    ds = simulate_dataset(
+        scene,
+        "sensor1",
+        "six-axis",
+        poses=poses,
+        validation_poses=validation,
+        samples=samples,
+        seed=seed,
+        no_load_poses=no_load,
+        check_poses=check,
+    )
     cal, _ = calibrate(ds)
-    warned = any("at large loads" in w for w in cal.nonlinear.warnings) if cal.nonlinear is not None else False
+    warned = (
+        any("at large loads" in w for w in cal.nonlinear.warnings) if cal.nonlinear is not None else False
+    )
     return Row(seed, kind, cal.report["large_loads"], warned, summary(cal))
 
 
@@ -63,19 +73,32 @@ def main() -> int:
     parser.add_argument("--quick", action="store_true")
     args = parser.parse_args()
     t0 = time.monotonic()
-    rows = quick() if args.quick else [
-        run(int(s), k, samples=100, poses=193, validation=60, no_load=24, check=24)
-        for s in args.seeds.split(",") for k in KINDS]
-    print("| part | seed | residual p50 (uT) | force error / load | nonlinear RMSE Fx Fy Fz (N) | linear RMSE Fz (N) | warned |")
+    rows = (
+        quick()
+        if args.quick
+        else [
+            run(int(s), k, samples=100, poses=193, validation=60, no_load=24, check=24)
+            for s in args.seeds.split(",")
+            for k in KINDS
+        ]
+    )
+    print(
+        "| part | seed | residual p50 (uT) | force error / load | nonlinear RMSE Fx Fy Fz (N) "
+        "| linear RMSE Fz (N) | warned |"
+    )
     print("|---|---|---|---|---|---|---|")
     for r in rows:
         ll = r.report
         nl = ll["nonlinear_rmse"]
-        print(f"| {r.kind} | {r.seed} | {ll['nonlinear_residual_ut_p50']:.2f} | {ll['nonlinear_force_share']:.1%} | "
-              f"{nl['Fx']:.3f} {nl['Fy']:.3f} {nl['Fz']:.3f} | {ll['linear_rmse']['Fz']:.2f} | "
-              f"{'yes' if r.warned else 'no'} |")
-    print(f"{len(rows)} parts, {rows[0].report['poses']} check poses each (|F| to "
-          f"{rows[0].report['largest_force_n']:.1f} N), {time.monotonic() - t0:.0f} s")
+        print(
+            f"| {r.kind} | {r.seed} | {ll['nonlinear_residual_ut_p50']:.2f} | {ll['nonlinear_force_share']:.1%} | "
+            f"{nl['Fx']:.3f} {nl['Fy']:.3f} {nl['Fz']:.3f} | {ll['linear_rmse']['Fz']:.2f} | "
+            f"{'yes' if r.warned else 'no'} |"
+        )
+    print(
+        f"{len(rows)} parts, {rows[0].report['poses']} check poses each (|F| to "
+        f"{rows[0].report['largest_force_n']:.1f} N), {time.monotonic() - t0:.0f} s"
+    )
     return 0
 
 

@@ -12,7 +12,8 @@ estimator; `stray_field` "uniform", "gradient" and "world", the last with the sc
 orientation sent to the daemon's orientation stream every cycle, as a haptic application
 sends its kinematics) reads the part in a scene with one
 `[[stray_source]]`: 2 A m^2, 15 cm from the sensor's centre (and 25 cm for "on after
-tare"), fixed in the world, its direction and its moment's drawn from the part's seed. The tool is tared (100 samples, the daemon's
+tare"), fixed in the world, its direction and its moment's drawn from the part's seed. The tool is tared
+(100 samples, the daemon's
 own tare) at its first orientation, then turned through the accuracy sweep's orientations
 (benchmarks/accuracy/accuracy.py's `SWEEP`), each held `--hold` s, 0.2 s between. Scenarios:
 
@@ -42,19 +43,17 @@ from pathlib import Path
 
 import numpy as np
 import zmq
-from ftsensord.testing.harness import InProcess
-
-from ftsensord.calibration.fit import rmse, singular_values_ka
-from ftsensord.calibration.procedure import calibrate, simulate_dataset
-from ftsensord.model import se3
-from ftsensord.protocol import orientation
-from ftsensord.protocol import wire
-from ftsensord.config.file import load_config
-from ftsensord.config.sensors import STRAY_FIELDS
-from ftsensord.sim import load_scene
-from ftsensord.sim.loads import paper_plan
 
 from benchmarks.common import PAPER, RESULTS, SENSOR1, SWEEP, daemon_config, part_table
+from ftsensord.calibration.fit import rmse, singular_values_ka
+from ftsensord.calibration.procedure import calibrate, simulate_dataset
+from ftsensord.config.file import load_config
+from ftsensord.config.sensors import STRAY_FIELDS
+from ftsensord.model import se3
+from ftsensord.protocol import orientation, wire
+from ftsensord.sim import load_scene
+from ftsensord.sim.loads import paper_plan
+from ftsensord.testing.harness import InProcess
 
 SEEDS = (11, 12, 13)
 MOMENT_AM2 = 2.0
@@ -83,8 +82,15 @@ def calibrate_part(seed: int, folder: Path, args: argparse.Namespace) -> tuple[P
     torques), and the linear 100 g validation RMSE against Table II."""
     scene = folder / f"part{seed}.toml"
     scene.write_text(part_table(seed))
-    ds = simulate_dataset(scene, "sensor1", "six-axis", poses=args.fit_poses, validation_poses=args.loads,
-                          samples=args.samples, seed=seed)
+    ds = simulate_dataset(
+        scene,
+        "sensor1",
+        "six-axis",
+        poses=args.fit_poses,
+        validation_poses=args.loads,
+        samples=args.samples,
+        seed=seed,
+    )
     cal, _ = calibrate(ds, serial=f"part{seed}", frame="sensor1", allow_poor_fit=args.quick)
     path = folder / f"part{seed}.json"
     cal.save(path)
@@ -92,9 +98,11 @@ def calibrate_part(seed: int, folder: Path, args: argparse.Namespace) -> tuple[P
     price = []
     for stray, model in (("uniform", cal.model), ("gradient", cal.model.with_gradient())):
         sv, err = singular_values_ka(model), rmse(model, validation)
-        price.append(f"| {seed} | {stray} | {sv['forces'][0]:.4g} | {sv['forces'][-1] / sv['forces'][0]:.3f} "
-                     f"| {sv['torques'][0]:.4g} | {sv['torques'][-1] / sv['torques'][0]:.3f} | {cells(err)} "
-                     f"| {np.max(err / PAPER):.3f} |")
+        price.append(
+            f"| {seed} | {stray} | {sv['forces'][0]:.4g} | {sv['forces'][-1] / sv['forces'][0]:.3f} "
+            f"| {sv['torques'][0]:.4g} | {sv['torques'][-1] / sv['torques'][0]:.3f} | {cells(err)} "
+            f"| {np.max(err / PAPER):.3f} |"
+        )
     return path, price
 
 
@@ -106,14 +114,22 @@ class Run:
     tare: str  # "ok" or the daemon's refusal
 
 
-def run(seed: int, cal: Path, estimator: str, stray: str, scenario: str, distance_m: float, folder: Path,
-        args: argparse.Namespace) -> Run:
+def run(
+    seed: int,
+    cal: Path,
+    estimator: str,
+    stray: str,
+    scenario: str,
+    distance_m: float,
+    folder: Path,
+    args: argparse.Namespace,
+) -> Run:
     """One scenario through the daemon (module docstring)."""
     if scenario.startswith("100 g"):
         poses = [p for p, split in paper_plan(n_fit=1, n_validation=args.loads) if split == "validation"]
         holds = [(p.orientation(), p.wrench()) for p in poses]
     else:
-        holds = [(R, np.zeros(6)) for R in SWEEP[:args.orientations]]
+        holds = [(R, np.zeros(6)) for R in SWEEP[: args.orientations]]
     first = SWEEP[0] if not scenario.startswith("100 g") else holds[0][0]
     # Rows: still until the first turn, then per hold its start and end (a turn between).
     t = START_S - MOVE_S
@@ -127,24 +143,36 @@ def run(seed: int, cal: Path, estimator: str, stray: str, scenario: str, distanc
         t += MOVE_S + args.hold
     position, moment = placement(seed, distance_m)
     on = scenario == "on after tare"
-    scene = part_table(seed) + "[sensor.orientation]\nkind = \"recorded\"\n" + \
-        f"times_s = {times}\nrotvec_deg = {[np.degrees(se3.log_so3(R)).tolist() for R in rotations]}\n" + \
-        "[sensor.load]\nkind = \"recorded\"\n" + f"times_s = {times}\nwrenches = {[w.tolist() for w in loads]}\n" + \
-        f"[[stray_source]]\nposition_m = {position.tolist()}\nmoment_am2 = {moment.tolist()}\n" + \
-        (f"times_s = [{ON_S}, {ON_S + 0.01}]\nscale = [0.0, 1.0]\n" if on else "")
+    scene = (
+        part_table(seed)
+        + '[sensor.orientation]\nkind = "recorded"\n'
+        + f"times_s = {times}\nrotvec_deg = {[np.degrees(se3.log_so3(R)).tolist() for R in rotations]}\n"
+        + '[sensor.load]\nkind = "recorded"\n'
+        + f"times_s = {times}\nwrenches = {[w.tolist() for w in loads]}\n"
+        + f"[[stray_source]]\nposition_m = {position.tolist()}\nmoment_am2 = {moment.tolist()}\n"
+        + (f"times_s = [{ON_S}, {ON_S + 0.01}]\nscale = [0.0, 1.0]\n" if on else "")
+    )
     (folder / "scene.toml").write_text(scene)
-    (folder / "ftsensord.toml").write_text(daemon_config() + f"""[[sensor]]
+    (folder / "ftsensord.toml").write_text(
+        daemon_config()
+        + f"""[[sensor]]
 name = "sensor1"
 addresses = [{SENSOR1}]
 calibration = "{cal}"
 estimator = "{estimator}"
 stray_field = "{stray}"
-""" + ("" if stray != "world" else """[gravity]
+"""
+        + (
+            ""
+            if stray != "world"
+            else """[gravity]
 orientation = "stream"
 [gravity.sensor1]
 mass_kg = 0.0
 com_m = [0.0, 0.0, 0.0]
-"""))
+"""
+        )
+    )
     # "world" learns from the tool's orientation, which a haptic application sends every tick:
     # here the scene's own, each cycle, over an inproc pair.
     # A fresh name each run: ZeroMQ frees a closed socket's inproc name later, in its own thread,
@@ -155,15 +183,22 @@ com_m = [0.0, 0.0, 0.0]
     ori_sub.bind(name)
     ori_pub.connect(name)
     scene_obj = load_scene(folder / "scene.toml")
-    rig = InProcess(load_config(folder / "ftsensord.toml"), scene_obj, subscribe=b"wrench/", seed=seed,
-                    **({"orientation": ori_sub} if stray == "world" else {}))
+    rig = InProcess(
+        load_config(folder / "ftsensord.toml"),
+        scene_obj,
+        subscribe=b"wrench/",
+        seed=seed,
+        **({"orientation": ori_sub} if stray == "world" else {}),
+    )
     sensor = scene_obj.sensors[0]
     samples: list[wire.Sample] = []
     reply, replied_s = None, 0.0
     try:
         for k in range(int(round(t * 100))):
             if k == int(TARE_AT_S * 100):
-                rig.req.send(json.dumps({"cmd": "tare", "sensor": "sensor1", "samples": TARE_SAMPLES}).encode())
+                rig.req.send(
+                    json.dumps({"cmd": "tare", "sensor": "sensor1", "samples": TARE_SAMPLES}).encode()
+                )
             deadline = rig.clock.now() + rig.daemon.period_s
             if stray == "world":
                 now = rig.clock.now()
@@ -202,11 +237,17 @@ def rows_of(seed: int, cal: Path, estimator: str, folder: Path, args: argparse.N
         for scenario in SCENARIOS:
             for distance in (0.15, 0.25) if scenario == "on after tare" else (0.15,):
                 r = run(seed, cal, estimator, stray, scenario, distance, folder, args)
-                worst = np.nanmax(np.abs(r.errors), axis=0) if not np.isnan(r.errors).all() else np.full(6, np.nan)
-                rows.append(f"| {seed} | {estimator}, {stray} | {scenario} | {distance * 100:g} cm "
-                            f"| {cells(rms(r.errors))} | {np.max(worst[:3]):.3g} N, {np.max(worst[3:]) * 1e3:.3g} mNm "
-                            f"| {int(np.isnan(r.errors).any(axis=1).sum())} of {len(r.errors)} "
-                            f"| {r.flagged} of {r.samples} | {r.tare} |")
+                worst = (
+                    np.nanmax(np.abs(r.errors), axis=0)
+                    if not np.isnan(r.errors).all()
+                    else np.full(6, np.nan)
+                )
+                rows.append(
+                    f"| {seed} | {estimator}, {stray} | {scenario} | {distance * 100:g} cm "
+                    f"| {cells(rms(r.errors))} | {np.max(worst[:3]):.3g} N, {np.max(worst[3:]) * 1e3:.3g} mNm "
+                    f"| {int(np.isnan(r.errors).any(axis=1).sum())} of {len(r.errors)} "
+                    f"| {r.flagged} of {r.samples} | {r.tare} |"
+                )
                 print(rows[-1], flush=True)
     return rows
 
@@ -233,37 +274,59 @@ def main(argv: list[str] | None = None) -> int:
     args.loads, args.orientations, args.hold = (4, 4, 0.3) if args.quick else (48, 48, 1.0)
     args.estimators = ("linear",) if args.quick else ("linear", "nonlinear")
     began = time.perf_counter()
-    lines = ["# Motors nearby: figures", "",
-             f"`python -m benchmarks.accuracy.motor{' --quick' if args.quick else ''}` (written by it). Parts: seeds "
-             f"{', '.join(map(str, args.seeds))} (the default scene's tolerances, the Earth's field); calibration "
-             f"{args.fit_poses} fit poses, 24 no-load, {args.loads} validation (100 g), {args.samples} readings a "
-             f"pose. A {MOMENT_AM2:g} A m^2 dipole fixed in the world; {args.orientations} orientations (or "
-             f"{args.loads} validation poses), each held {args.hold:g} s (about "
-             f"{int(round((args.hold - SETTLE_S) * 100))} samples), 100 Hz. Per hold the median of its unflagged "
-             "samples minus the truth; RMS over the holds (N x3, mNm x3), the largest over the holds (max |.| "
-             "on any axis: N, mNm), holds without an "
-             "unflagged sample, samples flagged.", ""]
-    lines += ["| part | estimator, stray_field | scenario | distance | Fx | Fy | Fz | Mx | My | Mz | largest F, M "
-              "| holds all flagged | samples flagged | tare |", "|---" * 14 + "|"]
-    parts = ["", "The price, without a motor: sigma_max(K A) (N/uT, Nm/uT) and isotropy, and the linear "
-             f"100 g validation ({args.loads} poses of the calibration run, {args.samples} readings each; N x3, "
-             "mNm x3) with its largest ratio to Table II:", "",
-             "| part | stray_field | sigma_max F | isotropy F | sigma_max M | isotropy M | Fx | Fy | Fz | Mx | My "
-             "| Mz | / Table II |", "|---" * 13 + "|"]
+    lines = [
+        "# Motors nearby: figures",
+        "",
+        f"`python -m benchmarks.accuracy.motor{' --quick' if args.quick else ''}` (written by it). Parts: seeds "
+        f"{', '.join(map(str, args.seeds))} (the default scene's tolerances, the Earth's field); calibration "
+        f"{args.fit_poses} fit poses, 24 no-load, {args.loads} validation (100 g), {args.samples} readings a "
+        f"pose. A {MOMENT_AM2:g} A m^2 dipole fixed in the world; {args.orientations} orientations (or "
+        f"{args.loads} validation poses), each held {args.hold:g} s (about "
+        f"{int(round((args.hold - SETTLE_S) * 100))} samples), 100 Hz. Per hold the median of its unflagged "
+        "samples minus the truth; RMS over the holds (N x3, mNm x3), the largest over the holds (max |.| "
+        "on any axis: N, mNm), holds without an "
+        "unflagged sample, samples flagged.",
+        "",
+    ]
+    lines += [
+        "| part | estimator, stray_field | scenario | distance | Fx | Fy | Fz | Mx | My | Mz | largest F, M "
+        "| holds all flagged | samples flagged | tare |",
+        "|---" * 14 + "|",
+    ]
+    parts = [
+        "",
+        "The price, without a motor: sigma_max(K A) (N/uT, Nm/uT) and isotropy, and the linear "
+        f"100 g validation ({args.loads} poses of the calibration run, {args.samples} readings each; N x3, "
+        "mNm x3) with its largest ratio to Table II:",
+        "",
+        "| part | stray_field | sigma_max F | isotropy F | sigma_max M | isotropy M | Fx | Fy | Fz | Mx | My "
+        "| Mz | / Table II |",
+        "|---" * 13 + "|",
+    ]
     # One process in the quick mode: no fork of a test process that holds ZeroMQ sockets.
-    with tempfile.TemporaryDirectory() as tmp, \
-            (ProcessPoolExecutor(args.jobs) if args.jobs > 1 else nullcontext()) as pool:
+    with (
+        tempfile.TemporaryDirectory() as tmp,
+        ProcessPoolExecutor(args.jobs) if args.jobs > 1 else nullcontext() as pool,
+    ):
         folder = Path(tmp)
         mapper = map if pool is None else pool.map
-        calibrated = list(mapper(calibrate_part, args.seeds, [folder] * len(args.seeds), [args] * len(args.seeds)))
+        calibrated = list(
+            mapper(calibrate_part, args.seeds, [folder] * len(args.seeds), [args] * len(args.seeds))
+        )
         for _, price in calibrated:
             parts += price
-        tasks = [(seed, cal, estimator) for seed, (cal, _) in zip(args.seeds, calibrated, strict=True)
-                 for estimator in args.estimators]
+        tasks = [
+            (seed, cal, estimator)
+            for seed, (cal, _) in zip(args.seeds, calibrated, strict=True)
+            for estimator in args.estimators
+        ]
         for rows in mapper(rows_of, *zip(*tasks, strict=True), [folder] * len(tasks), [args] * len(tasks)):
             lines += rows
-    lines += parts + ["", f"Target (issue 23): RMS within {TARGET[0]} N and {TARGET[3] * 1e3:g} mNm; at 25 cm nothing "
-              f"flagged. {time.perf_counter() - began:.0f} s."]
+    lines += parts + [
+        "",
+        f"Target (issue 23): RMS within {TARGET[0]} N and {TARGET[3] * 1e3:g} mNm; at 25 cm nothing "
+        f"flagged. {time.perf_counter() - began:.0f} s.",
+    ]
     args.out.write_text("\n".join(lines) + "\n")
     print(f"wrote {args.out}")
     return 0

@@ -45,9 +45,14 @@ def run(placements: int, samples: int = 20, seed: int = 7) -> list[dict]:
             for _ in range(placements):
                 where, moment = rng.normal(size=3), rng.normal(size=3)
                 scene = default_scene()  # the motor off until t = 0.01 s
-                scene.stray_sources.append(StraySource(where / np.linalg.norm(where) * r,
-                                                       moment / np.linalg.norm(moment) * m,
-                                                       np.array([0.0, 0.01]), np.array([0.0, 1.0])))
+                scene.stray_sources.append(
+                    StraySource(
+                        where / np.linalg.norm(where) * r,
+                        moment / np.linalg.norm(moment) * m,
+                        np.array([0.0, 0.01]),
+                        np.array([0.0, 1.0]),
+                    )
+                )
                 load = LOAD * rng.uniform(-1, 1)
                 p = SensorPipeline.build(sensor, WrenchFilter(), config.max_missing_chips, config.settings)
                 scene.set_load(0, StaticLoad(np.zeros(6)))
@@ -59,10 +64,21 @@ def run(placements: int, samples: int = 20, seed: int = 7) -> list[dict]:
                     e = np.abs(got.wrench - load)
                     if got.flags == 0 and (e[:3].max() > 0.05 or e[3:].max() > 2e-3):  # any flag warns
                         wrong += 1
-                        worst_n, worst_nm = max(worst_n, float(e[:3].max())), max(worst_nm, float(e[3:].max() * 1e3))
-            out.append({"estimator": estimator, "distance_cm": r * 100, "moment_am2": m,
-                        "samples": placements * samples, "unflagged_wrong": wrong,
-                        "worst_n": round(worst_n, 3), "worst_mnm": round(worst_nm, 1)})
+                        worst_n, worst_nm = (
+                            max(worst_n, float(e[:3].max())),
+                            max(worst_nm, float(e[3:].max() * 1e3)),
+                        )
+            out.append(
+                {
+                    "estimator": estimator,
+                    "distance_cm": r * 100,
+                    "moment_am2": m,
+                    "samples": placements * samples,
+                    "unflagged_wrong": wrong,
+                    "worst_n": round(worst_n, 3),
+                    "worst_mnm": round(worst_nm, 1),
+                }
+            )
     return out
 
 

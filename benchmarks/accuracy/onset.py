@@ -57,7 +57,7 @@ def onsets(sizes_ut: list[float], count: int, after: int, seed: int = 0) -> dict
             p.tare(truth)
             chip, direction = rng.integers(len(s.addresses)), rng.normal(size=3)
             offset = np.zeros(truth.size)
-            offset[3 * chip:3 * chip + 3] = size * 1e-6 * direction / np.linalg.norm(direction)
+            offset[3 * chip : 3 * chip + 3] = size * 1e-6 * direction / np.linalg.norm(direction)
             hits, found = 0, None
             for k in range(CLEAN + after):
                 got = step(p, truth + rng.normal(0, 1, truth.size) * sigma + (offset if k >= CLEAN else 0.0))
@@ -73,9 +73,15 @@ def onsets(sizes_ut: list[float], count: int, after: int, seed: int = 0) -> dict
             wrong += hits
             onsets_wrong += hits > 0
             first.append(after if found is None else found)
-        out[f"{size:g} uT"] = {"onsets": count, "samples_after_each": after, "unflagged_beyond_5_sigma": wrong,
-                               "onsets_letting_one_through": onsets_wrong, "worst_sigma": round(worst, 2),
-                               "first_flagged_median": float(np.median(first)), "first_flagged_max": int(max(first))}
+        out[f"{size:g} uT"] = {
+            "onsets": count,
+            "samples_after_each": after,
+            "unflagged_beyond_5_sigma": wrong,
+            "onsets_letting_one_through": onsets_wrong,
+            "worst_sigma": round(worst, 2),
+            "first_flagged_median": float(np.median(first)),
+            "first_flagged_max": int(max(first)),
+        }
     return out
 
 

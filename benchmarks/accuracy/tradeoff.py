@@ -41,6 +41,7 @@ from unittest import mock
 import numpy as np
 import zmq
 
+from benchmarks.common import FULL_CHIP, RESULTS, Capture, InstantBus
 from ftsensord.acquire.board import bus_timing
 from ftsensord.acquire.bound import cycle_bound
 from ftsensord.acquire.bus import open_bus, parse_bus_spec
@@ -49,10 +50,10 @@ from ftsensord.acquire.reader import Reader
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.chip.driver import MLX90393
 from ftsensord.chip.i2c import Bus
-from ftsensord.model.linear import SENSOR_RANGE
-from ftsensord.protocol import wire
 from ftsensord.config.file import Config, builtin_path, load_config
 from ftsensord.daemon.daemon import Daemon
+from ftsensord.model.linear import SENSOR_RANGE
+from ftsensord.protocol import wire
 from ftsensord.sim import (
     MonotonicClock,
     PhysicalScene,
@@ -63,8 +64,6 @@ from ftsensord.sim import (
 )
 from ftsensord.sim.loads import StaticLoad, paper_plan
 from ftsensord.testing.harness import start_daemon, stop
-
-from benchmarks.common import FULL_CHIP, RESULTS, Capture, InstantBus
 
 ADDRESSES = list(range(0x0C, 0x1C))  # the instant bus's chips: the default scene's
 NAN = float("nan")
@@ -138,11 +137,19 @@ def scene_name(config: Config) -> str:
     """What the simulated bus's scene is, for the docs: the default (the room and the part)
     or the file the configuration names."""
     _, arg = parse_bus_spec(config.bus)
-    return f"`{arg}`" if arg else ("the default (ftsensord/data/scene-default.toml: two as-built sensors in the "
-                                   "Earth's field, calibrated on it by the packaged procedure)")
+    return (
+        f"`{arg}`"
+        if arg
+        else (
+            "the default (ftsensord/data/scene-default.toml: two as-built sensors in the "
+            "Earth's field, calibrated on it by the packaged procedure)"
+        )
+    )
 
 
-def bench_bus(config: Config, clock: VirtualClock | MonotonicClock, seed: int = 0) -> tuple[Bus, PhysicalScene | None]:
+def bench_bus(
+    config: Config, clock: VirtualClock | MonotonicClock, seed: int = 0
+) -> tuple[Bus, PhysicalScene | None]:
     """The configured bus, and the scene behind it when it is simulated with loads to set."""
     kind, arg = parse_bus_spec(config.bus)
     if kind == "i2c":
@@ -152,15 +159,30 @@ def bench_bus(config: Config, clock: VirtualClock | MonotonicClock, seed: int = 
     return bus, scene if isinstance(scene, PhysicalScene) else None
 
 
-def achieved_rate(config: Config, scheduler: str, settings: mlx.Settings, seconds: float) -> tuple[float, float]:
+def achieved_rate(
+    config: Config, scheduler: str, settings: mlx.Settings, seconds: float
+) -> tuple[float, float]:
     """(bound, achieved) in Hz: the reader cycling on deadlines at its bound, in real time."""
     addresses = config.addresses
     board = bus_timing(config.bus)  # a simulated board's adapter and costs; a real one's driver
-    bound = cycle_bound(scheduler, len(addresses), settings, board.clock_hz or config.bus_hz,
-                        config.bus_overhead_s if board.ioctl_s is None else board.ioctl_s, adapter=board.adapter)
+    bound = cycle_bound(
+        scheduler,
+        len(addresses),
+        settings,
+        board.clock_hz or config.bus_hz,
+        config.bus_overhead_s if board.ioctl_s is None else board.ioctl_s,
+        adapter=board.adapter,
+    )
     bus, _ = bench_bus(config, MonotonicClock())
-    reader = Reader(bus, [MLX90393(bus, a, sleep=bus.sleep) for a in addresses], scheduler, settings,
-                    config.bus_hz, config.bus_overhead_s, readback_every=1 if scheduler != "burst" else 100)
+    reader = Reader(
+        bus,
+        [MLX90393(bus, a, sleep=bus.sleep) for a in addresses],
+        scheduler,
+        settings,
+        config.bus_hz,
+        config.bus_overhead_s,
+        readback_every=1 if scheduler != "burst" else 100,
+    )
     reader.start()
     time.sleep(0.05)
     deadline = t0 = time.monotonic()
@@ -209,14 +231,22 @@ def accuracy(config: Config, settings: mlx.Settings, averaging: int, n_loads: in
     rows = []
     for estimator in estimators:
         bus, scene = bench_bus(config, VirtualClock(), seed=11)
-        cfg = replace(config, settings=settings, averaging=averaging, stuck_cycles=stuck_cycles_for(settings),
-                      scheduler="overlapped", readback_every=0, temperature_every=0, tool_poses={},
-                      sensors=[replace(s, estimator=estimator if s is sensor else "linear") for s in config.sensors])
+        cfg = replace(
+            config,
+            settings=settings,
+            averaging=averaging,
+            stuck_cycles=stuck_cycles_for(settings),
+            scheduler="overlapped",
+            readback_every=0,
+            temperature_every=0,
+            tool_poses={},
+            sensors=[replace(s, estimator=estimator if s is sensor else "linear") for s in config.sensors],
+        )
         out = Capture()
         daemon = Daemon(cfg, bus, out, None, clock=bus.monotonic)  # type: ignore[arg-type]
         daemon.start()
 
-        def read(w: np.ndarray | None) -> wire.Sample:
+        def read(w: np.ndarray | None, scene=scene, bus=bus, daemon=daemon, out=out) -> wire.Sample:
             if scene is not None and w is not None:
                 scene.set_load(0, StaticLoad(w))
             bus.sleep(0.02)
@@ -227,20 +257,37 @@ def accuracy(config: Config, settings: mlx.Settings, averaging: int, n_loads: in
         rng = np.random.default_rng(5)
         rest = np.array([read(np.zeros(6)).values for _ in range(max(20, 120 // averaging))])
         noise = np.nanstd(rest, axis=0)
-        samples = {kind: [(read(w), w) for w in loads(kind, n_loads, rng)]
-                   for kind in ("small", "cal", "large")} if scene is not None else {}
+        samples = (
+            {kind: [(read(w), w) for w in loads(kind, n_loads, rng)] for kind in ("small", "cal", "large")}
+            if scene is not None
+            else {}
+        )
         bus.close()
 
-        def rmse(kind: str, axes: slice) -> float:
-            errors = [s.values[axes] - w[axes] for s, w in samples.get(kind, []) if not s.flags & wire.FLAG_INVALID]
+        def rmse(kind: str, axes: slice, samples: dict = samples) -> float:
+            errors = [
+                s.values[axes] - w[axes] for s, w in samples.get(kind, []) if not s.flags & wire.FLAG_INVALID
+            ]
             return float(np.sqrt(np.mean(np.square(errors)))) if errors else NAN
 
         large = [s.flags for s, _ in samples.get("large", [])]
-        rows.append(Row(settings.osr, settings.dig_filt, averaging, estimator, float(np.linalg.norm(noise[:3])),
-                        float(np.linalg.norm(noise[3:])), rmse("small", slice(0, 3)), rmse("cal", slice(0, 3)),
-                        rmse("large", slice(0, 3)), rmse("large", slice(3, 6)),
-                        flagged_large=sum(bool(f & ~wire.FLAG_OVERLOAD) for f in large),
-                        invalid_large=sum(bool(f & wire.FLAG_INVALID) for f in large), n_large=len(large)))
+        rows.append(
+            Row(
+                settings.osr,
+                settings.dig_filt,
+                averaging,
+                estimator,
+                float(np.linalg.norm(noise[:3])),
+                float(np.linalg.norm(noise[3:])),
+                rmse("small", slice(0, 3)),
+                rmse("cal", slice(0, 3)),
+                rmse("large", slice(0, 3)),
+                rmse("large", slice(3, 6)),
+                flagged_large=sum(bool(f & ~wire.FLAG_OVERLOAD) for f in large),
+                invalid_large=sum(bool(f & wire.FLAG_INVALID) for f in large),
+                n_large=len(large),
+            )
+        )
     return rows
 
 
@@ -269,6 +316,7 @@ def daemon_cpu_us(estimator: str, cycles: int) -> float:
 def latency_us(config: Config, seconds: float) -> tuple[float, float, float]:
     """Sample timestamp to a subscriber's receipt (us), the daemon over ipc loopback."""
     from ftsensord.client import Subscriber
+
     with tempfile.TemporaryDirectory() as tmp:
         proc, notify = start_daemon(config.path, Path(tmp))
         try:
@@ -291,8 +339,11 @@ def latency_us(config: Config, seconds: float) -> tuple[float, float, float]:
 
 def pareto(points: list[tuple[float, float, object]]) -> list[object]:
     """Items not beaten on both rate (higher) and error (lower)."""
-    return [p for p in points if not any(q[0] >= p[0] and q[1] <= p[1] and (q[0], q[1]) != (p[0], p[1])
-                                         for q in points)]
+    return [
+        p
+        for p in points
+        if not any(q[0] >= p[0] and q[1] <= p[1] and (q[0], q[1]) != (p[0], p[1]) for q in points)
+    ]
 
 
 QUICK_CHIP = [(1, 2), (3, 4)]
@@ -300,12 +351,21 @@ QUICK_CHIP = [(1, 2), (3, 4)]
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="a few settings, under a minute; written only to --out")
-    parser.add_argument("--config", type=Path, default=builtin_path("sim.toml"),
-                        help="the bus, chips and calibration to measure (default: the simulated sensors)")
-    parser.add_argument("--out", type=Path,
-                        help="folder for tradeoff.md and tradeoff.png (default: docs/results/; --quick: none, "
-                        "nothing written)")
+    parser.add_argument(
+        "--quick", action="store_true", help="a few settings, under a minute; written only to --out"
+    )
+    parser.add_argument(
+        "--config",
+        type=Path,
+        default=builtin_path("sim.toml"),
+        help="the bus, chips and calibration to measure (default: the simulated sensors)",
+    )
+    parser.add_argument(
+        "--out",
+        type=Path,
+        help="folder for tradeoff.md and tradeoff.png (default: docs/results/; --quick: none, "
+        "nothing written)",
+    )
     args = parser.parse_args()
     quick = args.quick
     config = load_config(args.config)
@@ -317,8 +377,12 @@ def main() -> int:
         settings = replace(config.settings, osr=osr, dig_filt=dig)
         for scheduler in ("naive", "overlapped", "burst"):
             rates[(osr, dig, scheduler)] = achieved_rate(config, scheduler, settings, 0.3 if quick else 1.5)
-    rows = [r for osr, dig in chip for n in windows
-            for r in accuracy(config, replace(config.settings, osr=osr, dig_filt=dig), n, 4 if quick else 20)]
+    rows = [
+        r
+        for osr, dig in chip
+        for n in windows
+        for r in accuracy(config, replace(config.settings, osr=osr, dig_filt=dig), n, 4 if quick else 20)
+    ]
     cpu = {e: daemon_cpu_us(e, 50 if quick else 500) for e in ("linear", "nonlinear")}
     lat = latency_us(config, 3 if quick else 15)
     elapsed = time.monotonic() - t_start
@@ -354,13 +418,19 @@ def render(config: Config, chip, rates, rows, cpu, lat, quick, elapsed) -> str:
     n_chips = len(config.addresses)
     truth = has_truth(rows)
     error_name = "RMSE inside the calibration range (N)" if truth else "noise F at rest (N)"
-    out = ["# Speed against accuracy", "",
-           f"Made by `python -m benchmarks.accuracy.tradeoff` ({'quick mode' if quick else 'full run'}, {elapsed:.0f} s) "
-           f"on a {machine()}; {n_chips} chips on `{config.bus}` at {config.bus_hz / 1e3:.0f} kHz"
-           + (f"; scene: {scene_name(config)}." if truth else "."), "",
-           "## Rate: the computed bound and what the loop achieves in real time", "",
-           "| OSR, DIG_FILT | TCONVM (us) | naive bound / achieved (Hz) | overlapped bound / achieved (Hz) | "
-           "overlapped ratio | burst bound / achieved (Hz) |", "|---|---|---|---|---|---|"]
+    out = [
+        "# Speed against accuracy",
+        "",
+        f"Made by `python -m benchmarks.accuracy.tradeoff` ({'quick mode' if quick else 'full run'}, {elapsed:.0f} s) "
+        f"on a {machine()}; {n_chips} chips on `{config.bus}` at {config.bus_hz / 1e3:.0f} kHz"
+        + (f"; scene: {scene_name(config)}." if truth else "."),
+        "",
+        "## Rate: the computed bound and what the loop achieves in real time",
+        "",
+        "| OSR, DIG_FILT | TCONVM (us) | naive bound / achieved (Hz) | overlapped bound / achieved (Hz) | "
+        "overlapped ratio | burst bound / achieved (Hz) |",
+        "|---|---|---|---|---|---|",
+    ]
     for osr, dig in chip:
         cells = []
         for s in ("naive", "overlapped", "burst"):
@@ -368,94 +438,154 @@ def render(config: Config, chip, rates, rows, cpu, lat, quick, elapsed) -> str:
             cells.append(f"{b:.1f} / {a:.1f}")
         b, a = rates[(osr, dig, "overlapped")]
         naive = rates[(osr, dig, "naive")][1]
-        out.append(f"| {osr}, {dig} | {mlx.tconvm_us(osr, dig):.0f} | {cells[0]} | {cells[1]} | "
-                   f"{a / b * 100:.1f} % of bound, {a / naive:.1f}x naive | {cells[2]} |")
-    out += ["", "The overlapped ratio is achieved over bound in the same run, and over the naive "
-            "scheduler's achieved rate.", "",
-            "## Accuracy: noise at rest and error against the scene's truth", "",
-            "Noise: RMS of |F| and |M| at rest; RMSE over the force axes (N) and, at large loads, the torque axes "
-            "(mNm). Small: <= 2 N; calibration range: the paper's poses' loads; large: |F| 10-50 N. "
-            "Effective rate: the fastest scheduler's achieved rate over the averaging window. What the daemon "
-            "publishes for sensor1, flags and all; RMSE over the samples published with values. Large loads "
-            "flagged: samples the daemon marked (saturated chips left out, degraded, a nonlinear fall-back to "
-            "K A, a linear estimate beyond the calibration's loads), of which invalid (published as NaN, left "
-            "out of the RMSE)."
-            + ("" if truth else " A real bus has no truth: the RMSE columns are empty."), "",
-            "| OSR, DIG_FILT | averaging | estimator | effective rate (Hz) | noise F (N) | noise M (mNm) | "
-            "RMSE small (N) | RMSE cal. range (N) | RMSE large (N) | RMSE large (mNm) | large flagged / invalid |",
-            "|---|---|---|---|---|---|---|---|---|---|---|"]
+        out.append(
+            f"| {osr}, {dig} | {mlx.tconvm_us(osr, dig):.0f} | {cells[0]} | {cells[1]} | "
+            f"{a / b * 100:.1f} % of bound, {a / naive:.1f}x naive | {cells[2]} |"
+        )
+    out += [
+        "",
+        "The overlapped ratio is achieved over bound in the same run, and over the naive "
+        "scheduler's achieved rate.",
+        "",
+        "## Accuracy: noise at rest and error against the scene's truth",
+        "",
+        "Noise: RMS of |F| and |M| at rest; RMSE over the force axes (N) and, at large loads, the torque axes "
+        "(mNm). Small: <= 2 N; calibration range: the paper's poses' loads; large: |F| 10-50 N. "
+        "Effective rate: the fastest scheduler's achieved rate over the averaging window. What the daemon "
+        "publishes for sensor1, flags and all; RMSE over the samples published with values. Large loads "
+        "flagged: samples the daemon marked (saturated chips left out, degraded, a nonlinear fall-back to "
+        "K A, a linear estimate beyond the calibration's loads), of which invalid (published as NaN, left "
+        "out of the RMSE)." + ("" if truth else " A real bus has no truth: the RMSE columns are empty."),
+        "",
+        "| OSR, DIG_FILT | averaging | estimator | effective rate (Hz) | noise F (N) | noise M (mNm) | "
+        "RMSE small (N) | RMSE cal. range (N) | RMSE large (N) | RMSE large (mNm) | large flagged / invalid |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     points = []
     for r in rows:
         sched, _, achieved = best_rate(rates, r.osr, r.dig_filt)
         effective = achieved / r.averaging
         points.append((effective, error_of(r, truth), r))
-        out.append(f"| {r.osr}, {r.dig_filt} | {r.averaging} | {r.estimator} | {effective:.1f} ({sched}) | "
-                   f"{r.noise_n:.4f} | {r.noise_nm * 1e3:.2f} | {r.rmse_small:.4f} | {r.rmse_cal:.4f} | "
-                   f"{r.rmse_large:.3f} | {r.rmse_large_nm * 1e3:.2f} | "
-                   f"{r.flagged_large} / {r.invalid_large} of {r.n_large} |".replace("nan", "-"))
+        out.append(
+            f"| {r.osr}, {r.dig_filt} | {r.averaging} | {r.estimator} | {effective:.1f} ({sched}) | "
+            f"{r.noise_n:.4f} | {r.noise_nm * 1e3:.2f} | {r.rmse_small:.4f} | {r.rmse_cal:.4f} | "
+            f"{r.rmse_large:.3f} | {r.rmse_large_nm * 1e3:.2f} | "
+            f"{r.flagged_large} / {r.invalid_large} of {r.n_large} |".replace("nan", "-")
+        )
     front = pareto(points)
     if truth:
-        out += ["", "Reading the table: the linear model's error inside the calibration range is its own (a first-order "
-                "map of a 1/r^3 field), so averaging, which only lowers noise, leaves it flat; the nonlinear "
-                "estimator's error is mostly noise, and falls with averaging and longer conversions. Beyond the "
-                "calibration's loads K A extrapolates and its error grows with the load; the daemon flags such "
-                "samples `extrapolated`. Where loads leave the calibration range, use the nonlinear estimator (or "
-                "calibrate with larger loads)."]
-    out += ["", f"## The Pareto front (effective rate against {error_name})", "",
-            f"| effective rate (Hz) | {error_name} | setting |", "|---|---|---|"]
+        out += [
+            "",
+            "Reading the table: the linear model's error inside the calibration range is its own (a first-order "
+            "map of a 1/r^3 field), so averaging, which only lowers noise, leaves it flat; the nonlinear "
+            "estimator's error is mostly noise, and falls with averaging and longer conversions. Beyond the "
+            "calibration's loads K A extrapolates and its error grows with the load; the daemon flags such "
+            "samples `extrapolated`. Where loads leave the calibration range, use the nonlinear estimator (or "
+            "calibrate with larger loads).",
+        ]
+    out += [
+        "",
+        f"## The Pareto front (effective rate against {error_name})",
+        "",
+        f"| effective rate (Hz) | {error_name} | setting |",
+        "|---|---|---|",
+    ]
     for p in sorted(front, key=lambda p: -p[0]):
         r = p[2]
-        out.append(f"| {p[0]:.1f} | {p[1]:.4f} | OSR {r.osr}, DIG_FILT {r.dig_filt}, averaging {r.averaging}, "
-                   f"{r.estimator} |")
+        out.append(
+            f"| {p[0]:.1f} | {p[1]:.4f} | OSR {r.osr}, DIG_FILT {r.dig_filt}, averaging {r.averaging}, "
+            f"{r.estimator} |"
+        )
     fast = [p for p in points if p[0] >= 100]
     if fast:
         best = min(fast, key=lambda p: p[1])[2]
         sched = best_rate(rates, best.osr, best.dig_filt)[0]
-        out += ["", f"**Recommended for 100 Hz with {n_chips} chips**: OSR {best.osr}, DIG_FILT {best.dig_filt}, "
-                f"averaging {best.averaging}, {sched} scheduler, {best.estimator} estimator: the setting with the "
-                f"lowest {error_name} whose effective rate reaches 100 Hz."]
+        out += [
+            "",
+            f"**Recommended for 100 Hz with {n_chips} chips**: OSR {best.osr}, DIG_FILT {best.dig_filt}, "
+            f"averaging {best.averaging}, {sched} scheduler, {best.estimator} estimator: the setting with the "
+            f"lowest {error_name} whose effective rate reaches 100 Hz.",
+        ]
     else:
         out += ["", f"No setting measured reaches 100 Hz with {n_chips} chips on this bus."]
     n_sensors = len(config.sensors)
     per_sensor = (cpu["nonlinear"] - cpu["linear"]) / 2  # the CPU run has the default two sensors
     out += ["", *SILICONE.splitlines()]  # creep.py's figures: their trade, kept with this file's
-    out += ["", "## Cost and latency", "",
-            f"- daemon CPU per cycle (the default two sensors of 8 chips: decode, estimate, tip, publish; a bus "
-            f"that answers at once): linear {cpu['linear']:.0f} us, nonlinear {cpu['nonlinear']:.0f} us; at 100 Hz "
-            f"{cpu['linear'] / 100:.1f} % and {cpu['nonlinear'] / 100:.1f} % of one core; the nonlinear estimate "
-            f"costs {per_sensor:.0f} us a sensor more than K A",
-            f"- sample timestamp to subscriber receipt over ipc, the daemon at {config.rate_hz:g} Hz "
-            f"({n_sensors} sensors): p50 {lat[0]:.0f} us, p99 {lat[1]:.0f} us, max {lat[2]:.0f} us"]
-    lin, nonl = ([r for r in rows if r.estimator == e and r.averaging == 1
-                  and (r.osr, r.dig_filt) == (config.settings.osr, config.settings.dig_filt)]
-                 for e in ("linear", "nonlinear"))
+    out += [
+        "",
+        "## Cost and latency",
+        "",
+        f"- daemon CPU per cycle (the default two sensors of 8 chips: decode, estimate, tip, publish; a bus "
+        f"that answers at once): linear {cpu['linear']:.0f} us, nonlinear {cpu['nonlinear']:.0f} us; at 100 Hz "
+        f"{cpu['linear'] / 100:.1f} % and {cpu['nonlinear'] / 100:.1f} % of one core; the nonlinear estimate "
+        f"costs {per_sensor:.0f} us a sensor more than K A",
+        f"- sample timestamp to subscriber receipt over ipc, the daemon at {config.rate_hz:g} Hz "
+        f"({n_sensors} sensors): p50 {lat[0]:.0f} us, p99 {lat[1]:.0f} us, max {lat[2]:.0f} us",
+    ]
+    lin, nonl = (
+        [
+            r
+            for r in rows
+            if r.estimator == e
+            and r.averaging == 1
+            and (r.osr, r.dig_filt) == (config.settings.osr, config.settings.dig_filt)
+        ]
+        for e in ("linear", "nonlinear")
+    )
     if truth and lin and nonl:
-        l, n = lin[0], nonl[0]
-        out += [f"- at the configured chip setting, large loads: linear {l.rmse_large:.3f} N / "
-                f"{l.rmse_large_nm * 1e3:.1f} mNm, nonlinear {n.rmse_large:.3f} N / {n.rmse_large_nm * 1e3:.1f} mNm: "
-                f"{l.rmse_large / n.rmse_large:.0f}x and {l.rmse_large_nm / n.rmse_large_nm:.0f}x lower"]
-    ratios = {(osr, dig): rates[(osr, dig, "overlapped")][1] / rates[(osr, dig, "overlapped")][0] for osr, dig in chip}
+        li, n = lin[0], nonl[0]
+        out += [
+            f"- at the configured chip setting, large loads: linear {li.rmse_large:.3f} N / "
+            f"{li.rmse_large_nm * 1e3:.1f} mNm, nonlinear {n.rmse_large:.3f} N / {n.rmse_large_nm * 1e3:.1f} mNm: "
+            f"{li.rmse_large / n.rmse_large:.0f}x and {li.rmse_large_nm / n.rmse_large_nm:.0f}x lower"
+        ]
+    ratios = {
+        (osr, dig): rates[(osr, dig, "overlapped")][1] / rates[(osr, dig, "overlapped")][0]
+        for osr, dig in chip
+    }
     worst = min(ratios, key=ratios.__getitem__)
-    targets = [("overlapped scheduler at >= 90 % of the bound (worst setting)", ratios[worst] * 100, 90, ">=",
-                f"{ratios[worst] * 100:.1f} % at OSR {worst[0]}, DIG_FILT {worst[1]}"),
-               ("nonlinear estimate <= 1000 us of CPU a sensor a sample", per_sensor, 1000, "<=",
-                f"{per_sensor:.0f} us"),
-               ("linear daemon at 100 Hz <= 5 % of one core", cpu["linear"] / 100, 5, "<=",
-                f"{cpu['linear'] / 100:.1f} %"),
-               ("sample-to-subscriber latency p99 < 1000 us", lat[1], 1000, "<=", f"{lat[1]:.0f} us")]
+    targets = [
+        (
+            "overlapped scheduler at >= 90 % of the bound (worst setting)",
+            ratios[worst] * 100,
+            90,
+            ">=",
+            f"{ratios[worst] * 100:.1f} % at OSR {worst[0]}, DIG_FILT {worst[1]}",
+        ),
+        (
+            "nonlinear estimate <= 1000 us of CPU a sensor a sample",
+            per_sensor,
+            1000,
+            "<=",
+            f"{per_sensor:.0f} us",
+        ),
+        (
+            "linear daemon at 100 Hz <= 5 % of one core",
+            cpu["linear"] / 100,
+            5,
+            "<=",
+            f"{cpu['linear'] / 100:.1f} %",
+        ),
+        ("sample-to-subscriber latency p99 < 1000 us", lat[1], 1000, "<=", f"{lat[1]:.0f} us"),
+    ]
     if truth and lin and nonl:
-        gain = min(l.rmse_large / n.rmse_large, l.rmse_large_nm / n.rmse_large_nm)
-        targets.insert(1, ("nonlinear cuts the large-load RMSE >= 5x (F and M)", gain, 5, ">=", f"{gain:.0f}x"))
+        gain = min(li.rmse_large / n.rmse_large, li.rmse_large_nm / n.rmse_large_nm)
+        targets.insert(
+            1, ("nonlinear cuts the large-load RMSE >= 5x (F and M)", gain, 5, ">=", f"{gain:.0f}x")
+        )
     out += ["", "## Against the targets", "", "| target | measured | |", "|---|---|---|"]
     for name, value, goal, sense, shown in targets:
         met = value >= goal if sense == ">=" else value <= goal
-        out.append(f"| {name} | {shown} | {'met' if met else f'missed by {abs(value - goal) / goal * 100:.0f} %'} |")
+        out.append(
+            f"| {name} | {shown} | {'met' if met else f'missed by {abs(value - goal) / goal * 100:.0f} %'} |"
+        )
     return "\n".join(out) + "\n"
 
 
 def plot(config: Config, rows: list[Row], rates: dict, path: Path) -> None:
     try:
         import matplotlib
+
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
@@ -472,8 +602,14 @@ def plot(config: Config, rows: list[Row], rates: dict, path: Path) -> None:
             xs = [best_rate(rates, r.osr, r.dig_filt)[2] / n for r in sel]
             ys = [error_of(r, truth) for r in sel]
             points += list(zip(xs, ys))
-            ax.loglog(xs, ys, marker, color=color, mfc="none" if est == "linear" else color,
-                      label=f"{est}, averaging {n}")
+            ax.loglog(
+                xs,
+                ys,
+                marker,
+                color=color,
+                mfc="none" if est == "linear" else color,
+                label=f"{est}, averaging {n}",
+            )
     front = sorted(pareto([(x, y, (x, y)) for x, y in points]), key=lambda p: p[0])
     ax.loglog([p[0] for p in front], [p[1] for p in front], "k--", lw=1, label="Pareto front")
     ax.axvline(100, color="grey", lw=1)

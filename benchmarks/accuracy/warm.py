@@ -33,15 +33,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from ftsensord.testing.harness import InProcess
-
-from ftsensord.calibration.procedure import calibrate, simulate_dataset
-from ftsensord.protocol import wire
-from ftsensord.config.file import load_config
-from ftsensord.sim import load_scene
-from ftsensord.sim.loads import NO_LOAD, StaticLoad
 
 from benchmarks.common import SENSOR1, daemon_config
+from ftsensord.calibration.procedure import calibrate, simulate_dataset
+from ftsensord.config.file import load_config
+from ftsensord.protocol import wire
+from ftsensord.sim import load_scene
+from ftsensord.sim.loads import NO_LOAD, StaticLoad
+from ftsensord.testing.harness import InProcess
 
 #: The paper's Table II RMS errors (N x3, Nm x3).
 TABLE_II = np.array([0.2338, 0.1136, 0.3775, 4.1e-3, 10.6e-3, 8.5e-3])
@@ -110,8 +109,16 @@ def calibrate_part(seed: int, folder: Path, spanning: bool, quick: bool) -> Path
     scene = folder / f"cal-scene-{seed}-{spanning}.toml"
     scene.write_text(PART.format(seed=seed, times=times, celsius=celsius))
     poses, samples = (80, 20) if quick else (193, 100)
-    dataset = simulate_dataset(scene, "sensor1", "six-axis", poses=poses, validation_poses=0, samples=samples,
-                               seed=seed, sweeps=False)
+    dataset = simulate_dataset(
+        scene,
+        "sensor1",
+        "six-axis",
+        poses=poses,
+        validation_poses=0,
+        samples=samples,
+        seed=seed,
+        sweeps=False,
+    )
     cal, _ = calibrate(dataset, nonlinear=False)
     path = folder / f"cal-{seed}-{spanning}.json"
     cal.save(path)
@@ -121,11 +128,14 @@ def calibrate_part(seed: int, folder: Path, spanning: bool, quick: bool) -> Path
 def run(seed: int, cal: Path, folder: Path, profile: Profile, temperature_every: int) -> dict:
     """The warm run through the daemon; the figures (see the module's docstring)."""
     (folder / "scene.toml").write_text(profile.scene(seed))
-    (folder / "ftsensord.toml").write_text(daemon_config(temperature_every=temperature_every) + f"""[[sensor]]
+    (folder / "ftsensord.toml").write_text(
+        daemon_config(temperature_every=temperature_every)
+        + f"""[[sensor]]
 name = "sensor1"
 addresses = [{SENSOR1}]
 calibration = "{cal}"
-""")
+"""
+    )
     scene = load_scene(folder / "scene.toml")
     rig = InProcess(load_config(folder / "ftsensord.toml"), scene, subscribe=b"wrench/sensor1", seed=seed)
     d = rig.daemon
@@ -159,7 +169,7 @@ calibration = "{cal}"
             sensor.load = StaticLoad(w)
             start = len(values)
             step(rig.clock.now() + 1.0)
-            held = np.array(values[start + 50:])
+            held = np.array(values[start + 50 :])
             errors.append(np.median(held, axis=0) - w)
         sensor.load = NO_LOAD
         step(t1 + profile.hold_s + 5.0 + profile.beyond_s)
@@ -177,11 +187,17 @@ calibration = "{cal}"
     medians = np.array(medians) if medians else np.full((1, 6), np.nan)
     warming = after_tare & (t < t1 + profile.hold_s)
     beyond = t > t1 + profile.hold_s + 5.0 + 1.0  # 1 s after reaching +15 K
-    return {"rest_rms": np.sqrt(np.mean(medians ** 2, axis=0)), "rest_worst": np.abs(medians).max(axis=0),
-            "rest_all_rms": np.sqrt(np.mean(np.array(every) ** 2, axis=0)),
-            "holds": len(medians), "unflagged": float(np.mean(f[warming] == 0)), "samples": int(warming.sum()),
-            "beyond_flagged": float(np.mean(f[beyond] & wire.FLAG_TEMPERATURE > 0)), "beyond_samples": int(beyond.sum()),
-            "validation_rms": np.sqrt(np.mean(np.array(errors) ** 2, axis=0))}
+    return {
+        "rest_rms": np.sqrt(np.mean(medians**2, axis=0)),
+        "rest_worst": np.abs(medians).max(axis=0),
+        "rest_all_rms": np.sqrt(np.mean(np.array(every) ** 2, axis=0)),
+        "holds": len(medians),
+        "unflagged": float(np.mean(f[warming] == 0)),
+        "samples": int(warming.sum()),
+        "beyond_flagged": float(np.mean(f[beyond] & wire.FLAG_TEMPERATURE > 0)),
+        "beyond_samples": int(beyond.sum()),
+        "validation_rms": np.sqrt(np.mean(np.array(errors) ** 2, axis=0)),
+    }
 
 
 def fmt(v: np.ndarray) -> str:
@@ -201,14 +217,22 @@ def main(argv: list[str] | None = None) -> int:
             for label, spanning, every in (("drift", True, 10), ("laws", False, 10), ("none", False, 0)):
                 cal = calibrate_part(seed, folder, spanning, args.quick)
                 r = run(seed, cal, folder, profile, every)
-                print(f"part {seed} {label:5s}: +10 K at rest, medians of {r['holds']} 1 s holds: RMS {fmt(r['rest_rms'])}; "
-                      f"worst {fmt(r['rest_worst'])}; all samples' RMS {fmt(r['rest_all_rms'])}; unflagged {100 * r['unflagged']:.1f} % of {r['samples']}; "
-                      f"+15 K flagged {100 * r['beyond_flagged']:.1f} % of {r['beyond_samples']}; "
-                      f"100 g validation RMS {fmt(r['validation_rms'])} "
-                      f"({'within' if np.all(r['validation_rms'] <= TABLE_II) else 'beyond'} Table II)")
+                print(
+                    f"part {seed} {label:5s}: +10 K at rest, medians of {r['holds']} 1 s holds: "
+                    f"RMS {fmt(r['rest_rms'])}; "
+                    f"worst {fmt(r['rest_worst'])}; all samples' RMS {fmt(r['rest_all_rms'])}; "
+                    f"unflagged {100 * r['unflagged']:.1f} % of {r['samples']}; "
+                    f"+15 K flagged {100 * r['beyond_flagged']:.1f} % of {r['beyond_samples']}; "
+                    f"100 g validation RMS {fmt(r['validation_rms'])} "
+                    f"({'within' if np.all(r['validation_rms'] <= TABLE_II) else 'beyond'} Table II)"
+                )
                 if label == "drift":
-                    ok &= bool(np.all(r["rest_rms"] <= REST_LIMIT) and r["unflagged"] >= 0.8
-                               and r["beyond_flagged"] == 1.0 and np.all(r["validation_rms"] <= TABLE_II))
+                    ok &= bool(
+                        np.all(r["rest_rms"] <= REST_LIMIT)
+                        and r["unflagged"] >= 0.8
+                        and r["beyond_flagged"] == 1.0
+                        and np.all(r["validation_rms"] <= TABLE_II)
+                    )
     print("figures met" if ok else "figures missed")
     return 0 if ok else 1
 

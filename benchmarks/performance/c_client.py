@@ -24,9 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ftsensord.client import ControlClient
-
 from benchmarks.common import load_c_build
+from ftsensord.client import ControlClient
 
 
 def percentiles(x: np.ndarray) -> str:
@@ -42,8 +41,12 @@ def bench(ticks: int, topic: str) -> dict:
         build.build([Path(__file__).with_suffix(".c")], program, "c", libzmq)
         env = {**os.environ, "XDG_RUNTIME_DIR": tmp}
         env.pop("RUNTIME_DIRECTORY", None)
-        daemon = subprocess.Popen([sys.executable, "-m", "ftsensord", "run"], env=env,
-                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        daemon = subprocess.Popen(
+            [sys.executable, "-m", "ftsensord", "run"],
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
         try:
             folder = tmp_path / "ftsensord"
             control = ControlClient(f"ipc://{folder / 'control'}", timeout_s=5)
@@ -52,8 +55,13 @@ def bench(ticks: int, topic: str) -> dict:
                     break
                 time.sleep(0.1)
             rate = control.status()["rate_hz"]
-            out = subprocess.run([str(program), f"ipc://{folder / 'wrench'}", topic, str(ticks)],
-                                 capture_output=True, text=True, timeout=ticks / 1000 + 60, check=True)
+            out = subprocess.run(
+                [str(program), f"ipc://{folder / 'wrench'}", topic, str(ticks)],
+                capture_output=True,
+                text=True,
+                timeout=ticks / 1000 + 60,
+                check=True,
+            )
         finally:
             daemon.send_signal(signal.SIGTERM)
             daemon.wait(timeout=10)
@@ -61,21 +69,35 @@ def bench(ticks: int, topic: str) -> dict:
     rows = np.array([[float(v) for v in line.split()] for line in lines if not line.startswith("timer_ns")])
     timer = np.array([float(line.split()[1]) for line in lines if line.startswith("timer_ns")]) / 1e3
     call_us, fresh, age_ms = rows[:, 0] / 1e3, rows[:, 1] > 0, rows[:, 2] / 1e6
-    return {"ticks": len(rows), "fresh": int(fresh.sum()), "rate_hz": rate, "libzmq": libzmq.origin,
-            "all": percentiles(call_us), "new": percentiles(call_us[fresh]), "same": percentiles(call_us[~fresh]),
-            "timer": percentiles(timer), "age": percentiles(age_ms[fresh]), "client": out.stderr.strip(),
-            "cpu": platform.processor() or platform.machine(), "cores": os.cpu_count()}
+    return {
+        "ticks": len(rows),
+        "fresh": int(fresh.sum()),
+        "rate_hz": rate,
+        "libzmq": libzmq.origin,
+        "all": percentiles(call_us),
+        "new": percentiles(call_us[fresh]),
+        "same": percentiles(call_us[~fresh]),
+        "timer": percentiles(timer),
+        "age": percentiles(age_ms[fresh]),
+        "client": out.stderr.strip(),
+        "cpu": platform.processor() or platform.machine(),
+        "cores": os.cpu_count(),
+    }
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--ticks", type=int, default=10000, help="ticks of the 1 kHz loop (default 10000)")
     parser.add_argument("--topic", default="wrench/sensor1")
     args = parser.parse_args()
     r = bench(args.ticks, args.topic)
-    print(f"`python -m benchmarks.performance.c_client --ticks {args.ticks}`: {r['ticks']} ticks at 1 kHz, "
-          f"{r['fresh']} new samples of {args.topic} from the daemon at {r['rate_hz']:g} Hz on the simulated bus, "
-          f"{r['libzmq']}, {r['cores']} cores ({r['cpu']}); client: {r['client']}")
+    print(
+        f"`python -m benchmarks.performance.c_client --ticks {args.ticks}`: {r['ticks']} ticks at 1 kHz, "
+        f"{r['fresh']} new samples of {args.topic} from the daemon at {r['rate_hz']:g} Hz on the simulated bus, "
+        f"{r['libzmq']}, {r['cores']} cores ({r['cpu']}); client: {r['client']}"
+    )
     print()
     print("| per tick | p50 / p99 / max |")
     print("|---|---|")

@@ -35,12 +35,11 @@ from typing import Any
 import numpy as np
 import zmq
 
+from benchmarks.common import READINGS, InstantBus, machine, pin_to_core
 from ftsensord.chip import mlx90393 as mlx
-from ftsensord.model import se3
 from ftsensord.config.file import Config, builtin_path, load_config
 from ftsensord.daemon.daemon import Daemon
-
-from benchmarks.common import READINGS, InstantBus, machine, pin_to_core
+from ftsensord.model import se3
 
 #: The wire's header as docs/reference/protocol.md gives it (magic, version, kind, flags, seq, t_mono,
 #: t_wall, count, reserved, reserved), written out here so the reference uses nothing of ours.
@@ -57,15 +56,22 @@ class Reference:
         self.publisher = publisher
         n = len(config.addresses)
         replies = [bus.replies[(a, 7)] for a in config.addresses]
-        self.blocks = [np.frombuffer(b"".join(r[k] for r in replies), dtype=np.uint8).reshape(n, 7)
-                       for k in range(READINGS)]
-        self.zero = np.int32(config.settings.raw_format("x").zero)  # a numpy int32: the words' difference is one
+        self.blocks = [
+            np.frombuffer(b"".join(r[k] for r in replies), dtype=np.uint8).reshape(n, 7)
+            for k in range(READINGS)
+        ]
+        self.zero = np.int32(
+            config.settings.raw_format("x").zero
+        )  # a numpy int32: the words' difference is one
         self.scale = np.array([config.settings.sensitivity_ut(a) * 1e-6 for a in "xyz"])
         self.error_bit = mlx.STATUS_ERROR
         self.models = [(s.calibration.model.KA, s.calibration.model.zero) for s in config.sensors]
         self.tip = [se3.wrench_transform(config.tool_poses[s.name]) for s in config.sensors]
-        self.topics = ([f"wrench/{s.name}\0".encode() for s in config.sensors] + [b"wrench/tip\0"]
-                       + [f"flux/{s.name}\0".encode() for s in config.sensors])
+        self.topics = (
+            [f"wrench/{s.name}\0".encode() for s in config.sensors]
+            + [b"wrench/tip\0"]
+            + [f"flux/{s.name}\0".encode() for s in config.sensors]
+        )
         self.seq = self.turn = 0
 
     def cycle(self) -> None:
@@ -80,7 +86,9 @@ class Reference:
         values = [*wrenches, self.tip[0] @ wrenches[0] + self.tip[1] @ wrenches[1], *flux]
         seq, send, pack = self.seq, self.publisher.send, REF_HEADER.pack
         for topic, kind, v in zip(self.topics, (1, 1, 1, 2, 2), values):
-            send(topic + pack(0x5446, 1, kind, 0, seq, t_mono, t_wall, len(v), 0, 0) + v.tobytes(), zmq.NOBLOCK)
+            send(
+                topic + pack(0x5446, 1, kind, 0, seq, t_mono, t_wall, len(v), 0, 0) + v.tobytes(), zmq.NOBLOCK
+            )
         self.seq += 1
 
 
@@ -125,6 +133,7 @@ def breakdown(daemon: Daemon, cycles: int) -> dict[str, float]:
                 return f(*args, **kwargs)
             finally:
                 spent[name] += time.process_time() - t0
+
         return wrapper
 
     daemon.reader.read = timed("read", daemon.reader.read)  # type: ignore[method-assign]
@@ -186,67 +195,107 @@ def measure(cycles: int, rounds: int, readback_every: int | None = None) -> dict
     ctx.term()
     med = {k: statistics.median(v) for k, v in out.items()}
     own = [d - b for d, b in zip(out["linear"], out["bus"])]
-    return {"cycles": cycles, "rounds": rounds, "samples": {k: v for k, v in out.items()},
-            "reference_us": med["reference"], "daemon_linear_us": med["linear"], "bus_us": med["bus"],
-            "daemon_own_us": statistics.median(own), "daemon_nonlinear_us": med["nonlinear"],
-            # The daemon's own work (its cycle less the stand-in bus's Python) against the
-            # minimal loop, which has no bus: the figure the target is about.
-            "ratio": statistics.median(own) / med["reference"],
-            # Each round's ratio to the reference round just before it (the same moment of a busy
-            # host's load), their median: beside the ratio of medians, a check on drifting load.
-            "ratio_paired": statistics.median(o / r for o, r in zip(own, out["reference"])),
-            "ratio_with_bus": med["linear"] / med["reference"],
-            "nonlinear_per_sensor_us": (med["nonlinear"] - med["linear"]) / len(config.sensors),
-            "estimate_per_sensor_us": statistics.mean(estimate_us), "failing_chips": failing,
-            "inconsistent_samples": inconsistent,
-            "linear_breakdown_us": parts}
+    return {
+        "cycles": cycles,
+        "rounds": rounds,
+        "samples": {k: v for k, v in out.items()},
+        "reference_us": med["reference"],
+        "daemon_linear_us": med["linear"],
+        "bus_us": med["bus"],
+        "daemon_own_us": statistics.median(own),
+        "daemon_nonlinear_us": med["nonlinear"],
+        # The daemon's own work (its cycle less the stand-in bus's Python) against the
+        # minimal loop, which has no bus: the figure the target is about.
+        "ratio": statistics.median(own) / med["reference"],
+        # Each round's ratio to the reference round just before it (the same moment of a busy
+        # host's load), their median: beside the ratio of medians, a check on drifting load.
+        "ratio_paired": statistics.median(o / r for o, r in zip(own, out["reference"])),
+        "ratio_with_bus": med["linear"] / med["reference"],
+        "nonlinear_per_sensor_us": (med["nonlinear"] - med["linear"]) / len(config.sensors),
+        "estimate_per_sensor_us": statistics.mean(estimate_us),
+        "failing_chips": failing,
+        "inconsistent_samples": inconsistent,
+        "linear_breakdown_us": parts,
+    }
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="a few hundred cycles (CI): the structure, not figures")
+    parser.add_argument(
+        "--quick", action="store_true", help="a few hundred cycles (CI): the structure, not figures"
+    )
     parser.add_argument("--cycles", type=int, default=1000, help="cycles a round (default 1000)")
     parser.add_argument("--rounds", type=int, default=7, help="alternating rounds (default 7)")
     parser.add_argument("--cpu", type=int, default=None, help="pin to this core (default: the last one)")
-    parser.add_argument("--pi-factor", type=float, default=5.5,
-                        help="stated slow-down of a Pi 4 against this host (default 5.5: docs/results/performance.md)")
-    parser.add_argument("--readback-every", type=int, default=None,
-                        help="the daemon's register read-back, cycles (default: the configuration's, 1; 0: none)")
+    parser.add_argument(
+        "--pi-factor",
+        type=float,
+        default=5.5,
+        help="stated slow-down of a Pi 4 against this host (default 5.5: docs/results/performance.md)",
+    )
+    parser.add_argument(
+        "--readback-every",
+        type=int,
+        default=None,
+        help="the daemon's register read-back, cycles (default: the configuration's, 1; 0: none)",
+    )
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     args = parser.parse_args()
     cycles, rounds = (100, 3) if args.quick else (args.cycles, args.rounds)
     cpu = pin_to_core(args.cpu)
     load = os.getloadavg()[0]
     r = measure(cycles, rounds, args.readback_every)
-    r.update({"pinned_cpu": cpu, "load_1min": load, "pi_factor": args.pi_factor,
-              "pi_estimate_linear_us": r["daemon_own_us"] * args.pi_factor,
-              "pi_estimate_nonlinear_per_sensor_us": r["nonlinear_per_sensor_us"] * args.pi_factor,
-              "machine": machine(),
-              "quick": args.quick, "readback_every": args.readback_every})
+    r.update(
+        {
+            "pinned_cpu": cpu,
+            "load_1min": load,
+            "pi_factor": args.pi_factor,
+            "pi_estimate_linear_us": r["daemon_own_us"] * args.pi_factor,
+            "pi_estimate_nonlinear_per_sensor_us": r["nonlinear_per_sensor_us"] * args.pi_factor,
+            "machine": machine(),
+            "quick": args.quick,
+            "readback_every": args.readback_every,
+        }
+    )
     if args.json:
         print(json.dumps(r, indent=2))
         return 0
-    print(f"{r['machine']}, pinned to core {cpu}, load {load:.2f}; {rounds} rounds of {cycles} cycles "
-          f"(nonlinear: {max(1, cycles // 4)}), medians"
-          + ("" if args.readback_every is None else f"; register read-back every {args.readback_every} cycles"))
+    print(
+        f"{r['machine']}, pinned to core {cpu}, load {load:.2f}; {rounds} rounds of {cycles} cycles "
+        f"(nonlinear: {max(1, cycles // 4)}), medians"
+        + ("" if args.readback_every is None else f"; register read-back every {args.readback_every} cycles")
+    )
     print(f"reference loop      {r['reference_us']:8.1f} us a cycle  (no bus: decode, K A, tip, 5 sends)")
-    print(f"stand-in bus        {r['bus_us']:8.1f} us a cycle  (InstantBus's own Python, its ioctls replayed)")
+    print(
+        f"stand-in bus        {r['bus_us']:8.1f} us a cycle  (InstantBus's own Python, its ioctls replayed)"
+    )
     print(f"daemon, linear      {r['daemon_linear_us']:8.1f} us a cycle  (with the stand-in bus)")
-    print(f"  less the bus      {r['daemon_own_us']:8.1f} us a cycle  ({r['ratio']:.2f}x the reference; "
-          f"target <= 5x; round by round {r['ratio_paired']:.2f}x)")
+    print(
+        f"  less the bus      {r['daemon_own_us']:8.1f} us a cycle  ({r['ratio']:.2f}x the reference; "
+        f"target <= 5x; round by round {r['ratio_paired']:.2f}x)"
+    )
     parts = r["linear_breakdown_us"]
-    print("  of which " + ", ".join(f"{k} {v:.0f} us" for k, v in parts.items())
-          + " (another run, wrapped; read with the stand-in bus)")
-    print(f"daemon, nonlinear   {r['daemon_nonlinear_us']:8.1f} us a cycle  "
-          f"({r['nonlinear_per_sensor_us']:.0f} us a sensor more than linear; the estimate alone "
-          f"{r['estimate_per_sensor_us']:.0f} us; at rest: a moving load is benchmarks/performance/nonlinear_cpu.py's)")
-    print(f"x {args.pi_factor:g} (a stated estimate for a Pi 4, not measured): linear "
-          f"{r['pi_estimate_linear_us']:.0f} us, nonlinear {r['pi_estimate_nonlinear_per_sensor_us']:.0f} us a sensor")
+    print(
+        "  of which "
+        + ", ".join(f"{k} {v:.0f} us" for k, v in parts.items())
+        + " (another run, wrapped; read with the stand-in bus)"
+    )
+    print(
+        f"daemon, nonlinear   {r['daemon_nonlinear_us']:8.1f} us a cycle  "
+        f"({r['nonlinear_per_sensor_us']:.0f} us a sensor more than linear; the estimate alone "
+        f"{r['estimate_per_sensor_us']:.0f} us; at rest: a moving load is benchmarks/performance/nonlinear_cpu.py's)"
+    )
+    print(
+        f"x {args.pi_factor:g} (a stated estimate for a Pi 4, not measured): linear "
+        f"{r['pi_estimate_linear_us']:.0f} us, nonlinear {r['pi_estimate_nonlinear_per_sensor_us']:.0f} us a sensor"
+    )
     if r["failing_chips"]:
         print(f"warning: {r['failing_chips']} chip(s) failing at the end: the figures include recovery")
     if r["inconsistent_samples"]:
-        print(f"warning: {r['inconsistent_samples']} sample(s) flagged inconsistent: the figures include "
-              "the redundancy check's search for the chip at fault")
+        print(
+            f"warning: {r['inconsistent_samples']} sample(s) flagged inconsistent: the figures include "
+            "the redundancy check's search for the chip at fault"
+        )
     return 0
 
 

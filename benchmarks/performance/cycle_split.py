@@ -40,9 +40,7 @@ import zmq
 from ftsensord.config.file import load_config
 from ftsensord.daemon.daemon import Daemon
 from ftsensord.daemon.run import make_sockets, open_configured_bus
-from ftsensord.sim import MonotonicClock
-from ftsensord.sim import VirtualClock
-
+from ftsensord.sim import MonotonicClock, VirtualClock
 from ftsensord.testing.harness import packaged_config
 
 SETTLE_CYCLES = 20  # chips started, plans built and caches warm before counting
@@ -84,7 +82,9 @@ def main() -> int:
     parser.add_argument("--cycles", type=int, default=1000)
     parser.add_argument("--bus", default="sim?adapter=bcm2835&ioctl_us=80")
     parser.add_argument("--fifo", type=int, default=0, help="run SCHED_FIFO at this priority (0: not)")
-    parser.add_argument("--virtual-clock", action="store_true", help="the simulated bus's virtual clock: no sleeps")
+    parser.add_argument(
+        "--virtual-clock", action="store_true", help="the simulated bus's virtual clock: no sleeps"
+    )
     args = parser.parse_args()
     if args.fifo:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.fifo))
@@ -124,15 +124,19 @@ def main() -> int:
     spills = np.array(split.spills) * 1e6
     policy = f"SCHED_FIFO {args.fifo}" if args.fifo else "the default policy"
     policy += ", virtual clock" if args.virtual_clock else ""
-    print(f"{args.cycles} cycles at {config.rate_hz:g} Hz, {config.scheduler}, bus {args.bus!r}, {policy} "
-          f"(load {load0:.2f} at start, {os.getloadavg()[0]:.2f} at end); us a cycle:")
+    print(
+        f"{args.cycles} cycles at {config.rate_hz:g} Hz, {config.scheduler}, bus {args.bus!r}, {policy} "
+        f"(load {load0:.2f} at start, {os.getloadavg()[0]:.2f} at end); us a cycle:"
+    )
     print(f"  cycle       {percentiles(a[:, 0])}   (bound {bound_us:.0f})")
     print(f"  transfers   {percentiles(a[:, 1])}")
     print(f"  host        {percentiles(a[:, 0] - a[:, 1])}   (cycle - transfers)")
     print(f"  host_cpu    {percentiles(a[:, 3])}   (thread CPU outside transfers)")
     print(f"  sim_cpu     {percentiles(a[:, 2])}   (thread CPU inside transfers: physics, spin)")
-    print(f"  spill       {percentiles(spills)}   per transfer ({len(spills)}; "
-          f"{np.count_nonzero(spills)} past their end)")
+    print(
+        f"  spill       {percentiles(spills)}   per transfer ({len(spills)}; "
+        f"{np.count_nonzero(spills)} past their end)"
+    )
     return 0
 
 

@@ -23,14 +23,10 @@ import tempfile
 import time
 from pathlib import Path
 
-from ftsensord.chip import mlx90393 as mlx
-from ftsensord.sim import NOISELESS
-from ftsensord.sim import VirtualClock
-from ftsensord.sim import load_scene
-from ftsensord.sim import simulated_bus
-from ftsensord.sim.scene import default_scene_path
-
 from benchmarks.common import ROOT
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.sim import NOISELESS, VirtualClock, load_scene, simulated_bus
+from ftsensord.sim.scene import default_scene_path
 
 CONFIG = ROOT / "config"
 HELD = '[sensor.temperature]\nkind = "recorded"\ntimes_s = [0.0, 60.0]\ncelsius = [25.0, 25.0]\n'
@@ -63,24 +59,35 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory() as folder:
         held = Path(folder) / "held.toml"
-        held.write_text(default_scene_path().read_text().replace("seed = 1", "seed = 1\n" + HELD, 1)
-                        .replace("seed = 2", "seed = 2\n" + HELD, 1))
-        scenes = {"static": (chips(default_scene_path()), 0.0), "held": (chips(held), 0.0),
-                  "warming": (chips(CONFIG / "scene-warm.toml"), 20.0)}
+        held.write_text(
+            default_scene_path()
+            .read_text()
+            .replace("seed = 1", "seed = 1\n" + HELD, 1)
+            .replace("seed = 2", "seed = 2\n" + HELD, 1)
+        )
+        scenes = {
+            "static": (chips(default_scene_path()), 0.0),
+            "held": (chips(held), 0.0),
+            "warming": (chips(CONFIG / "scene-warm.toml"), 20.0),
+        }
         times: dict[str, list[float]] = {name: [] for name in scenes}
         for _ in range(args.rounds):
             for name, (emulated, start) in scenes.items():
                 times[name].append(round_us(emulated, start, args.cycles))
     n = args.cycles * 16
-    result = {name: {"median_us": round(statistics.median(v), 2), "min_us": round(min(v), 2)}
-              for name, v in times.items()}
+    result = {
+        name: {"median_us": round(statistics.median(v), 2), "min_us": round(min(v), 2)}
+        for name, v in times.items()
+    }
     result["samples"] = {"rounds": args.rounds, "conversions_per_round": n}
     if args.json:
         print(json.dumps(result))
         return 0
     print(f"{args.rounds} rounds of {n} conversions each (16 chips x {args.cycles} cycles, 10 ms apart)")
     for name in scenes:
-        print(f"  {name:8s} median {result[name]['median_us']:6.2f} us a conversion (min {result[name]['min_us']:.2f})")
+        print(
+            f"  {name:8s} median {result[name]['median_us']:6.2f} us a conversion (min {result[name]['min_us']:.2f})"
+        )
     return 0
 
 

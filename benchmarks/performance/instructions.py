@@ -62,9 +62,9 @@ def _child(what: str, steps: int, readback_every: int | None, skip: list[str]) -
     """The process callgrind counts: ``WARM`` steps, then ``steps`` more."""
     import zmq
 
+    from benchmarks.common import InstantBus
     from benchmarks.performance import cycle_cpu, nonlinear_cpu
     from ftsensord.config.file import builtin_path, load_config
-    from benchmarks.common import InstantBus
     from ftsensord.daemon.daemon import Daemon
 
     config = load_config(builtin_path("sim.toml"))
@@ -75,7 +75,7 @@ def _child(what: str, steps: int, readback_every: int | None, skip: list[str]) -
         if len(flux) < WARM + steps:
             raise SystemExit(f"{len(flux)} moving readings, {WARM + steps} needed: raise the periods")
         estimator = nl.estimator()
-        for b in flux[:WARM + steps]:
+        for b in flux[: WARM + steps]:
             estimator.estimate(b)
         return
     if readback_every is not None:
@@ -108,11 +108,24 @@ SKIPPABLE = ("check", "judge", "count", "publish")
 
 def count(what: str, steps: int, readback_every: int | None, skip: list[str]) -> int:
     """Instructions callgrind counts for one child process."""
-    env = dict(os.environ, PYTHONHASHSEED="0", OPENBLAS_NUM_THREADS="1",
-               PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+    env = dict(
+        os.environ,
+        PYTHONHASHSEED="0",
+        OPENBLAS_NUM_THREADS="1",
+        PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+    )
     with tempfile.TemporaryDirectory() as tmp:
-        args = ["valgrind", "--tool=callgrind", f"--callgrind-out-file={tmp}/out", sys.executable, "-m",
-                "benchmarks.performance.instructions", "--child", what, str(steps)] + ([] if readback_every is None else ["--readback-every", str(readback_every)])
+        args = [
+            "valgrind",
+            "--tool=callgrind",
+            f"--callgrind-out-file={tmp}/out",
+            sys.executable,
+            "-m",
+            "benchmarks.performance.instructions",
+            "--child",
+            what,
+            str(steps),
+        ] + ([] if readback_every is None else ["--readback-every", str(readback_every)])
         args += [a for part in skip for a in ("--skip", part)]
         done = subprocess.run(args, env=env, capture_output=True, text=True, check=True)
     found = re.search(r"Collected : (\d+)", done.stderr)
@@ -129,19 +142,30 @@ def per_step(what: str, readback_every: int | None, skip: list[str]) -> float:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("what", nargs="*", help=f"what to count: {', '.join(STEPS)} (default all)")
-    parser.add_argument("--readback-every", type=int, default=None, help="the daemons' (default: the configuration's)")
-    parser.add_argument("--skip", action="append", default=[], choices=SKIPPABLE,
-                        help="a part of the daemon's cycle to leave out (repeatable): its cost is the difference")
+    parser.add_argument(
+        "--readback-every", type=int, default=None, help="the daemons' (default: the configuration's)"
+    )
+    parser.add_argument(
+        "--skip",
+        action="append",
+        default=[],
+        choices=SKIPPABLE,
+        help="a part of the daemon's cycle to leave out (repeatable): its cost is the difference",
+    )
     parser.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
         _child(args.child[0], int(args.child[1]), args.readback_every, args.skip)
         return 0
     if set(args.what) - set(STEPS):
-        parser.error(f"what to count: {', '.join(STEPS)}, not {', '.join(sorted(set(args.what) - set(STEPS)))}")
+        parser.error(
+            f"what to count: {', '.join(STEPS)}, not {', '.join(sorted(set(args.what) - set(STEPS)))}"
+        )
     if shutil.which("valgrind") is None:
         raise SystemExit("valgrind is not on PATH (apt install valgrind)")
-    got = {w: per_step(w, args.readback_every, args.skip if w == "daemon" else []) for w in args.what or STEPS}
+    got = {
+        w: per_step(w, args.readback_every, args.skip if w == "daemon" else []) for w in args.what or STEPS
+    }
     for w, n in got.items():
         print(f"{w:10s} {n:12,.0f} instructions a {'sample' if w == 'nonlinear' else 'cycle'}")
     if {"reference", "daemon", "bus"} <= got.keys():

@@ -33,14 +33,12 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.common import machine, pin_to_core
+from ftsensord.config.file import builtin_path, load_config
 from ftsensord.model import nlcompiled
 from ftsensord.model.linear import SENSOR_RANGE
 from ftsensord.model.nonlinear import NonlinearEstimator
-from ftsensord.config.file import builtin_path, load_config
-from ftsensord.sim import NoiseModel
-from ftsensord.sim import default_scene
-
-from benchmarks.common import machine, pin_to_core
+from ftsensord.sim import NoiseModel, default_scene
 
 RATE_HZ = 100.0  # the daemon's default rate: a reading every 10 ms
 
@@ -76,7 +74,9 @@ def readings(fraction: float, hz: float, periods: int, seed: int = 0) -> tuple[n
     return flux, truth
 
 
-def replay(estimator: NonlinearEstimator, flux: np.ndarray, loops: int) -> tuple[np.ndarray, np.ndarray, int, int]:
+def replay(
+    estimator: NonlinearEstimator, flux: np.ndarray, loops: int
+) -> tuple[np.ndarray, np.ndarray, int, int]:
     """Each reading estimated in turn, ``loops`` times round: CPU a call (s), the last
     loop's wrenches (NaN where not converged), calls not converged, iterations in all."""
     cpu = np.empty(loops * len(flux))
@@ -98,8 +98,12 @@ def replay(estimator: NonlinearEstimator, flux: np.ndarray, loops: int) -> tuple
 
 def stats_us(cpu: np.ndarray) -> dict[str, float]:
     us = cpu * 1e6
-    return {"mean": float(us.mean()), "p50": float(np.percentile(us, 50)), "p99": float(np.percentile(us, 99)),
-            "max": float(us.max())}
+    return {
+        "mean": float(us.mean()),
+        "p50": float(np.percentile(us, 50)),
+        "p99": float(np.percentile(us, 99)),
+        "max": float(us.max()),
+    }
 
 
 def compiled_library(folder: str) -> tuple[Path | None, str]:
@@ -123,7 +127,13 @@ def measure(fraction: float, hz: float, periods: int, loops: int) -> dict[str, A
     assert nl is not None  # the packaged calibrations have one
     flux, truth = readings(fraction, hz, periods)
     rest, _ = readings(0.0, hz, periods, seed=1)
-    out: dict[str, Any] = {"samples": len(flux), "loops": loops, "fraction": fraction, "hz": hz, "by_solver": {}}
+    out: dict[str, Any] = {
+        "samples": len(flux),
+        "loops": loops,
+        "fraction": fraction,
+        "hz": hz,
+        "by_solver": {},
+    }
     with tempfile.TemporaryDirectory() as tmp:
         library, origin = compiled_library(tmp)
         solvers = ["numpy"] + (["compiled"] if library is not None else [])
@@ -140,8 +150,11 @@ def measure(fraction: float, hz: float, periods: int, loops: int) -> dict[str, A
                     runs[s].append(replay(estimators[s], data, 1))
             for s in solvers:
                 cpu = np.concatenate([r[0] for r in runs[s]])
-                result = {"cpu_us": stats_us(cpu), "not_converged": sum(r[2] for r in runs[s]),
-                          "iterations_per_sample": sum(r[3] for r in runs[s]) / len(cpu)}
+                result = {
+                    "cpu_us": stats_us(cpu),
+                    "not_converged": sum(r[2] for r in runs[s]),
+                    "iterations_per_sample": sum(r[3] for r in runs[s]) / len(cpu),
+                }
                 if name == "moving":
                     wrench = runs[s][-1][1]
                     ok = np.all(np.isfinite(wrench), axis=1)
@@ -153,10 +166,16 @@ def measure(fraction: float, hz: float, periods: int, loops: int) -> dict[str, A
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="a few hundred samples (CI): the structure, not figures")
-    parser.add_argument("--fraction", type=float, default=0.4, help="of the sensor's range on every axis (default 0.4)")
+    parser.add_argument(
+        "--quick", action="store_true", help="a few hundred samples (CI): the structure, not figures"
+    )
+    parser.add_argument(
+        "--fraction", type=float, default=0.4, help="of the sensor's range on every axis (default 0.4)"
+    )
     parser.add_argument("--hz", type=float, default=1.3, help="the load's frequency (default 1.3 Hz)")
-    parser.add_argument("--periods", type=int, default=13, help="periods of readings (default 13: 10 s at 1.3 Hz)")
+    parser.add_argument(
+        "--periods", type=int, default=13, help="periods of readings (default 13: 10 s at 1.3 Hz)"
+    )
     parser.add_argument("--loops", type=int, default=5, help="times round the readings (default 5)")
     parser.add_argument("--cpu", type=int, default=None, help="pin to this core (default: the last one)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
@@ -165,21 +184,28 @@ def main() -> int:
     cpu = pin_to_core(args.cpu)
     load = os.getloadavg()[0]
     r = measure(args.fraction, args.hz, periods, loops)
-    r.update({"pinned_cpu": cpu, "load_1min": load, "quick": args.quick,
-              "machine": machine()})
+    r.update({"pinned_cpu": cpu, "load_1min": load, "quick": args.quick, "machine": machine()})
     if args.json:
         print(json.dumps(r, indent=2))
         return 0
-    print(f"{r['machine']}, pinned to core {cpu}, load {load:.2f}; {r['samples']} readings x {loops} loops; "
-          f"every axis at {args.fraction:.0%} of the range, {args.hz:g} Hz; compiled solver: {r['library']}")
+    print(
+        f"{r['machine']}, pinned to core {cpu}, load {load:.2f}; {r['samples']} readings x {loops} loops; "
+        f"every axis at {args.fraction:.0%} of the range, {args.hz:g} Hz; compiled solver: {r['library']}"
+    )
     for solver, runs in r["by_solver"].items():
         for name in ("moving", "rest"):
             s = runs[name]["cpu_us"]
-            print(f"{solver:8s} {name:7s} mean {s['mean']:6.1f}  p50 {s['p50']:6.1f}  p99 {s['p99']:6.1f}  "
-                  f"max {s['max']:7.1f} us a sample; {runs[name]['iterations_per_sample']:.2f} iterations, "
-                  f"{runs[name]['not_converged']} not converged")
+            print(
+                f"{solver:8s} {name:7s} mean {s['mean']:6.1f}  p50 {s['p50']:6.1f}  p99 {s['p99']:6.1f}  "
+                f"max {s['max']:7.1f} us a sample; {runs[name]['iterations_per_sample']:.2f} iterations, "
+                f"{runs[name]['not_converged']} not converged"
+            )
         err = runs["moving"]["rms_error"]
-        print(f"{solver:8s} moving: RMS error " + " ".join(f"{e:.3g}" for e in err) + " (N, Nm; target p99 <= 200 us)")
+        print(
+            f"{solver:8s} moving: RMS error "
+            + " ".join(f"{e:.3g}" for e in err)
+            + " (N, Nm; target p99 <= 200 us)"
+        )
     return 0
 
 

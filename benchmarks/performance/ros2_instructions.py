@@ -50,8 +50,8 @@ def _child(what: str, steps: int) -> None:
 
     from benchmarks.performance import cycle_cpu
     from ftsensord.config.file import builtin_path, load_config
-    from ftsensord.daemon.daemon import Daemon
     from ftsensord.config.ros2conf import Ros2Config
+    from ftsensord.daemon.daemon import Daemon
 
     config = load_config(builtin_path("sim.toml"))
     with tempfile.TemporaryDirectory() as tmp:
@@ -97,9 +97,21 @@ def count(what: str, steps: int, env: dict[str, str]) -> tuple[int, int, int]:
     """(the loop thread's, every thread's) instructions in one child process, and the
     diagnostics it began."""
     with tempfile.TemporaryDirectory() as tmp:
-        args = ["valgrind", "--tool=callgrind", "--separate-threads=yes", f"--callgrind-out-file={tmp}/out",
-                sys.executable, "-m", "benchmarks.performance.ros2_instructions", "--child", what, str(steps)]
-        begun = int(subprocess.run(args, env=env, capture_output=True, text=True, check=True).stdout.split()[-1])
+        args = [
+            "valgrind",
+            "--tool=callgrind",
+            "--separate-threads=yes",
+            f"--callgrind-out-file={tmp}/out",
+            sys.executable,
+            "-m",
+            "benchmarks.performance.ros2_instructions",
+            "--child",
+            what,
+            str(steps),
+        ]
+        begun = int(
+            subprocess.run(args, env=env, capture_output=True, text=True, check=True).stdout.split()[-1]
+        )
         totals = {}
         for f in Path(tmp).glob("out*"):
             found = re.search(r"^(?:totals|summary): (\d+)", f.read_text(errors="replace"), re.M)
@@ -121,15 +133,28 @@ def main() -> int:
         return 0
     from benchmarks.performance.ros2_latency import DOMAIN, URI, dds_listen
 
-    env = dict(os.environ, PYTHONHASHSEED="0", OPENBLAS_NUM_THREADS="1", CYCLONEDDS_URI=URI, BENCH_DOMAIN=str(DOMAIN),
-               PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+    env = dict(
+        os.environ,
+        PYTHONHASHSEED="0",
+        OPENBLAS_NUM_THREADS="1",
+        CYCLONEDDS_URI=URI,
+        BENCH_DOMAIN=str(DOMAIN),
+        PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+    )
     os.environ["CYCLONEDDS_URI"] = URI
     got, cycles_a_diagnostics = {}, 0.0
     for what in args.what or VARIANTS:
         reader = None
-        if what in ("read", "diag-status", "diagnostics"):  # read throughout both runs; its receipts are not used
-            reader = mp.Process(target=dds_listen, args=("rt/bench/wrench/sensor1", True, time.time() + 3600,
-                                                         mp.Queue()), daemon=True)
+        if what in (
+            "read",
+            "diag-status",
+            "diagnostics",
+        ):  # read throughout both runs; its receipts are not used
+            reader = mp.Process(
+                target=dds_listen,
+                args=("rt/bench/wrench/sensor1", True, time.time() + 3600, mp.Queue()),
+                daemon=True,
+            )
             reader.start()
         try:
             (m1, a1, b1), (m2, a2, b2) = count(what, STEPS, env), count(what, 2 * STEPS, env)
@@ -140,19 +165,27 @@ def main() -> int:
         got[what] = ((m2 - m1) / STEPS, (a2 - a1) / STEPS)
         if what == "diagnostics":
             cycles_a_diagnostics = STEPS / (b2 - b1)
-        print(f"{what:12s} loop thread {got[what][0]:12,.0f}, all threads {got[what][1]:12,.0f} instructions a cycle",
-              flush=True)
+        print(
+            f"{what:12s} loop thread {got[what][0]:12,.0f}, all threads {got[what][1]:12,.0f} instructions a cycle",
+            flush=True,
+        )
     if "none" in got:
         for what, (m, a) in got.items():
-            print(f"{what:12s} added: loop thread {m - got['none'][0]:+10,.0f}, all threads {a - got['none'][1]:+10,.0f}")
+            print(
+                f"{what:12s} added: loop thread {m - got['none'][0]:+10,.0f}, all threads {a - got['none'][1]:+10,.0f}"
+            )
     if {"read", "diagnostics"} <= got.keys():
         once = cycles_a_diagnostics * (got["diagnostics"][0] - got["read"][0])
-        print(f"one /diagnostics (health, statuses, bytes, write; {cycles_a_diagnostics:g} cycles): {once:,.0f} "
-              f"in the loop thread; {once / 100:,.0f} a cycle at 100 Hz")
+        print(
+            f"one /diagnostics (health, statuses, bytes, write; {cycles_a_diagnostics:g} cycles): {once:,.0f} "
+            f"in the loop thread; {once / 100:,.0f} a cycle at 100 Hz"
+        )
         if "diag-status" in got:
             built = 2 * (got["diag-status"][0] - got["read"][0])
-            print(f"  the cycle making the statuses: {built:+,.0f}; the {cycles_a_diagnostics - 1:g} encoding and "
-                  f"writing them: {once - built:+,.0f}, {(once - built) / (cycles_a_diagnostics - 1):+,.0f} each")
+            print(
+                f"  the cycle making the statuses: {built:+,.0f}; the {cycles_a_diagnostics - 1:g} encoding and "
+                f"writing them: {once - built:+,.0f}, {(once - built) / (cycles_a_diagnostics - 1):+,.0f} each"
+            )
     return 0
 
 

@@ -12,8 +12,8 @@ import numpy as np
 
 from ftsensord.calibration.calfile import Calibration
 from ftsensord.chip import mlx90393 as mlx
-from ftsensord.model import se3
 from ftsensord.config.file import builtin_path
+from ftsensord.model import se3
 from ftsensord.processing.pipeline import channel_sigma_t
 from ftsensord.processing.stray import WorldGradient
 
@@ -34,8 +34,10 @@ def main() -> int:
         stage.learn(b)
         took.append(time.perf_counter() - t0)
     us = np.array(took[1000:]) * 1e6
-    print(f"stray stage, a sample: p50 {np.percentile(us, 50):.1f} us, p99 {np.percentile(us, 99):.1f} us, "
-          f"mean {us.mean():.1f} us ({len(us)} samples; correcting: {stage.correcting})")
+    print(
+        f"stray stage, a sample: p50 {np.percentile(us, 50):.1f} us, p99 {np.percentile(us, 99):.1f} us, "
+        f"mean {us.mean():.1f} us ({len(us)} samples; correcting: {stage.correcting})"
+    )
     return 0
 
 

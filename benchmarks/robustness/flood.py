@@ -27,9 +27,8 @@ import numpy as np
 import zmq
 
 from ftsensord.client import ControlClient
-from ftsensord.protocol import wire
 from ftsensord.daemon.control import MAX_REQUEST
-
+from ftsensord.protocol import wire
 from ftsensord.testing.harness import packaged_config, start_daemon, stop
 
 IN_FLIGHT = 20
@@ -67,7 +66,9 @@ def hostile(rng: np.random.Generator) -> bytes:
     return text.encode("utf-8", "surrogatepass")
 
 
-def client(endpoint: str, seconds: float, seed: int, count: int, mode: str, out: mp.Queue, nice: int = 0) -> None:
+def client(
+    endpoint: str, seconds: float, seed: int, count: int, mode: str, out: mp.Queue, nice: int = 0
+) -> None:
     """Keep IN_FLIGHT requests in flight until ``seconds`` pass or ``count`` are sent
     (``burn``: send nothing, spin the CPU as long: what the clients cost the machine).
     ``nice``: the clients' niceness (the daemon's priority over its clients is the OS's to give)."""
@@ -106,14 +107,25 @@ def cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def run(mode: str, seconds: float, clients: int, count: int, nice: int = 0, fifo: int = 0,
-        daemon_nice: int = 0, scheduler: str = "") -> dict:
+def run(
+    mode: str,
+    seconds: float,
+    clients: int,
+    count: int,
+    nice: int = 0,
+    fifo: int = 0,
+    daemon_nice: int = 0,
+    scheduler: str = "",
+) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         tmp_path = Path(tmp)
-        config = packaged_config(tmp_path / "ftsensord.toml", **({"scheduler": f'"{scheduler}"'} if scheduler else {}))
+        config = packaged_config(
+            tmp_path / "ftsensord.toml", **({"scheduler": f'"{scheduler}"'} if scheduler else {})
+        )
         # The daemon's priority as the unit's CPUSchedulingPolicy=fifo (fifo) or Nice= (daemon_nice) would set it.
-        proc, notify = start_daemon(config, tmp_path, fifo=fifo, nice=daemon_nice,
-                                    env={"WATCHDOG_USEC": str(WATCHDOG_USEC)})
+        proc, notify = start_daemon(
+            config, tmp_path, fifo=fifo, nice=daemon_nice, env={"WATCHDOG_USEC": str(WATCHDOG_USEC)}
+        )
         notify.setblocking(False)
         folder = tmp_path / "ftsensord"
         ctx = zmq.Context()
@@ -142,8 +154,10 @@ def run(mode: str, seconds: float, clients: int, count: int, nice: int = 0, fifo
         out: mp.Queue = mp.Queue()
         per_client = count // clients if count else 0
         endpoint = f"ipc://{folder / 'control'}"
-        procs = [mp.Process(target=client, args=(endpoint, seconds, i, per_client, mode, out, nice))
-                 for i in range(clients)]
+        procs = [
+            mp.Process(target=client, args=(endpoint, seconds, i, per_client, mode, out, nice))
+            for i in range(clients)
+        ]
         t0, daemon_cpu0, children0, load0 = time.monotonic(), cpu_s(proc.pid), os.times(), os.getloadavg()[0]
         for p in procs:
             p.start()
@@ -159,8 +173,12 @@ def run(mode: str, seconds: float, clients: int, count: int, nice: int = 0, fifo
         loop = ControlClient(endpoint, timeout_s=5).status() if alive else {}
         daemon_cpu = cpu_s(proc.pid) - daemon_cpu0 if alive else float("nan")
         children = os.times()  # the clients, joined: what they took from the daemon's two cores
-        clients_cpu = children.children_user + children.children_system - children0.children_user \
+        clients_cpu = (
+            children.children_user
+            + children.children_system
+            - children0.children_user
             - children0.children_system
+        )
         load1 = os.getloadavg()[0]
         exit_code = stop(proc, notify)
         sub.close(linger=0)
@@ -168,16 +186,29 @@ def run(mode: str, seconds: float, clients: int, count: int, nice: int = 0, fifo
     jumps = int(sum(np.diff(seqs) - 1)) if len(seqs) > 1 else 0
     gaps = np.diff([t0, *pings, t0 + elapsed])
     return {
-        "mode": mode, "clients": clients, "client_nice": nice, "daemon_fifo": fifo, "daemon_nice": daemon_nice,
+        "mode": mode,
+        "clients": clients,
+        "client_nice": nice,
+        "daemon_fifo": fifo,
+        "daemon_nice": daemon_nice,
         "seconds": round(elapsed, 2),
-        "alive": alive, "exit": exit_code, "load_average_1min": [round(load0, 2), round(load1, 2)],
-        "cpu_share_daemon": round(daemon_cpu / elapsed, 3), "cpu_share_clients": round(clients_cpu / elapsed, 3),
-        "samples": len(seqs), "rate_hz": round(len(seqs) / elapsed, 2),
-        "rate_share": round((seqs[-1] - seqs[0] + 1 and len(seqs) / (seqs[-1] - seqs[0] + 1)) if seqs else 0, 4),
-        "skipped_cycles": jumps, "watchdog_pings": len(pings), "max_ping_gap_s": round(float(gaps.max()), 3),
+        "alive": alive,
+        "exit": exit_code,
+        "load_average_1min": [round(load0, 2), round(load1, 2)],
+        "cpu_share_daemon": round(daemon_cpu / elapsed, 3),
+        "cpu_share_clients": round(clients_cpu / elapsed, 3),
+        "samples": len(seqs),
+        "rate_hz": round(len(seqs) / elapsed, 2),
+        "rate_share": round(
+            (seqs[-1] - seqs[0] + 1 and len(seqs) / (seqs[-1] - seqs[0] + 1)) if seqs else 0, 4
+        ),
+        "skipped_cycles": jumps,
+        "watchdog_pings": len(pings),
+        "max_ping_gap_s": round(float(gaps.max()), 3),
         "watchdog_s": WATCHDOG_USEC / 1e6,
         **{k: {q: round(v) for q, v in loop[k].items()} for k in ("cycle_us", "jitter_us") if k in loop},
-        "sent": sum(r["sent"] for r in results), "replies": sum(r["replies"] for r in results),
+        "sent": sum(r["sent"] for r in results),
+        "replies": sum(r["replies"] for r in results),
         "errors": sum(r["errors"] for r in results),
     }
 
@@ -189,13 +220,32 @@ def main() -> None:
     parser.add_argument("--clients", type=int, default=4)
     parser.add_argument("--count", type=int, default=0, help="messages in all (0: as many as fit the time)")
     parser.add_argument("--nice", type=int, default=0, help="the clients' niceness (0: the daemon's)")
-    parser.add_argument("--fifo", type=int, default=0,
-                        help="run the daemon SCHED_FIFO at this priority (0: not; the unit sets 50)")
+    parser.add_argument(
+        "--fifo",
+        type=int,
+        default=0,
+        help="run the daemon SCHED_FIFO at this priority (0: not; the unit sets 50)",
+    )
     parser.add_argument("--daemon-nice", type=int, default=0, help="run the daemon at this niceness (0: not)")
-    parser.add_argument("--scheduler", default="", help="the daemon's scheduler (default: the packaged one's)")
+    parser.add_argument(
+        "--scheduler", default="", help="the daemon's scheduler (default: the packaged one's)"
+    )
     args = parser.parse_args()
-    print(json.dumps(run(args.mode, args.seconds, args.clients, args.count, args.nice, args.fifo, args.daemon_nice,
-                         args.scheduler), indent=1))
+    print(
+        json.dumps(
+            run(
+                args.mode,
+                args.seconds,
+                args.clients,
+                args.count,
+                args.nice,
+                args.fifo,
+                args.daemon_nice,
+                args.scheduler,
+            ),
+            indent=1,
+        )
+    )
 
 
 if __name__ == "__main__":

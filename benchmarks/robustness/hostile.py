@@ -44,26 +44,31 @@ from typing import Any
 
 import zmq
 
-from ftsensord.client import ControlClient
-
-from ftsensord.testing.harness import packaged_config, start_daemon, stop
-
 from benchmarks.common import ROOT
 from benchmarks.robustness.unit_sandbox import MemoryGroup, UnitRestrictions, seccomp_available
+from ftsensord.client import ControlClient
+from ftsensord.testing.harness import packaged_config, start_daemon, stop
 
 UNIT = ROOT / "systemd" / "ftsensord.service"
 
 
-def sandboxed(config: Path, folder: Path, unit: UnitRestrictions,
-              memory: MemoryGroup | None = None) -> tuple[subprocess.Popen, socket.socket]:
+def sandboxed(
+    config: Path, folder: Path, unit: UnitRestrictions, memory: MemoryGroup | None = None
+) -> tuple[subprocess.Popen, socket.socket]:
     """`ftsensord run` under ``unit`` (the filter only where seccomp is available; in
     ``memory``, a group made for its MemoryMax=, where one could be made), its output in
     ``folder``/daemon.log."""
     if not seccomp_available():
         unit.filters = []
     with open(folder / "daemon.log", "w") as log:
-        return start_daemon(config, folder, args=unit.run_args, preexec_fn=unit.preexec(memory=memory),
-                            stdout=log, stderr=subprocess.STDOUT)
+        return start_daemon(
+            config,
+            folder,
+            args=unit.run_args,
+            preexec_fn=unit.preexec(memory=memory),
+            stdout=log,
+            stderr=subprocess.STDOUT,
+        )
 
 
 def memory_kib(pid: int) -> dict[str, int]:
@@ -119,9 +124,15 @@ def descriptors(folder: Path, proc: subprocess.Popen, connections: int) -> dict[
         # The kept ones that never handshake are closed after the daemon's HANDSHAKE_MS (1 s).
         time.sleep(1.5)
         alive = proc.poll() is None
-        out: dict[str, Any] = {"connections_each": connections, "connect_seconds": round(seconds, 3),
-                               "refused_by_kernel": refused, "alive": alive, "exit": proc.poll(),
-                               "daemon_fds_before": before, "daemon_fds_most": most}
+        out: dict[str, Any] = {
+            "connections_each": connections,
+            "connect_seconds": round(seconds, 3),
+            "refused_by_kernel": refused,
+            "alive": alive,
+            "exit": proc.poll(),
+            "daemon_fds_before": before,
+            "daemon_fds_most": most,
+        }
         if alive:
             out["daemon_fds_held"] = descriptor_count(proc.pid)
             closed = sum(1 for s in held if _peer_closed(s))
@@ -149,8 +160,9 @@ def _peer_closed(s: socket.socket) -> bool:
         return True
 
 
-def silent_clients(ctx: zmq.Context, kind: int, endpoint: str, count: int,
-                   options: dict[int, Any]) -> list[zmq.Socket]:
+def silent_clients(
+    ctx: zmq.Context, kind: int, endpoint: str, count: int, options: dict[int, Any]
+) -> list[zmq.Socket]:
     """``count`` sockets of ``kind`` connected to ``endpoint`` that read nothing: their own
     queue and socket buffer as small as they go, so what the daemon sends them waits in its
     own queues; ``options``: the kind's own (set after those)."""
@@ -176,8 +188,12 @@ def leave(ctx: zmq.Context, socks: list[zmq.Socket], pid: int) -> int:
 
 def rss_figures(before: int, loaded: dict[str, int], after: int) -> dict[str, float]:
     """The daemon's RSS before the clients (KiB), with them (`memory_kib`) and after they left, in MiB."""
-    return {"rss_before_mib": round(before / 1024, 1), "rss_loaded_mib": round(loaded["VmRSS"] / 1024, 1),
-            "rss_peak_mib": round(loaded["VmHWM"] / 1024, 1), "rss_after_mib": round(after / 1024, 1)}
+    return {
+        "rss_before_mib": round(before / 1024, 1),
+        "rss_loaded_mib": round(loaded["VmRSS"] / 1024, 1),
+        "rss_peak_mib": round(loaded["VmHWM"] / 1024, 1),
+        "rss_after_mib": round(after / 1024, 1),
+    }
 
 
 def unread(folder: Path, proc: subprocess.Popen, clients: int, requests: int) -> dict[str, Any]:
@@ -201,8 +217,13 @@ def unread(folder: Path, proc: subprocess.Popen, clients: int, requests: int) ->
         dropped.append(status.get("replies_dropped", 0))
     loaded = memory_kib(proc.pid)
     after = leave(ctx, socks, proc.pid)
-    return {"clients": clients, "requests_each": requests, **rss_figures(before, loaded, after),
-            "replies_dropped": status.get("replies_dropped"), "alive": proc.poll() is None}
+    return {
+        "clients": clients,
+        "requests_each": requests,
+        **rss_figures(before, loaded, after),
+        "replies_dropped": status.get("replies_dropped"),
+        "alive": proc.poll() is None,
+    }
 
 
 def stalled(folder: Path, proc: subprocess.Popen, clients: int, seconds: float) -> dict[str, Any]:
@@ -224,19 +245,24 @@ def stalled(folder: Path, proc: subprocess.Popen, clients: int, seconds: float) 
     status = control.status()
     loaded = memory_kib(proc.pid)
     after = leave(ctx, socks, proc.pid)
-    return {"clients": clients, "seconds": seconds, **rss_figures(before, loaded, after),
-            "recorder_received": received,
-            "recorder_gaps": gaps, "missed_cycles": status["missed_cycles"] - missed0,
-            "publish_connections_refused": status.get("connections", {}).get("publish", {}).get("refused"),
-            "alive": proc.poll() is None}
+    return {
+        "clients": clients,
+        "seconds": seconds,
+        **rss_figures(before, loaded, after),
+        "recorder_received": received,
+        "recorder_gaps": gaps,
+        "missed_cycles": status["missed_cycles"] - missed0,
+        "publish_connections_refused": status.get("connections", {}).get("publish", {}).get("refused"),
+        "alive": proc.poll() is None,
+    }
 
 
 def calibration(runs: int) -> dict[str, Any]:
     """Median and largest time (ms) over ``runs`` of loading a 200 MB calibration file (refused
     by its size) and one of the packaged ones padded with numbers to MAX_CALIBRATION_BYTES."""
     from ftsensord.calibration.calfile import MAX_CALIBRATION_BYTES, Calibration
-    from ftsensord.errors import ConfigError
     from ftsensord.config.file import builtin_path
+    from ftsensord.errors import ConfigError
 
     with tempfile.TemporaryDirectory() as tmp:
         huge = Path(tmp) / "huge.json"
@@ -247,11 +273,17 @@ def calibration(runs: int) -> dict[str, Any]:
         doc["fit_report"]["padding"] = [0.123456789012345] * ((MAX_CALIBRATION_BYTES - base - 64) // 19)
         full = Path(tmp) / "full.json"
         full.write_text(json.dumps(doc))
-        out: dict[str, Any] = {"runs": runs, "full_bytes": full.stat().st_size, "limit": MAX_CALIBRATION_BYTES}
+        out: dict[str, Any] = {
+            "runs": runs,
+            "full_bytes": full.stat().st_size,
+            "limit": MAX_CALIBRATION_BYTES,
+        }
         raw = full.read_bytes()
-        for name, work in (("huge_refused_ms", lambda: Calibration.load(huge)),
-                           ("at_limit_ms", lambda: Calibration.load(full)),
-                           ("at_limit_json_ms", lambda: json.loads(raw))):  # one C call: the GIL held throughout
+        for name, work in (
+            ("huge_refused_ms", lambda: Calibration.load(huge)),
+            ("at_limit_ms", lambda: Calibration.load(full)),
+            ("at_limit_json_ms", lambda: json.loads(raw)),
+        ):  # one C call: the GIL held throughout
             times = []
             for _ in range(runs):
                 t0 = time.perf_counter()
@@ -273,13 +305,19 @@ def early_stop(delays: list[float]) -> dict[str, Any]:
             config = packaged_config(folder / "ftsensord.toml")
             env = {**os.environ, "XDG_RUNTIME_DIR": str(folder)}
             env.pop("RUNTIME_DIRECTORY", None)
-            proc = subprocess.Popen([sys.executable, "-m", "ftsensord", "run", "--config", str(config)], env=env,
-                                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "ftsensord", "run", "--config", str(config)],
+                env=env,
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+            )
             time.sleep(delay)
             proc.send_signal(signal.SIGTERM)
             code = proc.wait(timeout=30)
             run = folder / "ftsensord"
-            out.append({"delay_s": delay, "exit": code, "left": sorted(os.listdir(run)) if run.exists() else []})
+            out.append(
+                {"delay_s": delay, "exit": code, "left": sorted(os.listdir(run)) if run.exists() else []}
+            )
     return {"runs": out}
 
 
@@ -305,26 +343,38 @@ print(json.dumps(times))
     out = []
     for _ in range(runs):
         with tempfile.TemporaryDirectory() as tmp:
-            done = subprocess.run([sys.executable, "-c", code, tmp], capture_output=True, text=True, check=True)
+            done = subprocess.run(
+                [sys.executable, "-c", code, tmp], capture_output=True, text=True, check=True
+            )
             out.append([round(t, 2) for t in json.loads(done.stdout)])
     return {"runs": runs, "first_second_ms": out}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("mode", choices=("descriptors", "unread", "stalled", "calibration", "early-stop",
-                                         "first-status"))
+    parser.add_argument(
+        "mode", choices=("descriptors", "unread", "stalled", "calibration", "early-stop", "first-status")
+    )
     parser.add_argument("--connections", type=int, default=3000, help="descriptors: held on each socket")
-    parser.add_argument("--clients", type=int, default=127,
-                        help="unread: DEALER clients; stalled: SUBs (at most 127: the daemon keeps 128 "
-                             "connections a socket, and this script's control client or recorder takes one)")
+    parser.add_argument(
+        "--clients",
+        type=int,
+        default=127,
+        help="unread: DEALER clients; stalled: SUBs (at most 127: the daemon keeps 128 "
+        "connections a socket, and this script's control client or recorder takes one)",
+    )
     parser.add_argument("--seconds", type=float, default=20.0, help="stalled: how long they stay")
     parser.add_argument("--requests", type=int, default=1000, help="unread: requests each")
-    parser.add_argument("--runs", type=int, default=20, help="calibration: loads timed; first-status: processes")
+    parser.add_argument(
+        "--runs", type=int, default=20, help="calibration: loads timed; first-status: processes"
+    )
     parser.add_argument("--delays", default="0.02,0.1,0.3,0.5,0.7,0.9", help="early-stop: s after the start")
     args = parser.parse_args()
-    alone = {"calibration": lambda: calibration(args.runs), "first-status": lambda: first_status(args.runs),
-             "early-stop": lambda: early_stop([float(d) for d in args.delays.split(",")])}
+    alone = {
+        "calibration": lambda: calibration(args.runs),
+        "first-status": lambda: first_status(args.runs),
+        "early-stop": lambda: early_stop([float(d) for d in args.delays.split(",")]),
+    }
     if args.mode in alone:
         print(json.dumps(alone[args.mode](), indent=1))
         return
@@ -332,14 +382,18 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         config = packaged_config(folder / "ftsensord.toml")
-        memory = MemoryGroup.make(unit.memory_max, f"ftsensord-hostile-{os.getpid()}") if unit.memory_max else None
+        memory = (
+            MemoryGroup.make(unit.memory_max, f"ftsensord-hostile-{os.getpid()}") if unit.memory_max else None
+        )
         try:
             proc, notify = sandboxed(config, folder, unit, memory)
             try:
                 run = folder / "ftsensord"
-                out = {"descriptors": lambda: descriptors(run, proc, args.connections),
-                       "unread": lambda: unread(run, proc, args.clients, args.requests),
-                       "stalled": lambda: stalled(run, proc, args.clients, args.seconds)}[args.mode]()
+                out = {
+                    "descriptors": lambda: descriptors(run, proc, args.connections),
+                    "unread": lambda: unread(run, proc, args.clients, args.requests),
+                    "stalled": lambda: stalled(run, proc, args.clients, args.seconds),
+                }[args.mode]()
                 out["limit_nofile"] = unit.limit_nofile
                 out["memory_max"] = unit.memory_max
                 out["seccomp"] = bool(unit.filters)
@@ -353,9 +407,15 @@ def main() -> None:
             out["exit_code"] = out_code
             # The cgroup's own count (page cache included, as the limit counts it), where enforced.
             peak = None if memory is None else memory.peak()
-            out["memory_group"] = None if memory is None else {
-                "v2": memory.v2, "peak_mib": None if peak is None else round(peak / 2**20, 1),
-                "oom_kills": memory.oom_kills()}
+            out["memory_group"] = (
+                None
+                if memory is None
+                else {
+                    "v2": memory.v2,
+                    "peak_mib": None if peak is None else round(peak / 2**20, 1),
+                    "oom_kills": memory.oom_kills(),
+                }
+            )
         finally:
             if memory is not None:
                 memory.remove()

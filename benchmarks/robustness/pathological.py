@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import tilted
 from ftsensord.calibration.calfile import Calibration
 from ftsensord.calibration.dataset import Dataset
 from ftsensord.calibration.fit import rmse
@@ -39,15 +40,12 @@ from ftsensord.chip.mlx90393 import HALL_SATURATION_T
 from ftsensord.cli import main as ftsensord
 from ftsensord.model import se3
 from ftsensord.model.linear import SENSOR_RANGE
-from ftsensord.sim import PhysicalScene
-from ftsensord.sim import SimSensor
-from ftsensord.sim import default_scene
+from ftsensord.sim import PhysicalScene, SimSensor, default_scene
 from ftsensord.sim.loads import FixedOrientation, StaticLoad
 
-from benchmarks.common import tilted
-
-#: The pose spoilt where a kind spoils one, and the chips. POSE: a 200 g fit pose on the arm (-0.05, -0.05, 0.05) after the no-load poses the plan records first
-# (24 in the full run: its fit pose 7, as before they came first; 12 quick: fit pose 19, the same mass and arm).
+#: The pose spoilt where a kind spoils one, and the chips. POSE: a 200 g fit pose on the arm (-0.05,
+#: -0.05, 0.05) after the no-load poses the plan records first (24 in the full run: its fit pose 7;
+#: 12 quick: fit pose 19, the same mass and arm).
 POSE, CHIP, OTHER_CHIP = 31, 3, 5
 
 
@@ -89,19 +87,20 @@ def _flux_scaled(factor: float) -> Callable[[Source], Dataset]:
         ds = copy(src.clean, flux_t=src.clean.flux_t * factor, flux_sem_t=src.clean.flux_sem_t * factor)
         ds.sweeps = {a: replace(s, flux_t=s.flux_t * factor) for a, s in ds.sweeps.items()}
         return ds
+
     return make
 
 
 def _dead_chip(src: Source) -> Dataset:
     ds = copy(src.clean)
-    ds.flux_t[:, 3 * CHIP:3 * CHIP + 3] = 0.0
-    ds.flux_sem_t[:, 3 * CHIP:3 * CHIP + 3] = 0.0
+    ds.flux_t[:, 3 * CHIP : 3 * CHIP + 3] = 0.0
+    ds.flux_sem_t[:, 3 * CHIP : 3 * CHIP + 3] = 0.0
     return ds
 
 
 def _stuck_chip(src: Source) -> Dataset:
     ds = copy(src.clean)
-    ds.flux_t[:, 3 * CHIP:3 * CHIP + 3] = ds.flux_t[0, 3 * CHIP:3 * CHIP + 3]  # the first reading, held
+    ds.flux_t[:, 3 * CHIP : 3 * CHIP + 3] = ds.flux_t[0, 3 * CHIP : 3 * CHIP + 3]  # the first reading, held
     return ds
 
 
@@ -214,7 +213,9 @@ def _magnets(change: Callable[[np.ndarray, np.random.Generator], np.ndarray]) ->
         def build(sensor: SimSensor) -> None:
             g = sensor.geometry
             sensor.geometry = replace(g, magnet_axis=change(g.magnet_axis, np.random.default_rng(5)))
+
         return src.record(build)
+
     return make
 
 
@@ -225,6 +226,7 @@ def _reversed(axis: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 def _stiffening(src: Source) -> Dataset:
     def build(sensor: SimSensor) -> None:
         sensor.stiffening = 0.3
+
     return src.record(build)
 
 
@@ -256,8 +258,15 @@ KINDS: dict[str, tuple[str, Callable[[Source], Dataset]]] = {
     "silicone-stiffening": ("silicone 30 % stiffer at range (recorded again)", _stiffening),
 }
 #: The quick mode's kinds: a few of each outcome's causes, all made without recording again.
-QUICK = ("clean", "mass-20x", "flux-1000x-small", "dead-chip", "chip-2mT-one-pose", "torques-in-Nmm",
-         "swapped-chips")
+QUICK = (
+    "clean",
+    "mass-20x",
+    "flux-1000x-small",
+    "dead-chip",
+    "chip-2mT-one-pose",
+    "torques-in-Nmm",
+    "swapped-chips",
+)
 
 
 @dataclass
@@ -283,7 +292,9 @@ def calibrate(path: Path, out: Path, *options: str) -> tuple[int, str, str]:
         out.unlink()
     with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
         code = ftsensord(["calibrate", str(path), "-o", str(out), *options])
-    errors = "\n".join(line for line in stderr.getvalue().splitlines() if "nonlinear fit: iteration" not in line)
+    errors = "\n".join(
+        line for line in stderr.getvalue().splitlines() if "nonlinear fit: iteration" not in line
+    )
     assert code == 0 or not out.exists(), f"{path}: refused, yet {out} was written"
     return code, stdout.getvalue(), errors
 
@@ -292,12 +303,20 @@ def classify(code: int, stdout: str, stderr: str) -> tuple[str, str]:
     """("refused" | "warned" | "silent", the refusal's or the warnings' text)."""
     if code != 0:
         return "refused", stderr.removeprefix("ftsensord: ").split("\nNo file written")[0].strip()
-    warnings = [line.removeprefix("WARNING: ") for line in stdout.splitlines() if line.startswith("WARNING: ")]
+    warnings = [
+        line.removeprefix("WARNING: ") for line in stdout.splitlines() if line.startswith("WARNING: ")
+    ]
     return ("warned", " / ".join(warnings)) if warnings else ("silent", "")
 
 
-def judge(kind: str, src: Source, work: Path, baseline: dict[str, np.ndarray], options: tuple[str, ...],
-          large_count: int) -> Outcome:
+def judge(
+    kind: str,
+    src: Source,
+    work: Path,
+    baseline: dict[str, np.ndarray],
+    options: tuple[str, ...],
+    large_count: int,
+) -> Outcome:
     what, make = KINDS[kind]
     ds = make(src)
     path, out = work / f"{kind}.json", work / f"{kind}-cal.json"
@@ -337,8 +356,11 @@ def source(quick: bool) -> Source:
     """The real dataset (the default scene's sensor1 as `ftsensord dataset` records it, its
     check poses at large loads included), smaller in the quick mode (none there: the linear
     fit alone judges nothing at large loads)."""
-    size = dict(poses=60, validation_poses=20, samples=4, no_load_poses=12) if quick else \
-        dict(poses=193, validation_poses=60, samples=100, no_load_poses=24, check_poses=24)
+    size = (
+        dict(poses=60, validation_poses=20, samples=4, no_load_poses=12)
+        if quick
+        else dict(poses=193, validation_poses=60, samples=100, no_load_poses=24, check_poses=24)
+    )
     return Source(simulate_dataset(None, "sensor1", "six-axis", seed=0, **size), size)  # type: ignore[arg-type]
 
 
@@ -359,7 +381,9 @@ def large_loads(cal: Calibration, scene: PhysicalScene, count: int) -> str:
         scene.set_load("sensor1", StaticLoad(w))
         scene.set_orientation("sensor1", FixedOrientation(se3.exp_so3(rng.normal(0, 1, 3) * np.pi)))
         b = np.concatenate([scene.field_t(a, 0.0) for a in cal.addresses])
-        if np.any(np.abs(b) >= HALL_SATURATION_T):  # a chip would clip: the daemon's degraded mode, not judged here
+        if np.any(
+            np.abs(b) >= HALL_SATURATION_T
+        ):  # a chip would clip: the daemon's degraded mode, not judged here
             saturated += 1
             continue
         linear = cal.model.wrench(b)
@@ -372,22 +396,34 @@ def large_loads(cal: Calibration, scene: PhysicalScene, count: int) -> str:
     for name, err in errors.items():
         if err:
             e = np.array(err)
-            out.append(f"{name} {np.sqrt(np.mean(np.sum(e[:, :3] ** 2, axis=1))):.3g} N, "
-                       f"{1e3 * np.sqrt(np.mean(np.sum(e[:, 3:] ** 2, axis=1))):.3g} mNm")
+            out.append(
+                f"{name} {np.sqrt(np.mean(np.sum(e[:, :3] ** 2, axis=1))):.3g} N, "
+                f"{1e3 * np.sqrt(np.mean(np.sum(e[:, 3:] ** 2, axis=1))):.3g} mNm"
+            )
     used = count - saturated
-    return "; ".join(out) + (f" ({fell} of {used} fell back)" if estimator is not None else "") \
+    return (
+        "; ".join(out)
+        + (f" ({fell} of {used} fell back)" if estimator is not None else "")
         + (f"; {saturated} left out, a chip saturated" if saturated else "")
+    )
 
 
 def render(outcomes: list[Outcome], command: str, elapsed: float, samples: str) -> str:
-    rows = ["| kind | what was done | outcome | `--linear-only` | message | validation RMSE if written "
-            "(worst axis / clean fit's) | large loads if written (RMS error) |", "|---|---|---|---|---|---|---|"]
+    rows = [
+        "| kind | what was done | outcome | `--linear-only` | message | validation RMSE if written "
+        "(worst axis / clean fit's) | large loads if written (RMS error) |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for o in outcomes:
-        rows.append(f"| {o.kind} | {o.what} | {o.outcome} | {o.linear_only} | {o.message.replace('|', '/')} | "
-                    f"{o.validation or '-'} | {o.large or '-'} |")
+        rows.append(
+            f"| {o.kind} | {o.what} | {o.outcome} | {o.linear_only} | {o.message.replace('|', '/')} | "
+            f"{o.validation or '-'} | {o.large or '-'} |"
+        )
     counts = {k: sum(o.outcome == k for o in outcomes[1:]) for k in ("refused", "warned", "silent")}
-    head = (f"Command: `{command}`; {elapsed:.0f} s. {samples}. {len(outcomes) - 1} pathological kinds and the "
-            f"clean control: {counts['refused']} refused, {counts['warned']} warned, {counts['silent']} silent.")
+    head = (
+        f"Command: `{command}`; {elapsed:.0f} s. {samples}. {len(outcomes) - 1} pathological kinds and the "
+        f"clean control: {counts['refused']} refused, {counts['warned']} warned, {counts['silent']} silent."
+    )
     return head + "\n\n" + "\n".join(rows) + "\n"
 
 
@@ -403,18 +439,33 @@ def main(argv: list[str] | None = None) -> int:
         options = LINEAR_ONLY if args.quick else ()
         clean = calibrate_clean(src, work, options)
         outcomes = [judge(k, src, work, clean, options, 0 if args.quick else LARGE_LOADS) for k in kinds]
-    samples = (f"Source: {len(src.clean)} poses ({int((src.clean.split == 'fit').sum())} fit, "
-               f"{int((src.clean.split == 'validation').sum())} validation, "
-               f"{int((src.clean.split == 'no-load').sum())} no-load, {int((src.clean.split == 'check').sum())} check), "
-               f"{src.clean.samples_per_pose} readings a pose")
-    samples += "; calibrated with `--linear-only`" if args.quick else "; calibrated as `ftsensord calibrate` does"
-    samples += (f". The clean fit: its largest pose kept at {float(clean['sigma']):.2g} sigma (outliers: beyond 8), "
-                f"its chips' responses at most {100 * float(clean['mismatch']):.0f} % off the model's (refused: beyond "
-                f"60), its plan's condition number {float(clean['condition']):.3g} (warned: above 150)"
-                + (f", its nonlinear residual {float(clean['residual']):.2g}x the noise (warned: above 2)"
-                   if "residual" in clean else ""))
-    print(render(outcomes, "python -m benchmarks.robustness.pathological" + (" --quick" if args.quick else ""),
-                 time.monotonic() - start, samples))
+    samples = (
+        f"Source: {len(src.clean)} poses ({int((src.clean.split == 'fit').sum())} fit, "
+        f"{int((src.clean.split == 'validation').sum())} validation, "
+        f"{int((src.clean.split == 'no-load').sum())} no-load, {int((src.clean.split == 'check').sum())} check), "
+        f"{src.clean.samples_per_pose} readings a pose"
+    )
+    samples += (
+        "; calibrated with `--linear-only`" if args.quick else "; calibrated as `ftsensord calibrate` does"
+    )
+    samples += (
+        f". The clean fit: its largest pose kept at {float(clean['sigma']):.2g} sigma (outliers: beyond 8), "
+        f"its chips' responses at most {100 * float(clean['mismatch']):.0f} % off the model's (refused: beyond "
+        f"60), its plan's condition number {float(clean['condition']):.3g} (warned: above 150)"
+        + (
+            f", its nonlinear residual {float(clean['residual']):.2g}x the noise (warned: above 2)"
+            if "residual" in clean
+            else ""
+        )
+    )
+    print(
+        render(
+            outcomes,
+            "python -m benchmarks.robustness.pathological" + (" --quick" if args.quick else ""),
+            time.monotonic() - start,
+            samples,
+        )
+    )
     return 0 if all(o.outcome != "silent" for o in outcomes[1:]) else 1
 
 
@@ -427,12 +478,18 @@ def calibrate_clean(src: Source, work: Path, options: tuple[str, ...]) -> dict[s
     assert code == 0, errors
     cal = Calibration.load(out)
     val = src.clean.select(src.clean.split == "validation")
-    figures = {"sigma": cal.report["largest_pose_kept_sigma"], "mismatch": cal.report["chip_response_mismatch"],
-               "condition": cal.report["wrench_excitation"]["condition"]}
+    figures = {
+        "sigma": cal.report["largest_pose_kept_sigma"],
+        "mismatch": cal.report["chip_response_mismatch"],
+        "condition": cal.report["wrench_excitation"]["condition"],
+    }
     if cal.nonlinear is not None:
         figures["residual"] = cal.nonlinear.fit_rms_residual_t / float(np.median(src.clean.flux_sem_t))
-    return {"linear": rmse(cal.model, val), **{k: np.array(v) for k, v in figures.items()},
-            **({} if cal.nonlinear is None else {"nonlinear": nonlinear_rmse(cal.nonlinear, val)})}
+    return {
+        "linear": rmse(cal.model, val),
+        **{k: np.array(v) for k, v in figures.items()},
+        **({} if cal.nonlinear is None else {"nonlinear": nonlinear_rmse(cal.nonlinear, val)}),
+    }
 
 
 if __name__ == "__main__":

@@ -33,12 +33,14 @@ import numpy as np
 
 from ftsensord.client import Subscriber
 from ftsensord.recording import load_rows, read_mcap
-
 from ftsensord.testing.harness import packaged_config, start_daemon, stop
 
 SIGNALS = [signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGKILL]
-FORMATS = {"csv": ["wrench/sensor1"], "npz": ["wrench/sensor1"],
-           "mcap": ["wrench/sensor1", "wrench/tip", "flux/sensor1"]}
+FORMATS = {
+    "csv": ["wrench/sensor1"],
+    "npz": ["wrench/sensor1"],
+    "mcap": ["wrench/sensor1", "wrench/tip", "flux/sensor1"],
+}
 
 
 def file_seqs(path: Path, streams: list[str]) -> dict[str, list[int]]:
@@ -56,7 +58,7 @@ def file_seqs(path: Path, streams: list[str]) -> dict[str, list[int]]:
     out: dict[str, list[int]] = {s: [] for s in streams}
     for topic, msg, _ in read_mcap(path):
         if topic.endswith("/status"):
-            out[topic[1:-len("/status")]].append(msg.seq)
+            out[topic[1 : -len("/status")]].append(msg.seq)
     return out
 
 
@@ -94,9 +96,12 @@ def main() -> None:
                 for run in range(args.runs):
                     path = tmp / f"{fmt}-{sig.name}-{run}.{fmt}"
                     t_start = time.monotonic()
-                    proc = subprocess.Popen([sys.executable, "-m", "ftsensord", "record", *streams, str(path),
-                                             "--endpoint", pub], env=env, stdout=subprocess.DEVNULL,
-                                            stderr=subprocess.DEVNULL)
+                    proc = subprocess.Popen(
+                        [sys.executable, "-m", "ftsensord", "record", *streams, str(path), "--endpoint", pub],
+                        env=env,
+                        stdout=subprocess.DEVNULL,
+                        stderr=subprocess.DEVNULL,
+                    )
                     time.sleep(args.seconds)
                     t_stop = time.monotonic()
                     proc.send_signal(sig)
@@ -118,8 +123,10 @@ def main() -> None:
         done.set()
         thread.join(timeout=5)
         stop(daemon, notify)
-    print(f"| format | stop | samples in the files ({args.runs} runs x {args.seconds:g} s) | received, lost "
-          "(holes) | lost at the end | oldest lost at the end, ms before the stop |")
+    print(
+        f"| format | stop | samples in the files ({args.runs} runs x {args.seconds:g} s) | received, lost "
+        "(holes) | lost at the end | oldest lost at the end, ms before the stop |"
+    )
     print("|---|---|---|---|---|---|")
     for fmt, sig, t in rows:
         print(f"| {fmt} | {sig} | {t['samples']} | {t['holes']} | {t['end']} | {t['end_s'] * 1e3:.1f} |")

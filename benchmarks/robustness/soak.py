@@ -22,7 +22,8 @@ settings predict (as the daemon's consistency check takes it, `channel_sigma_t`)
 as a cross-check. ``--save FILE.npz`` keeps every sample and the faults for a later look.
 Run:
 
-    python -m benchmarks.robustness.soak --minutes 30 [--scheduler overlapped] [--fifo 50] [--save F.npz]  # the docs' figures
+    python -m benchmarks.robustness.soak --minutes 30 [--scheduler overlapped] [--fifo 50] [--save \
+        F.npz]  # the docs' figures
     python -m benchmarks.robustness.soak --minutes 0.3       # quick mode (CI runs it as a test)
 """
 
@@ -38,19 +39,17 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import WRONG_SIGMA, tail_rate, unflagged_error_sigma, wrench_noise
 from ftsensord.client import ControlClient, Subscriber
-from ftsensord.model import se3
-from ftsensord.protocol import wire
 from ftsensord.config.file import Config, load_config
+from ftsensord.model import se3
 from ftsensord.processing.pipeline import channel_sigma_t
+from ftsensord.protocol import wire
 from ftsensord.sim import load_scene
 from ftsensord.sim.chip import FieldSource
 from ftsensord.sim.faults import random_faults
 from ftsensord.sim.scene import default_scene_text
-
 from ftsensord.testing.harness import packaged_config, start_daemon, stop
-
-from benchmarks.common import WRONG_SIGMA, tail_rate, unflagged_error_sigma, wrench_noise
 
 SENSORS = {"sensor1": range(0x0C, 0x14), "sensor2": range(0x14, 0x1C)}
 RATE_HZ = 100.0  # the packaged configuration's rate
@@ -108,8 +107,14 @@ CHIP_NOISE_SIGMA = 5.0
 TAIL_SAMPLES = 400_000
 
 
-def wrong_samples(samples: dict[str, list], values: dict[str, list], faults: list, config: Config,
-                  scene: FieldSource, tail_samples: int = TAIL_SAMPLES) -> dict:
+def wrong_samples(
+    samples: dict[str, list],
+    values: dict[str, list],
+    faults: list,
+    config: Config,
+    scene: FieldSource,
+    tail_samples: int = TAIL_SAMPLES,
+) -> dict:
     """Unflagged samples more than WRONG_SIGMA from the truth, per stream (see the module's
     doc), each told apart by its chips: made by noise (every chip of the stream within
     CHIP_NOISE_SIGMA of its fault-free reading) or wrong (a chip beyond, or its flux missing)."""
@@ -132,7 +137,9 @@ def wrong_samples(samples: dict[str, list], values: dict[str, list], faults: lis
         flux = np.array(values[topic])
         # A NaN (a chip not read) counts as beyond: nothing says it was right.
         off = ~(np.abs(flux - flux[ok].mean(axis=0)) / flux[ok].std(axis=0) <= CHIP_NOISE_SIGMA)
-        chips_off[name] = {r[0]: np.flatnonzero(o.reshape(-1, 3).any(axis=1)) for r, o in zip(samples[topic], off)}
+        chips_off[name] = {
+            r[0]: np.flatnonzero(o.reshape(-1, 3).any(axis=1)) for r, o in zip(samples[topic], off)
+        }
 
     out: dict = {"per_stream": {}, "wrong": []}
     for topic, rows in samples.items():
@@ -148,56 +155,91 @@ def wrong_samples(samples: dict[str, list], values: dict[str, list], faults: lis
         err = unflagged_error_sigma(v, reference, sigma, clean)
         beyond = np.flatnonzero(err > WRONG_SIGMA)
         sensors = [topic.split("/")[1]] if topic.split("/")[1] in SENSORS else list(SENSORS)
-        by_chip = {i: [f"{n}/chip{c}" for n in sensors for c in chips_off[n].get(rows[i][0], [-1])] for i in beyond}
+        by_chip = {
+            i: [f"{n}/chip{c}" for n in sensors for c in chips_off[n].get(rows[i][0], [-1])] for i in beyond
+        }
         bad = [i for i in beyond if by_chip[i]]  # a chip beyond its noise, or no flux to tell (chip -1)
         # The same comparison on the flagged samples with a value: wrong ones the flags kept
         # from the user (under a static load few: the chips left mostly give the right wrench).
         flagged = ~clean & ~np.isnan(v).any(axis=1)
         caught = int(np.sum(unflagged_error_sigma(v, reference, sigma, flagged) > WRONG_SIGMA))
         out["per_stream"][topic] = {
-            "judged_unflagged": int(clean.sum()), "reference_from": len(ref_rows),
+            "judged_unflagged": int(clean.sum()),
+            "reference_from": len(ref_rows),
             "reference": reference.round(5).tolist(),
             "bias_vs_applied": (reference - truth_load[topic]).round(5).tolist(),
             "sigma_measured": sigma.round(6).tolist(),
             "sigma_predicted": predicted[topic].round(6).tolist() if topic in predicted else None,
-            "unflagged_beyond_5_sigma": len(beyond), "made_by_noise": len(beyond) - len(bad),
-            "unflagged_wrong": len(bad), "flagged_beyond_5_sigma": caught,
+            "unflagged_beyond_5_sigma": len(beyond),
+            "made_by_noise": len(beyond) - len(bad),
+            "unflagged_wrong": len(bad),
+            "flagged_beyond_5_sigma": caught,
             "worst_unflagged_sigma": round(float(err.max(initial=0.0)), 2),
             "worst_at_s": round(float(t[np.argmax(err)]), 3) if len(err) else None,
             # Under Gaussian noise alone, over WRONG_SIGMA on one axis has odds erfc(5 / sqrt 2) = 5.7e-7.
-            "expected_by_gaussian_noise": round(float(clean.sum()) * 6 * math.erfc(WRONG_SIGMA / math.sqrt(2)), 3),
+            "expected_by_gaussian_noise": round(
+                float(clean.sum()) * 6 * math.erfc(WRONG_SIGMA / math.sqrt(2)), 3
+            ),
             # The chips' noise as it is: Gaussian, then rounded to the LSB (noise_tails.py).
-            "expected_by_chip_noise": round(float(clean.sum()) * tail_rate(noise_alone[topic], WRONG_SIGMA), 3)}
-        for i in beyond[:100 - len(out["wrong"])]:  # a regression would list thousands: the first 100 tell
-            active = [f"{f.kind}@{f.address:#x}" if f.address is not None else f.kind
-                      for f in faults if f.at_s - 0.5 <= t[i] <= f.until_s + 2.0]
+            "expected_by_chip_noise": round(
+                float(clean.sum()) * tail_rate(noise_alone[topic], WRONG_SIGMA), 3
+            ),
+        }
+        for i in beyond[: 100 - len(out["wrong"])]:  # a regression would list thousands: the first 100 tell
+            active = [
+                f"{f.kind}@{f.address:#x}" if f.address is not None else f.kind
+                for f in faults
+                if f.at_s - 0.5 <= t[i] <= f.until_s + 2.0
+            ]
             axis = int(np.argmax(np.abs(v[i] - reference) / sigma))
             off = abs(v[i, axis] - reference[axis])  # the same error in the predicted sigma, for comparison
-            out["wrong"].append({"stream": topic, "t_s": round(float(t[i]), 3), "seq": rows[i][0],
-                                 "sigma": round(float(err[i]), 2), "axis": ["Fx", "Fy", "Fz", "Mx", "My", "Mz"][axis],
-                                 "predicted_sigmas": round(float(off / predicted[topic][axis]), 2)
-                                 if topic in predicted else None,
-                                 "chips_beyond_noise": by_chip[i] or ["none: made by noise"],
-                                 "flags": wire.flag_names(rows[i][2]), "faults_around": active or ["none"]})
+            out["wrong"].append(
+                {
+                    "stream": topic,
+                    "t_s": round(float(t[i]), 3),
+                    "seq": rows[i][0],
+                    "sigma": round(float(err[i]), 2),
+                    "axis": ["Fx", "Fy", "Fz", "Mx", "My", "Mz"][axis],
+                    "predicted_sigmas": round(float(off / predicted[topic][axis]), 2)
+                    if topic in predicted
+                    else None,
+                    "chips_beyond_noise": by_chip[i] or ["none: made by noise"],
+                    "flags": wire.flag_names(rows[i][2]),
+                    "faults_around": active or ["none"],
+                }
+            )
     for key in ("unflagged_beyond_5_sigma", "made_by_noise", "unflagged_wrong"):
         out[key] = sum(s[key] for s in out["per_stream"].values())
-    out["worst_unflagged_sigma"] = max((s["worst_unflagged_sigma"] for s in out["per_stream"].values()), default=0.0)
+    out["worst_unflagged_sigma"] = max(
+        (s["worst_unflagged_sigma"] for s in out["per_stream"].values()), default=0.0
+    )
     return out
 
 
-def soak(minutes: float, seed: int = 1, per_minute: float = 6.0, scheduler: str = "burst", fifo: int = 0,
-         save: Path | None = None) -> dict:
+def soak(
+    minutes: float,
+    seed: int = 1,
+    per_minute: float = 6.0,
+    scheduler: str = "burst",
+    fifo: int = 0,
+    save: Path | None = None,
+) -> dict:
     """``fifo``: run the daemon SCHED_FIFO at this priority, as the systemd unit does (0: not);
     ``save``: an .npz file to keep every sample in (wrench and flux streams, and the faults)."""
     duration = minutes * 60
     rng = np.random.default_rng(seed)
-    faults = [f for f in random_faults(list(range(0x0C, 0x1C)), duration, rng, per_minute=per_minute)
-              if f.kind != "slow"]
+    faults = [
+        f
+        for f in random_faults(list(range(0x0C, 0x1C)), duration, rng, per_minute=per_minute)
+        if f.kind != "slow"
+    ]
     with tempfile.TemporaryDirectory() as tmp:
         tmp_path = Path(tmp)
         (tmp_path / "scene.toml").write_text(scene_text(faults))
         scene = load_scene(tmp_path / "scene.toml")  # the truth of the noise-alone expectation
-        config = packaged_config(tmp_path / "ftsensord.toml", bus='"sim:scene.toml"', scheduler=f'"{scheduler}"')
+        config = packaged_config(
+            tmp_path / "ftsensord.toml", bus='"sim:scene.toml"', scheduler=f'"{scheduler}"'
+        )
         parsed = load_config(config)
         proc, notify = start_daemon(config, tmp_path, fifo=fifo)
         folder = tmp_path / "ftsensord"
@@ -227,13 +269,19 @@ def soak(minutes: float, seed: int = 1, per_minute: float = 6.0, scheduler: str 
         status1 = control.status() if alive else {}
         exit_code = stop(proc, notify)
     if save:
-        np.savez_compressed(save, fault_kind=np.array([f.kind for f in faults]),
-                            fault_at_s=np.array([f.at_s for f in faults]),
-                            fault_until_s=np.array([f.until_s for f in faults]),
-                            fault_address=np.array([-1 if f.address is None else f.address for f in faults]),
-                            **{f"{t}:{k}": np.array([r[i] for r in samples[t]]) for t in topics
-                               for i, k in enumerate(("seq", "t_s", "flags"))},
-                            **{f"{t}:values": np.array(values[t]) for t in topics})
+        np.savez_compressed(
+            save,
+            fault_kind=np.array([f.kind for f in faults]),
+            fault_at_s=np.array([f.at_s for f in faults]),
+            fault_until_s=np.array([f.until_s for f in faults]),
+            fault_address=np.array([-1 if f.address is None else f.address for f in faults]),
+            **{
+                f"{t}:{k}": np.array([r[i] for r in samples[t]])
+                for t in topics
+                for i, k in enumerate(("seq", "t_s", "flags"))
+            },
+            **{f"{t}:values": np.array(values[t]) for t in topics},
+        )
     wrong = wrong_samples(samples, values, faults, parsed, scene)
     samples = {t: v for t, v in samples.items() if t.startswith("wrench/")}
     flagged = {t: sum(1 for _, _, f in v if f) for t, v in samples.items()}
@@ -272,22 +320,32 @@ def soak(minutes: float, seed: int = 1, per_minute: float = 6.0, scheduler: str 
     worst = int(np.argmax(np.diff(times))) if len(s1) > 1 else 0
     t_silence = s1[worst][1] if s1 else 0.0
     return {
-        "minutes": minutes, "scheduler": scheduler, "daemon_fifo": fifo,
+        "minutes": minutes,
+        "scheduler": scheduler,
+        "daemon_fifo": fifo,
         "faults_injected": len([f for f in faults if f.at_s < duration]),
         "fault_kinds": sorted({f.kind for f in faults}),
-        "samples": {t: len(v) for t, v in samples.items()}, "flagged": flagged, "sequence_gaps": gaps,
-        "longest_silence_s": silences, "longest_silence_at_s": t_silence,
+        "samples": {t: len(v) for t, v in samples.items()},
+        "flagged": flagged,
+        "sequence_gaps": gaps,
+        "longest_silence_s": silences,
+        "longest_silence_at_s": t_silence,
         "longest_silence_during": [f.kind for f in faults if f.at_s - 0.05 <= t_silence <= f.until_s + 1.0],
-        "late_samples_by_fault_kind": dict(late_by_kind), "silences_over_1_5_periods": silences_over,
-        "skipped_deadlines_seen": skips, "share_of_time_near_a_fault": 1 - near.count("no fault") / max(len(near), 1),
+        "late_samples_by_fault_kind": dict(late_by_kind),
+        "silences_over_1_5_periods": silences_over,
+        "skipped_deadlines_seen": skips,
+        "share_of_time_near_a_fault": 1 - near.count("no fault") / max(len(near), 1),
         "recoveries": len(recoveries),
         "recovery_max_s": max(recoveries, default=None),
         "recovery_median_s": float(np.median(recoveries)) if recoveries else None,
         # Counted from when the soak connected: start-up is not what it judges.
         **{k: status1[k] - status0[k] for k in ("cycles", "missed_cycles", "late_cycles") if k in status1},
-        "missed_cycles_before_watch": status0["missed_cycles"], "rss_kib_start": rss[0], "rss_kib_end": rss_end,
+        "missed_cycles_before_watch": status0["missed_cycles"],
+        "rss_kib_start": rss[0],
+        "rss_kib_end": rss_end,
         "rss_kib_each_minute": rss[1:],
-        "alive_at_end": alive, "exit_code": exit_code,
+        "alive_at_end": alive,
+        "exit_code": exit_code,
         "wrong_samples": wrong,
     }
 
@@ -298,10 +356,18 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--per-minute", type=float, default=6.0, help="faults per minute on average")
     parser.add_argument("--scheduler", choices=("overlapped", "burst"), default="burst")
-    parser.add_argument("--fifo", type=int, default=0,
-                        help="run the daemon SCHED_FIFO at this priority (0: not; the unit: 50)")
-    parser.add_argument("--save", type=Path, default=None,
-                        help="keep every sample (wrench and flux streams) and the faults in this .npz")
+    parser.add_argument(
+        "--fifo",
+        type=int,
+        default=0,
+        help="run the daemon SCHED_FIFO at this priority (0: not; the unit: 50)",
+    )
+    parser.add_argument(
+        "--save",
+        type=Path,
+        default=None,
+        help="keep every sample (wrench and flux streams) and the faults in this .npz",
+    )
     args = parser.parse_args()
     report = soak(args.minutes, args.seed, args.per_minute, args.scheduler, args.fifo, args.save)
     print(json.dumps(report, indent=1))

@@ -1,7 +1,8 @@
 """The systemd unit's own restrictions on a process started here, without systemd: its
 `SystemCallFilter=` installed with seccomp before exec, its resource limits with
 setrlimit, its `MemoryMax=` as a memory cgroup where this host lets us make one
-(`MemoryGroup`), the `--realtime` its ExecStart= gives the daemon. The tests run the daemon under them (tests/test_unit_sandbox.py),
+(`MemoryGroup`), the `--realtime` its ExecStart= gives the daemon. The tests run the daemon under them
+(tests/test_unit_sandbox.py),
 because `systemd-analyze verify` and `security` read the unit but never run the program:
 a filter that kills the daemon at start passes both.
 
@@ -133,22 +134,28 @@ class UnitRestrictions:
             allowed = allowed - calls if deny else allowed | calls
         return allowed
 
-    def preexec(self, groups: dict[str, list[str]] | None = None,
-                memory: MemoryGroup | None = None) -> Callable[[], None]:
+    def preexec(
+        self, groups: dict[str, list[str]] | None = None, memory: MemoryGroup | None = None
+    ) -> Callable[[], None]:
         """A `subprocess.Popen` ``preexec_fn`` that applies these restrictions in the child,
         in systemd's order: its cgroup (``memory``, made for `memory_max`) and limits first,
         the system call filter last."""
         allowed = self.allowed_calls(groups if groups is not None else syscall_groups())
         lib = _libseccomp()
         # Resolved here, not in the child: the child should do as little as possible.
-        numbers = sorted({n for n in (lib.seccomp_syscall_resolve_name(c.encode()) for c in allowed or ())
-                          if n >= 0})
+        numbers = sorted(
+            {n for n in (lib.seccomp_syscall_resolve_name(c.encode()) for c in allowed or ()) if n >= 0}
+        )
         err = getattr(errno, self.error_number)
         # A hard limit above this process's own cannot be raised without privilege: kept at ours.
         hard = resource.getrlimit(resource.RLIMIT_NOFILE)[1]
         nofile = (min(self.limit_nofile[0], hard), min(self.limit_nofile[1], hard))
         rtprio_hard = resource.getrlimit(resource.RLIMIT_RTPRIO)[1]
-        rtprio = min(self.limit_rtprio, rtprio_hard) if rtprio_hard != resource.RLIM_INFINITY else self.limit_rtprio
+        rtprio = (
+            min(self.limit_rtprio, rtprio_hard)
+            if rtprio_hard != resource.RLIM_INFINITY
+            else self.limit_rtprio
+        )
 
         def apply() -> None:
             if memory is not None:
@@ -202,7 +209,8 @@ class MemoryGroup:
                 (path / group._limit_file).write_text(str(limit))
                 if not swap:  # v1's memsw counts memory and swap together: the same limit
                     (path / ("memory.swap.max" if v2 else "memory.memsw.limit_in_bytes")).write_text(
-                        "0" if v2 else str(limit))
+                        "0" if v2 else str(limit)
+                    )
             except OSError:  # v2 without memory delegated to our group, or no swap accounting
                 path.rmdir()
                 continue

@@ -34,13 +34,22 @@ from benchmarks.common import ROOT
 
 REPO = ROOT
 UNIT = REPO / "systemd" / "ftsensord.service"
-SYSTEMD = next((p for p in (Path("/lib/systemd/systemd"), Path("/usr/lib/systemd/systemd")) if p.exists()), None)
+SYSTEMD = next(
+    (p for p in (Path("/lib/systemd/systemd"), Path("/usr/lib/systemd/systemd")) if p.exists()), None
+)
 SYSTEM_PYTHON = Path("/usr/bin/python3")
 #: Units of the host that the boot must not run: they act on shared files (tmpfiles
 #: empties /tmp, which is the host's) even in namespaces of its own.
-MASKED = ("systemd-tmpfiles-setup.service", "systemd-tmpfiles-setup-dev.service", "systemd-tmpfiles-clean.timer",
-          "sysinit.target", "basic.target", "systemd-journald.service", "systemd-journald.socket",
-          "systemd-journald-dev-log.socket")
+MASKED = (
+    "systemd-tmpfiles-setup.service",
+    "systemd-tmpfiles-setup-dev.service",
+    "systemd-tmpfiles-clean.timer",
+    "sysinit.target",
+    "basic.target",
+    "systemd-journald.service",
+    "systemd-journald.socket",
+    "systemd-journald-dev-log.socket",
+)
 
 
 def why_not() -> str | None:
@@ -66,37 +75,45 @@ def _boot_script(config: Path, dropins: list[str]) -> str:
     version = f"python{sys.version_info.major}.{sys.version_info.minor}"
     units = "/run/systemd/system"
     q = shlex.quote
-    return "\n".join([
-        "set -eu",
-        "mount --make-rprivate /",
-        "mount -t tmpfs -o mode=755 tmpfs /run",
-        f"mkdir -p {units}/ftsensord.service.d",
-        # /etc and /opt writable over the host's, the changes in the namespace's /run only.
-        *(f"mkdir -p /run/over{d}/upper /run/over{d}/work && mount -t overlay overlay "
-          f"-o lowerdir={d},upperdir=/run/over{d}/upper,workdir=/run/over{d}/work {d}" for d in ("/etc", "/opt")),
-        # README, "As a service": the i2c group, the user, the environment, the configuration.
-        "getent group i2c >/dev/null || groupadd --system i2c",
-        "useradd --system --no-create-home --groups i2c ftsensord",
-        "rm -rf /opt/ftsensord",
-        f"{SYSTEM_PYTHON} -m venv --without-pip /opt/ftsensord",
-        # The checkout and the packages are bound into /run: where they are (/tmp, /home) the
-        # unit may hide (PrivateTmp=, ProtectHome=).
-        f"mkdir -p /run/checkout/src /run/checkout/site && mount --bind {q(str(REPO))} /run/checkout/src "
-        f"&& mount --bind {q(site)} /run/checkout/site",
-        f"printf '%s\\n' /run/checkout/src /run/checkout/site > /opt/ftsensord/lib/{version}/site-packages/checkout.pth",
-        "printf '#!/opt/ftsensord/bin/python3\\nimport sys\\nfrom ftsensord.__main__ import main\\n"
-        "sys.exit(main())\\n' > /opt/ftsensord/bin/ftsensord && chmod 755 /opt/ftsensord/bin/ftsensord",
-        f"install -d /etc/ftsensord && cp {q(str(config))} /etc/ftsensord/ftsensord.toml",
-        f"cp {q(str(UNIT))} {units}/",
-        *(f"ln -s /dev/null {units}/{u}" for u in MASKED),
-        f"printf '[Unit]\\nDefaultDependencies=no\\n[Service]\\nStandardOutput=append:{LOG}\\n"
-        f"StandardError=inherit\\n' > {units}/ftsensord.service.d/test.conf",
-        *(f"printf '[Service]\\n%s\\n' {q(line)} > {units}/ftsensord.service.d/extra{i}.conf"
-          for i, line in enumerate(dropins)),
-        f"printf '[Unit]\\nDefaultDependencies=no\\nWants=ftsensord.service\\n' > {units}/fts-test.target",
-        "export container=ftsensord-test",
-        f"exec {SYSTEMD} --system --unit=fts-test.target --log-target=console --show-status=no",
-    ])
+    return "\n".join(
+        [
+            "set -eu",
+            "mount --make-rprivate /",
+            "mount -t tmpfs -o mode=755 tmpfs /run",
+            f"mkdir -p {units}/ftsensord.service.d",
+            # /etc and /opt writable over the host's, the changes in the namespace's /run only.
+            *(
+                f"mkdir -p /run/over{d}/upper /run/over{d}/work && mount -t overlay overlay "
+                f"-o lowerdir={d},upperdir=/run/over{d}/upper,workdir=/run/over{d}/work {d}"
+                for d in ("/etc", "/opt")
+            ),
+            # README, "As a service": the i2c group, the user, the environment, the configuration.
+            "getent group i2c >/dev/null || groupadd --system i2c",
+            "useradd --system --no-create-home --groups i2c ftsensord",
+            "rm -rf /opt/ftsensord",
+            f"{SYSTEM_PYTHON} -m venv --without-pip /opt/ftsensord",
+            # The checkout and the packages are bound into /run: where they are (/tmp, /home) the
+            # unit may hide (PrivateTmp=, ProtectHome=).
+            f"mkdir -p /run/checkout/src /run/checkout/site && mount --bind {q(str(REPO))} /run/checkout/src "
+            f"&& mount --bind {q(site)} /run/checkout/site",
+            f"printf '%s\\n' /run/checkout/src /run/checkout/site "
+            f"> /opt/ftsensord/lib/{version}/site-packages/checkout.pth",
+            "printf '#!/opt/ftsensord/bin/python3\\nimport sys\\nfrom ftsensord.__main__ import main\\n"
+            "sys.exit(main())\\n' > /opt/ftsensord/bin/ftsensord && chmod 755 /opt/ftsensord/bin/ftsensord",
+            f"install -d /etc/ftsensord && cp {q(str(config))} /etc/ftsensord/ftsensord.toml",
+            f"cp {q(str(UNIT))} {units}/",
+            *(f"ln -s /dev/null {units}/{u}" for u in MASKED),
+            f"printf '[Unit]\\nDefaultDependencies=no\\n[Service]\\nStandardOutput=append:{LOG}\\n"
+            f"StandardError=inherit\\n' > {units}/ftsensord.service.d/test.conf",
+            *(
+                f"printf '[Service]\\n%s\\n' {q(line)} > {units}/ftsensord.service.d/extra{i}.conf"
+                for i, line in enumerate(dropins)
+            ),
+            f"printf '[Unit]\\nDefaultDependencies=no\\nWants=ftsensord.service\\n' > {units}/fts-test.target",
+            "export container=ftsensord-test",
+            f"exec {SYSTEMD} --system --unit=fts-test.target --log-target=console --show-status=no",
+        ]
+    )
 
 
 class SystemdHost:
@@ -113,12 +130,30 @@ class SystemdHost:
         script = self.work / "boot.sh"
         script.write_text(_boot_script(self.config, self.dropins))
         with open(self.work / "systemd.log", "w") as log:
-            self.proc = subprocess.Popen(["unshare", "--fork", "--pid", "--mount", "--net", "--uts", "--ipc",
-                                          "--mount-proc", "bash", str(script)], stdout=log, stderr=subprocess.STDOUT)
+            self.proc = subprocess.Popen(
+                [
+                    "unshare",
+                    "--fork",
+                    "--pid",
+                    "--mount",
+                    "--net",
+                    "--uts",
+                    "--ipc",
+                    "--mount-proc",
+                    "bash",
+                    str(script),
+                ],
+                stdout=log,
+                stderr=subprocess.STDOUT,
+            )
         deadline = time.monotonic() + 30
         while time.monotonic() < deadline and self.proc.poll() is None:
             self.pid = self._namespace_init()
-            if self.pid and self.systemctl("is-system-running").stdout.strip() in ("running", "degraded", "starting"):
+            if self.pid and self.systemctl("is-system-running").stdout.strip() in (
+                "running",
+                "degraded",
+                "starting",
+            ):
                 return self
             time.sleep(0.2)
         self.__exit__()
@@ -134,8 +169,12 @@ class SystemdHost:
 
     def run(self, *argv: str, timeout: float = 30) -> subprocess.CompletedProcess:
         """A command inside the namespaces (as root)."""
-        return subprocess.run(["nsenter", "-t", str(self.pid), "-m", "-p", "-n", "-u", "-i", *argv],
-                              capture_output=True, text=True, timeout=timeout)
+        return subprocess.run(
+            ["nsenter", "-t", str(self.pid), "-m", "-p", "-n", "-u", "-i", *argv],
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+        )
 
     def systemctl(self, *args: str) -> subprocess.CompletedProcess:
         return self.run("systemctl", "--no-pager", *args)
@@ -149,7 +188,9 @@ class SystemdHost:
         """Until the unit's ``prop`` is one of ``values``; the last `show` of it and a few more."""
         deadline = time.monotonic() + timeout
         while True:
-            state = self.show(prop, "ActiveState", "SubState", "Result", "ExecMainStatus", "NRestarts", "StatusText")
+            state = self.show(
+                prop, "ActiveState", "SubState", "Result", "ExecMainStatus", "NRestarts", "StatusText"
+            )
             if state.get(prop) in values or time.monotonic() > deadline:
                 return state
             time.sleep(0.2)
@@ -170,7 +211,9 @@ class SystemdHost:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--dropin", action="append", default=[], help="an extra [Service] line, e.g. CPUWeight=100")
+    parser.add_argument(
+        "--dropin", action="append", default=[], help="an extra [Service] line, e.g. CPUWeight=100"
+    )
     parser.add_argument("--work", type=Path, default=REPO / "build" / "unit-systemd")
     parser.add_argument("--seconds", type=float, default=5.0, help="how long to let it run before the status")
     args = parser.parse_args(argv)

@@ -20,9 +20,9 @@ import statistics
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ftsensord.acquire.bus import parse_bus
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.chip.i2c import I2C_RDWR_MAX_MSGS, Bus, BusTiming, wire_bits
-from ftsensord.acquire.bus import parse_bus
 
 #: Where the kernel lists I2C adapters.
 SYSFS_I2C = Path("/sys/class/i2c-adapter")
@@ -32,8 +32,12 @@ SYSFS_I2C = Path("/sys/class/i2c-adapter")
 #: loses 20 % or more (250 MHz to 200 MHz on a Pi 4, 400 to 250 MHz on a Pi 3).
 CLOCK_TOLERANCE = 0.10
 #: Driver (or adapter) names and the rules they follow (`chip.i2c.ADAPTER_RULES`).
-DRIVER_KINDS = (("bcm2835", "bcm2835"), ("designware", "designware"), ("dw_i2c", "designware"),
-                ("dw-i2c", "designware"))
+DRIVER_KINDS = (
+    ("bcm2835", "bcm2835"),
+    ("designware", "designware"),
+    ("dw_i2c", "designware"),
+    ("dw-i2c", "designware"),
+)
 
 
 def adapter_kind(name: str | None) -> str | None:
@@ -152,7 +156,8 @@ class BoardReport:
             self.warnings.append(
                 f"the kernel runs this I2C adapter at {self.configured_hz / 1e3:.0f} kHz (device tree "
                 f"clock-frequency) where {self.wanted_hz / 1e3:.0f} kHz is configured: on a Raspberry Pi add "
-                f"dtparam=i2c_arm_baudrate={self.wanted_hz:.0f} to config.txt and reboot")
+                f"dtparam=i2c_arm_baudrate={self.wanted_hz:.0f} to config.txt and reboot"
+            )
         expected = self.configured_hz or self.wanted_hz
         m = self.measured
         if m is not None and m.clock_hz < expected * (1 - CLOCK_TOLERANCE):
@@ -160,7 +165,8 @@ class BoardReport:
                 f"the I2C clock measures {m.clock_hz / 1e3:.0f} kHz where {expected / 1e3:.0f} kHz is set: on a "
                 "Raspberry Pi 0-4 it is divided from the core clock, which drops under load; fix the core "
                 "clock in config.txt (core_freq_min equal to core_freq, e.g. core_freq=500 and "
-                "core_freq_min=500 on a Pi 4, or force_turbo=1). The bound uses the measured clock")
+                "core_freq_min=500 on a Pi 4, or force_turbo=1). The bound uses the measured clock"
+            )
 
 
 def know_board(bus: Bus, address: int | None, wanted_hz: float, root: Path = SYSFS_I2C) -> BoardReport:

@@ -59,6 +59,8 @@ class Shapes:
         if self.many_addresses:
             return "one chip's (write, read) an ioctl (writes to many chips then one read taken; reads last only)"
         return "one chip an ioctl"
+
+
 #: Bits of one command on the wire: start, address, command byte; then repeated
 #: start, address, status byte (SM), or status and six data bytes (RM of X, Y, Z).
 SM_BITS = (1 + BITS_PER_BYTE * 2) + (1 + BITS_PER_BYTE * 2)
@@ -91,23 +93,33 @@ class CycleBound:
         return 1.0 / self.cycle_s
 
     def describe(self) -> str:
-        return (f"{self.scheduler}: {self.rate_hz:.1f} Hz at most ({self.cycle_s * 1e3:.2f} ms a cycle: "
-                f"start {self.start_s * 1e3:.2f}, wait {self.wait_s * 1e3:.2f}, read {self.read_s * 1e3:.2f}, "
-                f"check {self.check_s * 1e3:.2f} ms) for {self.n_chips} chips on a {self.bus_hz / 1e3:g} kHz bus, "
-                f"{self.ioctls} ioctls of {self.overhead_s * 1e6:.0f} us ({self.adapter or 'unknown adapter'})")
+        return (
+            f"{self.scheduler}: {self.rate_hz:.1f} Hz at most ({self.cycle_s * 1e3:.2f} ms a cycle: "
+            f"start {self.start_s * 1e3:.2f}, wait {self.wait_s * 1e3:.2f}, read {self.read_s * 1e3:.2f}, "
+            f"check {self.check_s * 1e3:.2f} ms) for {self.n_chips} chips on a {self.bus_hz / 1e3:g} kHz bus, "
+            f"{self.ioctls} ioctls of {self.overhead_s * 1e6:.0f} us ({self.adapter or 'unknown adapter'})"
+        )
 
 
-def _transfers_s(n_chips: int, bits_per_chip: int, per_transfer: int, bus_hz: float,
-                 overhead_s: float) -> tuple[float, int]:
+def _transfers_s(
+    n_chips: int, bits_per_chip: int, per_transfer: int, bus_hz: float, overhead_s: float
+) -> tuple[float, int]:
     """Time (s) and ioctls of ``n_chips`` commands, ``per_transfer`` chips an ioctl
     (one stop bit and one fixed cost each)."""
     transfers = math.ceil(n_chips / per_transfer)
     return (n_chips * bits_per_chip + transfers) / bus_hz + transfers * overhead_s, transfers
 
 
-def cycle_bound(scheduler: str, n_chips: int, settings: mlx.Settings, bus_hz: float,
-                overhead_s: float = 0.0, readback: bool = True, temperature: bool = False,
-                adapter: str | None = "permissive") -> CycleBound:
+def cycle_bound(
+    scheduler: str,
+    n_chips: int,
+    settings: mlx.Settings,
+    bus_hz: float,
+    overhead_s: float = 0.0,
+    readback: bool = True,
+    temperature: bool = False,
+    adapter: str | None = "permissive",
+) -> CycleBound:
     """The fastest cycle for ``n_chips`` at ``settings`` on a ``bus_hz`` bus.
 
     ``bus_hz`` is the clock the wire really runs at, when it is known.
@@ -131,7 +143,9 @@ def cycle_bound(scheduler: str, n_chips: int, settings: mlx.Settings, bus_hz: fl
     check = n_rr * ((RR_BITS + 1) / bus_hz + overhead_s) if readback else 0.0
 
     def bound(start: float, wait: float, read: float, check: float, ioctls: int) -> CycleBound:
-        return CycleBound(scheduler, n_chips, bus_hz, start, wait, read, check, ioctls + checks, overhead_s, adapter)
+        return CycleBound(
+            scheduler, n_chips, bus_hz, start, wait, read, check, ioctls + checks, overhead_s, adapter
+        )
 
     if scheduler == "naive":
         return bound(n_chips * sm_one, n_chips * conversion, n_chips * rm_one, check, 2 * n_chips)
@@ -143,12 +157,20 @@ def cycle_bound(scheduler: str, n_chips: int, settings: mlx.Settings, bus_hz: fl
         # Every SM with its status read (`Transfers.start_all`): chip k's SM ends k SMs
         # into the transfers, its RM comes k RMs after the first, and an RM is longer,
         # so waiting for the first chip's conversion is enough for all.
-        start, start_ioctls = _transfers_s(n_sm, SM_BITS, shapes.pairs_per_transfer, bus_hz, overhead_s) \
-            if n_sm else (0.0, 0)
+        start, start_ioctls = (
+            _transfers_s(n_sm, SM_BITS, shapes.pairs_per_transfer, bus_hz, overhead_s) if n_sm else (0.0, 0)
+        )
         first = overhead_s + (1 + BITS_PER_BYTE * 2) / bus_hz
-        rm_at = overlapped_rm_at(first + conversion, start + check, conversion, first,
-                                 last_offset_s(n_chips, rm_bits, shapes.pairs_per_transfer, bus_hz, overhead_s)
-                                 if readback else None, sm_one if readback else 0.0)
+        rm_at = overlapped_rm_at(
+            first + conversion,
+            start + check,
+            conversion,
+            first,
+            last_offset_s(n_chips, rm_bits, shapes.pairs_per_transfer, bus_hz, overhead_s)
+            if readback
+            else None,
+            sm_one if readback else 0.0,
+        )
         if readback:
             start += sm_one
             start_ioctls += 1
@@ -161,8 +183,14 @@ def cycle_bound(scheduler: str, n_chips: int, settings: mlx.Settings, bus_hz: fl
     raise ConfigError(f"scheduler: expected one of {', '.join(SCHEDULERS)}, got {scheduler!r}")
 
 
-def overlapped_rm_at(first_ready: float, checked: float, conversion: float, first: float,
-                     last_offset: float | None, sm_one: float) -> float:
+def overlapped_rm_at(
+    first_ready: float,
+    checked: float,
+    conversion: float,
+    first: float,
+    last_offset: float | None,
+    sm_one: float,
+) -> float:
     """When the RM transfers of an overlapped cycle may begin (s from the cycle's start).
 
     Not before the first chip's conversion is done (``first_ready``: its SM's ioctl
@@ -188,8 +216,9 @@ def last_offset_s(n_chips: int, rm_bits: int, per_transfer: int, bus_hz: float, 
     return transfers * full + overhead_s + (k * rm_bits + 1 + BITS_PER_BYTE * 2) / bus_hz
 
 
-def burst_readback_stays_fresh(bound: CycleBound, settings: mlx.Settings, rate_hz: float,
-                               temperature: bool = False) -> bool:
+def burst_readback_stays_fresh(
+    bound: CycleBound, settings: mlx.Settings, rate_hz: float, temperature: bool = False
+) -> bool:
     """Whether reading a chip's registers back in burst mode (EX, RR, SB, which restart
     its burst) leaves it time for a new result before the next cycle reads it: a period
     of at least a whole cycle plus one burst interval. The read-back follows the publish
@@ -199,7 +228,8 @@ def burst_readback_stays_fresh(bound: CycleBound, settings: mlx.Settings, rate_h
     after the RM (`Reader.read`). Either way this suffices. ``temperature``: the burst
     converts T too."""
     return 1.0 / rate_hz >= bound.cycle_s + _burst_interval_s(
-        settings, mlx.ZYXT_XYZT if temperature else mlx.ZYXT_XYZ)
+        settings, mlx.ZYXT_XYZT if temperature else mlx.ZYXT_XYZ
+    )
 
 
 def _burst_interval_s(settings: mlx.Settings, zyxt: int = mlx.ZYXT_XYZ) -> float:

@@ -27,8 +27,10 @@ from ftsensord.errors import ConfigError, FtsensordError
 
 log = logging.getLogger("ftsensord")
 
-ACCEPTED_FORMS = ("'i2c:<N>' (e.g. i2c:1), 'i2c:/dev/i2c-<N>', 'sim', or 'sim:<scene file>'; "
-                  "a sim form may end in options '?adapter=permissive|bcm2835|designware&ioctl_us=<us>&clock_hz=<Hz>'")
+ACCEPTED_FORMS = (
+    "'i2c:<N>' (e.g. i2c:1), 'i2c:/dev/i2c-<N>', 'sim', or 'sim:<scene file>'; "
+    "a sim form may end in options '?adapter=permissive|bcm2835|designware&ioctl_us=<us>&clock_hz=<Hz>'"
+)
 #: The options of a simulated bus: what each accepts.
 SIM_OPTIONS = {
     "adapter": " or ".join(ADAPTER_RULES),
@@ -48,15 +50,20 @@ class BusUnavailableError(FtsensordError, OSError):
 def _unavailable(path: str, exc: OSError) -> BusUnavailableError:
     """What to do about ``exc`` opening ``path``: the first thing a Pi user meets."""
     import glob
+
     if isinstance(exc, PermissionError):
-        how = ("permission denied: add the user to the device's group (`sudo usermod -aG i2c $USER`, then "
-               "log in again; the systemd unit has SupplementaryGroups=i2c)")
+        how = (
+            "permission denied: add the user to the device's group (`sudo usermod -aG i2c $USER`, then "
+            "log in again; the systemd unit has SupplementaryGroups=i2c)"
+        )
     else:
         present = sorted(glob.glob("/dev/i2c-*"))
-        how = ("it does not exist: I2C is off or the i2c-dev module is not loaded. On a Raspberry Pi: "
-               "`sudo raspi-config nonint do_i2c 0` (or dtparam=i2c_arm=on in /boot/firmware/config.txt) and "
-               "reboot; elsewhere `sudo modprobe i2c-dev` (and i2c-dev in /etc/modules). "
-               + (f"Adapters here: {', '.join(present)}" if present else "No /dev/i2c-* exists here"))
+        how = (
+            "it does not exist: I2C is off or the i2c-dev module is not loaded. On a Raspberry Pi: "
+            "`sudo raspi-config nonint do_i2c 0` (or dtparam=i2c_arm=on in /boot/firmware/config.txt) and "
+            "reboot; elsewhere `sudo modprobe i2c-dev` (and i2c-dev in /etc/modules). "
+            + (f"Adapters here: {', '.join(present)}" if present else "No /dev/i2c-* exists here")
+        )
     error = BusUnavailableError(f"{path}: {how}")  # not (errno, text): "[Errno 2]" helps no one here
     error.errno = exc.errno
     return error
@@ -78,10 +85,13 @@ class BusSpec:
         if self.kind != "sim":
             return BusTiming()
         from ftsensord.sim.bus import DEFAULT_ADAPTER, DEFAULT_IOCTL_S
+
         ioctl_us = self.options.get("ioctl_us")
-        return BusTiming(str(self.options.get("adapter", DEFAULT_ADAPTER)),
-                         DEFAULT_IOCTL_S if ioctl_us is None else float(ioctl_us) * 1e-6,  # type: ignore[arg-type]
-                         self.options.get("clock_hz"))  # type: ignore[arg-type]
+        return BusTiming(
+            str(self.options.get("adapter", DEFAULT_ADAPTER)),
+            DEFAULT_IOCTL_S if ioctl_us is None else float(ioctl_us) * 1e-6,  # type: ignore[arg-type]
+            self.options.get("clock_hz"),  # type: ignore[arg-type]
+        )
 
 
 class LinuxI2CBus:
@@ -93,8 +103,9 @@ class LinuxI2CBus:
     `acquire.board` measured (None until then).
     """
 
-    def __init__(self, device: int | str, smbus: SMBus | None = None, *,
-                 exclusive: bool = False, force: bool = False):
+    def __init__(
+        self, device: int | str, smbus: SMBus | None = None, *, exclusive: bool = False, force: bool = False
+    ):
         self.device = device
         try:
             self.smbus = smbus if smbus is not None else SMBus(device)
@@ -113,10 +124,16 @@ class LinuxI2CBus:
         except BlockingIOError as exc:
             if not force:
                 self.smbus.close()
-                raise BusBusyError(exc.errno, f"{self.path} is in use by another process (a running ftsensord?): "
-                                              "stop it first, or pass --force to disturb it") from exc
-            log.warning("%s is in use by another process: going on unlocked (--force); "
-                        "its transfers and ours will interleave", self.path)
+                raise BusBusyError(
+                    exc.errno,
+                    f"{self.path} is in use by another process (a running ftsensord?): "
+                    "stop it first, or pass --force to disturb it",
+                ) from exc
+            log.warning(
+                "%s is in use by another process: going on unlocked (--force); "
+                "its transfers and ours will interleave",
+                self.path,
+            )
 
     @property
     def path(self) -> str:
@@ -168,12 +185,16 @@ def parse_bus(spec: str) -> BusSpec:
     options: dict[str, object] = {}
     if has_query:
         if kind != "sim":
-            raise ConfigError(f"bus {spec!r}: options apply to the simulated bus only; accepted forms: {ACCEPTED_FORMS}")
+            raise ConfigError(
+                f"bus {spec!r}: options apply to the simulated bus only; accepted forms: {ACCEPTED_FORMS}"
+            )
         for item in query.split("&"):
             name, eq, value = item.partition("=")
             if name not in SIM_OPTIONS:
-                raise ConfigError(f"bus {spec!r}: unknown option {name!r}; accepted options: "
-                                  + "; ".join(f"{k} ({v})" for k, v in SIM_OPTIONS.items()))
+                raise ConfigError(
+                    f"bus {spec!r}: unknown option {name!r}; accepted options: "
+                    + "; ".join(f"{k} ({v})" for k, v in SIM_OPTIONS.items())
+                )
             if not eq or name in options:
                 raise ConfigError(f"bus {spec!r}: option {name} needs one value: {SIM_OPTIONS[name]}")
             options[name] = _option(spec, name, value)
@@ -207,7 +228,9 @@ def open_bus(spec: str, *, exclusive: bool = False, force: bool = False, **sim_o
         assert parsed.arg is not None  # parse_bus gives i2c an argument
         if sim_options:
             raise ConfigError(f"bus {spec!r}: options {sorted(sim_options)} apply to the simulated bus only")
-        return LinuxI2CBus(int(parsed.arg) if parsed.arg.isdigit() else parsed.arg, exclusive=exclusive, force=force)
+        return LinuxI2CBus(
+            int(parsed.arg) if parsed.arg.isdigit() else parsed.arg, exclusive=exclusive, force=force
+        )
     from ftsensord import sim  # the simulator is only imported when asked for
 
     timing = parsed.timing

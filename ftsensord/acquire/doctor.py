@@ -19,16 +19,16 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from ftsensord.chip import mlx90393 as mlx
-from ftsensord.chip.driver import MLX90393
-from ftsensord.chip.i2c import Bus
-from ftsensord.errors import ChipError, ConfigError
-from ftsensord.acquire.board import know_board
 from ftsensord.acquire import choice
+from ftsensord.acquire.board import know_board
 from ftsensord.acquire.bound import SCHEDULERS, Shapes, cycle_bound
 from ftsensord.acquire.bus import open_bus, parse_bus
 from ftsensord.acquire.reader import Reader, probe_shapes
 from ftsensord.acquire.scan import scan
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.chip.driver import MLX90393
+from ftsensord.chip.i2c import Bus
+from ftsensord.errors import ChipError, ConfigError
 
 #: Register reads per chip to count errors over (CONF1..CONF3 in turn).
 ERROR_READS = 300
@@ -79,12 +79,24 @@ def _register_errors(bus: Bus, address: int, expected: dict[int, int], reads: in
     return counts
 
 
-def _short_run(bus: Bus, addresses: list[int], scheduler: str, settings: mlx.Settings, bus_hz: float,
-               overhead_s: float, adapter: str | None, cycles: int) -> dict[str, Any]:
+def _short_run(
+    bus: Bus,
+    addresses: list[int],
+    scheduler: str,
+    settings: mlx.Settings,
+    bus_hz: float,
+    overhead_s: float,
+    adapter: str | None,
+    cycles: int,
+) -> dict[str, Any]:
     """Run ``scheduler`` at its bound's rate for ``cycles``; the measured rate and errors."""
     probe = cycle_bound(scheduler, len(addresses), settings, bus_hz, overhead_s, adapter=adapter)
-    run = choice.option(choice.Bus(len(addresses), settings, bus_hz, overhead_s, adapter, temperature=False),
-                        scheduler, True, probe.rate_hz)  # the read-back's cadence as the daemon would run it
+    run = choice.option(
+        choice.Bus(len(addresses), settings, bus_hz, overhead_s, adapter, temperature=False),
+        scheduler,
+        True,
+        probe.rate_hz,
+    )  # the read-back's cadence as the daemon would run it
     bound, readback_every = run.bound, run.readback_every
     timed = _TimedBus(bus)
     chips = [MLX90393(timed, a, sleep=timed.sleep) for a in addresses]
@@ -116,22 +128,39 @@ def _short_run(bus: Bus, addresses: list[int], scheduler: str, settings: mlx.Set
     transfers, waits = timed.in_transfers, timed.in_waits
     reader.stop()
     out: dict[str, Any] = {
-        "bound_hz": bound.rate_hz, "bound": bound.describe(), "ioctls_per_cycle": bound.ioctls,
-        "measured_hz": cycles / elapsed if elapsed > 0 else math.inf, "cycles": cycles,
-        "chip_errors": errors, "start_failures": {f"0x{a:02X}": str(e) for a, e in failed.items()},
+        "bound_hz": bound.rate_hz,
+        "bound": bound.describe(),
+        "ioctls_per_cycle": bound.ioctls,
+        "measured_hz": cycles / elapsed if elapsed > 0 else math.inf,
+        "cycles": cycles,
+        "chip_errors": errors,
+        "start_failures": {f"0x{a:02X}": str(e) for a, e in failed.items()},
         # Where a cycle's time went (us, mean): the bound counts transfers and waits only.
-        "cycle_us": {"transfers": transfers / cycles * 1e6, "waits": waits / cycles * 1e6,
-                     "host": (elapsed - idle - transfers - waits) / cycles * 1e6,
-                     "idle": idle / cycles * 1e6, "bound": bound.cycle_s * 1e6},
+        "cycle_us": {
+            "transfers": transfers / cycles * 1e6,
+            "waits": waits / cycles * 1e6,
+            "host": (elapsed - idle - transfers - waits) / cycles * 1e6,
+            "idle": idle / cycles * 1e6,
+            "bound": bound.cycle_s * 1e6,
+        },
     }
     if refused0 is not None:  # the simulated bus counts what its adapter refused
         out["refused_ioctls"] = bus.refused - refused0  # type: ignore[attr-defined]
     return out
 
 
-def doctor(spec: str, schedulers: tuple[str, ...] = SCHEDULERS, *, bus_hz: float = 400e3, force: bool = False,
-           settings: mlx.Settings | None = None, error_reads: int = ERROR_READS, cycles: int = RUN_CYCLES,
-           real_time: bool = False, rate_hz: float = 100.0) -> dict[str, Any]:
+def doctor(
+    spec: str,
+    schedulers: tuple[str, ...] = SCHEDULERS,
+    *,
+    bus_hz: float = 400e3,
+    force: bool = False,
+    settings: mlx.Settings | None = None,
+    error_reads: int = ERROR_READS,
+    cycles: int = RUN_CYCLES,
+    real_time: bool = False,
+    rate_hz: float = 100.0,
+) -> dict[str, Any]:
     """Everything `ftsensord doctor` reports, as a plain dict (see the module's doc).
 
     ``bus_hz`` is the clock ftsensord would be configured with (Hz); ``rate_hz`` the
@@ -143,8 +172,8 @@ def doctor(spec: str, schedulers: tuple[str, ...] = SCHEDULERS, *, bus_hz: float
     settings = settings or mlx.Settings()
     options: dict[str, object] = {}
     if parse_bus(spec).kind == "sim":
-        from ftsensord.sim import MonotonicClock
-        from ftsensord.sim import VirtualClock
+        from ftsensord.sim import MonotonicClock, VirtualClock
+
         options = {"clock": MonotonicClock() if real_time else VirtualClock(), "bus_hz": bus_hz}
     bus = open_bus(spec, exclusive=True, force=force, **options)
     try:
@@ -154,7 +183,9 @@ def doctor(spec: str, schedulers: tuple[str, ...] = SCHEDULERS, *, bus_hz: float
         timing = board.timing
         clock_hz = timing.clock_hz or bus_hz
         ioctl_s = timing.ioctl_s if timing.ioctl_s is not None else 0.0
-        shapes = probe_shapes(bus, [MLX90393(bus, a, sleep=bus.sleep) for a in addresses]) if addresses else None
+        shapes = (
+            probe_shapes(bus, [MLX90393(bus, a, sleep=bus.sleep) for a in addresses]) if addresses else None
+        )
         chips = []
         for r in reports:
             entry = r.as_dict()
@@ -165,23 +196,47 @@ def doctor(spec: str, schedulers: tuple[str, ...] = SCHEDULERS, *, bus_hz: float
             except ChipError as exc:
                 entry["errors"] = {"reads": 0, "failed": str(exc)}
             chips.append(entry)
-        runs = {s: _short_run(bus, addresses, s, settings, clock_hz, ioctl_s, board.adapter, cycles)
-                for s in schedulers} if addresses else {}
-        chosen = _choice(choice.Bus(len(addresses), settings, clock_hz, ioctl_s, board.adapter, temperature=True),
-                         rate_hz) if addresses else None
+        runs = (
+            {
+                s: _short_run(bus, addresses, s, settings, clock_hz, ioctl_s, board.adapter, cycles)
+                for s in schedulers
+            }
+            if addresses
+            else {}
+        )
+        chosen = (
+            _choice(
+                choice.Bus(len(addresses), settings, clock_hz, ioctl_s, board.adapter, temperature=True),
+                rate_hz,
+            )
+            if addresses
+            else None
+        )
     finally:
         bus.close()
     return {
-        "bus": spec, "adapter": board.adapter, "driver": board.driver,
-        "accepts": None if shapes is None else {
-            "read_not_last": shapes.reads_inside, "several_addresses": shapes.many_addresses,
-            "transfers": shapes.describe()},
+        "bus": spec,
+        "adapter": board.adapter,
+        "driver": board.driver,
+        "accepts": None
+        if shapes is None
+        else {
+            "read_not_last": shapes.reads_inside,
+            "several_addresses": shapes.many_addresses,
+            "transfers": shapes.describe(),
+        },
         "rules_counted": (shapes or Shapes.of(board.adapter)).describe(),
-        "configured_clock_hz": board.configured_hz, "wanted_clock_hz": bus_hz,
-        "clock_hz": clock_hz, "clock_measured": timing.clock_hz is not None,
-        "ioctl_us": ioctl_s * 1e6, "warnings": board.warnings,
+        "configured_clock_hz": board.configured_hz,
+        "wanted_clock_hz": bus_hz,
+        "clock_hz": clock_hz,
+        "clock_measured": timing.clock_hz is not None,
+        "ioctl_us": ioctl_s * 1e6,
+        "warnings": board.warnings,
         "clock": "virtual" if options and not real_time else "real",
-        "chips": chips, "schedulers": runs, "rate_hz": rate_hz, "choice": chosen,
+        "chips": chips,
+        "schedulers": runs,
+        "rate_hz": rate_hz,
+        "choice": chosen,
     }
 
 
@@ -192,40 +247,54 @@ def _choice(bus: choice.Bus, rate_hz: float) -> dict[str, Any]:
         picked = choice.choose(bus, rate_hz)
     except ConfigError as exc:
         return {"error": f"nothing holds: {exc}"}
-    return {"scheduler": picked.scheduler, "readback_every": picked.readback_every,
-            "bound_hz": picked.bound.rate_hz, "spare": picked.spare(rate_hz),
-            "text": choice.explain(bus, picked, rate_hz)}
+    return {
+        "scheduler": picked.scheduler,
+        "readback_every": picked.readback_every,
+        "bound_hz": picked.bound.rate_hz,
+        "spare": picked.spare(rate_hz),
+        "text": choice.explain(bus, picked, rate_hz),
+    }
 
 
 def format_doctor(report: dict[str, Any]) -> str:
     """The report as text for a person at a terminal."""
-    lines = [f"bus {report['bus']}: adapter {report['adapter'] or 'unknown'} (driver {report['driver'] or '?'})"]
+    lines = [
+        f"bus {report['bus']}: adapter {report['adapter'] or 'unknown'} (driver {report['driver'] or '?'})"
+    ]
     accepts = report["accepts"]
     lines.append(f"  one ioctl takes: {accepts['transfers'] if accepts else 'not probed (no chip answered)'}")
     measured = "measured" if report["clock_measured"] else "not measured, configured"
     configured = report["configured_clock_hz"]
-    lines.append(f"  clock {report['clock_hz'] / 1e3:.1f} kHz ({measured}); kernel's "
-                 f"{'unknown' if configured is None else f'{configured / 1e3:.0f} kHz'}; "
-                 f"ioctl {report['ioctl_us']:.0f} us")
+    lines.append(
+        f"  clock {report['clock_hz'] / 1e3:.1f} kHz ({measured}); kernel's "
+        f"{'unknown' if configured is None else f'{configured / 1e3:.0f} kHz'}; "
+        f"ioctl {report['ioctl_us']:.0f} us"
+    )
     lines += [f"  WARNING: {w}" for w in report["warnings"]]
     for c in report["chips"]:
         errors = c["errors"]
         bad = sum(v for k, v in errors.items() if k not in ("reads", "failed") and isinstance(v, int))
-        lines.append(f"  {c['address']} {c['part']}: B = {c['field_ut']} uT, T = {c['temperature_c']} degC, "
-                     f"{bad} errors in {errors.get('reads', 0)} register reads"
-                     + (f"; {c['error']}" if c["error"] else ""))
+        lines.append(
+            f"  {c['address']} {c['part']}: B = {c['field_ut']} uT, T = {c['temperature_c']} degC, "
+            f"{bad} errors in {errors.get('reads', 0)} register reads"
+            + (f"; {c['error']}" if c["error"] else "")
+        )
     if report["schedulers"]:
         lines.append("  each scheduler run at its bound, with the register read-back and no temperatures:")
     for name, run in report["schedulers"].items():
         t = run["cycle_us"]
-        lines.append(f"  {name}: bound {run['bound_hz']:.1f} Hz, measured {run['measured_hz']:.1f} Hz at it "
-                     f"({run['cycles']} cycles, {run['chip_errors']} chip errors; a cycle: transfers "
-                     f"{t['transfers']:.0f} us, waits {t['waits']:.0f} us, host {t['host']:.0f} us, "
-                     f"bound {t['bound']:.0f} us)")
+        lines.append(
+            f"  {name}: bound {run['bound_hz']:.1f} Hz, measured {run['measured_hz']:.1f} Hz at it "
+            f"({run['cycles']} cycles, {run['chip_errors']} chip errors; a cycle: transfers "
+            f"{t['transfers']:.0f} us, waits {t['waits']:.0f} us, host {t['host']:.0f} us, "
+            f"bound {t['bound']:.0f} us)"
+        )
     if report["choice"]:
         chosen = report["choice"]
-        lines.append(f"  ftsensord run at {report['rate_hz']:g} Hz, no scheduler named (temperatures read): "
-                     f"{chosen.get('text') or chosen['error']}")
+        lines.append(
+            f"  ftsensord run at {report['rate_hz']:g} Hz, no scheduler named (temperatures read): "
+            f"{chosen.get('text') or chosen['error']}"
+        )
     if not report["chips"]:
         lines.append("  no MLX90393 answered (0x0C-0x1B)")
     return "\n".join(lines)

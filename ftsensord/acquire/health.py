@@ -8,10 +8,9 @@ cycle, and reads one chip's registers back now and then. The `Reader`
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 from ftsensord.chip import mlx90393 as mlx
@@ -59,7 +58,9 @@ def stuck_cycles_for(settings: mlx.Settings) -> int:
     estimate). At the paper's settings (2-3 uT of noise, 6-10 uT LSB) that is 0.67 for
     all three axes, and 70 cycles; heavy filtering (OSR 3, DIG_FILT 7) turns it off.
     """
-    keep = math.prod(math.erf(settings.sensitivity_ut(a) / (2 * math.sqrt(2) * settings.noise_ut(a))) for a in "xyz")
+    keep = math.prod(
+        math.erf(settings.sensitivity_ut(a) / (2 * math.sqrt(2) * settings.noise_ut(a))) for a in "xyz"
+    )
     if keep >= 1.0:
         return 0
     n = math.ceil(math.log(STUCK_FALSE_ODDS) / math.log(keep))
@@ -114,8 +115,16 @@ class ChipCare:
     read-back goes EX, RR, SB.
     """
 
-    def __init__(self, bus: Bus, chips: list[MLX90393], settings: mlx.Settings, *, burst: bool,
-                 stuck_cycles: int | None = None, burst_zyxt: int = mlx.ZYXT_XYZ):
+    def __init__(
+        self,
+        bus: Bus,
+        chips: list[MLX90393],
+        settings: mlx.Settings,
+        *,
+        burst: bool,
+        stuck_cycles: int | None = None,
+        burst_zyxt: int = mlx.ZYXT_XYZ,
+    ):
         self.bus, self.settings, self.burst = bus, settings, burst
         self.burst_zyxt = burst_zyxt  # what a burst converts: X, Y, Z, and T when temperatures are read
         self.health = {c.address: ChipHealth() for c in chips}
@@ -151,8 +160,12 @@ class ChipCare:
         h = self.health[address]
         h.needs_reset |= reset
         if not h.failing:
-            log.warning("chip 0x%02X failing%s: %s", address, ", to be reset" if reset else "",
-                        why or "no valid answer")
+            log.warning(
+                "chip 0x%02X failing%s: %s",
+                address,
+                ", to be reset" if reset else "",
+                why or "no valid answer",
+            )
             h.failing, h.backoff_s, h.retry_at = True, 0.0, now  # first retry: the next cycle
             self.turns += 1
         else:
@@ -173,8 +186,12 @@ class ChipCare:
         h = self.health[chip.address]
         wait_s = (0.0, mlx.T_AFTER_EX_US * 1e-6, T_AFTER_RT_S)[h.step]
         if now < h.retry_at or now < h.step_at + wait_s or self._attempted:
-            return ChipResult(chip.address, error=ChipNotRespondingError(
-                chip.address, f"failing; next retry in {max(0.0, h.retry_at - now):.2f} s"))
+            return ChipResult(
+                chip.address,
+                error=ChipNotRespondingError(
+                    chip.address, f"failing; next retry in {max(0.0, h.retry_at - now):.2f} s"
+                ),
+            )
         self._attempted = True
         try:
             if h.step == 0 and not h.needs_reset and _still_configured(chip, self.burst, self.burst_zyxt):
@@ -225,8 +242,9 @@ class ChipCare:
                     continue
             results[a] = judge(r, now)
 
-    def judge_words(self, addresses: tuple[int, ...], words: Sequence[tuple[int, ...]],
-                    now: float) -> dict[int, ChipError]:
+    def judge_words(
+        self, addresses: tuple[int, ...], words: Sequence[tuple[int, ...]], now: float
+    ) -> dict[int, ChipError]:
         """`judge` a clean cycle, every chip a measurement, from their X, Y, Z ``words``
         (in ``addresses``' order); the chips found stuck, with their errors."""
         health, stuck = self.health, None
@@ -270,7 +288,9 @@ class ChipCare:
             h.stuck_detections += 1
             self.fail(address, now, reset=True, why=f"stuck ({self.stuck_cycles + 1} identical readings)")
             h.stuck_words = words
-            return ChipProtocolError(address, f"stuck: the same X, Y, Z words {self.stuck_cycles + 1} cycles in a row")
+            return ChipProtocolError(
+                address, f"stuck: the same X, Y, Z words {self.stuck_cycles + 1} cycles in a row"
+            )
         if h.stuck_words is not None:
             # Back from its reset: out until two of its readings in a row differ (a
             # stuck chip may give one fresh reading after a reset, then freeze again).

@@ -25,14 +25,21 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 
+from ftsensord.acquire.bound import (
+    OSC_MARGIN,
+    SCHEDULERS,
+    Shapes,
+    last_offset_s,
+    overlapped_rm_at,
+    rm_bits_for,
+)
+from ftsensord.acquire.health import ChipCare, ChipHealth, ChipResult
+from ftsensord.acquire.readings import Readings
+from ftsensord.acquire.transfers import RMRead, Transfers, probe_shapes
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.chip.driver import MLX90393
 from ftsensord.chip.i2c import BITS_PER_BYTE, Bus, BusTiming
 from ftsensord.errors import ChipError, ChipProtocolError, ConfigError
-from ftsensord.acquire.bound import OSC_MARGIN, SCHEDULERS, Shapes, last_offset_s, overlapped_rm_at, rm_bits_for
-from ftsensord.acquire.health import ChipCare, ChipHealth, ChipResult
-from ftsensord.acquire.readings import Readings
-from ftsensord.acquire.transfers import RMRead, Transfers, probe_shapes
 
 __all__ = ["Readings", "Reader", "Transfers", "probe_shapes"]
 
@@ -75,9 +82,14 @@ class Reader:
     def __post_init__(self) -> None:
         if self.scheduler not in SCHEDULERS:
             raise ConfigError(f"scheduler: expected one of {', '.join(SCHEDULERS)}, got {self.scheduler!r}")
-        self.care = ChipCare(self.bus, self.chips, self.settings, burst=self.scheduler == "burst",
-                             stuck_cycles=self.stuck_cycles,
-                             burst_zyxt=mlx.ZYXT_XYZT if self.temperature else mlx.ZYXT_XYZ)
+        self.care = ChipCare(
+            self.bus,
+            self.chips,
+            self.settings,
+            burst=self.scheduler == "burst",
+            stuck_cycles=self.stuck_cycles,
+            burst_zyxt=mlx.ZYXT_XYZT if self.temperature else mlx.ZYXT_XYZ,
+        )
         self.xfer = Transfers(self.bus, self.chips)
         self._addresses = tuple(c.address for c in self.chips)
         self._index = {a: i for i, a in enumerate(self._addresses)}
@@ -154,8 +166,13 @@ class Reader:
         healthy = self.care.healthy(self.chips)
         self.care.new_cycle()
         # The longest-failing first: every chip gets its turn.
-        due = [] if len(healthy) == len(self.chips) else sorted(
-            (c for c in self.chips if health[c.address].failing), key=lambda c: health[c.address].retry_at)
+        due = (
+            []
+            if len(healthy) == len(self.chips)
+            else sorted(
+                (c for c in self.chips if health[c.address].failing), key=lambda c: health[c.address].retry_at
+            )
+        )
         results = {c.address: self.care.recover(c, now) for c in due}
         checked = None
         if self.readback_every and self.cycle % self.readback_every == 0 and healthy:
@@ -182,7 +199,9 @@ class Reader:
             if rm is not None:
                 results.update(self.xfer.results(rm))
             self.care.judge_all(results, healthy, now)
-            readings = Readings(self._addresses, self._index, results={a: results[a] for a in self._addresses})
+            readings = Readings(
+                self._addresses, self._index, results={a: results[a] for a in self._addresses}
+            )
         if late is not None:  # read back after the reads, as it came before `upkeep` existed
             self.care.read_back(late, now)
         elif checked is not None and not self.turn.may_wait():
@@ -203,8 +222,14 @@ class Reader:
         if chip is not None:
             self.care.read_back(chip, now)
 
-    def _overlapped(self, healthy: list[MLX90393], zyxt: int, checked: MLX90393 | None,
-                    now: float, results: dict[int, ChipResult]) -> RMRead | None:
+    def _overlapped(
+        self,
+        healthy: list[MLX90393],
+        zyxt: int,
+        checked: MLX90393 | None,
+        now: float,
+        results: dict[int, ChipResult],
+    ) -> RMRead | None:
         """SM every chip, wait, RM every chip; ``checked`` is read back while the others
         convert, then started and read last (`bound.cycle_bound` counts the same). The
         chips that failed before the RM go into ``results``."""
@@ -218,18 +243,30 @@ class Reader:
         if checked is not None:
             self.care.read_back(checked, now)
             if self.health[checked.address].failing:
-                results[checked.address] = ChipResult(checked.address, error=ChipProtocolError(
-                    checked.address, "its registers read back differ from what was written: re-initialising"))
+                results[checked.address] = ChipResult(
+                    checked.address,
+                    error=ChipProtocolError(
+                        checked.address,
+                        "its registers read back differ from what was written: re-initialising",
+                    ),
+                )
             else:
                 t_sm = self.bus.monotonic()
                 results.update(self.xfer.start_all([checked], zyxt))
                 if checked.address not in results:
                     ready.append(checked)
-                    last_offset = last_offset_s(len(ready), rm_bits_for(zyxt), self.shapes.pairs_per_transfer,
-                                                self.bus_hz, self.overhead_s)
+                    last_offset = last_offset_s(
+                        len(ready),
+                        rm_bits_for(zyxt),
+                        self.shapes.pairs_per_transfer,
+                        self.bus_hz,
+                        self.overhead_s,
+                    )
                     sm_one = self.bus.monotonic() - t_sm
                     # Measured from the cycle's start, as the bound computes it.
-                    rm_at = overlapped_rm_at(first + conversion, t_sm - t0, conversion, first, last_offset, sm_one)
+                    rm_at = overlapped_rm_at(
+                        first + conversion, t_sm - t0, conversion, first, last_offset, sm_one
+                    )
                     self.bus.sleep(max(0.0, t0 + rm_at - self.bus.monotonic()))
         if last_offset is None:
             self.bus.sleep(max(0.0, t0 + first + conversion - self.bus.monotonic()))
@@ -272,8 +309,9 @@ class ReadBackTurn:
             self._orders, self._of = {}, healthy
         got = self._orders.get(last)
         if got is None:
-            got = self._orders[last] = (healthy if last not in healthy
-                                        else [c for c in healthy if c is not last] + [last])
+            got = self._orders[last] = (
+                healthy if last not in healthy else [c for c in healthy if c is not last] + [last]
+            )
         return got
 
     def may_wait(self) -> bool:

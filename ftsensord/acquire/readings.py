@@ -14,9 +14,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ftsensord.acquire.health import ChipResult
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.chip.driver import MLX90393, Measurement
-from ftsensord.acquire.health import ChipResult
 
 if TYPE_CHECKING:
     from ftsensord.acquire.transfers import RMRead
@@ -35,23 +35,36 @@ class Readings(Mapping[int, ChipResult]):
 
     __slots__ = ("addresses", "index", "field", "words", "statuses", "_made")
 
-    def __init__(self, addresses: tuple[int, ...], index: dict[int, int], *,
-                 results: dict[int, ChipResult] | None = None, field: np.ndarray | None = None,
-                 words: Sequence[tuple[int, ...]] | None = None, statuses: bytes | list[int] | None = None):
+    def __init__(
+        self,
+        addresses: tuple[int, ...],
+        index: dict[int, int],
+        *,
+        results: dict[int, ChipResult] | None = None,
+        field: np.ndarray | None = None,
+        words: Sequence[tuple[int, ...]] | None = None,
+        statuses: bytes | list[int] | None = None,
+    ):
         self.addresses, self.index = addresses, index  # index: address -> row, shared by every cycle
         self.field, self.words, self.statuses = field, words, statuses
         self._made: dict[int, ChipResult] = {} if results is None else results
 
     @classmethod
-    def of_block(cls, rm: RMRead, chips: list[MLX90393], addresses: tuple[int, ...],
-                 index: dict[int, int]) -> Readings | None:
+    def of_block(
+        cls, rm: RMRead, chips: list[MLX90393], addresses: tuple[int, ...], index: dict[int, int]
+    ) -> Readings | None:
         """The cycle as arrays when its RM read every one of ``chips`` cleanly
         (`RMRead.clean`) and its block's rows are those chips in order; else None."""
         decoder = rm.plan.decoder
         if not rm.clean or len(rm.rows) != len(chips) or decoder.chips != chips:
             return None
-        return cls(addresses, index, field=decoder.field, words=decoder.xyz_words(),
-                   statuses=decoder.replies[::decoder.reply_len])
+        return cls(
+            addresses,
+            index,
+            field=decoder.field,
+            words=decoder.xyz_words(),
+            statuses=decoder.replies[:: decoder.reply_len],
+        )
 
     @classmethod
     def of_field(cls, addresses: tuple[int, ...], field: np.ndarray) -> Readings:
@@ -59,8 +72,13 @@ class Readings(Mapping[int, ChipResult]):
         ``addresses``' order), words and statuses zero: a flux replayed or computed, fed to
         the pipelines as the reader's would be."""
         n = len(addresses)
-        return cls(addresses, {a: i for i, a in enumerate(addresses)}, field=field.reshape(n, 3),
-                   words=[(0, 0, 0)] * n, statuses=bytes(n))
+        return cls(
+            addresses,
+            {a: i for i, a in enumerate(addresses)},
+            field=field.reshape(n, 3),
+            words=[(0, 0, 0)] * n,
+            statuses=bytes(n),
+        )
 
     @property
     def clean(self) -> bool:
@@ -85,8 +103,15 @@ class Readings(Mapping[int, ChipResult]):
                 raise KeyError(address)
             i = self.index[address]
             assert self.words is not None and self.statuses is not None  # set with the field
-            m = Measurement(mlx.STATUSES[self.statuses[i]], self.field[i], np.zeros(3, dtype=bool), None,
-                            self.words[i], _XYZ, False)
+            m = Measurement(
+                mlx.STATUSES[self.statuses[i]],
+                self.field[i],
+                np.zeros(3, dtype=bool),
+                None,
+                self.words[i],
+                _XYZ,
+                False,
+            )
             r = self._made[address] = ChipResult(address, m)
         return r
 

@@ -32,11 +32,19 @@ class ChipReport:
             "address": f"0x{self.address:02X}",
             "part": self.part,
             "registers": {f"0x{r:02X}": f"0x{v:04X}" for r, v in self.registers.items()},
-            "found_settings": None if found is None else {
-                "GAIN_SEL": found.gain_sel, "HALLCONF": f"0x{found.hallconf:X}",
-                "RES_XYZ": [found.res_x, found.res_y, found.res_z], "OSR": found.osr,
-                "DIG_FILT": found.dig_filt, "OSR2": found.osr2, "TCMP_EN": int(found.tcmp_en),
-                "BURST_SEL": found.burst_sel, "BURST_DATA_RATE": found.burst_data_rate},
+            "found_settings": None
+            if found is None
+            else {
+                "GAIN_SEL": found.gain_sel,
+                "HALLCONF": f"0x{found.hallconf:X}",
+                "RES_XYZ": [found.res_x, found.res_y, found.res_z],
+                "OSR": found.osr,
+                "DIG_FILT": found.dig_filt,
+                "OSR2": found.osr2,
+                "TCMP_EN": int(found.tcmp_en),
+                "BURST_SEL": found.burst_sel,
+                "BURST_DATA_RATE": found.burst_data_rate,
+            },
             "tref": None if self.tref is None else f"0x{self.tref:04X}",
             "field_ut": None if m is None else [round(float(v) * 1e6, 3) for v in m.field_t],
             "saturated": None if m is None else [bool(s) for s in m.saturated],
@@ -60,8 +68,11 @@ def probe(bus: Bus, address: int) -> bool:
     return True
 
 
-def scan(bus: Bus, settings: mlx.Settings = mlx.Settings(),
-         addresses: range = range(mlx.ADDRESS_MIN, mlx.ADDRESS_MAX + 1)) -> list[ChipReport]:
+def scan(
+    bus: Bus,
+    settings: mlx.Settings = mlx.Settings(),
+    addresses: range = range(mlx.ADDRESS_MIN, mlx.ADDRESS_MAX + 1),
+) -> list[ChipReport]:
     """Probe ``addresses``; for each chip found, read its registers as found,
     then configure ``settings`` and take one X, Y, Z, T reading."""
     reports = []
@@ -84,8 +95,10 @@ def scan(bus: Bus, settings: mlx.Settings = mlx.Settings(),
 def format_table(reports: list[ChipReport], spec: str) -> str:
     """The reports as the table `ftsensord scan` prints (fields in uT, temperatures in degC)."""
     nan3 = [float("nan")] * 3
-    lines = [f"{'addr':<5} {'part':<20} {'CONF1':<6} {'CONF2':<6} {'CONF3':<6} "
-             f"{'Bx/uT':>9} {'By/uT':>9} {'Bz/uT':>9} {'T/degC':>7}  notes"]
+    lines = [
+        f"{'addr':<5} {'part':<20} {'CONF1':<6} {'CONF2':<6} {'CONF3':<6} "
+        f"{'Bx/uT':>9} {'By/uT':>9} {'Bz/uT':>9} {'T/degC':>7}  notes"
+    ]
     for r in reports:
         regs = [f"0x{r.registers[i]:04X}" if i in r.registers else "-" for i in range(3)]
         m = r.measurement
@@ -94,14 +107,17 @@ def format_table(reports: list[ChipReport], spec: str) -> str:
         notes = []
         if len(r.registers) == 3:
             s = mlx.Settings.from_registers(r.registers)
-            notes.append(f"found GAIN_SEL={s.gain_sel} RES={s.res_x}{s.res_y}{s.res_z} "
-                         f"OSR={s.osr} DIG_FILT={s.dig_filt}")
+            notes.append(
+                f"found GAIN_SEL={s.gain_sel} RES={s.res_x}{s.res_y}{s.res_z} "
+                f"OSR={s.osr} DIG_FILT={s.dig_filt}"
+            )
         if m is not None and m.any_saturated:
             notes.append("SATURATED " + "".join(a for a, sat in zip("XYZ", m.saturated) if sat))
         if r.error:
             notes.append(f"ERROR: {r.error}")
-        lines.append(f"0x{r.address:02X}  {r.part:<20} {regs[0]:<6} {regs[1]:<6} {regs[2]:<6} "
-                     f"{field[0]:>9.1f} {field[1]:>9.1f} {field[2]:>9.1f} {temp:>7.2f}  "
-                     + "; ".join(notes))
+        lines.append(
+            f"0x{r.address:02X}  {r.part:<20} {regs[0]:<6} {regs[1]:<6} {regs[2]:<6} "
+            f"{field[0]:>9.1f} {field[1]:>9.1f} {field[2]:>9.1f} {temp:>7.2f}  " + "; ".join(notes)
+        )
     lines.append(f"{len(reports)} chip(s) found on {spec}")
     return "\n".join(lines)

@@ -21,13 +21,13 @@ from typing import Any, cast
 import numpy as np
 from smbus2 import i2c_msg
 
+from ftsensord.acquire.bound import Shapes
+from ftsensord.acquire.health import ChipResult
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.chip.block import BlockDecoder
 from ftsensord.chip.driver import MLX90393, bus_error
 from ftsensord.chip.i2c import I2C_M_RD, SHAPE_REFUSED, Bus
 from ftsensord.errors import ChipError
-from ftsensord.acquire.bound import Shapes
-from ftsensord.acquire.health import ChipResult
 
 log = logging.getLogger("ftsensord")
 
@@ -214,7 +214,7 @@ class Transfers:
         alone: list[MLX90393] = []
         per = self.shapes.pairs_per_transfer
         for k in range(0, len(chips), per):
-            group = chips[k:k + per]
+            group = chips[k : k + per]
             if len(group) == 1:
                 alone.extend(group)  # one chip: its own transfer, its own error
                 continue
@@ -226,7 +226,7 @@ class Transfers:
                 alone.extend(group)  # which one failed? ask each on its own
                 continue
             for chip, (_, read) in zip(group, pairs):
-                out[chip.address] = _decoded(decode, chip, read.buf[:read.len])
+                out[chip.address] = _decoded(decode, chip, read.buf[: read.len])
         for chip in alone:
             write, read = messages(chip)
             try:
@@ -250,10 +250,18 @@ class RMPlan:
         self.command = bytes([mlx.CMD_RM | zyxt])
         self.block = np.zeros((len(chips), L), dtype=np.uint8)
         base = self.block.ctypes.data
-        self.pairs = [(c.messages(self.command, L)[0],
-                       i2c_msg(addr=c.address, flags=I2C_M_RD, len=L,
-                               buf=ctypes.cast(base + i * L, ctypes.POINTER(ctypes.c_char))))
-                      for i, c in enumerate(chips)]
+        self.pairs = [
+            (
+                c.messages(self.command, L)[0],
+                i2c_msg(
+                    addr=c.address,
+                    flags=I2C_M_RD,
+                    len=L,
+                    buf=ctypes.cast(base + i * L, ctypes.POINTER(ctypes.c_char)),
+                ),
+            )
+            for i, c in enumerate(chips)
+        ]
         self._orders: dict[tuple[MLX90393, ...], tuple[list[int], list[Transfer]]] = {}
 
     def reading(self, chips: list[MLX90393]) -> tuple[list[int], list[Transfer]] | None:
@@ -275,7 +283,10 @@ class RMPlan:
 
     def _grouped(self, rows: list[int]) -> list[Transfer]:
         per, pairs = self.per, self.pairs
-        return [(rows[k:k + per], [m for i in rows[k:k + per] for m in pairs[i]]) for k in range(0, len(rows), per)]
+        return [
+            (rows[k : k + per], [m for i in rows[k : k + per] for m in pairs[i]])
+            for k in range(0, len(rows), per)
+        ]
 
 
 def _decoded(decode: Callable, chip: MLX90393, reply: bytes) -> Any:

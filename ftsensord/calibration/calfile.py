@@ -17,14 +17,14 @@ from typing import Any
 
 import numpy as np
 
+from ftsensord.calibration.dataset import parse_addresses
+from ftsensord.calibration.nlfit import NonlinearCalibration
+from ftsensord.calibration.relaxation import SiliconeCalibration
+from ftsensord.calibration.thermal import CalibrationTemperature
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.docfile import Table, load_json
 from ftsensord.errors import ConfigError
 from ftsensord.model.linear import LinearModel, PositionMap
-from ftsensord.calibration.relaxation import SiliconeCalibration
-from ftsensord.calibration.dataset import parse_addresses
-from ftsensord.calibration.nlfit import NonlinearCalibration
-from ftsensord.calibration.thermal import CalibrationTemperature
 
 #: Largest calibration file read, bytes: the packaged ones (8 chips, nonlinear model
 #: included) are 22 KB; 64 KiB is three times that. A reload parses it in a worker thread,
@@ -33,9 +33,16 @@ from ftsensord.calibration.thermal import CalibrationTemperature
 MAX_CALIBRATION_BYTES = 64 * 1024
 CAL_FORMAT = "ftsensord-calibration"
 CAL_VERSION = 1
-CAL_UNITS = {"K": "N/m, Nm/rad", "A": "m/T, rad/T", "H": "T/m, T/rad", "zero_flux": "T", "wrench": "N, Nm",
-             "twist": "m, rad", "position_map": "M: m/T, o: m",
-             "nonlinear": "gap_m, ring_radius_m: m; tilt_deg: deg; offset_t: T; K: N/m, Nm/rad; zero_twist: m, rad"}
+CAL_UNITS = {
+    "K": "N/m, Nm/rad",
+    "A": "m/T, rad/T",
+    "H": "T/m, T/rad",
+    "zero_flux": "T",
+    "wrench": "N, Nm",
+    "twist": "m, rad",
+    "position_map": "M: m/T, o: m",
+    "nonlinear": "gap_m, ring_radius_m: m; tilt_deg: deg; offset_t: T; K: N/m, Nm/rad; zero_twist: m, rad",
+}
 
 
 @dataclass
@@ -61,15 +68,22 @@ class Calibration:
 
     def document(self) -> dict[str, Any]:
         doc: dict[str, Any] = {
-            "format": CAL_FORMAT, "version": CAL_VERSION, "units": dict(CAL_UNITS),
-            "sensor": {"serial": self.serial, "frame": self.frame,
-                       "addresses": [f"0x{a:02X}" for a in self.addresses]},
+            "format": CAL_FORMAT,
+            "version": CAL_VERSION,
+            "units": dict(CAL_UNITS),
+            "sensor": {
+                "serial": self.serial,
+                "frame": self.frame,
+                "addresses": [f"0x{a:02X}" for a in self.addresses],
+            },
             "model": "w = K A (b - zero_flux); b stacks each chip's (Bx, By, Bz) in its own frame, "
-                     "chips in the order of sensor.addresses; w = [fx fy fz mx my mz] in the sensor frame. "
-                     "With chips missing: w = K pinv(H_S) (b_S - zero_S) over the channels S left. "
-                     "With room_directions R (unit columns): b - zero_flux is first projected off them, "
-                     "(I - R R^T) (b - zero_flux), so a uniform field (the Earth's) gives no wrench",
-            "K": self.model.K.tolist(), "A": self.model.A.tolist(), "zero_flux": self.model.zero.tolist(),
+            "chips in the order of sensor.addresses; w = [fx fy fz mx my mz] in the sensor frame. "
+            "With chips missing: w = K pinv(H_S) (b_S - zero_S) over the channels S left. "
+            "With room_directions R (unit columns): b - zero_flux is first projected off them, "
+            "(I - R R^T) (b - zero_flux), so a uniform field (the Earth's) gives no wrench",
+            "K": self.model.K.tolist(),
+            "A": self.model.A.tolist(),
+            "zero_flux": self.model.zero.tolist(),
             "fit_report": self.report,
         }
         if self.model.H is not None:
@@ -97,12 +111,35 @@ class Calibration:
         """Read and validate; errors name the file, the key and what was expected."""
         raw = load_json(path, MAX_CALIBRATION_BYTES, "calibration file")
         doc = Table(raw, path)
-        doc.only({"format", "version", "units", "sensor", "model", "K", "A", "H", "zero_flux", "fit_report",
-                  "wrench_range", "position_map", "nonlinear", "room_directions", "temperature_c", "silicone", "checksum"})
+        doc.only(
+            {
+                "format",
+                "version",
+                "units",
+                "sensor",
+                "model",
+                "K",
+                "A",
+                "H",
+                "zero_flux",
+                "fit_report",
+                "wrench_range",
+                "position_map",
+                "nonlinear",
+                "room_directions",
+                "temperature_c",
+                "silicone",
+                "checksum",
+            }
+        )
         if doc.get("format") != CAL_FORMAT:
             raise doc.fail("format", f'"{CAL_FORMAT}"', doc.get("format"))
-        doc.integer("version", what=f"{CAL_VERSION} (this ftsensord reads version {CAL_VERSION})",
-                    low=CAL_VERSION, high=CAL_VERSION)
+        doc.integer(
+            "version",
+            what=f"{CAL_VERSION} (this ftsensord reads version {CAL_VERSION})",
+            low=CAL_VERSION,
+            high=CAL_VERSION,
+        )
         if doc.get("units") != CAL_UNITS:
             raise doc.fail("units", str(CAL_UNITS), doc.get("units"))
         sensor = doc.table("sensor")
@@ -143,8 +180,10 @@ class Calibration:
         stored = doc.string("checksum")
         where = _not_finite(raw)
         if where is not None:  # in a part no parser above reads: the checksum's JSON has no NaN
-            raise ConfigError(f"{path}: {where}: expected finite numbers (JSON has none other; `ftsensord "
-                              "calibrate` writes none), got NaN or Infinity")
+            raise ConfigError(
+                f"{path}: {where}: expected finite numbers (JSON has none other; `ftsensord "
+                "calibrate` writes none), got NaN or Infinity"
+            )
         if stored != checksum(raw):
             raise doc.fail("checksum", f"{checksum(raw)} (the file was changed after it was written)", stored)
         if np.linalg.matrix_rank(K @ A) < 6:
@@ -156,10 +195,22 @@ class Calibration:
                 except np.linalg.LinAlgError:  # entries near the float range's end (1e308): none to speak of
                     lowest = float("nan")
                 if not lowest > 0:  # the test `fit.check_stiffness` makes, for a file
-                    raise ConfigError(f"{path}: {key}: expected a positive definite stiffness (x^T K x > 0), "
-                                      f"got one whose symmetric part has eigenvalue {lowest:.3g}")
-        return cls(LinearModel(K, A, zero, H, room), addresses, sensor.string("serial", ""),
-                   sensor.string("frame", "sensor"), pmap, report, nonlinear, wrench_range, temperature, silicone)
+                    raise ConfigError(
+                        f"{path}: {key}: expected a positive definite stiffness (x^T K x > 0), "
+                        f"got one whose symmetric part has eigenvalue {lowest:.3g}"
+                    )
+        return cls(
+            LinearModel(K, A, zero, H, room),
+            addresses,
+            sensor.string("serial", ""),
+            sensor.string("frame", "sensor"),
+            pmap,
+            report,
+            nonlinear,
+            wrench_range,
+            temperature,
+            silicone,
+        )
 
 
 def _temperature(doc: Table, channels: int) -> CalibrationTemperature:
@@ -167,7 +218,9 @@ def _temperature(doc: Table, channels: int) -> CalibrationTemperature:
     t = doc.table("temperature_c")
     t.only({"mean", "lowest", "highest", "drift_t_per_k"})
     low, high = mlx.OPERATING_RANGE_C  # the chips' operating range, as a dataset's
-    mean, lowest, highest = (t.number(k, low=low, high=high, unit="degC") for k in ("mean", "lowest", "highest"))
+    mean, lowest, highest = (
+        t.number(k, low=low, high=high, unit="degC") for k in ("mean", "lowest", "highest")
+    )
     if not lowest <= mean <= highest:
         raise doc.fail("temperature_c", "lowest <= mean <= highest (degC)", doc.get("temperature_c"))
     drift = np.array(t.numbers("drift_t_per_k", channels, unit="T/K")) if "drift_t_per_k" in t.doc else None
@@ -177,18 +230,41 @@ def _temperature(doc: Table, channels: int) -> CalibrationTemperature:
 def _nonlinear(doc: Table, chips: int) -> NonlinearCalibration:
     """The ``nonlinear`` section (`NonlinearCalibration.document` writes it)."""
     t = doc.table("nonlinear")
-    t.only({"gap_m", "ring_radius_m", "tilt_deg", "scale", "offset_t", "K", "zero_twist", "fit_rms_residual_t",
-            "magnet_p_m", "magnet_strength", "warnings", "field_model"})
+    t.only(
+        {
+            "gap_m",
+            "ring_radius_m",
+            "tilt_deg",
+            "scale",
+            "offset_t",
+            "K",
+            "zero_twist",
+            "fit_rms_residual_t",
+            "magnet_p_m",
+            "magnet_strength",
+            "warnings",
+            "field_model",
+        }
+    )
     warnings = t.get("warnings", [])
     if not isinstance(warnings, list) or not all(isinstance(w, str) for w in warnings):
         raise t.fail("warnings", "a list of strings", warnings)
     scale_raw = t.get("scale")
-    if isinstance(scale_raw, list) and scale_raw and isinstance(scale_raw[0], list) \
-            and scale_raw[0] and isinstance(scale_raw[0][0], list):  # a full 3 x 3 response per chip
+    if (
+        isinstance(scale_raw, list)
+        and scale_raw
+        and isinstance(scale_raw[0], list)
+        and scale_raw[0]
+        and isinstance(scale_raw[0][0], list)
+    ):  # a full 3 x 3 response per chip
         if len(scale_raw) != chips:
             raise t.fail("scale", f"{chips} 3x3 matrices, one per chip, or {chips} x 3 gains", scale_raw)
-        scale = np.array([Table({"scale": m}, t.path, f"{t.key('scale')}[{i}]").matrix("scale", 3, 3)
-                          for i, m in enumerate(scale_raw)])
+        scale = np.array(
+            [
+                Table({"scale": m}, t.path, f"{t.key('scale')}[{i}]").matrix("scale", 3, 3)
+                for i, m in enumerate(scale_raw)
+            ]
+        )
     else:
         scale = np.array(t.matrix("scale", chips, 3))
     magnet_p = np.array(t.matrix("magnet_p_m", chips, 3, unit="m")) if "magnet_p_m" in t.doc else None
@@ -196,21 +272,30 @@ def _nonlinear(doc: Table, chips: int) -> NonlinearCalibration:
     if "magnet_strength" in t.doc:
         strength = np.array(t.numbers("magnet_strength", chips))
         if np.any(strength <= 0):
-            raise t.fail("magnet_strength", f"{chips} numbers over 0 (relative moments)", t.get("magnet_strength"))
+            raise t.fail(
+                "magnet_strength", f"{chips} numbers over 0 (relative moments)", t.get("magnet_strength")
+            )
     return NonlinearCalibration(
-        t.number("gap_m", low=1e-3, high=20e-3, unit="m"), scale,
-        np.array(t.matrix("offset_t", chips, 3, unit="T")), np.array(t.matrix("K", 6, 6, unit="N/m, Nm/rad")),
-        np.array(t.numbers("zero_twist", 6, unit="m, rad")), t.number("fit_rms_residual_t", low=0, unit="T"),
-        t.number("ring_radius_m", low=1e-3, high=0.1, unit="m"), t.number("tilt_deg", low=-90, high=90),
-        tuple(warnings), magnet_p, strength,
-        t.string("field_model", "dipole", choices=("dipole", "dipole+octupole")) == "dipole+octupole")
+        t.number("gap_m", low=1e-3, high=20e-3, unit="m"),
+        scale,
+        np.array(t.matrix("offset_t", chips, 3, unit="T")),
+        np.array(t.matrix("K", 6, 6, unit="N/m, Nm/rad")),
+        np.array(t.numbers("zero_twist", 6, unit="m, rad")),
+        t.number("fit_rms_residual_t", low=0, unit="T"),
+        t.number("ring_radius_m", low=1e-3, high=0.1, unit="m"),
+        t.number("tilt_deg", low=-90, high=90),
+        tuple(warnings),
+        magnet_p,
+        strength,
+        t.string("field_model", "dipole", choices=("dipole", "dipole+octupole")) == "dipole+octupole",
+    )
 
 
 def _not_finite(value: Any, where: str = "") -> str | None:
     """The key path (``a.b[3]``) of the first NaN or infinity in ``value``, or None."""
     if isinstance(value, float):
         return None if math.isfinite(value) else where
-    items = (value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, list) else ())
+    items = value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, list) else ()
     for k, v in items:
         found = _not_finite(v, f"{where}[{k}]" if isinstance(k, int) else f"{where}.{k}" if where else str(k))
         if found is not None:

@@ -14,12 +14,12 @@ import math
 
 import numpy as np
 
+from ftsensord.calibration.dataset import AXES, AXIS_UNITS, STRONGEST_READING_MIN_T, Dataset, implausible_flux
 from ftsensord.errors import CalibrationError
 from ftsensord.model.fluxmodel import FluxModel
 from ftsensord.model.geometry import SensorGeometry
 from ftsensord.model.linear import SENSOR_RANGE
 from ftsensord.sim.loads import G
-from ftsensord.calibration.dataset import AXES, AXIS_UNITS, STRONGEST_READING_MIN_T, Dataset, implausible_flux
 
 #: A channel varying across the fit poses by less than this many times its mean's standard
 #: error carries no load: under the plan's 50 g and 200 g loads and the room's turning
@@ -53,9 +53,11 @@ def check_finite(dataset: Dataset) -> None:
         bad = ~np.isfinite(values)
         if bad.any():
             k = int(np.flatnonzero(bad.any(axis=1))[0])
-            raise CalibrationError(f"{dataset.where()}poses[{k}].{name}: {values[k][bad[k]][0]} is no number "
-                                   f"({int(bad.any(axis=1).sum())} pose(s) hold one): a reading or a log line "
-                                   "that failed; record the pose again or leave it out")
+            raise CalibrationError(
+                f"{dataset.where()}poses[{k}].{name}: {values[k][bad[k]][0]} is no number "
+                f"({int(bad.any(axis=1).sum())} pose(s) hold one): a reading or a log line "
+                "that failed; record the pose again or leave it out"
+            )
 
 
 def check_plausible(dataset: Dataset) -> None:
@@ -65,8 +67,10 @@ def check_plausible(dataset: Dataset) -> None:
         why = implausible_flux(values, dataset.saturated)
         if why is not None:
             k, j = np.unravel_index(int(np.argmax(np.where(judged, np.abs(values), 0.0))), values.shape)
-            raise CalibrationError(f"{dataset.where()}poses[{k}].{name}: {chip_name(dataset, int(j) // 3)} reads "
-                                   f"{values[k, j]:.4g} on {'xyz'[j % 3]}: {why}")
+            raise CalibrationError(
+                f"{dataset.where()}poses[{k}].{name}: {chip_name(dataset, int(j) // 3)} reads "
+                f"{values[k, j]:.4g} on {'xyz'[j % 3]}: {why}"
+            )
     for a, sweep in dataset.sweeps.items():
         why = implausible_flux(sweep.flux_t)
         if why is not None:
@@ -84,7 +88,8 @@ def check_flux_scale(dataset: Dataset) -> None:
         f"{dataset.where()}poses[].flux_t: the strongest reading is {strongest * 1e6:.3g} uT, far below what the "
         f"magnets and loads must produce: each chip's own magnet, 6 mm away, gives it about "
         f"{OWN_MAGNET_T * 1e3:g} mT (never below {STRONGEST_READING_MIN_T * 1e3:g} mT). A unit error: "
-        f"x {factor:g} would bring it to {strongest * factor * 1e3:.3g} mT (flux is in T)")
+        f"x {factor:g} would bring it to {strongest * factor * 1e3:.3g} mT (flux is in T)"
+    )
 
 
 def check_chips(dataset: Dataset) -> None:
@@ -97,8 +102,10 @@ def check_chips(dataset: Dataset) -> None:
     for j in range(len(dataset.addresses)):
         cols = slice(3 * j, 3 * j + 3)
         if not np.any(flux[:, cols]):
-            raise CalibrationError(f"{dataset.where()}{chip_name(dataset, j)} reads 0 in every fit pose: dead, "
-                                   "not powered or not connected. Check its wiring and record the dataset again")
+            raise CalibrationError(
+                f"{dataset.where()}{chip_name(dataset, j)} reads 0 in every fit pose: dead, "
+                "not powered or not connected. Check its wiring and record the dataset again"
+            )
         stuck = [a for a, s, n in zip("xyz", spread[cols], noise[cols]) if s <= STUCK_FACTOR * n]
         if stuck:
             worst = float(spread[cols].min())
@@ -106,7 +113,8 @@ def check_chips(dataset: Dataset) -> None:
                 f"{dataset.where()}{chip_name(dataset, j)} does not follow the loads on {', '.join(stuck)}: its "
                 f"reading varies by {worst * 1e6:.3g} uT across the {len(flux)} fit poses, within {STUCK_FACTOR:g}x "
                 f"its noise ({float(noise[cols].min()) * 1e6:.3g} uT), where every live chip moves by tens of uT. "
-                "A stuck chip or a reading repeated by the logger: check it with `ftsensord scan`")
+                "A stuck chip or a reading repeated by the logger: check it with `ftsensord scan`"
+            )
 
 
 def check_polarity(dataset: Dataset, geometry: SensorGeometry) -> None:
@@ -119,25 +127,34 @@ def check_polarity(dataset: Dataset, geometry: SensorGeometry) -> None:
     usable = ~dataset.saturated
     if not usable.any():
         return
-    mean = np.array([dataset.flux_t[usable[:, j], 3 * j:3 * j + 3].mean(axis=0) if usable[:, j].any()
-                     else model[j] for j in range(len(dataset.addresses))])
+    mean = np.array(
+        [
+            dataset.flux_t[usable[:, j], 3 * j : 3 * j + 3].mean(axis=0) if usable[:, j].any() else model[j]
+            for j in range(len(dataset.addresses))
+        ]
+    )
     cos = np.einsum("ni,ni->n", mean, model) / (np.linalg.norm(mean, axis=1) * np.linalg.norm(model, axis=1))
     against = np.flatnonzero(cos < 0)
     if not len(against):
         return
     j = int(against[0])
-    seen = f"{chip_name(dataset, j)} reads {np.round(mean[j] * 1e3, 2).tolist()} mT where the model has " \
-           f"{np.round(model[j] * 1e3, 2).tolist()} mT"
+    seen = (
+        f"{chip_name(dataset, j)} reads {np.round(mean[j] * 1e3, 2).tolist()} mT where the model has "
+        f"{np.round(model[j] * 1e3, 2).tolist()} mT"
+    )
     if len(against) == len(cos):
         raise CalibrationError(
             f"{dataset.where()}every chip reads its magnet's field opposite to the model's ({seen}): the magnets "
             "face the other way round. The paper does not say which pole faces the chip; ftsensord's model has "
             "each magnet magnetised along its chip's z axis (the field at the chip along +z). Turn the magnets "
-            "over, or check that the chips' z axes point at them")
+            "over, or check that the chips' z axes point at them"
+        )
     raise CalibrationError(
-        f"{dataset.where()}" + ", ".join(chip_name(dataset, int(i)) for i in against)
+        f"{dataset.where()}"
+        + ", ".join(chip_name(dataset, int(i)) for i in against)
         + f" read their magnet's field opposite to the model's ({seen}), the other chips along it: those "
-        "magnets were glued the other way round, or those chips mounted upside down")
+        "magnets were glued the other way round, or those chips mounted upside down"
+    )
 
 
 def check_loads(dataset: Dataset) -> None:
@@ -158,7 +175,8 @@ def check_loads(dataset: Dataset) -> None:
                         f"{dataset.where()}poses[].wrench: each recorded wrench is the one the masses, lever arms "
                         f"and gravity of the pose {'before' if shift > 0 else 'after'} give, not its own "
                         f"({', '.join(f'{AXES[k]} {ratios[k]:.3g}x' for k in off)} of its own): the wrench log "
-                        f"is one pose {word} the poses (and their flux). Realign it")
+                        f"is one pose {word} the poses (and their flux). Realign it"
+                    )
             raise CalibrationError(f"{dataset.where()}poses[].wrench: " + _unit_or_sign(off, ratios))
     calibration = dataset.split != "no-load"
     over = np.abs(dataset.wrench[calibration]) / SENSOR_RANGE
@@ -173,7 +191,8 @@ def check_loads(dataset: Dataset) -> None:
             f"{dataset.where()}poses[{pose}].wrench: {AXES[axis]} = {dataset.wrench[pose, axis]:.4g} "
             f"{AXIS_UNITS[axis]}, {over[k, axis]:.3g}x the sensor's range ({SENSOR_RANGE[axis]:g} "
             f"{AXIS_UNITS[axis]}; mass_kg {dataset.mass_kg[pose]:.4g}), and half the poses are further: no "
-            "calibration load is that large. A unit: masses in g for kg, or wrenches in mN?")
+            "calibration load is that large. A unit: masses in g for kg, or wrenches in mN?"
+        )
 
 
 def _ratios(recorded: np.ndarray, given: np.ndarray) -> list[float]:
@@ -198,8 +217,10 @@ def _unit_or_sign(off: list[int], ratios: list[float]) -> str:
             return head + ": torques 1000x too large, written in N mm; the file wants N m"
         return head + f": {axes} 1000x too large, a unit (mN, N mm) where the file wants N, N m"
     if all(abs(ratios[k] + 1) < 0.1 for k in off):  # -1 within 10 %: a rig's loads are known far better
-        return head + f": the sign of {axes} is flipped (a frame axis reversed in the log, or a sign error in " \
-                      "the wrench's computation)"
+        return (
+            head + f": the sign of {axes} is flipped (a frame axis reversed in the log, or a sign error in "
+            "the wrench's computation)"
+        )
     if all(ratios[k] == 0 for k in off):
         return head + f": {axes} recorded as 0 where the masses load them (not logged?)"
     return head + ": a unit or frame differs between the wrench and the pose's description"
@@ -217,7 +238,8 @@ def duplicate_poses(dataset: Dataset) -> tuple[np.ndarray, list[str]]:
     return origin != np.arange(len(dataset)), [
         f"{len(copies)} poses repeat an earlier pose's flux to the last digit, which no two averaged readings "
         f"do: logged twice (poses {_ranges(copies)} repeat poses {_ranges(origin[copies])}); the copies are "
-        "left out"]
+        "left out"
+    ]
 
 
 def _ranges(indices: np.ndarray) -> str:
@@ -248,9 +270,12 @@ def check_stiffness(K: np.ndarray, what: str, explain: str = "") -> None:
             f"{what}: K is negative definite (eigenvalues of its symmetric part {eig[0]:.3g} to {eig[-1]:.3g}): "
             "every load moved the centre piece against itself, the flux and the wrenches have opposite signs "
             "throughout. Either the magnets face the other way round (the paper does not say which pole faces "
-            "the chip), or every wrench's sign is flipped (gravity_dir pointing up instead of down)")
+            "the chip), or every wrench's sign is flipped (gravity_dir pointing up instead of down)"
+        )
     cause = (f"{explain}. " if explain else "") + (
-        "Otherwise the recorded wrenches do not match the flux: check their signs, frame and units (N, Nm in {0})")
+        "Otherwise the recorded wrenches do not match the flux: check their signs, frame and units (N, Nm in {0})"
+    )
     raise CalibrationError(
         f"{what}: K is not positive definite (lowest eigenvalue of its symmetric part {eig[0]:.3g}): some "
-        f"deflection would store no energy, or move against its load. {cause}")
+        f"deflection would store no energy, or move against its load. {cause}"
+    )

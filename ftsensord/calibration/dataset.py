@@ -62,11 +62,16 @@ def implausible_flux(values: ArrayLike, saturated: ArrayLike | None = None) -> s
     worst = float(np.abs(values).max())
     if worst <= FLUX_LIMIT_T:
         return None
-    units = [f"{unit} (x {size:g})" for unit, size in WRONG_UNITS
-             if STRONGEST_READING_MIN_T <= worst * size <= FLUX_LIMIT_T]
+    units = [
+        f"{unit} (x {size:g})"
+        for unit, size in WRONG_UNITS
+        if STRONGEST_READING_MIN_T <= worst * size <= FLUX_LIMIT_T
+    ]
     hint = f"; it would fit if written in {' or '.join(units)}" if units else ""
-    return (f"|flux| up to {worst:.4g} T, beyond the {mlx.HALL_SATURATION_T * 1e3:g} mT an MLX90393 can "
-            f"read (flux is in T){hint}")
+    return (
+        f"|flux| up to {worst:.4g} T, beyond the {mlx.HALL_SATURATION_T * 1e3:g} mT an MLX90393 can "
+        f"read (flux is in T){hint}"
+    )
 
 
 @dataclass
@@ -90,8 +95,12 @@ class Hold:
     flux_t: np.ndarray
 
     def document(self) -> dict:
-        return {"load_times_s": self.load_times_s.tolist(), "loads": self.loads.tolist(),
-                "times_s": self.times_s.tolist(), "flux_t": self.flux_t.tolist()}
+        return {
+            "load_times_s": self.load_times_s.tolist(),
+            "loads": self.loads.tolist(),
+            "times_s": self.times_s.tolist(),
+            "flux_t": self.flux_t.tolist(),
+        }
 
     @classmethod
     def parse(cls, t: Table, channels: int) -> Hold:
@@ -104,7 +113,9 @@ class Hold:
         if times[0] < load_times[0]:
             raise t.fail("times_s", f"readings from the first load's time on ({load_times[0]} s)", times[0])
         if load_times[-1] >= times[-1]:  # a load no reading saw: a log cut short, or the wrong clock
-            raise t.fail("load_times_s", f"loads applied before the last reading ({times[-1]} s)", load_times[-1])
+            raise t.fail(
+                "load_times_s", f"loads applied before the last reading ({times[-1]} s)", load_times[-1]
+            )
         flux = np.array(t.matrix("flux_t", len(times), channels, unit="T"))
         why = implausible_flux(flux)
         if why is not None:
@@ -130,7 +141,9 @@ class Dataset:
     source: str = ""
     sweeps: dict[int, Sweep] = field(default_factory=dict)
     rotation: np.ndarray | None = None  # (n, 3, 3) R_w0 per pose, world z up; None: not recorded
-    temperature_c: np.ndarray | None = None  # (n,) the chips' mean die temperature per pose, degC; None: not recorded
+    temperature_c: np.ndarray | None = (
+        None  # (n,) the chips' mean die temperature per pose, degC; None: not recorded
+    )
     hold: Hold | None = None  # the step-and-hold segment; None: not recorded
     #: (n, 3) s on one clock through the run: when each pose's load was applied, and its first
     #: and last reading (the silicone's creep in each dwell, `creep.dwell_loads`); None: not recorded.
@@ -143,9 +156,13 @@ class Dataset:
     def select(self, mask: np.ndarray) -> Dataset:
         """The poses where ``mask`` is true (sweeps kept)."""
         picked = {name: getattr(self, name)[mask] for name in POSE_FIELDS}
-        return replace(self, **picked, rotation=None if self.rotation is None else self.rotation[mask],
-                       temperature_c=None if self.temperature_c is None else self.temperature_c[mask],
-                       times_s=None if self.times_s is None else self.times_s[mask])
+        return replace(
+            self,
+            **picked,
+            rotation=None if self.rotation is None else self.rotation[mask],
+            temperature_c=None if self.temperature_c is None else self.temperature_c[mask],
+            times_s=None if self.times_s is None else self.times_s[mask],
+        )
 
     def temperature_range(self) -> tuple[float, float, float] | None:
         """The die temperature over the poses (degC): mean, lowest, highest; None: not recorded."""
@@ -158,21 +175,33 @@ class Dataset:
 
     def save(self, path: str | Path) -> None:
         doc = {
-            "format": DATASET_FORMAT, "version": DATASET_VERSION, "units": dict(UNITS),
+            "format": DATASET_FORMAT,
+            "version": DATASET_VERSION,
+            "units": dict(UNITS),
             "frame": "sensor frame {0}: origin at the sensor's centre, z along the shaft towards the tip",
             "sensor": {"serial": self.serial, "addresses": [f"0x{a:02X}" for a in self.addresses]},
-            "samples_per_pose": self.samples_per_pose, "source": self.source,
-            "poses": [{
-                "split": str(self.split[k]), "mass_kg": float(self.mass_kg[k]),
-                "lever_m": self.lever_m[k].tolist(), "gravity_dir": self.gravity_dir[k].tolist(),
-                "wrench": self.wrench[k].tolist(), "flux_t": self.flux_t[k].tolist(),
-                "flux_sem_t": self.flux_sem_t[k].tolist(), "saturated": self.saturated[k].tolist(),
-                **({} if self.rotation is None else {"rotation": self.rotation[k].tolist()}),
-                **({} if self.temperature_c is None else {"temperature_c": float(self.temperature_c[k])}),
-                **({} if self.times_s is None else {"times_s": self.times_s[k].tolist()}),
-            } for k in range(len(self))],
-            "position_sweeps": {f"0x{a:02X}": {"position_m": s.position_m.tolist(), "flux_t": s.flux_t.tolist()}
-                                for a, s in self.sweeps.items()},
+            "samples_per_pose": self.samples_per_pose,
+            "source": self.source,
+            "poses": [
+                {
+                    "split": str(self.split[k]),
+                    "mass_kg": float(self.mass_kg[k]),
+                    "lever_m": self.lever_m[k].tolist(),
+                    "gravity_dir": self.gravity_dir[k].tolist(),
+                    "wrench": self.wrench[k].tolist(),
+                    "flux_t": self.flux_t[k].tolist(),
+                    "flux_sem_t": self.flux_sem_t[k].tolist(),
+                    "saturated": self.saturated[k].tolist(),
+                    **({} if self.rotation is None else {"rotation": self.rotation[k].tolist()}),
+                    **({} if self.temperature_c is None else {"temperature_c": float(self.temperature_c[k])}),
+                    **({} if self.times_s is None else {"times_s": self.times_s[k].tolist()}),
+                }
+                for k in range(len(self))
+            ],
+            "position_sweeps": {
+                f"0x{a:02X}": {"position_m": s.position_m.tolist(), "flux_t": s.flux_t.tolist()}
+                for a, s in self.sweeps.items()
+            },
             **({} if self.hold is None else {"hold": self.hold.document()}),
         }
         Path(path).write_text(json.dumps(doc, indent=1) + "\n")
@@ -181,8 +210,20 @@ class Dataset:
     def load(cls, path: str | Path) -> Dataset:
         """Read and validate a dataset; errors name the file, the key and what was expected."""
         doc = Table(load_json(path), path)
-        doc.only({"format", "version", "units", "frame", "sensor", "samples_per_pose", "source", "poses",
-                  "position_sweeps", "hold"})
+        doc.only(
+            {
+                "format",
+                "version",
+                "units",
+                "frame",
+                "sensor",
+                "samples_per_pose",
+                "source",
+                "poses",
+                "position_sweeps",
+                "hold",
+            }
+        )
         if doc.get("format") != DATASET_FORMAT:
             raise doc.fail("format", f'"{DATASET_FORMAT}"', doc.get("format"))
         doc.integer("version", what=f"{DATASET_VERSION}", low=DATASET_VERSION, high=DATASET_VERSION)
@@ -217,18 +258,26 @@ class Dataset:
             if any(v < 0 for v in columns["flux_sem_t"][-1]):
                 raise row.fail("flux_sem_t", "standard errors >= 0 (T)", columns["flux_sem_t"][-1])
             if ("rotation" in row.doc) != ("rotation" in rows[0].doc):
-                raise row.fail("rotation", "a rotation in every pose or in none (as poses[0])",
-                               row.doc.get("rotation", "none"))
+                raise row.fail(
+                    "rotation",
+                    "a rotation in every pose or in none (as poses[0])",
+                    row.doc.get("rotation", "none"),
+                )
             if "rotation" in row.doc:
                 rotations.append(_rotation(row, columns["gravity_dir"][-1]))
             if ("temperature_c" in row.doc) != ("temperature_c" in rows[0].doc):
-                raise row.fail("temperature_c", "a temperature in every pose or in none (as poses[0])",
-                               row.doc.get("temperature_c", "none"))
+                raise row.fail(
+                    "temperature_c",
+                    "a temperature in every pose or in none (as poses[0])",
+                    row.doc.get("temperature_c", "none"),
+                )
             if "temperature_c" in row.doc:  # the chips' operating range, as a scene's
                 low, high = mlx.OPERATING_RANGE_C
                 temperatures.append(row.number("temperature_c", low=low, high=high, unit="degC"))
             if ("times_s" in row.doc) != ("times_s" in rows[0].doc):
-                raise row.fail("times_s", "times in every pose or in none (as poses[0])", row.doc.get("times_s", "none"))
+                raise row.fail(
+                    "times_s", "times in every pose or in none (as poses[0])", row.doc.get("times_s", "none")
+                )
             if "times_s" in row.doc:
                 times.append(_times(row, times[-1][2] if times else -np.inf))
         sweeps = {}
@@ -249,15 +298,23 @@ class Dataset:
                 if why is not None:
                     raise s.fail("flux_t", f"readings an MLX90393 can make: {why}", flux.tolist())
                 sweeps[address] = Sweep(np.array(s.matrix("position_m", k, 3, unit="m")), flux)
-        arrays = {name: np.array(values, dtype=bool if name == "saturated" else None)
-                  for name, values in columns.items()}
-        return cls(addresses, **arrays, samples_per_pose=doc.integer("samples_per_pose", low=1,
-                                                                     what="a positive integer"),
-                   serial=sensor.string("serial", ""), source=doc.string("source", ""), sweeps=sweeps,
-                   rotation=np.array(rotations) if rotations else None,
-                   temperature_c=np.array(temperatures) if temperatures else None, path=str(path),
-                   times_s=np.array(times) if times else None,
-                   hold=Hold.parse(doc.table("hold"), 3 * chips) if "hold" in doc.doc else None)
+        arrays = {
+            name: np.array(values, dtype=bool if name == "saturated" else None)
+            for name, values in columns.items()
+        }
+        return cls(
+            addresses,
+            **arrays,
+            samples_per_pose=doc.integer("samples_per_pose", low=1, what="a positive integer"),
+            serial=sensor.string("serial", ""),
+            source=doc.string("source", ""),
+            sweeps=sweeps,
+            rotation=np.array(rotations) if rotations else None,
+            temperature_c=np.array(temperatures) if temperatures else None,
+            path=str(path),
+            times_s=np.array(times) if times else None,
+            hold=Hold.parse(doc.table("hold"), 3 * chips) if "hold" in doc.doc else None,
+        )
 
 
 def _times(row: Table, last_read: float) -> list[float]:
@@ -268,8 +325,12 @@ def _times(row: Table, last_read: float) -> list[float]:
     # 1 us: a reading's time is a clock read plus the conversion's wait, the next load's the clock
     # read after that wait: equal but for round-off on a clock that only moves by waits (the simulator's).
     if not (last_read - 1e-6 <= t[0] <= t[1] <= t[2]):
-        raise row.fail("times_s", f"[applied, first reading, last reading] in that order, applied no earlier than "
-                       f"the pose before's last reading ({last_read} s)", t)
+        raise row.fail(
+            "times_s",
+            f"[applied, first reading, last reading] in that order, applied no earlier than "
+            f"the pose before's last reading ({last_read} s)",
+            t,
+        )
     return t
 
 
@@ -284,9 +345,12 @@ def _rotation(row: Table, gravity_dir: list[float]) -> np.ndarray:
     if np.linalg.norm(g) == 0 or not np.allclose(R.T @ [0.0, 0.0, -1.0], g / np.linalg.norm(g), atol=1e-3):
         # The angle between them, for the message (a zero gravity_dir: none, printed as 90 deg).
         gap = np.degrees(np.arccos(np.clip(-R[2] @ g / max(np.linalg.norm(g), 1e-300), -1.0, 1.0)))
-        raise row.fail("rotation", f"R_w0 with R^T (0, 0, -1) = gravity_dir {gravity_dir} (they disagree by "
-                       f"{gap:.3g} deg: angles in degrees taken as radians, or another pose's rotation?)",
-                       R.tolist())
+        raise row.fail(
+            "rotation",
+            f"R_w0 with R^T (0, 0, -1) = gravity_dir {gravity_dir} (they disagree by "
+            f"{gap:.3g} deg: angles in degrees taken as radians, or another pose's rotation?)",
+            R.tolist(),
+        )
     return R
 
 
@@ -298,7 +362,11 @@ def parse_address(table: Table, key: str, value: object) -> int:
             number = int(value, 16) if value.lower().startswith("0x") else int(value)
         except ValueError:
             number = None
-    if not isinstance(number, int) or isinstance(number, bool) or not mlx.ADDRESS_MIN <= number <= mlx.ADDRESS_MAX:
+    if (
+        not isinstance(number, int)
+        or isinstance(number, bool)
+        or not mlx.ADDRESS_MIN <= number <= mlx.ADDRESS_MAX
+    ):
         raise table.fail(key, 'an address in 0x0C-0x1B (e.g. "0x0C")', value)
     return number
 

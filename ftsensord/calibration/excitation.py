@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ftsensord.model.linear import SENSOR_RANGE
 from ftsensord.calibration.dataset import AXES
+from ftsensord.model.linear import SENSOR_RANGE
 
 #: Excitation test on the wrenches, each axis scaled by the sensor's range and
 #: centred: a direction excited less than 1e-3 of the strongest is below what a
@@ -83,9 +83,11 @@ class Excitation:
 
     def explain(self) -> str:
         """Why K is poorly determined: the condition number and the direction lacking."""
-        return (f"the plan's wrenches are nearly dependent (condition number {self.condition:.3g}; above "
-                f"{CONDITION_WARN:g} K is fitted to the rig's error along the direction it lacks: "
-                f"{self.weakest()}, range-scaled)")
+        return (
+            f"the plan's wrenches are nearly dependent (condition number {self.condition:.3g}; above "
+            f"{CONDITION_WARN:g} K is fitted to the rig's error along the direction it lacks: "
+            f"{self.weakest()}, range-scaled)"
+        )
 
     def advice(self) -> str:
         forces, torques = {"Fx", "Fy", "Fz"}, {"Mx", "My", "Mz"}
@@ -93,8 +95,10 @@ class Excitation:
         force_only = set(self.not_excited) & forces or any(set(g) <= forces for g in self.tied)
         tips = []
         if not involved or involved & torques:
-            tips.append("add poses whose lever arm points off the shaft axis (e.g. along x and along y), "
-                        "or a torque fixture, so that every torque varies independently of the forces")
+            tips.append(
+                "add poses whose lever arm points off the shaft axis (e.g. along x and along y), "
+                "or a torque fixture, so that every torque varies independently of the forces"
+            )
         if not involved or force_only:
             tips.append("add orientations that turn gravity along every axis of the sensor")
         return "; ".join(tips)

@@ -25,15 +25,24 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ftsensord.errors import CalibrationError
-from ftsensord.model.geometry import SensorGeometry
-from ftsensord.model.linear import LinearModel, PositionMap, deflection_twist, fit_position_map
-from ftsensord.sim.chip import NOISELESS
-from ftsensord.calibration.checks import check_chips, check_finite, check_flux_scale, check_loads, check_plausible, check_polarity, check_stiffness, duplicate_poses
+from ftsensord.calibration.checks import (
+    check_chips,
+    check_finite,
+    check_flux_scale,
+    check_loads,
+    check_plausible,
+    check_polarity,
+    check_stiffness,
+    duplicate_poses,
+)
 from ftsensord.calibration.dataset import AXES, Dataset
 from ftsensord.calibration.excitation import CONDITION_WARN, check_excitation
 from ftsensord.calibration.rig import simulate_sweeps
 from ftsensord.calibration.screening import check_chip_order, leave_out_outliers
+from ftsensord.errors import CalibrationError
+from ftsensord.model.geometry import SensorGeometry
+from ftsensord.model.linear import LinearModel, PositionMap, deflection_twist, fit_position_map
+from ftsensord.sim.chip import NOISELESS
 
 #: Parameters of one row of the affine flux-to-twist fit: 24 slopes and an offset.
 MIN_FIT_POSES = 26
@@ -103,8 +112,14 @@ class LinearFit:
     floor_t: float
 
 
-def fit_linear(flux: np.ndarray, twist: np.ndarray, wrench: np.ndarray, floor_t: float = 0.0,
-               room: np.ndarray | None = None, zero: tuple[np.ndarray, np.ndarray] | None = None) -> LinearFit:
+def fit_linear(
+    flux: np.ndarray,
+    twist: np.ndarray,
+    wrench: np.ndarray,
+    floor_t: float = 0.0,
+    room: np.ndarray | None = None,
+    zero: tuple[np.ndarray, np.ndarray] | None = None,
+) -> LinearFit:
     """A, K and the zero from flux (n, 24; T), twists (n, 6) and wrenches (n, 6).
 
     A is the least-squares map of centred flux to centred twist, through the
@@ -141,8 +156,14 @@ def fit_linear(flux: np.ndarray, twist: np.ndarray, wrench: np.ndarray, floor_t:
     return LinearFit(LinearModel(K, A, b0, Ht.T, room=room), int(keep.sum()), float(floor_t))
 
 
-def _fit_through_zero(flux: np.ndarray, twist: np.ndarray, wrench: np.ndarray, floor_t: float,
-                      room: np.ndarray | None, zero: tuple[np.ndarray, np.ndarray]) -> LinearFit:
+def _fit_through_zero(
+    flux: np.ndarray,
+    twist: np.ndarray,
+    wrench: np.ndarray,
+    floor_t: float,
+    room: np.ndarray | None,
+    zero: tuple[np.ndarray, np.ndarray],
+) -> LinearFit:
     """`fit_linear` with the zero measured: b - b0 maps to xi - xi0 through the origin."""
     b0, xi0 = zero[0].mean(axis=0), zero[1].mean(axis=0)
     centred = flux - b0
@@ -166,8 +187,10 @@ def rmse(model: LinearModel, dataset: Dataset) -> np.ndarray:
 def singular_values_ka(model: LinearModel) -> dict[str, list[float]]:
     """Singular values of K A for forces (N/uT) and torques (Nm/uT), section VI."""
     ka_per_ut = model.KA * 1e-6
-    return {"forces": np.linalg.svd(ka_per_ut[:3], compute_uv=False).tolist(),
-            "torques": np.linalg.svd(ka_per_ut[3:], compute_uv=False).tolist()}
+    return {
+        "forces": np.linalg.svd(ka_per_ut[:3], compute_uv=False).tolist(),
+        "torques": np.linalg.svd(ka_per_ut[3:], compute_uv=False).tolist(),
+    }
 
 
 def position_maps(dataset: Dataset, geometry: SensorGeometry) -> tuple[PositionMap, str]:
@@ -176,22 +199,27 @@ def position_maps(dataset: Dataset, geometry: SensorGeometry) -> tuple[PositionM
     missing = [a for a in dataset.addresses if a not in sweeps]
     if missing:
         sweeps = {**simulate_sweeps(missing, geometry, noise=NOISELESS), **sweeps}
-        source = (f"model sweep (exact cylinder field, nominal geometry) for "
-                  f"{', '.join(f'0x{a:02X}' for a in missing)}" + ("" if len(missing) == len(dataset.addresses)
-                                                                   else "; recorded sweeps for the rest"))
+        source = (
+            f"model sweep (exact cylinder field, nominal geometry) for "
+            f"{', '.join(f'0x{a:02X}' for a in missing)}"
+            + ("" if len(missing) == len(dataset.addresses) else "; recorded sweeps for the rest")
+        )
     fits = []
     for a in dataset.addresses:
         try:
             fits.append(fit_position_map(sweeps[a].flux_t, sweeps[a].position_m))
         except ValueError as exc:
-            raise CalibrationError(f"{dataset.where()}position_sweeps.0x{a:02X}: chip 0x{a:02X}'s position-map "
-                                   f"sweep cannot give its map: {exc}. Record the sweep again, moving the "
-                                   "magnet along all three axes") from exc
+            raise CalibrationError(
+                f"{dataset.where()}position_sweeps.0x{a:02X}: chip 0x{a:02X}'s position-map "
+                f"sweep cannot give its map: {exc}. Record the sweep again, moving the "
+                "magnet along all three axes"
+            ) from exc
     return PositionMap(np.array([f[0] for f in fits]), np.array([f[1] for f in fits])), source
 
 
-def room_directions(dataset: Dataset, geometry: SensorGeometry, mode: str = "auto"
-                    ) -> tuple[np.ndarray | None, dict]:
+def room_directions(
+    dataset: Dataset, geometry: SensorGeometry, mode: str = "auto"
+) -> tuple[np.ndarray | None, dict]:
     """The 3 flux directions (24 x 3, orthonormal) a uniform room field takes, per ``mode``
     (`ROOM_FIELD_MODES`), and a report of how they were found.
 
@@ -208,24 +236,39 @@ def room_directions(dataset: Dataset, geometry: SensorGeometry, mode: str = "aut
     if mode == "none":
         return None, {"mode": "none", "no_load_poses": len(no_load)}
     if mode == "geometry":
-        return geometry.room_directions(), {"mode": "geometry", "no_load_poses": len(no_load),
-                                            "source": "nominal chip orientations"}
+        return geometry.room_directions(), {
+            "mode": "geometry",
+            "no_load_poses": len(no_load),
+            "source": "nominal chip orientations",
+        }
     if len(no_load) < MIN_NO_LOAD_POSES:
-        raise CalibrationError(f"{dataset.where()}{len(no_load)} unsaturated no-load poses: measuring the room "
-                               f"field's directions needs at least {MIN_NO_LOAD_POSES}, at orientations that "
-                               "turn every sensor axis through the field")
+        raise CalibrationError(
+            f"{dataset.where()}{len(no_load)} unsaturated no-load poses: measuring the room "
+            f"field's directions needs at least {MIN_NO_LOAD_POSES}, at orientations that "
+            "turn every sensor axis through the field"
+        )
     centred = no_load.flux_t - no_load.flux_t.mean(axis=0)
     _, sv, vt = np.linalg.svd(centred, full_matrices=False)
     floor = noise_floor(no_load.flux_sem_t) if no_load.samples_per_pose > 1 else 0.0
-    report = {"mode": "measured", "no_load_poses": len(no_load), "noise_floor_ut": floor * 1e6,
-              "singular_values_ut": (sv[:5] * 1e6).tolist()}
+    report = {
+        "mode": "measured",
+        "no_load_poses": len(no_load),
+        "noise_floor_ut": floor * 1e6,
+        "singular_values_ut": (sv[:5] * 1e6).tolist(),
+    }
     if len(sv) > 3 and sv[3] > ROOM_EXTRA_FACTOR * floor:
-        figures = "singular values " + ", ".join(f"{v * 1e6:.3g}" for v in sv[:5]) + \
-            f" uT; noise floor {floor * 1e6:.3g} uT"
+        figures = (
+            "singular values "
+            + ", ".join(f"{v * 1e6:.3g}" for v in sv[:5])
+            + f" uT; noise floor {floor * 1e6:.3g} uT"
+        )
         raise RoomFieldError(
             f"{dataset.where()}the no-load poses vary in more than 3 flux directions ({figures}): not a "
             "uniform field alone. Take the rod and mass off for the no-load poses, and move steel and motors "
-            "away from the sensor", after_load_s(dataset), figures)
+            "away from the sensor",
+            after_load_s(dataset),
+            figures,
+        )
     if sv[2] <= ROOM_EXTRA_FACTOR * floor < ROOM_SIGNAL_FACTOR * floor <= sv[0]:
         # A field stands well above the noise, but its 3rd direction is at the noise (where a
         # 4th must stay): the poses turned the sensor about one axis only, so the field along
@@ -235,15 +278,21 @@ def room_directions(dataset: Dataset, geometry: SensorGeometry, mode: str = "aut
         # takes the nominal directions below, as a field-free room does: not refused.)
         raise CalibrationError(
             f"{dataset.where()}the no-load poses turn the sensor about one axis only: the room field varies in 2 "
-            "flux directions (singular values " + ", ".join(f"{v * 1e6:.3g}" for v in sv[:3]) + f" uT; noise floor "
+            "flux directions (singular values "
+            + ", ".join(f"{v * 1e6:.3g}" for v in sv[:3])
+            + f" uT; noise floor "
             f"{floor * 1e6:.3g} uT), its 3rd is not seen, and the directions measured would leave it in. Record "
             "no-load poses at orientations spread over the sphere (the shaft tilted every way, turned about the "
-            "vertical too), not by turning one joint")
+            "vertical too), not by turning one joint"
+        )
     if sv[2] < ROOM_SIGNAL_FACTOR * floor:
         # The room field is too weak to measure its directions: nothing to reject that the
         # noise does not hide, so the nominal directions are as good and cost the same.
-        report.update(mode="geometry", source="nominal chip orientations (the no-load poses show no 3rd room "
-                      f"field direction above {ROOM_SIGNAL_FACTOR:g} x the noise floor)")
+        report.update(
+            mode="geometry",
+            source="nominal chip orientations (the no-load poses show no 3rd room "
+            f"field direction above {ROOM_SIGNAL_FACTOR:g} x the noise floor)",
+        )
         return geometry.room_directions(), report
     report["source"] = "no-load poses"
     return vt[:3].T, report
@@ -268,8 +317,9 @@ def check_numbers(dataset: Dataset, geometry: SensorGeometry) -> None:
     """Refuse numbers that cannot be what they claim (`checks`): shapes, no numbers, flux
     no chip reads, wrenches their own masses do not give. First: nothing else is judged on them."""
     if dataset.flux_t.shape[1] != 3 * geometry.n_chips:
-        raise CalibrationError(f"the dataset has {dataset.flux_t.shape[1] // 3} chips, the geometry "
-                               f"{geometry.n_chips}")
+        raise CalibrationError(
+            f"the dataset has {dataset.flux_t.shape[1] // 3} chips, the geometry {geometry.n_chips}"
+        )
     check_finite(dataset)
     check_plausible(dataset)
     check_loads(dataset)
@@ -283,8 +333,9 @@ def check_flux(dataset: Dataset, geometry: SensorGeometry) -> None:
     check_polarity(dataset, geometry)
 
 
-def fit(dataset: Dataset, geometry: SensorGeometry | None = None, *, room_field: str = "auto"
-        ) -> CalibrationResult:
+def fit(
+    dataset: Dataset, geometry: SensorGeometry | None = None, *, room_field: str = "auto"
+) -> CalibrationResult:
     """Fit the linear model to the dataset's "fit" poses and validate on the rest.
 
     Poses where any chip saturated are left out (and counted); poses logged twice and a
@@ -305,17 +356,24 @@ def fit(dataset: Dataset, geometry: SensorGeometry | None = None, *, room_field:
         counts = dataset.saturated[dataset.split == "fit"].sum(axis=0)
         chips = ", ".join(f"0x{a:02X} in {n}" for a, n in zip(dataset.addresses, counts) if n)
         left = int((saturated & (dataset.split == "fit")).sum())
-        raise CalibrationError(f"{dataset.where()}{len(fit_set)} usable fit poses; at least {MIN_FIT_POSES} are "
-                               f"needed ({left} left out for saturation"
-                               + (f": chip {chips} poses" if chips else "") + "). A chip saturates near "
-                               "50 mT: lighter masses, or a magnet further from that chip")
+        raise CalibrationError(
+            f"{dataset.where()}{len(fit_set)} usable fit poses; at least {MIN_FIT_POSES} are "
+            f"needed ({left} left out for saturation"
+            + (f": chip {chips} poses" if chips else "")
+            + "). A chip saturates near "
+            "50 mT: lighter masses, or a magnet further from that chip"
+        )
     excitation = check_excitation(fit_set.wrench)
     if not excitation.identifiable:
         raise CalibrationError(
-            "K is not identifiable from this dataset: " + "; ".join(excitation.describe())
+            "K is not identifiable from this dataset: "
+            + "; ".join(excitation.describe())
             + f" (rank {excitation.rank} of 6, singular values of the range-scaled wrenches "
-            + ", ".join(f"{v:.3g}" for v in excitation.singular_values) + "). To fix the plan: "
-            + excitation.advice() + ".")
+            + ", ".join(f"{v:.3g}" for v in excitation.singular_values)
+            + "). To fix the plan: "
+            + excitation.advice()
+            + "."
+        )
     check_flux(dataset, geometry)
     room, room_report = room_directions(dataset, geometry, room_field)
     pmap, pmap_source = position_maps(dataset, geometry)
@@ -334,41 +392,63 @@ def fit(dataset: Dataset, geometry: SensorGeometry | None = None, *, room_field:
     def fitted(keep: np.ndarray) -> LinearFit:
         return fit_linear(raw[:n][keep], twists[:n][keep], fit_set.wrench[keep], floor, room, zero)
 
-    outliers, response, found, largest = leave_out_outliers(dataset, fits, raw[:n], fit_set.wrench, room,
-                                                   lambda keep: fitted(keep).model.wrench(raw[:n]))
+    outliers, response, found, largest = leave_out_outliers(
+        dataset, fits, raw[:n], fit_set.wrench, room, lambda keep: fitted(keep).model.wrench(raw[:n])
+    )
     warnings += found
     result = fitted(~outliers)
     excitation = check_excitation(fit_set.wrench[~outliers])  # an outlier's load skews the plan's shape
     weak = excitation.condition > CONDITION_WARN
     if weak:
-        warnings.append(f"{excitation.explain()}: expect K's error along it amplified as much; "
-                        f"{excitation.advice()}")
+        warnings.append(
+            f"{excitation.explain()}: expect K's error along it amplified as much; {excitation.advice()}"
+        )
     if result.flux_rank < 6:
         raise CalibrationError(
             f"the flux varies in only {result.flux_rank} directions above the noise floor "
-            f"({floor * 1e6:.3g} uT): chips missing, saturated or not moving with the load")
-    check_stiffness(result.model.K, f"{dataset.where()}the fitted stiffness"
-                    + ("" if room is not None else " (the room's field was not rejected: if the sensor was turned "
-                       "in it, record no-load poses, docs/guide/calibration.md)"), excitation.explain() if weak else "")
+            f"({floor * 1e6:.3g} uT): chips missing, saturated or not moving with the load"
+        )
+    check_stiffness(
+        result.model.K,
+        f"{dataset.where()}the fitted stiffness"
+        + (
+            ""
+            if room is not None
+            else " (the room's field was not rejected: if the sensor was turned "
+            "in it, record no-load poses, docs/guide/calibration.md)"
+        ),
+        excitation.explain() if weak else "",
+    )
     mismatch = check_chip_order(dataset, response, geometry)
     used = fit_set.select(~outliers)
     validation = dataset.select((dataset.split == "validation") & clean)
     sv = singular_values_ka(result.model)
     report = {
-        "fit_poses": len(used), "validation_poses": len(validation),
-        "left_out_saturated": int(saturated.sum()), "samples_per_pose": dataset.samples_per_pose,
-        "left_out_copies": int(copies.sum()), "left_out_outliers": fits[outliers].tolist(),
-        "largest_pose_kept_sigma": largest, "chip_response_mismatch": mismatch,
-        "position_map": pmap_source, "room_field": room_report,
-        "wrench_excitation": {"singular_values": excitation.singular_values.tolist(),
-                              "condition": excitation.condition},
-        "flux_rank_above_floor": result.flux_rank, "noise_floor_ut": floor * 1e6,
+        "fit_poses": len(used),
+        "validation_poses": len(validation),
+        "left_out_saturated": int(saturated.sum()),
+        "samples_per_pose": dataset.samples_per_pose,
+        "left_out_copies": int(copies.sum()),
+        "left_out_outliers": fits[outliers].tolist(),
+        "largest_pose_kept_sigma": largest,
+        "chip_response_mismatch": mismatch,
+        "position_map": pmap_source,
+        "room_field": room_report,
+        "wrench_excitation": {
+            "singular_values": excitation.singular_values.tolist(),
+            "condition": excitation.condition,
+        },
+        "flux_rank_above_floor": result.flux_rank,
+        "noise_floor_ut": floor * 1e6,
         "singular_values_ka": sv,
-        "isotropy": {"forces": sv["forces"][-1] / sv["forces"][0],
-                     "torques": sv["torques"][-1] / sv["torques"][0]},
+        "isotropy": {
+            "forces": sv["forces"][-1] / sv["forces"][0],
+            "torques": sv["torques"][-1] / sv["torques"][0],
+        },
         "fit_rmse": dict(zip(AXES, rmse(result.model, used).tolist())),
-        "validation_rmse": (dict(zip(AXES, rmse(result.model, validation).tolist()))
-                            if len(validation) else None),
+        "validation_rmse": (
+            dict(zip(AXES, rmse(result.model, validation).tolist())) if len(validation) else None
+        ),
         "warnings": warnings,
     }
     excluded = copies.copy()

@@ -33,14 +33,14 @@ from typing import Any
 
 import numpy as np
 
+from ftsensord.calibration.dataset import Dataset
+from ftsensord.calibration.report import format_rmse
 from ftsensord.errors import CalibrationError
 from ftsensord.model import se3
 from ftsensord.model.geometry import SensorGeometry
 from ftsensord.model.linear import SENSOR_RANGE
 from ftsensord.model.magnet import MU0_OVER_4PI, dipole_pairs, octupole_field, octupole_ratio
 from ftsensord.model.nonlinear import FluxModel, NonlinearEstimator
-from ftsensord.calibration.dataset import Dataset
-from ftsensord.calibration.report import format_rmse
 
 #: Levenberg-Marquardt iterations of the joint fit: from the start below (the nominal
 #: part, K from the estimated deflections) the cost stops falling by 1e-6 of itself
@@ -116,15 +116,27 @@ class NonlinearCalibration:
         g = SensorGeometry.ring(radius_m=self.ring_radius_m, tilt_deg=self.tilt_deg, gap_m=self.gap_m)
         if self.magnet_p_m is None and self.magnet_strength is None:
             return g
-        return SensorGeometry(g.chip_R, g.chip_p, g.magnet_p if self.magnet_p_m is None else self.magnet_p_m,
-                              g.magnet_axis, g.magnet_radius_m, g.magnet_length_m, g.magnet_br_t,
-                              self.magnet_strength)
+        return SensorGeometry(
+            g.chip_R,
+            g.chip_p,
+            g.magnet_p if self.magnet_p_m is None else self.magnet_p_m,
+            g.magnet_axis,
+            g.magnet_radius_m,
+            g.magnet_length_m,
+            g.magnet_br_t,
+            self.magnet_strength,
+        )
 
     def estimator(self, background: bool = True) -> NonlinearEstimator:
         g = self.geometry()
-        return NonlinearEstimator(FluxModel(g, g.magnet_moment_am2, self.scale.copy(), self.offset_t.copy(),
-                                            octupole=self.octupole),
-                                  self.K, background=background, zero_twist=self.zero_twist)
+        return NonlinearEstimator(
+            FluxModel(
+                g, g.magnet_moment_am2, self.scale.copy(), self.offset_t.copy(), octupole=self.octupole
+            ),
+            self.K,
+            background=background,
+            zero_twist=self.zero_twist,
+        )
 
     def wrench(self, xi: np.ndarray) -> np.ndarray:
         """w = K (xi - xi0), N and Nm, from an estimated deflection."""
@@ -132,11 +144,17 @@ class NonlinearCalibration:
 
     def document(self) -> dict[str, Any]:
         """The calibration file's ``nonlinear`` section (docs/guide/calibration.md)."""
-        doc: dict[str, Any] = {"gap_m": self.gap_m, "ring_radius_m": self.ring_radius_m, "tilt_deg": self.tilt_deg,
-                               "scale": np.asarray(self.scale).tolist(), "offset_t": self.offset_t.tolist(),
-                               "K": self.K.tolist(), "zero_twist": self.zero_twist.tolist(),
-                               "fit_rms_residual_t": self.fit_rms_residual_t,
-                               "field_model": "dipole+octupole" if self.octupole else "dipole"}
+        doc: dict[str, Any] = {
+            "gap_m": self.gap_m,
+            "ring_radius_m": self.ring_radius_m,
+            "tilt_deg": self.tilt_deg,
+            "scale": np.asarray(self.scale).tolist(),
+            "offset_t": self.offset_t.tolist(),
+            "K": self.K.tolist(),
+            "zero_twist": self.zero_twist.tolist(),
+            "fit_rms_residual_t": self.fit_rms_residual_t,
+            "field_model": "dipole+octupole" if self.octupole else "dipole",
+        }
         if self.magnet_p_m is not None:
             doc["magnet_p_m"] = self.magnet_p_m.tolist()
         if self.magnet_strength is not None:
@@ -170,8 +188,9 @@ class _Problem:
     def pack(self, S, o, mp, s, C, d) -> np.ndarray:
         return np.concatenate([np.ravel(S), np.ravel(o), np.ravel(mp), np.ravel(s), np.ravel(C), np.ravel(d)])
 
-    def evaluate(self, theta: np.ndarray, jacobian: bool = True
-                 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    def evaluate(
+        self, theta: np.ndarray, jacobian: bool = True
+    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
         """Residual (N*3n,) projected off each pose's background directions, its
         Jacobian (N*3n, size) (Kaufman's: the directions' own derivative left out, as
         variable projection allows), and each pose's background field (N, 3; T, {0})."""
@@ -198,7 +217,7 @@ class _Problem:
         N = len(xis)
         U = SRt.reshape(N, n, 3, 3).reshape(N, 3 * n, 3)
         Q, Rq = np.linalg.qr(U)  # (N, 3n, 3) orthonormal background directions per pose
-        r_full = (self.flux - pred.reshape(N, -1))
+        r_full = self.flux - pred.reshape(N, -1)
         coef = np.einsum("kci,kc->ki", Q, r_full)
         resid = r_full - np.einsum("kci,ki->kc", Q, coef)
         u = np.linalg.solve(Rq, coef[..., None])[..., 0]  # each pose's best background field (T, {0})
@@ -249,11 +268,18 @@ def _start(flux: np.ndarray, wrench: np.ndarray, problem: _Problem) -> np.ndarra
     z = np.column_stack([wrench, np.ones(len(wrench))])
     coef, *_ = np.linalg.lstsq(z, xis, rcond=None)  # xi = C w + d
     n = g.n_chips
-    return problem.pack(np.tile(np.eye(3), (n, 1, 1)), model.offset_t, g.magnet_p, np.ones(n), coef[:6].T, coef[6])
+    return problem.pack(
+        np.tile(np.eye(3), (n, 1, 1)), model.offset_t, g.magnet_p, np.ones(n), coef[:6].T, coef[6]
+    )
 
 
-def fit_nonlinear(dataset: Dataset, *, progress: Callable[[FitProgress], None] | None = None,
-                  allow_poor_fit: bool = False, octupole: bool = True) -> NonlinearCalibration:
+def fit_nonlinear(
+    dataset: Dataset,
+    *,
+    progress: Callable[[FitProgress], None] | None = None,
+    allow_poor_fit: bool = False,
+    octupole: bool = True,
+) -> NonlinearCalibration:
     """Fit on the dataset's unsaturated "fit" poses (the identifiability checks are the
     linear fit's: run `ftsensord.calibration.fit` first).
 
@@ -292,22 +318,42 @@ def fit_nonlinear(dataset: Dataset, *, progress: Callable[[FitProgress], None] |
         assert J is not None
         if progress is not None:
             P = problem.unpack(theta)
-            progress(FitProgress(step, FIT_ITERATIONS, _mean_gap(geometry, P["mp"]), float(np.sqrt(cost / r.size)),
-                                 time.monotonic() - begin))
+            progress(
+                FitProgress(
+                    step,
+                    FIT_ITERATIONS,
+                    _mean_gap(geometry, P["mp"]),
+                    float(np.sqrt(cost / r.size)),
+                    time.monotonic() - begin,
+                )
+            )
     P = problem.unpack(theta)
     K = np.linalg.inv(P["C"])
-    cal = NonlinearCalibration(GAP_M, P["S"].copy(), P["o"].copy(), K, P["d"].copy(), float(np.sqrt(cost / r.size)),
-                               magnet_p_m=P["mp"].copy(), magnet_strength=P["s"].copy(), octupole=octupole)
+    cal = NonlinearCalibration(
+        GAP_M,
+        P["S"].copy(),
+        P["o"].copy(),
+        K,
+        P["d"].copy(),
+        float(np.sqrt(cost / r.size)),
+        magnet_p_m=P["mp"].copy(),
+        magnet_strength=P["s"].copy(),
+        octupole=octupole,
+    )
     problems = _problems(cal, geometry, dataset.flux_sem_t[rows])
     lowest = float(np.linalg.eigvalsh(0.5 * (K + K.T))[0])
     if not lowest > 0:  # never kept: no estimator can use a stiffness that is none
-        raise CalibrationError(f"{dataset.where()}the nonlinear fit is refused: its K is not positive definite "
-                               f"(lowest eigenvalue of its symmetric part {lowest:.3g})"
-                               + "".join(f"; {p}" for p in problems))
+        raise CalibrationError(
+            f"{dataset.where()}the nonlinear fit is refused: its K is not positive definite "
+            f"(lowest eigenvalue of its symmetric part {lowest:.3g})" + "".join(f"; {p}" for p in problems)
+        )
     if problems and not allow_poor_fit:
-        raise CalibrationError(f"{dataset.where()}the nonlinear fit is refused: " + "; ".join(problems)
-                               + ". The linear calibration is not affected (calibrate with the nonlinear "
-                               "fit off, or allow a poor fit to keep it with these warnings)")
+        raise CalibrationError(
+            f"{dataset.where()}the nonlinear fit is refused: "
+            + "; ".join(problems)
+            + ". The linear calibration is not affected (calibrate with the nonlinear "
+            "fit off, or allow a poor fit to keep it with these warnings)"
+        )
     cal.warnings = tuple(problems) + departure(cal, dataset.select(rows))
     return cal
 
@@ -329,15 +375,20 @@ def departure(cal: NonlinearCalibration, fitted: Dataset) -> tuple[str, ...]:
     masses = fitted.mass_kg[ok]
     light, heavy = masses == masses.min(), masses == masses.max()
     growth = float(np.sqrt(np.mean(scaled[heavy] ** 2) / np.mean(scaled[light] ** 2))) if light.any() else 1.0
-    why = (f"its error grows {growth:.2g}x from the {masses.min():g} kg to the {masses.max():g} kg poses: the "
-           "silicone stiffens with load, which its linear compliance cannot follow" if growth > GROWTH_WARN
-           else "silicone that stiffens, magnets tilted, or a field not uniform across the sensor")
-    force, torque = (np.linalg.norm(fitted.wrench[:, a:a + 3], axis=1).max() for a in (0, 3))
-    return (f"the nonlinear model departs from this part: it leaves {cal.fit_rms_residual_t * 1e6:.3g} uT RMS on "
-            f"its own poses, {ratio:.2g}x the readings' noise ({noise * 1e6:.3g} uT), and falls back on {fell} of "
-            f"{len(estimates)} of them; {why}. Expect at least its error on those poses, "
-            f"{format_rmse(np.sqrt(np.mean(error ** 2, axis=0)).tolist())} RMS, and more beyond the calibration's "
-            f"largest load (|F| {force:.3g} N, |M| {torque:.3g} Nm)",)
+    why = (
+        f"its error grows {growth:.2g}x from the {masses.min():g} kg to the {masses.max():g} kg poses: the "
+        "silicone stiffens with load, which its linear compliance cannot follow"
+        if growth > GROWTH_WARN
+        else "silicone that stiffens, magnets tilted, or a field not uniform across the sensor"
+    )
+    force, torque = (np.linalg.norm(fitted.wrench[:, a : a + 3], axis=1).max() for a in (0, 3))
+    return (
+        f"the nonlinear model departs from this part: it leaves {cal.fit_rms_residual_t * 1e6:.3g} uT RMS on "
+        f"its own poses, {ratio:.2g}x the readings' noise ({noise * 1e6:.3g} uT), and falls back on {fell} of "
+        f"{len(estimates)} of them; {why}. Expect at least its error on those poses, "
+        f"{format_rmse(np.sqrt(np.mean(error**2, axis=0)).tolist())} RMS, and more beyond the calibration's "
+        f"largest load (|F| {force:.3g} N, |M| {torque:.3g} Nm)",
+    )
 
 
 def _mean_gap(geometry: SensorGeometry, magnet_p: np.ndarray) -> float:
@@ -352,14 +403,18 @@ def _problems(cal: NonlinearCalibration, drawn: SensorGeometry, sem_t: np.ndarra
     shift = np.linalg.norm(cal.magnet_p_m - drawn.magnet_p, axis=1)
     worst = int(np.argmax(shift))
     if shift[worst] > MAGNET_SHIFT_LIMIT_M:
-        out.append(f"magnet {worst + 1} was fitted {shift[worst] * 1e3:.2f} mm from its drawn place (a hand-made "
-                   f"part is within {MAGNET_SHIFT_LIMIT_M * 1e3:g} mm): the model does not fit this sensor's flux")
+        out.append(
+            f"magnet {worst + 1} was fitted {shift[worst] * 1e3:.2f} mm from its drawn place (a hand-made "
+            f"part is within {MAGNET_SHIFT_LIMIT_M * 1e3:g} mm): the model does not fit this sensor's flux"
+        )
     noise = float(np.median(sem_t)) if sem_t.size else 0.0
     limit = max(RESIDUAL_LIMIT_T, RESIDUAL_NOISE_FACTOR * noise)
     if not cal.fit_rms_residual_t <= limit:
-        out.append(f"the fit residual is {cal.fit_rms_residual_t * 1e6:.3g} uT RMS, above the {limit * 1e6:.3g} uT "
-                   f"a right fit stays under (noise {noise * 1e6:.3g} uT): a field the model lacks (one not "
-                   "uniform across the sensor?) or a chip reading wrong")
+        out.append(
+            f"the fit residual is {cal.fit_rms_residual_t * 1e6:.3g} uT RMS, above the {limit * 1e6:.3g} uT "
+            f"a right fit stays under (noise {noise * 1e6:.3g} uT): a field the model lacks (one not "
+            "uniform across the sensor?) or a chip reading wrong"
+        )
     return out
 
 

@@ -10,22 +10,19 @@ from pathlib import Path
 
 import numpy as np
 
-from ftsensord.errors import CalibrationError, ConfigError
-from ftsensord.model.geometry import SensorGeometry
-from ftsensord.sim import PhysicalScene
-from ftsensord.sim import default_scene
-from ftsensord.sim import load_scene
-from ftsensord.sim import simulated_bus
-from ftsensord.sim.loads import CalibrationPose, gravity_to_down, paper_plan
 from ftsensord.calibration import largeloads
 from ftsensord.calibration.calfile import Calibration
-from ftsensord.calibration.relaxation import SiliconeCalibration, dwell_loads, identify, settle_s
 from ftsensord.calibration.dataset import Dataset
 from ftsensord.calibration.fit import AXES, CalibrationResult, RoomFieldError, fit, room_directions
 from ftsensord.calibration.nlfit import FitProgress, fit_nonlinear, nonlinear_rmse
+from ftsensord.calibration.relaxation import SiliconeCalibration, dwell_loads, identify, settle_s
 from ftsensord.calibration.report import format_rmse
 from ftsensord.calibration.rig import record_dataset, record_hold, simulate_sweeps, simulated_robot
 from ftsensord.calibration.thermal import CalibrationTemperature, thermal_fit
+from ftsensord.errors import CalibrationError, ConfigError
+from ftsensord.model.geometry import SensorGeometry
+from ftsensord.sim import PhysicalScene, default_scene, load_scene, simulated_bus
+from ftsensord.sim.loads import CalibrationPose, gravity_to_down, paper_plan
 
 #: No-load poses a dataset records by default: 24, 12 % of the 193 loaded poses' robot
 #: time, twice the 12 docs/guide/calibration.md asks of a real run (so that the room field's
@@ -44,10 +41,21 @@ def hold_poses() -> list[CalibrationPose]:
     return [CalibrationPose(g, HOLD_MASS_KG, np.array(HOLD_LEVER_M), gravity_to_down(g)) for g in (d, -d)]
 
 
-def simulate_dataset(scene_path: str | Path | PhysicalScene | None, sensor_name: str, plan: str, *, poses: int,
-                     validation_poses: int, samples: int, seed: int, sweeps: bool = True,
-                     no_load_poses: int = NO_LOAD_POSES, check_poses: int = 0, hold_s: float = 0.0,
-                     hold_period_s: float = 0.0) -> Dataset:
+def simulate_dataset(
+    scene_path: str | Path | PhysicalScene | None,
+    sensor_name: str,
+    plan: str,
+    *,
+    poses: int,
+    validation_poses: int,
+    samples: int,
+    seed: int,
+    sweeps: bool = True,
+    no_load_poses: int = NO_LOAD_POSES,
+    check_poses: int = 0,
+    hold_s: float = 0.0,
+    hold_period_s: float = 0.0,
+) -> Dataset:
     """Run the paper's calibration procedure (section VII-B) on a simulated sensor of a
     scene (a file, a scene already built, or None: the default scene): each pose's wrench
     applied, ``samples`` readings averaged; with ``sweeps``, each chip's position-map sweep
@@ -57,8 +65,10 @@ def simulate_dataset(scene_path: str | Path | PhysicalScene | None, sensor_name:
     if not hold_s >= 0 or hold_s == float("inf"):  # NaN too
         raise ConfigError(f"--hold-s: expected the seconds a step is held, 0 (none) or more, got {hold_s!r}")
     if not hold_period_s >= 0 or hold_period_s == float("inf"):  # NaN too
-        raise ConfigError(f"--hold-period-s: expected the seconds between the hold's readings, 0 (as fast as the "
-                          f"bus allows) or more, got {hold_period_s!r}")
+        raise ConfigError(
+            f"--hold-period-s: expected the seconds between the hold's readings, 0 (as fast as the "
+            f"bus allows) or more, got {hold_period_s!r}"
+        )
     if check_poses < 0:
         raise ConfigError(f"--check-poses: expected 0 or more poses, got {check_poses}")
     if isinstance(scene_path, PhysicalScene):
@@ -66,7 +76,7 @@ def simulate_dataset(scene_path: str | Path | PhysicalScene | None, sensor_name:
     else:
         loaded = load_scene(scene_path) if scene_path else default_scene()
         if not isinstance(loaded, PhysicalScene):
-            raise ConfigError(f"{scene_path}: a calibration dataset needs a scene of kind \"sensors\"")
+            raise ConfigError(f'{scene_path}: a calibration dataset needs a scene of kind "sensors"')
         scene = loaded
     names = [s.name for s in scene.sensors]
     if sensor_name not in names:
@@ -74,25 +84,49 @@ def simulate_dataset(scene_path: str | Path | PhysicalScene | None, sensor_name:
     sensor = next(s for s in scene.sensors if s.name == sensor_name)
     bus = simulated_bus(scene, seed=seed)
     robot = simulated_robot(scene, sensor.name)
-    ordered = paper_plan(plan, n_fit=poses, n_validation=validation_poses, n_no_load=no_load_poses,
-                         n_check=check_poses)
-    dataset = record_dataset(bus, sensor.addresses, ordered,
-                             robot["apply_load"], turn=robot["turn"], samples=samples,
-                             serial=f"sim-{sensor.name}",
-                             source=f"simulated: scene {scene_path or 'default'}, sensor {sensor.name}, "
-                                    f"plan {plan}, seed {seed}")
+    ordered = paper_plan(
+        plan, n_fit=poses, n_validation=validation_poses, n_no_load=no_load_poses, n_check=check_poses
+    )
+    dataset = record_dataset(
+        bus,
+        sensor.addresses,
+        ordered,
+        robot["apply_load"],
+        turn=robot["turn"],
+        samples=samples,
+        serial=f"sim-{sensor.name}",
+        source=f"simulated: scene {scene_path or 'default'}, sensor {sensor.name}, plan {plan}, seed {seed}",
+    )
     if hold_s > 0:
-        dataset.hold = record_hold(bus, sensor.addresses, hold_poses(), robot["apply_load"], hold_s=hold_s,
-                                   turn=robot["turn"], period_s=hold_period_s)
+        dataset.hold = record_hold(
+            bus,
+            sensor.addresses,
+            hold_poses(),
+            robot["apply_load"],
+            hold_s=hold_s,
+            turn=robot["turn"],
+            period_s=hold_period_s,
+        )
     if sweeps:
-        dataset.sweeps = simulate_sweeps(sensor.addresses, SensorGeometry.ring(), field_model=scene.field_model,
-                                         samples=samples, rng=np.random.default_rng(seed))
+        dataset.sweeps = simulate_sweeps(
+            sensor.addresses,
+            SensorGeometry.ring(),
+            field_model=scene.field_model,
+            samples=samples,
+            rng=np.random.default_rng(seed),
+        )
     return dataset
 
 
-def calibrate(dataset: Dataset, *, serial: str | None = None, frame: str = "sensor",
-              nonlinear: bool = True, progress: Callable[[FitProgress], None] | None = None,
-              allow_poor_fit: bool = False) -> tuple[Calibration, CalibrationResult]:
+def calibrate(
+    dataset: Dataset,
+    *,
+    serial: str | None = None,
+    frame: str = "sensor",
+    nonlinear: bool = True,
+    progress: Callable[[FitProgress], None] | None = None,
+    allow_poor_fit: bool = False,
+) -> tuple[Calibration, CalibrationResult]:
     """The linear fit (and, with ``nonlinear``, the flux model's) of ``dataset``, as a
     calibration file's content; its report holds the validation RMSE of each.
 
@@ -109,22 +143,38 @@ def calibrate(dataset: Dataset, *, serial: str | None = None, frame: str = "sens
         used = dataset if result.excluded is None else dataset.select(~result.excluded)  # as the linear fit
         nl = fit_nonlinear(used, progress=progress, allow_poor_fit=allow_poor_fit)
         validation = used.select(used.split == "validation")
-        report["nonlinear"] = {"gap_mm": nl.gap_m * 1e3, "fit_rms_residual_ut": nl.fit_rms_residual_t * 1e6,
-                               "warnings": list(nl.warnings),
-                               "validation_rmse": (dict(zip(AXES, nonlinear_rmse(nl, validation).tolist()))
-                                                   if len(validation) else None)}
-    report["large_loads"], found = largeloads.judge(dataset if result.excluded is None else
-                                                    dataset.select(~result.excluded), result.model, nl)
+        report["nonlinear"] = {
+            "gap_mm": nl.gap_m * 1e3,
+            "fit_rms_residual_ut": nl.fit_rms_residual_t * 1e6,
+            "warnings": list(nl.warnings),
+            "validation_rmse": (
+                dict(zip(AXES, nonlinear_rmse(nl, validation).tolist())) if len(validation) else None
+            ),
+        }
+    report["large_loads"], found = largeloads.judge(
+        dataset if result.excluded is None else dataset.select(~result.excluded), result.model, nl
+    )
     if nl is not None:
         nl.warnings += tuple(found)
         report["nonlinear"]["warnings"] += found
-    cal = Calibration(result.model, dataset.addresses, serial or dataset.serial, frame, result.position_map,
-                      report, nl, result.wrench_range, temperature, silicone)
+    cal = Calibration(
+        result.model,
+        dataset.addresses,
+        serial or dataset.serial,
+        frame,
+        result.position_map,
+        report,
+        nl,
+        result.wrench_range,
+        temperature,
+        silicone,
+    )
     return cal, result
 
 
-def _fit_static(raw: Dataset) -> tuple[Dataset, CalibrationTemperature | None, CalibrationResult,
-                                       SiliconeCalibration | None, str]:
+def _fit_static(
+    raw: Dataset,
+) -> tuple[Dataset, CalibrationTemperature | None, CalibrationResult, SiliconeCalibration | None, str]:
     """The linear fit (`thermal_fit`), and the silicone's series from the step-and-hold: the
     dataset as fitted, its temperature, the fit, the series (None: not identified) and the
     report's line on it. With the poses' times, the fit is made again on the loads the
@@ -136,25 +186,53 @@ def _fit_static(raw: Dataset) -> tuple[Dataset, CalibrationTemperature | None, C
             raise
         raise _after_effect(raw, exc) from exc
     if raw.hold is None:
-        return dataset, temperature, result, None, ("not identified: the dataset has no step-and-hold segment "
-                                                    "(docs/guide/calibration.md); the daemon runs without creep compensation")
+        return (
+            dataset,
+            temperature,
+            result,
+            None,
+            (
+                "not identified: the dataset has no step-and-hold segment "
+                "(docs/guide/calibration.md); the daemon runs without creep compensation"
+            ),
+        )
     silicone, said = identify(raw.hold, result.model.wrench)
     if silicone is None:
         return dataset, temperature, result, None, said
     if raw.times_s is None:
-        return dataset, temperature, result, silicone, said + (
-            "; the poses' times were not recorded: K fitted on the dwells' creeping averages, read through the scale "
-            "(the nonlinear estimator's own differs by 1-2 %: docs/guide/calibration.md)")
+        return (
+            dataset,
+            temperature,
+            result,
+            silicone,
+            said
+            + (
+                "; the poses' times were not recorded: K fitted on the dwells' creeping averages, "
+                "read through the scale "
+                "(the nonlinear estimator's own differs by 1-2 %: docs/guide/calibration.md)"
+            ),
+        )
     # A dwell's average holds creep that depends on the poses before it. Fitted as a static load, K
     # is neither the instantaneous nor the long-term stiffness but each model's own mix: on the
     # default scene's part the nonlinear one read a long-held 2 N Fx 1 % higher than the linear one,
     # with 3-5 % on Fy and Fz. Fitted on the load the silicone carried, both K are the long-term one.
-    carried = replace(raw, wrench=dwell_loads(silicone.relaxation, raw.wrench, raw.times_s, raw.samples_per_pose))
+    carried = replace(
+        raw, wrench=dwell_loads(silicone.relaxation, raw.wrench, raw.times_s, raw.samples_per_pose)
+    )
     dataset, temperature, result = thermal_fit(carried, fit)
     again, said = identify(raw.hold, result.model.wrench)  # the series again; the scale now near 1
     if again is None:  # K is now the long-term stiffness, and nothing undoes the creep
-        said += "; K is the long-term stiffness, so without the series a changing load reads low until the silicone settles"
-    return dataset, temperature, result, again, f"fitted on the loads the silicone carried over each dwell; {said}"
+        said += (
+            "; K is the long-term stiffness, so without the series a changing load reads low "
+            "until the silicone settles"
+        )
+    return (
+        dataset,
+        temperature,
+        result,
+        again,
+        f"fitted on the loads the silicone carried over each dwell; {said}",
+    )
 
 
 def _after_effect(raw: Dataset, exc: RoomFieldError) -> CalibrationError:
@@ -169,7 +247,8 @@ def _after_effect(raw: Dataset, exc: RoomFieldError) -> CalibrationError:
         return CalibrationError(
             f"{exc}. Or, as the no-load poses were recorded {wait}, a silicone's after-effect: this dataset has no "
             "step-and-hold segment to tell its creep by. Record the no-load poses first, before any load, and a "
-            "step-and-hold segment (docs/guide/calibration.md)")
+            "step-and-hold segment (docs/guide/calibration.md)"
+        )
     try:  # a first fit that takes the room's directions from the geometry: the series from the hold
         dataset, _, first = thermal_fit(raw, partial(fit, room_field="geometry"))
     except CalibrationError:
@@ -196,11 +275,13 @@ def _after_effect(raw: Dataset, exc: RoomFieldError) -> CalibrationError:
     need = settle_s(relaxation, noise / largest)
     return CalibrationError(
         f"{raw.where()}the no-load poses carry the after-effect of the loads before them (the silicone's creep): "
-        f"recorded {wait}, they vary in more than 3 flux directions ({exc.figures}), and with the after-effect the dataset's step-and-hold gives (relaxation "
+        f"recorded {wait}, they vary in more than 3 flux directions ({exc.figures}), and with the "
+        "after-effect the dataset's step-and-hold gives (relaxation "
         f"{[[round(g, 3), round(t, 3)] for g, t in relaxation.pairs()]}, fraction and s) taken out, in 3, as the "
         f"room's uniform field does. This silicone needs {need:.0f} s after its largest load comes off before what "
         f"it carries is under a no-load pose's noise: record the no-load poses first, before any load touches the "
-        f"sensor, or wait that long after the last load comes off (docs/guide/calibration.md)")
+        f"sensor, or wait that long after the last load comes off (docs/guide/calibration.md)"
+    )
 
 
 def summary(cal: Calibration) -> str:
@@ -208,32 +289,47 @@ def summary(cal: Calibration) -> str:
     report = cal.report
     sv, iso = report["singular_values_ka"], report["isotropy"]
     lines = [f"WARNING: {w}" for w in warnings(cal)]
-    lines.append(f"fit on {report['fit_poses']} poses ({report['left_out_saturated']} left out: saturated), "
-                 f"validated on {report['validation_poses']}")
+    lines.append(
+        f"fit on {report['fit_poses']} poses ({report['left_out_saturated']} left out: saturated), "
+        f"validated on {report['validation_poses']}"
+    )
     if report["validation_rmse"]:
         lines.append("validation RMSE: " + format_rmse(report["validation_rmse"]))
     lines.append("fit RMSE:        " + format_rmse(report["fit_rmse"]))
     if cal.nonlinear is not None and report["nonlinear"]["validation_rmse"]:
-        lines.append(f"nonlinear (residual {cal.nonlinear.fit_rms_residual_t * 1e6:.2f} uT) validation RMSE: "
-                     + format_rmse(report["nonlinear"]["validation_rmse"]))
+        lines.append(
+            f"nonlinear (residual {cal.nonlinear.fit_rms_residual_t * 1e6:.2f} uT) validation RMSE: "
+            + format_rmse(report["nonlinear"]["validation_rmse"])
+        )
     large = report.get("large_loads")
     if large is not None:
-        lines.append(f"large loads ({large['poses']} check poses, |F| to {large['largest_force_n']:.3g} N) RMSE: "
-                     f"linear {format_rmse(list(large['linear_rmse'].values()))}"
-                     + (f"; nonlinear {format_rmse(list(large['nonlinear_rmse'].values()))}"
-                        if large.get("nonlinear_rmse") else ""))
+        lines.append(
+            f"large loads ({large['poses']} check poses, |F| to {large['largest_force_n']:.3g} N) RMSE: "
+            f"linear {format_rmse(list(large['linear_rmse'].values()))}"
+            + (
+                f"; nonlinear {format_rmse(list(large['nonlinear_rmse'].values()))}"
+                if large.get("nonlinear_rmse")
+                else ""
+            )
+        )
     else:
         lines.append(largeloads.NOT_JUDGED)
     if cal.silicone is not None:
-        lines.append(f"silicone: relaxation {cal.silicone.relaxation.pairs()} (fraction, s), scale "
-                     f"{cal.silicone.scale:.4g}: the daemon undoes its creep")
+        lines.append(
+            f"silicone: relaxation {cal.silicone.relaxation.pairs()} (fraction, s), scale "
+            f"{cal.silicone.scale:.4g}: the daemon undoes its creep"
+        )
     elif isinstance(report.get("silicone"), str):  # why it was not identified
         lines.append(f"silicone: {report['silicone']}")
     if cal.nonlinear is None:  # the part is judged by the nonlinear fit: say that it was not
-        lines.append("nonlinear fit skipped: the part's departures from the model (silicone that stiffens, "
-                     "a field it lacks) were not judged")
-    lines.append(f"sigma(KA): forces {sv['forces'][0]:.3g}..{sv['forces'][-1]:.3g} N/uT (isotropy {iso['forces']:.2f}), "
-                 f"torques {sv['torques'][0]:.3g}..{sv['torques'][-1]:.3g} Nm/uT (isotropy {iso['torques']:.2f})")
+        lines.append(
+            "nonlinear fit skipped: the part's departures from the model (silicone that stiffens, "
+            "a field it lacks) were not judged"
+        )
+    lines.append(
+        f"sigma(KA): forces {sv['forces'][0]:.3g}..{sv['forces'][-1]:.3g} N/uT (isotropy {iso['forces']:.2f}), "
+        f"torques {sv['torques'][0]:.3g}..{sv['torques'][-1]:.3g} Nm/uT (isotropy {iso['torques']:.2f})"
+    )
     return "\n".join(lines)
 
 

@@ -20,14 +20,15 @@ average of the s_d. The creep's (c_k, rho_k) are turned back into the relaxation
 from __future__ import annotations
 
 import itertools
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
+from ftsensord.calibration.dataset import Hold
 from ftsensord.docfile import Table
 from ftsensord.model.viscoelastic import MAX_TOTAL_FRACTION, Relaxation
-from ftsensord.calibration.dataset import Hold
 
 #: An axis takes part when the segment's step on it is at least this many times its reading
 #: noise: below, its creep (a few % of the step) is under the noise of a single reading and
@@ -67,7 +68,9 @@ class SiliconeCalibration:
         try:
             relaxation = Relaxation.from_pairs(rows)
         except (TypeError, ValueError) as exc:
-            raise t.fail("relaxation", f"[[fraction, time_s], ...] pairs of a Prony series ({exc})", rows) from exc
+            raise t.fail(
+                "relaxation", f"[[fraction, time_s], ...] pairs of a Prony series ({exc})", rows
+            ) from exc
         # 0.5-2: K fitted on creeping readings reads a held load a few % over, never twice.
         return cls(relaxation, t.number("scale", low=0.5, high=2.0), t.number("rms_residual", low=0.0))
 
@@ -109,8 +112,9 @@ def settle_s(relaxation: Relaxation, fraction: float) -> float:
     return high
 
 
-def identify(hold: Hold, wrench_of: Callable[[np.ndarray], np.ndarray],
-             terms: int = 2) -> tuple[SiliconeCalibration | None, str]:
+def identify(
+    hold: Hold, wrench_of: Callable[[np.ndarray], np.ndarray], terms: int = 2
+) -> tuple[SiliconeCalibration | None, str]:
     """The silicone's series from ``hold`` with ``wrench_of`` the static calibration's
     wrench of stacked flux (N, Nm); fewer terms when more do not all relax. Returns it, or
     None, with a line for the report saying what was found or why nothing was."""
@@ -134,22 +138,26 @@ def identify(hold: Hold, wrench_of: Callable[[np.ndarray], np.ndarray],
         return None, "the step-and-hold segment's loads do not change: nothing to identify"
     axes = np.flatnonzero(change / noise >= MIN_STEP_TO_NOISE)
     if not len(axes):
-        return None, (f"the step-and-hold segment's step is below {MIN_STEP_TO_NOISE:g} times the readings' "
-                      "noise on every axis: nothing to identify")
+        return None, (
+            f"the step-and-hold segment's step is below {MIN_STEP_TO_NOISE:g} times the readings' "
+            "noise on every axis: nothing to identify"
+        )
     jumps = np.diff(np.vstack([np.zeros(6), hold.loads]), axis=0)[:, axes] / noise[axes]
     w, y = w[:, axes] / noise[axes], y[:, axes] / noise[axes]
     step = float(np.mean(change[axes] / noise[axes]))
     low = SHORTEST_INTERVALS * interval
     high = LONGEST_HOLD_SHARE * float(np.min(np.diff(np.append(starts, t[-1]))))
     if high < 10 * low:  # under a decade between the fastest term seen and the hold: no creep to fit
-        return None, (f"the step-and-hold segment's holds ({high:.3g} s) are under ten times "
-                      f"{SHORTEST_INTERVALS:g} reading intervals ({low:.3g} s): hold each pose longer")
+        return None, (
+            f"the step-and-hold segment's holds ({high:.3g} s) are under ten times "
+            f"{SHORTEST_INTERVALS:g} reading intervals ({low:.3g} s): hold each pose longer"
+        )
     snr = change[axes] / noise[axes]
-    weight = snr ** 2 / np.sum(snr ** 2)  # the better an axis resolves its step, the more it says
+    weight = snr**2 / np.sum(snr**2)  # the better an axis resolves its step, the more it says
     for n in range(terms, 0, -1):
         rho, theta, rms = _search(t, starts, jumps, w, y, n, low, high)
         # Each axis's own scale (its static error is its own); the creep's shape, c_k / g_inf, shared.
-        a0, b = theta[:, 0], theta[:, 1:1 + n]
+        a0, b = theta[:, 0], theta[:, 1 : 1 + n]
         if not (np.all(a0 > 0) and np.all(weight @ (b / a0[:, None]) > 0)):
             continue  # a term that does not relax: fewer terms
         ratio = weight @ (b / a0[:, None])
@@ -158,15 +166,27 @@ def identify(hold: Hold, wrench_of: Callable[[np.ndarray], np.ndarray],
         if 1 - g_inf < MAX_TOTAL_FRACTION:
             relaxation = Relaxation.from_creep(g_inf, ratio * g_inf, rho)
             cal = SiliconeCalibration(relaxation, scale, rms / step)
-            return cal, (f"identified from a {t[-1]:.0f} s step-and-hold ({len(t)} of {len(picked)} readings, axes "
-                         f"{', '.join(str(a) for a in axes)}): relaxation {relaxation.pairs()}, "
-                         f"scale {scale:.4f}, residual {100 * rms / step:.2f} % of the step")
-    return None, ("the step-and-hold segment shows no relaxation the readings resolve (a fit of one term "
-                  "does not relax): the daemon applies no creep compensation")
+            return cal, (
+                f"identified from a {t[-1]:.0f} s step-and-hold ({len(t)} of {len(picked)} readings, axes "
+                f"{', '.join(str(a) for a in axes)}): relaxation {relaxation.pairs()}, "
+                f"scale {scale:.4f}, residual {100 * rms / step:.2f} % of the step"
+            )
+    return None, (
+        "the step-and-hold segment shows no relaxation the readings resolve (a fit of one term "
+        "does not relax): the daemon applies no creep compensation"
+    )
 
 
-def _search(t: np.ndarray, starts: np.ndarray, jumps: np.ndarray, w: np.ndarray, y: np.ndarray, n: int,
-            low: float, high: float) -> tuple[np.ndarray, np.ndarray, float]:
+def _search(
+    t: np.ndarray,
+    starts: np.ndarray,
+    jumps: np.ndarray,
+    w: np.ndarray,
+    y: np.ndarray,
+    n: int,
+    low: float,
+    high: float,
+) -> tuple[np.ndarray, np.ndarray, float]:
     """The ``n`` times (s, ascending) within [low, high] that fit best, the linear
     parameters there and the RMS residual (in each axis's noise): a grid, then zoomed in."""
     logs = np.linspace(np.log10(low), np.log10(high), max(2, round(POINTS_PER_DECADE * np.log10(high / low))))
@@ -188,8 +208,9 @@ def _search(t: np.ndarray, starts: np.ndarray, jumps: np.ndarray, w: np.ndarray,
     return rho, theta, float(np.sqrt(rss / y.size))
 
 
-def _solve(t: np.ndarray, starts: np.ndarray, jumps: np.ndarray, w: np.ndarray, y: np.ndarray,
-           rho: np.ndarray) -> tuple[np.ndarray, float]:
+def _solve(
+    t: np.ndarray, starts: np.ndarray, jumps: np.ndarray, w: np.ndarray, y: np.ndarray, rho: np.ndarray
+) -> tuple[np.ndarray, float]:
     """Least squares of the model at times ``rho``, axis by axis: per axis (a0, b_k..., q_k...,
     o), shape (axes, 2 n + 2), and the residual sum of squares over all axes."""
     m, axes = w.shape
@@ -199,14 +220,21 @@ def _solve(t: np.ndarray, starts: np.ndarray, jumps: np.ndarray, w: np.ndarray, 
     on = (t[:, None] > starts[None, :]).astype(float)  # as `identify`'s segments: a load acts after its time
     rises = [(on * (1.0 - np.exp(-since / r))) @ jumps for r in rho]  # each (m, axes)
     decay = np.exp(-t[:, None] / rho[None, :])  # (m, n)
-    X = np.concatenate([np.stack([w.T, *[f.T for f in rises]], axis=-1),  # (axes, m, 2 n + 2)
-                        np.broadcast_to(np.column_stack([decay, np.ones(m)]), (axes, m, n + 1))], axis=-1)
+    X = np.concatenate(
+        [
+            np.stack([w.T, *[f.T for f in rises]], axis=-1),  # (axes, m, 2 n + 2)
+            np.broadcast_to(np.column_stack([decay, np.ones(m)]), (axes, m, n + 1)),
+        ],
+        axis=-1,
+    )
     # Each axis's normal equations, its columns scaled to unit norm first (the Gram matrix's
     # condition is then that of the columns' shapes, not of their units); batched in einsum: a
     # LAPACK least squares a candidate and axis cost ten times as much on a shared host.
     norm = np.sqrt(np.einsum("amp,amp->ap", X, X))
     Xs = X / norm[:, None, :]
-    theta = np.linalg.solve(np.einsum("amp,amq->apq", Xs, Xs), np.einsum("amp,am->ap", Xs, y.T)[..., None])[..., 0]
+    theta = np.linalg.solve(np.einsum("amp,amq->apq", Xs, Xs), np.einsum("amp,am->ap", Xs, y.T)[..., None])[
+        ..., 0
+    ]
     theta /= norm
     residual = y.T - np.einsum("amp,ap->am", X, theta)
-    return theta, float(np.sum(residual ** 2))
+    return theta, float(np.sum(residual**2))

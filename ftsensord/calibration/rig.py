@@ -12,6 +12,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from ftsensord.calibration.dataset import Dataset, Hold, Sweep
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.chip.driver import MLX90393
 from ftsensord.chip.i2c import Bus
@@ -20,13 +21,20 @@ from ftsensord.model.magnet import cylinder_field, dipole_field
 from ftsensord.sim.chip import NoiseModel
 from ftsensord.sim.loads import CalibrationPose, FixedOrientation, StaticLoad
 from ftsensord.sim.physics import PhysicalScene
-from ftsensord.calibration.dataset import Dataset, Hold, Sweep
 
 
-def record_dataset(bus: Bus, addresses: Sequence[int], poses: Sequence[tuple[CalibrationPose, str]],
-                   apply_load: Callable[[np.ndarray], None], *, settings: mlx.Settings = mlx.Settings(),
-                   samples: int = 100, serial: str = "", source: str = "",
-                   turn: Callable[[np.ndarray], None] | None = None) -> Dataset:
+def record_dataset(
+    bus: Bus,
+    addresses: Sequence[int],
+    poses: Sequence[tuple[CalibrationPose, str]],
+    apply_load: Callable[[np.ndarray], None],
+    *,
+    settings: mlx.Settings = mlx.Settings(),
+    samples: int = 100,
+    serial: str = "",
+    source: str = "",
+    turn: Callable[[np.ndarray], None] | None = None,
+) -> Dataset:
     """For each pose: turn the sensor (``turn(R_w0)``, when given: the robot's
     orientation, which the room's field sees), apply its wrench, then average
     ``samples`` X, Y, Z readings of every chip: an SM to each chip, the conversion
@@ -69,15 +77,28 @@ def record_dataset(bus: Bus, addresses: Sequence[int], poses: Sequence[tuple[Cal
         temperature[k] = np.mean(celsius)
         if samples > 1:
             sem[k] = readings.std(axis=0, ddof=1) / math.sqrt(samples)
-    return Dataset(tuple(addresses), np.array([p.wrench() for p, _ in poses]), mean, sem, saturated,
-                   np.array([s for _, s in poses]), np.array([p.mass_kg for p, _ in poses]),
-                   np.array([p.lever_m for p, _ in poses]), np.array([p.gravity_dir for p, _ in poses]),
-                   samples, serial, source, rotation=np.array([p.orientation() for p, _ in poses]),
-                   temperature_c=temperature, times_s=times)
+    return Dataset(
+        tuple(addresses),
+        np.array([p.wrench() for p, _ in poses]),
+        mean,
+        sem,
+        saturated,
+        np.array([s for _, s in poses]),
+        np.array([p.mass_kg for p, _ in poses]),
+        np.array([p.lever_m for p, _ in poses]),
+        np.array([p.gravity_dir for p, _ in poses]),
+        samples,
+        serial,
+        source,
+        rotation=np.array([p.orientation() for p, _ in poses]),
+        temperature_c=temperature,
+        times_s=times,
+    )
 
 
-def _read(bus: Bus, chips: list[MLX90393], zyxt: int, wait_s: float, out: np.ndarray,
-          celsius: list[float]) -> np.ndarray:
+def _read(
+    bus: Bus, chips: list[MLX90393], zyxt: int, wait_s: float, out: np.ndarray, celsius: list[float]
+) -> np.ndarray:
     """One reading of every chip into ``out`` (T, stacked): an SM to each, the conversion
     time, an RM to each; die temperatures appended to ``celsius``. Returns which saturated."""
     for chip in chips:
@@ -86,16 +107,24 @@ def _read(bus: Bus, chips: list[MLX90393], zyxt: int, wait_s: float, out: np.nda
     saturated = np.zeros(len(chips), dtype=bool)
     for i, chip in enumerate(chips):
         m = chip.read_measurement(zyxt)
-        out[3 * i:3 * i + 3] = m.field_t
+        out[3 * i : 3 * i + 3] = m.field_t
         saturated[i] = m.any_saturated
         if m.temperature_c is not None:
             celsius.append(m.temperature_c)
     return saturated
 
 
-def record_hold(bus: Bus, addresses: Sequence[int], poses: Sequence[CalibrationPose],
-                apply_load: Callable[[np.ndarray], None], *, hold_s: float, settings: mlx.Settings = mlx.Settings(),
-                turn: Callable[[np.ndarray], None] | None = None, period_s: float = 0.0) -> Hold:
+def record_hold(
+    bus: Bus,
+    addresses: Sequence[int],
+    poses: Sequence[CalibrationPose],
+    apply_load: Callable[[np.ndarray], None],
+    *,
+    hold_s: float,
+    settings: mlx.Settings = mlx.Settings(),
+    turn: Callable[[np.ndarray], None] | None = None,
+    period_s: float = 0.0,
+) -> Hold:
     """The step-and-hold segment (docs/guide/calibration.md): each of ``poses`` in turn, held
     ``hold_s`` while every chip is read every ``period_s`` (0: as fast as the bus allows), each reading stamped
     with the bus's clock (s, from the first pose's start): the creep the silicone's
@@ -131,14 +160,24 @@ def simulated_robot(scene: PhysicalScene, sensor: str) -> dict[str, Callable[[np
     """The keyword arguments of `record_dataset` that make a simulated scene's
     sensor do what the calibration robot does to a real one: carry the pose's
     wrench and turn in the room (``apply_load`` and ``turn``)."""
-    return {"apply_load": lambda w: scene.set_load(sensor, StaticLoad(w)),
-            "turn": lambda R: scene.set_orientation(sensor, FixedOrientation(R))}
+    return {
+        "apply_load": lambda w: scene.set_load(sensor, StaticLoad(w)),
+        "turn": lambda R: scene.set_orientation(sensor, FixedOrientation(R)),
+    }
 
 
-def simulate_sweeps(addresses: Sequence[int], geometry: SensorGeometry, *, field_model: str = "cylinder",
-                    settings: mlx.Settings = mlx.Settings(), noise: NoiseModel = NoiseModel(),
-                    samples: int = 100, span_m: float = 1e-3, steps: int = 5,
-                    rng: np.random.Generator | None = None) -> dict[int, Sweep]:
+def simulate_sweeps(
+    addresses: Sequence[int],
+    geometry: SensorGeometry,
+    *,
+    field_model: str = "cylinder",
+    settings: mlx.Settings = mlx.Settings(),
+    noise: NoiseModel = NoiseModel(),
+    samples: int = 100,
+    span_m: float = 1e-3,
+    steps: int = 5,
+    rng: np.random.Generator | None = None,
+) -> dict[int, Sweep]:
     """The paper's stage experiment, simulated: one magnet moved over a grid of
     +-``span_m`` around its nominal place in each chip's frame, the flux averaged
     over ``samples`` readings (noise of the chip settings, divided by sqrt(samples))."""
@@ -154,7 +193,8 @@ def simulate_sweeps(addresses: Sequence[int], geometry: SensorGeometry, *, field
         if field_model == "dipole":
             flux = dipole_field(-positions, np.array([0.0, 0.0, geometry.magnet_moment_am2]))
         else:
-            flux = cylinder_field(-positions, geometry.magnet_radius_m, geometry.magnet_length_m,
-                                  geometry.magnet_br_t)
+            flux = cylinder_field(
+                -positions, geometry.magnet_radius_m, geometry.magnet_length_m, geometry.magnet_br_t
+            )
         sweeps[address] = Sweep(positions, flux + rng.normal(0.0, 1.0, flux.shape) * sigma)
     return sweeps

@@ -15,12 +15,12 @@ from itertools import combinations
 
 import numpy as np
 
+from ftsensord.calibration.checks import chip_name
+from ftsensord.calibration.dataset import AXES, AXIS_UNITS, Dataset
 from ftsensord.errors import CalibrationError
 from ftsensord.model.fluxmodel import FluxModel
 from ftsensord.model.geometry import SensorGeometry
 from ftsensord.model.linear import SENSOR_RANGE
-from ftsensord.calibration.checks import chip_name
-from ftsensord.calibration.dataset import AXES, AXIS_UNITS, Dataset
 
 #: A pose whose residual on some axis exceeds this many robust sigmas is an outlier: on
 #: clean datasets (the default scene's sensors, 60 and 193 fit poses, 4 and 100 readings,
@@ -52,8 +52,9 @@ BLAME_FACTOR = 5.0
 MISMATCH_LIMIT = 0.6
 
 
-def screen_poses(residuals_of: Callable[[np.ndarray], np.ndarray], n: int
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def screen_poses(
+    residuals_of: Callable[[np.ndarray], np.ndarray], n: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Outlier mask of ``n`` poses, their residuals' departures from the kept poses'
     median (n, m) and the robust sigmas (m,).
 
@@ -106,7 +107,7 @@ class FluxResponse:
         spread, off = [], []
         for j in range(len(y) // 3):
             rows = np.ones(len(y), dtype=bool)
-            rows[3 * j:3 * j + 3] = False
+            rows[3 * j : 3 * j + 3] = False
             fitted = full @ self._solve(y, rows)
             spread.append(float(np.sqrt(np.mean((y[rows] - fitted[rows]) ** 2))))
             off.append(float(np.linalg.norm(y[~rows] - fitted[~rows])))
@@ -141,8 +142,9 @@ class FluxResponse:
         return np.linalg.norm(error, axis=(1, 2)) / np.linalg.norm(response.reshape(n, 3, 6), axis=(1, 2))
 
 
-def describe_outliers(dataset: Dataset, index: np.ndarray, residual: np.ndarray, sigma: np.ndarray,
-                      response: FluxResponse) -> list[str]:
+def describe_outliers(
+    dataset: Dataset, index: np.ndarray, residual: np.ndarray, sigma: np.ndarray, response: FluxResponse
+) -> list[str]:
     """One line per outlier pose: its index in the file, how far off (in the residual's
     units and in sigmas, its worst axis), and whose fault: one chip, or the wrench."""
     lines = []
@@ -150,36 +152,53 @@ def describe_outliers(dataset: Dataset, index: np.ndarray, residual: np.ndarray,
         axis = int(np.argmax(np.abs(r) / sigma))
         pose = f"pose {k} ({dataset.split[k]}, {dataset.mass_kg[k]:g} kg)"
         if axis == 6:  # the flux's own inconsistency, T
-            head = (f"{pose} reads flux no load gives: {r[axis] * 1e6:.3g} uT RMS beyond the poses' typical "
-                    f"({r[axis] / sigma[axis]:.0f} sigma; sigma {sigma[axis] * 1e6:.3g} uT)")
+            head = (
+                f"{pose} reads flux no load gives: {r[axis] * 1e6:.3g} uT RMS beyond the poses' typical "
+                f"({r[axis] / sigma[axis]:.0f} sigma; sigma {sigma[axis] * 1e6:.3g} uT)"
+            )
         else:
             unit = AXIS_UNITS[axis]
-            head = (f"{pose} is off by {r[axis]:+.3g} {unit} on {AXES[axis]} ({abs(r[axis]) / sigma[axis]:.0f} "
-                    f"sigma; sigma {sigma[axis]:.3g} {unit})")
+            head = (
+                f"{pose} is off by {r[axis]:+.3g} {unit} on {AXES[axis]} ({abs(r[axis]) / sigma[axis]:.0f} "
+                f"sigma; sigma {sigma[axis]:.3g} {unit})"
+            )
         blamed = response.blame(dataset.flux_t[k])
         if blamed is not None:
             j, off, agree = blamed
-            lines.append(f"{head}: {chip_name(dataset, j)} reads {off * 1e3:.3g} mT off what the other chips "
-                         f"give (they agree to {agree * 1e6:.3g} uT without it)")
+            lines.append(
+                f"{head}: {chip_name(dataset, j)} reads {off * 1e3:.3g} mT off what the other chips "
+                f"give (they agree to {agree * 1e6:.3g} uT without it)"
+            )
             continue
         implied = response.implied_wrench(dataset.flux_t[k])
-        scale = np.abs(dataset.wrench[k] / SENSOR_RANGE).max() / max(np.abs(implied / SENSOR_RANGE).max(), 1e-12)
-        lines.append(f"{head}: its chips agree; its recorded wrench is {scale:.3g}x the load its flux shows "
-                     f"(mass or wrench logged wrong)")
+        scale = np.abs(dataset.wrench[k] / SENSOR_RANGE).max() / max(
+            np.abs(implied / SENSOR_RANGE).max(), 1e-12
+        )
+        lines.append(
+            f"{head}: its chips agree; its recorded wrench is {scale:.3g}x the load its flux shows "
+            f"(mass or wrench logged wrong)"
+        )
     return lines
 
 
-def leave_out_outliers(dataset: Dataset, fits: np.ndarray, flux: np.ndarray, wrench: np.ndarray,
-                       room: np.ndarray | None, estimate: Callable[[np.ndarray], np.ndarray]
-                       ) -> tuple[np.ndarray, FluxResponse, list[str], float]:
+def leave_out_outliers(
+    dataset: Dataset,
+    fits: np.ndarray,
+    flux: np.ndarray,
+    wrench: np.ndarray,
+    room: np.ndarray | None,
+    estimate: Callable[[np.ndarray], np.ndarray],
+) -> tuple[np.ndarray, FluxResponse, list[str], float]:
     """Screen the fit poses (``fits``: their indices in ``dataset``; their ``flux`` and
     ``wrench``): the outlier mask, the flux's response on the poses kept, a warning
     naming each outlier, and the largest pose kept in sigmas (for the report).
     ``estimate(keep)`` fits on the poses kept and returns every fit pose's estimated
     wrench. Refuses more than `MAX_OUTLIER_SHARE` of them."""
+
     def residuals(keep: np.ndarray) -> np.ndarray:  # the wrench's (N, Nm), and the flux's own (T)
-        return np.column_stack([estimate(keep) - wrench,
-                                FluxResponse(flux[keep], wrench[keep], room).inconsistency(flux)])
+        return np.column_stack(
+            [estimate(keep) - wrench, FluxResponse(flux[keep], wrench[keep], room).inconsistency(flux)]
+        )
 
     outliers, residual, sigma = screen_poses(residuals, len(fits))
     response = FluxResponse(flux[~outliers], wrench[~outliers], room)
@@ -191,8 +210,14 @@ def leave_out_outliers(dataset: Dataset, fits: np.ndarray, flux: np.ndarray, wre
         raise CalibrationError(
             f"{dataset.where()}{int(outliers.sum())} of {len(fits)} fit poses do not follow their loads (more than "
             f"the few, {100 * MAX_OUTLIER_SHARE:g} %, that can be left out): the log and the flux disagree (poses "
-            "misaligned, a frame or unit wrong). First ones: " + "; ".join(lines[:3]))
-    return outliers, response, [f"{int(outliers.sum())} outlier pose(s) left out: " + "; ".join(lines)], largest
+            "misaligned, a frame or unit wrong). First ones: " + "; ".join(lines[:3])
+        )
+    return (
+        outliers,
+        response,
+        [f"{int(outliers.sum())} outlier pose(s) left out: " + "; ".join(lines)],
+        largest,
+    )
 
 
 def check_chip_order(dataset: Dataset, response: FluxResponse, geometry: SensorGeometry) -> float:
@@ -210,15 +235,19 @@ def check_chip_order(dataset: Dataset, response: FluxResponse, geometry: SensorG
         worst = response.mismatch(geometry, order).max()
         if worst <= MISMATCH_LIMIT and (best is None or worst < best[0]):
             best = (worst, i, j)
-    figures = ", ".join(f"{chip_name(dataset, k)} {100 * mismatch[k]:.0f} %" for k in np.argsort(-mismatch)[:3])
+    figures = ", ".join(
+        f"{chip_name(dataset, k)} {100 * mismatch[k]:.0f} %" for k in np.argsort(-mismatch)[:3]
+    )
     if best is not None:
         _, i, j = best
         raise CalibrationError(
             f"{dataset.where()}{chip_name(dataset, i)} and {chip_name(dataset, j)} respond to the loads as each "
             f"other's places on the ring say (share of the response the model leaves: {figures}; swapped, all "
             f"within {100 * MISMATCH_LIMIT:.0f} %): their flux columns are swapped (the order of "
-            "sensor.addresses, or the wiring). Put them in order and fit again")
+            "sensor.addresses, or the wiring). Put them in order and fit again"
+        )
     raise CalibrationError(
         f"{dataset.where()}chips do not respond to the loads as their places on the ring say (share of the "
         f"response the model leaves: {figures}; a built part stays within {100 * MISMATCH_LIMIT:.0f} %): a chip "
-        "mounted turned, its axes in another order, or the addresses in the wrong order")
+        "mounted turned, its axes in another order, or the addresses in the wrong order"
+    )

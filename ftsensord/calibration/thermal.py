@@ -23,13 +23,13 @@ from typing import Any
 
 import numpy as np
 
+from ftsensord.calibration.dataset import Dataset
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.errors import CalibrationError
 from ftsensord.model.geometry import SensorGeometry
 from ftsensord.model.linear import LinearModel
 from ftsensord.model.magnet import NDFEB_BR_TEMPCO_PER_K, remanence_factor
 from ftsensord.model.silicone import STIFFNESS_TEMPCO_PER_K, stiffness_factor
-from ftsensord.calibration.dataset import Dataset
 
 #: The poses must span this many kelvin for a drift to be measured: the drift's standard
 #: error is the model's residual (a few uT a pose) over sqrt(poses) x the temperatures'
@@ -67,8 +67,11 @@ class ThermalLaws:
         return stiffness_factor(celsius - mlx.TEMPERATURE_REF_C)
 
     def document(self) -> dict[str, Any]:
-        return {"magnet_per_k": NDFEB_BR_TEMPCO_PER_K, "sensitivity_per_k": list(self.sensitivity_per_k),
-                "stiffness_per_k": STIFFNESS_TEMPCO_PER_K}
+        return {
+            "magnet_per_k": NDFEB_BR_TEMPCO_PER_K,
+            "sensitivity_per_k": list(self.sensitivity_per_k),
+            "stiffness_per_k": STIFFNESS_TEMPCO_PER_K,
+        }
 
 
 @dataclass(frozen=True)
@@ -89,8 +92,13 @@ class CalibrationTemperature:
         return doc
 
 
-def to_reference(flux: np.ndarray, celsius: np.ndarray, reference_c: float, laws: ThermalLaws,
-                 drift_t_per_k: np.ndarray | None = None) -> np.ndarray:
+def to_reference(
+    flux: np.ndarray,
+    celsius: np.ndarray,
+    reference_c: float,
+    laws: ThermalLaws,
+    drift_t_per_k: np.ndarray | None = None,
+) -> np.ndarray:
     """Flux (poses, 3 chips) read at ``celsius`` (poses,) as it would read at ``reference_c``:
     the laws undone, then each channel's drift."""
     chips = flux.shape[1] // 3
@@ -101,8 +109,9 @@ def to_reference(flux: np.ndarray, celsius: np.ndarray, reference_c: float, laws
     return out
 
 
-def fit_drift(dataset: Dataset, model: LinearModel, reference_c: float,
-              geometry: SensorGeometry | None = None) -> np.ndarray:
+def fit_drift(
+    dataset: Dataset, model: LinearModel, reference_c: float, geometry: SensorGeometry | None = None
+) -> np.ndarray:
     """Each channel's drift (T/K) from the fit and no-load poses of ``dataset`` (flux already
     at ``reference_c`` by the laws): the flux model's residual b - b0 - H K^-1 w, regressed
     on the pose's temperature beside a constant per channel (the zero's business) and the
@@ -131,8 +140,8 @@ def fit_drift(dataset: Dataset, model: LinearModel, reference_c: float,
     for p in range(n):
         rows = slice(p * m, (p + 1) * m)
         design[rows, :m] = dt[p] * eye
-        design[rows, m:2 * m] = eye
-        design[rows, 2 * m:] = seen @ poses.rotation[p].T
+        design[rows, m : 2 * m] = eye
+        design[rows, 2 * m :] = seen @ poses.rotation[p].T
     solution, *_ = np.linalg.lstsq(design, residual.ravel(), rcond=None)
     return solution[:m]
 
@@ -143,8 +152,9 @@ def calibration_temperature(dataset: Dataset) -> CalibrationTemperature | None:
     return None if span is None else CalibrationTemperature(*span)
 
 
-def thermal_fit(dataset: Dataset, fit_model: Any, laws: ThermalLaws = ThermalLaws()
-                ) -> tuple[Dataset, CalibrationTemperature | None, Any]:
+def thermal_fit(
+    dataset: Dataset, fit_model: Any, laws: ThermalLaws = ThermalLaws()
+) -> tuple[Dataset, CalibrationTemperature | None, Any]:
     """The dataset brought to its mean temperature, its temperatures with each channel's
     drift where they span `MIN_DRIFT_SPAN_K`, and ``fit_model(dataset)``'s result on it
     (its ``.model`` the linear model): the laws first, then `DRIFT_PASSES` of fit and drift.
@@ -164,6 +174,8 @@ def thermal_fit(dataset: Dataset, fit_model: Any, laws: ThermalLaws = ThermalLaw
     for _ in range(DRIFT_PASSES):
         used = corrected if result.excluded is None else corrected.select(~result.excluded)  # as the fit
         drift = drift + fit_drift(used, result.model, temperature.mean_c)
-        corrected = replace(dataset, flux_t=to_reference(dataset.flux_t, celsius, temperature.mean_c, laws, drift))
+        corrected = replace(
+            dataset, flux_t=to_reference(dataset.flux_t, celsius, temperature.mean_c, laws, drift)
+        )
         result = fit_model(corrected)
     return corrected, replace(temperature, drift_t_per_k=drift), result

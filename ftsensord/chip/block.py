@@ -13,10 +13,9 @@ from typing import cast
 
 import numpy as np
 
-from ftsensord.errors import ChipError, ChipProtocolError
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.chip.driver import MLX90393, Measurement
-
+from ftsensord.errors import ChipError, ChipProtocolError
 
 #: An RM reply of X, Y, Z: the status byte, then three big-endian words.
 _XYZ_REPLY = struct.Struct(">x3H")
@@ -65,8 +64,12 @@ class BlockDecoder:
         self.replies = b""  # the block's bytes, when the last `convert` was of X, Y, Z alone
         # Saturated where |counts| reaches the span or the Hall limit: the least |counts|
         # whose tesla (counts x scale, as decoded) reach it, found once per chip and axis.
-        self.saturates_at = np.minimum(self.span, np.array(
-            [[_hall_limit_counts(s) for s in row] for row in self.scale], dtype=np.int64).reshape(n, -1))
+        self.saturates_at = np.minimum(
+            self.span,
+            np.array([[_hall_limit_counts(s) for s in row] for row in self.scale], dtype=np.int64).reshape(
+                n, -1
+            ),
+        )
 
     def xyz_words(self) -> list[tuple[int, int, int]]:
         """Each row's X, Y, Z words as read (the last `convert`'s block, of X, Y, Z alone)."""
@@ -77,7 +80,8 @@ class BlockDecoder:
         if self.changes == MLX90393.settings_changes and chips == self.chips:
             return True  # no chip's settings changed since: no need to ask each
         valid = len(chips) == len(self.chips) and all(
-            c is d and c.settings is s for c, d, s in zip(chips, self.chips, self.settings))
+            c is d and c.settings is s for c, d, s in zip(chips, self.chips, self.settings)
+        )
         if valid:
             self.changes = MLX90393.settings_changes
         return valid
@@ -99,7 +103,7 @@ class BlockDecoder:
             counts = words - self.zero  # int32, the zero's type: no uint16 wrap below the zero
             self.field = counts * self.scale
             self.saturated = saturated = np.abs(counts) >= self.saturates_at
-            return not replies[::self.reply_len].translate(None, self.good_status) and not saturated.any()
+            return not replies[:: self.reply_len].translate(None, self.good_status) and not saturated.any()
         self.bad = self.bad_status[status]
         n = len(self.chips)
         self.field = field = np.full((n, 3), np.nan)
@@ -126,7 +130,11 @@ class BlockDecoder:
         saturated, field, words = self.saturated, self.field, self.words
         bad = self.bad if self.bad is not None else self.bad_status[self.status]
         # Per row, as Python objects, each in one call (row views, lists): no per-chip numpy.
-        sat_any = cast("list[bool]", saturated.any(axis=1).tolist()) if saturated.any() else [False] * len(self.chips)
+        sat_any = (
+            cast("list[bool]", saturated.any(axis=1).tolist())
+            if saturated.any()
+            else [False] * len(self.chips)
+        )
         raw = cast("list[tuple[int, ...]]", list(map(tuple, words.tolist())))
         statuses = self.status.tolist()
         fields, sats = list(field), list(saturated)
@@ -135,8 +143,10 @@ class BlockDecoder:
         bad_rows = cast("list[bool]", bad.tolist()) if bad.any() else None
         self.clean = self.t_column is None and (bad_rows is None or not any(bad_rows[i] for i in order))
         if self.clean:  # no error, no temperature
-            return [Measurement(status_of(statuses[i]), fields[i], sats[i], None, raw[i], items, sat_any[i])
-                    for i in order]
+            return [
+                Measurement(status_of(statuses[i]), fields[i], sats[i], None, raw[i], items, sat_any[i])
+                for i in order
+            ]
         t_column = self.t_column
         out: list[Measurement | ChipError] = []
         for i in order:
@@ -157,7 +167,9 @@ class BlockDecoder:
 def _bad_status(d_expected: int) -> np.ndarray:
     """Per status byte: True where it leaves the reply to the per-chip decoder (ERROR set,
     or D1:D0 other than ``d_expected``). Read-only, shared by every decoder."""
-    table = np.array([(b & mlx.STATUS_ERROR) != 0 or (b & mlx.STATUS_D_MASK) != d_expected for b in range(256)])
+    table = np.array(
+        [(b & mlx.STATUS_ERROR) != 0 or (b & mlx.STATUS_D_MASK) != d_expected for b in range(256)]
+    )
     table.setflags(write=False)
     return table
 

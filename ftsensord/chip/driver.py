@@ -21,8 +21,8 @@ from typing import Protocol
 import numpy as np
 from smbus2 import i2c_msg
 
-from ftsensord.errors import ChipNotRespondingError, ChipProtocolError, ChipRefusedError, RegisterVerifyError
 from ftsensord.chip import mlx90393 as mlx
+from ftsensord.errors import ChipNotRespondingError, ChipProtocolError, ChipRefusedError, RegisterVerifyError
 
 #: Wait after RT before the next command: the datasheet asks for at least 1.5 ms.
 T_AFTER_RT_S = 2e-3
@@ -82,14 +82,18 @@ class MLX90393:
     """
 
     settings_changes = 0  # counts changes of any chip's settings: a `BlockDecoder` built before may be stale
-    def __init__(self, bus: I2CBus, address: int, *,
-                 sleep: Callable[[float], None] = time.sleep):
+
+    def __init__(self, bus: I2CBus, address: int, *, sleep: Callable[[float], None] = time.sleep):
         mlx.part_variant(address)  # refuses an address no MLX90393 can have
         self.bus, self.address, self.sleep = bus, address, sleep
         self.settings = None
         self.tref = mlx.TREF_TYPICAL
-        self._msgs: dict[tuple[bytes, int], tuple[i2c_msg, i2c_msg]] = {}  # per command (an i2c_msg: 2 buffers)
-        self._expected: tuple[mlx.Settings | None, tuple[int, ...], dict[int, int]] | None = None  # `_expected_for`'s
+        self._msgs: dict[
+            tuple[bytes, int], tuple[i2c_msg, i2c_msg]
+        ] = {}  # per command (an i2c_msg: 2 buffers)
+        self._expected: tuple[mlx.Settings | None, tuple[int, ...], dict[int, int]] | None = (
+            None  # `_expected_for`'s
+        )
 
     def __repr__(self) -> str:
         return f"MLX90393(address=0x{self.address:02X})"
@@ -100,7 +104,10 @@ class MLX90393:
         key = (command, reply_len)
         pair = self._msgs.get(key)
         if pair is None:
-            pair = self._msgs[key] = (i2c_msg.write(self.address, command), i2c_msg.read(self.address, reply_len))
+            pair = self._msgs[key] = (
+                i2c_msg.write(self.address, command),
+                i2c_msg.read(self.address, reply_len),
+            )
         return pair
 
     def transfer(self, command: bytes, reply_len: int) -> bytes:
@@ -110,14 +117,15 @@ class MLX90393:
             self.bus.i2c_rdwr(write, read)
         except OSError as exc:
             raise bus_error(self.address, command, exc) from exc
-        return read.buf[:read.len]  # bytes(read) is two Python calls more (smbus2's __bytes__, string_at)
+        return read.buf[: read.len]  # bytes(read) is two Python calls more (smbus2's __bytes__, string_at)
 
     def check_status(self, byte: int, command: str) -> mlx.Status:
         """Decode a status byte; raise `ChipRefusedError` when ERROR is set."""
         status = mlx.status_of(byte)
         if status.error:
-            raise ChipRefusedError(self.address, f"{command} refused, status {status}", status,
-                                   command.split()[0])
+            raise ChipRefusedError(
+                self.address, f"{command} refused, status {status}", status, command.split()[0]
+            )
         return status
 
     def _check_mode(self, byte: int, mode_bit: int, name: str) -> mlx.Status:
@@ -180,8 +188,10 @@ class MLX90393:
         status = self.check_status(reply[0], "RM")
         if status.data_bytes != 2 * len(items) or len(reply) != 1 + 2 * len(items):
             raise ChipProtocolError(
-                self.address, f"RM of {'/'.join(items).upper()} expects {2 * len(items)} data bytes, "
-                f"status D1:D0 says {status.data_bytes} (status {status}, {len(reply) - 1} read)")
+                self.address,
+                f"RM of {'/'.join(items).upper()} expects {2 * len(items)} data bytes, "
+                f"status D1:D0 says {status.data_bytes} (status {status}, {len(reply) - 1} read)",
+            )
         words = {item: (reply[1 + 2 * i] << 8) | reply[2 + 2 * i] for i, item in enumerate(items)}
         field = np.full(3, np.nan)
         saturated = np.zeros(3, dtype=bool)
@@ -216,7 +226,9 @@ class MLX90393:
         if reply[0] & mlx.STATUS_ERROR:  # raises, naming the register (a name built only then)
             self.check_status(reply[0], f"RR 0x{reg:02X}")
         if reply[0] & mlx.STATUS_D_MASK:  # D1:D0 = 0 for 2 data bytes (2 D + 2)
-            raise ChipProtocolError(self.address, f"RR expects 2 data bytes, status {mlx.status_of(reply[0])}")
+            raise ChipProtocolError(
+                self.address, f"RR expects 2 data bytes, status {mlx.status_of(reply[0])}"
+            )
         return (reply[1] << 8) | reply[2]
 
     def write_register(self, reg: int, value: int, *, verify: bool = True) -> None:
@@ -231,7 +243,8 @@ class MLX90393:
             back = self.read_register(reg)
             if back != value:
                 raise RegisterVerifyError(
-                    self.address, f"register 0x{reg:02X} reads 0x{back:04X} after writing 0x{value:04X}")
+                    self.address, f"register 0x{reg:02X} reads 0x{back:04X} after writing 0x{value:04X}"
+                )
 
     def read_configuration(self) -> dict[int, int]:
         """CONF1..CONF3 as the chip holds them now."""
@@ -261,8 +274,11 @@ class MLX90393:
         self._settings = settings
         MLX90393.settings_changes += 1  # a `BlockDecoder` built before is stale
         # Per axis: the word's coding and tesla per count, fixed until the next configure.
-        self._decoding = [] if settings is None else [
-            (settings.raw_format(a), settings.sensitivity_ut(a) * 1e-6) for a in "xyz"]
+        self._decoding = (
+            []
+            if settings is None
+            else [(settings.raw_format(a), settings.sensitivity_ut(a) * 1e-6) for a in "xyz"]
+        )
 
     def configuration_matches(self) -> bool:
         """Read back CONF1..CONF3 and compare with what `configure` wrote.
@@ -298,8 +314,11 @@ def tcmp_offsets_hold(chip: MLX90393) -> bool:
     """Whether OFFSET_X/Y/Z still hold `mlx.OFFSET_TCMP_ZERO` when the chip's settings
     have TCMP_EN (then they are configuration too: three reads more a read-back, which
     `bound.cycle_bound` counts); True without TCMP_EN, reading nothing."""
-    return chip.settings is None or not chip.settings.tcmp_en or all(
-        chip.read_register(reg) == mlx.OFFSET_TCMP_ZERO for reg in mlx.REG_OFFSETS)
+    return (
+        chip.settings is None
+        or not chip.settings.tcmp_en
+        or all(chip.read_register(reg) == mlx.OFFSET_TCMP_ZERO for reg in mlx.REG_OFFSETS)
+    )
 
 
 def _expected_registers(settings: mlx.Settings, conf1: int, conf2: int, conf3: int) -> dict[int, int]:

@@ -14,31 +14,49 @@ from ftsensord.cli.options import rate_hz
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
     """Its commands, in the order `ftsensord --help` lists them."""
-    p = sub.add_parser("scan", help="find MLX90393 chips on a bus and read each once",
-                       description="Probe 0x0C-0x1B and print each chip's part variant, "
-                                   "configuration registers (as found) and one reading. "
-                                   "Stops and reconfigures the chips: takes the bus's lock and refuses a bus "
-                                   "a running daemon holds unless --force. "
-                                   "Exit 0: all read; 1: none found; 2: some failed.")
+    p = sub.add_parser(
+        "scan",
+        help="find MLX90393 chips on a bus and read each once",
+        description="Probe 0x0C-0x1B and print each chip's part variant, "
+        "configuration registers (as found) and one reading. "
+        "Stops and reconfigures the chips: takes the bus's lock and refuses a bus "
+        "a running daemon holds unless --force. "
+        "Exit 0: all read; 1: none found; 2: some failed.",
+    )
     p.add_argument("--bus", default="sim", help=f"bus to scan: {ACCEPTED_FORMS} (default: sim)")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
     p.add_argument("--force", action="store_true", help="go on when another process (a daemon) holds the bus")
     p.set_defaults(func=cmd_scan)
-    p = sub.add_parser("doctor", help="bring a board up: adapter, clock, ioctl cost, chips, bound and rate",
-                       description="Name the I2C adapter and what it accepts in one ioctl, the configured and "
-                                   "measured clock and the cost of one ioctl; find the chips, read each and count "
-                                   "errors over 300 register reads; per scheduler, the computed bound for the "
-                                   "chips found and the rate measured running at it. Takes the bus's lock: "
-                                   "refuses a bus a running daemon holds unless --force. Exit 0: all well; "
-                                   "1: no chip; 2: a warning or a failing chip.")
+    p = sub.add_parser(
+        "doctor",
+        help="bring a board up: adapter, clock, ioctl cost, chips, bound and rate",
+        description="Name the I2C adapter and what it accepts in one ioctl, the configured and "
+        "measured clock and the cost of one ioctl; find the chips, read each and count "
+        "errors over 300 register reads; per scheduler, the computed bound for the "
+        "chips found and the rate measured running at it. Takes the bus's lock: "
+        "refuses a bus a running daemon holds unless --force. Exit 0: all well; "
+        "1: no chip; 2: a warning or a failing chip.",
+    )
     p.add_argument("--bus", default="sim", help=f"bus: {ACCEPTED_FORMS} (default: sim)")
-    p.add_argument("--scheduler", choices=("naive", "overlapped", "burst"), help="only this scheduler (default: all)")
-    p.add_argument("--bus-hz", type=float, default=400e3, help="the clock ftsensord is configured with, Hz (default 400000)")
-    p.add_argument("--rate", type=rate_hz, default=100.0, help="the rate `run` would choose for, Hz (default 100)")
+    p.add_argument(
+        "--scheduler", choices=("naive", "overlapped", "burst"), help="only this scheduler (default: all)"
+    )
+    p.add_argument(
+        "--bus-hz",
+        type=float,
+        default=400e3,
+        help="the clock ftsensord is configured with, Hz (default 400000)",
+    )
+    p.add_argument(
+        "--rate", type=rate_hz, default=100.0, help="the rate `run` would choose for, Hz (default 100)"
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--force", action="store_true", help="go on when another process (a daemon) holds the bus")
-    p.add_argument("--real-time", action="store_true",
-                   help="on the simulated bus, spend real time (default: its virtual clock, instant)")
+    p.add_argument(
+        "--real-time",
+        action="store_true",
+        help="on the simulated bus, spend real time (default: its virtual clock, instant)",
+    )
     p.set_defaults(func=cmd_doctor)
 
 
@@ -62,8 +80,14 @@ def cmd_doctor(args: argparse.Namespace) -> int:
     from ftsensord.acquire.bound import SCHEDULERS
     from ftsensord.acquire.doctor import doctor, format_doctor
 
-    report = doctor(args.bus, (args.scheduler,) if args.scheduler else SCHEDULERS, bus_hz=args.bus_hz,
-                    force=args.force, real_time=args.real_time, rate_hz=args.rate)
+    report = doctor(
+        args.bus,
+        (args.scheduler,) if args.scheduler else SCHEDULERS,
+        bus_hz=args.bus_hz,
+        force=args.force,
+        real_time=args.real_time,
+        rate_hz=args.rate,
+    )
     print(json.dumps(report, indent=2) if args.json else format_doctor(report))
     if not report["chips"]:
         print(f"no MLX90393 answered on {args.bus} (0x0C-0x1B)", file=sys.stderr)

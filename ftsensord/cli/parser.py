@@ -41,6 +41,7 @@ def main(argv: Sequence[str] | None = None, early_signals: Sequence[int] = ()) -
         # The reader left (`ftsensord echo ... | head`) with what it wanted. As the Python docs
         # advise: point stdout at devnull, so the interpreter's last flush does not fail again.
         import os
+
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
     except DaemonNotAnswering as exc:

@@ -14,17 +14,29 @@ from ftsensord.ros2 import InLoop
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
     """Its commands, in the order `ftsensord --help` lists them."""
-    p = sub.add_parser("run", help="run the daemon (the systemd unit runs this)",
-                       description="Read every chip in a steady loop, publish wrenches over ZeroMQ, and "
-                                   "serve control requests. SIGTERM stops it cleanly, SIGHUP reloads.")
+    p = sub.add_parser(
+        "run",
+        help="run the daemon (the systemd unit runs this)",
+        description="Read every chip in a steady loop, publish wrenches over ZeroMQ, and "
+        "serve control requests. SIGTERM stops it cleanly, SIGHUP reloads.",
+    )
     p.add_argument("--config", help="configuration file (default: the simulated bus, default scene)")
-    p.add_argument("--realtime", type=int, default=0, metavar="PRIORITY", help="ask for SCHED_FIFO at this "
-                   "priority, 1-99 (the unit: 50); refused, it says why and runs as usual (default 0: not asked)")
+    p.add_argument(
+        "--realtime",
+        type=int,
+        default=0,
+        metavar="PRIORITY",
+        help="ask for SCHED_FIFO at this "
+        "priority, 1-99 (the unit: 50); refused, it says why and runs as usual (default 0: not asked)",
+    )
     p.set_defaults(func=cmd_run)
-    p = sub.add_parser("status", help="the running daemon's health",
-                       description="Rate achieved against configured and the computed bound, jitter, "
-                                   "missed cycles, per-chip errors and temperatures, tare offsets, "
-                                   "calibrations. Exit 1 with a message when no daemon answers.")
+    p = sub.add_parser(
+        "status",
+        help="the running daemon's health",
+        description="Rate achieved against configured and the computed bound, jitter, "
+        "missed cycles, per-chip errors and temperatures, tare offsets, "
+        "calibrations. Exit 1 with a message when no daemon answers.",
+    )
     p.add_argument("--json", action="store_true", help="print the whole status as JSON")
     control_options(p)
     p.set_defaults(func=cmd_status)
@@ -37,29 +49,41 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sensor", help="only this sensor (default: all)")
     control_options(p)
     p.set_defaults(func=cmd_untare)
-    p = sub.add_parser("set", help="change the rate, averaging, low-pass or estimator of the running daemon",
-                       description="Changes last until the next restart or reload; a rate above the "
-                                   "computed bound is refused, and nothing changes.")
+    p = sub.add_parser(
+        "set",
+        help="change the rate, averaging, low-pass or estimator of the running daemon",
+        description="Changes last until the next restart or reload; a rate above the "
+        "computed bound is refused, and nothing changes.",
+    )
     p.add_argument("--rate", type=rate_hz, help="loop rate, Hz")
     p.add_argument("--averaging", type=int, help="samples in the moving average (1: off)")
     p.add_argument("--lowpass", type=float, help="first-order low-pass cutoff, Hz (0: off)")
-    p.add_argument("--estimator", choices=ESTIMATORS, help="K A, or the flux model (docs/design/estimators.md)")
+    p.add_argument(
+        "--estimator", choices=ESTIMATORS, help="K A, or the flux model (docs/design/estimators.md)"
+    )
     p.add_argument("--sensor", help="with --estimator: only this sensor (default: all)")
     control_options(p)
     p.set_defaults(func=cmd_set)
-    p = sub.add_parser("reload", help="re-read the configuration and calibration files (as SIGHUP does)",
-                       description="A file with an error is refused with a message naming the file and key; "
-                                   "the running configuration then stays.")
+    p = sub.add_parser(
+        "reload",
+        help="re-read the configuration and calibration files (as SIGHUP does)",
+        description="A file with an error is refused with a message naming the file and key; "
+        "the running configuration then stays.",
+    )
     control_options(p)
     p.set_defaults(func=cmd_reload)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
     import logging
+
     from ftsensord.config.file import load_config
     from ftsensord.daemon.run import run
+
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
-    return run(load_config(args.config), early=args.early_signals, realtime=args.realtime, ros2_in_loop=InLoop)
+    return run(
+        load_config(args.config), early=args.early_signals, realtime=args.realtime, ros2_in_loop=InLoop
+    )
 
 
 def cmd_status(args: argparse.Namespace) -> int:
@@ -71,26 +95,42 @@ def cmd_status(args: argparse.Namespace) -> int:
 def cmd_tare(args: argparse.Namespace) -> int:
     result = control_client(args).tare(samples=args.samples, sensor=args.sensor)
     for name, offset in result["tare_wrench"].items():
-        print(f"{name}: tared on {result['samples']} samples; removed " + " ".join(f"{v:+.4g}" for v in offset)
-              + " (N, N, N, Nm, Nm, Nm)")
+        print(
+            f"{name}: tared on {result['samples']} samples; removed "
+            + " ".join(f"{v:+.4g}" for v in offset)
+            + " (N, N, N, Nm, Nm, Nm)"
+        )
     return 0
 
 
 def cmd_untare(args: argparse.Namespace) -> int:
     result = control_client(args).untare(sensor=args.sensor)
     for name, offset in result["removed_tare_wrench"].items():
-        print(f"{name}: back to the calibration's zero; the tare had removed "
-              + " ".join(f"{v:+.4g}" for v in offset) + " (N, N, N, Nm, Nm, Nm)")
+        print(
+            f"{name}: back to the calibration's zero; the tare had removed "
+            + " ".join(f"{v:+.4g}" for v in offset)
+            + " (N, N, N, Nm, Nm, Nm)"
+        )
     return 0
 
 
 def cmd_set(args: argparse.Namespace) -> int:
-    changes = {k: v for k, v in (("rate_hz", args.rate), ("averaging", args.averaging),
-                                 ("lowpass_hz", args.lowpass), ("estimator", args.estimator)) if v is not None}
+    changes = {
+        k: v
+        for k, v in (
+            ("rate_hz", args.rate),
+            ("averaging", args.averaging),
+            ("lowpass_hz", args.lowpass),
+            ("estimator", args.estimator),
+        )
+        if v is not None
+    }
     if not changes:
         raise ConfigError("set: nothing to change; give --rate, --averaging, --lowpass or --estimator")
     if args.sensor and set(changes) != {"estimator"}:
-        raise ConfigError("set: --sensor goes with --estimator only (rate, averaging and low-pass are the loop's)")
+        raise ConfigError(
+            "set: --sensor goes with --estimator only (rate, averaging and low-pass are the loop's)"
+        )
     control = control_client(args)
     if "estimator" in changes:  # its own request: it is per sensor, the others are the loop's
         sensor = {"sensor": args.sensor} if args.sensor else {}
@@ -98,13 +138,17 @@ def cmd_set(args: argparse.Namespace) -> int:
         print("estimator: " + ", ".join(f"{n} {e}" for n, e in result["estimator"].items()))
     if changes:
         result = control.set(**changes)
-        print(f"rate {result['rate_hz']:g} Hz, averaging {result['averaging']}, "
-              f"low-pass {result['lowpass_hz'] or 'off'}")
+        print(
+            f"rate {result['rate_hz']:g} Hz, averaging {result['averaging']}, "
+            f"low-pass {result['lowpass_hz'] or 'off'}"
+        )
     return 0
 
 
 def cmd_reload(args: argparse.Namespace) -> int:
     result = control_client(args).reload()
-    print(f"reloaded {result['config']}; calibrations: "
-          + ", ".join(f"{name} {path}" for name, path in result["calibrations"].items()))
+    print(
+        f"reloaded {result['config']}; calibrations: "
+        + ", ".join(f"{name} {path}" for name, path in result["calibrations"].items())
+    )
     return 0

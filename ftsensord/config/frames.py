@@ -59,8 +59,12 @@ def tool_poses(tool: Table, sensors: list[str]) -> tuple[dict[str, np.ndarray], 
     """``[tool]``: each sensor's pose in the tip frame (4x4 T_tip,s) and the tip frame's name."""
     tool.only({"offsets_m", "pose", "frame"})
     if ("offsets_m" in tool.doc) == ("pose" in tool.doc):
-        raise tool.fail("pose", "either [tool.pose.<sensor>] tables (position_m, rotvec_deg) or the older "
-                                "[tool.offsets_m], one of them", sorted(tool.doc))
+        raise tool.fail(
+            "pose",
+            "either [tool.pose.<sensor>] tables (position_m, rotvec_deg) or the older "
+            "[tool.offsets_m], one of them",
+            sorted(tool.doc),
+        )
     poses: dict[str, np.ndarray] = {}
     if "offsets_m" in tool.doc:  # the first form: translations, frames parallel
         offsets = tool.table("offsets_m")
@@ -74,7 +78,9 @@ def tool_poses(tool: Table, sensors: list[str]) -> tuple[dict[str, np.ndarray], 
             t = table.table(name)
             t.only({"position_m", "rotvec_deg"})
             p = _lever(t, "position_m", "m, the sensor's origin in the tip frame")
-            rotvec = np.radians(t.numbers("rotvec_deg", 3, [0.0, 0.0, 0.0], unit="deg, the sensor's axes in the tip frame"))
+            rotvec = np.radians(
+                t.numbers("rotvec_deg", 3, [0.0, 0.0, 0.0], unit="deg, the sensor's axes in the tip frame")
+            )
             poses[name] = se3.pose(se3.exp_so3(rotvec), p)
     return poses, tool.string("frame", TIP)
 
@@ -82,7 +88,9 @@ def tool_poses(tool: Table, sensors: list[str]) -> tuple[dict[str, np.ndarray], 
 def _lever(t: Table, name: str, unit: str) -> np.ndarray:
     """A position (m) within `MAX_LEVER_M` of the frame's origin."""
     p = np.array(t.numbers(name, 3, unit=unit))
-    if not (np.abs(p).max() <= MAX_LEVER_M and np.linalg.norm(p) <= MAX_LEVER_M):  # max first: squaring 1e308 overflows
+    if not (
+        np.abs(p).max() <= MAX_LEVER_M and np.linalg.norm(p) <= MAX_LEVER_M
+    ):  # max first: squaring 1e308 overflows
         raise t.fail(name, f"a position within {MAX_LEVER_M:g} m of the frame's origin ({unit})", p.tolist())
     return p
 
@@ -92,7 +100,9 @@ def _known(t: Table, name: str, sensors: list[str]) -> None:
         raise t.fail(name, f"one of the sensors {', '.join(sensors)}", name)
 
 
-def gravity_config(g: Table, sensors: list[str], tool: dict[str, np.ndarray], default_endpoint: str) -> GravityConfig:
+def gravity_config(
+    g: Table, sensors: list[str], tool: dict[str, np.ndarray], default_endpoint: str
+) -> GravityConfig:
     """``[gravity]``: payloads per frame, the orientations' source and its checks."""
     frames = [*sensors, *([TIP] if tool else [])]
     g.only({"orientation", "endpoint", "stale_after_s", "gravity_mps2", *frames})
@@ -100,35 +110,58 @@ def gravity_config(g: Table, sensors: list[str], tool: dict[str, np.ndarray], de
     gravity = np.array(g.numbers("gravity_mps2", 3, [0.0, 0.0, -STANDARD_G], unit="m/s^2, world frame"))
     # 9.7-9.9 m/s^2 is every place on Earth's surface; other magnitudes are a unit or sign mistake.
     if not 9.7 <= np.linalg.norm(gravity) <= 9.9:
-        raise g.fail("gravity_mps2", "gravity in the orientations' world frame, |g| 9.7-9.9 m/s^2 "
-                                     "(z up: [0, 0, -9.81]; y up: [0, -9.81, 0])", gravity.tolist())
-    config = GravityConfig(source, {}, gravity_mps2=gravity,
-                           stale_after_s=g.number("stale_after_s", 0.05, low=1e-3, high=60.0, unit="s"),
-                           endpoint=g.string("endpoint", default_endpoint) if source == "stream" else None)
+        raise g.fail(
+            "gravity_mps2",
+            "gravity in the orientations' world frame, |g| 9.7-9.9 m/s^2 "
+            "(z up: [0, 0, -9.81]; y up: [0, -9.81, 0])",
+            gravity.tolist(),
+        )
+    config = GravityConfig(
+        source,
+        {},
+        gravity_mps2=gravity,
+        stale_after_s=g.number("stale_after_s", 0.05, low=1e-3, high=60.0, unit="s"),
+        endpoint=g.string("endpoint", default_endpoint) if source == "stream" else None,
+    )
     for name in frames:
         if name not in g.doc:
             continue
         t = g.table(name)
         t.only({"mass_kg", "com_m", "mount_rotvec_deg"})
         if len(name) > MAX_FRAME_NAME or not name.isascii():
-            raise g.fail(name, f"a sensor named in ASCII, at most {MAX_FRAME_NAME} characters (orientation "
-                               "messages carry the name)", name)
+            raise g.fail(
+                name,
+                f"a sensor named in ASCII, at most {MAX_FRAME_NAME} characters (orientation "
+                "messages carry the name)",
+                name,
+            )
         # 10 kg is far beyond what a sensor of 50 N range carries: a unit mistake (g for kg).
-        config.payloads[name] = Payload(t.number("mass_kg", low=0.0, high=10.0, unit="kg"),
-                                        _lever(t, "com_m", "m, in this frame"))
+        config.payloads[name] = Payload(
+            t.number("mass_kg", low=0.0, high=10.0, unit="kg"), _lever(t, "com_m", "m, in this frame")
+        )
         if "mount_rotvec_deg" in t.doc:
             if source != "mount":
-                raise t.fail("mount_rotvec_deg", 'no mount with orientation = "stream" (the stream gives it)',
-                             t.get("mount_rotvec_deg"))
+                raise t.fail(
+                    "mount_rotvec_deg",
+                    'no mount with orientation = "stream" (the stream gives it)',
+                    t.get("mount_rotvec_deg"),
+                )
             rotvec = np.radians(t.numbers("mount_rotvec_deg", 3, unit="deg, the frame's axes in the world"))
             config.mounts[name] = se3.exp_so3(rotvec)
     if not config.payloads:
-        raise g.fail("orientation", f"at least one [gravity.<frame>] table (frames: {', '.join(frames)})",
-                     sorted(g.doc))
+        raise g.fail(
+            "orientation",
+            f"at least one [gravity.<frame>] table (frames: {', '.join(frames)})",
+            sorted(g.doc),
+        )
     if source == "mount":
         tool_frames = {*tool, TIP}
         for name in config.payloads:
             if name not in config.mounts and not (name in tool_frames and config.mounts.keys() & tool_frames):
-                raise g.table(name).fail("mount_rotvec_deg", 'the frame\'s orientation in the world (orientation = '
-                                         '"mount"), here or on another frame of the tool', None)
+                raise g.table(name).fail(
+                    "mount_rotvec_deg",
+                    "the frame's orientation in the world (orientation = "
+                    '"mount"), here or on another frame of the tool',
+                    None,
+                )
     return config

@@ -52,7 +52,9 @@ def default_domain_id(environ: dict[str, str] | None = None) -> int:
 def check_domain_id(where: str, value: object) -> int:
     """``value`` as a DDS domain id; ConfigError naming ``where`` otherwise."""
     if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= MAX_DOMAIN_ID:
-        raise ConfigError(f"{where}: expected a DDS domain id, an integer from 0 to {MAX_DOMAIN_ID}, got {value!r}")
+        raise ConfigError(
+            f"{where}: expected a DDS domain id, an integer from 0 to {MAX_DOMAIN_ID}, got {value!r}"
+        )
     return value
 
 
@@ -65,10 +67,19 @@ def parse_ros2(doc: Table, path: Path) -> Ros2Config | None:
     t.only({"namespace", "domain_id", "output"})
     namespace = t.string("namespace", "ftsensord").strip("/")
     if not is_ros_name(namespace):
-        raise t.fail("namespace", "a ROS 2 name: tokens of letters, digits and underscores separated by /, "
-                                  "none starting with a digit", namespace)
-    domain_id = t.integer("domain_id", 0 if "domain_id" in t.doc else default_domain_id(), low=0, high=MAX_DOMAIN_ID,
-                          what=f"a DDS domain id, 0 to {MAX_DOMAIN_ID}")
+        raise t.fail(
+            "namespace",
+            "a ROS 2 name: tokens of letters, digits and underscores separated by /, "
+            "none starting with a digit",
+            namespace,
+        )
+    domain_id = t.integer(
+        "domain_id",
+        0 if "domain_id" in t.doc else default_domain_id(),
+        low=0,
+        high=MAX_DOMAIN_ID,
+        what=f"a DDS domain id, 0 to {MAX_DOMAIN_ID}",
+    )
     output = t.string("output", Ros2Config.output)
     if output not in OUTPUTS:
         raise t.fail("output", " or ".join(f'"{o}"' for o in OUTPUTS), output)
@@ -84,4 +95,6 @@ def is_ros_name(name: str) -> bool:
 def needs_cyclonedds(who: str, hint: str = "") -> None:
     """ConfigError naming the extra when Cyclone DDS's Python binding is not installed."""
     if importlib.util.find_spec("cyclonedds") is None:
-        raise ConfigError(f"{who} needs Eclipse Cyclone DDS's Python binding: pip install 'ftsensord[ros2]'{hint}")
+        raise ConfigError(
+            f"{who} needs Eclipse Cyclone DDS's Python binding: pip install 'ftsensord[ros2]'{hint}"
+        )

@@ -6,23 +6,23 @@ when the file changes).
 from __future__ import annotations
 
 import re
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from collections.abc import Iterable
 
 from ftsensord.calibration.calfile import Calibration
 from ftsensord.calibration.dataset import parse_addresses
+from ftsensord.config.frames import MAX_FRAME_NAME, TIP
 from ftsensord.docfile import Table
 from ftsensord.model.linear import LinearModel
-from ftsensord.config.frames import MAX_FRAME_NAME, TIP
 from ftsensord.protocol.paths import resolve_file
-
 
 ESTIMATORS = ("linear", "nonlinear")
 #: A sensor's name is in its streams' topics (ASCII on the wire), ROS 2 names and orientation
 #: messages (`MAX_FRAME_NAME`): one token, as ROS 2 names take it.
 SENSOR_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
-#: Beside the deflection: the room's field; its gradient's parts a ring tells apart; a world-fixed gradient (`processing.stray`).
+#: Beside the deflection: the room's field; its gradient's parts a ring tells apart; a world-fixed
+#: gradient (`processing.stray`).
 STRAY_FIELDS = ("uniform", "gradient", "world")
 
 
@@ -35,11 +35,17 @@ class SensorConfig:
     frame: str  # the frame its wrench is expressed in (default: the calibration's)
     estimator: str = "linear"  # "linear" (K A) or "nonlinear" (the flux model, docs/results/tradeoff.md)
     stray_field: str = "uniform"  # `STRAY_FIELDS`
-    table: Table | None = field(default=None, repr=False, compare=False)  # where it was read: for errors naming it
+    table: Table | None = field(
+        default=None, repr=False, compare=False
+    )  # where it was read: for errors naming it
 
     @property
     def model(self) -> LinearModel:  # the run time's: the calibration's, `LinearModel.with_gradient` if asked
-        return self.calibration.model.with_gradient() if self.stray_field == "gradient" else self.calibration.model
+        return (
+            self.calibration.model.with_gradient()
+            if self.stray_field == "gradient"
+            else self.calibration.model
+        )
 
 
 class Calibrations:
@@ -91,21 +97,42 @@ def sensor_tables(doc: Table, calibrations: Calibrations | None = None) -> list[
         cal_path = resolve_file(t, "calibration", t.string("calibration"))
         calibration = calibrations.load(cal_path) if calibrations is not None else Calibration.load(cal_path)
         if calibration.addresses != addresses:
-            raise t.fail("calibration", f"a calibration for the chips {[f'0x{a:02X}' for a in addresses]} in "
-                                        f"this order", f"{cal_path} (for {[f'0x{a:02X}' for a in calibration.addresses]})")
+            raise t.fail(
+                "calibration",
+                f"a calibration for the chips {[f'0x{a:02X}' for a in addresses]} in this order",
+                f"{cal_path} (for {[f'0x{a:02X}' for a in calibration.addresses]})",
+            )
         name = t.string("name")
         if not SENSOR_NAME.fullmatch(name) or len(name) > MAX_FRAME_NAME or name == TIP:
-            raise t.fail("name", f"a name of letters, digits and underscores, not starting with a digit, at most "
-                                 f"{MAX_FRAME_NAME} characters, not {TIP} (the tool's: wrench/{TIP})", name)
+            raise t.fail(
+                "name",
+                f"a name of letters, digits and underscores, not starting with a digit, at most "
+                f"{MAX_FRAME_NAME} characters, not {TIP} (the tool's: wrench/{TIP})",
+                name,
+            )
         if any(s.name == name for s in sensors):
             raise t.fail("name", "a name no other sensor has", name)
         estimator = t.string("estimator", "linear", choices=ESTIMATORS)
         if estimator == "nonlinear" and calibration.nonlinear is None:
-            raise t.fail("estimator", f'"linear": {cal_path} has no nonlinear calibration '
-                                      "(make one with `ftsensord calibrate` without --linear-only)", estimator)
+            raise t.fail(
+                "estimator",
+                f'"linear": {cal_path} has no nonlinear calibration '
+                "(make one with `ftsensord calibrate` without --linear-only)",
+                estimator,
+            )
         stray_field = t.string("stray_field", "uniform", choices=STRAY_FIELDS)
         if stray_field != "uniform" and calibration.model.H is None:
             raise t.fail("stray_field", f'"uniform": {cal_path} has no flux model H', stray_field)
-        sensors.append(SensorConfig(name, addresses, cal_path, calibration, t.string("frame", calibration.frame),
-                                    estimator, stray_field, t))
+        sensors.append(
+            SensorConfig(
+                name,
+                addresses,
+                cal_path,
+                calibration,
+                t.string("frame", calibration.frame),
+                estimator,
+                stray_field,
+                t,
+            )
+        )
     return sensors

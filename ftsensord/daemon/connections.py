@@ -91,5 +91,3 @@ def _shut_down(fd: int) -> None:
         pass  # already closed by the peer
     finally:
         sock.detach()
-
-

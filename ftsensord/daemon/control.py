@@ -145,8 +145,11 @@ class Control:
             return
         cached = self._status_reply
         try:
-            encoded = cached[2] if cached is not None and reply is cached[1] else \
-                json.dumps(reply, default=float).encode()
+            encoded = (
+                cached[2]
+                if cached is not None and reply is cached[1]
+                else json.dumps(reply, default=float).encode()
+            )
         except (TypeError, ValueError, RecursionError):  # a result JSON cannot hold: a bug, not an exit
             log.exception("control reply could not be encoded")
             encoded = b'{"ok": false, "error": "internal error (logged by the daemon)"}'
@@ -172,11 +175,18 @@ class Control:
             return {"ok": False, "error": f"the request is not JSON within the limits: {str(exc)[:200]}"}
         if not isinstance(request, dict) or not isinstance(request.get("cmd"), str):
             return {"ok": False, "error": 'expected a JSON object with a string "cmd"'}
-        handler = {"status": self._status, "tare": self._tare, "untare": self._untare, "reload": self._reload,
-                   "set": self._set}.get(request["cmd"])
+        handler = {
+            "status": self._status,
+            "tare": self._tare,
+            "untare": self._untare,
+            "reload": self._reload,
+            "set": self._set,
+        }.get(request["cmd"])
         if handler is None:
-            return {"ok": False, "error": f"unknown command {request['cmd'][:40]!r}; "
-                                          f"commands: {', '.join(COMMANDS)}"}
+            return {
+                "ok": False,
+                "error": f"unknown command {request['cmd'][:40]!r}; commands: {', '.join(COMMANDS)}",
+            }
         args = {k: v for k, v in request.items() if k != "cmd"}
         if request["cmd"] == "status" and not args:
             key = self._cycle_key()
@@ -223,13 +233,17 @@ class Control:
         samples = args.get("samples", 100)
         if not isinstance(samples, int) or isinstance(samples, bool) or not 1 <= samples <= 10_000:
             raise ValueError("samples: expected an integer from 1 to 10000")
-        sensors = [self._sensor(args["sensor"])] if args.get("sensor") is not None else self.target.sensor_names
+        sensors = (
+            [self._sensor(args["sensor"])] if args.get("sensor") is not None else self.target.sensor_names
+        )
         self.target.request_tare(envelope, sensors, samples)
         return None
 
     def _untare(self, args: dict[str, Any], envelope: list[bytes]) -> dict[str, Any]:
         self._only(args, {"sensor"})
-        sensors = [self._sensor(args["sensor"])] if args.get("sensor") is not None else self.target.sensor_names
+        sensors = (
+            [self._sensor(args["sensor"])] if args.get("sensor") is not None else self.target.sensor_names
+        )
         return self.target.untare(sensors)
 
     def _reload(self, args: dict[str, Any], envelope: list[bytes]) -> dict[str, Any] | None:
@@ -261,5 +275,7 @@ class Control:
         if not isinstance(averaging, int) or isinstance(averaging, bool) or not 1 <= averaging <= 10_000:
             raise ValueError("averaging: expected an integer from 1 to 10000")
         if not isinstance(lowpass, (int, float)) or isinstance(lowpass, bool) or not 0 <= lowpass < rate / 2:
-            raise ValueError(f"lowpass_hz: expected a number from 0 (off) to below half the rate ({rate / 2:g})")
+            raise ValueError(
+                f"lowpass_hz: expected a number from 0 (off) to below half the rate ({rate / 2:g})"
+            )
         return self.target.set_loop(float(rate), averaging, float(lowpass))

@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import zmq
@@ -26,24 +27,24 @@ from ftsensord.acquire.reader import Reader
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.chip.driver import MLX90393
 from ftsensord.chip.i2c import Bus, BusTiming
-from ftsensord.errors import ConfigError, FtsensordError
-from ftsensord.protocol import wire
 from ftsensord.config.file import Config, reload_config
-from ftsensord.daemon.control import Control
-from ftsensord.processing.filters import WrenchFilter
 from ftsensord.config.frames import TIP
-from ftsensord.processing.gravity import Gravity
+from ftsensord.config.sensors import Calibrations, SensorConfig
+from ftsensord.daemon.control import Control
 from ftsensord.daemon.host import HostGuard
 from ftsensord.daemon.loop import LoopTiming, serve_until
-from ftsensord.protocol.orientation import OrientationReceiver
-from ftsensord.processing.pipeline import SensorPipeline, SensorSample, tip_moves, tip_wrench, use_estimator
 from ftsensord.daemon.realtime import Scheduling
 from ftsensord.daemon.reloads import Reloads
 from ftsensord.daemon.ros2child import BridgeWatch
 from ftsensord.daemon.sdnotify import Notifier
-from ftsensord.config.sensors import Calibrations, SensorConfig
 from ftsensord.daemon.status import ChipLedger, status_line, status_reply
+from ftsensord.errors import ConfigError, FtsensordError
+from ftsensord.processing.filters import WrenchFilter
+from ftsensord.processing.gravity import Gravity
+from ftsensord.processing.pipeline import SensorPipeline, SensorSample, tip_moves, tip_wrench, use_estimator
 from ftsensord.processing.tare import Tares, carry_tares
+from ftsensord.protocol import wire
+from ftsensord.protocol.orientation import OrientationReceiver
 
 log = logging.getLogger("ftsensord")
 
@@ -52,11 +53,21 @@ class Daemon:
     """One bus, its sensors, a publisher socket and a control socket; what control
     requests do is `commands.Commands`'."""
 
-    def __init__(self, config: Config, bus: Bus, publisher: zmq.Socket, control: zmq.Socket | None = None, *,
-                 notifier: Notifier | None = None, clock: Callable[[], float] = time.monotonic,
-                 wall: Callable[[], float] = time.time, orientation: zmq.Socket | None = None,
-                 guard: HostGuard | None = None, background_reload: bool = False,
-                 scheduling: Scheduling | None = None):
+    def __init__(
+        self,
+        config: Config,
+        bus: Bus,
+        publisher: zmq.Socket,
+        control: zmq.Socket | None = None,
+        *,
+        notifier: Notifier | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        wall: Callable[[], float] = time.time,
+        orientation: zmq.Socket | None = None,
+        guard: HostGuard | None = None,
+        background_reload: bool = False,
+        scheduling: Scheduling | None = None,
+    ):
         self.config = config
         self.bus = bus
         self.publisher = publisher
@@ -71,10 +82,15 @@ class Daemon:
         self.orientations = OrientationReceiver(orientation, {*self.sensor_names, TIP})
         self.gravity = self._gravity(config)
         self.timing = LoopTiming()
-        self._tip: tuple[dict[str, np.ndarray] | None, list[tuple[str, np.ndarray]]] = (None, [])  # poses, tip_moves
+        self._tip: tuple[dict[str, np.ndarray] | None, list[tuple[str, np.ndarray]]] = (
+            None,
+            [],
+        )  # poses, tip_moves
         self.control = Control(control, self)
         self.tares = Tares(self.control.reply)
-        self.reloads = Reloads(self._prepared, self.finish_reload, self.control.reply) if background_reload else None
+        self.reloads = (
+            Reloads(self._prepared, self.finish_reload, self.control.reply) if background_reload else None
+        )
         self.streams: set[str] = set()
         self.started_at = clock()
         self.stop_requested = self.reload_requested = False
@@ -85,20 +101,39 @@ class Daemon:
 
     def _reader(self, config: Config) -> Reader:
         chips = [MLX90393(self.bus, a, sleep=self.bus.sleep) for a in config.addresses]
-        return Reader(self.bus, chips, config.scheduler, config.settings, config.bus_hz, config.bus_overhead_s,
-                      stuck_cycles=config.stuck_cycles, readback_every=config.readback_every,
-                      temperature=config.temperature_every > 0)
+        return Reader(
+            self.bus,
+            chips,
+            config.scheduler,
+            config.settings,
+            config.bus_hz,
+            config.bus_overhead_s,
+            stuck_cycles=config.stuck_cycles,
+            readback_every=config.readback_every,
+            temperature=config.temperature_every > 0,
+        )
 
     @staticmethod
     def _pipeline(s: SensorConfig, config: Config) -> SensorPipeline:
         smoothing = WrenchFilter(config.averaging, config.lowpass_hz, config.rate_hz)
-        return SensorPipeline.build(s, smoothing, config.max_missing_chips, config.settings, config.temperature_every > 0,
-                                    config.rate_hz)
+        return SensorPipeline.build(
+            s,
+            smoothing,
+            config.max_missing_chips,
+            config.settings,
+            config.temperature_every > 0,
+            config.rate_hz,
+        )
 
     def _gravity(self, config: Config) -> Gravity | None:
         g = config.gravity
-        return None if g is None else Gravity(g, config.tool_poses, self.orientations, config.averaging,
-                                              config.lowpass_hz, config.rate_hz)
+        return (
+            None
+            if g is None
+            else Gravity(
+                g, config.tool_poses, self.orientations, config.averaging, config.lowpass_hz, config.rate_hz
+            )
+        )
 
     @property
     def period_s(self) -> float:
@@ -159,8 +194,15 @@ class Daemon:
 
     def serve_until(self, deadline: float) -> None:
         """Answer control requests until ``deadline`` within this cycle's budget (`loop.serve_until`)."""
-        serve_until(self.control, deadline, self.period_s, self.clock, self.bus.sleep, lambda: self.stop_requested,
-                    self.guard.caps)
+        serve_until(
+            self.control,
+            deadline,
+            self.period_s,
+            self.clock,
+            self.bus.sleep,
+            lambda: self.stop_requested,
+            self.guard.caps,
+        )
 
     def handle_control(self) -> None:
         """Answer every waiting control request now (tests call this between cycles)."""
@@ -229,8 +271,9 @@ class Daemon:
             self.notifier.status(self.status_line())
             self.bridge.check()
 
-    def _publish(self, topic: str, kind: int, seq: int, t_mono: float, t_wall: float, flags: int,
-                 values: np.ndarray) -> None:
+    def _publish(
+        self, topic: str, kind: int, seq: int, t_mono: float, t_wall: float, flags: int, values: np.ndarray
+    ) -> None:
         self.streams.add(topic)
         try:
             self.publisher.send(wire.encode(topic, kind, seq, t_mono, t_wall, flags, values), zmq.NOBLOCK)
@@ -325,8 +368,14 @@ class Daemon:
         self.gravity = self._gravity(new)
         log.info("reloaded %s; schedule: %s", new.path, new.choice)
         self.notifier.ready(self.status_line())
-        return {"ok": True, "result": {"config": str(new.path), "tare": tares,
-                                       "calibrations": {s.name: str(s.calibration_path) for s in new.sensors}}}
+        return {
+            "ok": True,
+            "result": {
+                "config": str(new.path),
+                "tare": tares,
+                "calibrations": {s.name: str(s.calibration_path) for s in new.sensors},
+            },
+        }
 
 
 def measure_board(bus: Bus, config: Config) -> BusTiming:
@@ -341,7 +390,12 @@ def measure_board(bus: Bus, config: Config) -> BusTiming:
     for warning in report.warnings:
         log.warning("%s", warning)
     m = report.measured
-    log.info("I2C adapter %s (%s): %s", report.driver or "unknown", report.adapter or "rules unknown",
-             "not measured (no chip answered)" if m is None else
-             f"ioctl {m.ioctl_s * 1e6:.0f} us, clock {m.clock_hz / 1e3:.0f} kHz measured")
+    log.info(
+        "I2C adapter %s (%s): %s",
+        report.driver or "unknown",
+        report.adapter or "rules unknown",
+        "not measured (no chip answered)"
+        if m is None
+        else f"ioctl {m.ioctl_s * 1e6:.0f} us, clock {m.clock_hz / 1e3:.0f} kHz measured",
+    )
     return report.timing

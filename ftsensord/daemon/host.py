@@ -6,11 +6,10 @@ from __future__ import annotations
 
 import ctypes
 import time
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 from ftsensord.daemon.connections import ConnectionCap
 from ftsensord.daemon.runtime import RuntimeFiles
-
 
 #: After connections close, memory is given back this long after the last one (s): libzmq
 #: frees a gone peer's queues in its I/O thread after the event, and a burst of closes

@@ -9,7 +9,7 @@ never made up by a burst.
 from __future__ import annotations
 
 from collections import deque
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import numpy.ma  # noqa: F401 (np.percentile imports it on its first call: 50 ms, a whole cycle, in the first `status`)
@@ -80,9 +80,15 @@ def percentiles_us(seconds: deque[float]) -> dict[str, float]:
     return {"p50": float(np.percentile(us, 50)), "p99": float(np.percentile(us, 99)), "max": float(us.max())}
 
 
-def serve_until(control: Control, deadline: float, period_s: float, clock: Callable[[], float],
-                sleep: Callable[[float], None], stopped: Callable[[], bool],
-                caps: Sequence[ConnectionCap] = ()) -> None:
+def serve_until(
+    control: Control,
+    deadline: float,
+    period_s: float,
+    clock: Callable[[], float],
+    sleep: Callable[[float], None],
+    stopped: Callable[[], bool],
+    caps: Sequence[ConnectionCap] = (),
+) -> None:
     """Answer control requests until ``deadline`` (s on ``clock``), then return.
 
     The loop comes first: this cycle's control work has a `Budget` (MAX_PER_CYCLE
@@ -110,8 +116,12 @@ def serve_until(control: Control, deadline: float, period_s: float, clock: Calla
             return
         # Budget spent: the requests left stay queued, and a poll would return at once
         # for them and spin; so sleep. Else wait for a request until 1 ms before.
-        if not spent and socket is not None and remaining > 2e-3 \
-                and poller.poll(timeout=int((remaining - 1e-3) * 1000)):
+        if (
+            not spent
+            and socket is not None
+            and remaining > 2e-3
+            and poller.poll(timeout=int((remaining - 1e-3) * 1000))
+        ):
             continue
         remaining = deadline - clock()
         if remaining > 0:

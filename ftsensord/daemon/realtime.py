@@ -27,8 +27,13 @@ from ftsensord.errors import ConfigError
 #: SCHED_FIFO's priorities (sched(7)).
 FIFO_PRIORITIES = range(1, 100)
 
-_POLICIES = {os.SCHED_OTHER: "other", os.SCHED_FIFO: "fifo", os.SCHED_RR: "rr",
-             getattr(os, "SCHED_BATCH", -1): "batch", getattr(os, "SCHED_IDLE", -2): "idle"}
+_POLICIES = {
+    os.SCHED_OTHER: "other",
+    os.SCHED_FIFO: "fifo",
+    os.SCHED_RR: "rr",
+    getattr(os, "SCHED_BATCH", -1): "batch",
+    getattr(os, "SCHED_IDLE", -2): "idle",
+}
 
 
 @dataclass(frozen=True)
@@ -42,8 +47,12 @@ class Scheduling:
     def status(self) -> dict[str, Any]:
         """The calling thread's policy now, beside what was asked (the `status` reply)."""
         policy = os.sched_getscheduler(0)
-        return {"policy": _POLICIES.get(policy, str(policy)), "priority": os.sched_getparam(0).sched_priority,
-                "asked": self.asked, "refused": self.refused}
+        return {
+            "policy": _POLICIES.get(policy, str(policy)),
+            "priority": os.sched_getparam(0).sched_priority,
+            "asked": self.asked,
+            "refused": self.refused,
+        }
 
 
 def request_fifo(priority: int) -> Scheduling:
@@ -52,7 +61,9 @@ def request_fifo(priority: int) -> Scheduling:
     if priority == 0:
         return Scheduling()
     if priority not in FIFO_PRIORITIES:
-        raise ConfigError(f"--realtime: expected a SCHED_FIFO priority from 1 to 99 (0: none), got {priority}")
+        raise ConfigError(
+            f"--realtime: expected a SCHED_FIFO priority from 1 to 99 (0: none), got {priority}"
+        )
     try:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
     except PermissionError as exc:
@@ -64,13 +75,17 @@ def refusal_cause(priority: int) -> str:
     """Why SCHED_FIFO at ``priority`` is refused here, as far as the process can tell."""
     soft, _ = resource.getrlimit(resource.RLIMIT_RTPRIO)
     if os.geteuid() != 0 and soft != resource.RLIM_INFINITY and soft < priority:
-        return (f"the real-time priority limit is {soft} (the unit's LimitRTPRIO={priority} raises it "
-                f"where the service manager may: it needs CAP_SYS_RESOURCE)")
+        return (
+            f"the real-time priority limit is {soft} (the unit's LimitRTPRIO={priority} raises it "
+            f"where the service manager may: it needs CAP_SYS_RESOURCE)"
+        )
     budget = _cgroup_rt_runtime_us()
     if budget == 0:
-        return ("the kernel schedules real-time tasks by cgroup (CONFIG_RT_GROUP_SCHED) and this "
-                "process's cpu cgroup has no real-time budget (cpu.rt_runtime_us = 0); running at the "
-                "normal priority (docs/design/reliability.md, \"The systemd unit\")")
+        return (
+            "the kernel schedules real-time tasks by cgroup (CONFIG_RT_GROUP_SCHED) and this "
+            "process's cpu cgroup has no real-time budget (cpu.rt_runtime_us = 0); running at the "
+            'normal priority (docs/design/reliability.md, "The systemd unit")'
+        )
     return "refused by the kernel or a security policy (seccomp, SELinux)"
 
 

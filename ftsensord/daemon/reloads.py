@@ -16,7 +16,8 @@ import logging
 import sys
 import threading
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from ftsensord.errors import FtsensordError
 
@@ -36,8 +37,13 @@ class Reloads:
     takes what it made, or the FtsensordError it raised, in the loop's thread (`poll`) and
     returns the reply each waiting client then gets by ``answer``. ``clock``: real time (s)."""
 
-    def __init__(self, prepare: Callable[[], Any], finish: Callable[[Any], dict[str, Any]],
-                 answer: Callable[[list[bytes], dict[str, Any]], None], clock: Callable[[], float] = time.monotonic):
+    def __init__(
+        self,
+        prepare: Callable[[], Any],
+        finish: Callable[[Any], dict[str, Any]],
+        answer: Callable[[list[bytes], dict[str, Any]], None],
+        clock: Callable[[], float] = time.monotonic,
+    ):
         self.prepare, self.finish, self.answer, self.clock = prepare, finish, answer, clock
         self.waiting: list[list[bytes] | None] = []  # envelopes (None: SIGHUP), for the next reload
         self.started_at = -float("inf")

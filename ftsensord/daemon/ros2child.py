@@ -49,8 +49,15 @@ def _child_setup() -> None:
 def bridge_command(config_path: Path, realtime: int) -> list[str]:
     """``ftsensord ros2 --config CONFIG``, with ``--realtime PRIORITY`` for its forwarding thread
     when ``realtime`` is not 0."""
-    return [sys.executable, "-m", "ftsensord", "ros2", "--config", str(config_path),
-            *(["--realtime", str(realtime)] if realtime else [])]
+    return [
+        sys.executable,
+        "-m",
+        "ftsensord",
+        "ros2",
+        "--config",
+        str(config_path),
+        *(["--realtime", str(realtime)] if realtime else []),
+    ]
 
 
 def bridge_priority() -> int:
@@ -78,7 +85,9 @@ def ros2_beside(ros2: Ros2Config | None, config_path: Path) -> Iterator[subproce
         try:
             child.wait(timeout=BRIDGE_EXIT_S)
         except subprocess.TimeoutExpired:  # hung (stopped, or stuck in DDS): not left behind
-            log.warning("the ROS 2 bridge (pid %d) did not stop within %g s: killed", child.pid, BRIDGE_EXIT_S)
+            log.warning(
+                "the ROS 2 bridge (pid %d) did not stop within %g s: killed", child.pid, BRIDGE_EXIT_S
+            )
             child.kill()
             child.wait()
 
@@ -95,9 +104,12 @@ class BridgeWatch:
         if self.child is None or self.reported or self.child.poll() is None:
             return
         self.reported = True
-        log.warning("the ROS 2 bridge (pid %d) exited with status %d: its topics, /diagnostics and the tare "
-                    "from ROS have stopped (the ZeroMQ streams go on); restart the service to start it again",
-                    self.child.pid, self.child.returncode)
+        log.warning(
+            "the ROS 2 bridge (pid %d) exited with status %d: its topics, /diagnostics and the tare "
+            "from ROS have stopped (the ZeroMQ streams go on); restart the service to start it again",
+            self.child.pid,
+            self.child.returncode,
+        )
 
     def status(self) -> dict[str, int | None] | None:
         return None if self.child is None else {"pid": self.child.pid, "exit_status": self.child.poll()}

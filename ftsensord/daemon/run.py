@@ -19,23 +19,22 @@ import zmq
 
 from ftsensord.acquire.bus import open_bus, parse_bus_spec
 from ftsensord.chip.i2c import Bus
-from ftsensord.errors import ConfigError, FtsensordError
 from ftsensord.config.file import Config
 from ftsensord.daemon.connections import ConnectionCap, raise_descriptor_limit
 from ftsensord.daemon.control import MAX_PER_CYCLE, MAX_REQUEST
 from ftsensord.daemon.daemon import Daemon
-from ftsensord.protocol.endpoints import is_loopback, needs_ipv6
 from ftsensord.daemon.host import HostGuard
-from ftsensord.protocol.orientation import open_receiver
-from ftsensord.protocol.paths import ensure_private_dir
 from ftsensord.daemon.realtime import Scheduling, request_fifo
 from ftsensord.daemon.ros2child import BridgeWatch, ros2_beside
 from ftsensord.daemon.runtime import RuntimeFiles
 from ftsensord.daemon.sdnotify import Notifier
+from ftsensord.errors import ConfigError, FtsensordError
+from ftsensord.protocol.endpoints import is_loopback, needs_ipv6
+from ftsensord.protocol.orientation import open_receiver
+from ftsensord.protocol.paths import ensure_private_dir
 
 if TYPE_CHECKING:
-    from ftsensord.sim import MonotonicClock
-    from ftsensord.sim import VirtualClock
+    from ftsensord.sim import MonotonicClock, VirtualClock
 
 log = logging.getLogger("ftsensord")
 
@@ -68,12 +67,13 @@ def open_configured_bus(config: Config, clock: MonotonicClock | VirtualClock | N
     kind, _ = parse_bus_spec(config.bus)
     if kind == "sim":
         from ftsensord.sim import MonotonicClock
+
         return open_bus(config.bus, clock=clock or MonotonicClock(), bus_hz=config.bus_hz, seed=None)
     return open_bus(config.bus, exclusive=True)
 
 
 def _ipc_path(endpoint: str) -> Path | None:
-    return Path(endpoint[len("ipc://"):]) if endpoint.startswith("ipc://") else None
+    return Path(endpoint[len("ipc://") :]) if endpoint.startswith("ipc://") else None
 
 
 def bind(socket: zmq.Socket, endpoint: str, files: RuntimeFiles | None = None) -> None:
@@ -130,8 +130,10 @@ def _lock(path: Path) -> int:
     except BlockingIOError:
         pid = os.pread(fd, 32, 0).decode("ascii", "replace").strip() or "unknown"
         os.close(fd)
-        raise ConfigError(f"{path.parent}: another ftsensord (pid {pid}) runs here; stop it first "
-                          "(or give this one other endpoints)") from None
+        raise ConfigError(
+            f"{path.parent}: another ftsensord (pid {pid}) runs here; stop it first "
+            "(or give this one other endpoints)"
+        ) from None
     os.ftruncate(fd, 0)
     os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
     return fd
@@ -157,13 +159,17 @@ def secure_control(context: zmq.Context, control: zmq.Socket, config: Config) ->
         control.curve_server = True
         return auth
     if not is_loopback(config.control):
-        log.warning("SECURITY: control endpoint %s is reachable beyond this host WITHOUT authentication "
-                    "(allow_insecure_control = true)", config.control)
+        log.warning(
+            "SECURITY: control endpoint %s is reachable beyond this host WITHOUT authentication "
+            "(allow_insecure_control = true)",
+            config.control,
+        )
     return None
 
 
-def make_sockets(context: zmq.Context, config: Config,
-                 files: RuntimeFiles | None = None) -> tuple[zmq.Socket, zmq.Socket, object | None]:
+def make_sockets(
+    context: zmq.Context, config: Config, files: RuntimeFiles | None = None
+) -> tuple[zmq.Socket, zmq.Socket, object | None]:
     """The publisher, the control socket, and the CURVE authenticator (None without CURVE);
     ``files``: where the ipc sockets made are recorded."""
     context.setsockopt(zmq.HANDSHAKE_IVL, HANDSHAKE_MS)  # every socket made from here on
@@ -222,8 +228,10 @@ def run(config: Config, early: Iterable[int] = (), realtime: int = 0, ros2_in_lo
     ``ros2_in_loop(daemon, ros2)``: the output for ``[ros2] output = "in-loop"`` (`ros2.inloop.InLoop`,
     handed in by the command line: the service does not import DDS's floor)."""
     if config.ros2 is not None and config.ros2.output == "in-loop" and ros2_in_loop is None:
-        raise ConfigError(f'{config.path}: ros2.output: "in-loop" needs the ROS 2 output, which this caller '
-                          "of daemon.run does not hand in (`ftsensord run` does)")
+        raise ConfigError(
+            f'{config.path}: ros2.output: "in-loop" needs the ROS 2 output, which this caller '
+            "of daemon.run does not hand in (`ftsensord run` does)"
+        )
     signals = Signals(early)
     if signals.stop:  # stopped while starting: nothing made yet, nothing to undo
         log.info("stopped before starting")
@@ -242,25 +250,49 @@ def run(config: Config, early: Iterable[int] = (), realtime: int = 0, ros2_in_lo
         except (OSError, FtsensordError) as exc:
             raise ConfigError(f"{config.path}: bus: cannot open {config.bus!r}: {exc}") from exc
         with ros2_beside(config.ros2, config.path) as bridge:  # [ros2]: DDS in a process of its own
-            return _serve(config, bus, notifier, files, signals, scheduling, BridgeWatch(bridge), ros2_in_loop)
+            return _serve(
+                config, bus, notifier, files, signals, scheduling, BridgeWatch(bridge), ros2_in_loop
+            )
     finally:
         for fd in locks:
             os.close(fd)
 
 
-def _serve(config: Config, bus: Bus, notifier: Notifier, files: RuntimeFiles, signals: Signals,
-           scheduling: Scheduling, bridge: BridgeWatch, ros2_in_loop: Any = None) -> int:
+def _serve(
+    config: Config,
+    bus: Bus,
+    notifier: Notifier,
+    files: RuntimeFiles,
+    signals: Signals,
+    scheduling: Scheduling,
+    bridge: BridgeWatch,
+    ros2_in_loop: Any = None,
+) -> int:
     context = zmq.Context()
     caps: list[ConnectionCap] = []
     auth = None
     try:
         publisher, control, auth = make_sockets(context, config, files)
         endpoint = config.orientation_endpoint
-        orientation = open_receiver(context, endpoint, functools.partial(bind, files=files)) if endpoint else None
-        caps = [ConnectionCap(publisher, "publish"), ConnectionCap(control, "control"),
-                *([ConnectionCap(orientation, "orientation")] if orientation is not None else [])]
-        daemon = Daemon(config, bus, publisher, control, notifier=notifier, orientation=orientation,
-                        guard=HostGuard(caps, files), background_reload=True, scheduling=scheduling)
+        orientation = (
+            open_receiver(context, endpoint, functools.partial(bind, files=files)) if endpoint else None
+        )
+        caps = [
+            ConnectionCap(publisher, "publish"),
+            ConnectionCap(control, "control"),
+            *([ConnectionCap(orientation, "orientation")] if orientation is not None else []),
+        ]
+        daemon = Daemon(
+            config,
+            bus,
+            publisher,
+            control,
+            notifier=notifier,
+            orientation=orientation,
+            guard=HostGuard(caps, files),
+            background_reload=True,
+            scheduling=scheduling,
+        )
         daemon.bridge = bridge
         if config.ros2 is not None and config.ros2.output == "in-loop":
             try:
@@ -269,8 +301,13 @@ def _serve(config: Config, bus: Bus, notifier: Notifier, files: RuntimeFiles, si
                 log.error("the ROS 2 output did not start: %s; the ZeroMQ streams go on without it", exc)
 
         signals.attach(daemon)
-        log.info("ftsensord on %s: %s; publishing on %s, control on %s", config.bus, config.bound().describe(),
-                 ", ".join(config.publish), config.control)
+        log.info(
+            "ftsensord on %s: %s; publishing on %s, control on %s",
+            config.bus,
+            config.bound().describe(),
+            ", ".join(config.publish),
+            config.control,
+        )
         return daemon.run()
     finally:
         for cap in caps:

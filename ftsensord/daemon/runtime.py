@@ -42,8 +42,10 @@ class RuntimeFiles:
         for path in self.files:
             if not self._ours(path):
                 what = "replaced by another" if os.path.lexists(path) else "deleted"
-                return (f"{path} was {what} (its folder removed? logind does so at logout, "
-                        "a /tmp cleaner after days): clients can no longer reach this daemon")
+                return (
+                    f"{path} was {what} (its folder removed? logind does so at logout, "
+                    "a /tmp cleaner after days): clients can no longer reach this daemon"
+                )
         return None
 
     def remove_own(self) -> None:

@@ -76,10 +76,12 @@ class Notifier:
             return
         watchdog_s = 2 * self.watchdog_interval_s
         if 1.0 / rate_hz > self.watchdog_interval_s:
-            raise ConfigError(f"{where}: {rate_hz:g} Hz is a cycle every {1 / rate_hz:g} s, too slow for the "
-                              f"watchdog (WatchdogSec={watchdog_s:g} s wants a cycle at least every "
-                              f"{self.watchdog_interval_s:g} s): use at least {1 / self.watchdog_interval_s:g} Hz "
-                              "or raise WatchdogSec in the unit")
+            raise ConfigError(
+                f"{where}: {rate_hz:g} Hz is a cycle every {1 / rate_hz:g} s, too slow for the "
+                f"watchdog (WatchdogSec={watchdog_s:g} s wants a cycle at least every "
+                f"{self.watchdog_interval_s:g} s): use at least {1 / self.watchdog_interval_s:g} Hz "
+                "or raise WatchdogSec in the unit"
+            )
 
     def stopping(self) -> bool:
         return self.notify("STOPPING=1")

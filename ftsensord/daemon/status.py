@@ -12,13 +12,13 @@ from typing import Any, Protocol
 
 from ftsensord import __version__
 from ftsensord.acquire.health import ChipHealth, ChipResult
-from ftsensord.acquire.readings import Readings
 from ftsensord.acquire.reader import Reader
+from ftsensord.acquire.readings import Readings
 from ftsensord.chip.i2c import BusTiming
 from ftsensord.config.file import Config
 from ftsensord.config.frames import TIP
-from ftsensord.daemon.host import HostGuard
 from ftsensord.daemon.control import Control
+from ftsensord.daemon.host import HostGuard
 from ftsensord.daemon.loop import LoopTiming, percentiles_us
 from ftsensord.daemon.realtime import Scheduling
 from ftsensord.daemon.ros2child import BridgeWatch
@@ -95,9 +95,13 @@ class ChipLedger:
             h = health[address]
             retry = max(0.0, h.retry_at - now) if h.failing else None
             out[f"0x{address:02X}"] = {
-                **vars(stats), "state": "resetting" if h.step else "failing" if h.failing else "ok",
-                "retry_in_s": retry, "reinits": h.reinits, "register_drifts": h.register_drifts,
-                "stuck_detections": h.stuck_detections}
+                **vars(stats),
+                "state": "resetting" if h.step else "failing" if h.failing else "ok",
+                "retry_in_s": retry,
+                "reinits": h.reinits,
+                "register_drifts": h.register_drifts,
+                "stuck_detections": h.stuck_detections,
+            }
         return out
 
 
@@ -134,9 +138,11 @@ class Reported(Protocol):
 def status_line(d: Reported) -> str:
     """The one line systemd shows (`systemctl status`): rate against bound, misses, failing chips."""
     rate = d.timing.achieved_rate_hz()
-    return (f"{'%.1f' % rate if rate else '-'} Hz of {d.config.rate_hz:g} Hz "
-            f"(bound {d.config.bound(d.board_timing).rate_hz:.0f} Hz), {d.timing.missed} missed, "
-            f"{d.chips.failing} chip(s) failing")
+    return (
+        f"{f'{rate:.1f}' if rate else '-'} Hz of {d.config.rate_hz:g} Hz "
+        f"(bound {d.config.bound(d.board_timing).rate_hz:.0f} Hz), {d.timing.missed} missed, "
+        f"{d.chips.failing} chip(s) failing"
+    )
 
 
 def stream_frames(d: Reported) -> dict[str, str]:
@@ -163,33 +169,51 @@ def health_reply(d: Reported) -> dict[str, Any]:
     Without the reply's timing percentiles (each over the last 1000 cycles) and the rest,
     which make the whole reply six times dearer (callgrind: 2.1M instructions against 0.35M)."""
     t = d.timing
-    return {"uptime_s": round(d.clock() - d.started_at, 3), "bus": d.config.bus, "scheduler": d.config.scheduler,
-            "rate_hz": d.config.rate_hz, "achieved_rate_hz": t.achieved_rate_hz(),
-            "cycles": t.cycles, "missed_cycles": t.missed, "late_cycles": t.late,
-            "chips": d.chips.report(d.reader.health, d.reader.bus.monotonic()),
-            "sensors": {s.name: sensor_status(s) for s in d.sensors}}
+    return {
+        "uptime_s": round(d.clock() - d.started_at, 3),
+        "bus": d.config.bus,
+        "scheduler": d.config.scheduler,
+        "rate_hz": d.config.rate_hz,
+        "achieved_rate_hz": t.achieved_rate_hz(),
+        "cycles": t.cycles,
+        "missed_cycles": t.missed,
+        "late_cycles": t.late,
+        "chips": d.chips.report(d.reader.health, d.reader.bus.monotonic()),
+        "sensors": {s.name: sensor_status(s) for s in d.sensors},
+    }
 
 
 def status_reply(d: Reported) -> dict[str, Any]:
     """The `status` reply (keys in docs/reference/protocol.md): `health_reply` and the rest."""
     bound, t, board = d.config.bound(d.board_timing), d.timing, d.board_timing
     return {
-        "version": __version__, **health_reply(d),
+        "version": __version__,
+        **health_reply(d),
         "config": str(d.config.path),
-        "readback_every": d.config.readback_every, "schedule": d.config.choice,
-        "bound_hz": bound.rate_hz, "bound": bound.describe(),  # the bus as measured at start, or simulated:
-        "adapter": board and board.adapter, "clock_hz": board and board.clock_hz,
+        "readback_every": d.config.readback_every,
+        "schedule": d.config.choice,
+        "bound_hz": bound.rate_hz,
+        "bound": bound.describe(),  # the bus as measured at start, or simulated:
+        "adapter": board and board.adapter,
+        "clock_hz": board and board.clock_hz,
         "ioctl_us": None if board is None or board.ioctl_s is None else board.ioctl_s * 1e6,
         "jitter_us": percentiles_us(t.lateness),
         # What the loop leaves of its period: the bound counts the bus, this adds the CPU.
-        "cycle_us": percentiles_us(t.durations), "period_us": d.period_s * 1e6,
+        "cycle_us": percentiles_us(t.durations),
+        "period_us": d.period_s * 1e6,
         # The daemon's part of a sample's latency: t_mono to its first stream's send.
         "publish_us": percentiles_us(t.publish_delays),
-        "averaging": d.config.averaging, "lowpass_hz": d.config.lowpass_hz,
-        "streams": sorted(d.streams), "publish": d.config.publish, "control": d.config.control,
-        "connections": {c.name: c.status() for c in d.guard.caps}, "replies_dropped": d.control.dropped,
-        "frames": stream_frames(d), "gravity": d.gravity.status(d.sensors, d.clock()) if d.gravity else None,
-        "scheduling": d.scheduling.status(), "ros2_bridge": d.bridge.status(),
+        "averaging": d.config.averaging,
+        "lowpass_hz": d.config.lowpass_hz,
+        "streams": sorted(d.streams),
+        "publish": d.config.publish,
+        "control": d.config.control,
+        "connections": {c.name: c.status() for c in d.guard.caps},
+        "replies_dropped": d.control.dropped,
+        "frames": stream_frames(d),
+        "gravity": d.gravity.status(d.sensors, d.clock()) if d.gravity else None,
+        "scheduling": d.scheduling.status(),
+        "ros2_bridge": d.bridge.status(),
         "outputs": [o.status() for o in d.outputs],
     }
 
@@ -200,60 +224,101 @@ def describe(status: dict[str, Any]) -> str:
     out: list[str] = []
     jitter = status["jitter_us"]
     rate = status["achieved_rate_hz"]
-    out.append(f"ftsensord {status['version']}, up {status['uptime_s']:.0f} s, bus {status['bus']}, "
-               f"scheduler {status['scheduler']}")
-    out.append(f"rate: {rate:.2f} Hz achieved of {status['rate_hz']:g} Hz configured" if rate else
-               f"rate: - of {status['rate_hz']:g} Hz configured")
+    out.append(
+        f"ftsensord {status['version']}, up {status['uptime_s']:.0f} s, bus {status['bus']}, "
+        f"scheduler {status['scheduler']}"
+    )
+    out.append(
+        f"rate: {rate:.2f} Hz achieved of {status['rate_hz']:g} Hz configured"
+        if rate
+        else f"rate: - of {status['rate_hz']:g} Hz configured"
+    )
     out.append(f"bound: {status['bound']}")
     out.append(f"schedule: {status['schedule']}")
-    out.append(f"cycles {status['cycles']}, missed {status['missed_cycles']}, late {status['late_cycles']}; "
-               f"jitter p50 {jitter['p50']:.0f} us, p99 {jitter['p99']:.0f} us")
+    out.append(
+        f"cycles {status['cycles']}, missed {status['missed_cycles']}, late {status['late_cycles']}; "
+        f"jitter p50 {jitter['p50']:.0f} us, p99 {jitter['p99']:.0f} us"
+    )
     cycle = status["cycle_us"]
-    out.append(f"cycle p50 {cycle['p50']:.0f} us, p99 {cycle['p99']:.0f} us, max {cycle['max']:.0f} us "
-               f"of a {status['period_us']:.0f} us period")
+    out.append(
+        f"cycle p50 {cycle['p50']:.0f} us, p99 {cycle['p99']:.0f} us, max {cycle['max']:.0f} us "
+        f"of a {status['period_us']:.0f} us period"
+    )
     out.append(f"averaging {status['averaging']}, low-pass {status['lowpass_hz'] or 'off'}")
     sched = status.get("scheduling")
     if sched:
-        out.append(f"scheduling: {sched['policy']}" + (f" {sched['priority']}" if sched["priority"] else "")
-                   + (f" (SCHED_FIFO {sched['asked']} refused: {sched['refused']})" if sched["refused"] else ""))
+        out.append(
+            f"scheduling: {sched['policy']}"
+            + (f" {sched['priority']}" if sched["priority"] else "")
+            + (f" (SCHED_FIFO {sched['asked']} refused: {sched['refused']})" if sched["refused"] else "")
+        )
     for name, s in status["sensors"].items():
-        tare = "tared, offset " + " ".join(f"{v:+.4g}" for v in s["tare_wrench"]) if s["tared"] else "not tared"
+        tare = (
+            "tared, offset " + " ".join(f"{v:+.4g}" for v in s["tare_wrench"]) if s["tared"] else "not tared"
+        )
         creep = s.get("silicone")
-        out.append(f"sensor {name}: frame {s['frame']}, serial {s['serial']}, {tare}; calibration {s['calibration']}"
-                   + (f"; silicone's creep undone ({creep['restarts']} restarts)" if creep else ""))
+        out.append(
+            f"sensor {name}: frame {s['frame']}, serial {s['serial']}, {tare}; calibration {s['calibration']}"
+            + (f"; silicone's creep undone ({creep['restarts']} restarts)" if creep else "")
+        )
     if "wrench/tip" in status.get("frames", {}):
         out.append(f"tip: frame {status['frames']['wrench/tip']}")
     gravity = status.get("gravity")
     if gravity:
         stream = gravity["stream"]
-        out.append(f"gravity compensation ({gravity['orientation']}): " + ", ".join(
-            f"{f} {g['mass_kg'] * 1e3:.0f} g" + (" (orientation stale)" if g["orientation_stale"] else "")
-            + (" gravity now [" + " ".join(f"{v:+.2f}" for v in g["gravity_now_mps2"]) + "] m/s^2"
-               if g.get("gravity_now_mps2") else "")
-            for f, g in gravity["frames"].items())
-            + (f"; orientation messages {stream['received']} received, "
-               f"{sum(stream['dropped'].values())} dropped" if gravity["orientation"] == "stream" else ""))
+        out.append(
+            f"gravity compensation ({gravity['orientation']}): "
+            + ", ".join(
+                f"{f} {g['mass_kg'] * 1e3:.0f} g"
+                + (" (orientation stale)" if g["orientation_stale"] else "")
+                + (
+                    " gravity now [" + " ".join(f"{v:+.2f}" for v in g["gravity_now_mps2"]) + "] m/s^2"
+                    if g.get("gravity_now_mps2")
+                    else ""
+                )
+                for f, g in gravity["frames"].items()
+            )
+            + (
+                f"; orientation messages {stream['received']} received, "
+                f"{sum(stream['dropped'].values())} dropped"
+                if gravity["orientation"] == "stream"
+                else ""
+            )
+        )
     bad = {a: c for a, c in status["chips"].items() if not c["ok"] or c["errors"] or c["reinits"]}
     temps = [c["temperature_c"] for c in status["chips"].values() if c["temperature_c"] is not None]
-    out.append(f"chips: {len(status['chips'])}, failing {sum(not c['ok'] for c in status['chips'].values())}"
-               + (f", {min(temps):.1f}-{max(temps):.1f} degC" if temps else ""))
+    out.append(
+        f"chips: {len(status['chips'])}, failing {sum(not c['ok'] for c in status['chips'].values())}"
+        + (f", {min(temps):.1f}-{max(temps):.1f} degC" if temps else "")
+    )
     for address, c in bad.items():
         retry = f", retry in {c['retry_in_s']:.2f} s" if c["retry_in_s"] is not None else ""
-        out.append(f"  {address}: {c['state'].upper()}{retry}, {c['errors']} errors, {c['reinits']} resets, "
-              f"{c['register_drifts']} register changes, {c['stuck_detections']} stuck; last: {c['last_error']}")
+        out.append(
+            f"  {address}: {c['state'].upper()}{retry}, {c['errors']} errors, {c['reinits']} resets, "
+            f"{c['register_drifts']} register changes, {c['stuck_detections']} stuck; last: {c['last_error']}"
+        )
     return "\n".join(out)
 
 
 def sensor_status(p: SensorPipeline) -> dict[str, Any]:
     """One sensor's part of the `status` reply: calibration, tare, estimator and its stages."""
     return {
-        "calibration": str(p.config.calibration_path), "serial": p.config.calibration.serial,
-        "frame": p.config.frame, "tared": p.tared, "estimator": p.estimator,
-        "nonlinear_calibrated": p.nonlinear is not None, "fallbacks": p.fallbacks,
+        "calibration": str(p.config.calibration_path),
+        "serial": p.config.calibration.serial,
+        "frame": p.config.frame,
+        "tared": p.tared,
+        "estimator": p.estimator,
+        "nonlinear_calibrated": p.nonlinear is not None,
+        "fallbacks": p.fallbacks,
         # Which solve the nonlinear estimator runs: the C one built at install, or numpy's.
-        "nonlinear_solver": None if p.nonlinear is None else "numpy" if p.nonlinear.compiled is None else "compiled",
-        "estimate_cpu_us": {"mean": statistics.fmean(p.estimate_s) * 1e6,
-                            "max": max(p.estimate_s) * 1e6} if p.estimate_s else None,
+        "nonlinear_solver": None
+        if p.nonlinear is None
+        else "numpy"
+        if p.nonlinear.compiled is None
+        else "compiled",
+        "estimate_cpu_us": {"mean": statistics.fmean(p.estimate_s) * 1e6, "max": max(p.estimate_s) * 1e6}
+        if p.estimate_s
+        else None,
         "tare_wrench": p.tare_wrench.round(6).tolist(),
         **p.stages_status(),
     }

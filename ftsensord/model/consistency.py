@@ -78,15 +78,21 @@ class ConsistencyMaps:
     def apply(self, d: np.ndarray) -> Consistency:
         """The check of one sample from its flux minus the zero ``d`` (T, every channel)."""
         if self.maps is None:
-            return Consistency(np.inf, self.dof, np.full(6, np.nan), self.none_left.copy(), self.dof_without,
-                               np.zeros(len(self.none_left)))
+            return Consistency(
+                np.inf,
+                self.dof,
+                np.full(6, np.nan),
+                self.none_left.copy(),
+                self.dof_without,
+                np.zeros(len(self.none_left)),
+            )
         n = self.n
         y = self.maps @ (d if self.all else d[self.channels])
         r = y[:n]
         chi2 = float(r @ r)
         # G's rows are 0 for a chip that cannot be left out: its drop is 0.
-        drops = (r * y[n + 6:2 * n + 6]) @ self.per_chip
-        g = y[2 * n + 6:]
+        drops = (r * y[n + 6 : 2 * n + 6]) @ self.per_chip
+        g = y[2 * n + 6 :]
         if self.all:
             drop = drops
         else:
@@ -95,8 +101,16 @@ class ConsistencyMaps:
         without = chi2 - drop
         if self.any_stays:
             without[self.stays] = np.inf
-        return Consistency(chi2, self.dof, y[n:n + 6], without, self.dof_without, drop,
-                           float(g @ g) if self.gradient_dof else 0.0, self.gradient_dof)
+        return Consistency(
+            chi2,
+            self.dof,
+            y[n : n + 6],
+            without,
+            self.dof_without,
+            drop,
+            float(g @ g) if self.gradient_dof else 0.0,
+            self.gradient_dof,
+        )
 
 
 @dataclass(slots=True)  # not frozen: a frozen dataclass's __init__ costs a microsecond a sample
@@ -172,17 +186,33 @@ class FoldedCheck:
     1e-12 of a whitened residual of 1 (the flux's size over its noise times round-off).
     """
 
-    def __init__(self, maps: ConsistencyMaps, KA: np.ndarray, zero: np.ndarray, scale: np.ndarray | None,
-                 shift: np.ndarray | None, load_offset: np.ndarray, load_scale: np.ndarray,
-                 bound_scale: np.ndarray):
+    def __init__(
+        self,
+        maps: ConsistencyMaps,
+        KA: np.ndarray,
+        zero: np.ndarray,
+        scale: np.ndarray | None,
+        shift: np.ndarray | None,
+        load_offset: np.ndarray,
+        load_scale: np.ndarray,
+        bound_scale: np.ndarray,
+    ):
         if not maps.all or maps.maps is None or maps.chip_rows is None:
             raise ValueError("a folded check needs every chip in use and redundancy to check")
         n, k = maps.n, maps.gradient_dof
         self.chips, self.dof, self.gradient_dof = n // 3, maps.dof, k
         m = maps.maps
         self.wrench = slice(2 * n + k, 2 * n + k + 6)
-        rows = np.vstack([m[:n], maps.chip_rows, m[2 * n + 6:], KA, m[n:n + 6] * load_scale[:, None],
-                          KA * bound_scale[:, None]])
+        rows = np.vstack(
+            [
+                m[:n],
+                maps.chip_rows,
+                m[2 * n + 6 :],
+                KA,
+                m[n : n + 6] * load_scale[:, None],
+                KA * bound_scale[:, None],
+            ]
+        )
         offset = zero if shift is None else zero + shift  # b_ref - b0 = b scale - (shift + b0)
         self.c = -(rows @ offset)
         self.c[-12:] += np.concatenate([load_offset * load_scale, load_offset * bound_scale])
@@ -191,8 +221,8 @@ class FoldedCheck:
         sums = np.zeros((len(rows), 2 + self.chips + 12))
         sums[:n, 0] = 1.0
         sums[n + np.arange(n), 1 + np.arange(n) // 3] = 1.0
-        sums[2 * n:2 * n + k, 1 + self.chips] = 1.0
-        sums[-12:, 2 + self.chips:] = np.eye(12)
+        sums[2 * n : 2 * n + k, 1 + self.chips] = 1.0
+        sums[-12:, 2 + self.chips :] = np.eye(12)
         self.sums = sums
 
     def apply(self, b: np.ndarray) -> tuple[np.ndarray, list[float]]:

@@ -58,21 +58,34 @@ class FluxModel:
         same numbers: an array changed in place is seen)."""
         g, scale = self.geometry, self.scale
         cached = self.__dict__.get("_constants_cache")
-        if (cached is not None and cached[0] is scale and cached[1] is g
-                and cached[2] == (self.moment_am2, self.crosstalk, self.octupole, scale.tobytes(), g.strengths.tobytes())):
+        if (
+            cached is not None
+            and cached[0] is scale
+            and cached[1] is g
+            and cached[2]
+            == (self.moment_am2, self.crosstalk, self.octupole, scale.tobytes(), g.strengths.tobytes())
+        ):
             return cached[3]
         constants = _Constants.build(self)
-        self.__dict__["_constants_cache"] = (scale, g, (self.moment_am2, self.crosstalk, self.octupole, scale.tobytes(),
-                                                        g.strengths.tobytes()), constants)
+        self.__dict__["_constants_cache"] = (
+            scale,
+            g,
+            (self.moment_am2, self.crosstalk, self.octupole, scale.tobytes(), g.strengths.tobytes()),
+            constants,
+        )
         return constants
 
-    def _fields(self, T: np.ndarray, gradient: bool = True) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    def _fields(
+        self, T: np.ndarray, gradient: bool = True
+    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
         """World field B (n, 3), its gradient G (n, 3, 3; None unless asked), chip positions p."""
         # The estimator asks the field at a pose (is the step better?) and then, at the
         # same pose, its gradient too: the field's part is kept for that second call.
         c = self._constants
         last = self.__dict__.get("_last_field")
-        if last is not None and last[0] is T and last[2] is c and last[1] == T.tobytes():  # bytes: array_equal costs 5 us
+        if (
+            last is not None and last[0] is T and last[2] is c and last[1] == T.tobytes()
+        ):  # bytes: array_equal costs 5 us
             _, _, _, B, p, r, parts = last
         else:
             # As few numpy operations as the formulas allow: on 8 x 8 pairs each costs
@@ -121,8 +134,9 @@ class FluxModel:
         # S R_chip^T R_T^T B, R_T^T B as the rows B R_T: two products on (n, 3), not (n, 3, 3).
         return (self._constants.response_chip @ (B @ T[:3, :3])[:, :, None]).ravel() + self.offset_t.ravel()
 
-    def predict_and_jacobian(self, T: np.ndarray, u: np.ndarray | None = None,
-                             background: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    def predict_and_jacobian(
+        self, T: np.ndarray, u: np.ndarray | None = None, background: bool = False
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Flux (3n,) and its derivative (3n, 6) for T <- exp([v; w]) T at v = w = 0;
         with ``background``, (3n, 9): the last 3 columns d/du, u the background field.
 
@@ -149,8 +163,14 @@ class FluxModel:
         return (self.response @ np.transpose(R, (0, 2, 1))).reshape(-1, 3)
 
 
-def _gradient(c: _Constants, r: np.ndarray, inv: np.ndarray, k5: np.ndarray, a: np.ndarray,
-              octupole: tuple[np.ndarray, ...] | None) -> np.ndarray:
+def _gradient(
+    c: _Constants,
+    r: np.ndarray,
+    inv: np.ndarray,
+    k5: np.ndarray,
+    a: np.ndarray,
+    octupole: tuple[np.ndarray, ...] | None,
+) -> np.ndarray:
     """dB/dr at each chip (n, 3, 3; T/m) from `FluxModel._fields`'s parts: r (chip, magnet,
     3), 1/d^2, d^-5 and a = 3 mu0/(4 pi) (r.m) d^-5 per pair, and the octupole's."""
     # A dipole's is mu0/(4 pi) (3 (m r^T + r m^T + (r.m) I) / d^5 - 15 (r.m) r r^T / d^7);
@@ -165,7 +185,12 @@ def _gradient(c: _Constants, r: np.ndarray, inv: np.ndarray, k5: np.ndarray, a: 
         v.ravel()[:: c.n + 1] += hq * s * inv_own * (105 - 315 * c2)
         diag = diag + a_own
     W = np.matmul(np.swapaxes(w[:, :, None] * c.m, 1, 2), r)
-    G = W + np.swapaxes(W, 1, 2) + np.matmul(np.swapaxes(v[:, :, None] * r, 1, 2), r) + diag[:, None, None] * _EYE3
+    G = (
+        W
+        + np.swapaxes(W, 1, 2)
+        + np.matmul(np.swapaxes(v[:, :, None] * r, 1, 2), r)
+        + diag[:, None, None] * _EYE3
+    )
     if octupole is not None:
         G = G - (30 * octupole[2] * octupole[0])[:, None, None] * c.axis_outer
     return G
@@ -195,11 +220,25 @@ class _Constants:
         s = np.asarray(model.scale, dtype=float)
         response = s.copy() if s.ndim == 3 else s[:, :, None] * np.eye(3)
         m = MU0_OVER_4PI * model.moment_am2 * g.strengths[:, None] * g.magnet_axis
-        q = MU0_OVER_4PI * model.moment_am2 * g.strengths * octupole_ratio(g.magnet_radius_m, g.magnet_length_m)
+        q = (
+            MU0_OVER_4PI
+            * model.moment_am2
+            * g.strengths
+            * octupole_ratio(g.magnet_radius_m, g.magnet_length_m)
+        )
         # The geometry's own arrays, not copies: positions changed in place are used, as before.
-        return _Constants(g.n_chips, np.asarray(g.chip_p, float), np.asarray(g.magnet_p, float), m, 3 * m,
-                          np.asarray(g.magnet_axis, float), 0.5 * q if model.octupole else None,
-                          None if model.crosstalk else np.eye(g.n_chips), response,
-                          response @ np.transpose(g.chip_R, (0, 2, 1)), 1 / np.linalg.norm(m, axis=1),
-                          g.magnet_axis[:, :, None] * g.magnet_axis[:, None, :],
-                          np.broadcast_to(_EYE3, (g.n_chips, 3, 3)))
+        return _Constants(
+            g.n_chips,
+            np.asarray(g.chip_p, float),
+            np.asarray(g.magnet_p, float),
+            m,
+            3 * m,
+            np.asarray(g.magnet_axis, float),
+            0.5 * q if model.octupole else None,
+            None if model.crosstalk else np.eye(g.n_chips),
+            response,
+            response @ np.transpose(g.chip_R, (0, 2, 1)),
+            1 / np.linalg.norm(m, axis=1),
+            g.magnet_axis[:, :, None] * g.magnet_axis[:, None, :],
+            np.broadcast_to(_EYE3, (g.n_chips, 3, 3)),
+        )

@@ -94,7 +94,9 @@ class SensorGeometry:
     @cached_property
     def strengths(self) -> np.ndarray:
         """Each magnet's remanence relative to ``magnet_br_t`` (n,): ones unless as built."""
-        return np.ones(self.n_chips) if self.magnet_strength is None else np.asarray(self.magnet_strength, float)
+        return (
+            np.ones(self.n_chips) if self.magnet_strength is None else np.asarray(self.magnet_strength, float)
+        )
 
     def room_directions(self) -> np.ndarray:
         """The 3 directions (24 x 3, orthonormal columns) a uniform field makes in the
@@ -132,8 +134,9 @@ class SensorGeometry:
         return np.einsum("nji,nj->ni", self.chip_R, self.magnet_p - self.chip_p)
 
     @classmethod
-    def ring(cls, n: int = 8, radius_m: float = 8e-3, tilt_deg: float = 25.0,
-             gap_m: float = 6e-3) -> SensorGeometry:
+    def ring(
+        cls, n: int = 8, radius_m: float = 8e-3, tilt_deg: float = 25.0, gap_m: float = 6e-3
+    ) -> SensorGeometry:
         """The paper's layout: ``n`` chips on a ring around the shaft, faces
         ``tilt_deg`` from the shaft axis, each magnet ``gap_m`` out along its
         chip's z. The ring radius is not given in the paper; 8 mm leaves room
@@ -163,8 +166,14 @@ def frame_with_z(axis: np.ndarray) -> np.ndarray:
     return np.stack([x, np.cross(axis, x), axis], axis=1)
 
 
-def as_built(nominal: SensorGeometry, rng: np.random.Generator, *, magnet_position_m: float = 0.0,
-             magnet_strength_rel: float = 0.0, chip_tilt_rad: float = 0.0) -> SensorGeometry:
+def as_built(
+    nominal: SensorGeometry,
+    rng: np.random.Generator,
+    *,
+    magnet_position_m: float = 0.0,
+    magnet_strength_rel: float = 0.0,
+    chip_tilt_rad: float = 0.0,
+) -> SensorGeometry:
     """One hand-made sensor drawn from ``nominal`` with the given standard deviations:
     each magnet moved by N(0, magnet_position_m) per axis (m, frame {0}) and its
     remanence scaled by 1 + N(0, magnet_strength_rel); each chip turned by a rotation
@@ -180,6 +189,13 @@ def as_built(nominal: SensorGeometry, rng: np.random.Generator, *, magnet_positi
         raise ValueError(f"a remanence tolerance of {magnet_strength_rel:.0%} drew a magnet with no field")
     tilts = rng.normal(0.0, 1.0, (n, 3)) * chip_tilt_rad
     chip_R = np.array([R @ se3.exp_so3(w) for R, w in zip(nominal.chip_R, tilts, strict=True)])
-    return SensorGeometry(chip_R, nominal.chip_p.copy(), nominal.magnet_p + magnet_shift,
-                          nominal.magnet_axis.copy(), nominal.magnet_radius_m, nominal.magnet_length_m,
-                          nominal.magnet_br_t, nominal.strengths * strength)
+    return SensorGeometry(
+        chip_R,
+        nominal.chip_p.copy(),
+        nominal.magnet_p + magnet_shift,
+        nominal.magnet_axis.copy(),
+        nominal.magnet_radius_m,
+        nominal.magnet_length_m,
+        nominal.magnet_br_t,
+        nominal.strengths * strength,
+    )

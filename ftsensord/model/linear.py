@@ -26,6 +26,8 @@ SENSOR_RANGE = np.array([50.0, 50.0, 20.0, 0.2, 0.2, 0.2])
 #: largest load on an axis: up to 1.5x no axis's error relative to the load has grown
 #: 1.5-fold, by 3x one has nearly tripled (benchmarks/accuracy/extrapolation.py, docs/guide/calibration.md).
 EXTRAPOLATION_MARGIN = 1.5
+
+
 @dataclass(frozen=True)
 class PositionMap:
     """p = M b + o per chip (eq. 1): ``M`` (n, 3, 3) in m/T, ``o`` (n, 3) in m."""
@@ -59,8 +61,9 @@ def fit_position_map(b: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return M, p.mean(axis=0) - M @ b.mean(axis=0)
 
 
-def centre_pose(b: np.ndarray, geometry: SensorGeometry, position_map: PositionMap,
-                weights: np.ndarray | None = None) -> Registration:
+def centre_pose(
+    b: np.ndarray, geometry: SensorGeometry, position_map: PositionMap, weights: np.ndarray | None = None
+) -> Registration:
     """Pose T_0C of the centre piece from the chips' flux ``b`` (n, 3; T).
 
     Loop closure (eq. 5): 0p_mi = 0p_C + R_0C Cp_mi with Cp_mi = Cp_si + R_CSi Sip_mi;
@@ -72,8 +75,9 @@ def centre_pose(b: np.ndarray, geometry: SensorGeometry, position_map: PositionM
     return register(in_centre, geometry.magnet_p, weights)
 
 
-def deflection_twist(b: np.ndarray, geometry: SensorGeometry, position_map: PositionMap,
-                     weights: np.ndarray | None = None) -> np.ndarray:
+def deflection_twist(
+    b: np.ndarray, geometry: SensorGeometry, position_map: PositionMap, weights: np.ndarray | None = None
+) -> np.ndarray:
     """The deflection twist xi = log(T_0C)^vee = [v; w] (m, rad)."""
     return se3.log_se3(centre_pose(b, geometry, position_map, weights).as_pose())
 
@@ -114,20 +118,31 @@ class LinearModel:
             self.room = np.asarray(self.room, dtype=float)
             n = self.A.shape[1]
             # 1e-9: orthonormal to round-off; anything worse is not a set of directions.
-            if self.room.ndim != 2 or self.room.shape[0] != n or self.room.shape[1] >= n \
-                    or not np.allclose(self.room.T @ self.room, np.eye(self.room.shape[1]), atol=1e-9):
-                raise ValueError(f"room must be {n} x k with orthonormal columns, got shape {self.room.shape}")
+            if (
+                self.room.ndim != 2
+                or self.room.shape[0] != n
+                or self.room.shape[1] >= n
+                or not np.allclose(self.room.T @ self.room, np.eye(self.room.shape[1]), atol=1e-9)
+            ):
+                raise ValueError(
+                    f"room must be {n} x k with orthonormal columns, got shape {self.room.shape}"
+                )
             self.KA = self.KA - (self.KA @ self.room) @ self.room.T
         if self.gradient is not None:
             self.gradient = np.asarray(self.gradient, dtype=float)
             n = self.A.shape[1]
             # 1e-9: orthonormal, and orthogonal to the room's directions, to round-off: the two
             # projections then make one.
-            if self.gradient.ndim != 2 or self.gradient.shape[0] != n \
-                    or not np.allclose(self.gradient.T @ self.gradient, np.eye(self.gradient.shape[1]), atol=1e-9) \
-                    or (self.room is not None and not np.allclose(self.room.T @ self.gradient, 0.0, atol=1e-9)):
-                raise ValueError(f"gradient must be {n} x k with orthonormal columns orthogonal to room's, "
-                                 f"got shape {self.gradient.shape}")
+            if (
+                self.gradient.ndim != 2
+                or self.gradient.shape[0] != n
+                or not np.allclose(self.gradient.T @ self.gradient, np.eye(self.gradient.shape[1]), atol=1e-9)
+                or (self.room is not None and not np.allclose(self.room.T @ self.gradient, 0.0, atol=1e-9))
+            ):
+                raise ValueError(
+                    f"gradient must be {n} x k with orthonormal columns orthogonal to room's, "
+                    f"got shape {self.gradient.shape}"
+                )
             self.KA = self.KA - (self.KA @ self.gradient) @ self.gradient.T
         # How many unknowns the columns fit (`unknowns`): asked every sample, fixed at build.
         self._unknowns = 6 + sum(c.shape[1] for c in (self.room, self.gradient) if c is not None)
@@ -150,8 +165,9 @@ class LinearModel:
         tared._subsets, tared._checks = self._subsets, self._checks
         return tared
 
-    def rejecting_room_field(self, room: np.ndarray | None = None,
-                             geometry: SensorGeometry | None = None) -> LinearModel:
+    def rejecting_room_field(
+        self, room: np.ndarray | None = None, geometry: SensorGeometry | None = None
+    ) -> LinearModel:
         """The same model blind to a uniform field: along ``room`` (24 x k,
         orthonormal; e.g. measured at calibration), or the directions ``geometry``'s
         chip orientations give (default the nominal ring's), exact for a sensor built
@@ -208,8 +224,10 @@ class LinearModel:
         if M is None:
             H_S = self.columns[channels]
             if np.linalg.matrix_rank(H_S) < H_S.shape[1]:
-                raise ValueError("the chips left do not see all six axes"
-                                 + ("" if H_S.shape[1] == 6 else " apart from the room's field"))
+                raise ValueError(
+                    "the chips left do not see all six axes"
+                    + ("" if H_S.shape[1] == 6 else " apart from the room's field")
+                )
             M = self._subsets[key] = self.K @ np.linalg.pinv(H_S)[:6]
         return M @ (b[channels] - self.zero[channels])
 
@@ -253,8 +271,15 @@ class LinearModel:
             self._last_check = (chips, sigma, maps)
         return maps.apply(b - self.zero)
 
-    def folded(self, sigma: np.ndarray, scale: np.ndarray | None, shift: np.ndarray | None,
-               load_offset: np.ndarray, load_scale: np.ndarray, bound_scale: np.ndarray) -> FoldedCheck | None:
+    def folded(
+        self,
+        sigma: np.ndarray,
+        scale: np.ndarray | None,
+        shift: np.ndarray | None,
+        load_offset: np.ndarray,
+        load_scale: np.ndarray,
+        bound_scale: np.ndarray,
+    ) -> FoldedCheck | None:
         """`consistency` of every chip and the wrench in one product (`FoldedCheck`, which says
         what the loads are), the flux brought to the reference temperature by b scale - shift
         (None: as read) first; None without H or with no redundancy to check."""
@@ -271,7 +296,8 @@ class LinearModel:
         maps = self._checks.get(key)
         if maps is None:
             maps = self._checks[key] = ConsistencyMaps(
-                self.columns, self.K, sigma, chips, 0 if self.gradient is None else self.gradient.shape[1])
+                self.columns, self.K, sigma, chips, 0 if self.gradient is None else self.gradient.shape[1]
+            )
         return maps
 
 
@@ -281,5 +307,6 @@ def tip_wrench(wrenches: list[np.ndarray], tip_to_sensor: list[np.ndarray]) -> n
     ``tip_to_sensor[i]`` is sensor i's frame seen from the tip frame (4x4, m);
     for sensors parallel to the tip it is a pure translation p_i/tip.
     """
-    return sum((se3.wrench_transform(T) @ w for T, w in zip(tip_to_sensor, wrenches, strict=True)),
-               start=np.zeros(6))
+    return sum(
+        (se3.wrench_transform(T) @ w for T, w in zip(tip_to_sensor, wrenches, strict=True)), start=np.zeros(6)
+    )

@@ -47,8 +47,7 @@ def dipole_field(r: np.ndarray, m: np.ndarray) -> np.ndarray:
     return dipole_pairs(np.asarray(r, dtype=float), np.asarray(m, dtype=float), gradient=False)[0]
 
 
-def dipole_pairs(r: np.ndarray, m: np.ndarray, gradient: bool = True
-                 ) -> tuple[np.ndarray, np.ndarray | None]:
+def dipole_pairs(r: np.ndarray, m: np.ndarray, gradient: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
     """Field (..., 3) and its gradient dB/dr (..., 3, 3; None unless asked) of point
     dipoles of moment ``m`` (A m^2) at offsets ``r`` (m) from them, T and T/m, per pair:
     the sums over magnets are the caller's (the calibration needs them one by one)."""
@@ -67,7 +66,9 @@ def _dipole_field(r: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, tuple[np.nd
     return k_d5 * (3 * rm * r - d2 * m), (d2, rm, k_d5)
 
 
-def _dipole_gradient(r: np.ndarray, m: np.ndarray, d2: np.ndarray, rm: np.ndarray, k_d5: np.ndarray) -> np.ndarray:
+def _dipole_gradient(
+    r: np.ndarray, m: np.ndarray, d2: np.ndarray, rm: np.ndarray, k_d5: np.ndarray
+) -> np.ndarray:
     """dB/dr of a dipole: k (3 (m r^T + r m^T + (r.m) I) / d^5 - 15 (r.m) r r^T / d^7)."""
     mr = m[..., :, None] * r[..., None, :]
     outer = mr + np.swapaxes(mr, -1, -2) + rm[..., None] * _EYE3
@@ -145,8 +146,9 @@ def cylinder_field(r: np.ndarray, radius: float, length: float, br: float) -> np
     on_rim = gamma == 0
     g2 = np.where(on_rim, 1.0, gamma**2)
     s_z = np.where(on_rim, 1.0, gamma)
-    c = cel(np.stack([k_p, k_m, k_p, k_m]), np.stack([one, one, g2, g2]), one,
-            np.stack([-one, -one, s_z, s_z]))
+    c = cel(
+        np.stack([k_p, k_m, k_p, k_m]), np.stack([one, one, g2, g2]), one, np.stack([-one, -one, s_z, s_z])
+    )
     b_rho = b0 * (alpha_p * c[0] - alpha_m * c[1])
     b_z = b0 * a / (a + rho) * (beta_p * c[2] - beta_m * c[3])
     # B_rho is radial: split it along x and y (on the axis, rho = 0, it is 0).
@@ -170,8 +172,9 @@ def octupole_ratio(radius: float, length: float) -> float:
     return -(3 * radius**2 - 4 * b**2) / 4
 
 
-def octupole_field(r: np.ndarray, axis: np.ndarray, q: np.ndarray, gradient: bool = True
-                   ) -> tuple[np.ndarray, np.ndarray | None]:
+def octupole_field(
+    r: np.ndarray, axis: np.ndarray, q: np.ndarray, gradient: bool = True
+) -> tuple[np.ndarray, np.ndarray | None]:
     """Field (..., 3; T) and gradient dB/dr (..., 3, 3; T/m; None unless asked) of the
     octupole term at offsets ``r`` (m) from magnets of unit ``axis``, strength ``q`` (...,
     T m^5: mu0/(4 pi) |m| kappa, `octupole_ratio`). Its scalar potential q P_3(s/d) / d^4
@@ -194,7 +197,10 @@ def octupole_field(r: np.ndarray, axis: np.ndarray, q: np.ndarray, gradient: boo
     # dB/dr = q/2 (A I + (105 c2 - 15) d^-7 (r n^T + n r^T) + (105 - 315 c2) s d^-9 r r^T
     # - 30 s d^-7 n n^T): symmetric, as a curl-free field's gradient is.
     rn = r[..., :, None] * axis[..., None, :]
-    G = ((hq * (105 * c2 - 15))[..., None] * (rn + np.swapaxes(rn, -1, -2))
-         + (hq * s * inv2 * (105 - 315 * c2))[..., None] * (r[..., :, None] * r[..., None, :])
-         - (30 * hq * s)[..., None] * (axis[..., :, None] * axis[..., None, :]) + a[..., None] * np.eye(3))
+    G = (
+        (hq * (105 * c2 - 15))[..., None] * (rn + np.swapaxes(rn, -1, -2))
+        + (hq * s * inv2 * (105 - 315 * c2))[..., None] * (r[..., :, None] * r[..., None, :])
+        - (30 * hq * s)[..., None] * (axis[..., :, None] * axis[..., None, :])
+        + a[..., None] * np.eye(3)
+    )
     return B, G

@@ -32,12 +32,40 @@ STEM = "_nlsolve"
 SOLVERS = ("auto", "numpy", "compiled")
 NMAX = 16  # _nlsolve.h's NMAX: chips a sensor may have
 #: _nlsolve.h's NL_TUNABLES, by name, in the order nl_model.tun holds them (checked at load).
-TUNABLES = ("MAX_STEP_M", "MAX_STEP_RAD", "STEP_TOL", "STEP_TOL_RAD", "CONTRACTION", "REUSE_M", "REUSE_TRACE",
-            "REUSE_T", "MAX_RESIDUAL_T", "BACKGROUND_LIMIT_T", "PRIOR_WEIGHT", "LINEAR_STEP_T", "UNDAMPED",
-            "SMALL_ANGLE", "NEAR_PI", "MAX_ITERATIONS")
+TUNABLES = (
+    "MAX_STEP_M",
+    "MAX_STEP_RAD",
+    "STEP_TOL",
+    "STEP_TOL_RAD",
+    "CONTRACTION",
+    "REUSE_M",
+    "REUSE_TRACE",
+    "REUSE_T",
+    "MAX_RESIDUAL_T",
+    "BACKGROUND_LIMIT_T",
+    "PRIOR_WEIGHT",
+    "LINEAR_STEP_T",
+    "UNDAMPED",
+    "SMALL_ANGLE",
+    "NEAR_PI",
+    "MAX_ITERATIONS",
+)
 #: _nlsolve.h's nl_model, field by field, in doubles (checked at load against nl_model_offset).
-LAYOUT = {"head": 4, "chip_p": 3 * NMAX, "magnet_p": 3 * NMAX, "m": 3 * NMAX, "axis": 3 * NMAX, "half_q": NMAX,
-          "inv_m": NMAX, "resp": 9 * NMAX, "offset": 3 * NMAX, "K": 36, "zero_twist": 6, "plausible": 6, "tun": 16}
+LAYOUT = {
+    "head": 4,
+    "chip_p": 3 * NMAX,
+    "magnet_p": 3 * NMAX,
+    "m": 3 * NMAX,
+    "axis": 3 * NMAX,
+    "half_q": NMAX,
+    "inv_m": NMAX,
+    "resp": 9 * NMAX,
+    "offset": 3 * NMAX,
+    "K": 36,
+    "zero_twist": 6,
+    "plausible": 6,
+    "tun": 16,
+}
 _AT = {name: sum(list(LAYOUT.values())[:i]) for i, name in enumerate(LAYOUT)}
 _DOUBLES = sum(LAYOUT.values())
 _P = ctypes.c_void_p
@@ -75,10 +103,13 @@ def load(path: Path | None = None) -> ctypes.CDLL | None:
 def _layout_matches(lib: ctypes.CDLL) -> bool:
     """Whether the library's nl_model is `LAYOUT`, field by field, and its tunables are
     `TUNABLES`, name by name, in order: a library built from another source is not used."""
-    return (lib.nl_model_doubles() == _DOUBLES
-            and all(lib.nl_model_offset(name.encode()) == at for name, at in _AT.items())
-            and all(lib.nl_tunable_index(name.encode()) == i for i, name in enumerate(TUNABLES))
-            and lib.nl_tunable_index(b"") == -1 and LAYOUT["tun"] == len(TUNABLES))
+    return (
+        lib.nl_model_doubles() == _DOUBLES
+        and all(lib.nl_model_offset(name.encode()) == at for name, at in _AT.items())
+        and all(lib.nl_tunable_index(name.encode()) == i for i, name in enumerate(TUNABLES))
+        and lib.nl_tunable_index(b"") == -1
+        and LAYOUT["tun"] == len(TUNABLES)
+    )
 
 
 def compiler() -> str | None:
@@ -90,8 +121,20 @@ def compile_library(folder: Path, cc: str | None = None) -> Path:
     """Build `SOURCES` into ``folder`` with warnings as errors, for tests and benchmarks
     run from a source tree (an install builds it beside this module: setup.py)."""
     out = Path(folder) / (STEM + ".so")
-    cmd = [cc or compiler() or "cc", "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-shared", "-fPIC",
-           "-o", str(out), *map(str, SOURCES), "-lm"]
+    cmd = [
+        cc or compiler() or "cc",
+        "-std=c99",
+        "-O2",
+        "-Wall",
+        "-Wextra",
+        "-Werror",
+        "-shared",
+        "-fPIC",
+        "-o",
+        str(out),
+        *map(str, SOURCES),
+        "-lm",
+    ]
     subprocess.run(cmd, check=True, capture_output=True, text=True)
     return out
 
@@ -106,8 +149,12 @@ def solver_for(solver: str, path: Path | None = None, chips: int = 8) -> Compile
         return None
     lib = load(path) if chips <= NMAX else None
     if lib is None and solver == "compiled":
-        why = (f"{chips} chips, at most {NMAX}" if chips > NMAX else f"no compiled solver at "
-               f"{path or Path(__file__).parent} (built at install where a C compiler is present)")
+        why = (
+            f"{chips} chips, at most {NMAX}"
+            if chips > NMAX
+            else f"no compiled solver at "
+            f"{path or Path(__file__).parent} (built at install where a C compiler is present)"
+        )
         raise ConfigError(f"solver 'compiled': {why}; 'auto' falls back to numpy's")
     return None if lib is None else CompiledSolve(lib)
 
@@ -130,15 +177,25 @@ class CompiledSolve:
         self._T, self._u, self._b = np.empty(16), np.empty(3), np.empty(3 * NMAX)
         self._usable, self._out, self._sizes = np.empty(NMAX), np.empty(9), np.empty(2)
         self._sizes_at = self._sizes.ctypes.data
-        self._addresses = [a.ctypes.data for a in (self._model, self._state, self._b, self._usable, self._T, self._u)]
+        self._addresses = [
+            a.ctypes.data for a in (self._model, self._state, self._b, self._usable, self._T, self._u)
+        ]
         self._packed: tuple = ()  # what the model was packed from
         #: The last converged fit's pose, field and kind: a start from those two objects
         #: takes the flux kept in the state (as `NonlinearEstimator._end`).
         self._end: tuple[np.ndarray, np.ndarray, bool] | None = None
 
-    def solve(self, est: Any, b: np.ndarray, usable: np.ndarray | None, start: np.ndarray, u0: np.ndarray,
-              background: bool, damping: float, constants: dict[str, Any]
-              ) -> tuple[np.ndarray, np.ndarray, bool, int, float, np.ndarray]:
+    def solve(
+        self,
+        est: Any,
+        b: np.ndarray,
+        usable: np.ndarray | None,
+        start: np.ndarray,
+        u0: np.ndarray,
+        background: bool,
+        damping: float,
+        constants: dict[str, Any],
+    ) -> tuple[np.ndarray, np.ndarray, bool, int, float, np.ndarray]:
         """`NonlinearEstimator._solve` for ``est``: (xi, T, converged, iterations, rms,
         background field), ``est.pose`` and ``est.background_t`` set when it converged;
         ``constants`` nonlinear.py's (its globals, read every call as its own solve does)."""
@@ -149,13 +206,23 @@ class CompiledSolve:
         self._u[:] = u0
         usable_at = None
         if usable is not None:
-            self._usable[:n3 // 3] = usable
+            self._usable[: n3 // 3] = usable
             usable_at = self._addresses[3]
         end = self._end
         known = end is not None and end[0] is start and end[1] is u0 and end[2] == background
         model, state, b_at, _, T_at, u_at = self._addresses
-        self.lib.nl_solve(model, state, b_at, usable_at, T_at, u_at, int(background), damping, int(known),
-                          self._out.ctypes.data)
+        self.lib.nl_solve(
+            model,
+            state,
+            b_at,
+            usable_at,
+            T_at,
+            u_at,
+            int(background),
+            damping,
+            int(known),
+            self._out.ctypes.data,
+        )
         out = self._out.tolist()
         T, u, converged = self._T.reshape(4, 4).copy(), self._u.copy(), out[8] != 0
         if converged:
@@ -168,8 +235,14 @@ class CompiledSolve:
         that motion's translation (m) and turn (rad)."""
         before, pose = np.ascontiguousarray(before, dtype=float), np.ascontiguousarray(pose, dtype=float)
         ahead = np.empty((4, 4))
-        self.lib.nl_continued(before.ctypes.data, pose.ctypes.data, se3.SMALL_ANGLE, se3.NEAR_PI, ahead.ctypes.data,
-                              self._sizes_at)
+        self.lib.nl_continued(
+            before.ctypes.data,
+            pose.ctypes.data,
+            se3.SMALL_ANGLE,
+            se3.NEAR_PI,
+            ahead.ctypes.data,
+            self._sizes_at,
+        )
         moved, turned = self._sizes.tolist()
         return ahead, moved, turned
 
@@ -178,30 +251,56 @@ class CompiledSolve:
         follows its arrays, and the offset, stiffness and tolerances besides)."""
         model = est.model
         c = model._constants
-        key = (model.offset_t.tobytes(), est.stiffness.tobytes(), est.zero_twist.tobytes(), plausible.tobytes(),
-               tunables)
+        key = (
+            model.offset_t.tobytes(),
+            est.stiffness.tobytes(),
+            est.zero_twist.tobytes(),
+            plausible.tobytes(),
+            tunables,
+        )
         if self._packed and self._packed[0] is c and self._packed[1] == key:
             return
         m = self._model
         m[:] = 0.0
         m[:4] = (c.n, c.half_q is not None, c.own_only is not None, 0.0)
-        parts = {"chip_p": c.chip_p, "magnet_p": c.magnet_p, "m": c.m, "axis": c.axis,
-                 "half_q": np.zeros(c.n) if c.half_q is None else c.half_q, "inv_m": c.inv_m,
-                 "resp": c.response_chip, "offset": model.offset_t, "K": est.stiffness,
-                 "zero_twist": est.zero_twist, "plausible": plausible, "tun": np.array(tunables)}
+        parts = {
+            "chip_p": c.chip_p,
+            "magnet_p": c.magnet_p,
+            "m": c.m,
+            "axis": c.axis,
+            "half_q": np.zeros(c.n) if c.half_q is None else c.half_q,
+            "inv_m": c.inv_m,
+            "resp": c.response_chip,
+            "offset": model.offset_t,
+            "K": est.stiffness,
+            "zero_twist": est.zero_twist,
+            "plausible": plausible,
+            "tun": np.array(tunables),
+        }
         for name, value in parts.items():
             flat = np.asarray(value, dtype=float).ravel()
-            m[_AT[name]:_AT[name] + flat.size] = flat
+            m[_AT[name] : _AT[name] + flat.size] = flat
         self._packed = (c, key)
 
 
 def _tunables(nl: dict[str, Any], max_iterations: int) -> tuple[float, ...]:
     """nonlinear.py's tolerances and limits (``nl``, its globals) in `TUNABLES`' order."""
-    value = {"MAX_STEP_M": nl["MAX_STEP_M"], "MAX_STEP_RAD": nl["MAX_STEP_RAD"], "STEP_TOL": nl["STEP_TOL"],
-             "STEP_TOL_RAD": nl["STEP_TOL_RAD"], "CONTRACTION": nl["CONTRACTION"],
-             "REUSE_M": nl["JACOBIAN_REUSE_M"], "REUSE_TRACE": nl["JACOBIAN_REUSE_TRACE"],
-             "REUSE_T": nl["JACOBIAN_REUSE_T"], "MAX_RESIDUAL_T": nl["MAX_RESIDUAL_T"],
-             "BACKGROUND_LIMIT_T": nl["BACKGROUND_LIMIT_T"], "PRIOR_WEIGHT": nl["PRIOR_WEIGHT"],
-             "LINEAR_STEP_T": nl["LINEAR_STEP_T"], "UNDAMPED": nl["UNDAMPED"], "SMALL_ANGLE": se3.SMALL_ANGLE,
-             "NEAR_PI": se3.NEAR_PI, "MAX_ITERATIONS": float(max_iterations)}
+    value = {
+        "MAX_STEP_M": nl["MAX_STEP_M"],
+        "MAX_STEP_RAD": nl["MAX_STEP_RAD"],
+        "STEP_TOL": nl["STEP_TOL"],
+        "STEP_TOL_RAD": nl["STEP_TOL_RAD"],
+        "CONTRACTION": nl["CONTRACTION"],
+        "REUSE_M": nl["JACOBIAN_REUSE_M"],
+        "REUSE_TRACE": nl["JACOBIAN_REUSE_TRACE"],
+        "REUSE_T": nl["JACOBIAN_REUSE_T"],
+        "MAX_RESIDUAL_T": nl["MAX_RESIDUAL_T"],
+        "BACKGROUND_LIMIT_T": nl["BACKGROUND_LIMIT_T"],
+        "PRIOR_WEIGHT": nl["PRIOR_WEIGHT"],
+        "LINEAR_STEP_T": nl["LINEAR_STEP_T"],
+        "UNDAMPED": nl["UNDAMPED"],
+        "SMALL_ANGLE": se3.SMALL_ANGLE,
+        "NEAR_PI": se3.NEAR_PI,
+        "MAX_ITERATIONS": float(max_iterations),
+    }
     return tuple(value[name] for name in TUNABLES)

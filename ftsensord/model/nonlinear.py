@@ -133,8 +133,16 @@ class NonlinearEstimator:
     ``solver``: "numpy" (`_solve`), "compiled" (the same in C, `nlcompiled`) or "auto" (C when installed).
     """
 
-    def __init__(self, model: FluxModel, stiffness: np.ndarray, *, max_iterations: int = 30,
-                 background: bool = True, zero_twist: np.ndarray | None = None, solver: str = "auto"):
+    def __init__(
+        self,
+        model: FluxModel,
+        stiffness: np.ndarray,
+        *,
+        max_iterations: int = 30,
+        background: bool = True,
+        zero_twist: np.ndarray | None = None,
+        solver: str = "auto",
+    ):
         self.model = model
         self.stiffness = np.asarray(stiffness, dtype=float)
         #: The deflection read at no load (m, rad): the plausibility test judges the wrench
@@ -156,7 +164,9 @@ class NonlinearEstimator:
         self._gains: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # `_chord_gains`' last
         self.compiled = solver_for(solver, chips=model.geometry.n_chips)  # None: numpy's
 
-    def estimate(self, b: np.ndarray, usable: np.ndarray | None = None, start: np.ndarray | None = None) -> Estimate:
+    def estimate(
+        self, b: np.ndarray, usable: np.ndarray | None = None, start: np.ndarray | None = None
+    ) -> Estimate:
         """The pose that explains flux ``b`` (3n,) on the usable chips (default all).
 
         Starts from ``start`` (the background field from zero); without one, from the
@@ -210,8 +220,15 @@ class NonlinearEstimator:
         second = self._solve(b, usable, first.pose, np.zeros(3), True)
         return replace(second, iterations=first.iterations + second.iterations)
 
-    def _solve(self, b: np.ndarray, usable: np.ndarray | None, start: np.ndarray, u0: np.ndarray,
-               background: bool, damping: float = 1e-3) -> Estimate:
+    def _solve(
+        self,
+        b: np.ndarray,
+        usable: np.ndarray | None,
+        start: np.ndarray,
+        u0: np.ndarray,
+        background: bool,
+        damping: float = 1e-3,
+    ) -> Estimate:
         if self.compiled is not None:
             # globals(): this module's constants, read every call (as below), no import circle
             return Estimate(*self.compiled.solve(self, b, usable, start, u0, background, damping, globals()))
@@ -233,7 +250,11 @@ class NonlinearEstimator:
         last: tuple[tuple[float, float], object, np.ndarray] | None = None
         # The flux predicted at T, once known: from a warm start, the last fit's at its end.
         kept = self._end
-        pred = kept[3] if kept is not None and kept[0] is start and kept[1] is u0 and kept[2] == background else None
+        pred = (
+            kept[3]
+            if kept is not None and kept[0] is start and kept[1] is u0 and kept[2] == background
+            else None
+        )
         r: np.ndarray = np.empty(0)  # the residual (made at the first step),
         r_of: np.ndarray | None = None  # and the prediction it is of
         for k in range(1, self.max_iterations + 1):
@@ -255,7 +276,7 @@ class NonlinearEstimator:
                         step = self._gains[1] @ r if u is None else self._gains[1] @ r - self._gains[2] @ u
                     else:
                         damped = JtJ.copy()
-                        damped.flat[::damped.shape[0] + 1] *= 1 + lam  # JtJ + lam diag(JtJ)
+                        damped.flat[:: damped.shape[0] + 1] *= 1 + lam  # JtJ + lam diag(JtJ)
                         step = np.linalg.solve(damped, Jtr)
                 except np.linalg.LinAlgError:
                     return Estimate(se3.log_se3(T), T, False, k, np.sqrt(cost / used), _field(u))
@@ -268,8 +289,11 @@ class NonlinearEstimator:
                     step, size = step * scale, (size[0] * scale, size[1] * scale)
                 T_new = se3.exp_se3(step) @ T
                 u_new = None if u is None else u + step[6:]
-                final = _within(size) or (last is not None and (last[1] is kind or last[2] is J_full)
-                                          and _within(_left(size, last[0])))
+                final = _within(size) or (
+                    last is not None
+                    and (last[1] is kind or last[2] is J_full)
+                    and _within(_left(size, last[0]))
+                )
                 change = J_full @ step if final else None
                 if change is not None and np.abs(change).max() <= LINEAR_STEP_T:
                     pred_new = pred + change  # the last step, too small to need the field (`LINEAR_STEP_T`)
@@ -298,20 +322,24 @@ class NonlinearEstimator:
                 continue
             if done or final:
                 break
-            last = (size, kind, J_full) if scale == 1.0 else None  # a limited step says nothing of convergence
+            last = (
+                (size, kind, J_full) if scale == 1.0 else None
+            )  # a limited step says nothing of convergence
         rms = math.sqrt(max(cost - _prior(u), 0.0) / used)  # of the flux alone
         xi = se3.log_se3(T)
         plausible = bool((np.abs(self.stiffness @ (xi - self.zero_twist)) <= PLAUSIBLE_WRENCH).all())
         plausible = plausible and (u is None or math.sqrt(float(u @ u)) <= BACKGROUND_LIMIT_T)
-        converged = bool(math.isfinite(rms) and rms <= MAX_RESIDUAL_T and plausible
-                         and (done or k < self.max_iterations))
+        converged = bool(
+            math.isfinite(rms) and rms <= MAX_RESIDUAL_T and plausible and (done or k < self.max_iterations)
+        )
         if converged:
             self.pose, self.background_t = T, _field(u)
             self._end = (T, self.background_t, background, pred)
         return Estimate(xi, T, converged, k, rms, _field(u))
 
-    def _linearise(self, T: np.ndarray, u: np.ndarray | None, background: bool, pred: np.ndarray | None
-                   ) -> tuple[np.ndarray, np.ndarray, bool]:
+    def _linearise(
+        self, T: np.ndarray, u: np.ndarray | None, background: bool, pred: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray, bool]:
         """Flux at (T, u) (``pred`` when known), a Jacobian, and whether it is new: the one
         kept from a pose within `JACOBIAN_REUSE_M` and 4 mrad (and a field within
         `JACOBIAN_REUSE_T`), else a new one."""
@@ -344,13 +372,16 @@ def _near(T: np.ndarray, rows_J: list[list[float]], u: np.ndarray | None, u_J: l
     (a0, a1, a2, a3), (b0, b1, b2, b3), (c0, c1, c2, c3), _ = T.tolist()
     (d0, d1, d2, d3), (e0, e1, e2, e3), (f0, f1, f2, f3), _ = rows_J
     trace = a0 * d0 + a1 * d1 + a2 * d2 + b0 * e0 + b1 * e1 + b2 * e2 + c0 * f0 + c1 * f1 + c2 * f2
-    return (trace >= JACOBIAN_REUSE_TRACE  # tr(R_J^T R) = 1 + 2 cos(angle)
-            and math.dist((a3, b3, c3), (d3, e3, f3)) <= JACOBIAN_REUSE_M
-            and (u is None or (u_J is not None and math.dist(u_J, u.tolist()) <= JACOBIAN_REUSE_T)))
+    return (
+        trace >= JACOBIAN_REUSE_TRACE  # tr(R_J^T R) = 1 + 2 cos(angle)
+        and math.dist((a3, b3, c3), (d3, e3, f3)) <= JACOBIAN_REUSE_M
+        and (u is None or (u_J is not None and math.dist(u_J, u.tolist()) <= JACOBIAN_REUSE_T))
+    )
 
 
-def _chord_gains(J: np.ndarray, kept: tuple[np.ndarray, np.ndarray, np.ndarray] | None
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _chord_gains(
+    J: np.ndarray, kept: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Gauss-Newton's step for a kept Jacobian J (every channel), (J, G, G_u) with the step
     G r - G_u u, G = (J^T J + P)^-1 J^T, G_u = (J^T J + P)^-1 P (P the background's prior
     on its 3 unknowns); ``kept`` when it is J's. Undamped: a chord step is taken only near
@@ -360,7 +391,7 @@ def _chord_gains(J: np.ndarray, kept: tuple[np.ndarray, np.ndarray, np.ndarray] 
     if J.shape[1] == 6:  # no background field: no prior, and no G_u
         return J, np.linalg.solve(J.T @ J, J.T), PRIOR_9[:6, 6:]
     gains = np.linalg.solve(J.T @ J + PRIOR_9, np.concatenate([J.T, PRIOR_9[:, 6:]], axis=1))
-    return J, gains[:, :J.shape[0]], gains[:, J.shape[0]:]
+    return J, gains[:, : J.shape[0]], gains[:, J.shape[0] :]
 
 
 def _normal(J: np.ndarray, r: np.ndarray, u: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:

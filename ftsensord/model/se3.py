@@ -54,9 +54,7 @@ def _coefficients(theta: float) -> tuple[float, float, float]:
     """A = sin(t)/t, B = (1 - cos t)/t^2, C = (t - sin t)/t^3."""
     if theta < SMALL_ANGLE:
         t2 = theta * theta
-        return (1 - t2 / 6 + t2 * t2 / 120,
-                0.5 - t2 / 24 + t2 * t2 / 720,
-                1 / 6 - t2 / 120 + t2 * t2 / 5040)
+        return (1 - t2 / 6 + t2 * t2 / 120, 0.5 - t2 / 24 + t2 * t2 / 720, 1 / 6 - t2 / 120 + t2 * t2 / 5040)
     # math's, not numpy's: Python floats keep every product after them cheap (`exp_se3`).
     if theta == math.inf:  # a twist that overflowed: NaN, as numpy's sin gave (math's raises)
         return math.nan, math.nan, math.nan
@@ -94,10 +92,26 @@ def exp_se3(xi: np.ndarray) -> np.ndarray:
     bw0, bw1, bw2, aw0, aw1, aw2 = b * w0, b * w1, b * w2, a * w0, a * w1, a * w2
     wv = w0 * v0 + w1 * v1 + w2 * v2
     x0, x1, x2 = w1 * v2 - w2 * v1, w2 * v0 - w0 * v2, w0 * v1 - w1 * v0  # W v
-    return np.array([1.0 + bw0 * w0 - b * ww, bw0 * w1 - aw2, bw0 * w2 + aw1, v0 + b * x0 + c * (w0 * wv - ww * v0),
-                     bw1 * w0 + aw2, 1.0 + bw1 * w1 - b * ww, bw1 * w2 - aw0, v1 + b * x1 + c * (w1 * wv - ww * v1),
-                     bw2 * w0 - aw1, bw2 * w1 + aw0, 1.0 + bw2 * w2 - b * ww, v2 + b * x2 + c * (w2 * wv - ww * v2),
-                     0.0, 0.0, 0.0, 1.0]).reshape(4, 4)
+    return np.array(
+        [
+            1.0 + bw0 * w0 - b * ww,
+            bw0 * w1 - aw2,
+            bw0 * w2 + aw1,
+            v0 + b * x0 + c * (w0 * wv - ww * v0),
+            bw1 * w0 + aw2,
+            1.0 + bw1 * w1 - b * ww,
+            bw1 * w2 - aw0,
+            v1 + b * x1 + c * (w1 * wv - ww * v1),
+            bw2 * w0 - aw1,
+            bw2 * w1 + aw0,
+            1.0 + bw2 * w2 - b * ww,
+            v2 + b * x2 + c * (w2 * wv - ww * v2),
+            0.0,
+            0.0,
+            0.0,
+            1.0,
+        ]
+    ).reshape(4, 4)
 
 
 def exp_so3(w: np.ndarray) -> np.ndarray:
@@ -173,13 +187,33 @@ def continued(before: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, float, 
     r00, r01, r02 = d0 * a0 + d1 * a1 + d2 * a2, d0 * b0 + d1 * b1 + d2 * b2, d0 * c0 + d1 * c1 + d2 * c2
     r10, r11, r12 = e0 * a0 + e1 * a1 + e2 * a2, e0 * b0 + e1 * b1 + e2 * b2, e0 * c0 + e1 * c1 + e2 * c2
     r20, r21, r22 = f0 * a0 + f1 * a1 + f2 * a2, f0 * b0 + f1 * b1 + f2 * b2, f0 * c0 + f1 * c1 + f2 * c2
-    D = np.array([r00, r01, r02, t0 - (r00 * s0 + r01 * s1 + r02 * s2),
-                  r10, r11, r12, t1 - (r10 * s0 + r11 * s1 + r12 * s2),
-                  r20, r21, r22, t2 - (r20 * s0 + r21 * s1 + r22 * s2),
-                  0.0, 0.0, 0.0, 1.0]).reshape(4, 4)
+    D = np.array(
+        [
+            r00,
+            r01,
+            r02,
+            t0 - (r00 * s0 + r01 * s1 + r02 * s2),
+            r10,
+            r11,
+            r12,
+            t1 - (r10 * s0 + r11 * s1 + r12 * s2),
+            r20,
+            r21,
+            r22,
+            t2 - (r20 * s0 + r21 * s1 + r22 * s2),
+            0.0,
+            0.0,
+            0.0,
+            1.0,
+        ]
+    ).reshape(4, 4)
     step = log_se3(D)
     v0, v1, v2, w0, w1, w2 = step.tolist()
-    return exp_se3(step) @ pose, math.sqrt(v0 * v0 + v1 * v1 + v2 * v2), math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    return (
+        exp_se3(step) @ pose,
+        math.sqrt(v0 * v0 + v1 * v1 + v2 * v2),
+        math.sqrt(w0 * w0 + w1 * w1 + w2 * w2),
+    )
 
 
 def pose(R: np.ndarray | None = None, p: np.ndarray | None = None) -> np.ndarray:

@@ -46,13 +46,17 @@ class Relaxation:
     def __post_init__(self) -> None:
         g, tau = self.fractions, self.times_s
         if not 1 <= len(g) <= MAX_TERMS or len(tau) != len(g):
-            raise ValueError(f"a relaxation is 1 to {MAX_TERMS} [fraction, time_s] pairs, got {len(g)} fractions "
-                             f"and {len(tau)} times")
+            raise ValueError(
+                f"a relaxation is 1 to {MAX_TERMS} [fraction, time_s] pairs, got {len(g)} fractions "
+                f"and {len(tau)} times"
+            )
         if not all(math.isfinite(v) and v > 0 for v in (*g, *tau)):
             raise ValueError(f"fractions and times must be finite and > 0, got {list(zip(g, tau))}")
         if sum(g) >= MAX_TOTAL_FRACTION:
-            raise ValueError(f"the fractions sum to {sum(g):.3g}: they must sum below {MAX_TOTAL_FRACTION} (the stiffness "
-                             "left when held is 1 - sum)")
+            raise ValueError(
+                f"the fractions sum to {sum(g):.3g}: they must sum below {MAX_TOTAL_FRACTION} (the stiffness "
+                "left when held is 1 - sum)"
+            )
         if len(set(tau)) != len(tau):
             raise ValueError(f"the times must differ, got {list(tau)}")
 
@@ -75,7 +79,7 @@ class Relaxation:
         for r in rho:
             E = P.polymul(E, [1.0, r])
         M = g_inf * E
-        for k, r in enumerate(rho):
+        for k in range(len(rho)):
             rest = np.array([1.0])
             for j, u in enumerate(rho):
                 if j != k:

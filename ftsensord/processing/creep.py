@@ -97,5 +97,9 @@ class CreepCompensation:
     def status(self) -> dict[str, Any] | None:
         if self.calibration is None:
             return None
-        return {"relaxation": self.calibration.relaxation.pairs(), "scale": round(self.calibration.scale, 5),
-                "rate_hz": self.rate_hz, "restarts": self.restarts}
+        return {
+            "relaxation": self.calibration.relaxation.pairs(),
+            "scale": round(self.calibration.scale, 5),
+            "rate_hz": self.rate_hz,
+            "restarts": self.restarts,
+        }

@@ -53,7 +53,9 @@ class WrenchFilter:
     def update(self, w: np.ndarray, flags: int = 0) -> tuple[np.ndarray, int]:
         """The filtered wrench and its flags: ``flags`` (this input's) and those of the
         inputs it still contains."""
-        if self.averaging == 1 and self.alpha >= 1.0:  # no averaging, no low-pass (the default): the input itself
+        if (
+            self.averaging == 1 and self.alpha >= 1.0
+        ):  # no averaging, no low-pass (the default): the input itself
             return w, flags
         if not np.isfinite(w).all():
             self.reset()

@@ -28,11 +28,11 @@ from typing import Any
 
 import numpy as np
 
-from ftsensord.protocol import wire
-from ftsensord.processing.filters import WrenchFilter
 from ftsensord.config.frames import TIP, GravityConfig
-from ftsensord.protocol.orientation import OrientationReceiver
+from ftsensord.processing.filters import WrenchFilter
 from ftsensord.processing.pipeline import SensorPipeline, SensorSample
+from ftsensord.protocol import wire
+from ftsensord.protocol.orientation import OrientationReceiver
 
 #: The tool's sensors' tare gravities (rotated into the tip frame) are one orientation's
 #: when they agree within this fraction of |g|: 1e-3 rad, which moves a 50 g tool's
@@ -46,8 +46,15 @@ class Gravity:
     """The compensated streams of one configuration; orientations from ``receiver``
     (source "stream") or the configured mounts."""
 
-    def __init__(self, config: GravityConfig, poses: dict[str, np.ndarray], receiver: OrientationReceiver,
-                 averaging: int = 1, lowpass_hz: float = 0.0, rate_hz: float = 100.0):
+    def __init__(
+        self,
+        config: GravityConfig,
+        poses: dict[str, np.ndarray],
+        receiver: OrientationReceiver,
+        averaging: int = 1,
+        lowpass_hz: float = 0.0,
+        rate_hz: float = 100.0,
+    ):
         self.config, self.poses, self.receiver = config, poses, receiver
         self.tool = {*poses, TIP} if poses else set()
         self.filters = {frame: WrenchFilter(averaging, lowpass_hz, rate_hz) for frame in config.payloads}
@@ -84,7 +91,9 @@ class Gravity:
     def gravity(self, frame: str, now: float) -> tuple[np.ndarray | None, int]:
         """Gravity (m/s^2) seen in ``frame`` (None: unknown), flagged orientation_stale when stale."""
         R, stale = self.orientation(frame, now)
-        return (None if R is None else R.T @ self.config.gravity_mps2), wire.FLAG_ORIENTATION_STALE if stale else 0
+        return (
+            None if R is None else R.T @ self.config.gravity_mps2
+        ), wire.FLAG_ORIENTATION_STALE if stale else 0
 
     def needs(self, sensor: str) -> bool:
         """Whether a compensated stream depends on ``sensor``'s orientation at its tare."""
@@ -100,15 +109,19 @@ class Gravity:
 
     def tip_tare_gravity(self, pipelines: Sequence[SensorPipeline]) -> np.ndarray | None:
         """The tip's gravity at the tool's sensors' tares (tip frame), None unless they agree."""
-        gs = [p.tare_gravity if p.tare_gravity is None else self._R_tip(p.name) @ p.tare_gravity
-              for p in pipelines if p.name in self.poses]
+        gs = [
+            p.tare_gravity if p.tare_gravity is None else self._R_tip(p.name) @ p.tare_gravity
+            for p in pipelines
+            if p.name in self.poses
+        ]
         if not gs or any(g is None for g in gs):
             return None
         limit = TARE_AGREE * float(np.linalg.norm(self.config.gravity_mps2))
         return gs[0] if all(np.max(np.abs(g - gs[0])) <= limit for g in gs) else None  # type: ignore[operator]
 
-    def compensate(self, frame: str, raw: np.ndarray, flags: int, g_tare: np.ndarray | None,
-                   now: float) -> tuple[np.ndarray, int]:
+    def compensate(
+        self, frame: str, raw: np.ndarray, flags: int, g_tare: np.ndarray | None, now: float
+    ) -> tuple[np.ndarray, int]:
         """``frame``'s compensated wrench (N, Nm) and flags from its raw (tared) one."""
         payload, weights = self.config.payloads[frame], self.filters[frame]
         g, stale = self.gravity(frame, now)
@@ -118,8 +131,13 @@ class Gravity:
         weight, wflags = weights.update(payload.wrench(g), stale)
         return raw + payload.wrench(g_tare) - weight, flags | wflags
 
-    def streams(self, samples: dict[str, SensorSample], tip: tuple[np.ndarray, int] | None,
-                pipelines: Sequence[SensorPipeline], now: float) -> list[tuple[str, int, np.ndarray]]:
+    def streams(
+        self,
+        samples: dict[str, SensorSample],
+        tip: tuple[np.ndarray, int] | None,
+        pipelines: Sequence[SensorPipeline],
+        now: float,
+    ) -> list[tuple[str, int, np.ndarray]]:
         """This cycle's compensated streams: (topic, flags, wrench)."""
         out = []
         for p in pipelines:
@@ -144,10 +162,19 @@ class Gravity:
             # Gravity in the frame now (what the compensation takes off, beside the tare's),
             # so a mis-sent orientation shows at once, not only as a wrong wrench.
             g_now = None if R is None else R.T @ self.config.gravity_mps2
-            frames[f] = {"mass_kg": payload.mass_kg, "com_m": payload.com_m.tolist(),
-                         "orientation_known": R is not None, "orientation_stale": stale,
-                         "gravity_now_mps2": None if g_now is None else np.round(g_now, 6).tolist(),
-                         "tare_gravity_mps2": None if g_tare is None else np.round(g_tare, 6).tolist()}
-        return {"orientation": self.config.source, "endpoint": self.config.endpoint,
-                "stale_after_s": self.config.stale_after_s, "gravity_mps2": self.config.gravity_mps2.tolist(),
-                "frames": frames, "stream": self.receiver.status(now)}
+            frames[f] = {
+                "mass_kg": payload.mass_kg,
+                "com_m": payload.com_m.tolist(),
+                "orientation_known": R is not None,
+                "orientation_stale": stale,
+                "gravity_now_mps2": None if g_now is None else np.round(g_now, 6).tolist(),
+                "tare_gravity_mps2": None if g_tare is None else np.round(g_tare, 6).tolist(),
+            }
+        return {
+            "orientation": self.config.source,
+            "endpoint": self.config.endpoint,
+            "stale_after_s": self.config.stale_after_s,
+            "gravity_mps2": self.config.gravity_mps2.tolist(),
+            "frames": frames,
+            "stream": self.receiver.status(now),
+        }

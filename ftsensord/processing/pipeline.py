@@ -23,18 +23,18 @@ from ftsensord.acquire.health import ChipResult
 from ftsensord.acquire.readings import Readings
 from ftsensord.calibration.thermal import ThermalLaws
 from ftsensord.chip import mlx90393 as mlx
+from ftsensord.config.sensors import SensorConfig
 from ftsensord.errors import ChipRefusedError
 from ftsensord.model import se3
 from ftsensord.model.linear import EXTRAPOLATION_MARGIN, SENSOR_RANGE, LinearModel
 from ftsensord.model.nonlinear import NonlinearEstimator
 from ftsensord.processing.creep import CreepCompensation
-from ftsensord.processing.stray import WorldGradient
-from ftsensord.processing.temperature import ThermalCompensation
-from ftsensord.protocol import wire
-from ftsensord.config.sensors import SensorConfig
 from ftsensord.processing.filters import WrenchFilter
 from ftsensord.processing.redundancy import RedundancyCheck, count_missing, every_chip
 from ftsensord.processing.stage import Stage
+from ftsensord.processing.stray import WorldGradient
+from ftsensord.processing.temperature import ThermalCompensation
+from ftsensord.protocol import wire
 
 #: Samples whose estimator CPU time `status` reports (mean, max): 10 s at 100 Hz, the loop's own
 #: statistics' window.
@@ -44,7 +44,9 @@ ESTIMATE_WINDOW = 1000
 def channel_sigma_t(settings: mlx.Settings, chips: int) -> np.ndarray:
     """Each channel's reading noise (T, chips x 3): the chip's noise and its LSB's
     quantisation (LSB^2 / 12), which at the paper's settings is as large."""
-    per_axis = [np.hypot(settings.noise_ut(a), settings.sensitivity_ut(a) / np.sqrt(12)) * 1e-6 for a in "xyz"]
+    per_axis = [
+        np.hypot(settings.noise_ut(a), settings.sensitivity_ut(a) / np.sqrt(12)) * 1e-6 for a in "xyz"
+    ]
     sigma = np.tile(per_axis, chips)
     sigma.setflags(write=False)  # shared by every sample's check, which keeps its maps by identity
     return sigma
@@ -81,7 +83,9 @@ class SensorPipeline:
     estimate_s: deque[float] = field(default_factory=lambda: deque(maxlen=ESTIMATE_WINDOW))
     thermal: ThermalCompensation | None = None  # None: temperatures not read (temperature_every = 0)
     stray: WorldGradient | None = None  # stray_field = "world": a motor's gradient learnt as the tool turns
-    creep: CreepCompensation = field(default_factory=lambda: CreepCompensation(None, 100.0))  # the silicone's (`build`)
+    creep: CreepCompensation = field(
+        default_factory=lambda: CreepCompensation(None, 100.0)
+    )  # the silicone's (`build`)
     #: Counts the changes of what the redundancy check folds from the pipeline itself (the
     #: model's zero, the tare's wrench): the fold is made again when it moves.
     version: int = 0
@@ -92,21 +96,39 @@ class SensorPipeline:
         self._extrapolation = None if fitted is None else (EXTRAPOLATION_MARGIN * fitted).tolist()
 
     @classmethod
-    def build(cls, s: SensorConfig, smoothing: WrenchFilter, max_missing_chips: int,
-              settings: mlx.Settings | None = None, thermal: bool = True, rate_hz: float = 100.0) -> SensorPipeline:
+    def build(
+        cls,
+        s: SensorConfig,
+        smoothing: WrenchFilter,
+        max_missing_chips: int,
+        settings: mlx.Settings | None = None,
+        thermal: bool = True,
+        rate_hz: float = 100.0,
+    ) -> SensorPipeline:
         """``thermal``: the chips' temperatures are read (`Config.temperature_every`), so
         the temperature stage compensates and flags (`processing.temperature`); ``rate_hz``: the loop's."""
         nl = s.calibration.nonlinear
         sigma_t = channel_sigma_t(settings or mlx.Settings(), len(s.addresses))
         if s.model.H is not None:  # no map built in the cycle of a fault
             s.model.build_maps(sigma_t, max_missing_chips)
-        return cls(s, s.model, smoothing, max_missing_chips, np.full(3 * len(s.addresses), np.nan),
-                   estimator=s.estimator, nonlinear=nl.estimator() if nl is not None else None,
-                   zero_twist=nl.zero_twist.copy() if nl is not None else None, sigma_t=sigma_t,
-                   thermal=ThermalCompensation(ThermalLaws.physical(settings), len(s.addresses),
-                                               s.calibration.temperature) if thermal else None,
-                   stray=WorldGradient(s.calibration.model, sigma_t) if s.stray_field == "world" else None,
-                   creep=CreepCompensation(s.calibration.silicone, rate_hz))
+        return cls(
+            s,
+            s.model,
+            smoothing,
+            max_missing_chips,
+            np.full(3 * len(s.addresses), np.nan),
+            estimator=s.estimator,
+            nonlinear=nl.estimator() if nl is not None else None,
+            zero_twist=nl.zero_twist.copy() if nl is not None else None,
+            sigma_t=sigma_t,
+            thermal=ThermalCompensation(
+                ThermalLaws.physical(settings), len(s.addresses), s.calibration.temperature
+            )
+            if thermal
+            else None,
+            stray=WorldGradient(s.calibration.model, sigma_t) if s.stray_field == "world" else None,
+            creep=CreepCompensation(s.calibration.silicone, rate_hz),
+        )
 
     @property
     def name(self) -> str:
@@ -122,7 +144,9 @@ class SensorPipeline:
         """The largest load of each axis the calibration saw (N, Nm; None: not recorded)."""
         return self.config.calibration.wrench_range
 
-    def step(self, results: Mapping[int, ChipResult], base_flags: int = 0, R: np.ndarray | None = None) -> SensorSample:
+    def step(
+        self, results: Mapping[int, ChipResult], base_flags: int = 0, R: np.ndarray | None = None
+    ) -> SensorSample:
         """This cycle's sample from the chips' ``results`` (by address); ``base_flags``
         apply to every stream of the cycle (e.g. late); ``R``: the sensor's orientation
         (R_world,sensor; None: unknown), for the stray stage."""
@@ -130,7 +154,11 @@ class SensorPipeline:
         flags |= base_flags
         thermal = self.thermal
         # The usual sample (linear, every chip usable and agreeing): check and wrench in one product.
-        usual = self.check.usual(self, flux, usable) if self.estimator == "linear" and self.stray is None else None
+        usual = (
+            self.check.usual(self, flux, usable)
+            if self.estimator == "linear" and self.stray is None
+            else None
+        )
         if usual is not None:
             wrench, wflags = usual[0], flags | (wire.FLAG_EXTRAPOLATED if usual[1] else 0)
         else:
@@ -177,8 +205,11 @@ class SensorPipeline:
                 usable[i] = not m.any_saturated
                 if m.any_saturated:
                     flags |= wire.FLAG_SATURATED
-            elif (isinstance(r.error, ChipRefusedError) and r.error.command == "RM"
-                  and np.all(np.isfinite(self.last_flux[part]))):
+            elif (
+                isinstance(r.error, ChipRefusedError)
+                and r.error.command == "RM"
+                and np.all(np.isfinite(self.last_flux[part]))
+            ):
                 flux[part] = self.last_flux[part]
                 usable[i] = True
                 flags |= wire.FLAG_STALE
@@ -186,7 +217,9 @@ class SensorPipeline:
                 flags |= wire.FLAG_CHIP_MISSING
         return flux, flags, usable
 
-    def _staged(self, flux: np.ndarray, flags: int, usable: np.ndarray, R: np.ndarray | None) -> tuple[np.ndarray, int]:
+    def _staged(
+        self, flux: np.ndarray, flags: int, usable: np.ndarray, R: np.ndarray | None
+    ) -> tuple[np.ndarray, int]:
         """`estimate` of the flux as the stray stage corrects it (when there is one), which
         then learns from the sample: every chip read, nothing flagged that says the flux or
         the load is off the linear model (the in-plane gradient itself may be `inconsistent`)."""
@@ -197,9 +230,13 @@ class SensorPipeline:
         corrected, changed = stray.apply(flux)
         wrench, wflags = self.estimate(corrected, flags, usable)
         fitted = self.wrench_range
-        if (usable.all() and not wflags & _NOT_LEARNT and np.all(np.isfinite(wrench))
-                and not (self.thermal is not None and self.thermal.beyond_span)
-                and (fitted is None or bool(np.all(np.abs(wrench + self.tare_wrench) <= fitted)))):
+        if (
+            usable.all()
+            and not wflags & _NOT_LEARNT
+            and np.all(np.isfinite(wrench))
+            and not (self.thermal is not None and self.thermal.beyond_span)
+            and (fitted is None or bool(np.all(np.abs(wrench + self.tare_wrench) <= fitted)))
+        ):
             stray.learn(flux)
         return wrench, wflags | (wire.FLAG_INCONSISTENT if changed else 0)
 
@@ -235,8 +272,9 @@ class SensorPipeline:
         wrench plus what a tare removed) is beyond the calibration's loads."""
         limits = self._extrapolation
         # Over six Python floats, in C (maps of builtins): four numpy calls on six values cost more.
-        if limits is not None and any(map(operator.gt, map(abs, map(operator.add, wrench.tolist(),
-                                                                    self.tare_wrench.tolist())), limits)):
+        if limits is not None and any(
+            map(operator.gt, map(abs, map(operator.add, wrench.tolist(), self.tare_wrench.tolist())), limits)
+        ):
             flags |= wire.FLAG_EXTRAPOLATED
         return wrench, flags
 
@@ -295,7 +333,9 @@ class SensorPipeline:
     def stages_status(self) -> dict[str, dict[str, Any] | None]:
         """Each stage's part of the sensor's `status`, by its name; None where it is off."""
         running = {type(s): s for s in self.stages}
-        return {kind.name: (s.status() if (s := running.get(kind)) is not None else None) for kind in STAGE_TYPES}
+        return {
+            kind.name: (s.status() if (s := running.get(kind)) is not None else None) for kind in STAGE_TYPES
+        }
 
 
 _RANGE = SENSOR_RANGE.tolist()  # the overload test's limits as Python floats (N, Nm)
@@ -306,14 +346,27 @@ STAGE_TYPES: tuple[type[Stage], ...] = (ThermalCompensation, WorldGradient, Cree
 
 #: Flags of a sample the stray stage does not learn from: a chip not read or left out, a
 #: load beyond the linear model (a temperature beyond its span is asked of the stage itself).
-_NOT_LEARNT = (wire.FLAG_CHIP_MISSING | wire.FLAG_SATURATED | wire.FLAG_STALE | wire.FLAG_DEGRADED
-               | wire.FLAG_INVALID | wire.FLAG_EXTRAPOLATED)
+_NOT_LEARNT = (
+    wire.FLAG_CHIP_MISSING
+    | wire.FLAG_SATURATED
+    | wire.FLAG_STALE
+    | wire.FLAG_DEGRADED
+    | wire.FLAG_INVALID
+    | wire.FLAG_EXTRAPOLATED
+)
 
 
 #: Flags of a sample kept out of the silicone stage's history (compensated from it without
 #: entering it): a chip not read, stale or left out, no estimate, a fallback to the other estimator.
-_BREAKS_MEMORY = (wire.FLAG_CHIP_MISSING | wire.FLAG_SATURATED | wire.FLAG_STALE | wire.FLAG_DEGRADED
-                  | wire.FLAG_INVALID | wire.FLAG_FALLBACK | wire.FLAG_INCONSISTENT)
+_BREAKS_MEMORY = (
+    wire.FLAG_CHIP_MISSING
+    | wire.FLAG_SATURATED
+    | wire.FLAG_STALE
+    | wire.FLAG_DEGRADED
+    | wire.FLAG_INVALID
+    | wire.FLAG_FALLBACK
+    | wire.FLAG_INCONSISTENT
+)
 
 
 def use_estimator(pipelines: list[SensorPipeline], estimator: str, sensor: str | None) -> dict[str, str]:
@@ -334,7 +387,9 @@ def tip_moves(poses: dict[str, np.ndarray]) -> list[tuple[str, np.ndarray]]:
     return [(name, se3.wrench_transform(np.asarray(T, dtype=float))) for name, T in poses.items()]
 
 
-def tip_wrench(samples: dict[str, SensorSample], moves: list[tuple[str, np.ndarray]]) -> tuple[np.ndarray, int]:
+def tip_wrench(
+    samples: dict[str, SensorSample], moves: list[tuple[str, np.ndarray]]
+) -> tuple[np.ndarray, int]:
     """The wrench at the tool tip (N, Nm, tip frame): each sensor's moved by its `tip_moves`
     transform and summed, with every sensor's flags: the tip is as good as its worst sensor."""
     tip, flags = None, 0

@@ -17,7 +17,6 @@ from ftsensord.processing.temperature import ThermalCompensation
 from ftsensord.protocol import wire
 
 
-
 class Checked(Protocol):
     """What the check reads of the sensor it checks (`pipeline.SensorPipeline` is one): its
     linear model with its zero, each channel's noise (T), the temperature stage (None: off),
@@ -33,6 +32,7 @@ class Checked(Protocol):
 
     @property
     def wrench_range(self) -> np.ndarray | None: ...
+
 
 #: The redundancy check (`LinearModel.consistency`), two tests on the whitened residual:
 #: the whole residual (chi-square, 3 n - 6 dof: any disagreement, e.g. a field two chips
@@ -74,7 +74,6 @@ REJOIN_SAMPLES, REJOIN_ODDS = 20, 1e-2
 SLOW_WINDOW = 10
 
 
-
 @functools.lru_cache(maxsize=8)
 def every_chip(n: int) -> np.ndarray:
     """``n`` chips all usable (read-only: shared by every cycle that has them all)."""
@@ -87,7 +86,9 @@ def _slow_limit(chips: int, load2: float) -> float:
     """The slow test's limit (whitened norm) on one chip's drop summed over the window, with
     ``chips`` in use at the load ``load2`` (`RedundancyCheck._load2`): its share of the odds
     (a quarter, split among the chips) plus the model's error over the window (Minkowski)."""
-    return _slow_noise(chips) + math.sqrt(SLOW_WINDOW) * (CHIP_RESIDUAL_AT_REST + CHIP_RESIDUAL_AT_RANGE * load2)
+    return _slow_noise(chips) + math.sqrt(SLOW_WINDOW) * (
+        CHIP_RESIDUAL_AT_REST + CHIP_RESIDUAL_AT_RANGE * load2
+    )
 
 
 @functools.lru_cache(maxsize=16)
@@ -111,8 +112,11 @@ def _every_key(n: int) -> bytes:
 def _gradient_limit(dof: int, load2: float) -> float:
     """The gradient test's limit (whitened norm) at the load ``load2``: its half of the
     whole residual's odds plus the model's allowance."""
-    return (math.sqrt(chi2_quantile(dof, CONSISTENCY_FALSE_ODDS / 4))
-            + GRADIENT_RESIDUAL_AT_REST + GRADIENT_RESIDUAL_AT_RANGE * load2)
+    return (
+        math.sqrt(chi2_quantile(dof, CONSISTENCY_FALSE_ODDS / 4))
+        + GRADIENT_RESIDUAL_AT_REST
+        + GRADIENT_RESIDUAL_AT_RANGE * load2
+    )
 
 
 @functools.lru_cache(maxsize=64)
@@ -160,11 +164,11 @@ class RedundancyCheck:
         if f is None:
             return None
         y, sums = f.apply(flux)
-        chi2, drops = sums[0], sums[1:n + 1]
-        load2 = max(sums[n + 2:n + 8])
+        chi2, drops = sums[0], sums[1 : n + 1]
+        load2 = max(sums[n + 2 : n + 8])
         whole, one = self._limits(p, load2, f.dof, n, CONSISTENCY_FALSE_ODDS)
         top = max(drops)  # a chip that cannot be left out drops 0, as `_agree`'s inf without it
-        if not (chi2 <= whole ** 2 and top <= one ** 2):  # (NaN: not within; the general way says why)
+        if not (chi2 <= whole**2 and top <= one**2):  # (NaN: not within; the general way says why)
             return None
         if f.gradient_dof and sums[n + 1] > _gradient_limit(f.gradient_dof, load2) ** 2:
             return None
@@ -172,7 +176,7 @@ class RedundancyCheck:
         if self._slow_find(drops, top, key, n, load2) is not None:
             return None
         self._slow_push(drops, top, key, load2)
-        return y[f.wrench], max(sums[n + 8:]) > 1.0
+        return y[f.wrench], max(sums[n + 8 :]) > 1.0
 
     def _fold(self, p: Checked) -> FoldedCheck | None:
         """The `FoldedCheck` of ``p``'s model, noise, temperature stage and tare, made anew when one changed."""
@@ -184,8 +188,14 @@ class RedundancyCheck:
             fitted = p.wrench_range
             # With no calibrated loads nothing is extrapolated: a bound no load reaches.
             bound = np.zeros(6) if fitted is None else 1.0 / (EXTRAPOLATION_MARGIN * fitted)
-            folded = p.model.folded(p.sigma_t, scale, shift, p.tare_wrench,  # type: ignore[arg-type]
-                                    1.0 / (fitted if fitted is not None else SENSOR_RANGE), bound)
+            folded = p.model.folded(
+                p.sigma_t,  # type: ignore[arg-type]  # (not None: `usual` checked)
+                scale,
+                shift,
+                p.tare_wrench,
+                1.0 / (fitted if fitted is not None else SENSOR_RANGE),
+                bound,
+            )
             self._folded = (key, folded)
         return folded
 
@@ -243,7 +253,7 @@ class RedundancyCheck:
             return False
         # The largest drop is chi2 - the smallest chi2 without (inf for a chip not to be left
         # out); Python's min of 8 floats, not numpy's (a reduction costs 2 us).
-        return c.chi2 <= whole ** 2 and c.chi2 - min(c.chi2_without.tolist()) <= one ** 2
+        return c.chi2 <= whole**2 and c.chi2 - min(c.chi2_without.tolist()) <= one**2
 
     def _slow_culprit(self, c: Consistency, chips: np.ndarray, n: int, load2: float) -> int | None:
         """The chip whose drop summed over the last `SLOW_WINDOW` samples (over the same
@@ -267,9 +277,9 @@ class RedundancyCheck:
         # (at rest) that settles the usual sample without summing the window per chip.
         if sum(self.slow_tops) - self.slow_tops[turn] + top <= _slow_least(n):
             return None
-        rows = self.slow_drops[:turn] + [drops] + self.slow_drops[turn + 1:]
+        rows = self.slow_drops[:turn] + [drops] + self.slow_drops[turn + 1 :]
         total = [sum(column) for column in zip(*rows)]
-        loads = self.slow_loads[:turn] + [load2] + self.slow_loads[turn + 1:]
+        loads = self.slow_loads[:turn] + [load2] + self.slow_loads[turn + 1 :]
         largest = max(total)
         return None if largest <= _slow_limit(n, max(loads)) ** 2 else total.index(largest)
 
@@ -285,7 +295,15 @@ class RedundancyCheck:
         """The load's square, as a fraction of the calibration's largest (largest over the axes)."""
         fitted = p.wrench_range
         # Python's max over 6 floats, not numpy's (a reduction costs 2 us).
-        return max(map(abs, ((c.wrench + p.tare_wrench) / (fitted if fitted is not None else SENSOR_RANGE)).tolist())) ** 2
+        return (
+            max(
+                map(
+                    abs,
+                    ((c.wrench + p.tare_wrench) / (fitted if fitted is not None else SENSOR_RANGE)).tolist(),
+                )
+            )
+            ** 2
+        )
 
     def _limits(self, p: Checked, load2: float, dof: int, chips: int, odds: float) -> tuple[float, float]:
         """The limits (whitened norms) of the whole residual (``dof``) and of one chip's
@@ -293,6 +311,7 @@ class RedundancyCheck:
         a quarter to one chip's, split among ``chips``; the last quarter is the slow
         test's) plus the model's own error at this load."""
         whole, one = _noise_limits(dof, chips, odds, p.model.gradient is not None)
-        return (whole + MODEL_RESIDUAL_AT_REST + MODEL_RESIDUAL_AT_RANGE * load2,
-                one + CHIP_RESIDUAL_AT_REST + CHIP_RESIDUAL_AT_RANGE * load2)
-
+        return (
+            whole + MODEL_RESIDUAL_AT_REST + MODEL_RESIDUAL_AT_RANGE * load2,
+            one + CHIP_RESIDUAL_AT_REST + CHIP_RESIDUAL_AT_RANGE * load2,
+        )

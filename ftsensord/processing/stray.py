@@ -39,8 +39,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from ftsensord.model.geometry import GRADIENT_PARTS, SensorGeometry, gradient_basis, separable_gradient
 from ftsensord.model.consistency import chi2_quantile
+from ftsensord.model.geometry import GRADIENT_PARTS, SensorGeometry, gradient_basis, separable_gradient
 from ftsensord.model.linear import LinearModel
 
 #: Samples the estimate remembers (the weight of older ones falls by e over this many): 30 s
@@ -74,8 +74,15 @@ ALARM_WRENCH = 1.5 * np.array([0.05, 0.05, 0.05, 2e-3, 2e-3, 2e-3])
 #: The covariance of the five parts of a random traceless symmetric gradient (isotropic:
 #: the traceless part of (A + A^T) / 2, A's entries N(0, 1)): diagonal parts 2/3 and -1/3
 #: between them, off-diagonal parts 1/2.
-_ISOTROPIC = np.array([[2 / 3, -1 / 3, 0, 0, 0], [-1 / 3, 2 / 3, 0, 0, 0], [0, 0, 0.5, 0, 0],
-                       [0, 0, 0, 0.5, 0], [0, 0, 0, 0, 0.5]])
+_ISOTROPIC = np.array(
+    [
+        [2 / 3, -1 / 3, 0, 0, 0],
+        [-1 / 3, 2 / 3, 0, 0, 0],
+        [0, 0, 0.5, 0, 0],
+        [0, 0, 0, 0.5, 0],
+        [0, 0, 0, 0, 0.5],
+    ]
+)
 #: The estimate is solved again every this many samples learnt (0.1 s at 100 Hz): it moves
 #: slowly (a 30 s memory), and a 7 x 7 inverse each sample would double the stage's cost.
 SOLVE_EVERY = 10
@@ -84,6 +91,8 @@ SOLVE_EVERY = 10
 #: turns a motor's 60 uT by 0.3 uT, a tenth of y's noise; a fast turn would teach a bias.
 STEADY_RAD = 0.005
 _STEADY_TRACE = 1.0 + 2.0 * float(np.cos(STEADY_RAD))  # tr(A^T B) of two rotations STEADY_RAD apart
+
+
 def parts(G: np.ndarray) -> np.ndarray:
     """The five numbers of a traceless symmetric G in the basis of `gradient_basis` (..., 5)."""
     return np.stack([G[..., i, j] for i, j in GRADIENT_PARTS], axis=-1)
@@ -112,7 +121,7 @@ class WorldGradient:
         self.Q = separable_gradient(model.H, model.room, ring.gradient_directions())
         self.QF = self.Q.T @ self.F
         self.KA = model.KA
-        self.sigma_y = float(np.sqrt(np.mean(sigma_t ** 2)))  # Q's columns are unit: y's noise per part
+        self.sigma_y = float(np.sqrt(np.mean(sigma_t**2)))  # Q's columns are unit: y's noise per part
         self.limit = chi2_quantile(self.Q.shape[1], CHANGE_ODDS)
         # The false wrench per unit of in-plane change, for a gradient turned at random (N/T, Nm/T).
         seen = np.trace(self.QF @ _ISOTROPIC @ self.QF.T)
@@ -183,7 +192,7 @@ class WorldGradient:
         variance = np.sum((J @ cov[:5, :5]) * J, axis=1)
         # A negative or non-finite variance is round-off of a nearly singular matrix: the
         # orientations seen do not determine g_w yet.
-        if np.all(np.isfinite(variance)) and np.all(variance >= 0) and np.all(variance <= CORRECT_WITHIN ** 2):
+        if np.all(np.isfinite(variance)) and np.all(variance >= 0) and np.all(variance <= CORRECT_WITHIN**2):
             if self.theta is None:
                 self._clear_recent()  # y is compared with the learnt field's from now on, not the tare's
             self.theta = cov @ self.moment
@@ -193,7 +202,9 @@ class WorldGradient:
                 # least gradient that gives it (none, a motor switched on after the tare).
                 g, c = self.theta[:5], self.theta[5:]
                 same, off = self.tare_y - self.QF @ self.tare_T @ g - c, self.tare_y - c
-                self.tare_g = g.copy() if same @ same < off @ off else np.linalg.pinv(self.QF @ self.tare_T) @ off
+                self.tare_g = (
+                    g.copy() if same @ same < off @ off else np.linalg.pinv(self.QF @ self.tare_T) @ off
+                )
 
     def tared(self, zero: np.ndarray) -> np.ndarray:
         """The pipeline took ``zero`` (T, the stage's input) as its zero at the newest
@@ -217,7 +228,12 @@ class WorldGradient:
 
     @property
     def correcting(self) -> bool:
-        return self.theta is not None and self.tare_g is not None and self.tare_T is not None and self.T is not None
+        return (
+            self.theta is not None
+            and self.tare_g is not None
+            and self.tare_T is not None
+            and self.T is not None
+        )
 
     def apply(self, flux: np.ndarray) -> tuple[np.ndarray, bool]:
         """The flux with the learnt gradient's change since the tare taken out, and whether
@@ -233,9 +249,11 @@ class WorldGradient:
         self.recent_sum += self.recent[-1]
         mean = self.recent_sum / len(self.recent)
         size = float(np.sqrt(mean @ mean))
-        threat = (size ** 2 * len(self.recent) / self.sigma_y ** 2 > self.limit
-                  and (self.tare_in_gradient and self.theta is None
-                       or bool(np.any(size * self.false_per_change > ALARM_WRENCH))))
+        threat = size**2 * len(self.recent) / self.sigma_y**2 > self.limit and (
+            self.tare_in_gradient
+            and self.theta is None
+            or bool(np.any(size * self.false_per_change > ALARM_WRENCH))
+        )
         # A change raises the alarm once: learning starts afresh from it (samples from
         # before would bias what is learnt next), and the alarm stays until it is learnt.
         if threat and (self.theta is not None or not self.alarm):
@@ -250,6 +268,9 @@ class WorldGradient:
 
     def status(self) -> dict[str, Any]:
         g = None if self.theta is None else self.theta[:5]
-        return {"samples": self.samples, "correcting": self.correcting, "alarm": self.alarm,
-                "gradient_ut_per_mm": None if g is None else round(float(np.linalg.norm(g)) * 1e3, 4)}
-
+        return {
+            "samples": self.samples,
+            "correcting": self.correcting,
+            "alarm": self.alarm,
+            "gradient_ut_per_mm": None if g is None else round(float(np.linalg.norm(g)) * 1e3, 4),
+        }

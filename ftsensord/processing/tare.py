@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from ftsensord.protocol import wire
 from ftsensord.processing.pipeline import SensorPipeline
+from ftsensord.protocol import wire
 
 log = logging.getLogger("ftsensord")
 
@@ -108,27 +108,52 @@ class Tares:
             job.cycles += 1
             if all(len(job.flux.get(n, [])) >= job.samples for n in job.sensors):
                 self.jobs.remove(job)
-                moved = [m for n in job.sensors if n in by_name
-                         for m in [unsteady(by_name[n], np.array(job.flux[n]))] if m]
+                moved = [
+                    m
+                    for n in job.sensors
+                    if n in by_name
+                    for m in [unsteady(by_name[n], np.array(job.flux[n]))]
+                    if m
+                ]
                 if moved:
-                    self.reply(job.reply_to, {"ok": False, "error": "tare refused, nothing changed: "
-                                                                    + "; ".join(moved)})
+                    self.reply(
+                        job.reply_to,
+                        {"ok": False, "error": "tare refused, nothing changed: " + "; ".join(moved)},
+                    )
                     continue
-                offsets = {n: by_name[n].tare(np.mean(job.flux[n], axis=0), _mean(job.gravity[n])).round(6).tolist()
-                           for n in job.sensors if n in by_name}
-                self.reply(job.reply_to, {"ok": True, "result": {"tare_wrench": offsets, "samples": job.samples}})
+                offsets = {
+                    n: by_name[n].tare(np.mean(job.flux[n], axis=0), _mean(job.gravity[n])).round(6).tolist()
+                    for n in job.sensors
+                    if n in by_name
+                }
+                self.reply(
+                    job.reply_to, {"ok": True, "result": {"tare_wrench": offsets, "samples": job.samples}}
+                )
             elif job.cycles > TARE_PATIENCE * job.samples:
                 self.jobs.remove(job)
-                self.reply(job.reply_to, {"ok": False, "error": f"tare refused after {job.cycles} cycles, "
-                                                                "nothing changed: " + _shortfall(job)})
+                self.reply(
+                    job.reply_to,
+                    {
+                        "ok": False,
+                        "error": f"tare refused after {job.cycles} cycles, "
+                        "nothing changed: " + _shortfall(job),
+                    },
+                )
             elif names := [n for n in job.sensors if job.stale_run.get(n, 0) >= TARE_STALE_RUN]:
                 self.jobs.remove(job)
-                self.reply(job.reply_to, {"ok": False, "error": (
-                    f"tare refused after {job.cycles} cycles, nothing changed: no fresh orientation for "
-                    f"{', '.join(names)} in the last {TARE_STALE_RUN} samples (orientation_stale). With "
-                    "gravity compensation a tare keeps the tool's orientation at each sample: the "
-                    "application must keep sending orientations during it (`ftsensord status`: "
-                    "gravity.stream.frames shows the last one's age)")})
+                self.reply(
+                    job.reply_to,
+                    {
+                        "ok": False,
+                        "error": (
+                            f"tare refused after {job.cycles} cycles, nothing changed: no fresh orientation for "
+                            f"{', '.join(names)} in the last {TARE_STALE_RUN} samples (orientation_stale). With "
+                            "gravity compensation a tare keeps the tool's orientation at each sample: the "
+                            "application must keep sending orientations during it (`ftsensord status`: "
+                            "gravity.stream.frames shows the last one's age)"
+                        ),
+                    },
+                )
 
 
 def _mean(gravity: list[np.ndarray | None]) -> np.ndarray | None:
@@ -146,8 +171,10 @@ def _shortfall(job: TareJob) -> str:
             continue
         seen = job.seen.get(n, Counter())
         flags = ", ".join(f"{name} in {count}" for name, count in seen.most_common()) or "none"
-        parts.append(f"{n} had {got} of {job.samples} samples without a flag (flags seen: {flags}; "
-                     f"{max(0, job.cycles - got - job.turned_away.get(n, 0))} cycles without an estimate)")
+        parts.append(
+            f"{n} had {got} of {job.samples} samples without a flag (flags seen: {flags}; "
+            f"{max(0, job.cycles - got - job.turned_away.get(n, 0))} cycles without an estimate)"
+        )
     return "; ".join(parts) + "; a tare takes only samples without any flag"
 
 
@@ -159,13 +186,15 @@ def unsteady(p: SensorPipeline, flux: np.ndarray) -> str | None:
     w = p.config.model.wrench(flux)
     diff = w[half:].mean(axis=0) - w[:half].mean(axis=0)
     KA = p.config.model.KA
-    sigma_w = np.sqrt(np.einsum("ij,j,ij->i", KA, p.sigma_t ** 2, KA))  # one sample's noise per axis
+    sigma_w = np.sqrt(np.einsum("ij,j,ij->i", KA, p.sigma_t**2, KA))  # one sample's noise per axis
     limit = TARE_STEADY_SIGMAS * sigma_w * math.sqrt(1 / half + 1 / (len(flux) - half))
     worst = int(np.argmax(np.abs(diff) / limit))
     if abs(diff[worst]) <= limit[worst]:
         return None
-    return (f"{p.name}'s load moved during the tare ({AXES[worst]} changed by {diff[worst]:+.4g} between "
-            f"its halves, noise allows {limit[worst]:.2g}): hold it still and tare again")
+    return (
+        f"{p.name}'s load moved during the tare ({AXES[worst]} changed by {diff[worst]:+.4g} between "
+        f"its halves, noise allows {limit[worst]:.2g}): hold it still and tare again"
+    )
 
 
 def untare(p: SensorPipeline) -> list[float]:

@@ -129,9 +129,13 @@ class ThermalCompensation:
     def status(self) -> dict[str, Any]:
         known = np.isfinite(self.celsius)
         span = self.span_c
-        return {"reference_c": None if self.reference_c is None else round(self.reference_c, 2),
-                "reference_from": self.source, "drift_calibrated": self.drift is not None,
-                "tare_c": None if self.tare_c is None else round(self.tare_c, 2),
-                "span_c": None if span is None else [round(span[0], 2), round(span[1], 2)],
-                "mean_c": round(float(self.celsius[known].mean()), 2) if known.any() else None,
-                "beyond_span": self.beyond_span, "laws": self.laws.document()}
+        return {
+            "reference_c": None if self.reference_c is None else round(self.reference_c, 2),
+            "reference_from": self.source,
+            "drift_calibrated": self.drift is not None,
+            "tare_c": None if self.tare_c is None else round(self.tare_c, 2),
+            "span_c": None if span is None else [round(span[0], 2), round(span[1], 2)],
+            "mean_c": round(float(self.celsius[known].mean()), 2) if known.any() else None,
+            "beyond_span": self.beyond_span,
+            "laws": self.laws.document(),
+        }

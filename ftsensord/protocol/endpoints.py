@@ -40,7 +40,7 @@ def needs_ipv6(endpoint: str) -> bool:
 
 
 def is_loopback(endpoint: str) -> bool:
-    return not endpoint.startswith("tcp://") or endpoint[len("tcp://"):].rsplit(":", 1)[0] in LOOPBACK
+    return not endpoint.startswith("tcp://") or endpoint[len("tcp://") :].rsplit(":", 1)[0] in LOOPBACK
 
 
 def endpoint(table: Table, key: str, default: str, *, off_loopback: bool = False, why: str = "") -> str:
@@ -49,8 +49,12 @@ def endpoint(table: Table, key: str, default: str, *, off_loopback: bool = False
     if not value.startswith(("ipc://", "tcp://")):
         raise table.fail(key, "an ipc:// or tcp:// endpoint", value)
     if value.startswith("ipc://@"):  # Linux's abstract namespace: no file, so no mode, group or lock
-        raise table.fail(key, "an ipc:// endpoint with a path (an abstract socket, ipc://@name, has no file "
-                              "permissions: anyone on the host could connect)", value)
+        raise table.fail(
+            key,
+            "an ipc:// endpoint with a path (an abstract socket, ipc://@name, has no file "
+            "permissions: anyone on the host could connect)",
+            value,
+        )
     problem = _malformed(value)
     if problem:
         raise table.fail(key, problem, value)
@@ -65,10 +69,12 @@ def _malformed(value: str) -> str | None:
     if value.startswith("tcp://"):
         match = _TCP.fullmatch(value)
         if match is None or not 1 <= int(match["port"]) <= 65535:
-            return ("tcp://HOST:PORT (a name, an IPv4 address, * or [an IPv6 address]) with a port from 1 to "
-                    "65535 (digits only: no wildcard, no path)")
+            return (
+                "tcp://HOST:PORT (a name, an IPv4 address, * or [an IPv6 address]) with a port from 1 to "
+                "65535 (digits only: no wildcard, no path)"
+            )
         return None
-    path = value[len("ipc://"):]
+    path = value[len("ipc://") :]
     if not path.startswith("/") or len(path.encode()) > MAX_IPC_PATH_BYTES:
         return f"ipc:// and an absolute path of at most {MAX_IPC_PATH_BYTES} bytes (a socket file's limit)"
     return None
@@ -80,17 +86,27 @@ def security_table(doc: Table) -> Security:
         return Security()
     t = doc.table("security")
     t.only({"curve_server_cert", "curve_clients_dir", "allow_insecure_control", "public_stream"})
-    cert = resolve_file(t, "curve_server_cert", t.string("curve_server_cert")) if "curve_server_cert" in t.doc else None
+    cert = (
+        resolve_file(t, "curve_server_cert", t.string("curve_server_cert"))
+        if "curve_server_cert" in t.doc
+        else None
+    )
     clients = None
     if "curve_clients_dir" in t.doc:
         clients = Path(t.string("curve_clients_dir")).expanduser()
         clients = clients if clients.is_absolute() else t.path.parent / clients
         if not clients.is_dir():
-            raise t.fail("curve_clients_dir", "a folder of the allowed clients' public certificates",
-                         t.get("curve_clients_dir"))
+            raise t.fail(
+                "curve_clients_dir",
+                "a folder of the allowed clients' public certificates",
+                t.get("curve_clients_dir"),
+            )
     if (cert is None) != (clients is None):
-        raise t.fail("curve_server_cert" if cert is None else "curve_clients_dir",
-                     "both curve_server_cert and curve_clients_dir, or neither", "only one of them")
+        raise t.fail(
+            "curve_server_cert" if cert is None else "curve_clients_dir",
+            "both curve_server_cert and curve_clients_dir, or neither",
+            "only one of them",
+        )
     flags = {}
     for key in ("allow_insecure_control", "public_stream"):
         value = t.get(key, False)

@@ -28,8 +28,8 @@ from __future__ import annotations
 import math
 import struct
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 import zmq
@@ -62,9 +62,13 @@ RCVHWM = 1000
 def quaternion_matrix(q: np.ndarray) -> np.ndarray:
     """The rotation matrix of the unit quaternion ``q`` = [w x y z] (Hamilton)."""
     w, x, y, z = q
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def encode(frame: str, R_or_q: np.ndarray, t_sender: float) -> bytes:
@@ -159,9 +163,14 @@ class OrientationReceiver:
         self.latest[o.frame] = Received(o.R, now, o.t_sender)
 
     def status(self, now: float) -> dict[str, object]:
-        return {"received": self.received, "dropped": dict(self.dropped),
-                "frames": {f: {"age_s": round(now - r.t_arrival, 6), "t_sender": r.t_sender}
-                           for f, r in self.latest.items()}}
+        return {
+            "received": self.received,
+            "dropped": dict(self.dropped),
+            "frames": {
+                f: {"age_s": round(now - r.t_arrival, 6), "t_sender": r.t_sender}
+                for f, r in self.latest.items()
+            },
+        }
 
 
 def open_receiver(context: zmq.Context, endpoint: str, bind: Callable[[zmq.Socket, str], None]) -> zmq.Socket:

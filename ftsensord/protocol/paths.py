@@ -26,13 +26,15 @@ def resolve_file(table: Table, key: str, value: str) -> Path:
     """``table[key]``'s file: ``builtin:NAME``, or a path relative to the table's file's folder;
     refused (naming the file and key) unless it exists."""
     if value.startswith(BUILTIN):
-        path = builtin_path(value[len(BUILTIN):])
+        path = builtin_path(value[len(BUILTIN) :])
     else:
         path = Path(value).expanduser()
         if not path.is_absolute():
             path = table.path.parent / path
     if not path.is_file():
-        raise table.fail(key, "an existing file (relative to the configuration's folder, or builtin:NAME)", value)
+        raise table.fail(
+            key, "an existing file (relative to the configuration's folder, or builtin:NAME)", value
+        )
     return path
 
 
@@ -65,15 +67,18 @@ def check_private_dir(path: Path, owner: int | None = None) -> None:
     elif uid != -1 and st.st_uid != uid:
         why = f"belongs to uid {st.st_uid}, not to uid {uid}"
     elif st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
-        why = f"is writable by {'others' if st.st_mode & stat.S_IWOTH else 'its group'} (mode {st.st_mode & 0o7777:04o})"
+        who = "others" if st.st_mode & stat.S_IWOTH else "its group"
+        why = f"is writable by {who} (mode {st.st_mode & 0o7777:04o})"
     elif uid == -1:
         parent = os.lstat(path.parent)
         if parent.st_uid != 0 or parent.st_mode & stat.S_IWOTH:
             why = f"is in {path.parent}, which root alone does not control"
     if why is not None:
-        raise ConfigError(f"{path}: refusing this runtime folder: it {why}; another user could put their "
-                          "sockets in place of the daemon's. Remove it (or fix its owner and mode 0700), "
-                          "or set RUNTIME_DIRECTORY or XDG_RUNTIME_DIR")
+        raise ConfigError(
+            f"{path}: refusing this runtime folder: it {why}; another user could put their "
+            "sockets in place of the daemon's. Remove it (or fix its owner and mode 0700), "
+            "or set RUNTIME_DIRECTORY or XDG_RUNTIME_DIR"
+        )
 
 
 def ensure_private_dir(path: Path) -> Path:

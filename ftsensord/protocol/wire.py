@@ -36,15 +36,28 @@ FLAG_LATE = 1 << 5  # the cycle began after its deadline
 FLAG_INVALID = 1 << 6  # no estimate possible: the values are NaN
 FLAG_FALLBACK = 1 << 7  # the nonlinear estimator did not converge: the linear estimate was used
 FLAG_EXTRAPOLATED = 1 << 8  # a linear estimate beyond the loads the calibration was fitted on
-FLAG_INCONSISTENT = 1 << 9  # the chips disagree beyond noise and model error (one stuck, drifted, or seeing a field alone)
-FLAG_ORIENTATION_STALE = 1 << 10  # a compensated wrench: the orientation is older than stale_after_s, or unknown
+FLAG_INCONSISTENT = (
+    1 << 9
+)  # the chips disagree beyond noise and model error (one stuck, drifted, or seeing a field alone)
+FLAG_ORIENTATION_STALE = (
+    1 << 10
+)  # a compensated wrench: the orientation is older than stale_after_s, or unknown
 FLAG_TEMPERATURE = 1 << 11  # a chip's temperature is beyond the span the temperature compensation covers
 
-FLAG_NAMES = {FLAG_CHIP_MISSING: "chip_missing", FLAG_SATURATED: "saturated", FLAG_STALE: "stale",
-              FLAG_OVERLOAD: "overload", FLAG_DEGRADED: "degraded", FLAG_LATE: "late",
-              FLAG_INVALID: "invalid", FLAG_FALLBACK: "fallback", FLAG_EXTRAPOLATED: "extrapolated",
-              FLAG_INCONSISTENT: "inconsistent", FLAG_ORIENTATION_STALE: "orientation_stale",
-              FLAG_TEMPERATURE: "temperature"}
+FLAG_NAMES = {
+    FLAG_CHIP_MISSING: "chip_missing",
+    FLAG_SATURATED: "saturated",
+    FLAG_STALE: "stale",
+    FLAG_OVERLOAD: "overload",
+    FLAG_DEGRADED: "degraded",
+    FLAG_LATE: "late",
+    FLAG_INVALID: "invalid",
+    FLAG_FALLBACK: "fallback",
+    FLAG_EXTRAPOLATED: "extrapolated",
+    FLAG_INCONSISTENT: "inconsistent",
+    FLAG_ORIENTATION_STALE: "orientation_stale",
+    FLAG_TEMPERATURE: "temperature",
+}
 
 
 def flag_names(flags: int) -> list[str]:
@@ -68,13 +81,17 @@ class Sample:
 _F8 = np.dtype("<f8")
 
 
-def encode(topic: str, kind: int, seq: int, t_mono: float, t_wall: float, flags: int,
-           values: np.ndarray) -> bytes:
+def encode(
+    topic: str, kind: int, seq: int, t_mono: float, t_wall: float, flags: int, values: np.ndarray
+) -> bytes:
     # (tobytes is in C order whatever the layout; a daemon's own values are float64 already)
     if type(values) is not np.ndarray or values.dtype != _F8:
         values = np.asarray(values, dtype=_F8)
-    return _prefix(topic) + HEADER.pack(MAGIC, VERSION, kind, flags, seq, t_mono, t_wall,
-                                        len(values), 0, 0) + values.tobytes()
+    return (
+        _prefix(topic)
+        + HEADER.pack(MAGIC, VERSION, kind, flags, seq, t_mono, t_wall, len(values), 0, 0)
+        + values.tobytes()
+    )
 
 
 @functools.lru_cache(maxsize=256)
@@ -95,9 +112,11 @@ def unpack(frame: bytes) -> tuple[str, int, int, int, float, float, bytes]:
         raise WireError(f"not an ftsensord v{VERSION} sample (magic 0x{magic:04X}, version {version})")
     if len(body) != HEADER.size + 8 * count:
         raise WireError(f"{count} values announced, {(len(body) - HEADER.size) / 8:g} present")
-    if not topic.isascii():  # a stray publisher's frame: refused as any malformed one, not a UnicodeDecodeError
+    if (
+        not topic.isascii()
+    ):  # a stray publisher's frame: refused as any malformed one, not a UnicodeDecodeError
         raise WireError(f"the topic is not ASCII: {topic[:40]!r}")
-    return topic.decode("ascii"), kind, flags, seq, t_mono, t_wall, body[HEADER.size:]
+    return topic.decode("ascii"), kind, flags, seq, t_mono, t_wall, body[HEADER.size :]
 
 
 def decode(frame: bytes) -> Sample:

@@ -27,10 +27,40 @@ May import: `client` (to subscribe), `protocol`, `errors`; never the daemon's fl
 
 from ftsensord.recording.columns import WRENCH_COLUMNS, Tally, value_columns
 from ftsensord.recording.csvfile import CsvWriter, read_meta
-from ftsensord.recording.loop import FLUSH_EVERY_S, Outcome, Receiver, SampleWriter, StopOnSignals, daemon_frames, open_writer, record, summary_line
+from ftsensord.recording.loop import (
+    FLUSH_EVERY_S,
+    Outcome,
+    Receiver,
+    SampleWriter,
+    StopOnSignals,
+    daemon_frames,
+    open_writer,
+    record,
+    summary_line,
+)
 from ftsensord.recording.npz import CHUNK_ROWS, NpzWriter, finish_npz, gaps_of, load_rows
 from ftsensord.recording.ros2mcap import read_mcap, recover_mcap
 
-__all__ = ["CHUNK_ROWS", "FLUSH_EVERY_S", "WRENCH_COLUMNS", "CsvWriter", "NpzWriter", "Outcome", "Receiver",
-           "SampleWriter", "StopOnSignals", "Tally", "daemon_frames", "finish_npz", "gaps_of", "load_rows",
-           "open_writer", "read_mcap", "read_meta", "record", "recover_mcap", "summary_line", "value_columns"]
+__all__ = [
+    "CHUNK_ROWS",
+    "FLUSH_EVERY_S",
+    "WRENCH_COLUMNS",
+    "CsvWriter",
+    "NpzWriter",
+    "Outcome",
+    "Receiver",
+    "SampleWriter",
+    "StopOnSignals",
+    "Tally",
+    "daemon_frames",
+    "finish_npz",
+    "gaps_of",
+    "load_rows",
+    "open_writer",
+    "read_mcap",
+    "read_meta",
+    "record",
+    "recover_mcap",
+    "summary_line",
+    "value_columns",
+]

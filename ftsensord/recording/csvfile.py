@@ -31,11 +31,12 @@ FORMAT = "ftsensord-csv"
 META_WIDTH = 4096
 #: Longest error text and torn row kept in the sidecar, so its JSON fits `META_WIDTH`.
 MAX_KEPT_CHARS = 1000
-TIME_UNITS = {"seq": "the daemon's cycle number (a jump: samples missed)",
-              "t_mono_s": "s, CLOCK_MONOTONIC of the daemon's host, when the cycle's data were in hand",
-              "t_wall_s": "s, Unix time (UTC), the same moment",
-              "flags": "bit field, the sum of the flag_bits of the conditions that held "
-                       "(docs/reference/protocol.md)"}
+TIME_UNITS = {
+    "seq": "the daemon's cycle number (a jump: samples missed)",
+    "t_mono_s": "s, CLOCK_MONOTONIC of the daemon's host, when the cycle's data were in hand",
+    "t_wall_s": "s, Unix time (UTC), the same moment",
+    "flags": "bit field, the sum of the flag_bits of the conditions that held (docs/reference/protocol.md)",
+}
 VALUE_UNITS = {"_N": "N", "_Nm": "Nm", "_T": "T"}
 
 
@@ -55,11 +56,24 @@ class CsvWriter:
     def __init__(self, path: str | Path, stream: str, frame: str | None = None):
         self.path, self.stream = Path(path), stream
         self.meta: dict[str, Any] = {
-            "format": FORMAT, "version": 1, "csv": self.path.name, "stream": stream, "frame": frame or stream,
-            "kind": "wrench" if stream.startswith("wrench/") else "flux", "columns": None, "units": None,
+            "format": FORMAT,
+            "version": 1,
+            "csv": self.path.name,
+            "stream": stream,
+            "frame": frame or stream,
+            "kind": "wrench" if stream.startswith("wrench/") else "flux",
+            "columns": None,
+            "units": None,
             "flag_bits": {name: bit for bit, name in wire.FLAG_NAMES.items()},
-            "state": "recording", "samples": None, "received": None, "missed": None,
-            "first_seq": None, "last_seq": None, "error": None, "torn_row": None}
+            "state": "recording",
+            "samples": None,
+            "received": None,
+            "missed": None,
+            "first_seq": None,
+            "last_seq": None,
+            "error": None,
+            "torn_row": None,
+        }
         self.file = open(self.path, "w", encoding="ascii")
         self.meta_file = open(meta_path(self.path), "wb")
         self._write_meta()
@@ -70,7 +84,7 @@ class CsvWriter:
         text = json.dumps(self.meta, indent=1)
         if len(text) >= META_WIDTH:  # not met with this module's columns; a torn row is the first to go
             self.meta["torn_row"] = "(dropped: too long for the sidecar)"
-            text = json.dumps(self.meta, indent=1)[:META_WIDTH - 1]
+            text = json.dumps(self.meta, indent=1)[: META_WIDTH - 1]
         self.meta_file.seek(0)
         self.meta_file.write(text.ljust(META_WIDTH - 1).encode("ascii", "replace") + b"\n")
         self.meta_file.flush()
@@ -78,13 +92,22 @@ class CsvWriter:
     def write(self, sample: wire.Sample) -> None:
         try:
             if not self.columns_written:
-                columns = ["seq", "t_mono_s", "t_wall_s", "flags", *value_columns(self.stream, len(sample.values))]
+                columns = [
+                    "seq",
+                    "t_mono_s",
+                    "t_wall_s",
+                    "flags",
+                    *value_columns(self.stream, len(sample.values)),
+                ]
                 self.file.write(",".join(columns) + "\n")
                 self.columns_written = True
                 self.meta["columns"], self.meta["units"] = columns, _units(columns)
                 self._write_meta()
-            self.file.write(f"{sample.seq},{sample.t_mono:.6f},{sample.t_wall:.6f},{sample.flags},"
-                            + ",".join(f"{v:.9g}" for v in sample.values) + "\n")
+            self.file.write(
+                f"{sample.seq},{sample.t_mono:.6f},{sample.t_wall:.6f},{sample.flags},"
+                + ",".join(f"{v:.9g}" for v in sample.values)
+                + "\n"
+            )
         except OSError as exc:
             self.error = self.error or exc
             raise
@@ -126,8 +149,12 @@ class CsvWriter:
                 f.seek(complete)
                 torn = f.read(MAX_KEPT_CHARS).decode("ascii", "replace")
             os.truncate(self.path, complete)  # frees blocks: possible on a full disk
-        self.meta.update(state="write error", samples=rows, error=(error.strerror or str(error))[:MAX_KEPT_CHARS],
-                         torn_row=torn)
+        self.meta.update(
+            state="write error",
+            samples=rows,
+            error=(error.strerror or str(error))[:MAX_KEPT_CHARS],
+            torn_row=torn,
+        )
         try:
             self._write_meta()
             self.meta_file.close()
@@ -161,12 +188,17 @@ def read_meta(csv: str | Path) -> dict[str, Any]:
     try:
         meta = json.loads(meta_file.read_bytes())
     except FileNotFoundError as exc:
-        raise ConfigError(f"{meta_file}: missing: `ftsensord record` writes it beside {Path(csv).name}") from exc
+        raise ConfigError(
+            f"{meta_file}: missing: `ftsensord record` writes it beside {Path(csv).name}"
+        ) from exc
     except ValueError as exc:
-        raise ConfigError(f"{meta_file}: not JSON: expected the sidecar of an ftsensord CSV recording") from exc
+        raise ConfigError(
+            f"{meta_file}: not JSON: expected the sidecar of an ftsensord CSV recording"
+        ) from exc
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-        raise ConfigError(f"{meta_file}: not an ftsensord CSV sidecar (expected a JSON object with "
-                          f"\"format\": \"{FORMAT}\")")
+        raise ConfigError(
+            f'{meta_file}: not an ftsensord CSV sidecar (expected a JSON object with "format": "{FORMAT}")'
+        )
     if meta.get("state") == "recording":
         rows, complete, size = csv_rows(csv)
         meta["samples"] = rows

@@ -36,12 +36,15 @@ def open_writer(path: str | Path, streams: list[str], frames: dict[str, str] | N
     suffix = Path(path).suffix.lower()
     if suffix == ".mcap":
         from ftsensord.recording.ros2mcap import McapWriter
+
         return McapWriter(path, frames or {})
     if suffix not in (".csv", ".npz"):
         raise ConfigError(f"{path}: record writes .csv, .npz or .mcap (by the file's extension)")
     if len(streams) != 1:
-        raise ConfigError(f"{path}: a {suffix} file holds one stream ({len(streams)} given); "
-                          "record several into one .mcap, or run one record per stream")
+        raise ConfigError(
+            f"{path}: a {suffix} file holds one stream ({len(streams)} given); "
+            "record several into one .mcap, or run one record per stream"
+        )
     frame = (frames or {}).get(streams[0])
     return CsvWriter(path, streams[0], frame) if suffix == ".csv" else NpzWriter(path, streams[0], frame)
 
@@ -56,9 +59,18 @@ class Outcome:
     reason: str  # why it stopped: "count", "seconds", "timeout", "stopped"
 
 
-def record(sub: Receiver, writer: SampleWriter, streams: list[str], *, count: int | None = None,
-           seconds: float | None = None, timeout_s: float = 3.0, stop: Callable[[], bool] = lambda: False,
-           clock: Callable[[], float] = time.monotonic, flush_every_s: float = FLUSH_EVERY_S) -> Outcome:
+def record(
+    sub: Receiver,
+    writer: SampleWriter,
+    streams: list[str],
+    *,
+    count: int | None = None,
+    seconds: float | None = None,
+    timeout_s: float = 3.0,
+    stop: Callable[[], bool] = lambda: False,
+    clock: Callable[[], float] = time.monotonic,
+    flush_every_s: float = FLUSH_EVERY_S,
+) -> Outcome:
     """Write what ``sub`` receives until ``count`` samples (all streams together),
     ``seconds``, ``timeout_s`` without a sample, or ``stop()`` turns true; then
     take what is already queued, and close the writer (the file is complete).
@@ -75,8 +87,17 @@ def record(sub: Receiver, writer: SampleWriter, streams: list[str], *, count: in
         raise OSError(exc.errno, exc.strerror, getattr(writer.file, "name", None)) from exc
 
 
-def _record(sub: Receiver, writer: SampleWriter, streams: list[str], count: int | None, seconds: float | None,
-            timeout_s: float, stop: Callable[[], bool], clock: Callable[[], float], flush_every_s: float) -> Outcome:
+def _record(
+    sub: Receiver,
+    writer: SampleWriter,
+    streams: list[str],
+    count: int | None,
+    seconds: float | None,
+    timeout_s: float,
+    stop: Callable[[], bool],
+    clock: Callable[[], float],
+    flush_every_s: float,
+) -> Outcome:
     tallies = {s: Tally() for s in streams}
     start = last_sample = last_flush = clock()
     reason = "stopped"
@@ -106,8 +127,11 @@ def _record(sub: Receiver, writer: SampleWriter, streams: list[str], count: int 
             if now - last_sample >= timeout_s:
                 reason = "timeout"
                 break
-            wait = min(flush_every_s, timeout_s - (now - last_sample),
-                       seconds - (now - start) if seconds is not None else flush_every_s)
+            wait = min(
+                flush_every_s,
+                timeout_s - (now - last_sample),
+                seconds - (now - start) if seconds is not None else flush_every_s,
+            )
             sample = sub.receive(timeout_s=max(wait, 0.0))
             if sample is not None:
                 take(sample)
@@ -120,9 +144,14 @@ def _record(sub: Receiver, writer: SampleWriter, streams: list[str], count: int 
     return Outcome(tallies, reason)
 
 
-def summary_line(path: str | Path, outcome: Outcome, stopped_by: str | None = None, verb: str = "wrote") -> str:
-    parts = [f"{s}: {t.samples} samples, {t.gaps} missed" + (f" (seq {t.first_seq}-{t.last_seq})" if t.samples else "")
-             for s, t in outcome.tallies.items()]
+def summary_line(
+    path: str | Path, outcome: Outcome, stopped_by: str | None = None, verb: str = "wrote"
+) -> str:
+    parts = [
+        f"{s}: {t.samples} samples, {t.gaps} missed"
+        + (f" (seq {t.first_seq}-{t.last_seq})" if t.samples else "")
+        for s, t in outcome.tallies.items()
+    ]
     return f"{verb} {path}: " + "; ".join(parts) + (f" (stopped by {stopped_by})" if stopped_by else "")
 
 
@@ -151,7 +180,9 @@ class StopOnSignals:
             signal.signal(s, handler)
 
 
-def daemon_frames(streams: list[str], endpoint: str | None, control: str | None, timeout_s: float) -> dict[str, str]:
+def daemon_frames(
+    streams: list[str], endpoint: str | None, control: str | None, timeout_s: float
+) -> dict[str, str]:
     """Each stream's frame from the daemon's status (asked on ``control``, by
     default beside an ipc ``endpoint``); the stream's name, said on stderr, when
     no daemon answers. A stream that daemon does not publish is refused

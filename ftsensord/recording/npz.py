@@ -16,8 +16,9 @@ from ftsensord.recording.columns import Tally, value_columns
 
 
 def _rows_dtype(count: int) -> np.dtype:
-    return np.dtype([("seq", "<i8"), ("t_mono", "<f8"), ("t_wall", "<f8"), ("flags", "<i8"),
-                     ("values", "<f8", (count,))])
+    return np.dtype(
+        [("seq", "<i8"), ("t_mono", "<f8"), ("t_wall", "<f8"), ("flags", "<i8"), ("values", "<f8", (count,))]
+    )
 
 
 class NpzWriter:
@@ -33,12 +34,23 @@ class NpzWriter:
         first = self.dtype is None
         if first:
             self.dtype = _rows_dtype(len(sample.values))
-            head = {"format": "ftsensord-rows", "version": 1, "stream": self.stream, "frame": self.frame,
-                    "kind": sample.kind,
-                    "count": len(sample.values), "columns": value_columns(self.stream, len(sample.values))}
+            head = {
+                "format": "ftsensord-rows",
+                "version": 1,
+                "stream": self.stream,
+                "frame": self.frame,
+                "kind": sample.kind,
+                "count": len(sample.values),
+                "columns": value_columns(self.stream, len(sample.values)),
+            }
             self.file.write(json.dumps(head).encode() + b"\n")
         row = np.zeros((), self.dtype)
-        row["seq"], row["t_mono"], row["t_wall"], row["flags"] = sample.seq, sample.t_mono, sample.t_wall, sample.flags
+        row["seq"], row["t_mono"], row["t_wall"], row["flags"] = (
+            sample.seq,
+            sample.t_mono,
+            sample.t_wall,
+            sample.flags,
+        )
         row["values"] = sample.values
         self.file.write(row.tobytes())
         if first:  # the header on disk at once: killed before the first flush, the file still reads
@@ -50,9 +62,17 @@ class NpzWriter:
     def close(self, tallies: dict[str, Tally]) -> None:
         self.file.close()
         if self.dtype is None:  # nothing received: an empty file of the same keys
-            np.savez(self.path, seq=np.zeros(0, np.int64), t_mono=np.zeros(0), t_wall=np.zeros(0),
-                     flags=np.zeros(0, np.int64), values=np.zeros((0, 0)), gaps=0, stream=self.stream,
-                     frame=self.frame)
+            np.savez(
+                self.path,
+                seq=np.zeros(0, np.int64),
+                t_mono=np.zeros(0),
+                t_wall=np.zeros(0),
+                flags=np.zeros(0, np.int64),
+                values=np.zeros((0, 0)),
+                gaps=0,
+                stream=self.stream,
+                frame=self.frame,
+            )
             self.part.unlink()
             return
         finish_npz(self.part, self.path)
@@ -77,21 +97,27 @@ def load_rows(part: str | Path) -> dict[str, Any]:
         head = json.loads(line)
         count = int(head["count"])
     except (ValueError, KeyError, TypeError) as exc:
-        raise ConfigError(f"{part}: not an ftsensord rows sidecar (first line: JSON with \"count\")") from exc
+        raise ConfigError(f'{part}: not an ftsensord rows sidecar (first line: JSON with "count")') from exc
     dtype = _rows_dtype(count)
     n = (part.stat().st_size - len(line)) // dtype.itemsize
-    rows = (np.memmap(part, dtype=dtype, mode="r", offset=len(line), shape=(n,)) if n
-            else np.zeros(0, dtype))
-    return {"seq": rows["seq"], "t_mono": rows["t_mono"], "t_wall": rows["t_wall"], "flags": rows["flags"],
-            "values": rows["values"], "gaps": gaps_of(rows["seq"]), "stream": head["stream"],
-            "frame": head.get("frame", head["stream"])}
+    rows = np.memmap(part, dtype=dtype, mode="r", offset=len(line), shape=(n,)) if n else np.zeros(0, dtype)
+    return {
+        "seq": rows["seq"],
+        "t_mono": rows["t_mono"],
+        "t_wall": rows["t_wall"],
+        "flags": rows["flags"],
+        "values": rows["values"],
+        "gaps": gaps_of(rows["seq"]),
+        "stream": head["stream"],
+        "frame": head.get("frame", head["stream"]),
+    }
 
 
 def gaps_of(seq: np.ndarray) -> int:
     """Sequence numbers skipped, counted a chunk at a time (overlapping by one)."""
     gaps = 0
     for i in range(0, max(len(seq) - 1, 0), CHUNK_ROWS):
-        steps = np.diff(np.asarray(seq[i:i + CHUNK_ROWS + 1], dtype=np.int64))
+        steps = np.diff(np.asarray(seq[i : i + CHUNK_ROWS + 1], dtype=np.int64))
         gaps += int(np.sum(steps[steps > 1] - 1))
     return gaps
 
@@ -111,10 +137,15 @@ def finish_npz(part: str | Path, npz: str | Path | None = None) -> int:
         for key, value in data.items():
             column = np.asarray(value) if not isinstance(value, np.ndarray) else value
             with zf.open(f"{key}.npy", "w", force_zip64=True) as f:
-                header = {"descr": np.lib.format.dtype_to_descr(column.dtype), "fortran_order": False,
-                          "shape": column.shape}
+                header = {
+                    "descr": np.lib.format.dtype_to_descr(column.dtype),
+                    "fortran_order": False,
+                    "shape": column.shape,
+                }
                 np.lib.format.write_array_header_2_0(f, header)
                 for i in range(0, max(len(column), 1) if column.ndim else 1, CHUNK_ROWS):
-                    f.write(np.ascontiguousarray(column[i:i + CHUNK_ROWS] if column.ndim else column).tobytes())
+                    f.write(
+                        np.ascontiguousarray(column[i : i + CHUNK_ROWS] if column.ndim else column).tobytes()
+                    )
     part.unlink()
     return len(data["seq"])

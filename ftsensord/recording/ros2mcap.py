@@ -35,20 +35,36 @@ _VECTOR3 = "MSG: geometry_msgs/Vector3\nfloat64 x\nfloat64 y\nfloat64 z"
 
 #: ROS 2 message definitions as rosbag2 stores them: the type, then each dependency.
 SCHEMAS = {
-    "geometry_msgs/msg/WrenchStamped": _SEP.join([
-        "std_msgs/Header header\ngeometry_msgs/Wrench wrench",
-        "MSG: geometry_msgs/Wrench\ngeometry_msgs/Vector3 force\ngeometry_msgs/Vector3 torque",
-        _VECTOR3, _HEADER, _TIME]),
-    "sensor_msgs/msg/MagneticField": _SEP.join([
-        "std_msgs/Header header\ngeometry_msgs/Vector3 magnetic_field\nfloat64[9] magnetic_field_covariance",
-        _VECTOR3, _HEADER, _TIME]),
-    "ftsensord_msgs/msg/SampleStatus": _SEP.join([
-        ("# One ftsensord sample's bookkeeping (ftsensord.protocol.wire).\n"
-         "std_msgs/Header header\n"
-         "uint64 seq     # the stream's sequence number: it counts the daemon's cycles\n"
-         "uint32 flags   # FLAG_* bits: chip_missing 1, saturated 2, stale 4, overload 8, degraded 16, ...\n"
-         "uint32 missed  # sequence numbers not received between the previous sample and this one"),
-        _HEADER, _TIME]),
+    "geometry_msgs/msg/WrenchStamped": _SEP.join(
+        [
+            "std_msgs/Header header\ngeometry_msgs/Wrench wrench",
+            "MSG: geometry_msgs/Wrench\ngeometry_msgs/Vector3 force\ngeometry_msgs/Vector3 torque",
+            _VECTOR3,
+            _HEADER,
+            _TIME,
+        ]
+    ),
+    "sensor_msgs/msg/MagneticField": _SEP.join(
+        [
+            "std_msgs/Header header\ngeometry_msgs/Vector3 magnetic_field\nfloat64[9] magnetic_field_covariance",
+            _VECTOR3,
+            _HEADER,
+            _TIME,
+        ]
+    ),
+    "ftsensord_msgs/msg/SampleStatus": _SEP.join(
+        [
+            (
+                "# One ftsensord sample's bookkeeping (ftsensord.protocol.wire).\n"
+                "std_msgs/Header header\n"
+                "uint64 seq     # the stream's sequence number: it counts the daemon's cycles\n"
+                "uint32 flags   # FLAG_* bits: chip_missing 1, saturated 2, stale 4, overload 8, degraded 16, ...\n"
+                "uint32 missed  # sequence numbers not received between the previous sample and this one"
+            ),
+            _HEADER,
+            _TIME,
+        ]
+    ),
 }
 WRENCH, FLUX, STATUS = SCHEMAS
 
@@ -117,7 +133,14 @@ def ros2_messages(sample: wire.Sample, frame: str, last_seq: int | None) -> list
         sensor = sample.topic.split("/", 1)[-1]
         for i in range(len(sample.values) // 3):
             chip_frame = f"{sensor}/chip{i}"
-            out.append((f"{topic}/chip{i}", FLUX, chip_frame, encode_field(t, chip_frame, sample.values[3 * i:3 * i + 3])))
+            out.append(
+                (
+                    f"{topic}/chip{i}",
+                    FLUX,
+                    chip_frame,
+                    encode_field(t, chip_frame, sample.values[3 * i : 3 * i + 3]),
+                )
+            )
     missed = missed_since(last_seq, sample.seq)
     out.append((f"{topic}/status", STATUS, frame, encode_status(t, frame, sample.seq, sample.flags, missed)))
     return out
@@ -130,21 +153,26 @@ class McapWriter:
         try:
             from mcap.writer import CompressionType, Writer
         except ImportError as exc:
-            raise ConfigError("recording MCAP needs the mcap package: pip install 'ftsensord[record]'") from exc
+            raise ConfigError(
+                "recording MCAP needs the mcap package: pip install 'ftsensord[record]'"
+            ) from exc
         self.path, self.frames = Path(path), frames
         self.file = open(self.path, "wb")
         # zstd per chunk; a chunk is cut by time (flush), so its size bound rarely acts.
         self.writer = Writer(self.file, compression=CompressionType.ZSTD)
         self.writer.start(profile="ros2", library=f"ftsensord {__version__}")
-        self.schemas = {name: self.writer.register_schema(name, "ros2msg", text.encode())
-                        for name, text in SCHEMAS.items()}
+        self.schemas = {
+            name: self.writer.register_schema(name, "ros2msg", text.encode())
+            for name, text in SCHEMAS.items()
+        }
         self.channels: dict[str, int] = {}
         self.last_seq: dict[str, int] = {}
 
     def _channel(self, topic: str, schema: str, frame: str) -> int:
         if topic not in self.channels:
-            self.channels[topic] = self.writer.register_channel(topic, "cdr", self.schemas[schema],
-                                                                {"frame_id": frame})
+            self.channels[topic] = self.writer.register_channel(
+                topic, "cdr", self.schemas[schema], {"frame_id": frame}
+            )
         return self.channels[topic]
 
     def _add(self, topic: str, schema: str, frame: str, t_ns: int, seq: int, data: bytes) -> None:
@@ -155,7 +183,9 @@ class McapWriter:
         last = self.last_seq.get(sample.topic)
         self.last_seq[sample.topic] = sample.seq
         t_ns = round(sample.t_wall * 1e9)
-        for topic, schema, frame, data in ros2_messages(sample, self.frames.get(sample.topic, sample.topic), last):
+        for topic, schema, frame, data in ros2_messages(
+            sample, self.frames.get(sample.topic, sample.topic), last
+        ):
             self._add(topic, schema, frame, t_ns, sample.seq, data)
 
     def flush(self) -> None:
@@ -163,11 +193,15 @@ class McapWriter:
 
     def close(self, tallies: Mapping[str, Any]) -> None:
         """Write the summary (with each stream's samples, missed and frame as metadata)."""
-        self.writer.add_metadata("ftsensord", {
-            "version": __version__,
-            **{f"{s}.samples": str(t.samples) for s, t in tallies.items()},
-            **{f"{s}.missed": str(t.gaps) for s, t in tallies.items()},
-            **{f"{s}.frame": self.frames.get(s, s) for s in tallies}})
+        self.writer.add_metadata(
+            "ftsensord",
+            {
+                "version": __version__,
+                **{f"{s}.samples": str(t.samples) for s, t in tallies.items()},
+                **{f"{s}.missed": str(t.gaps) for s, t in tallies.items()},
+                **{f"{s}.frame": self.frames.get(s, s) for s in tallies},
+            },
+        )
         self.writer.finish()
         self.file.close()
 
@@ -197,11 +231,15 @@ def read_mcap(path: str | Path, decode: bool = True) -> Iterator[tuple[str, Any,
     factories = []
     if decode:
         from mcap_ros2.decoder import DecoderFactory
+
         factories = [DecoderFactory()]
     with open(path, "rb") as f:
         reader = NonSeekingReader(f, decoder_factories=factories)
-        messages = (reader.iter_decoded_messages(log_time_order=False) if decode
-                    else ((s, c, m, m.data) for s, c, m in reader.iter_messages(log_time_order=False)))
+        messages = (
+            reader.iter_decoded_messages(log_time_order=False)
+            if decode
+            else ((s, c, m, m.data) for s, c, m in reader.iter_messages(log_time_order=False))
+        )
         try:
             for _schema, channel, message, decoded in messages:
                 yield channel.topic, decoded, message.log_time
@@ -228,8 +266,9 @@ def recover_mcap(src: str | Path, dst: str | Path) -> int:
                 if isinstance(r, Schema):
                     schemas.setdefault(r.id, writer.register_schema(r.name, r.encoding, r.data))
                 elif isinstance(r, Channel) and r.id not in channels:
-                    channels[r.id] = writer.register_channel(r.topic, r.message_encoding,
-                                                             schemas.get(r.schema_id, 0), r.metadata)
+                    channels[r.id] = writer.register_channel(
+                        r.topic, r.message_encoding, schemas.get(r.schema_id, 0), r.metadata
+                    )
                 elif isinstance(r, Message) and r.channel_id in channels:
                     writer.add_message(channels[r.channel_id], r.log_time, r.data, r.publish_time, r.sequence)
                     kept += 1

@@ -58,8 +58,10 @@ def wait_for_status(control: Any, stopped: Callable[[], bool], timeout_s: float)
                 return status
         except FtsensordError as exc:
             if time.monotonic() > end:
-                raise ConfigError(f"no daemon answered on {control.endpoint} in {timeout_s:g} s (--timeout); "
-                                  f"the last request: {exc}") from exc
+                raise ConfigError(
+                    f"no daemon answered on {control.endpoint} in {timeout_s:g} s (--timeout); "
+                    f"the last request: {exc}"
+                ) from exc
         if time.monotonic() > end:
             raise ConfigError(f"the daemon on {control.endpoint} publishes no stream yet")
         time.sleep(0.2)
@@ -77,15 +79,25 @@ def tare(control: str) -> tuple[bool, str]:
         return False, f"tare refused: {exc}"
     return True, "tared " + ", ".join(
         f"{n} on {result['samples']} samples (removed " + " ".join(f"{v:+.4g}" for v in w) + " N, Nm)"
-        for n, w in result["tare_wrench"].items())
+        for n, w in result["tare_wrench"].items()
+    )
 
 
 class Bridge:
     """The streams of the daemon on ``endpoint`` (its ``status`` asked of ``control``) on DDS
     domain ``domain_id``, until ``stopped()``."""
 
-    def __init__(self, namespace: str, domain_id: int, endpoint: str, control: ControlClient, status: dict[str, Any],
-                 orientation: str | None, stopped: Callable[[], bool], realtime: int = 0):
+    def __init__(
+        self,
+        namespace: str,
+        domain_id: int,
+        endpoint: str,
+        control: ControlClient,
+        status: dict[str, Any],
+        orientation: str | None,
+        stopped: Callable[[], bool],
+        realtime: int = 0,
+    ):
         from ftsensord.client import OrientationPublisher
         from ftsensord.recording.ros2mcap import frames_from_status
         from ftsensord.ros2.node import Ros2Node
@@ -126,7 +138,9 @@ class Bridge:
             status, why = self.control.status(), ""
         except FtsensordError as exc:
             status, why = None, str(exc)
-        self.node.publish_diagnostics(diagnostics.statuses(status, self.flags, self.namespace, why), time.time())
+        self.node.publish_diagnostics(
+            diagnostics.statuses(status, self.flags, self.namespace, why), time.time()
+        )
 
     def run(self, seconds: float | None = None) -> int:
         """Forward samples until ``stopped()`` (or ``seconds``); the number forwarded."""
@@ -139,8 +153,11 @@ class Bridge:
 
             refused = request_fifo(self.realtime).refused
             if refused:
-                log.warning("SCHED_FIFO %d for the forwarding refused (it runs at the normal priority): %s",
-                            self.realtime, refused)
+                log.warning(
+                    "SCHED_FIFO %d for the forwarding refused (it runs at the normal priority): %s",
+                    self.realtime,
+                    refused,
+                )
         sock = self.subscribe()
         try:
             while not self.stopped() and (end is None or time.monotonic() < end):
@@ -189,12 +206,17 @@ class Bridge:
         try:
             topic, kind, flags, seq, _, t_wall, values = wire.unpack(frame)
             if kind != wire.KIND_WRENCH or len(values) != WRENCH_BYTES:
-                raise WireError(f"kind {kind} with {len(values)} bytes of values, not a wrench's {WRENCH_BYTES}")
+                raise WireError(
+                    f"kind {kind} with {len(values)} bytes of values, not a wrench's {WRENCH_BYTES}"
+                )
         except WireError as exc:
             self.bad_frames += 1
             if self.bad_frames == 1:
-                log.warning("a frame from %s is not a wrench sample, dropped (and any more, counted): %s",
-                            self.endpoint, exc)
+                log.warning(
+                    "a frame from %s is not a wrench sample, dropped (and any more, counted): %s",
+                    self.endpoint,
+                    exc,
+                )
             return None
         self.node.publish_wrench(topic, t_wall, values)
         return topic, t_wall, seq, flags
@@ -202,10 +224,16 @@ class Bridge:
 
 def cmd_ros2(args: argparse.Namespace) -> int:
     from ftsensord.client import ControlClient, default_endpoint
-    from ftsensord.recording import StopOnSignals
     from ftsensord.config.file import load_config
+    from ftsensord.config.ros2conf import (
+        Ros2Config,
+        check_domain_id,
+        default_domain_id,
+        is_ros_name,
+        needs_cyclonedds,
+    )
     from ftsensord.daemon.realtime import FIFO_PRIORITIES
-    from ftsensord.config.ros2conf import Ros2Config, check_domain_id, default_domain_id, is_ros_name, needs_cyclonedds
+    from ftsensord.recording import StopOnSignals
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     ros2, orientation = None, None
@@ -217,44 +245,84 @@ def cmd_ros2(args: argparse.Namespace) -> int:
     namespace = (args.namespace or (ros2 or Ros2Config()).namespace).strip("/")
     if not is_ros_name(namespace):
         raise ConfigError(f"--namespace: expected a ROS 2 name (letters, digits, _ and /), got {namespace!r}")
-    domain_id = (check_domain_id("--domain-id", args.domain_id) if args.domain_id is not None
-                 else ros2.domain_id if ros2 is not None else default_domain_id())
+    domain_id = (
+        check_domain_id("--domain-id", args.domain_id)
+        if args.domain_id is not None
+        else ros2.domain_id
+        if ros2 is not None
+        else default_domain_id()
+    )
     if args.realtime and args.realtime not in FIFO_PRIORITIES:
-        raise ConfigError(f"--realtime: expected a SCHED_FIFO priority from 1 to 99 (0: none), got {args.realtime}")
+        raise ConfigError(
+            f"--realtime: expected a SCHED_FIFO priority from 1 to 99 (0: none), got {args.realtime}"
+        )
     needs_cyclonedds("ftsensord ros2")
     with StopOnSignals() as stopped:  # from the start: a signal while it waits for the daemon stops it too
-        client = ControlClient(args.control or control, timeout_s=min(3.0, args.timeout))  # no request outlasts --timeout
+        client = ControlClient(
+            args.control or control, timeout_s=min(3.0, args.timeout)
+        )  # no request outlasts --timeout
         status = wait_for_status(client, stopped.is_set, args.timeout)
         if status is None:  # stopped before it was on the graph: nothing to undo
             return 130
-        bridge = Bridge(namespace, domain_id, args.endpoint or endpoint, client, status,
-                        args.orientation or orientation, stopped.is_set, args.realtime)
-        print(f"ftsensord: ROS 2 bridge on DDS domain {domain_id}: "
-              + ", ".join(f"/{namespace}/{s}" for s in bridge.streams) + f", /diagnostics, /{namespace}/tare",
-              flush=True)
+        bridge = Bridge(
+            namespace,
+            domain_id,
+            args.endpoint or endpoint,
+            client,
+            status,
+            args.orientation or orientation,
+            stopped.is_set,
+            args.realtime,
+        )
+        print(
+            f"ftsensord: ROS 2 bridge on DDS domain {domain_id}: "
+            + ", ".join(f"/{namespace}/{s}" for s in bridge.streams)
+            + f", /diagnostics, /{namespace}/tare",
+            flush=True,
+        )
         forwarded = bridge.run(args.seconds)
-    print(f"ftsensord ros2: {forwarded} samples forwarded, {bridge.node.write_errors} writes failed, "
-          f"{bridge.bad_frames} bad frames, "
-          f"inputs {bridge.node.received}", file=sys.stderr)
+    print(
+        f"ftsensord ros2: {forwarded} samples forwarded, {bridge.node.write_errors} writes failed, "
+        f"{bridge.bad_frames} bad frames, "
+        f"inputs {bridge.node.received}",
+        file=sys.stderr,
+    )
     return 0
 
 
 def add_parser(sub: Any) -> None:
     """The ``ros2`` command (`cli.parser` calls this)."""
-    p = sub.add_parser("ros2", help="put the wrench streams on the ROS 2 graph (DDS, no ROS install needed)",
-                       description="The daemon's wrench streams as geometry_msgs/msg/WrenchStamped topics, "
-                                   "/diagnostics, a tare service and orientation inputs, over Eclipse Cyclone "
-                                   "DDS (the ros2 extra). docs/guide/ros2.md.")
+    p = sub.add_parser(
+        "ros2",
+        help="put the wrench streams on the ROS 2 graph (DDS, no ROS install needed)",
+        description="The daemon's wrench streams as geometry_msgs/msg/WrenchStamped topics, "
+        "/diagnostics, a tare service and orientation inputs, over Eclipse Cyclone "
+        "DDS (the ros2 extra). docs/guide/ros2.md.",
+    )
     p.add_argument("--config", help="the daemon's configuration: its endpoints and [ros2] table")
     p.add_argument("--namespace", help="topic namespace (default: [ros2] namespace, else ftsensord)")
-    p.add_argument("--domain-id", type=int, help="DDS domain (default: [ros2] domain_id, else $ROS_DOMAIN_ID, else 0)")
-    p.add_argument("--endpoint", help="publish endpoint (default: the configuration's, else the running daemon's)")
-    p.add_argument("--control", help="control endpoint (default: the configuration's, else the running daemon's)")
-    p.add_argument("--orientation", help="the daemon's orientation endpoint (default: the configuration's; "
-                                         "none: orientations from ROS are not read)")
+    p.add_argument(
+        "--domain-id", type=int, help="DDS domain (default: [ros2] domain_id, else $ROS_DOMAIN_ID, else 0)"
+    )
+    p.add_argument(
+        "--endpoint", help="publish endpoint (default: the configuration's, else the running daemon's)"
+    )
+    p.add_argument(
+        "--control", help="control endpoint (default: the configuration's, else the running daemon's)"
+    )
+    p.add_argument(
+        "--orientation",
+        help="the daemon's orientation endpoint (default: the configuration's; "
+        "none: orientations from ROS are not read)",
+    )
     p.add_argument("--seconds", type=float, help="stop after this long (default: until SIGTERM or Ctrl-C)")
-    p.add_argument("--realtime", type=int, default=0, metavar="PRIORITY",
-                   help="SCHED_FIFO priority of the forwarding thread (0: none; `run` gives 1 under a real-time "
-                        "daemon: below the loop, above normal processes)")
+    p.add_argument(
+        "--realtime",
+        type=int,
+        default=0,
+        metavar="PRIORITY",
+        help="SCHED_FIFO priority of the forwarding thread (0: none; `run` gives 1 under a real-time "
+        "daemon: below the loop, above normal processes)",
+    )
     p.add_argument("--timeout", type=float, default=30.0, help="how long to wait for the daemon at start (s)")
     p.set_defaults(func=cmd_ros2)

@@ -16,8 +16,8 @@ import struct
 from itertools import chain
 from typing import Any
 
-from ftsensord.recording.ros2mcap import CDR_LE, stamp
 from ftsensord.protocol import wire
+from ftsensord.recording.ros2mcap import CDR_LE, stamp
 
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
 #: Chip states (`daemon.status`) and their levels: a chip being reset still answers the
@@ -33,7 +33,16 @@ RATE_SHARE = 0.95
 
 Status = tuple[int, str, str, str, list[tuple[str, str]]]  # level, name, message, hardware_id, values
 #: The daemon's own keys of the `status` reply its diagnostic status shows.
-DAEMON_KEYS = ["rate_hz", "achieved_rate_hz", "cycles", "missed_cycles", "late_cycles", "bus", "scheduler", "uptime_s"]
+DAEMON_KEYS = [
+    "rate_hz",
+    "achieved_rate_hz",
+    "cycles",
+    "missed_cycles",
+    "late_cycles",
+    "bus",
+    "scheduler",
+    "uptime_s",
+]
 
 
 def _values(d: dict[str, Any], keys: list[str]) -> list[tuple[str, str]]:
@@ -45,12 +54,18 @@ def daemon_status(status: dict[str, Any], namespace: str) -> Status:
     slow = achieved is not None and float(achieved) < RATE_SHARE * rate
     message = f"{achieved:.1f} of {rate:g} Hz" if achieved is not None else f"{rate:g} Hz"
     values = _values(status, DAEMON_KEYS)
-    return (WARN if slow else OK, f"{namespace}: daemon", message + (" (below the configured rate)" if slow else ""),
-            str(status.get("bus", "")), values)
+    return (
+        WARN if slow else OK,
+        f"{namespace}: daemon",
+        message + (" (below the configured rate)" if slow else ""),
+        str(status.get("bus", "")),
+        values,
+    )
 
 
-def sensor_status(name: str, s: dict[str, Any], chips: dict[str, dict[str, Any]], flags: int | None,
-                  namespace: str) -> Status:
+def sensor_status(
+    name: str, s: dict[str, Any], chips: dict[str, dict[str, Any]], flags: int | None, namespace: str
+) -> Status:
     """A sensor's status: the worst of its chips' levels and of its latest wrench's flags."""
     levels = [CHIP_LEVELS.get(str(c.get("state")), WARN) for c in chips.values()] or [OK]
     level = max(levels)
@@ -60,24 +75,48 @@ def sensor_status(name: str, s: dict[str, Any], chips: dict[str, dict[str, Any]]
     temperature = s.get("temperature") or {}
     if temperature.get("beyond_span"):
         level = max(level, WARN)
-    problems = wire.flag_names(shown) + (["temperature beyond the calibrated span"] if temperature.get("beyond_span") else [])
-    values = [*_values(s, ["serial", "frame", "tared", "estimator", "fallbacks", "calibration"]),
-              ("mean_temperature_c", str(temperature.get("mean_c"))),
-              ("flags", ",".join(wire.flag_names(flags or 0)) or "none"),
-              ("chips_ok", f"{sum(1 for c in chips.values() if c.get('state') == 'ok')} of {len(chips)}")]
+    problems = wire.flag_names(shown) + (
+        ["temperature beyond the calibrated span"] if temperature.get("beyond_span") else []
+    )
+    values = [
+        *_values(s, ["serial", "frame", "tared", "estimator", "fallbacks", "calibration"]),
+        ("mean_temperature_c", str(temperature.get("mean_c"))),
+        ("flags", ",".join(wire.flag_names(flags or 0)) or "none"),
+        ("chips_ok", f"{sum(1 for c in chips.values() if c.get('state') == 'ok')} of {len(chips)}"),
+    ]
     return (level, f"{namespace}: {name}", ", ".join(problems) or "OK", str(s.get("serial", name)), values)
 
 
 def chip_status(address: str, c: dict[str, Any], namespace: str) -> Status:
     state = str(c.get("state"))
     message = state if not c.get("last_error") else f"{state}: {c['last_error']}"
-    values = _values(c, ["sensor", "state", "errors", "saturated", "stale", "temperature_c", "reinits",
-                         "register_drifts", "stuck_detections", "last_error"])
-    return (CHIP_LEVELS.get(state, WARN), f"{namespace}: {c.get('sensor', '?')} chip {address}", message,
-            f"MLX90393 {address}", values)
+    values = _values(
+        c,
+        [
+            "sensor",
+            "state",
+            "errors",
+            "saturated",
+            "stale",
+            "temperature_c",
+            "reinits",
+            "register_drifts",
+            "stuck_detections",
+            "last_error",
+        ],
+    )
+    return (
+        CHIP_LEVELS.get(state, WARN),
+        f"{namespace}: {c.get('sensor', '?')} chip {address}",
+        message,
+        f"MLX90393 {address}",
+        values,
+    )
 
 
-def statuses(status: dict[str, Any] | None, flags: dict[str, int], namespace: str, why: str = "") -> list[Status]:
+def statuses(
+    status: dict[str, Any] | None, flags: dict[str, int], namespace: str, why: str = ""
+) -> list[Status]:
     """Every component's status from the daemon's ``status`` (None: it did not answer, ``why``:
     one STALE status); ``flags``: each sensor's latest wrench's flags, by sensor name."""
     if status is None:
@@ -112,7 +151,7 @@ class Encoder:
     def add(self, count: int) -> bool:
         """The next ``count`` statuses encoded; whether every status is now."""
         parts, at, pack = self.parts, self.at, _U32.pack
-        for level, name, message, hardware_id, values in self.statuses[self.done:self.done + count]:
+        for level, name, message, hardware_id, values in self.statuses[self.done : self.done + count]:
             parts.append(_OCTET[level])
             at += 1
             # None: where the values' count goes, a uint32 alone (one loop: the per-string

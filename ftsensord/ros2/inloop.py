@@ -28,17 +28,17 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ftsensord.errors import ConfigError
-from ftsensord.recording.ros2mcap import missed_since, stamp, status_body
-from ftsensord.protocol import orientation as wire_orientation
 from ftsensord.daemon.status import health_reply, stream_frames
+from ftsensord.errors import ConfigError
+from ftsensord.protocol import orientation as wire_orientation
+from ftsensord.recording.ros2mcap import missed_since, stamp, status_body
 from ftsensord.ros2 import diagnostics
 from ftsensord.ros2.bridge import DIAGNOSTICS_S, READERS_S, WRENCH_BYTES, tare
 
 if TYPE_CHECKING:
+    from ftsensord.config.ros2conf import Ros2Config
     from ftsensord.daemon.daemon import Daemon
     from ftsensord.processing.pipeline import SensorSample
-    from ftsensord.config.ros2conf import Ros2Config
     from ftsensord.ros2.node import Ros2Node
 
 log = logging.getLogger("ftsensord.ros2")
@@ -92,7 +92,6 @@ class InLoop:
 
     def __init__(self, daemon: Daemon, ros2: Ros2Config):
         from cyclonedds._clayer import ddspy_write  # the C call DataWriter.write ends in (node.py)
-
         from cyclonedds.core import DDSException
 
         from ftsensord.ros2.node import Ros2Node
@@ -103,8 +102,10 @@ class InLoop:
         try:
             self.node = at_normal_policy(lambda: Ros2Node(ros2.namespace, ros2.domain_id, frames, oriented))
         except DDSException as exc:  # a bad CYCLONEDDS_URI, no usable interface: said, not a traceback
-            raise ConfigError(f"ros2: no DDS participant on domain {ros2.domain_id} "
-                              f"(CYCLONEDDS_URI={os.environ.get('CYCLONEDDS_URI', '')!r}): {exc}") from exc
+            raise ConfigError(
+                f"ros2: no DDS participant on domain {ros2.domain_id} "
+                f"(CYCLONEDDS_URI={os.environ.get('CYCLONEDDS_URI', '')!r}): {exc}"
+            ) from exc
         self.streams = {topic: Stream(self.node, topic) for topic in frames}
         self.read: tuple[Stream, ...] = ()  # streams whose wrench or status some reader reads
         self.flags: dict[str, int] = {}  # each sensor's (and the tip's) latest flags, for the diagnostics
@@ -113,8 +114,14 @@ class InLoop:
         self.write_errors = self.failures = 0
         self.ddspy_write = ddspy_write
 
-    def after_sends(self, seq: int, t_wall: float, samples: dict[str, SensorSample],
-                    tip: tuple[np.ndarray, int] | None, compensated: list[tuple[str, int, np.ndarray]]) -> None:
+    def after_sends(
+        self,
+        seq: int,
+        t_wall: float,
+        samples: dict[str, SensorSample],
+        tip: tuple[np.ndarray, int] | None,
+        compensated: list[tuple[str, int, np.ndarray]],
+    ) -> None:
         """A cycle's wrenches (N, Nm, each in its stream's frame), stamped ``t_wall`` (UNIX s), to
         the DDS readers; then, when due, readers, diagnostics and inputs. What fails in DDS is
         counted (the first logged), never raised into the loop: the ZeroMQ streams go on, as
@@ -126,8 +133,14 @@ class InLoop:
             if self.failures == 1:
                 log.error("the ROS 2 output failed (and any more failures, counted): %r", exc)
 
-    def _after_sends(self, seq: int, t_wall: float, samples: dict[str, SensorSample],
-                     tip: tuple[np.ndarray, int] | None, compensated: list[tuple[str, int, np.ndarray]]) -> None:
+    def _after_sends(
+        self,
+        seq: int,
+        t_wall: float,
+        samples: dict[str, SensorSample],
+        tip: tuple[np.ndarray, int] | None,
+        compensated: list[tuple[str, int, np.ndarray]],
+    ) -> None:
         time_bytes = _TIME.pack(*stamp(t_wall))
         for name, s in samples.items():
             self.flags[name] = s.flags
@@ -154,38 +167,48 @@ class InLoop:
                 self.pending = None
         elif now >= self.due:
             self.due = max(self.due + DIAGNOSTICS_S, now)
-            self.pending = diagnostics.Encoder(diagnostics.statuses(health_reply(self.daemon), self.flags,
-                                                                    self.namespace))
+            self.pending = diagnostics.Encoder(
+                diagnostics.statuses(health_reply(self.daemon), self.flags, self.namespace)
+            )
         self.node.serve(0.0, self.on_orientation, self.on_tare)
 
-    def write(self, stream: Stream, seq: int, last: int | None, time_bytes: bytes, flags: int,
-              values: np.ndarray) -> None:
+    def write(
+        self, stream: Stream, seq: int, last: int | None, time_bytes: bytes, flags: int, values: np.ndarray
+    ) -> None:
         """One stream's WrenchStamped and SampleStatus (``last``: its previous seq) on the
         writers some reader reads."""
         ddspy_write = self.ddspy_write
         if stream.wrench_writer in self.node.read:
             buf = stream.wrench
-            buf[STAMP_AT:STAMP_AT + 8] = time_bytes
-            buf[stream.values_at:] = values.astype("<f8", copy=False).tobytes()
+            buf[STAMP_AT : STAMP_AT + 8] = time_bytes
+            buf[stream.values_at :] = values.astype("<f8", copy=False).tobytes()
             if ddspy_write(stream.wrench_ref, buf) < 0:
                 self.write_errors += 1  # counted: the next sample is the newer one anyway
         if stream.status_writer in self.node.read:
             buf = stream.status
-            buf[STAMP_AT:STAMP_AT + 8] = time_bytes
-            buf[stream.body_at:] = status_body(seq, flags, missed_since(last, seq))
+            buf[STAMP_AT : STAMP_AT + 8] = time_bytes
+            buf[stream.body_at :] = status_body(seq, flags, missed_since(last, seq))
             if ddspy_write(stream.status_ref, buf) < 0:
                 self.write_errors += 1
 
     def status(self) -> dict[str, Any]:
         """The `status` reply's part (``outputs``): what an operator checks when ROS sees nothing."""
-        return {"output": "in-loop", "namespace": self.namespace, "domain_id": self.domain_id,
-                "streams_read": sorted(s.topic for s in self.read), "write_errors": self.write_errors,
-                "failures": self.failures}
+        return {
+            "output": "in-loop",
+            "namespace": self.namespace,
+            "domain_id": self.domain_id,
+            "streams_read": sorted(s.topic for s in self.read),
+            "write_errors": self.write_errors,
+            "failures": self.failures,
+        }
 
     def find_readers(self) -> None:
         self.node.find_readers()
-        self.read = tuple(s for s in self.streams.values()
-                          if s.wrench_writer in self.node.read or s.status_writer in self.node.read)
+        self.read = tuple(
+            s
+            for s in self.streams.values()
+            if s.wrench_writer in self.node.read or s.status_writer in self.node.read
+        )
 
     def on_orientation(self, frame: str, q_xyzw: list[float], t: float) -> None:
         """As the orientation socket's message: the receiver checks the frame and the rotation."""
@@ -204,4 +227,3 @@ class InLoop:
         except OSError:
             pass  # left at the loop's policy: it waits on a socket almost all the time
         return tare(self.daemon.config.control)
-

@@ -26,7 +26,18 @@ import typing
 from dataclasses import dataclass, field, fields
 
 from cyclonedds.idl import IdlStruct
-from cyclonedds.idl.types import array, bounded_str, byte, float64, int32, int64, sequence, uint8, uint32, uint64
+from cyclonedds.idl.types import (
+    array,
+    bounded_str,
+    byte,
+    float64,
+    int32,
+    int64,
+    sequence,
+    uint8,
+    uint32,
+    uint64,
+)
 
 
 def _ros_name(cls: type) -> str:
@@ -130,6 +141,7 @@ class TriggerResponse(IdlStruct, typename="std_srvs::srv::dds_::Trigger_Response
 @dataclass
 class TriggerRequestWire(IdlStruct, typename="std_srvs::srv::dds_::Trigger_Request_"):
     """A Trigger request as rmw_cyclonedds sends it: the request header, then the request."""
+
     guid: uint64 = 0
     seq: int64 = 0
     structure_needs_at_least_one_member: uint8 = 0
@@ -138,6 +150,7 @@ class TriggerRequestWire(IdlStruct, typename="std_srvs::srv::dds_::Trigger_Reque
 @dataclass
 class TriggerResponseWire(IdlStruct, typename="std_srvs::srv::dds_::Trigger_Response_"):
     """A Trigger response as rmw_cyclonedds sends it: the request's header, then the response."""
+
     guid: uint64 = 0
     seq: int64 = 0
     success: bool = False
@@ -145,8 +158,22 @@ class TriggerResponseWire(IdlStruct, typename="std_srvs::srv::dds_::Trigger_Resp
 
 
 #: type_description_interfaces/msg/FieldType's ids of the primitive types used here.
-_TYPE_IDS = {"int8": 2, "uint8": 3, "int16": 4, "uint16": 5, "int32": 6, "uint32": 7, "int64": 8, "uint64": 9,
-             "float32": 10, "float64": 11, "char": 13, "bool": 15, "byte": 16, "str": 17}
+_TYPE_IDS = {
+    "int8": 2,
+    "uint8": 3,
+    "int16": 4,
+    "uint16": 5,
+    "int32": 6,
+    "uint32": 7,
+    "int64": 8,
+    "uint64": 9,
+    "float32": 10,
+    "float64": 11,
+    "char": 13,
+    "bool": 15,
+    "byte": 16,
+    "str": 17,
+}
 _BOUNDED_STRING = 21
 _NESTED = 1
 #: FieldType adds these to a type id for a fixed array, a bounded and an unbounded sequence.
@@ -169,14 +196,29 @@ def _field_type(hint: object, ros_type: str | None = None) -> tuple[dict[str, ob
         hint = holder.subtype
         args = typing.get_args(hint)
     if isinstance(hint, type) and issubclass(hint, IdlStruct):
-        return ({"type_id": _NESTED + offset, "capacity": capacity, "string_capacity": 0,
-                 "nested_type_name": _ros_name(hint)}, hint)
+        return (
+            {
+                "type_id": _NESTED + offset,
+                "capacity": capacity,
+                "string_capacity": 0,
+                "nested_type_name": _ros_name(hint),
+            },
+            hint,
+        )
     if args and isinstance(args[1], bounded_str):  # string<=N
-        return {"type_id": _BOUNDED_STRING + offset, "capacity": capacity, "string_capacity": args[1].max_length,
-                "nested_type_name": ""}, None
+        return {
+            "type_id": _BOUNDED_STRING + offset,
+            "capacity": capacity,
+            "string_capacity": args[1].max_length,
+            "nested_type_name": "",
+        }, None
     name = ros_type or (args[1] if args else hint.__name__)  # type: ignore[attr-defined]
-    return {"type_id": _TYPE_IDS[name] + offset, "capacity": capacity, "string_capacity": 0,
-            "nested_type_name": ""}, None
+    return {
+        "type_id": _TYPE_IDS[name] + offset,
+        "capacity": capacity,
+        "string_capacity": 0,
+        "nested_type_name": "",
+    }, None
 
 
 def _describe(cls: type) -> tuple[dict[str, object], list[type]]:
@@ -212,6 +254,7 @@ def type_hash(cls: type) -> str:
 @dataclass
 class SampleStatus(IdlStruct, typename="ftsensord_msgs::msg::dds_::SampleStatus_"):
     """One sample's bookkeeping, as in MCAP recordings (`recording.ros2mcap.SCHEMAS`)."""
+
     header: Header = field(default_factory=Header)
     seq: uint64 = 0
     flags: uint32 = 0
@@ -223,6 +266,7 @@ class Gid(IdlStruct, typename="rmw_dds_common::msg::dds_::Gid_"):
     """rmw_dds_common/msg/Gid since Iron: ``char[16] data``, a DDS GUID's 16 bytes (Humble's is
     char[24]). A char is one byte on the wire; uint8 here (the binding's char takes 0-127 only),
     hashed as the .msg's char."""
+
     ROS_TYPES = {"data": "char"}  # not annotated: a class attribute, no IDL member
     data: array[uint8, 16] = field(default_factory=lambda: [0] * 16)
 
@@ -239,5 +283,6 @@ class NodeEntitiesInfo(IdlStruct, typename="rmw_dds_common::msg::dds_::NodeEntit
 class ParticipantEntitiesInfo(IdlStruct, typename="rmw_dds_common::msg::dds_::ParticipantEntitiesInfo_"):
     """What every ROS 2 participant says on ``ros_discovery_info``: its GID and its nodes'
     names and endpoints' GIDs (how ``ros2 node list`` finds nodes)."""
+
     gid: Gid = field(default_factory=Gid)
     node_entities_info_seq: sequence[NodeEntitiesInfo] = field(default_factory=list)

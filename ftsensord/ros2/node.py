@@ -28,7 +28,16 @@ from typing import Any
 # ddspy_write: the C call DataWriter.write ends in, given the CDR bytes (the extra pins the
 # binding's major version for it; tests/test_ros2.py checks the bytes against its serializer).
 from cyclonedds._clayer import ddspy_write
-from cyclonedds.core import DDSException, InstanceState, Policy, Qos, ReadCondition, SampleState, ViewState, WaitSet
+from cyclonedds.core import (
+    DDSException,
+    InstanceState,
+    Policy,
+    Qos,
+    ReadCondition,
+    SampleState,
+    ViewState,
+    WaitSet,
+)
 from cyclonedds.domain import Domain, DomainParticipant
 from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
@@ -60,9 +69,11 @@ REPLY_MATCH_S = 1.0
 #: remote type before it matches, and never does (its type lookup returns a complete type
 #: object whose collection element flags Cyclone's validation rejects, "invalid type
 #: object", and never the minimal one it asked for): such a reader was never matched.
-FAST_DDS_TYPES_IGNORED = ("<CycloneDDS><Domain Id='any'><Compatibility>"
-                          "<IgnoreTypeInformation>1.15</IgnoreTypeInformation>"
-                          "</Compatibility></Domain></CycloneDDS>")
+FAST_DDS_TYPES_IGNORED = (
+    "<CycloneDDS><Domain Id='any'><Compatibility>"
+    "<IgnoreTypeInformation>1.15</IgnoreTypeInformation>"
+    "</Compatibility></Domain></CycloneDDS>"
+)
 #: The domains made here, by id: kept for the process's life (deleting a Domain deletes every
 #: participant in it, another node's too).
 _domains: dict[int, Domain] = {}
@@ -90,17 +101,25 @@ def writer_qos(cls: type, extra: str = "", latched: bool = False) -> Qos:
     """Reliable, volatile, keep last 10, XCDR1; USER_DATA ``<extra>typehash=RIHS01_...;``.
     ``latched``: transient-local, keep last 1 (``ros_discovery_info``'s, as the rmw's)."""
     durability = Policy.Durability.TransientLocal if latched else Policy.Durability.Volatile
-    return Qos(Policy.Reliability.Reliable(0), durability, Policy.History.KeepLast(1 if latched else DEPTH),
-               Policy.DataRepresentation(use_cdrv0_representation=True),
-               Policy.Userdata(f"{extra}typehash={msgs.type_hash(cls)};".encode()))
+    return Qos(
+        Policy.Reliability.Reliable(0),
+        durability,
+        Policy.History.KeepLast(1 if latched else DEPTH),
+        Policy.DataRepresentation(use_cdrv0_representation=True),
+        Policy.Userdata(f"{extra}typehash={msgs.type_hash(cls)};".encode()),
+    )
 
 
 def reader_qos(cls: type, reliable: bool, extra: str = "") -> Qos:
     """A reader's QoS: best effort matches every writer; reliable (a command) only reliable ones."""
     reliability = Policy.Reliability.Reliable(0) if reliable else Policy.Reliability.BestEffort
-    return Qos(reliability, Policy.Durability.Volatile, Policy.History.KeepLast(DEPTH if reliable else 1),
-               Policy.DataRepresentation(use_cdrv0_representation=True),
-               Policy.Userdata(f"{extra}typehash={msgs.type_hash(cls)};".encode()))
+    return Qos(
+        reliability,
+        Policy.Durability.Volatile,
+        Policy.History.KeepLast(DEPTH if reliable else 1),
+        Policy.DataRepresentation(use_cdrv0_representation=True),
+        Policy.Userdata(f"{extra}typehash={msgs.type_hash(cls)};".encode()),
+    )
 
 
 class Ros2Node:
@@ -124,26 +143,34 @@ class Ros2Node:
         ns = f"/{namespace}"
         self.inputs: list[tuple[DataReader, str, str]] = []  # reader, kind, frame
         for frame in orientation_frames:
-            self.inputs.append((self._reader(f"rt{ns}/orientation/{frame}", msgs.QuaternionStamped), "quat", frame))
+            self.inputs.append(
+                (self._reader(f"rt{ns}/orientation/{frame}", msgs.QuaternionStamped), "quat", frame)
+            )
             self.inputs.append((self._reader(f"rt{ns}/imu/{frame}", msgs.Imu), "imu", frame))
         self.inputs.append((self._reader(f"rt{ns}/tare", msgs.Empty, reliable=True), "tare", ""))
         # rmw_cyclonedds pairs a service's reader and writer by this id (check_for_service_reader_writer).
         serviceid = "serviceid=" + ".".join(f"{b:x}" for b in self.participant.guid.bytes) + ";"
-        self.requests = DataReader(self.participant, Topic(self.participant, f"rq{ns}/tareRequest",
-                                                           msgs.TriggerRequestWire),
-                                   reader_qos(msgs.TriggerRequest, True, serviceid))
-        self.replies = DataWriter(self.participant, Topic(self.participant, f"rr{ns}/tareReply",
-                                                          msgs.TriggerResponseWire),
-                                  writer_qos(msgs.TriggerResponse, serviceid))
+        self.requests = DataReader(
+            self.participant,
+            Topic(self.participant, f"rq{ns}/tareRequest", msgs.TriggerRequestWire),
+            reader_qos(msgs.TriggerRequest, True, serviceid),
+        )
+        self.replies = DataWriter(
+            self.participant,
+            Topic(self.participant, f"rr{ns}/tareReply", msgs.TriggerResponseWire),
+            writer_qos(msgs.TriggerResponse, serviceid),
+        )
         self.inputs.append((self.requests, "service", ""))
         self.waitset = WaitSet(self.participant)
         for reader, _, _ in self.inputs:
             self.waitset.attach(ReadCondition(reader, SampleState.Any | ViewState.Any | InstanceState.Any))
         self.received: dict[str, int] = {"orientation": 0, "imu_without_orientation": 0, "tare": 0}
         self.taring = threading.Lock()
-        self.discovery = DataWriter(self.participant, Topic(self.participant, "ros_discovery_info",
-                                                            msgs.ParticipantEntitiesInfo),
-                                    writer_qos(msgs.ParticipantEntitiesInfo, latched=True))
+        self.discovery = DataWriter(
+            self.participant,
+            Topic(self.participant, "ros_discovery_info", msgs.ParticipantEntitiesInfo),
+            writer_qos(msgs.ParticipantEntitiesInfo, latched=True),
+        )
         self.announce()
 
     def announce(self) -> None:
@@ -154,12 +181,14 @@ class Ros2Node:
         name is not prefixed (avoid_ros_namespace_conventions); reliable, transient-local, keep
         last 1: a node that starts later still reads it. Written again when a stream's writers
         are made later. Iron and later (their Gid is 16 bytes; Humble's 24)."""
+
         def gid(entity: Any) -> msgs.Gid:
             return msgs.Gid(list(entity.get_guid().bytes))
 
         writers = [w for ws in self.writers.values() for w in ws[:2]] + [self.diagnostics, self.replies]
-        node = msgs.NodeEntitiesInfo("/" + self.namespace, NODE_NAME, [gid(r) for r, _, _ in self.inputs],
-                                     [gid(w) for w in writers])
+        node = msgs.NodeEntitiesInfo(
+            "/" + self.namespace, NODE_NAME, [gid(r) for r, _, _ in self.inputs], [gid(w) for w in writers]
+        )
         self.discovery.write(msgs.ParticipantEntitiesInfo(gid(self.participant), [node]))
 
     def _writer(self, topic: str, cls: type) -> DataWriter:
@@ -169,8 +198,12 @@ class Ros2Node:
         """Which sample writers a reader matches now. Asked (the bridge: five times a second),
         not told by a matched listener: Cyclone runs a listener in its own thread, which
         then waits for the GIL, and deleting an entity waits for its listeners."""
-        self.read = {w for ws in self.writers.values() for w in ws[:2]
-                     if w.get_publication_matched_status().current_count > 0}
+        self.read = {
+            w
+            for ws in self.writers.values()
+            for w in ws[:2]
+            if w.get_publication_matched_status().current_count > 0
+        }
 
     def _reader(self, topic: str, cls: type, reliable: bool = False) -> DataReader:
         return DataReader(self.participant, Topic(self.participant, topic, cls), reader_qos(cls, reliable))
@@ -178,9 +211,11 @@ class Ros2Node:
     def _writers(self, stream: str) -> tuple[DataWriter, DataWriter, Stamped]:
         if stream not in self.writers:
             topic = f"rt/{self.namespace}/{stream}"
-            self.writers[stream] = (self._writer(topic, msgs.WrenchStamped),
-                                    self._writer(topic + "/status", msgs.SampleStatus),
-                                    Stamped(self.frames.get(stream, stream)))
+            self.writers[stream] = (
+                self._writer(topic, msgs.WrenchStamped),
+                self._writer(topic + "/status", msgs.SampleStatus),
+                Stamped(self.frames.get(stream, stream)),
+            )
             if hasattr(self, "discovery"):  # a stream the daemon's status did not have at start
                 self.announce()
         return self.writers[stream]
@@ -214,8 +249,12 @@ class Ros2Node:
         """A DiagnosticArray's CDR bytes (`diagnostics.Encoder`'s message) on /diagnostics."""
         self._write(self.diagnostics, cdr)
 
-    def serve(self, timeout_s: float, on_orientation: Callable[[str, list[float], float], None],
-              on_tare: Callable[[], tuple[bool, str]]) -> None:
+    def serve(
+        self,
+        timeout_s: float,
+        on_orientation: Callable[[str, list[float], float], None],
+        on_tare: Callable[[], tuple[bool, str]],
+    ) -> None:
         """Wait for input up to ``timeout_s`` and handle what came: orientations at once,
         each tare in a thread of its own (it takes the tare's samples to answer). ``timeout_s`` 0:
         asked without waiting (the in-loop output, each cycle: about a microsecond when nothing came)."""
@@ -230,9 +269,15 @@ class Ros2Node:
                 except (DDSException, ValueError, TypeError) as exc:
                     log.warning("%s input on %s dropped: %s", kind, reader.topic.name, exc)
 
-    def _handle(self, reader: DataReader, kind: str, frame: str, msg: Any,
-                on_orientation: Callable[[str, list[float], float], None],
-                on_tare: Callable[[], tuple[bool, str]]) -> None:
+    def _handle(
+        self,
+        reader: DataReader,
+        kind: str,
+        frame: str,
+        msg: Any,
+        on_orientation: Callable[[str, list[float], float], None],
+        on_tare: Callable[[], tuple[bool, str]],
+    ) -> None:
         if kind in ("quat", "imu"):
             q = msg.quaternion if kind == "quat" else msg.orientation
             # sensor_msgs/Imu: orientation_covariance[0] = -1 says the IMU gives no orientation.
@@ -240,11 +285,16 @@ class Ros2Node:
                 self.received["imu_without_orientation"] += 1
                 return
             self.received["orientation"] += 1
-            on_orientation(frame, [q.x, q.y, q.z, q.w], msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
+            on_orientation(
+                frame, [q.x, q.y, q.z, q.w], msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+            )
         else:
             self.received["tare"] += 1
-            clientid = None if kind == "tare" else self._clientid(
-                reader.get_matched_publication_data(msg.sample_info.publication_handle))
+            clientid = (
+                None
+                if kind == "tare"
+                else self._clientid(reader.get_matched_publication_data(msg.sample_info.publication_handle))
+            )
             reply = None if kind == "tare" else (msg.guid, msg.seq, clientid)
             # One tare at a time (the daemon refuses a second anyway): a flood of requests
             # is answered at once, never a thread each.
@@ -262,7 +312,9 @@ class Ros2Node:
         found = [part.split("=", 1)[1] for part in data.split(";") if part.startswith("clientid=")]
         return found[0] if found else None
 
-    def _tare(self, reply: tuple[int, int, str | None] | None, on_tare: Callable[[], tuple[bool, str]]) -> None:
+    def _tare(
+        self, reply: tuple[int, int, str | None] | None, on_tare: Callable[[], tuple[bool, str]]
+    ) -> None:
         try:
             ok, text = on_tare()
         finally:
@@ -275,7 +327,8 @@ class Ros2Node:
         if clientid is not None:
             end = time.monotonic() + REPLY_MATCH_S
             while time.monotonic() < end and not any(
-                    self._clientid(self.replies.get_matched_subscription_data(h)) == clientid
-                    for h in self.replies.get_matched_subscriptions()):
+                self._clientid(self.replies.get_matched_subscription_data(h)) == clientid
+                for h in self.replies.get_matched_subscriptions()
+            ):
                 time.sleep(0.01)
         self.replies.write(msgs.TriggerResponseWire(guid, seq, ok, text))

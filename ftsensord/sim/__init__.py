@@ -20,6 +20,22 @@ from ftsensord.sim.faults import Fault, FaultScript
 from ftsensord.sim.physics import PhysicalScene, SimSensor, two_sensor_scene
 from ftsensord.sim.scene import StaticScene, default_scene, load_scene
 
-__all__ = ["Fault", "FaultScript", "BusFaults", "EmulatedMLX90393", "FieldSource", "MonotonicClock", "NOISELESS", "NoiseModel",
-           "PhysicalScene", "SimSensor", "SimulatedBus", "StaticScene", "VirtualClock", "default_scene",
-           "load_scene", "simulated_bus", "two_sensor_scene"]
+__all__ = [
+    "Fault",
+    "FaultScript",
+    "BusFaults",
+    "EmulatedMLX90393",
+    "FieldSource",
+    "MonotonicClock",
+    "NOISELESS",
+    "NoiseModel",
+    "PhysicalScene",
+    "SimSensor",
+    "SimulatedBus",
+    "StaticScene",
+    "VirtualClock",
+    "default_scene",
+    "load_scene",
+    "simulated_bus",
+    "two_sensor_scene",
+]

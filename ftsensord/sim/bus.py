@@ -22,7 +22,6 @@ from __future__ import annotations
 import ctypes
 import errno
 from collections.abc import Iterable
-from dataclasses import dataclass, field
 
 import numpy as np
 from smbus2 import i2c_msg
@@ -32,7 +31,6 @@ from ftsensord.chip.i2c import ADAPTER_RULES, BITS_PER_BYTE, I2C_RDWR_MAX_MSGS, 
 from ftsensord.sim.chip import EmulatedMLX90393, FieldSource, NoiseModel
 from ftsensord.sim.clock import MonotonicClock, VirtualClock
 from ftsensord.sim.faults import BusFaults, FaultScript
-
 
 #: Default adapter: the most likely board is a Raspberry Pi 4 with its own driver.
 DEFAULT_ADAPTER = "bcm2835"
@@ -61,11 +59,18 @@ class SimulatedBus:
     ``transfers`` counts calls, ``refused`` those the adapter refused.
     """
 
-    def __init__(self, chips: Iterable[EmulatedMLX90393], *,
-                 clock: VirtualClock | MonotonicClock | None = None,
-                 bus_hz: float | None = None, nack_errno: int | None = None,
-                 script: FaultScript | None = None, adapter: str = DEFAULT_ADAPTER,
-                 ioctl_s: float = DEFAULT_IOCTL_S, clock_hz: float | None = None):
+    def __init__(
+        self,
+        chips: Iterable[EmulatedMLX90393],
+        *,
+        clock: VirtualClock | MonotonicClock | None = None,
+        bus_hz: float | None = None,
+        nack_errno: int | None = None,
+        script: FaultScript | None = None,
+        adapter: str = DEFAULT_ADAPTER,
+        ioctl_s: float = DEFAULT_IOCTL_S,
+        clock_hz: float | None = None,
+    ):
         if adapter not in ADAPTER_RULES:
             raise ValueError(f"adapter: expected one of {', '.join(ADAPTER_RULES)}, got {adapter!r}")
         self.chips: dict[int, EmulatedMLX90393] = {}
@@ -133,10 +138,14 @@ class SimulatedBus:
                 bits += 1 + BITS_PER_BYTE  # (repeated) start and the address byte
                 now = start + bits * bit_s
                 chip = self.chips.get(msg.addr)
-                if chip is None or self.faults.take_nack(msg.addr) \
-                        or not chip.acks(now, reading=bool(msg.flags & I2C_M_RD)):
-                    raise OSError(self.nack_errno,
-                                  f"no ACK from 0x{msg.addr:02X} ({errno.errorcode[self.nack_errno]})")
+                if (
+                    chip is None
+                    or self.faults.take_nack(msg.addr)
+                    or not chip.acks(now, reading=bool(msg.flags & I2C_M_RD))
+                ):
+                    raise OSError(
+                        self.nack_errno, f"no ACK from 0x{msg.addr:02X} ({errno.errorcode[self.nack_errno]})"
+                    )
                 bits += BITS_PER_BYTE * msg.len
                 now = start + bits * bit_s
                 if msg.flags & I2C_M_RD:
@@ -161,12 +170,16 @@ class SimulatedBus:
         self.i2c_rdwr(read)
         return bytes(read)[0]
 
-    def write_i2c_block_data(self, i2c_addr: int, register: int, data: list[int], force: bool | None = None) -> None:
+    def write_i2c_block_data(
+        self, i2c_addr: int, register: int, data: list[int], force: bool | None = None
+    ) -> None:
         if len(data) > I2C_SMBUS_BLOCK_MAX:
             raise ValueError(f"Data length cannot exceed {I2C_SMBUS_BLOCK_MAX} bytes")
         self.i2c_rdwr(i2c_msg.write(i2c_addr, bytes([register, *data])))
 
-    def read_i2c_block_data(self, i2c_addr: int, register: int, length: int, force: bool | None = None) -> list[int]:
+    def read_i2c_block_data(
+        self, i2c_addr: int, register: int, length: int, force: bool | None = None
+    ) -> list[int]:
         if length > I2C_SMBUS_BLOCK_MAX:
             raise ValueError(f"Desired block length over {I2C_SMBUS_BLOCK_MAX} bytes")
         write, read = i2c_msg.write(i2c_addr, bytes([register])), i2c_msg.read(i2c_addr, length)
@@ -205,10 +218,17 @@ class SimulatedBus:
         return self.chips.pop(address)
 
 
-def simulated_bus(scene: FieldSource, *, clock: VirtualClock | MonotonicClock | None = None,
-                  bus_hz: float | None = None, seed: int | None = 0,
-                  noise: NoiseModel = NoiseModel(), adapter: str = DEFAULT_ADAPTER,
-                  ioctl_s: float = DEFAULT_IOCTL_S, clock_hz: float | None = None) -> SimulatedBus:
+def simulated_bus(
+    scene: FieldSource,
+    *,
+    clock: VirtualClock | MonotonicClock | None = None,
+    bus_hz: float | None = None,
+    seed: int | None = 0,
+    noise: NoiseModel = NoiseModel(),
+    adapter: str = DEFAULT_ADAPTER,
+    ioctl_s: float = DEFAULT_IOCTL_S,
+    clock_hz: float | None = None,
+) -> SimulatedBus:
     """A bus with one emulated chip per address of ``scene``, each drifting with its die
     temperature as the scene's part says (`PhysicalScene.chip_drift`; a static scene's do not).
 
@@ -221,9 +241,23 @@ def simulated_bus(scene: FieldSource, *, clock: VirtualClock | MonotonicClock | 
     addresses = scene.addresses
     streams = np.random.SeedSequence(seed).spawn(len(addresses))
     drift = getattr(scene, "chip_drift", None)  # a physical scene's parts drift with heat
-    chips = [EmulatedMLX90393(address, scene, rng=np.random.default_rng(stream), noise=noise,
-                              drift=None if drift is None else drift(address))
-             for address, stream in zip(addresses, streams)]
+    chips = [
+        EmulatedMLX90393(
+            address,
+            scene,
+            rng=np.random.default_rng(stream),
+            noise=noise,
+            drift=None if drift is None else drift(address),
+        )
+        for address, stream in zip(addresses, streams)
+    ]
     faults = getattr(scene, "faults", [])
-    return SimulatedBus(chips, clock=clock, bus_hz=bus_hz, script=FaultScript(faults) if faults else None,
-                        adapter=adapter, ioctl_s=ioctl_s, clock_hz=clock_hz)
+    return SimulatedBus(
+        chips,
+        clock=clock,
+        bus_hz=bus_hz,
+        script=FaultScript(faults) if faults else None,
+        adapter=adapter,
+        ioctl_s=ioctl_s,
+        clock_hz=clock_hz,
+    )

@@ -17,7 +17,6 @@ import enum
 import functools
 import math
 
-
 import numpy as np
 
 from ftsensord.chip import mlx90393 as mlx
@@ -25,8 +24,6 @@ from ftsensord.sim.conversion import NOISELESS, Conversions, FieldSource, NoiseM
 from ftsensord.sim.heat import ChipDrift
 
 __all__ = ["NOISELESS", "EmulatedMLX90393", "FieldSource", "Mode", "NoiseModel"]
-
-
 
 
 class Mode(enum.Enum):
@@ -124,10 +121,16 @@ class EmulatedMLX90393(RegisterCommands, Conversions):
     conversion times against nominal: the datasheet's +-20 % is 0.8 to 1.2; the slowest by default).
     """
 
-    def __init__(self, address: int, scene: FieldSource, *,
-                 rng: np.random.Generator | None = None,
-                 noise: NoiseModel = NoiseModel(),
-                 tref: int = mlx.TREF_TYPICAL, drift: ChipDrift | None = None):
+    def __init__(
+        self,
+        address: int,
+        scene: FieldSource,
+        *,
+        rng: np.random.Generator | None = None,
+        noise: NoiseModel = NoiseModel(),
+        tref: int = mlx.TREF_TYPICAL,
+        drift: ChipDrift | None = None,
+    ):
         mlx.part_variant(address)
         self.address = address
         self.scene = scene
@@ -171,8 +174,9 @@ class EmulatedMLX90393(RegisterCommands, Conversions):
         self._stuck_words: dict[str, int] | None = None
 
     def settings(self) -> mlx.Settings:
-        return _settings_of(self.registers[mlx.REG_CONF1], self.registers[mlx.REG_CONF2],
-                            self.registers[mlx.REG_CONF3])
+        return _settings_of(
+            self.registers[mlx.REG_CONF1], self.registers[mlx.REG_CONF2], self.registers[mlx.REG_CONF3]
+        )
 
     def acks(self, now: float, reading: bool = False) -> bool:
         """Whether the chip acknowledges its address.
@@ -217,9 +221,17 @@ class EmulatedMLX90393(RegisterCommands, Conversions):
             self.reply = self._status(error=True)
             return
         handler = {
-            mlx.CMD_SB: self._mode_start, mlx.CMD_SW: self._mode_start, mlx.CMD_SM: self._mode_start,
-            mlx.CMD_RM: self._rm, mlx.CMD_RR: self._rr, mlx.CMD_WR: self._wr, mlx.CMD_EX: self._ex,
-            mlx.CMD_HR: self._hr, mlx.CMD_HS: self._hs, mlx.CMD_RT: self._rt, mlx.CMD_NOP: self._nop,
+            mlx.CMD_SB: self._mode_start,
+            mlx.CMD_SW: self._mode_start,
+            mlx.CMD_SM: self._mode_start,
+            mlx.CMD_RM: self._rm,
+            mlx.CMD_RR: self._rr,
+            mlx.CMD_WR: self._wr,
+            mlx.CMD_EX: self._ex,
+            mlx.CMD_HR: self._hr,
+            mlx.CMD_HS: self._hs,
+            mlx.CMD_RT: self._rt,
+            mlx.CMD_NOP: self._nop,
         }.get(opcode)
         if handler is None:
             self.reply = self._status(error=True)  # unknown opcode: refused
@@ -255,7 +267,9 @@ class EmulatedMLX90393(RegisterCommands, Conversions):
         # WR during one; a result already in the data registers cannot change): a later WR acts on the
         # next. A burst's results are each a conversion of their own, with the registers then (WR is
         # refused in burst: only a register drifting by itself changes them).
-        self._conv_setup = (s, tuple(self.registers[r] for r in mlx.REG_OFFSETS)) if self.mode is Mode.SINGLE else None
+        self._conv_setup = (
+            (s, tuple(self.registers[r] for r in mlx.REG_OFFSETS)) if self.mode is Mode.SINGLE else None
+        )
         self._last_index = -1
         if self.mode is Mode.WOC:
             # Wake-on-change is accepted as a mode (status bit, exclusivity) but
@@ -263,8 +277,11 @@ class EmulatedMLX90393(RegisterCommands, Conversions):
             self._conv_first, self._conv_interval = math.inf, math.inf
         else:
             self._conv_first = now + s.single_measurement_us(zyxt_eff) * 1e-6 * self.oscillator
-            self._conv_interval = (s.burst_interval_us(zyxt_eff) * 1e-6 * self.oscillator
-                                   if self.mode is Mode.BURST else math.inf)
+            self._conv_interval = (
+                s.burst_interval_us(zyxt_eff) * 1e-6 * self.oscillator
+                if self.mode is Mode.BURST
+                else math.inf
+            )
         self._sm_unread = self.mode is Mode.SINGLE
         return self._status()
 

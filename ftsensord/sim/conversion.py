@@ -16,7 +16,6 @@ from ftsensord.chip import mlx90393 as mlx
 from ftsensord.sim.heat import ChipDrift
 
 
-
 class FieldSource(Protocol):
     """What the chips need of a scene: the field each sees and its temperature."""
 
@@ -84,13 +83,19 @@ class Conversions:
         """Quantised words of a conversion finishing at time ``t``, coded with the settings and
         OFFSET registers it started with (``_conv_setup``; None: the registers now)."""
         s, offsets = self._conv_setup or (self.settings(), tuple(self.registers[r] for r in mlx.REG_OFFSETS))
-        field = self.field_override if self.field_override is not None else np.asarray(
-            self.scene.field_t(self.address, t), dtype=float)
+        field = (
+            self.field_override
+            if self.field_override is not None
+            else np.asarray(self.scene.field_t(self.address, t), dtype=float)
+        )
         temp = self.scene.temperature_c(self.address, t)
         if temp != mlx.TEMPERATURE_REF_C and self.drift is not None:  # at 25 degC nothing drifts
             # The element saturates first; its sensitivity and offset drift act on what it sees.
-            field = self.drift.reading(np.clip(field, -mlx.HALL_SATURATION_T, mlx.HALL_SATURATION_T),
-                                       temp - mlx.TEMPERATURE_REF_C, s.tcmp_en)
+            field = self.drift.reading(
+                np.clip(field, -mlx.HALL_SATURATION_T, mlx.HALL_SATURATION_T),
+                temp - mlx.TEMPERATURE_REF_C,
+                s.tcmp_en,
+            )
         words: dict[str, int] = {}
         for i, (axis, sigma, sensitivity, fmt) in enumerate(_axes(s, self.noise)):
             # The Hall element saturates near 50 mT whatever the gain.
@@ -98,8 +103,7 @@ class Conversions:
             if sigma > 0:
                 b_ut += self.rng.normal(0.0, sigma)
             counts = round(b_ut / sensitivity)
-            words[axis] = _tcmp_word(counts, offsets[i]) if s.tcmp_en \
-                else mlx.counts_to_raw(counts, fmt)
+            words[axis] = _tcmp_word(counts, offsets[i]) if s.tcmp_en else mlx.counts_to_raw(counts, fmt)
         if self.noise.temperature_sigma_c > 0:
             temp += self.rng.normal(0.0, self.noise.temperature_sigma_c)
         words["t"] = mlx.celsius_to_raw(temp, self.tref)
@@ -121,5 +125,7 @@ def _tcmp_word(counts: int, offset: int) -> int:
 @functools.lru_cache(maxsize=256)
 def _axes(settings: mlx.Settings, noise: NoiseModel) -> tuple[tuple[str, float, float, mlx.RawFormat], ...]:
     """Per axis X, Y, Z at ``settings``: its noise (uT), uT per count and word coding."""
-    return tuple((a, noise.sigma_ut(a, settings.tconvm_us()), settings.sensitivity_ut(a), settings.raw_format(a))
-                 for a in "xyz")
+    return tuple(
+        (a, noise.sigma_ut(a, settings.tconvm_us()), settings.sensitivity_ut(a), settings.raw_format(a))
+        for a in "xyz"
+    )

@@ -25,6 +25,7 @@ import numpy as np
 
 from ftsensord.sim.chip import EmulatedMLX90393
 
+
 @dataclass
 class BusFaults:
     """Faults the simulated bus injects; tests and scenes set them.
@@ -65,7 +66,6 @@ class BusFaults:
             else:
                 self.nack_for[address] = remaining - 1
         return True
-
 
 
 class FaultedBus(Protocol):
@@ -164,8 +164,15 @@ class FaultScript:
             bus.faults.io_errors = 0
 
 
-def random_faults(addresses: list[int], duration_s: float, rng: np.random.Generator, *,
-                  per_minute: float = 6.0, mean_length_s: float = 3.0, start_s: float = 2.0) -> list[Fault]:
+def random_faults(
+    addresses: list[int],
+    duration_s: float,
+    rng: np.random.Generator,
+    *,
+    per_minute: float = 6.0,
+    mean_length_s: float = 3.0,
+    start_s: float = 2.0,
+) -> list[Fault]:
     """A random schedule for a soak: faults of every kind on random chips, one at a
     time on average ``per_minute``, each lasting about ``mean_length_s``."""
     faults: list[Fault] = []
@@ -182,5 +189,15 @@ def random_faults(addresses: list[int], duration_s: float, rng: np.random.Genera
         if kind in ("io_error", "timeout"):
             length = min(length, 0.2)  # a bus-wide glitch, not an outage
         address = int(rng.choice(addresses))
-        faults.append(Fault(kind, t, t + length, address if kind in NEEDS_ADDRESS else None,
-                            register=2, value=0, factor=1.5, field_mt=60.0))
+        faults.append(
+            Fault(
+                kind,
+                t,
+                t + length,
+                address if kind in NEEDS_ADDRESS else None,
+                register=2,
+                value=0,
+                factor=1.5,
+                field_mt=60.0,
+            )
+        )

@@ -84,16 +84,21 @@ class ChipDrift:
         """A chip at the datasheet's figures: the typical TC-off drift, and for the
         compensated drift and the offset, which the datasheet gives only as bounds, the
         bound itself (a chip within spec may sit there: the strict choice)."""
-        return cls(np.array(mlx.SENSITIVITY_TEMPCO_PER_K), np.full(3, mlx.SENSITIVITY_TEMPCO_TCMP_PER_K),
-                   np.array(mlx.OFFSET_DRIFT_UT_PER_K) * 1e-6)
+        return cls(
+            np.array(mlx.SENSITIVITY_TEMPCO_PER_K),
+            np.full(3, mlx.SENSITIVITY_TEMPCO_TCMP_PER_K),
+            np.array(mlx.OFFSET_DRIFT_UT_PER_K) * 1e-6,
+        )
 
     @classmethod
     def draw(cls, rng: np.random.Generator, n_chips: int) -> list[ChipDrift]:
         """``n_chips`` parts drawn from the datasheet's spread, in a fixed order: TC-off drift
         normal about the typical (`mlx.SENSITIVITY_TEMPCO_SPREAD_PER_K`), then compensated
         drift and offset uniform within their bounds (a band says nothing of its shape)."""
-        sens = np.array(mlx.SENSITIVITY_TEMPCO_PER_K) + rng.normal(0.0, 1.0, (n_chips, 3)) \
-            * mlx.SENSITIVITY_TEMPCO_SPREAD_PER_K
+        sens = (
+            np.array(mlx.SENSITIVITY_TEMPCO_PER_K)
+            + rng.normal(0.0, 1.0, (n_chips, 3)) * mlx.SENSITIVITY_TEMPCO_SPREAD_PER_K
+        )
         tcmp = rng.uniform(-1.0, 1.0, (n_chips, 3)) * mlx.SENSITIVITY_TEMPCO_TCMP_PER_K
         offset = rng.uniform(-1.0, 1.0, (n_chips, 3)) * np.array(mlx.OFFSET_DRIFT_UT_PER_K) * 1e-6
         return [cls(sens[i], tcmp[i], offset[i]) for i in range(n_chips)]

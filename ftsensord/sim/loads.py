@@ -77,8 +77,13 @@ class RecordedLoad:
     def __post_init__(self) -> None:
         self.times_s = np.asarray(self.times_s, dtype=float)
         self.wrenches = np.asarray(self.wrenches, dtype=float)
-        if (self.times_s.ndim != 1 or len(self.times_s) < 1 or self.wrenches.shape != (len(self.times_s), 6)
-                or np.any(np.diff(self.times_s) <= 0) or not np.all(np.isfinite(self.wrenches))):
+        if (
+            self.times_s.ndim != 1
+            or len(self.times_s) < 1
+            or self.wrenches.shape != (len(self.times_s), 6)
+            or np.any(np.diff(self.times_s) <= 0)
+            or not np.all(np.isfinite(self.wrenches))
+        ):
             raise ValueError("a recorded load needs increasing times and one finite 6-vector per time")
 
     def wrench(self, t: float) -> np.ndarray:
@@ -148,16 +153,22 @@ class RecordedOrientation:
 
     def __post_init__(self) -> None:
         self.times_s = np.asarray(self.times_s, dtype=float)
-        if (self.times_s.ndim != 1 or len(self.times_s) < 1 or np.any(np.diff(self.times_s) <= 0)
-                or len(self.rotations) != len(self.times_s)):
+        if (
+            self.times_s.ndim != 1
+            or len(self.times_s) < 1
+            or np.any(np.diff(self.times_s) <= 0)
+            or len(self.rotations) != len(self.times_s)
+        ):
             raise ValueError("a recorded orientation needs increasing times and one rotation per time")
         self.rotations = np.array([_rotation(R) for R in self.rotations])
         self._steps = [se3.log_so3(a.T @ b) for a, b in zip(self.rotations[:-1], self.rotations[1:])]
 
     @classmethod
     def from_rotvecs_deg(cls, times_s: object, rotvecs_deg: object) -> RecordedOrientation:
-        return cls(np.asarray(times_s, dtype=float),
-                   np.array([se3.exp_so3(np.radians(w)) for w in np.asarray(rotvecs_deg, dtype=float)]))
+        return cls(
+            np.asarray(times_s, dtype=float),
+            np.array([se3.exp_so3(np.radians(w)) for w in np.asarray(rotvecs_deg, dtype=float)]),
+        )
 
     def rotation(self, t: float) -> np.ndarray:
         times = self.times_s
@@ -214,7 +225,9 @@ class CalibrationPose:
             # 1e-6 (0.2 arcsec): the two are written from one robot pose; any larger
             # disagreement is a pose recorded wrong, which would corrupt both fits.
             if not np.allclose(R.T @ DOWN, g / np.linalg.norm(g), atol=1e-6):
-                raise ValueError(f"rotation and gravity_dir disagree: R^T down = {R.T @ DOWN}, gravity_dir = {g}")
+                raise ValueError(
+                    f"rotation and gravity_dir disagree: R^T down = {R.T @ DOWN}, gravity_dir = {g}"
+                )
 
     def orientation(self) -> np.ndarray:
         """R_w0 at this pose."""
@@ -285,9 +298,15 @@ def fibonacci_directions(n: int, offset: float = 0.5) -> np.ndarray:
 YAW_STEP_RAD = math.pi * (3 - math.sqrt(5))
 
 
-def paper_plan(plan: str = "six-axis", n_fit: int = 193, n_validation: int = 60,
-               fit_masses: Sequence[float] = (0.05, 0.2), validation_mass: float = 0.1,
-               n_no_load: int = 0, n_check: int = 0) -> list[tuple[CalibrationPose, str]]:
+def paper_plan(
+    plan: str = "six-axis",
+    n_fit: int = 193,
+    n_validation: int = 60,
+    fit_masses: Sequence[float] = (0.05, 0.2),
+    validation_mass: float = 0.1,
+    n_no_load: int = 0,
+    n_check: int = 0,
+) -> list[tuple[CalibrationPose, str]]:
     """The paper's procedure (section VII-B): ``n_fit`` orientations with 50 g and
     200 g, validation with 100 g in other orientations; lever arms per ``plan``.
 

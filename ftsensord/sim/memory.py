@@ -69,10 +69,15 @@ def parse_silicone(t: Table) -> Relaxation:
     (default `DEFAULT_RELAXATION`)."""
     t.only({"relaxation"})
     rows = t.get("relaxation", [list(r) for r in DEFAULT_RELAXATION])
-    expected = (f"1 to {MAX_TERMS} pairs [fraction, time_s]: fractions > 0 summing below 0.9, distinct times > 0 s "
-                "(a Prony series of the stiffness, docs/design/scenes.md)")
-    if (not isinstance(rows, list) or not rows
-            or not all(isinstance(r, list) and len(r) == 2 and all(_number(v) for v in r) for r in rows)):
+    expected = (
+        f"1 to {MAX_TERMS} pairs [fraction, time_s]: fractions > 0 summing below 0.9, distinct times > 0 s "
+        "(a Prony series of the stiffness, docs/design/scenes.md)"
+    )
+    if (
+        not isinstance(rows, list)
+        or not rows
+        or not all(isinstance(r, list) and len(r) == 2 and all(_number(v) for v in r) for r in rows)
+    ):
         raise t.fail("relaxation", expected, rows)
     try:
         return Relaxation.from_pairs(rows)

@@ -27,13 +27,17 @@ from ftsensord.chip import mlx90393 as mlx
 from ftsensord.model import se3
 from ftsensord.model.geometry import SensorGeometry, as_built
 from ftsensord.model.linear import SENSOR_RANGE
-from ftsensord.model.magnet import NDFEB_BR_TEMPCO_PER_K  # noqa: F401  (its old home: the name still works here)
-from ftsensord.model.magnet import cylinder_field, dipole_field, remanence_factor
+from ftsensord.model.magnet import (
+    NDFEB_BR_TEMPCO_PER_K,  # noqa: F401  (its old home: the name still works here)
+    cylinder_field,
+    dipole_field,
+    remanence_factor,
+)
 from ftsensord.model.silicone import stiffness_factor
 from ftsensord.model.viscoelastic import Relaxation
-from ftsensord.sim.loads import DOWN, IDENTITY, NO_LOAD, G, FixedOrientation, Load, Orientation, StaticLoad
-from ftsensord.sim.memory import SiliconeMemory
 from ftsensord.sim.heat import ChipDrift, TemperatureProfile
+from ftsensord.sim.loads import DOWN, IDENTITY, NO_LOAD, FixedOrientation, G, Load, Orientation, StaticLoad
+from ftsensord.sim.memory import SiliconeMemory
 
 #: Stiffness default: the diagonal of the paper's K, in N/m and Nm/rad (their
 #: signs dropped: a stiffness is positive definite).
@@ -71,14 +75,16 @@ class Tolerances:
     ring_radius_m: float = 0.0
     seed: int = 0
 
-    def build(self, radius_m: float = 8e-3, tilt_deg: float = 25.0,
-              gap_m: float = 6e-3) -> tuple[SensorGeometry, np.ndarray]:
+    def build(
+        self, radius_m: float = 8e-3, tilt_deg: float = 25.0, gap_m: float = 6e-3
+    ) -> tuple[SensorGeometry, np.ndarray]:
         """The as-built geometry and the chips' gains (n, 3) of `build_part`."""
         geometry, gains, _ = self.build_part(radius_m, tilt_deg, gap_m)
         return geometry, gains
 
-    def build_part(self, radius_m: float = 8e-3, tilt_deg: float = 25.0,
-                   gap_m: float = 6e-3) -> tuple[SensorGeometry, np.ndarray, list[ChipDrift]]:
+    def build_part(
+        self, radius_m: float = 8e-3, tilt_deg: float = 25.0, gap_m: float = 6e-3
+    ) -> tuple[SensorGeometry, np.ndarray, list[ChipDrift]]:
         """The as-built geometry, the chips' gains (n, 3) and their drifts with temperature,
         drawn once from ``seed`` in a fixed order (ring radius; magnets' positions and
         remanence, chips' tilts; gains; drifts, from the datasheet's spread): every draw is
@@ -88,10 +94,17 @@ class Tolerances:
         rng = np.random.default_rng(self.seed)
         radius = radius_m + rng.normal() * self.ring_radius_m
         if radius <= 0:  # no ring: a tolerance written in the wrong unit
-            raise ValueError(f"ring radius tolerance {self.ring_radius_m * 1e3} mm drew a radius of {radius * 1e3:.3g} mm")
+            raise ValueError(
+                f"ring radius tolerance {self.ring_radius_m * 1e3} mm drew a radius of {radius * 1e3:.3g} mm"
+            )
         nominal = SensorGeometry.ring(radius_m=radius, tilt_deg=tilt_deg, gap_m=gap_m)
-        geometry = as_built(nominal, rng, magnet_position_m=self.magnet_position_m,
-                            magnet_strength_rel=self.magnet_remanence_rel, chip_tilt_rad=self.chip_tilt_rad)
+        geometry = as_built(
+            nominal,
+            rng,
+            magnet_position_m=self.magnet_position_m,
+            magnet_strength_rel=self.magnet_remanence_rel,
+            chip_tilt_rad=self.chip_tilt_rad,
+        )
         gains = 1.0 + rng.normal(0.0, 1.0, (nominal.n_chips, 3)) * self.chip_gain_rel
         return geometry, gains, ChipDrift.draw(rng, nominal.n_chips)
 
@@ -143,13 +156,19 @@ class SimSensor:
     def __post_init__(self) -> None:
         self.stiffness = np.asarray(self.stiffness, dtype=float)
         if len(self.addresses) != self.geometry.n_chips:
-            raise ValueError(f"{self.name}: {len(self.addresses)} addresses for {self.geometry.n_chips} chips")
+            raise ValueError(
+                f"{self.name}: {len(self.addresses)} addresses for {self.geometry.n_chips} chips"
+            )
         if self.chip_drift is not None and len(self.chip_drift) != self.geometry.n_chips:
-            raise ValueError(f"{self.name}: {len(self.chip_drift)} chip drifts for {self.geometry.n_chips} chips")
+            raise ValueError(
+                f"{self.name}: {len(self.chip_drift)} chip drifts for {self.geometry.n_chips} chips"
+            )
         if self.chip_gain is not None:
             self.chip_gain = np.asarray(self.chip_gain, dtype=float)
             if self.chip_gain.shape != (self.geometry.n_chips, 3) or np.any(self.chip_gain <= 0):
-                raise ValueError(f"{self.name}: chip_gain must be {self.geometry.n_chips} x 3 positive numbers")
+                raise ValueError(
+                    f"{self.name}: chip_gain must be {self.geometry.n_chips} x 3 positive numbers"
+                )
         K = self.stiffness
         if K.shape != (6, 6) or not np.allclose(K, K.T) or np.any(np.linalg.eigvalsh(K) <= 0):
             raise ValueError(f"{self.name}: stiffness must be a 6x6 symmetric positive definite matrix")
@@ -159,8 +178,9 @@ class SimSensor:
     @property
     def constant_load(self) -> bool:
         """The wrench never changes: a static load, and no tool's weight turning with the sensor."""
-        return isinstance(self.load, StaticLoad) and (self.tool_mass_kg == 0.0
-                                                       or isinstance(self.orientation, FixedOrientation))
+        return isinstance(self.load, StaticLoad) and (
+            self.tool_mass_kg == 0.0 or isinstance(self.orientation, FixedOrientation)
+        )
 
     def deflection(self, w: np.ndarray) -> np.ndarray:
         """The deflection twist xi (m, rad) under wrench ``w`` (N, Nm)."""
@@ -211,10 +231,18 @@ class PhysicalScene:
     without its own (`SimSensor.temperature`).
     """
 
-    def __init__(self, sensors: list[SimSensor], *, field_model: str = "cylinder",
-                 crosstalk: str = "dipole", temperature_c: float = 25.0,
-                 temperature_drift_c_per_s: float = 0.0, time_step_s: float = TIME_STEP_S,
-                 external_field_t: np.ndarray | None = None, stray_sources: list[StraySource] | None = None):
+    def __init__(
+        self,
+        sensors: list[SimSensor],
+        *,
+        field_model: str = "cylinder",
+        crosstalk: str = "dipole",
+        temperature_c: float = 25.0,
+        temperature_drift_c_per_s: float = 0.0,
+        time_step_s: float = TIME_STEP_S,
+        external_field_t: np.ndarray | None = None,
+        stray_sources: list[StraySource] | None = None,
+    ):
         if field_model not in FIELD_MODELS:
             raise ValueError(f"field_model must be one of {FIELD_MODELS}, got {field_model!r}")
         if crosstalk not in CROSSTALK_MODELS:
@@ -227,7 +255,9 @@ class PhysicalScene:
         self.external_field_t = np.zeros(3) if external_field_t is None else external_field_t
         self.stray_sources = list(stray_sources or [])
         for sensor in sensors:  # only a sensor whose silicone has a memory pays for one
-            sensor.memory = None if sensor.relaxation is None else SiliconeMemory(sensor.relaxation, time_step_s)
+            sensor.memory = (
+                None if sensor.relaxation is None else SiliconeMemory(sensor.relaxation, time_step_s)
+            )
         self._chip_of: dict[int, tuple[int, int]] = {}
         for s, sensor in enumerate(sensors):
             for i, address in enumerate(sensor.addresses):
@@ -299,7 +329,7 @@ class PhysicalScene:
             w = w / stiffness_factor(delta_k)  # K(T) xi = w is K xi = w / factor, stiffening too
         # The room's field in {0}: only the turning sensor makes it change (and a field-free
         # room needs no orientation at all: the common case stays as cheap as before).
-        room = (sensor.orientation.rotation(t).T @ self.external_field_t if self._room_on else _NO_FIELD)
+        room = sensor.orientation.rotation(t).T @ self.external_field_t if self._room_on else _NO_FIELD
         # Stray sources in {0}: only a scene with one pays for it.
         stray = self._stray_in_sensor(sensor, t) if self.stray_sources else None
         # Keyed on the load, not the deflection: the deflection (a solve) only when it changed.
@@ -308,8 +338,13 @@ class PhysicalScene:
         if cached is None or cached[0] != key:
             xi = sensor.deflection(w)
             # One vectorised evaluation serves every chip of the sensor read in this step.
-            fields = self.chip_fields(sensor.geometry, se3.exp_se3(xi), magnet_scale=scale,
-                                      room_t=room if self._room_on else None, stray=stray)
+            fields = self.chip_fields(
+                sensor.geometry,
+                se3.exp_se3(xi),
+                magnet_scale=scale,
+                room_t=room if self._room_on else None,
+                stray=stray,
+            )
             if sensor.chip_gain is not None:
                 fields = fields * sensor.chip_gain  # the chip's sensitivity, before its ADC
             cached = (key, fields)
@@ -322,12 +357,20 @@ class PhysicalScene:
         (``sensor.centre_m`` in the world), so a source fixed in the world turns the other
         way in {0}."""
         R = sensor.orientation.rotation(t)
-        return np.array([[R.T @ (src.position_m - sensor.centre_m), R.T @ src.moment_at(t)]
-                         for src in self.stray_sources])
+        return np.array(
+            [[R.T @ (src.position_m - sensor.centre_m), R.T @ src.moment_at(t)] for src in self.stray_sources]
+        )
 
-    def chip_fields(self, geometry: SensorGeometry, T: np.ndarray, chips: list[int] | None = None, *,
-                    magnet_scale: float = 1.0, room_t: np.ndarray | None = None,
-                    stray: np.ndarray | None = None) -> np.ndarray:
+    def chip_fields(
+        self,
+        geometry: SensorGeometry,
+        T: np.ndarray,
+        chips: list[int] | None = None,
+        *,
+        magnet_scale: float = 1.0,
+        room_t: np.ndarray | None = None,
+        stray: np.ndarray | None = None,
+    ) -> np.ndarray:
         """Field (T) at chips (default: all), each in its own frame, centre piece at pose T.
 
         ``magnet_scale`` scales the magnets' field (their remanence against temperature);
@@ -365,7 +408,9 @@ def _field(geometry: SensorGeometry, r: np.ndarray, magnets: np.ndarray, model: 
     return strength * np.einsum("...ij,...j->...i", R, b_local)
 
 
-def own_magnet_field(geometry: SensorGeometry, points: np.ndarray, chips: np.ndarray, model: str) -> np.ndarray:
+def own_magnet_field(
+    geometry: SensorGeometry, points: np.ndarray, chips: np.ndarray, model: str
+) -> np.ndarray:
     """Field (T, frame {0}) of magnet ``chips[k]`` at ``points[k]``."""
     return _field(geometry, points - geometry.magnet_p[chips], chips, model)
 
@@ -381,5 +426,7 @@ def two_sensor_scene(**options: object) -> PhysicalScene:
     """The nominal drawing in a field-free room: two sensors of 8 chips, 0x0C-0x13 and
     0x14-0x1B, no load (the default scene, `ftsensord.sim.default_scene`, is as built, in
     the Earth's field)."""
-    return PhysicalScene([SimSensor("sensor1", tuple(range(0x0C, 0x14))),
-                          SimSensor("sensor2", tuple(range(0x14, 0x1C)))], **options)  # type: ignore[arg-type]
+    return PhysicalScene(
+        [SimSensor("sensor1", tuple(range(0x0C, 0x14))), SimSensor("sensor2", tuple(range(0x14, 0x1C)))],
+        **options,  # type: ignore[arg-type]
+    )

@@ -21,12 +21,36 @@ from ftsensord.docfile import Table, load_toml
 from ftsensord.errors import ConfigError
 from ftsensord.model.geometry import SensorGeometry
 from ftsensord.sim.faults import FAULT_KINDS, NEEDS_ADDRESS, Fault
-from ftsensord.sim.loads import IDENTITY, NO_LOAD, PLANS, CalibrationRobotLoad, FixedOrientation, Load, Orientation, RecordedLoad, RecordedOrientation, StaticLoad, StepLoad, paper_plan, ramp
-from ftsensord.sim.physics import CROSSTALK_MODELS, FIELD_MODELS, PAPER_STIFFNESS_DIAG, STRAY_MIN_DISTANCE_M, PhysicalScene, SimSensor, StraySource, Tolerances
-from ftsensord.sim.memory import parse_silicone
 from ftsensord.sim.heat import TemperatureProfile
+from ftsensord.sim.loads import (
+    IDENTITY,
+    NO_LOAD,
+    PLANS,
+    CalibrationRobotLoad,
+    FixedOrientation,
+    Load,
+    Orientation,
+    RecordedLoad,
+    RecordedOrientation,
+    StaticLoad,
+    StepLoad,
+    paper_plan,
+    ramp,
+)
+from ftsensord.sim.memory import parse_silicone
+from ftsensord.sim.physics import (
+    CROSSTALK_MODELS,
+    FIELD_MODELS,
+    PAPER_STIFFNESS_DIAG,
+    STRAY_MIN_DISTANCE_M,
+    PhysicalScene,
+    SimSensor,
+    StraySource,
+    Tolerances,
+)
 
 SCENE_VERSION = 1
+
 
 @dataclass
 class StaticScene:
@@ -85,7 +109,11 @@ def default_scene_text(load: list[float] | None = None) -> str:
 
 
 def _address(t: Table, name: str, value: object) -> int:
-    if not isinstance(value, int) or isinstance(value, bool) or not mlx.ADDRESS_MIN <= value <= mlx.ADDRESS_MAX:
+    if (
+        not isinstance(value, int)
+        or isinstance(value, bool)
+        or not mlx.ADDRESS_MIN <= value <= mlx.ADDRESS_MAX
+    ):
         raise t.fail(name, "an address in 0x0C-0x1B", value)
     return value
 
@@ -100,8 +128,11 @@ def _load(t: Table) -> Load:
         return StaticLoad(np.array(t.numbers("wrench", 6, unit="N, Nm")))
     if kind == "step":
         t.only({"kind", "at_s", "before", "after"})
-        return StepLoad(t.number("at_s", unit="s"), np.array(t.numbers("before", 6, unit="N, Nm")),
-                        np.array(t.numbers("after", 6, unit="N, Nm")))
+        return StepLoad(
+            t.number("at_s", unit="s"),
+            np.array(t.numbers("before", 6, unit="N, Nm")),
+            np.array(t.numbers("after", 6, unit="N, Nm")),
+        )
     if kind == "ramp":
         t.only({"kind", "from_s", "to_s", "start", "end"})
         from_s, to_s = t.number("from_s", unit="s"), t.number("to_s", unit="s")
@@ -110,16 +141,20 @@ def _load(t: Table) -> Load:
         return ramp(from_s, to_s, np.array(t.numbers("start", 6)), np.array(t.numbers("end", 6)))
     if kind == "robot":
         t.only({"kind", "plan", "poses", "dwell_s"})
-        plan = paper_plan(t.string("plan", "six-axis", choices=sorted(PLANS)),
-                          n_fit=t.integer("poses", 193, low=1, what="a positive integer"), n_validation=0)
+        plan = paper_plan(
+            t.string("plan", "six-axis", choices=sorted(PLANS)),
+            n_fit=t.integer("poses", 193, low=1, what="a positive integer"),
+            n_validation=0,
+        )
         return CalibrationRobotLoad([pose for pose, _ in plan], t.number("dwell_s", 1.0, low=1e-3, unit="s"))
     t.only({"kind", "times_s", "wrenches"})
     times = t.numbers("times_s", unit="s")
     rows = t.get("wrenches")
     if not isinstance(rows, list) or len(rows) != len(times):
         raise t.fail("wrenches", f"{len(times)} rows, one per time", rows)
-    wrenches = [Table({"row": r}, t.path, f"{t.key('wrenches')}[{i}]").numbers("row", 6)
-                for i, r in enumerate(rows)]
+    wrenches = [
+        Table({"row": r}, t.path, f"{t.key('wrenches')}[{i}]").numbers("row", 6) for i, r in enumerate(rows)
+    ]
     try:
         return RecordedLoad(np.array(times), np.array(wrenches))
     except ValueError as exc:
@@ -136,8 +171,10 @@ def _orientation(t: Table) -> Orientation:
     rows = t.get("rotvec_deg")
     if not isinstance(rows, list) or not times or len(rows) != len(times):
         raise t.fail("rotvec_deg", f"{len(times)} rows of 3 numbers (deg), one per time", rows)
-    vectors = [Table({f"rotvec_deg[{i}]": r}, t.path, t.prefix).numbers(f"rotvec_deg[{i}]", 3, unit="deg")
-               for i, r in enumerate(rows)]
+    vectors = [
+        Table({f"rotvec_deg[{i}]": r}, t.path, t.prefix).numbers(f"rotvec_deg[{i}]", 3, unit="deg")
+        for i, r in enumerate(rows)
+    ]
     if any(b <= a for a, b in pairwise(times)):
         raise t.fail("times_s", "strictly increasing times (s)", times)
     return RecordedOrientation.from_rotvecs_deg(times, vectors)
@@ -148,18 +185,29 @@ def _orientation(t: Table) -> Orientation:
 #: hand-made part is off by tenths of a mm, a few % and degrees; 1 mm, 15 deg or 20 %
 #: and more is a unit mistake or another drawing. 20 % also keeps a magnet's or chip's
 #: strength positive (a draw 5 sd below the mean: once in 3 million).
-TOLERANCE_KEYS = {"magnet_position_mm": (1e-3, 1.0), "magnet_remanence_pct": (1e-2, 20.0),
-                  "chip_tilt_deg": (np.pi / 180, 15.0), "chip_gain_pct": (1e-2, 20.0),
-                  "ring_radius_mm": (1e-3, 1.0)}
+TOLERANCE_KEYS = {
+    "magnet_position_mm": (1e-3, 1.0),
+    "magnet_remanence_pct": (1e-2, 20.0),
+    "chip_tilt_deg": (np.pi / 180, 15.0),
+    "chip_gain_pct": (1e-2, 20.0),
+    "ring_radius_mm": (1e-3, 1.0),
+}
 
 
 def _tolerances(t: Table) -> Tolerances:
     t.only({*TOLERANCE_KEYS, "seed"})
-    sd = {k: t.number(k, 0.0, low=0.0, high=high, unit=k.rsplit("_", 1)[1] + ", standard deviation") * factor
-          for k, (factor, high) in TOLERANCE_KEYS.items()}
-    return Tolerances(sd["magnet_position_mm"], sd["magnet_remanence_pct"], sd["chip_tilt_deg"],
-                      sd["chip_gain_pct"], sd["ring_radius_mm"],
-                      t.integer("seed", low=0, what="an integer >= 0 naming the part"))
+    sd = {
+        k: t.number(k, 0.0, low=0.0, high=high, unit=k.rsplit("_", 1)[1] + ", standard deviation") * factor
+        for k, (factor, high) in TOLERANCE_KEYS.items()
+    }
+    return Tolerances(
+        sd["magnet_position_mm"],
+        sd["magnet_remanence_pct"],
+        sd["chip_tilt_deg"],
+        sd["chip_gain_pct"],
+        sd["ring_radius_mm"],
+        t.integer("seed", low=0, what="an integer >= 0 naming the part"),
+    )
 
 
 #: Every temperature a scene holds is in the chips' operating range (`mlx.OPERATING_RANGE_C`):
@@ -178,8 +226,9 @@ def _temperature(t: Table) -> TemperatureProfile:
         return TemperatureProfile.constant(t.number("celsius", low=low, high=high, unit=unit))
     if kind == "linear":
         t.only({"kind", "celsius", "drift_c_per_s"})
-        return TemperatureProfile.linear(t.number("celsius", low=low, high=high, unit=unit),
-                                         t.number("drift_c_per_s", unit="degC/s"))
+        return TemperatureProfile.linear(
+            t.number("celsius", low=low, high=high, unit=unit), t.number("drift_c_per_s", unit="degC/s")
+        )
     t.only({"kind", "times_s", "celsius"})
     times = t.numbers("times_s", unit="s")
     if not times or any(b <= a for a, b in pairwise(times)):
@@ -191,8 +240,24 @@ def _temperature(t: Table) -> TemperatureProfile:
 
 
 def _sensor(t: Table, index: int) -> SimSensor:
-    t.only({"name", "addresses", "stiffness_diag", "stiffening", "ring_radius_mm", "tilt_deg",
-            "gap_mm", "load", "orientation", "tolerances", "tool", "temperature", "centre_m", "silicone"})
+    t.only(
+        {
+            "name",
+            "addresses",
+            "stiffness_diag",
+            "stiffening",
+            "ring_radius_mm",
+            "tilt_deg",
+            "gap_mm",
+            "load",
+            "orientation",
+            "tolerances",
+            "tool",
+            "temperature",
+            "centre_m",
+            "silicone",
+        }
+    )
     addresses = t.get("addresses")
     if not isinstance(addresses, list) or len(addresses) != 8:
         raise t.fail("addresses", "8 chip addresses", addresses)
@@ -200,9 +265,11 @@ def _sensor(t: Table, index: int) -> SimSensor:
     stiffness = t.numbers("stiffness_diag", 6, list(PAPER_STIFFNESS_DIAG), unit="N/m x3, Nm/rad x3")
     if min(stiffness) <= 0:
         raise t.fail("stiffness_diag", "6 positive numbers (N/m x3, Nm/rad x3)", stiffness)
-    shape: dict[str, float] = {"radius_m": t.number("ring_radius_mm", 8.0, low=1e-3, unit="mm") * 1e-3,
-             "tilt_deg": t.number("tilt_deg", 25.0, low=-90, high=90, unit="deg"),
-             "gap_m": t.number("gap_mm", 6.0, low=1e-3, unit="mm") * 1e-3}
+    shape: dict[str, float] = {
+        "radius_m": t.number("ring_radius_mm", 8.0, low=1e-3, unit="mm") * 1e-3,
+        "tilt_deg": t.number("tilt_deg", 25.0, low=-90, high=90, unit="deg"),
+        "gap_m": t.number("gap_mm", 6.0, low=1e-3, unit="mm") * 1e-3,
+    }
     gains, drifts = None, None
     if "tolerances" in t.doc:
         tol = t.table("tolerances")
@@ -211,31 +278,50 @@ def _sensor(t: Table, index: int) -> SimSensor:
         except ValueError as exc:
             raise t.fail("tolerances", f"tolerances that build a sensor ({exc})", tol.doc) from exc
     else:
-        geometry = SensorGeometry.ring(radius_m=shape["radius_m"], tilt_deg=shape["tilt_deg"], gap_m=shape["gap_m"])
+        geometry = SensorGeometry.ring(
+            radius_m=shape["radius_m"], tilt_deg=shape["tilt_deg"], gap_m=shape["gap_m"]
+        )
     load = _load(t.table("load")) if "load" in t.doc else NO_LOAD
     orientation: Orientation = IDENTITY
     if "orientation" in t.doc:
         if isinstance(load, CalibrationRobotLoad):
-            raise t.fail("orientation", 'no orientation with a load of kind "robot" (the robot turns the '
-                         "sensor through its poses)", t.get("orientation"))
+            raise t.fail(
+                "orientation",
+                'no orientation with a load of kind "robot" (the robot turns the sensor through its poses)',
+                t.get("orientation"),
+            )
         orientation = _orientation(t.table("orientation"))
     elif isinstance(load, CalibrationRobotLoad):
         orientation = load  # the robot's poses turn the sensor
     mass_kg, com_m = 0.0, np.zeros(3)
     if "tool" in t.doc:
         if isinstance(load, CalibrationRobotLoad):
-            raise t.fail("tool", 'no tool with a load of kind "robot" (the robot\'s poses carry its masses)',
-                         t.get("tool"))
+            raise t.fail(
+                "tool",
+                'no tool with a load of kind "robot" (the robot\'s poses carry its masses)',
+                t.get("tool"),
+            )
         tool = t.table("tool")
         tool.only({"mass_g", "com_mm"})
         mass_kg = tool.number("mass_g", low=0.0, high=5000.0, unit="g") * 1e-3  # 5 kg: 100 times the range
         com_m = np.array(tool.numbers("com_mm", 3, unit="mm, frame {0}")) * 1e-3
     temperature = _temperature(t.table("temperature")) if "temperature" in t.doc else None
-    return SimSensor(t.string("name", f"sensor{index + 1}"), addrs, geometry, np.diag(stiffness),
-                     t.number("stiffening", 0.0, low=0.0), load, orientation, gains, mass_kg, com_m,
-                     temperature, drifts,
-                     np.array(t.numbers("centre_m", 3, [0.0, 0.0, 0.0], unit="m, world frame")),
-                     parse_silicone(t.table("silicone")) if "silicone" in t.doc else None)
+    return SimSensor(
+        t.string("name", f"sensor{index + 1}"),
+        addrs,
+        geometry,
+        np.diag(stiffness),
+        t.number("stiffening", 0.0, low=0.0),
+        load,
+        orientation,
+        gains,
+        mass_kg,
+        com_m,
+        temperature,
+        drifts,
+        np.array(t.numbers("centre_m", 3, [0.0, 0.0, 0.0], unit="m, world frame")),
+        parse_silicone(t.table("silicone")) if "silicone" in t.doc else None,
+    )
 
 
 def _faults(doc: Table, addresses: tuple[int, ...]) -> list[Fault]:
@@ -254,10 +340,18 @@ def _faults(doc: Table, addresses: tuple[int, ...]) -> list[Fault]:
         until = t.number("until_s", low=at, unit="s, after at_s") if "until_s" in t.doc else float("inf")
         if until == at and kind != "drift_register":
             raise t.fail("until_s", "a time after at_s", until)
-        faults.append(Fault(kind, at, until, address, register=t.integer("register", 0, low=0, high=mlx.REG_MAX),
-                            value=t.integer("value", 0, low=0, high=0xFFFF),
-                            factor=t.number("factor", 1.0, low=1.0, unit="times slower"),
-                            field_mt=t.number("field_mt", 60.0, unit="mT")))
+        faults.append(
+            Fault(
+                kind,
+                at,
+                until,
+                address,
+                register=t.integer("register", 0, low=0, high=mlx.REG_MAX),
+                value=t.integer("value", 0, low=0, high=0xFFFF),
+                factor=t.number("factor", 1.0, low=1.0, unit="times slower"),
+                field_mt=t.number("field_mt", 60.0, unit="mT"),
+            )
+        )
     return faults
 
 
@@ -272,32 +366,67 @@ def _static(doc: Table) -> StaticScene:
             raise chip.fail("address", "an address not used before", addr)
         fields[addr] = np.array(chip.numbers("field_ut", 3, unit="uT, chip frame")) * 1e-6
         if "temperature_c" in chip.doc:
-            temps[addr] = chip.number("temperature_c", low=TEMPERATURE_RANGE_C[0], high=TEMPERATURE_RANGE_C[1],
-                                      unit=TEMPERATURE_UNIT)
-    scene = StaticScene(fields, temps, doc.number("temperature_c", 25.0, low=TEMPERATURE_RANGE_C[0],
-                                                  high=TEMPERATURE_RANGE_C[1], unit=TEMPERATURE_UNIT))
+            temps[addr] = chip.number(
+                "temperature_c",
+                low=TEMPERATURE_RANGE_C[0],
+                high=TEMPERATURE_RANGE_C[1],
+                unit=TEMPERATURE_UNIT,
+            )
+    scene = StaticScene(
+        fields,
+        temps,
+        doc.number(
+            "temperature_c",
+            25.0,
+            low=TEMPERATURE_RANGE_C[0],
+            high=TEMPERATURE_RANGE_C[1],
+            unit=TEMPERATURE_UNIT,
+        ),
+    )
     scene.faults = _faults(doc, scene.addresses)
     return scene
 
 
 def _physical(doc: Table) -> PhysicalScene:
-    doc.only({"version", "kind", "field_model", "crosstalk", "temperature_c",
-              "temperature_drift_c_per_s", "external_field_ut", "sensor", "fault", "stray_source"})
+    doc.only(
+        {
+            "version",
+            "kind",
+            "field_model",
+            "crosstalk",
+            "temperature_c",
+            "temperature_drift_c_per_s",
+            "external_field_ut",
+            "sensor",
+            "fault",
+            "stray_source",
+        }
+    )
     sensors = [_sensor(t, i) for i, t in enumerate(doc.tables("sensor"))]
     seen: set[int] = set()
     for i, s in enumerate(sensors):
         for a in s.addresses:
             if a in seen:
-                raise ConfigError(f"{doc.path}: sensor[{i}].addresses: expected addresses not used before, "
-                                  f"got 0x{a:02X} twice")
+                raise ConfigError(
+                    f"{doc.path}: sensor[{i}].addresses: expected addresses not used before, "
+                    f"got 0x{a:02X} twice"
+                )
             seen.add(a)
-    scene = PhysicalScene(sensors, field_model=doc.string("field_model", "cylinder", choices=FIELD_MODELS),
-                          crosstalk=doc.string("crosstalk", "dipole", choices=CROSSTALK_MODELS),
-                          temperature_c=doc.number("temperature_c", 25.0, low=TEMPERATURE_RANGE_C[0],
-                                                   high=TEMPERATURE_RANGE_C[1], unit=TEMPERATURE_UNIT),
-                          temperature_drift_c_per_s=doc.number("temperature_drift_c_per_s", 0.0, unit="degC/s"),
-                          external_field_t=_external_field(doc),
-                          stray_sources=_stray_sources(doc, sensors))
+    scene = PhysicalScene(
+        sensors,
+        field_model=doc.string("field_model", "cylinder", choices=FIELD_MODELS),
+        crosstalk=doc.string("crosstalk", "dipole", choices=CROSSTALK_MODELS),
+        temperature_c=doc.number(
+            "temperature_c",
+            25.0,
+            low=TEMPERATURE_RANGE_C[0],
+            high=TEMPERATURE_RANGE_C[1],
+            unit=TEMPERATURE_UNIT,
+        ),
+        temperature_drift_c_per_s=doc.number("temperature_drift_c_per_s", 0.0, unit="degC/s"),
+        external_field_t=_external_field(doc),
+        stray_sources=_stray_sources(doc, sensors),
+    )
     scene.faults = _faults(doc, scene.addresses)
     return scene
 
@@ -311,8 +440,11 @@ EXTERNAL_FIELD_MAX_UT = 5000.0
 def _external_field(doc: Table) -> np.ndarray:
     field_ut = np.array(doc.numbers("external_field_ut", 3, [0.0, 0.0, 0.0], unit="uT, world frame, z up"))
     if np.linalg.norm(field_ut) > EXTERNAL_FIELD_MAX_UT:
-        raise doc.fail("external_field_ut", f"a room's field, |B| <= {EXTERNAL_FIELD_MAX_UT:g} uT (the Earth's "
-                       "is 25-65 uT)", field_ut.tolist())
+        raise doc.fail(
+            "external_field_ut",
+            f"a room's field, |B| <= {EXTERNAL_FIELD_MAX_UT:g} uT (the Earth's is 25-65 uT)",
+            field_ut.tolist(),
+        )
     return field_ut * 1e-6
 
 
@@ -327,12 +459,18 @@ def _stray_sources(doc: Table, sensors: list[SimSensor]) -> list[StraySource]:
         for s in sensors:
             distance = float(np.linalg.norm(position - s.centre_m))
             if distance < STRAY_MIN_DISTANCE_M:
-                raise t.fail("position_m", f"a point at least {STRAY_MIN_DISTANCE_M * 1e3:g} mm from each sensor's "
-                             f"centre (a point dipole is no model of a source that near; {s.name} is "
-                             f"{distance * 1e3:.3g} mm away)", position.tolist())
+                raise t.fail(
+                    "position_m",
+                    f"a point at least {STRAY_MIN_DISTANCE_M * 1e3:g} mm from each sensor's "
+                    f"centre (a point dipole is no model of a source that near; {s.name} is "
+                    f"{distance * 1e3:.3g} mm away)",
+                    position.tolist(),
+                )
         moment = np.array(t.numbers("moment_am2", 3, unit="A m^2, world frame"))
         if ("times_s" in t.doc) != ("scale" in t.doc):
-            raise t.fail("scale" if "times_s" in t.doc else "times_s", "times_s and scale given together", "missing")
+            raise t.fail(
+                "scale" if "times_s" in t.doc else "times_s", "times_s and scale given together", "missing"
+            )
         times = np.array(t.numbers("times_s", default=[], unit="s"))
         scale = np.array(t.numbers("scale", default=[], unit="times moment_am2"))
         if len(scale) != len(times):

@@ -20,14 +20,14 @@ import zmq
 
 from ftsensord.config.file import Config, builtin_path
 from ftsensord.daemon.daemon import Daemon
-from ftsensord.sim import VirtualClock
-from ftsensord.sim import simulated_bus
+from ftsensord.sim import VirtualClock, simulated_bus
 from ftsensord.sim.chip import FieldSource
 
 
 def packaged_config(path: Path, **values: str) -> Path:
     """The packaged simulated configuration written to ``path``, each ``key = value`` line
-    named in ``values`` replaced, or a commented-out one put in (values in TOML: ``scheduler='"burst"'``), `builtin:` files
+    named in ``values`` replaced, or a commented-out one put in (values in TOML:
+    ``scheduler='"burst"'``), `builtin:` files
     made absolute (the copy is read from elsewhere)."""
     text = builtin_path("sim.toml").read_text()
     for key, value in values.items():
@@ -38,9 +38,17 @@ def packaged_config(path: Path, **values: str) -> Path:
     return path
 
 
-def start_daemon(config: Path, folder: Path, *, fifo: int = 0, nice: int = 0, args: Sequence[str] = (),
-                 env: dict[str, str] | None = None, program: Sequence[str] = ("-m", "ftsensord"),
-                 **popen: Any) -> tuple[subprocess.Popen, socket.socket]:
+def start_daemon(
+    config: Path,
+    folder: Path,
+    *,
+    fifo: int = 0,
+    nice: int = 0,
+    args: Sequence[str] = (),
+    env: dict[str, str] | None = None,
+    program: Sequence[str] = ("-m", "ftsensord"),
+    **popen: Any,
+) -> tuple[subprocess.Popen, socket.socket]:
     """`ftsensord run --config CONFIG [ARGS]` with its runtime folder in ``folder``, SCHED_FIFO
     at ``fifo`` (0: not; as `--realtime` asks it, from the start) or at ``nice``;
     ``env``: more variables; ``program``: what Python runs (a script that wraps ftsensord's
@@ -51,13 +59,22 @@ def start_daemon(config: Path, folder: Path, *, fifo: int = 0, nice: int = 0, ar
     notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     notify.bind(str(folder / "notify"))
     notify.settimeout(30)  # start-up on a loaded 2-core host takes seconds, never this long
-    full_env = {**os.environ, "XDG_RUNTIME_DIR": str(folder), "NOTIFY_SOCKET": str(folder / "notify"), **(env or {})}
+    full_env = {
+        **os.environ,
+        "XDG_RUNTIME_DIR": str(folder),
+        "NOTIFY_SOCKET": str(folder / "notify"),
+        **(env or {}),
+    }
     full_env.pop("RUNTIME_DIRECTORY", None)
     # chrt: the daemon's threads inherit the policy, as under the unit.
     prefix = (["chrt", "-f", str(fifo)] if fifo else []) + (["nice", "-n", str(nice)] if nice else [])
     popen = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, **popen}
-    proc = subprocess.Popen([*prefix, sys.executable, *program, "run", "--config", str(config), *args],
-                            env=full_env, text=True, **popen)
+    proc = subprocess.Popen(
+        [*prefix, sys.executable, *program, "run", "--config", str(config), *args],
+        env=full_env,
+        text=True,
+        **popen,
+    )
     try:
         while not notify.recv(4096).startswith(b"READY=1"):
             pass
@@ -91,7 +108,9 @@ class InProcess:
     steps it (``daemon.cycle()``, ``daemon.handle_control()``, ``clock.wait_until``).
     ``daemon``: the Daemon's other keywords (notifier, orientation)."""
 
-    def __init__(self, config: Config, scene: FieldSource, *, subscribe: bytes = b"", seed: int = 5, **daemon: Any):
+    def __init__(
+        self, config: Config, scene: FieldSource, *, subscribe: bytes = b"", seed: int = 5, **daemon: Any
+    ):
         self.config, self.scene, self.clock = config, scene, VirtualClock()
         self.bus = simulated_bus(scene, clock=self.clock, bus_hz=400e3, seed=seed)
         # inproc names are per context, and this module may be loaded twice (by path and by name)
@@ -105,8 +124,15 @@ class InProcess:
         self.router.bind(f"inproc://ctl{n}")
         self.req.connect(f"inproc://ctl{n}")
         self.req.setsockopt(zmq.RCVTIMEO, 5000)  # a reply that never comes fails, never hangs
-        self.daemon = Daemon(config, self.bus, self.pub, self.router, clock=self.clock.now,
-                             wall=lambda: 1.7e9 + self.clock.now(), **daemon)
+        self.daemon = Daemon(
+            config,
+            self.bus,
+            self.pub,
+            self.router,
+            clock=self.clock.now,
+            wall=lambda: 1.7e9 + self.clock.now(),
+            **daemon,
+        )
         self.daemon.start()
 
     def close(self) -> None:

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ftsensord.errors import ForbiddenSettingError
 from ftsensord.chip.mlx90393.protocol import TREF_TYPICAL
+from ftsensord.errors import ForbiddenSettingError
 
 # --- Sensitivity ---------------------------------------------------------------
 #: uT/LSB at GAIN_SEL 7, RES 0, HALLCONF 0xC. X/Y is 6.009 / 40, the datasheet's
@@ -92,8 +92,9 @@ def is_saturated(counts: int, fmt: RawFormat) -> bool:
     return abs(counts) >= fmt.span
 
 
-def raw_to_tesla(word: int, gain_sel: int, res: int, axis: str, *,
-                 tcmp_en: bool = False, hallconf: int = 0xC) -> tuple[float, bool]:
+def raw_to_tesla(
+    word: int, gain_sel: int, res: int, axis: str, *, tcmp_en: bool = False, hallconf: int = 0xC
+) -> tuple[float, bool]:
     """Convert one magnetic word to tesla; returns (field_t, saturated)."""
     fmt = raw_format(res, tcmp_en)
     counts = raw_to_counts(word, fmt)

@@ -19,8 +19,17 @@ CMD_HS = 0xE0  # memory store (RAM -> non-volatile)
 CMD_RT = 0xF0  # reset
 
 COMMAND_NAMES = {
-    CMD_NOP: "NOP", CMD_SB: "SB", CMD_SW: "SW", CMD_SM: "SM", CMD_RM: "RM", CMD_RR: "RR",
-    CMD_WR: "WR", CMD_EX: "EX", CMD_HR: "HR", CMD_HS: "HS", CMD_RT: "RT",
+    CMD_NOP: "NOP",
+    CMD_SB: "SB",
+    CMD_SW: "SW",
+    CMD_SM: "SM",
+    CMD_RM: "RM",
+    CMD_RR: "RR",
+    CMD_WR: "WR",
+    CMD_EX: "EX",
+    CMD_HR: "HR",
+    CMD_HS: "HS",
+    CMD_RT: "RT",
 }
 
 # --- zyxt nibble ---------------------------------------------------------------
@@ -108,10 +117,18 @@ class Status:
         return 2 * self.d + 2
 
     def __str__(self) -> str:
-        flags = [name for name, on in (
-            ("BURST_MODE", self.burst_mode), ("WOC_MODE", self.woc_mode),
-            ("SM_MODE", self.sm_mode), ("ERROR", self.error), ("SED", self.sed),
-            ("RS", self.rs)) if on]
+        flags = [
+            name
+            for name, on in (
+                ("BURST_MODE", self.burst_mode),
+                ("WOC_MODE", self.woc_mode),
+                ("SM_MODE", self.sm_mode),
+                ("ERROR", self.error),
+                ("SED", self.sed),
+                ("RS", self.rs),
+            )
+            if on
+        ]
         return f"0x{self.byte:02X} [{' '.join(flags) or 'idle'} D={self.d}]"
 
 

@@ -5,10 +5,33 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ftsensord.errors import ForbiddenSettingError
 from ftsensord.chip.mlx90393.conversion import RawFormat, raw_format, sensitivity_ut
-from ftsensord.chip.mlx90393.protocol import BURST_DATA_RATE, BURST_SEL, DIG_FILT, GAIN_SEL, HALLCONF, OSR, OSR2, POWER_ON_DEFAULTS, REG_CONF1, REG_CONF2, REG_CONF3, RES_X, RES_Y, RES_Z, TCMP_EN, ZYXT_XYZ
-from ftsensord.chip.mlx90393.timing import FORBIDDEN_OSR_DIG_FILT, burst_interval_us, noise_ut, single_measurement_us, tconvm_us
+from ftsensord.chip.mlx90393.protocol import (
+    BURST_DATA_RATE,
+    BURST_SEL,
+    DIG_FILT,
+    GAIN_SEL,
+    HALLCONF,
+    OSR,
+    OSR2,
+    POWER_ON_DEFAULTS,
+    REG_CONF1,
+    REG_CONF2,
+    REG_CONF3,
+    RES_X,
+    RES_Y,
+    RES_Z,
+    TCMP_EN,
+    ZYXT_XYZ,
+)
+from ftsensord.chip.mlx90393.timing import (
+    FORBIDDEN_OSR_DIG_FILT,
+    burst_interval_us,
+    noise_ut,
+    single_measurement_us,
+    tconvm_us,
+)
+from ftsensord.errors import ForbiddenSettingError
 
 
 # --- Settings ------------------------------------------------------------------
@@ -34,19 +57,29 @@ class Settings:
 
     def validate(self) -> Settings:
         """Raise `ForbiddenSettingError` (or ValueError for a value out of range); return self."""
-        for field, value in ((GAIN_SEL, self.gain_sel), (HALLCONF, self.hallconf),
-                             (RES_X, self.res_x), (RES_Y, self.res_y), (RES_Z, self.res_z),
-                             (OSR, self.osr), (DIG_FILT, self.dig_filt), (OSR2, self.osr2),
-                             (BURST_SEL, self.burst_sel), (BURST_DATA_RATE, self.burst_data_rate)):
+        for field, value in (
+            (GAIN_SEL, self.gain_sel),
+            (HALLCONF, self.hallconf),
+            (RES_X, self.res_x),
+            (RES_Y, self.res_y),
+            (RES_Z, self.res_z),
+            (OSR, self.osr),
+            (DIG_FILT, self.dig_filt),
+            (OSR2, self.osr2),
+            (BURST_SEL, self.burst_sel),
+            (BURST_DATA_RATE, self.burst_data_rate),
+        ):
             if not isinstance(value, int) or not 0 <= value <= field.max:
                 raise ForbiddenSettingError(f"{field.name} takes 0..{field.max}, got {value!r}")
         if self.hallconf not in (0x0, 0xC):
             raise ForbiddenSettingError(
-                f"HALLCONF 0x{self.hallconf:X} is not supported: use 0xC (default) or 0x0")
+                f"HALLCONF 0x{self.hallconf:X} is not supported: use 0xC (default) or 0x0"
+            )
         if self.hallconf == 0xC and (self.osr, self.dig_filt) in FORBIDDEN_OSR_DIG_FILT:
             raise ForbiddenSettingError(
                 f"OSR {self.osr} with DIG_FILT {self.dig_filt} is not permitted at HALLCONF 0xC "
-                f"(forbidden: {sorted(FORBIDDEN_OSR_DIG_FILT)}); raise OSR or DIG_FILT")
+                f"(forbidden: {sorted(FORBIDDEN_OSR_DIG_FILT)}); raise OSR or DIG_FILT"
+            )
         if self.tcmp_en and max(self.res_x, self.res_y, self.res_z) >= 2:
             raise ForbiddenSettingError("TCMP_EN = 1 allows only RES 0 and 1 on every axis")
         return self
@@ -71,8 +104,9 @@ class Settings:
         return single_measurement_us(zyxt, self.osr, self.dig_filt, self.osr2)
 
     def burst_interval_us(self, zyxt: int | None = None) -> float:
-        return burst_interval_us(self.burst_sel if zyxt is None else zyxt, self.osr,
-                                 self.dig_filt, self.osr2, self.burst_data_rate)
+        return burst_interval_us(
+            self.burst_sel if zyxt is None else zyxt, self.osr, self.dig_filt, self.osr2, self.burst_data_rate
+        )
 
     def to_registers(self, current: dict[int, int] | None = None) -> dict[int, int]:
         """Register words for CONF1..CONF3, keeping other bits of ``current`` as read."""
@@ -84,8 +118,14 @@ class Settings:
         conf2 = TCMP_EN.set(conf2, int(self.tcmp_en))
         conf2 = BURST_SEL.set(conf2, self.burst_sel)
         conf2 = BURST_DATA_RATE.set(conf2, self.burst_data_rate)
-        for field, value in ((OSR2, self.osr2), (RES_Z, self.res_z), (RES_Y, self.res_y),
-                             (RES_X, self.res_x), (DIG_FILT, self.dig_filt), (OSR, self.osr)):
+        for field, value in (
+            (OSR2, self.osr2),
+            (RES_Z, self.res_z),
+            (RES_Y, self.res_y),
+            (RES_X, self.res_x),
+            (DIG_FILT, self.dig_filt),
+            (OSR, self.osr),
+        ):
             conf3 = field.set(conf3, value)
         return {REG_CONF1: conf1, REG_CONF2: conf2, REG_CONF3: conf3}
 
@@ -93,8 +133,16 @@ class Settings:
     def from_registers(cls, regs: dict[int, int]) -> Settings:
         """Decode CONF1..CONF3 (not validated: the chip may hold anything)."""
         c1, c2, c3 = regs[REG_CONF1], regs[REG_CONF2], regs[REG_CONF3]
-        return cls(gain_sel=GAIN_SEL.get(c1), hallconf=HALLCONF.get(c1),
-                   res_x=RES_X.get(c3), res_y=RES_Y.get(c3), res_z=RES_Z.get(c3),
-                   osr=OSR.get(c3), dig_filt=DIG_FILT.get(c3), osr2=OSR2.get(c3),
-                   tcmp_en=bool(TCMP_EN.get(c2)), burst_sel=BURST_SEL.get(c2),
-                   burst_data_rate=BURST_DATA_RATE.get(c2))
+        return cls(
+            gain_sel=GAIN_SEL.get(c1),
+            hallconf=HALLCONF.get(c1),
+            res_x=RES_X.get(c3),
+            res_y=RES_Y.get(c3),
+            res_z=RES_Z.get(c3),
+            osr=OSR.get(c3),
+            dig_filt=DIG_FILT.get(c3),
+            osr2=OSR2.get(c3),
+            tcmp_en=bool(TCMP_EN.get(c2)),
+            burst_sel=BURST_SEL.get(c2),
+            burst_data_rate=BURST_DATA_RATE.get(c2),
+        )
