@@ -194,7 +194,7 @@ def run(
 
 
 #: The step's error is judged on means over this long (s): a single sample's noise is 0.03-0.06 N
-#: on Fx at the loop settings here, 1.5-3 % of the step, so the issue's 2 % is a figure of the
+#: on Fx at the loop settings here, 1.5-3 % of the step, so the aim of 2 % is a figure of the
 #: estimate, not of one reading; 0.25 s divides the noise by 5 and is shorter than any creep.
 STEP_WINDOW_S = 0.25
 

@@ -232,7 +232,7 @@ def report(results: list, where: dict, quick: bool, elapsed: float) -> str:
         f"profile of {where['end']:.0f} s: 2 N sines on Fx at {', '.join(f'{f:g}' for f in freqs)} Hz, a 2 N "
         f"step on Fx held {where['step'][1] - where['step'][0]:.0f} s, the training-like profile. Each cell "
         "is without / with the compensation. Step: the largest |error| from 0.5 s after it of 0.25 s means "
-        "and of single samples (% of the step; the issue asks 2 %), and the time to half the step (ms). "
+        "and of single samples (% of the step; the aim: 2 %), and the time to half the step (ms). "
         "nan: the loop, under 1 Hz, has no sample in the second before the step to tare on. "
         "Sines: amplitude published / applied and lag (ms), where the loop takes 4 samples a period or more "
         "(else -). Training: RMSE over the force axes (N). Samples flagged: those the stage keeps out of its "

@@ -1,4 +1,4 @@
-"""Motors nearby (issue 23): a motor's point dipole a few cm from the tool, through the
+"""Motors nearby: a motor's point dipole a few cm from the tool, through the
 daemon, on as-built parts the project does not otherwise use. Writes docs/results/motor-figures.md.
 
     python -m benchmarks.accuracy.motor            # the figures in docs/ (2 processes)
@@ -66,7 +66,7 @@ MOVE_S, SETTLE_S = 0.2, 0.05
 #: 360 cycles to find them (a tare answered after the first turn began is reported late).
 TARE_AT_S, TARE_SAMPLES, ON_S, START_S = 0.2, 100, 3.65, 4.0
 SCENARIOS = ("on after tare", "tared on", "100 g, tared on")
-TARGET = np.array([0.05, 0.05, 0.05, 2e-3, 2e-3, 2e-3])  # the issue's, N and Nm
+TARGET = np.array([0.05, 0.05, 0.05, 2e-3, 2e-3, 2e-3])  # the aim at rest near a motor, N and Nm
 
 
 def placement(seed: int, distance_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -324,7 +324,7 @@ def main(argv: list[str] | None = None) -> int:
             lines += rows
     lines += parts + [
         "",
-        f"Target (issue 23): RMS within {TARGET[0]} N and {TARGET[3] * 1e3:g} mNm; at 25 cm nothing "
+        f"Aim: RMS within {TARGET[0]} N and {TARGET[3] * 1e3:g} mNm; at 25 cm nothing "
         f"flagged. {time.perf_counter() - began:.0f} s.",
     ]
     args.out.write_text("\n".join(lines) + "\n")

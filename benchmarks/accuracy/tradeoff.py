@@ -91,7 +91,7 @@ decides the trade there:
   training RMSE, compensated,
   0.061-0.064 N at 88 Hz and over, 0.069-0.072 at 44-59 Hz, 0.087-0.090 at 26-30 Hz, 0.18 and
   more below 10 Hz. The held step's 0.25 s means are best at the fastest loops too (1.70-1.82 %
-  under burst at 170-214 Hz and 1.74-1.93 % under overlapped at 96-116 Hz, within the issue's
+  under burst at 170-214 Hz and 1.74-1.93 % under overlapped at 96-116 Hz, within the aim of
   2 %; 2.1-2.5 % under overlapped at 88, 105 and 138 Hz, the noisier samples; 2.4-3.8 % at
   59 Hz and below, fewer samples a window).
 - Noise wins the held load sample by sample: a single sample of the held step is 7.8-8.1 %

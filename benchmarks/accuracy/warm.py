@@ -44,7 +44,7 @@ from ftsensord.testing.harness import InProcess
 
 #: The paper's Table II RMS errors (N x3, Nm x3).
 TABLE_II = np.array([0.2338, 0.1136, 0.3775, 4.1e-3, 10.6e-3, 8.5e-3])
-#: The figures to reach at rest: 0.05 N, 2 mNm (issue 23).
+#: The figures to reach at rest: 0.05 N, 2 mNm (the aim near a motor, docs/results/accuracy.md).
 REST_LIMIT = np.array([0.05, 0.05, 0.05, 2e-3, 2e-3, 2e-3])
 SEEDS = (31, 32, 33)  # parts no other benchmark or test uses
 

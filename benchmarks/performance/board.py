@@ -39,7 +39,7 @@ from ftsensord.chip import mlx90393 as mlx
 PERIOD_MS = 10.0  # 100 Hz
 SPARE = 0.2  # of the period left free: the CPU jitter and a late wake-up fit in it
 #: The boards of the table: (name, adapter, ioctl cost s, I2C clock Hz). A Pi 4's adapter at
-#: the ioctl costs measured on one (60-80 us), and the pessimistic board of issue 26: 150 us
+#: the ioctl costs measured on one (60-80 us), and a pessimistic board: 150 us
 #: an ioctl, the clock at 250 kHz because the core clock floats (docs/results/performance.md).
 BOARDS = [
     ("Pi 4, 60 us an ioctl, 400 kHz", "bcm2835", 60e-6, 400e3),

@@ -48,7 +48,7 @@ from ftsensord.model.linear import LinearModel
 #: tool visits the few orientations the estimate needs within them.
 MEMORY_SAMPLES = 3000
 #: The correction starts when the false wrench it takes out is known to within this (1 sigma,
-#: N and Nm, from the estimate's covariance: the noise's part): a quarter of issue 23's figure
+#: N and Nm, from the estimate's covariance: the noise's part): a quarter of the aim near a motor
 #: (0.05 N, 2 mNm), so that its own error adds 3 % to an error at the figure in quadrature.
 CORRECT_WITHIN = np.array([0.0125, 0.0125, 0.0125, 0.5e-3, 0.5e-3, 0.5e-3])
 #: Before that, an in-plane gradient changed since the tare raises an alarm that flags every
@@ -57,7 +57,7 @@ CORRECT_WITHIN = np.array([0.0125, 0.0125, 0.0125, 0.5e-3, 0.5e-3, 0.5e-3])
 #: tell which samples are right. The change counts when, in the mean of the last
 #: `CHANGE_SAMPLES` samples, it is beyond noise at `CHANGE_ODDS` (chi-square, 2 dof: 5.3
 #: sigma) and a gradient of its size, its hidden parts as large as at a random orientation,
-#: would make a false wrench beyond `ALARM_WRENCH` (N, Nm), 1.5 times issue 23's figure: at
+#: would make a false wrench beyond `ALARM_WRENCH` (N, Nm), 1.5 times that aim: at
 #: the figure itself a 2 A m^2 motor at 25 cm, whose false wrench is within it (1.3 mNm RMS
 #: uncorrected), raised it on two parts of three for the 7 s learning took; at 1.5 times it
 #: rises at 15 cm (8.7 mNm), not at 25 (benchmarks/accuracy/motor.py; docs/results/accuracy.md).

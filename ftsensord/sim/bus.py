@@ -39,7 +39,7 @@ DEFAULT_ADAPTER = "bcm2835"
 #: 1 GHz) was measured at 1.1 kHz doing write() then read() of 1 and 14 bytes at
 #: 400 kHz (raspberrypi.stackexchange.com q. 109657): 909 us, of which 393 us on the
 #: wire, so about 250 us a syscall; the Pi 4's Cortex-A72 runs such kernel paths about
-#: 4x faster, hence 60 us, the figure issue 14 measured. `acquire.board` measures it.
+#: 4x faster, hence 60 us. `acquire.board` measures it.
 DEFAULT_IOCTL_S = 60e-6
 
 
