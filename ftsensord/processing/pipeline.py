@@ -134,9 +134,7 @@ class SensorPipeline:
             else None,
             stray=WorldGradient(s.calibration.model, sigma_t) if s.stray_field == "world" else None,
             creep=CreepCompensation(s.calibration.silicone, rate_hz),
-            uncertainty=Uncertainty(
-                s.model, sigma_t, s.calibration.report, None if nl is None else nl.K
-            ),
+            uncertainty=Uncertainty(s.model, sigma_t, s.calibration.report, None if nl is None else nl.K),
         )
 
     @property

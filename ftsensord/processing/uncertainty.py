@@ -85,7 +85,7 @@ def propagate(M: np.ndarray, sigma_t: np.ndarray) -> np.ndarray:
     return (M * sigma_t**2) @ M.T
 
 
-@dataclass
+@dataclass(frozen=True, eq=False)
 class SampleSigma:
     """A sample's sigma (6; NaN unknown) and the parts of its covariance (`covariance`)."""
 
@@ -109,7 +109,9 @@ UNKNOWN.sigma.setflags(write=False)
 class Uncertainty:
     """One sensor's sigma: the chips' noise, its calibration's model error, and the maps."""
 
-    def __init__(self, model: LinearModel, sigma_t: np.ndarray, report: Mapping[str, Any] | None, stiffness: Any):
+    def __init__(
+        self, model: LinearModel, sigma_t: np.ndarray, report: Mapping[str, Any] | None, stiffness: Any
+    ):
         self.sigma_t = sigma_t
         self.linear_error = ModelError.from_report(report)
         nl = (report or {}).get("nonlinear")
