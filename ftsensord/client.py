@@ -14,6 +14,7 @@ user's runtime folder (see `ftsensord.protocol.paths.runtime_dir`).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from collections.abc import Iterator, Sequence
@@ -197,6 +198,12 @@ class Subscriber:
     one socket with a deep queue, so a reader that keeps up gets every sample.
     ZeroMQ drops the *newest* messages when a queue is full, which is why the
     haptic mode conflates rather than keeping a short queue.
+
+    A wrench's sigma (its companion stream ``sigma/<stream>``, sent just before it) is
+    received beside it and given as ``sample.sigma`` (6 values, N and Nm; NaN: unknown), or
+    None when it did not come (a daemon that does not send it, or, in latest mode, when it
+    has not yet arrived). The companions are not returned as samples of their own unless
+    asked for by name.
     """
 
     def __init__(
@@ -212,7 +219,21 @@ class Subscriber:
         if latest and not streams:
             raise ValueError("latest=True needs the streams named (one conflating socket each)")
         groups = [[stream] for stream in streams or []] if latest else [list(streams or [""])]
+        named = set(streams or [])
+        #: The companions received for their wrench, not returned (by their topic).
+        self._companions = {
+            wire.SIGMA_PREFIX + s
+            for s in (streams or [])
+            if s.startswith("wrench/") and wire.SIGMA_PREFIX + s not in named
+        }
+        if streams is None:
+            self._companions_all = True
+        else:
+            self._companions_all = False
+            if not latest:
+                groups[0] += sorted(self._companions)
         self.sockets = []
+        self._sigma_sockets: dict[str, zmq.Socket] = {}
         for group in groups:
             sock = self.context.socket(zmq.SUB)
             sock.setsockopt(zmq.LINGER, 0)
@@ -229,6 +250,19 @@ class Subscriber:
                 self.close()  # the ones opened before it
                 raise
             self.sockets.append(sock)
+        if latest:  # a conflating socket of each companion, read when its wrench comes
+            for topic in sorted(self._companions):
+                sock = self.context.socket(zmq.SUB)
+                sock.setsockopt(zmq.LINGER, 0)
+                sock.setsockopt(zmq.CONFLATE, 1)
+                sock.setsockopt(zmq.SUBSCRIBE, topic.encode() + b"\0")
+                try:
+                    connect(sock, self.endpoint)
+                except ConfigError:
+                    self.close()
+                    raise
+                self._sigma_sockets[topic] = sock
+        self._sigmas: dict[str, tuple[int, np.ndarray]] = {}  # the last companion of each wrench
         self.poller = zmq.Poller()
         for sock in self.sockets:
             self.poller.register(sock, zmq.POLLIN)
@@ -239,17 +273,41 @@ class Subscriber:
     def receive(self, timeout_s: float | None = None) -> wire.Sample | None:
         """The next sample (in latest mode: the newest of a stream that has one),
         or None after ``timeout_s`` (None: wait forever)."""
-        ready = dict(self.poller.poll(None if timeout_s is None else int(timeout_s * 1000)))
-        sock = next((s for s in self.sockets if s in ready), None)
-        if sock is None:
-            return None
-        sample = wire.decode(sock.recv())
+        while True:
+            ready = dict(self.poller.poll(None if timeout_s is None else int(timeout_s * 1000)))
+            sock = next((s for s in self.sockets if s in ready), None)
+            if sock is None:
+                return None
+            sample = wire.decode(sock.recv())
+            if sample.kind != wire.KIND_SIGMA or not (
+                sample.topic in self._companions or self._companions_all
+            ):
+                break
+            # a companion: kept for its wrench (the next sample of that stream, same seq)
+            self._sigmas[sample.topic] = (sample.seq, sample.values)
+        if sample.kind == wire.KIND_WRENCH:
+            sample = self._with_sigma(sample)
         last = self.last_seq.get(sample.topic)
         if last is not None and sample.seq > last + 1:
             self.gaps[sample.topic] = self.gaps.get(sample.topic, 0) + sample.seq - last - 1
         self.last_seq[sample.topic] = sample.seq
         self.received += 1
         return sample
+
+    def _with_sigma(self, sample: wire.Sample) -> wire.Sample:
+        """The wrench ``sample`` with its companion's sigma when one of its seq came."""
+        topic = wire.SIGMA_PREFIX + sample.topic
+        sock = self._sigma_sockets.get(topic)
+        if sock is not None:  # latest mode: the newest companion, if any came since
+            try:
+                c = wire.decode(sock.recv(zmq.NOBLOCK))
+                self._sigmas[topic] = (c.seq, c.values)
+            except zmq.Again:
+                pass
+        found = self._sigmas.get(topic)
+        if found is None or found[0] != sample.seq:
+            return sample
+        return dataclasses.replace(sample, sigma=found[1])
 
     def __iter__(self) -> Iterator[wire.Sample]:
         while True:
@@ -258,7 +316,7 @@ class Subscriber:
                 yield sample
 
     def close(self) -> None:
-        for sock in self.sockets:
+        for sock in [*self.sockets, *getattr(self, "_sigma_sockets", {}).values()]:
             sock.close()
 
     def __enter__(self) -> Subscriber:

@@ -10,6 +10,7 @@ from ftsensord.recording.columns import value_columns
 
 #: A wrench's values as printed (N, Nm), and a flux's (uT: the tesla's digits are all leading zeros).
 WRENCH_WIDTH, FLUX_WIDTH = 10, 9
+_NO_SIGMA = [float("nan")] * 6
 
 
 def header(sample: wire.Sample) -> str:
@@ -22,12 +23,16 @@ def header(sample: wire.Sample) -> str:
             f"{n.removesuffix('_T') + '_uT':>{FLUX_WIDTH}}"
             for n in value_columns("flux/", len(sample.values))
         ]
+    if sample.kind == wire.KIND_WRENCH:  # its sigma's, column by column (`wire.KIND_SIGMA`)
+        values += [f"{'s_' + n:>{WRENCH_WIDTH}}" for n in value_columns("wrench/", 6)]
     return f"#{'seq':>7} {'t_mono_s':>14} {' '.join(values)}  flags"
 
 
 def line(sample: wire.Sample) -> str:
     if sample.kind == wire.KIND_WRENCH:
         values = " ".join(f"{v:+{WRENCH_WIDTH}.4f}" for v in sample.values)
+        sigma = _NO_SIGMA if sample.sigma is None else sample.sigma  # nan: not received
+        values += " " + " ".join(f"{v:{WRENCH_WIDTH}.4f}" for v in sigma)
     else:
         values = " ".join(f"{v * 1e6:+{FLUX_WIDTH}.1f}" for v in sample.values)
     return f"{sample.seq:8d} {sample.t_mono:14.6f} {values}  {','.join(wire.flag_names(sample.flags))}"

@@ -133,6 +133,7 @@ def test_burst_publishes_before_its_register_read_back(tmp_path):
             deadline = r.clock.now() + r.daemon.period_s
             t0 = r.clock.now()
             r.daemon.cycle()
+            assert wire.decode(r.sub.recv()).topic == "sigma/wrench/sensor1"  # its sigma, just before
             sample = wire.decode(r.sub.recv())
             assert sample.topic == "wrench/sensor1"
             # Virtual clock, CPU free: only bus time passes; 1 us: the clock's float sums.
@@ -149,7 +150,16 @@ def test_burst_publishes_before_its_register_read_back(tmp_path):
 
 def test_every_stream_is_published_with_increasing_sequence_numbers(rig):
     out = rig.cycles(5)
-    assert sorted(out) == ["flux/sensor1", "flux/sensor2", "wrench/sensor1", "wrench/sensor2", "wrench/tip"]
+    assert sorted(out) == [
+        "flux/sensor1",
+        "flux/sensor2",
+        "sigma/wrench/sensor1",
+        "sigma/wrench/sensor2",
+        "sigma/wrench/tip",
+        "wrench/sensor1",
+        "wrench/sensor2",
+        "wrench/tip",
+    ]
     for samples in out.values():
         assert [s.seq for s in samples] == [0, 1, 2, 3, 4]
         assert all(b.t_mono > a.t_mono for a, b in zip(samples, samples[1:]))
@@ -157,15 +167,17 @@ def test_every_stream_is_published_with_increasing_sequence_numbers(rig):
 
 
 def test_the_first_wrench_goes_out_first_with_no_bus_time_after_its_sample(rig):
-    # A haptic loop waits for wrench/sensor1: it is each cycle's first frame, and on the
-    # virtual clock (CPU free) no bus time passes between the sample's t_mono and its send,
-    # so no transfer (a read-back, a retry) was put between them.
+    # A haptic loop waits for wrench/sensor1: it is each cycle's first wrench, after its sigma
+    # alone, and on the virtual clock (CPU free) no bus time passes between the sample's t_mono
+    # and its send, so no transfer (a read-back, a retry) was put between them.
     for _ in range(20):
         rig.daemon.cycle()
         frames = []
         while rig.sub.poll(0):
             frames.append(wire.decode(rig.sub.recv()).topic)
-        assert frames[0] == "wrench/sensor1" and frames.index("wrench/sensor2") < frames.index("flux/sensor1")
+        assert frames[:2] == ["sigma/wrench/sensor1", "wrench/sensor1"] and frames.index(
+            "wrench/sensor2"
+        ) < frames.index("flux/sensor1")
     publish = rig.request(cmd="status")["result"]["publish_us"]
     assert publish == {"p50": 0.0, "p99": 0.0, "max": 0.0}
 
@@ -256,7 +268,7 @@ def test_burst_reading_faster_than_conversion_flags_stale_and_reuses_the_last_re
     rig.clock.sleep(0.1)
     rig.daemon.cycle()
     rig.daemon.cycle()  # 4 ms later: no chip has converted since
-    samples = [wire.decode(rig.sub.recv()) for _ in range(2 * 5)]
+    samples = [wire.decode(rig.sub.recv()) for _ in range(2 * 8)]  # 5 streams, 3 sigmas
     first, second = [x for x in samples if x.topic == "wrench/sensor1"]
     assert not first.flags & wire.FLAG_STALE
     assert second.flags & wire.FLAG_STALE and not second.flags & wire.FLAG_INVALID

@@ -471,8 +471,9 @@ def test_echo_prints_a_header_naming_each_column_and_its_unit_over_it(daemon, st
     )
     assert done.returncode == 0, done.stderr
     head, *rows = done.stdout.splitlines()
+    wrench = ["fx_N", "fy_N", "fz_N", "mx_Nm", "my_Nm", "mz_Nm"]
     values = (
-        ["fx_N", "fy_N", "fz_N", "mx_Nm", "my_Nm", "mz_Nm"]
+        wrench + ["s_" + n for n in wrench]  # and each axis's sigma
         if stream.startswith("wrench/")
         else [f"b{i}{a}_uT" for i in range(8) for a in "xyz"]
     )  # flux is printed in uT

@@ -54,6 +54,22 @@ def test_flux_vector_matches_the_encoder():
     assert wire.decode(frame).flags == 0x41
 
 
+def test_sigma_vector_matches_the_encoder_and_an_old_decoder_reads_it_as_six_values():
+    frame = wire.encode(
+        "sigma/wrench/sensor1",
+        wire.KIND_SIGMA,
+        42,
+        1234.5,
+        1763836800.25,
+        wire.FLAG_STALE | wire.FLAG_LATE,
+        np.array([0.025, 0.031, 0.022, 0.003, 0.0029, np.nan]),
+    )
+    assert frame == vector("sigma") and len(frame) == 109
+    s = wire.decode(frame)  # the header and count are a wrench's: only the kind and topic differ
+    assert (s.topic, s.kind, s.seq, s.flags) == ("sigma/wrench/sensor1", 3, 42, 0x24)
+    assert np.array_equal(s.values, [0.025, 0.031, 0.022, 0.003, 0.0029, np.nan], equal_nan=True)
+
+
 def test_header_offsets_are_the_documented_ones():
     body = vector("wrench")[len(b"wrench/sensor1\0") :]
     assert body[0:2] == b"\x46\x54" and body[2] == 1 and body[3] == 1

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -41,7 +42,13 @@ from ftsensord.calibration.rig import simulate_sweeps
 from ftsensord.calibration.screening import check_chip_order, leave_out_outliers
 from ftsensord.errors import CalibrationError
 from ftsensord.model.geometry import SensorGeometry
-from ftsensord.model.linear import LinearModel, PositionMap, deflection_twist, fit_position_map
+from ftsensord.model.linear import (
+    SENSOR_RANGE,
+    LinearModel,
+    PositionMap,
+    deflection_twist,
+    fit_position_map,
+)
 from ftsensord.sim.chip import NOISELESS
 
 #: Parameters of one row of the affine flux-to-twist fit: 24 slopes and an offset.
@@ -182,6 +189,42 @@ def _fit_through_zero(
 def rmse(model: LinearModel, dataset: Dataset) -> np.ndarray:
     """Root mean square error per axis (N, Nm) of the model on a dataset."""
     return np.sqrt(np.mean((model.wrench(dataset.flux_t) - dataset.wrench) ** 2, axis=0))
+
+
+def error_model(error: np.ndarray, wrench: np.ndarray) -> dict[str, Any] | None:
+    """The validation error's spread as a function of load, for each sample's sigma
+    (`processing.uncertainty`): per axis, error^2 ~ rest^2 + (per_load L)^2 with L the
+    load's range-scaled norm, |w / SENSOR_RANGE|, fitted by non-negative least squares on
+    the validation poses' errors (``error``, ``wrench``: poses x 6, N and Nm); None with
+    fewer than 4 poses. ``mean_load``: the RMS of L over those poses."""
+    error, wrench = np.asarray(error, dtype=float), np.asarray(wrench, dtype=float)
+    if len(error) < 4:
+        return None
+    L2 = np.sum((wrench / SENSOR_RANGE) ** 2, axis=1)
+    rest, per_load = [], []
+    for k in range(6):
+        coef = _nonnegative_line(L2, error[:, k] ** 2)
+        rest.append(float(np.sqrt(coef[0])))
+        per_load.append(float(np.sqrt(coef[1])))
+    return {
+        "rest": dict(zip(AXES, rest)),
+        "per_load": dict(zip(AXES, per_load)),
+        "mean_load": float(np.sqrt(np.mean(L2))),
+        "poses": len(error),
+    }
+
+
+def _nonnegative_line(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """y ~ c0 + c1 x by least squares with c0, c1 >= 0 (two unknowns: the unconstrained
+    fit, else the best of each alone)."""
+    design = np.column_stack([np.ones(len(x)), x])
+    (c0, c1), *_ = np.linalg.lstsq(design, y, rcond=None)
+    if c0 >= 0 and c1 >= 0:
+        return float(c0), float(c1)
+    alone = [(max(float(np.mean(y)), 0.0), 0.0)]
+    if np.any(x > 0):
+        alone.append((0.0, max(float(x @ y / (x @ x)), 0.0)))
+    return min(alone, key=lambda c: float(np.sum((y - c[0] - c[1] * x) ** 2)))
 
 
 def singular_values_ka(model: LinearModel) -> dict[str, list[float]]:
@@ -448,6 +491,9 @@ def fit(
         "fit_rmse": dict(zip(AXES, rmse(result.model, used).tolist())),
         "validation_rmse": (
             dict(zip(AXES, rmse(result.model, validation).tolist())) if len(validation) else None
+        ),
+        "validation_error": error_model(
+            result.model.wrench(validation.flux_t) - validation.wrench, validation.wrench
         ),
         "warnings": warnings,
     }

@@ -418,11 +418,16 @@ def _problems(cal: NonlinearCalibration, drawn: SensorGeometry, sem_t: np.ndarra
     return out
 
 
-def nonlinear_rmse(cal: NonlinearCalibration, dataset: Dataset) -> np.ndarray:
-    """RMSE per axis (N, Nm) of the nonlinear estimate on a dataset."""
+def nonlinear_errors(cal: NonlinearCalibration, dataset: Dataset) -> np.ndarray:
+    """The nonlinear estimate's error (poses x 6, N and Nm) on a dataset."""
     estimator = cal.estimator()
     errors = []
     for b, w in zip(dataset.flux_t, dataset.wrench, strict=True):
         e = estimator.estimate(b)
         errors.append(cal.wrench(e.xi) - w)
-    return np.sqrt(np.mean(np.array(errors) ** 2, axis=0))
+    return np.array(errors).reshape(-1, 6)
+
+
+def nonlinear_rmse(cal: NonlinearCalibration, dataset: Dataset) -> np.ndarray:
+    """RMSE per axis (N, Nm) of the nonlinear estimate on a dataset."""
+    return np.sqrt(np.mean(nonlinear_errors(cal, dataset) ** 2, axis=0))

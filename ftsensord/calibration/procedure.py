@@ -13,8 +13,15 @@ import numpy as np
 from ftsensord.calibration import largeloads
 from ftsensord.calibration.calfile import Calibration
 from ftsensord.calibration.dataset import Dataset
-from ftsensord.calibration.fit import AXES, CalibrationResult, RoomFieldError, fit, room_directions
-from ftsensord.calibration.nlfit import FitProgress, fit_nonlinear, nonlinear_rmse
+from ftsensord.calibration.fit import (
+    AXES,
+    CalibrationResult,
+    RoomFieldError,
+    error_model,
+    fit,
+    room_directions,
+)
+from ftsensord.calibration.nlfit import FitProgress, fit_nonlinear, nonlinear_errors
 from ftsensord.calibration.relaxation import SiliconeCalibration, dwell_loads, identify, settle_s
 from ftsensord.calibration.report import format_rmse
 from ftsensord.calibration.rig import record_dataset, record_hold, simulate_sweeps, simulated_robot
@@ -143,13 +150,15 @@ def calibrate(
         used = dataset if result.excluded is None else dataset.select(~result.excluded)  # as the linear fit
         nl = fit_nonlinear(used, progress=progress, allow_poor_fit=allow_poor_fit)
         validation = used.select(used.split == "validation")
+        errors = nonlinear_errors(nl, validation)
         report["nonlinear"] = {
             "gap_mm": nl.gap_m * 1e3,
             "fit_rms_residual_ut": nl.fit_rms_residual_t * 1e6,
             "warnings": list(nl.warnings),
             "validation_rmse": (
-                dict(zip(AXES, nonlinear_rmse(nl, validation).tolist())) if len(validation) else None
+                dict(zip(AXES, np.sqrt(np.mean(errors**2, axis=0)).tolist())) if len(validation) else None
             ),
+            "validation_error": error_model(errors, validation.wrench),
         }
     report["large_loads"], found = largeloads.judge(
         dataset if result.excluded is None else dataset.select(~result.excluded), result.model, nl

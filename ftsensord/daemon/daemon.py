@@ -43,6 +43,7 @@ from ftsensord.processing.filters import WrenchFilter
 from ftsensord.processing.gravity import Gravity
 from ftsensord.processing.pipeline import SensorPipeline, SensorSample, tip_moves, tip_wrench, use_estimator
 from ftsensord.processing.tare import Tares, carry_tares
+from ftsensord.processing.uncertainty import tip_sigma
 from ftsensord.protocol import wire
 from ftsensord.protocol.orientation import OrientationReceiver
 
@@ -237,6 +238,10 @@ class Daemon:
             s = samples[p.name] = p.step(results, wire.FLAG_LATE if late else 0, R)
             # Each wrench as soon as it is known: a haptic loop waits for it; flux is for
             # debugging, and the tares' and counters' bookkeeping waits until after the sends.
+            # Its sigma just before it, so that a subscriber to both has it in hand with the wrench.
+            self._publish(
+                f"sigma/wrench/{p.name}", wire.KIND_SIGMA, seq, t_mono, t_wall, s.flags, s.sigma.sigma
+            )
             self._publish(f"wrench/{p.name}", wire.KIND_WRENCH, seq, t_mono, t_wall, s.flags, s.wrench)
             if p is self.sensors[0]:
                 self.timing.published(self.clock() - t_mono)
@@ -245,6 +250,9 @@ class Daemon:
             self._tip = (poses, tip_moves(poses))
         tip = tip_wrench(samples, self._tip[1]) if poses else None
         if tip is not None:
+            moves = self._tip[1]
+            sigma = tip_sigma([(X, samples[name].sigma) for name, X in moves])
+            self._publish("sigma/wrench/tip", wire.KIND_SIGMA, seq, t_mono, t_wall, tip[1], sigma)
             self._publish("wrench/tip", wire.KIND_WRENCH, seq, t_mono, t_wall, tip[1], tip[0])
         compensated = self.gravity.streams(samples, tip, self.sensors, start) if self.gravity else []
         for topic, flags, values in compensated:

@@ -320,5 +320,9 @@ def sensor_status(p: SensorPipeline) -> dict[str, Any]:
         if p.estimate_s
         else None,
         "tare_wrench": p.tare_wrench.round(6).tolist(),
+        # The sigma at rest of the current settings, every chip (`processing.uncertainty`).
+        "sigma": None
+        if p.uncertainty is None
+        else p.uncertainty.predicted(p.filter.factors[-1], p.tare_samples, p.estimator),
         **p.stages_status(),
     }

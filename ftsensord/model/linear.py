@@ -216,6 +216,12 @@ class LinearModel:
         the chips left to tell the two apart (rank 6 + 3); with ``gradient`` too, its
         part g as well.
         """
+        channels = np.repeat(np.asarray(chips, dtype=bool), 3)
+        return self.map_from(chips) @ (b[channels] - self.zero[channels])
+
+    def map_from(self, chips: np.ndarray) -> np.ndarray:
+        """`wrench_from`'s map, K pinv(H_S) (6 x the channels of ``chips``), built once;
+        ValueError without H or when the chips left do not see all six axes."""
         if self.H is None:
             raise ValueError("this calibration has no flux model H: no estimate from fewer chips")
         channels = np.repeat(np.asarray(chips, dtype=bool), 3)
@@ -229,7 +235,7 @@ class LinearModel:
                     + ("" if H_S.shape[1] == 6 else " apart from the room's field")
                 )
             M = self._subsets[key] = self.K @ np.linalg.pinv(H_S)[:6]
-        return M @ (b[channels] - self.zero[channels])
+        return M
 
     def build_maps(self, sigma: np.ndarray, max_missing: int) -> None:
         """Build now every map `wrench_from` and `consistency` (channel noise ``sigma``, T)

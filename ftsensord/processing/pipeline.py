@@ -34,6 +34,7 @@ from ftsensord.processing.redundancy import RedundancyCheck, count_missing, ever
 from ftsensord.processing.stage import Stage
 from ftsensord.processing.stray import WorldGradient
 from ftsensord.processing.temperature import ThermalCompensation
+from ftsensord.processing.uncertainty import UNKNOWN, SampleSigma, Uncertainty
 from ftsensord.protocol import wire
 
 #: Samples whose estimator CPU time `status` reports (mean, max): 10 s at 100 Hz, the loop's own
@@ -61,6 +62,7 @@ class SensorSample:
     wrench: np.ndarray  # after the filter
     flags: int
     valid: bool  # an estimate was possible (the wrench is not NaN)
+    sigma: SampleSigma = UNKNOWN  # the wrench's 1-sigma per axis (N, Nm; NaN unknown), `uncertainty`
 
 
 @dataclass
@@ -89,11 +91,15 @@ class SensorPipeline:
     #: Counts the changes of what the redundancy check folds from the pipeline itself (the
     #: model's zero, the tare's wrench): the fold is made again when it moves.
     version: int = 0
+    uncertainty: Uncertainty | None = None  # each sample's sigma; None: not computed
+    tare_samples: int | None = None  # how many samples the tare's zero averaged (None: unknown or untared)
 
     def __post_init__(self) -> None:
         fitted = self.config.calibration.wrench_range
         # The extrapolation test's limits as Python floats (N, Nm; None: no calibrated loads).
         self._extrapolation = None if fitted is None else (EXTRAPOLATION_MARGIN * fitted).tolist()
+        self._every = every_chip(len(self.config.addresses))
+        self._used: tuple[str, np.ndarray] | None = None  # the last estimate's estimator and chips
 
     @classmethod
     def build(
@@ -128,6 +134,7 @@ class SensorPipeline:
             else None,
             stray=WorldGradient(s.calibration.model, sigma_t) if s.stray_field == "world" else None,
             creep=CreepCompensation(s.calibration.silicone, rate_hz),
+            uncertainty=Uncertainty(s.model, sigma_t, s.calibration.report, None if nl is None else nl.K),
         )
 
     @property
@@ -159,13 +166,17 @@ class SensorPipeline:
             if self.estimator == "linear" and self.stray is None
             else None
         )
+        scale = 1.0
         if usual is not None:
             wrench, wflags = usual[0], flags | (wire.FLAG_EXTRAPOLATED if usual[1] else 0)
+            self._used = ("linear", self._every)
         else:
+            self._used = None
             wrench, wflags = self._staged(flux if thermal is None else thermal.apply(flux), flags, usable, R)
         if thermal is not None:
             if thermal.wrench_scale != 1.0:  # (x 1.0 changes no number)
-                wrench = wrench * thermal.wrench_scale
+                scale = thermal.wrench_scale
+                wrench = wrench * scale
             if thermal.beyond_span:
                 wflags |= wire.FLAG_TEMPERATURE
         wrench = self.creep.apply(wrench, not wflags & _BREAKS_MEMORY)  # the silicone's creep undone
@@ -173,8 +184,27 @@ class SensorPipeline:
         # Axis by axis in C (maps of builtins, no Python frame a value); NaN: not over, as numpy.
         if valid and any(map(operator.gt, map(abs, wrench.tolist()), _RANGE)):
             wflags |= wire.FLAG_OVERLOAD
+        own = wflags
         filtered, wflags = self.filter.update(wrench, wflags)  # a filtered wrench carries its inputs' flags
-        return SensorSample(flux, flags, filtered, wflags, valid)
+        return SensorSample(flux, flags, filtered, wflags, valid, self._sigma(wrench, own, valid, scale))
+
+    def _sigma(self, wrench: np.ndarray, flags: int, valid: bool, scale: float) -> SampleSigma:
+        """The sigma of this sample (`uncertainty`): unknown without an estimate or after a
+        fall-back; ``wrench``: its estimate before the filter, ``flags`` its own."""
+        used = self._used
+        if self.uncertainty is None or used is None or not valid or flags & wire.FLAG_FALLBACK:
+            return UNKNOWN
+        return self.uncertainty.sample(
+            self.version,
+            used[0],
+            used[1],
+            wrench,
+            self.tare_wrench,
+            self.tared,
+            self.tare_samples,
+            self.filter.variance_factor(),
+            scale,
+        )
 
     def flux(self, results: Mapping[int, ChipResult]) -> tuple[np.ndarray, int, np.ndarray]:
         """The sensor's stacked flux (T), its flags, and which chips are usable: every chip's
@@ -255,14 +285,18 @@ class SensorPipeline:
                 self.estimate_s.append(time.process_time() - t0)
                 if e.converged:
                     w = self.nonlinear.stiffness @ (e.xi - self.zero_twist)
+                    self._used = ("nonlinear", usable)
                     return w, flags | (0 if usable.all() else wire.FLAG_DEGRADED)
             self.fallbacks += 1
             flags |= wire.FLAG_FALLBACK
         if not missing:
+            self._used = ("linear", self._every)
             return self._linear(self.model.wrench(flux), flags)
         if few_missing and self.model.H is not None:
             try:
-                return self._linear(self.model.wrench_from(flux, usable), flags | wire.FLAG_DEGRADED)
+                w = self.model.wrench_from(flux, usable)
+                self._used = ("linear", usable)
+                return self._linear(w, flags | wire.FLAG_DEGRADED)
             except ValueError:
                 pass  # the chips left do not see all six axes
         return np.full(6, np.nan), flags | wire.FLAG_INVALID
@@ -278,11 +312,14 @@ class SensorPipeline:
             flags |= wire.FLAG_EXTRAPOLATED
         return wrench, flags
 
-    def tare(self, zero: np.ndarray, gravity: np.ndarray | None = None) -> np.ndarray:
+    def tare(
+        self, zero: np.ndarray, gravity: np.ndarray | None = None, samples: int | None = None
+    ) -> np.ndarray:
         """Make ``zero`` (the mean no-load flux, T, as read) the new zero; returns the wrench it
         removes. ``gravity``: the mean gravity (m/s^2, sensor frame) while it was measured, None if
-        unknown. With the temperature stage, the zero is taken at the tare's temperature and
-        compensated like every sample after it."""
+        unknown; ``samples``: how many samples ``zero`` averaged (for the sigma; None: unknown,
+        and the tare's own noise is left out of it). With the temperature stage, the zero is
+        taken at the tare's temperature and compensated like every sample after it."""
         for stage in self.stages:
             zero = stage.tared(zero)
         self.tare_wrench = self.config.model.wrench(zero)
@@ -294,6 +331,7 @@ class SensorPipeline:
                 self.zero_twist = e.xi
         self.filter.reset()
         self.tared = True
+        self.tare_samples = samples
         self.version += 1
         return self.tare_wrench
 
@@ -305,6 +343,7 @@ class SensorPipeline:
         nl = self.config.calibration.nonlinear
         self.zero_twist = nl.zero_twist.copy() if nl is not None else None
         self.tared = False
+        self.tare_samples = None
         self.filter.reset()
         self.version += 1
 

@@ -122,7 +122,10 @@ class Tares:
                     )
                     continue
                 offsets = {
-                    n: by_name[n].tare(np.mean(job.flux[n], axis=0), _mean(job.gravity[n])).round(6).tolist()
+                    n: by_name[n]
+                    .tare(np.mean(job.flux[n], axis=0), _mean(job.gravity[n]), len(job.flux[n]))
+                    .round(6)
+                    .tolist()
                     for n in job.sensors
                     if n in by_name
                 }
@@ -215,7 +218,7 @@ def carry_tares(old: Sequence[SensorPipeline], new: Sequence[SensorPipeline]) ->
         if o is None or not o.tared:
             continue
         if o.config.calibration.document() == p.config.calibration.document():
-            p.tare(o.model.zero, o.tare_gravity)
+            p.tare(o.model.zero, o.tare_gravity, o.tare_samples)
             if o.stray is not None and p.stray is not None:
                 p.stray = o.stray  # what it learnt, and the gradient at that tare, hold still
             out[p.name] = "kept (calibration unchanged)"

@@ -20,6 +20,10 @@ MAGIC = 0x5446  # b"FT" read as a little-endian u16
 VERSION = 1
 KIND_WRENCH = 1
 KIND_FLUX = 2
+#: A wrench's 1-sigma per axis (N, Nm; NaN unknown), on the topic `SIGMA_PREFIX` + the
+#: wrench's, with its seq and flags, sent just before the wrench (docs/reference/protocol.md).
+KIND_SIGMA = 3
+SIGMA_PREFIX = "sigma/"
 
 #: magic u16, version u8, kind u8, flags u32, seq u64, t_mono f64, t_wall f64,
 #: count u16, reserved u16, reserved u32: 40 bytes, so the values start 8-aligned.
@@ -76,6 +80,9 @@ class Sample:
     t_wall: float
     flags: int
     values: np.ndarray
+    #: A wrench's 1-sigma per axis (N, Nm; NaN: unknown), from its companion stream
+    #: (`SIGMA_PREFIX`); None when the subscriber did not receive it (`client.Subscriber`).
+    sigma: np.ndarray | None = None
 
 
 _F8 = np.dtype("<f8")

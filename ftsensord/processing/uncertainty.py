@@ -1,0 +1,207 @@
+"""Each wrench sample's 1-sigma per axis (N, Nm): what the daemon knows of its error.
+
+Three independent parts, added as variances (docs/design/estimators.md, "Each sample's sigma"):
+
+- the chips' reading noise (`pipeline.channel_sigma_t`, T, at their settings) through the
+  estimator used: M diag(sigma_t^2) M^T, M = K A with every chip, K pinv(H_S) over the chips
+  left (degraded), and for the nonlinear estimator its stiffness times the flux model's
+  Jacobian at rest, pinv(H) (the solve's own Jacobian at the deflection is not used); then
+  times the filter's variance factor (`filters.variance_factors`), as the noise is
+  independent from sample to sample;
+- the tare's own noise: its zero is the mean of n samples, so M diag(sigma_t^2) M^T / n, an
+  offset the filter does not shrink (none before a tare: the calibration's zero is the
+  mean of hundreds of poses' samples, and its error is in the next part);
+- the calibration's model error, learnt on its validation poses (`ModelError`), an error
+  of the load, not of the sample: the filter does not shrink it either.
+
+The noise parts are constant matrices for a given estimator, set of chips and tare: built
+once and kept, keyed on the pipeline's `version` (its tare) and the chips, so a sample costs
+a few products of six numbers. A sample without an estimate (invalid) or whose estimator
+fell back has no known sigma: NaN.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ftsensord.model.linear import SENSOR_RANGE, LinearModel
+
+AXES = ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
+_SCALE = (1.0 / SENSOR_RANGE) ** 2
+
+
+@dataclass(frozen=True)
+class ModelError:
+    """The calibration's error per axis as a function of the load, from its report's
+    ``validation_error`` (`calibration.fit.error_model`): error^2 ~ rest^2 + (per_load L)^2,
+    L = |w / SENSOR_RANGE|. After a tare the error that stays at the tare's load is taken
+    out: the load is counted from the tare's, and the rest term grows back with it, in
+    full from the validation poses' RMS load (``mean_load``) on.
+
+    ``source`` says what it came from: "validation" (load-dependent), "validation_rmse"
+    (a file written before it was recorded: the validation RMS at every load), or "none"
+    (no validation poses: no model error in the sigma)."""
+
+    rest: np.ndarray
+    per_load: np.ndarray
+    mean_load: float
+    source: str
+
+    @classmethod
+    def from_report(cls, report: Mapping[str, Any] | None) -> ModelError:
+        report = report or {}
+        fitted = report.get("validation_error")
+        if isinstance(fitted, Mapping):
+            return cls(
+                np.array([float(fitted["rest"][a]) for a in AXES]),
+                np.array([float(fitted["per_load"][a]) for a in AXES]),
+                float(fitted.get("mean_load", 0.0)),
+                "validation",
+            )
+        rmse = report.get("validation_rmse")
+        if isinstance(rmse, Mapping):
+            return cls(np.array([float(rmse[a]) for a in AXES]), np.zeros(6), 0.0, "validation_rmse")
+        return cls(np.zeros(6), np.zeros(6), 0.0, "none")
+
+    def variance(self, wrench: np.ndarray, tare_wrench: np.ndarray, tared: bool) -> np.ndarray:
+        """The model error's variance per axis at ``wrench`` (as published: after the tare's
+        ``tare_wrench`` was taken off)."""
+        if self.source != "validation":
+            return self.rest**2
+        load = float(np.dot(wrench * wrench, _SCALE))  # L^2, from the tare's load when tared
+        if not tared:
+            return self.rest**2 + self.per_load**2 * load
+        back = 1.0 if self.mean_load <= 0 else min(1.0, load / self.mean_load**2)
+        return self.rest**2 * back + self.per_load**2 * load
+
+
+def propagate(M: np.ndarray, sigma_t: np.ndarray) -> np.ndarray:
+    """M diag(sigma_t^2) M^T: the covariance (6 x 6) of M b for channels of noise ``sigma_t``."""
+    return (M * sigma_t**2) @ M.T
+
+
+@dataclass(frozen=True, eq=False)
+class SampleSigma:
+    """A sample's sigma (6; NaN unknown) and the parts of its covariance (`covariance`)."""
+
+    sigma: np.ndarray
+    noise: np.ndarray | None = None  # one sample's noise covariance (6 x 6) times the filter's factor
+    offset: np.ndarray | None = None  # the tare's (6 x 6)
+    model: np.ndarray | None = None  # the model error's variances (6)
+    scale: float = 1.0
+
+    def covariance(self) -> np.ndarray:
+        """The full 6 x 6 covariance (N, Nm squared); NaN where the sigma is unknown."""
+        if self.noise is None or self.offset is None or self.model is None:
+            return np.full((6, 6), np.nan)
+        return (self.noise + self.offset + np.diag(self.model)) * self.scale**2
+
+
+UNKNOWN = SampleSigma(np.full(6, np.nan))
+UNKNOWN.sigma.setflags(write=False)
+
+
+class Uncertainty:
+    """One sensor's sigma: the chips' noise, its calibration's model error, and the maps."""
+
+    def __init__(
+        self, model: LinearModel, sigma_t: np.ndarray, report: Mapping[str, Any] | None, stiffness: Any
+    ):
+        self.sigma_t = sigma_t
+        self.linear_error = ModelError.from_report(report)
+        nl = (report or {}).get("nonlinear")
+        self.nonlinear_error = ModelError.from_report(nl if isinstance(nl, Mapping) else None)
+        self._model = model
+        self._stiffness = stiffness  # the nonlinear calibration's K (6 x 6), or None
+        self._cache: dict[tuple[int, str, bytes], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._version = -1
+
+    def maps(
+        self, version: int, estimator: str, chips: np.ndarray, tare_samples: int | None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """One sample's noise covariance, its diagonal, and the tare's covariance, for the
+        estimator and ``chips`` (bool per chip) at the pipeline's ``version``; None when
+        the chips left do not see all six axes."""
+        if version != self._version:  # a tare or untare: the tare's part changes
+            self._cache.clear()
+            self._version = version
+        key = (version, estimator, chips.tobytes())
+        found = self._cache.get(key)
+        if found is None:
+            channels = np.repeat(chips, 3)
+            try:
+                if estimator == "nonlinear" and self._stiffness is not None:
+                    if self._model.H is None:
+                        return None
+                    H_S = self._model.H[channels]
+                    M = np.asarray(self._stiffness) @ np.linalg.pinv(H_S)
+                elif chips.all():
+                    M = self._model.KA
+                else:
+                    M = self._model.map_from(chips)
+            except ValueError:
+                return None
+            noise = propagate(M, self.sigma_t[channels])
+            offset = noise / tare_samples if tare_samples else np.zeros((6, 6))
+            found = self._cache[key] = (noise, np.diag(noise).copy(), offset)
+        return found
+
+    def sample(
+        self,
+        version: int,
+        estimator: str,
+        chips: np.ndarray,
+        wrench: np.ndarray,
+        tare_wrench: np.ndarray,
+        tared: bool,
+        tare_samples: int | None,
+        factor: float,
+        scale: float = 1.0,
+    ) -> SampleSigma:
+        """The sigma of a sample estimated by ``estimator`` from ``chips``; ``wrench``: its
+        estimate before the filter (for the model error's load); ``factor``: the filter's
+        variance factor (`WrenchFilter.variance_factor`); ``scale``: what the wrench was
+        multiplied by after the estimate (the temperature stage's)."""
+        maps = self.maps(version, estimator, chips, tare_samples)
+        if maps is None or not np.all(np.isfinite(wrench)):
+            return UNKNOWN
+        noise, noise_diag, offset = maps
+        error = self.nonlinear_error if estimator == "nonlinear" else self.linear_error
+        model = error.variance(wrench, tare_wrench, tared)
+        variance = factor * noise_diag + np.diag(offset) + model
+        sigma = np.sqrt(variance) * scale if scale != 1.0 else np.sqrt(variance)
+        return SampleSigma(sigma, noise * factor, offset, model, scale)
+
+    def predicted(self, factor: float, tare_samples: int | None, estimator: str = "linear") -> dict[str, Any]:
+        """The sigma at rest of the current settings (every chip, no load), and its parts:
+        for `status`."""
+        chips = np.ones(len(self.sigma_t) // 3, dtype=bool)
+        maps = self.maps(self._version, estimator, chips, tare_samples)
+        if maps is None:
+            return {"sigma": None}
+        _, noise_diag, offset = maps
+        error = self.nonlinear_error if estimator == "nonlinear" else self.linear_error
+        model = error.variance(np.zeros(6), np.zeros(6), tare_samples is not None)
+        sigma = np.sqrt(factor * noise_diag + np.diag(offset) + model)
+        return {
+            "sigma": [round(float(v), 7) for v in sigma],
+            "noise": [round(math.sqrt(float(v)), 7) for v in factor * noise_diag],
+            "model_error": error.source,
+        }
+
+
+def tip_sigma(parts: list[tuple[np.ndarray, SampleSigma]]) -> np.ndarray:
+    """The tool tip's sigma (6) from each sensor's transform X (6 x 6) and sigma: the
+    sensors' errors independent, sum X C X^T; NaN when one sensor's is unknown."""
+    total = np.zeros((6, 6))
+    for X, s in parts:
+        C = s.covariance()
+        if not np.all(np.isfinite(C)):
+            return np.full(6, np.nan)
+        total += X @ C @ X.T
+    return np.sqrt(np.diag(total))

@@ -1,0 +1,162 @@
+"""Each wrench sample's sigma: against a Monte Carlo of the simulated chips' noise, through
+the filter, in degraded mode, on the wire and in the client."""
+
+from __future__ import annotations
+
+import math
+import time
+import uuid
+
+import numpy as np
+import pytest
+import zmq
+
+from ftsensord.calibration.fit import error_model
+from ftsensord.client import Subscriber
+from ftsensord.processing.filters import WrenchFilter, variance_factors
+from ftsensord.processing.uncertainty import ModelError
+from ftsensord.protocol import wire
+
+from .test_daemon import Rig
+
+EVERY = np.ones(8, dtype=bool)
+
+
+@pytest.fixture
+def quiet_rig(tmp_path):
+    r = Rig(tmp_path, "temperature_every = 0")  # no temperature stage: the wrench is K A's alone
+    yield r
+    r.close()
+
+
+def test_the_sigmas_noise_part_is_the_simulated_chips_noise_through_k_a(quiet_rig):
+    """1500 cycles at a held load on the simulator's noisy chips: each axis's spread against
+    the noise part of the published sigma (the chips' datasheet noise through K A)."""
+    out = quiet_rig.cycles(1500)
+    wrench = np.array([s.values for s in out["wrench/sensor1"]])
+    sigma = np.array([s.values for s in out["sigma/wrench/sensor1"]])
+    assert [s.seq for s in out["sigma/wrench/sensor1"]] == [s.seq for s in out["wrench/sensor1"]]
+    p = quiet_rig.daemon.sensors[0]
+    noise = np.sqrt(p.uncertainty.maps(p.version, "linear", EVERY, None)[1])
+    measured = wrench.std(axis=0)
+    # 15 %: the simulated chips' noise is the emulator's own, not the datasheet's table that
+    # channel_sigma_t reads (and the LSB^2/12 term is approximate at a noise near one LSB);
+    # the spread's own error over 1500 samples is 2 % (1 / sqrt(2 n)).
+    assert measured == pytest.approx(noise, rel=0.15)
+    # The published sigma adds the calibration's model error (this packaged file records its
+    # validation RMS only): sqrt(noise^2 + rmse^2) at every sample, to float32-free round-off.
+    rmse = p.uncertainty.linear_error.rest
+    assert p.uncertainty.linear_error.source == "validation_rmse"
+    assert sigma[-1] == pytest.approx(np.sqrt(noise**2 + rmse**2), rel=1e-12)
+
+
+def test_a_chip_left_out_widens_the_sigma_and_no_estimate_has_none(quiet_rig):
+    p = quiet_rig.daemon.sensors[0]
+    u = p.uncertainty
+    full = u.maps(p.version, "linear", EVERY, None)[1]
+    for lost in ([3], [0, 5]):
+        left = EVERY.copy()
+        left[lost] = False
+        degraded = u.maps(p.version, "linear", left, None)[1]
+        assert np.all(degraded > full), f"chips {lost} out"
+    s = u.sample(p.version, "linear", EVERY, np.full(6, np.nan), p.tare_wrench, False, None, 1.0)
+    assert np.all(np.isnan(s.sigma)) and np.all(np.isnan(s.covariance()))
+
+
+def test_the_tares_noise_enters_as_an_offset_the_filter_does_not_shrink(quiet_rig):
+    p = quiet_rig.daemon.sensors[0]
+    quiet_rig.cycles(2)
+    p.tare(p.model.zero, None, 4)
+    noise, diag, offset = p.uncertainty.maps(p.version, "linear", EVERY, 4)
+    assert np.allclose(offset, noise / 4)
+    s = p.uncertainty.sample(p.version, "linear", EVERY, np.zeros(6), p.tare_wrench, True, 4, 0.01)
+    # Noise x the filter's factor, the tare's noise whole, and (this packaged file records its
+    # validation RMS only) that RMS at every load; 1e-12: round-off.
+    rmse = p.uncertainty.linear_error.rest
+    assert s.sigma == pytest.approx(np.sqrt(0.01 * diag + diag / 4 + rmse**2), rel=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("averaging", "lowpass_hz"),
+    [(1, 0.0), (4, 0.0), (1, 5.0), (5, 3.0), (20, 1.0)],
+)
+def test_the_filters_variance_factor_against_a_monte_carlo(averaging, lowpass_hz):
+    """20000 runs of white noise through the filter: the variance of each of its first 60
+    outputs after a reset against `variance_factor` at that output."""
+    rng = np.random.default_rng(3811)
+    runs, steps = 20000, 60
+    x = rng.standard_normal((steps, runs))
+    f = WrenchFilter(averaging, lowpass_hz, 100.0)
+    predicted, outputs = [], []
+    for k in range(steps):
+        y, _ = f.update(x[k], 0)  # each run a column: the filter is linear and acts per column
+        outputs.append(np.array(y))
+        predicted.append(f.variance_factor())
+    measured = np.var(outputs, axis=1)
+    # 5 %: a variance over 20000 draws has a relative error of sqrt(2 / 20000) = 1 %; 5 sigma.
+    assert measured == pytest.approx(predicted, rel=0.05)
+    if lowpass_hz == 0.0:
+        assert predicted[-1] == pytest.approx(1 / averaging)
+    elif averaging == 1:
+        a = math.exp(-2 * math.pi * lowpass_hz / 100.0)
+        assert predicted[-1] == pytest.approx((1 - a) / (1 + a), rel=1e-6)  # 1e-6: the table's settling
+
+
+def test_variance_factors_of_a_slow_lowpass_end_above_the_steady_one():
+    a = 1 - math.exp(-2 * math.pi * 0.05 / 1000)
+    f = variance_factors(4, a)
+    assert f[0] == 1.0 and f[-1] >= a / (2 - a) / 4 * 0.999  # (0.1 %: the moving average's correlation)
+
+
+def test_the_model_error_is_fitted_against_the_load_and_read_back():
+    rng = np.random.default_rng(3812)
+    wrench = rng.uniform(-1, 1, (400, 6)) * np.array([10, 10, 5, 0.05, 0.05, 0.05])
+    L = np.sqrt(np.sum((wrench / np.array([50, 50, 20, 0.2, 0.2, 0.2])) ** 2, axis=1))
+    error = rng.standard_normal((400, 6)) * np.sqrt(0.01**2 + (0.2 * L[:, None]) ** 2)
+    fitted = error_model(error, wrench)
+    assert fitted is not None and fitted["poses"] == 400
+    # 20 %: a spread's two terms from 400 noisy squares (each term's error about 10 %).
+    assert list(fitted["per_load"].values()) == pytest.approx([0.2] * 6, rel=0.2)
+    m = ModelError.from_report({"validation_error": fitted})
+    assert m.source == "validation"
+    at_rest_tared = m.variance(np.zeros(6), np.zeros(6), tared=True)
+    assert np.all(at_rest_tared == 0)  # at the tare's own load: nothing of the model's error left
+    untared = m.variance(np.zeros(6), np.zeros(6), tared=False)
+    assert np.allclose(untared, m.rest**2)
+    assert ModelError.from_report({}).source == "none"
+    assert error_model(error[:3], wrench[:3]) is None
+
+
+def test_the_subscriber_gives_each_wrench_its_sigma_and_old_subscriptions_never_see_it(zmq_context):
+    endpoint = f"inproc://sigma{uuid.uuid4().hex}"
+    pub = zmq_context.socket(zmq.PUB)
+    pub.bind(endpoint)
+    sigma = np.array([0.02, 0.03, 0.02, 0.003, 0.003, 0.003])
+    try:
+        with (
+            Subscriber(endpoint, ["wrench/sensor1"], context=zmq_context) as new,
+            Subscriber(endpoint, ["wrench/sensor1"], latest=True, context=zmq_context) as latest,
+        ):
+            old = zmq_context.socket(zmq.SUB)  # an old client: the wrench's topic and its NUL
+            old.setsockopt(zmq.SUBSCRIBE, b"wrench/sensor1\0")
+            old.connect(endpoint)
+            try:
+                time.sleep(0.2)  # inproc subscriptions reach the publisher asynchronously
+                for seq in range(3):
+                    pub.send(wire.encode("sigma/wrench/sensor1", wire.KIND_SIGMA, seq, 1.0, 2.0, 0, sigma))
+                    pub.send(wire.encode("wrench/sensor1", wire.KIND_WRENCH, seq, 1.0, 2.0, 0, np.zeros(6)))
+                pub.send(wire.encode("wrench/sensor1", wire.KIND_WRENCH, 3, 1.0, 2.0, 0, np.zeros(6)))
+                got = [new.receive(timeout_s=2) for _ in range(4)]
+                assert [s.kind for s in got if s] == [wire.KIND_WRENCH] * 4
+                assert all(np.array_equal(s.sigma, sigma) for s in got[:3] if s)
+                assert got[3] is not None and got[3].sigma is None  # no companion of seq 3
+                last = latest.receive(timeout_s=2)
+                assert last is not None and last.seq == 3
+                olds = []
+                while old.poll(500):
+                    olds.append(wire.decode(old.recv()))
+                assert [s.topic for s in olds] == ["wrench/sensor1"] * 4
+            finally:
+                old.close(linger=0)
+    finally:
+        pub.close(linger=0)
