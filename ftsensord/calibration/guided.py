@@ -101,11 +101,11 @@ class GuideRun:
 
 
 def concat(parts: Sequence[Dataset], serial: str = "", source: str = "") -> Dataset:
-    """One dataset of single poses, in order (no rotations: a person does not know the turn
-    about the vertical; the room's field is measured from the no-load poses instead)."""
+    """One dataset of single poses, in the plan's order (no rotations: a person does not know the
+    turn about the vertical, the room's field is measured from the no-load poses instead; no
+    times: a step done again is read later than the steps after it, out of the file's order)."""
     first = parts[0]
     arrays = {name: np.concatenate([getattr(p, name) for p in parts]) for name in POSE_FIELDS}
-    times = None if any(p.times_s is None for p in parts) else np.concatenate([p.times_s for p in parts])  # type: ignore[misc]
     temps = (
         None
         if any(p.temperature_c is None for p in parts)
@@ -115,7 +115,7 @@ def concat(parts: Sequence[Dataset], serial: str = "", source: str = "") -> Data
         first,
         **arrays,
         rotation=None,
-        times_s=times,
+        times_s=None,
         temperature_c=temps,
         serial=serial or first.serial,
         source=source or first.source,
@@ -371,7 +371,6 @@ def load_run(steps: list[Step], progress: Path, partial: Path) -> GuideRun:
             )
         for i, k in enumerate(sorted(kept)):
             run.kept[k] = data.select(np.arange(len(data)) == i)
-        run.elapsed_s = float(data.times_s[:, 2].max()) if data.times_s is not None else 0.0
     attempts = doc.get("attempts", {})
     run.attempts = {int(k): int(v) for k, v in attempts.items()} if isinstance(attempts, dict) else {}
     refused = doc.get("refused", [])
