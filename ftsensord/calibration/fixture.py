@@ -131,11 +131,7 @@ def guided_plan(
     picked = pairs[::every]
     fits = [Step(f, FIT_MASSES_G[i % 2], h, "fit") for i, (f, h) in enumerate(picked)]
     # Validation: spread over the pairs, offset from the fit's pick so that they differ.
-    picks = (
-        np.round(np.linspace(0, len(pairs) - 1, validation) + 0.5).astype(int) % len(pairs)
-        if validation
-        else []
-    )
+    picks = (np.round(np.linspace(0, len(pairs) - 1, validation) + 0.5).astype(int) % len(pairs)).tolist()
     checks = [Step(pairs[k][0], VALIDATION_MASS_G, pairs[k][1], "validation") for k in picks]
     return steps + fits + checks
 

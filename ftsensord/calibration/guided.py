@@ -25,7 +25,7 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -46,9 +46,10 @@ from ftsensord.sim.physics import PhysicalScene
 #: this many times the reference: the chips' own noise varies by tens of %, a knock of 1 N
 #: within the reading by hundreds of times.
 BUMP_FACTOR = 4.0
-#: Loaded poses kept before H is fitted and the poses judged: H has 6 columns and an offset,
-#: twice that leaves as many residual degrees of freedom as unknowns per channel.
-MIN_JUDGE_POSES = 14
+#: Loaded poses kept before H is fitted and the poses judged: H has 6 columns and an offset
+#: per channel; with 20, a pose left out is read by H fitted on 19, nearly three times the
+#: unknowns (at 14, the scatter of poses read that way hid a wrong hook under 200 g).
+MIN_JUDGE_POSES = 20
 #: The smallest error that refuses a pose (N x3, Nm x3): above a typical person's honest
 #: errors at three standard deviations (a face 4.5 deg off under 200 g on hook D: 0.15 N and
 #: 13 mNm), below a slip's (a neighbouring face under 50 g: 0.30 N and 21 mNm; 50 g missing:
@@ -105,12 +106,9 @@ def concat(parts: Sequence[Dataset], serial: str = "", source: str = "") -> Data
     turn about the vertical, the room's field is measured from the no-load poses instead; no
     times: a step done again is read later than the steps after it, out of the file's order)."""
     first = parts[0]
-    arrays = {name: np.concatenate([getattr(p, name) for p in parts]) for name in POSE_FIELDS}
-    temps = (
-        None
-        if any(p.temperature_c is None for p in parts)
-        else np.concatenate([p.temperature_c for p in parts])
-    )  # type: ignore[misc]
+    arrays: dict[str, Any] = {name: np.concatenate([getattr(p, name) for p in parts]) for name in POSE_FIELDS}
+    known = [p.temperature_c for p in parts if p.temperature_c is not None]
+    temps = np.concatenate(known) if len(known) == len(parts) else None
     return replace(
         first,
         **arrays,
@@ -272,7 +270,7 @@ def guide(
     judge = Judge(fixture, samples)
     start = bus.monotonic()
     recorded = 0
-    judged = False
+    judged_at = 0  # how many loaded poses were kept when all were last judged (0: not yet)
     queue = [k for k in range(len(run.steps)) if k not in run.kept]
     reads: dict[int, np.ndarray] = {}  # each refused step's last reading, as H read it
     reading_s = 0.01 * samples  # until the first pose says how long a reading takes
@@ -297,7 +295,7 @@ def guide(
         why = judge.bump(pose, kept)
         loaded = [run.kept[j] for j in sorted(run.kept) if run.steps[j].split != "no-load"]
         no_load = [run.kept[j] for j in sorted(run.kept) if run.steps[j].split == "no-load"]
-        if why is None and step.split != "no-load" and judged:
+        if why is None and step.split != "no-load" and judged_at:
             read = judge.read(loaded, no_load, [pose])[0]
             tol = judge.tolerance(judge.left_out(loaded, no_load))
             if np.max(np.abs(read - pose.wrench[0]) / tol) > 1.0:
@@ -318,8 +316,11 @@ def guide(
         queue.pop(0)
         prompter.say("  kept")
         loaded = [run.kept[j] for j in sorted(run.kept) if run.steps[j].split != "no-load"]
-        if not judged and judge.can_judge(loaded, no_load):
-            judged = True
+        # Every kept pose judged by the others when H first can be, again each time the poses
+        # double (an early H, on few poses, misses what a later one sees), and at the end.
+        again = judge.can_judge(loaded, no_load) and (len(loaded) >= 2 * judged_at or not queue[0:1])
+        if again and len(loaded) > judged_at:
+            judged_at = len(loaded)
             for j, why in judge_all(judge, run):
                 del run.kept[j]
                 queue.insert(0, j)

@@ -92,7 +92,8 @@ def cmd_guide(args: argparse.Namespace) -> int:
     if args.fixture:
         Path(args.fixture).write_text(fx.openscad(fixture))
         print(
-            f"wrote {args.fixture}: the holder ({len(fixture.normals)} faces at {fixture.face_mm:g} mm) and the hook arm"
+            f"wrote {args.fixture}: the holder ({len(fixture.normals)} faces at {fixture.face_mm:g} mm) "
+            "and the hook arm"
         )
     if args.output is None:
         if args.fixture:

@@ -141,5 +141,13 @@ def parse_person(t: Table) -> Person:
         for k, (default, high, unit) in PERSON_KEYS.items()
     }
     return Person(
-        **values, seed=t.integer("seed", 0, low=0, what="an integer >= 0 naming the person's draws")
+        values["face_tilt_deg"],
+        values["lever_arm_mm"],
+        values["mass_tolerance_pct"],
+        values["arm_mass_g"],
+        values["bump_rate"],
+        values["wrong_face_rate"],
+        values["missing_mass_rate"],
+        values["wrong_hook_rate"],
+        seed=t.integer("seed", 0, low=0, what="an integer >= 0 naming the person's draws"),
     )
