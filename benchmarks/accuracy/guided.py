@@ -137,7 +137,7 @@ def main() -> int:
             notes.append(
                 f"part {seed}: {r['steps']} steps, {r['done']} done (a refused pose is done again): about "
                 f"{r['minutes']:.0f} min for a person; {r['slips']} slips made, {r['refused']} poses refused, "
-                f"{len(r['kept_slips'])} slips kept in the dataset{': ' + str(r['kept_slips']) if r['kept_slips'] else ''}; "
+                f"{len(r['kept_slips'])} slips kept in the dataset {r['kept_slips'] or ''}; "
                 f"within Table II: {within}; within {ROBOT_FACTOR}x the robot: {close}"
             )
     print()

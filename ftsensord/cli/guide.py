@@ -97,6 +97,13 @@ def cmd_guide(args: argparse.Namespace) -> int:
         )
     if args.output is None:
         if args.fixture:
+            series = Relaxation.from_pairs([list(p) for p in DEFAULT_RELAXATION])
+            print(
+                f"plan: {len(steps)} steps ({sum(s.split == 'no-load' for s in steps)} no-load first), about "
+                f"{fx.person_time_s(steps, series) / 60:.0f} min for a person (the default silicone series' wait)"
+            )
+            for k, s in enumerate(steps):
+                print(f"  step {k + 1}: {s.instruction()}")
             return 0
         raise ConfigError("guide: -o/--output (the calibration file to write) is needed, or --fixture alone")
     if args.samples < 2:
