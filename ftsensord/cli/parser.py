@@ -8,7 +8,7 @@ import sys
 from collections.abc import Sequence
 
 from ftsensord import __version__
-from ftsensord.cli import calibrate, hardware, service, streams
+from ftsensord.cli import calibrate, guide, hardware, service, streams
 from ftsensord.errors import DaemonNotAnswering, FtsensordError
 from ftsensord.foxglove import add_parser as add_bridge_parser
 from ftsensord.ros2 import add_ros2_parser
@@ -24,6 +24,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_ros2_parser(sub)
     hardware.add_parsers(sub)
     calibrate.add_parsers(sub)
+    guide.add_parsers(sub)
     return parser
 
 

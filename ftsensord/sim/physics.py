@@ -38,6 +38,7 @@ from ftsensord.model.viscoelastic import Relaxation
 from ftsensord.sim.heat import ChipDrift, TemperatureProfile
 from ftsensord.sim.loads import DOWN, IDENTITY, NO_LOAD, FixedOrientation, G, Load, Orientation, StaticLoad
 from ftsensord.sim.memory import SiliconeMemory
+from ftsensord.sim.person import Person
 
 #: Stiffness default: the diagonal of the paper's K, in N/m and Nm/rad (their
 #: signs dropped: a stiffness is positive definite).
@@ -266,6 +267,7 @@ class PhysicalScene:
                 self._chip_of[address] = (s, i)
         self._cache: dict[int, tuple[bytes, np.ndarray]] = {}
         self.faults: list = []  # ftsensord.sim.faults.Fault, applied by the simulated bus
+        self.person: Person | None = None  # who follows `ftsensord guide` (None: the typical one)
 
     @property
     def addresses(self) -> tuple[int, ...]:

@@ -38,6 +38,7 @@ from ftsensord.sim.loads import (
     ramp,
 )
 from ftsensord.sim.memory import parse_silicone
+from ftsensord.sim.person import parse_person
 from ftsensord.sim.physics import (
     CROSSTALK_MODELS,
     FIELD_MODELS,
@@ -400,6 +401,7 @@ def _physical(doc: Table) -> PhysicalScene:
             "sensor",
             "fault",
             "stray_source",
+            "person",
         }
     )
     sensors = [_sensor(t, i) for i, t in enumerate(doc.tables("sensor"))]
@@ -428,6 +430,8 @@ def _physical(doc: Table) -> PhysicalScene:
         stray_sources=_stray_sources(doc, sensors),
     )
     scene.faults = _faults(doc, scene.addresses)
+    # Who follows a guided calibration's prompts (`ftsensord guide`); None: the typical person.
+    scene.person = parse_person(doc.table("person")) if "person" in doc.doc else None
     return scene
 
 
