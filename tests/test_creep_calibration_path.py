@@ -18,7 +18,7 @@ from ftsensord.calibration.rig import record_dataset, record_hold, simulated_rob
 from ftsensord.cli import main
 from ftsensord.model.viscoelastic import Relaxation
 from ftsensord.sim import load_scene, simulated_bus
-from ftsensord.sim.loads import CalibrationPose, paper_plan
+from ftsensord.sim.loads import HOLD_PERIOD_S, CalibrationPose, paper_plan
 from ftsensord.sim.memory import DEFAULT_RELAXATION
 from ftsensord.sim.scene import default_scene_path
 
@@ -68,7 +68,7 @@ def _recorded(scene_path: Path, *, samples: int, hold_s: float, rod_on: bool = F
         robot["apply_load"],
         hold_s=hold_s,
         turn=robot["turn"],
-        period_s=0.01,
+        period_s=HOLD_PERIOD_S,
     )
     return ds
 

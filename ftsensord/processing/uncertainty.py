@@ -90,16 +90,17 @@ class SampleSigma:
     """A sample's sigma (6; NaN unknown) and the parts of its covariance (`covariance`)."""
 
     sigma: np.ndarray
-    noise: np.ndarray | None = None  # one sample's noise covariance (6 x 6) times the filter's factor
+    noise: np.ndarray | None = None  # one sample's noise covariance (6 x 6), before the filter
     offset: np.ndarray | None = None  # the tare's (6 x 6)
     model: np.ndarray | None = None  # the model error's variances (6)
     scale: float = 1.0
+    factor: float = 1.0  # the filter's variance factor on ``noise``
 
     def covariance(self) -> np.ndarray:
         """The full 6 x 6 covariance (N, Nm squared); NaN where the sigma is unknown."""
         if self.noise is None or self.offset is None or self.model is None:
             return np.full((6, 6), np.nan)
-        return (self.noise + self.offset + np.diag(self.model)) * self.scale**2
+        return (self.noise * self.factor + self.offset + np.diag(self.model)) * self.scale**2
 
 
 UNKNOWN = SampleSigma(np.full(6, np.nan))
@@ -175,7 +176,9 @@ class Uncertainty:
         model = error.variance(wrench, tare_wrench, tared)
         variance = factor * noise_diag + np.diag(offset) + model
         sigma = np.sqrt(variance) * scale if scale != 1.0 else np.sqrt(variance)
-        return SampleSigma(sigma, noise * factor, offset, model, scale)
+        # The covariance's parts kept as they are (the cached maps, not copies): only the tip
+        # asks for it (`tip_sigma`), so a sample makes no 6 x 6 product.
+        return SampleSigma(sigma, noise, offset, model, scale, factor)
 
     def predicted(self, factor: float, tare_samples: int | None, estimator: str = "linear") -> dict[str, Any]:
         """The sigma at rest of the current settings (every chip, no load), and its parts:
