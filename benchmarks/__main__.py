@@ -24,7 +24,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
-from benchmarks.common import RESULTS, ROOT
+from benchmarks.common import RESULTS, ROOT, machine
 
 
 @dataclass(frozen=True)
@@ -184,6 +184,27 @@ GENERATORS = (
 )
 
 
+#: The first words of the line `stamp` writes last on a generated page.
+STAMP = "Generated on "
+
+
+def stamp(page: Path, name: str, seconds: float, quick: bool) -> None:
+    """Ends a generated page with when, by what command and on what host it was made, in
+    one line (`STAMP`), replacing the one a former run left: each page says its own date and
+    machine, written by one rule whatever the benchmark."""
+    lines = [line for line in page.read_text().rstrip("\n").split("\n") if not line.startswith(STAMP)]
+    while lines and not lines[-1]:
+        lines.pop()
+    load = os.getloadavg()[0]
+    mode = " --quick" if quick else ""
+    lines += [
+        "",
+        f"{STAMP}{time.strftime('%Y-%m-%d', time.gmtime())} by `python -m benchmarks regenerate{mode} "
+        f"--only {name}` in {seconds:.0f} s on a {machine()} host (1-min load {load:.2f} at the end).",
+    ]
+    page.write_text("\n".join(lines) + "\n")
+
+
 def regenerate(out: Path, quick: bool, only: list[str] | None = None, jobs: int = 1) -> dict[str, float]:
     """Runs the generators (``only``: these by name), writing into ``out``; each one's
     wall time (s). ``jobs`` at once (1: one after another)."""
@@ -197,7 +218,11 @@ def regenerate(out: Path, quick: bool, only: list[str] | None = None, jobs: int 
         missing = [p for p in g.pages if not (out / p).is_file() or (out / p).stat().st_size == 0]
         if missing:
             raise SystemExit(f"{g.name} wrote no {', '.join(missing)} in {out}")
-        return g.name, time.monotonic() - began
+        seconds = time.monotonic() - began
+        for page in g.pages:
+            if page.endswith(".md"):
+                stamp(out / page, g.name, seconds, quick)
+        return g.name, seconds
 
     with ThreadPoolExecutor(max_workers=max(1, jobs)) as pool:  # each generator is a process of its own
         return dict(pool.map(one, chosen))

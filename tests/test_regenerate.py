@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from benchmarks.__main__ import GENERATORS, main
+from benchmarks.__main__ import GENERATORS, STAMP, main, stamp
 
 from .conftest import ROOT
 
@@ -22,7 +22,10 @@ def test_the_quick_mode_writes_every_generated_page(regenerated):
         if page.endswith(".png"):
             assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", page
         else:
-            assert path.read_text().startswith("# "), page  # a page with its title
+            text = path.read_text()
+            assert text.startswith("# "), page  # a page with its title
+            last = text.rstrip("\n").split("\n")[-1]  # and its date, command and host, once
+            assert last.startswith(STAMP) and text.count(STAMP) == 1 and "--quick --only" in last, page
     assert sorted(p.name for p in regenerated.iterdir()) == sorted(pages)  # and nothing beside them
 
 
@@ -42,3 +45,13 @@ def test_the_quick_mode_asks_for_a_folder_of_its_own(capsys):
         main(["regenerate", "--quick"])
     assert exc.value.code == 2
     assert "--quick needs --out" in capsys.readouterr().err
+
+
+def test_a_stamp_replaces_the_one_a_former_run_left(tmp_path):
+    page = tmp_path / "p.md"
+    page.write_text("# A page\n\nfigures\n")
+    stamp(page, "creep", 12.0, quick=False)
+    stamp(page, "creep", 34.0, quick=False)
+    text = page.read_text()
+    assert text.count(STAMP) == 1 and "in 34 s" in text and text.startswith("# A page\n\nfigures\n\n")
+    assert "regenerate --only creep`" in text  # the full run's command, without --quick
