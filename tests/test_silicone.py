@@ -203,6 +203,28 @@ def test_the_relaxation_is_identified_from_a_simulated_step_and_hold():
     assert np.allclose(got.times_s, truth.times_s, rtol=0.2), line
 
 
+def test_a_part_without_a_memory_identifies_no_relaxation_and_one_term_is_not_taken_for_two():
+    from ftsensord.calibration.procedure import hold_poses
+    from ftsensord.calibration.relaxation import identify
+    from ftsensord.calibration.rig import record_hold, simulated_robot
+    from ftsensord.sim import simulated_bus
+    from ftsensord.sim.scene import default_scene
+
+    def hold_of(scene: PhysicalScene):
+        bus = simulated_bus(scene, seed=5)
+        robot = simulated_robot(scene, "sensor1")["apply_load"]
+        return record_hold(bus, ADDRESSES, hold_poses(), robot, hold_s=12.0, period_s=0.01)
+
+    # A perfect spring: the readings' noise alone, which a term's free time can always bend a little.
+    found, line = identify(hold_of(default_scene()), _packaged_calibration().model.wrench)
+    assert found is None and "no relaxation the readings resolve" in line and "noise alone" in line, line
+    # One term (1 % at 0.5 s): resolved, and a second one, which noise alone would give, is not added.
+    one = Relaxation.from_pairs([[0.01, 0.5]])
+    found, line = identify(hold_of(_part_with_memory(one)), _packaged_calibration().model.wrench)
+    assert found is not None and len(found.relaxation.fractions) == 1, line
+    assert abs(found.relaxation.fractions[0] / 0.01 - 1) < 0.3, line  # 30 %: a 1 % creep in 12 s of noise
+
+
 def test_a_hold_without_a_step_identifies_nothing_and_says_why():
     from ftsensord.calibration.dataset import Hold
     from ftsensord.calibration.relaxation import identify

@@ -46,6 +46,13 @@ SHORTEST_INTERVALS, LONGEST_HOLD_SHARE = 10.0, 1.0
 #: in the readings, and 2000 over a minute's hold still resolve a 1 % creep (the readings'
 #: noise is a few hundredths of a N each).
 FIRST_S, MAX_READINGS = 2.0, 2000
+#: A term is kept when it lowers the fit's residual sum of squares (in the readings' noise) by
+#: more than this many standard deviations of what noise alone lowers it by: without a creep,
+#: that drop is chi-square with the term's parameters as degrees of freedom (its time and, per
+#: axis, its rise and its decay), mean df and deviation sqrt(2 df); the search over the
+#: term's time makes noise find more than one draw would, hence 5, not 3 (a part without a
+#: memory gives a drop within 1.5 of them; a creep of 1 % of a 2 N step, thousands).
+MIN_DROP_DEVIATIONS = 5.0
 
 
 @dataclass(frozen=True)
@@ -154,26 +161,45 @@ def identify(
         )
     snr = change[axes] / noise[axes]
     weight = snr**2 / np.sum(snr**2)  # the better an axis resolves its step, the more it says
-    for n in range(terms, 0, -1):
+    # Terms are added one at a time while each is resolved (`MIN_DROP_DEVIATIONS`) and all relax.
+    found: SiliconeCalibration | None = None
+    rss = _solve(t, starts, jumps, w, y, np.array([]))[1]  # no creep: each axis's scale and offset
+    df = 2 * len(axes) + 1  # a term's parameters: its time, and per axis its rise and its decay
+    why = ""
+    for n in range(1, terms + 1):
         rho, theta, rms = _search(t, starts, jumps, w, y, n, low, high)
+        rss_n = rms**2 * y.size
+        # The drop in units of the n-term fit's own residual variance (an F-test's form), so
+        # that a noise misjudged by the differences' spread does not decide it.
+        drop = (rss - rss_n) / (rss_n / (y.size - n * df - 2 * len(axes)))
+        if drop < df + MIN_DROP_DEVIATIONS * np.sqrt(2.0 * df):
+            why = (
+                f"a term more lowers the residual by {drop:.0f} noise variances, under the "
+                f"{df + MIN_DROP_DEVIATIONS * np.sqrt(2.0 * df):.0f} noise alone may"
+            )
+            break
         # Each axis's own scale (its static error is its own); the creep's shape, c_k / g_inf, shared.
         a0, b = theta[:, 0], theta[:, 1 : 1 + n]
         if not (np.all(a0 > 0) and np.all(weight @ (b / a0[:, None]) > 0)):
-            continue  # a term that does not relax: fewer terms
+            why = f"a fit of {n} terms does not relax"
+            break
         ratio = weight @ (b / a0[:, None])
         g_inf = 1.0 / (1.0 + float(ratio.sum()))
+        if 1 - g_inf >= MAX_TOTAL_FRACTION:
+            why = f"a fit of {n} terms relaxes {100 * (1 - g_inf):.0f} % of the stiffness"
+            break
         scale = float(weight @ (a0 + b.sum(axis=1)))
-        if 1 - g_inf < MAX_TOTAL_FRACTION:
-            relaxation = Relaxation.from_creep(g_inf, ratio * g_inf, rho)
-            cal = SiliconeCalibration(relaxation, scale, rms / step)
-            return cal, (
-                f"identified from a {t[-1]:.0f} s step-and-hold ({len(t)} of {len(picked)} readings, axes "
-                f"{', '.join(str(a) for a in axes)}): relaxation {relaxation.pairs()}, "
-                f"scale {scale:.4f}, residual {100 * rms / step:.2f} % of the step"
-            )
+        found = SiliconeCalibration(Relaxation.from_creep(g_inf, ratio * g_inf, rho), scale, rms / step)
+        rss = rss_n
+    if found is not None:
+        return found, (
+            f"identified from a {t[-1]:.0f} s step-and-hold ({len(t)} of {len(picked)} readings, axes "
+            f"{', '.join(str(a) for a in axes)}): relaxation {found.relaxation.pairs()}, "
+            f"scale {found.scale:.4f}, residual {100 * found.rms_residual:.2f} % of the step"
+        )
     return None, (
-        "the step-and-hold segment shows no relaxation the readings resolve (a fit of one term "
-        "does not relax): the daemon applies no creep compensation"
+        f"the step-and-hold segment shows no relaxation the readings resolve ({why}): the daemon "
+        "applies no creep compensation"
     )
 
 
