@@ -99,6 +99,8 @@ class Daemon:
         self.calibrations = Calibrations().remember(config.sensors)
         self.bridge = BridgeWatch()  # the ROS 2 bridge `run` started beside it, if any
         self.outputs: list[Any] = []  # `run` adds ([ros2] output "in-loop"): after_sends(...) each cycle
+        #: The last cycle's tool tip sigma (N, Nm; NaN unknown), as sent on sigma/wrench/tip: for the outputs.
+        self.tip_sigma: np.ndarray | None = None
 
     def _reader(self, config: Config) -> Reader:
         chips = [MLX90393(self.bus, a, sleep=self.bus.sleep) for a in config.addresses]
@@ -251,7 +253,7 @@ class Daemon:
         tip = tip_wrench(samples, self._tip[1]) if poses else None
         if tip is not None:
             moves = self._tip[1]
-            sigma = tip_sigma([(X, samples[name].sigma) for name, X in moves])
+            sigma = self.tip_sigma = tip_sigma([(X, samples[name].sigma) for name, X in moves])
             self._publish("sigma/wrench/tip", wire.KIND_SIGMA, seq, t_mono, t_wall, tip[1], sigma)
             self._publish("wrench/tip", wire.KIND_WRENCH, seq, t_mono, t_wall, tip[1], tip[0])
         compensated = self.gravity.streams(samples, tip, self.sensors, start) if self.gravity else []
