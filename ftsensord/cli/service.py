@@ -6,6 +6,7 @@ import argparse
 import json
 
 from ftsensord.cli.options import control_client, control_options, rate_hz
+from ftsensord.config.accuracy import parse_accuracies
 from ftsensord.config.sensors import ESTIMATORS
 from ftsensord.daemon.status import describe
 from ftsensord.errors import ConfigError
@@ -51,9 +52,11 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_untare)
     p = sub.add_parser(
         "set",
-        help="change the rate, averaging, low-pass or estimator of the running daemon",
+        help="change the rate, averaging, low-pass or estimator of the running daemon, or ask for an accuracy",
         description="Changes last until the next restart or reload; a rate above the "
-        "computed bound is refused, and nothing changes.",
+        "computed bound is refused, and nothing changes. --accuracy chooses the fastest rate and "
+        "averaging (the low-pass off) whose predicted sigma at rest meets the target on every "
+        "sensor at its estimator and tare, and says the rate; or why none does. docs/reference/cli.md.",
     )
     p.add_argument("--rate", type=rate_hz, help="loop rate, Hz")
     p.add_argument("--averaging", type=int, help="samples in the moving average (1: off)")
@@ -62,6 +65,13 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         "--estimator", choices=ESTIMATORS, help="K A, or the flux model (docs/design/estimators.md)"
     )
     p.add_argument("--sensor", help="with --estimator: only this sensor (default: all)")
+    p.add_argument(
+        "--accuracy",
+        action="append",
+        metavar="SIGMA",
+        help="a 1-sigma every force axis (0.02N, 20mN) or torque axis (0.5mNm) must meet at rest; "
+        "once for each kind; alone",
+    )
     control_options(p)
     p.set_defaults(func=cmd_set)
     p = sub.add_parser(
@@ -115,6 +125,23 @@ def cmd_untare(args: argparse.Namespace) -> int:
 
 
 def cmd_set(args: argparse.Namespace) -> int:
+    if args.accuracy:
+        if any(v is not None for v in (args.rate, args.averaging, args.lowpass, args.estimator, args.sensor)):
+            raise ConfigError("set: --accuracy goes alone (it chooses the rate, averaging and low-pass)")
+        parse_accuracies(args.accuracy, "--accuracy")  # a typo said here, before the daemon is asked
+        result = control_client(args).set(accuracy=args.accuracy)
+        print(
+            f"rate {result['rate_hz']:g} Hz, averaging {result['averaging']}, low-pass off: "
+            f"{result['effective_rate_hz']:g} independent samples a second (OSR {result['osr']}, "
+            f"DIG_FILT {result['dig_filt']}, the running conversion)"
+        )
+        for name, sigma in result["sigma"].items():
+            print(
+                f"{name}: predicted sigma at rest "
+                + " ".join(f"{v:.4g}" for v in sigma)
+                + " (N, N, N, Nm, Nm, Nm)"
+            )
+        return 0
     changes = {
         k: v
         for k, v in (

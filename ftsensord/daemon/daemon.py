@@ -27,6 +27,7 @@ from ftsensord.acquire.reader import Reader
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.chip.driver import MLX90393
 from ftsensord.chip.i2c import Bus, BusTiming
+from ftsensord.config.accuracy import parse_accuracies
 from ftsensord.config.file import Config, reload_config
 from ftsensord.config.frames import TIP
 from ftsensord.config.sensors import Calibrations, SensorConfig
@@ -39,6 +40,7 @@ from ftsensord.daemon.ros2child import BridgeWatch
 from ftsensord.daemon.sdnotify import Notifier
 from ftsensord.daemon.status import ChipLedger, status_line, status_reply
 from ftsensord.errors import ConfigError, FtsensordError
+from ftsensord.processing.accuracy import Sensor, apply_accuracy, plan
 from ftsensord.processing.filters import WrenchFilter
 from ftsensord.processing.gravity import Gravity
 from ftsensord.processing.pipeline import SensorPipeline, SensorSample, tip_moves, tip_wrench, use_estimator
@@ -327,6 +329,33 @@ class Daemon:
             self.gravity.configure(averaging, lowpass_hz, rate_hz)  # the weight lags as the wrench
         return {"rate_hz": rate_hz, "averaging": averaging, "lowpass_hz": lowpass_hz}
 
+    def set_accuracy(self, value: object) -> dict[str, Any]:
+        """The fastest averaging and rate (the low-pass off) whose predicted sigma at rest meets
+        ``value`` ("0.02N", "0.5mNm", or a list of one of each) for every sensor, at its
+        estimator and tare, with the running conversion (changing OSR or DIG_FILT needs a
+        restart: a sensor table's ``accuracy`` chooses them at start); applied as `set_loop`.
+        ConfigError, nothing changed, when no averaging meets it."""
+        targets = parse_accuracies(value, "accuracy")
+        running = self.config
+        found = plan(
+            {p.name: targets for p in self.sensors},
+            [Sensor(p.config, p.estimator, p.tare_samples) for p in self.sensors],
+            running.bus_levers(self.board_timing),
+            running.scheduler,  # kept: only a restart chooses the scheduler again
+            running.readback_every if "readback_every" in running.named else None,
+            settings=[running.settings],
+        )
+        done = self.set_loop(found.rate_hz, found.averaging, 0.0)
+        return {
+            **done,
+            "accuracy": [t.text for t in targets],
+            "effective_rate_hz": round(found.effective_hz, 3),
+            "osr": found.settings.osr,
+            "dig_filt": found.settings.dig_filt,
+            "sigma": found.sigma,
+            "plan": found.describe(),
+        }
+
     def set_estimator(self, estimator: str, sensor: str | None) -> dict[str, Any]:
         return {"estimator": use_estimator(self.sensors, estimator, sensor)}
 
@@ -356,7 +385,7 @@ class Daemon:
         configuration and its pipelines, or why they were refused."""
         self.notifier.reloading()
         try:
-            new = reload_config(self.config, self.calibrations, self.board_timing)
+            new = reload_config(self.config, self.calibrations, self.board_timing, apply_accuracy)
             self.notifier.check_rate(new.rate_hz, f"{new.path}: rate_hz")
         except FtsensordError as exc:
             return exc

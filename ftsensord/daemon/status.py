@@ -261,6 +261,15 @@ def describe(status: dict[str, Any]) -> str:
             f"sensor {name}: frame {s['frame']}, serial {s['serial']}, {tare}; calibration {s['calibration']}"
             + (f"; silicone's creep undone ({creep['restarts']} restarts)" if creep else "")
         )
+        predicted = (s.get("sigma") or {}).get("sigma")
+        if predicted:  # at the current settings, at rest (`processing.uncertainty`)
+            out.append(
+                f"  predicted sigma at rest ({s.get('estimator', 'linear')}): "
+                + " ".join(f"{v:.3g}" for v in predicted[:3])
+                + " N, "
+                + " ".join(f"{v * 1e3:.3g}" for v in predicted[3:])
+                + " mNm"
+            )
     if "wrench/tip" in status.get("frames", {}):
         out.append(f"tip: frame {status['frames']['wrench/tip']}")
     gravity = status.get("gravity")
