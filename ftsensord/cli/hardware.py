@@ -71,11 +71,12 @@ def predicted_sigma(path: str) -> dict[str, Any]:
     sensors' ``accuracy``, if any, chose them), untared: what `status` shows once it runs."""
     from ftsensord.config.file import load_config
     from ftsensord.processing import accuracy
-    from ftsensord.processing.filters import variance_factors
+    from ftsensord.processing.filters import WrenchFilter
 
     config = load_config(path)
     accuracy.apply_accuracy(config)
-    factor = variance_factors(config.averaging, 1.0)[-1] if config.lowpass_hz == 0 else None
+    # the filter's steady variance factor at the file's rate, averaging and low-pass
+    factor = WrenchFilter(config.averaging, config.lowpass_hz, config.rate_hz).factors[-1]
     out: dict[str, Any] = {
         "osr": config.settings.osr,
         "dig_filt": config.settings.dig_filt,
@@ -87,10 +88,6 @@ def predicted_sigma(path: str) -> dict[str, Any]:
     for s in config.sensors:
         sensor = accuracy.Sensor(s, s.estimator)
         u = accuracy.uncertainty_at(sensor, config.settings)
-        if factor is None:  # the low-pass's steady factor at the file's rate
-            from ftsensord.processing.filters import WrenchFilter
-
-            factor = WrenchFilter(config.averaging, config.lowpass_hz, config.rate_hz).factors[-1]
         out["sensors"][s.name] = {
             "estimator": s.estimator,
             "sigma": u.predicted(factor, None, s.estimator)["sigma"],

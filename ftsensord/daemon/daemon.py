@@ -345,6 +345,7 @@ class Daemon:
             running.readback_every if "readback_every" in running.named else None,
             settings=[running.settings],
         )
+        self.notifier.check_rate(found.rate_hz)  # as `set` checks a rate: the watchdog's pings follow cycles
         done = self.set_loop(found.rate_hz, found.averaging, 0.0)
         return {
             **done,
