@@ -187,6 +187,10 @@ def test_diagnostics_name_the_daemon_each_sensor_and_each_chip(daemon):
     assert all(s["level"] == 0 for n, s in status.items() if n in chips)  # the simulated chips are all well
     values = {v["key"]: v["value"] for v in status[f"{NS}: sensor1"]["values"]}
     assert values["serial"] == "sim-sensor1" and values["chips_ok"] == "8 of 8"
+    # the predicted sigma at rest, as `ftsensord status` prints it: three forces (N), three torques (mNm)
+    forces, torques = values["predicted_sigma_at_rest"].split(" N, ")
+    assert len(forces.split()) == 3 and torques.endswith(" mNm") and len(torques.split()) == 4
+    assert all(float(v) > 0 for v in forces.split() + torques.split()[:3])
     assert status[f"{NS}: sensor1 chip 0x0C"]["hardware_id"] == "MLX90393 0x0C"
 
 
