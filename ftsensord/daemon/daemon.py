@@ -386,7 +386,11 @@ class Daemon:
         configuration and its pipelines, or why they were refused."""
         self.notifier.reloading()
         try:
-            new = reload_config(self.config, self.calibrations, self.board_timing, apply_accuracy)
+            # A sensor's accuracy planned as at start, on the configured timing (`run`): the
+            # measured board's would change the plan, and a changed conversion needs a restart.
+            new = reload_config(
+                self.config, self.calibrations, self.board_timing, lambda c, _timing: apply_accuracy(c)
+            )
             self.notifier.check_rate(new.rate_hz, f"{new.path}: rate_hz")
         except FtsensordError as exc:
             return exc
