@@ -274,3 +274,27 @@ def test_doctor_with_a_configuration_shows_each_sensors_predicted_sigma(tmp_path
         np.testing.assert_allclose(
             got["sensors"][s.name]["sigma"], expected, atol=1e-7
         )  # status's 7 decimals
+
+
+def test_set_says_when_another_conversion_would_meet_it_faster_after_a_restart(tmp_path):
+    from types import SimpleNamespace
+
+    from ftsensord.cli.service import faster_conversion
+
+    path = write_config(tmp_path)
+    status = {"config": str(path), "sensors": {"sensor1": {"estimator": "linear"}, "sensor2": {}}}
+    control = SimpleNamespace(status=lambda: status)
+    config = load_config(path)
+    sensors = [acc.Sensor(s, s.estimator) for s in config.sensors]
+    floor = worst(sensors, config.settings, 1, noise=False)
+    single = worst(sensors, config.settings, 1)
+    text = f"{floor + 0.3 * (single - floor):.5g}N"
+    best = acc.plan({s.config.name: [parse_accuracy(text)] for s in sensors}, sensors, config.bus_levers())
+    said = faster_conversion(control, [text], best.effective_hz / 2)
+    assert said is not None and said.startswith(
+        f"faster with a restart: [chip] osr = {best.settings.osr}, dig_filt = {best.settings.dig_filt} "
+        f"gives {best.rate_hz:g} Hz with averaging {best.averaging}"
+    )
+    assert faster_conversion(control, [text], best.effective_hz) is None  # already the fastest
+    status["config"] = str(tmp_path / "elsewhere.toml")  # a file this host cannot read: nothing said
+    assert faster_conversion(control, [text], 1.0) is None
