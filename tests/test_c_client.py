@@ -13,6 +13,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -61,6 +62,10 @@ class Toolchain:
         self.example_cxx = self._build([CDIR / "example.c"], "example_cxx", "c++", z)
         self.driver = self._build([CDIR / "test_driver.c"], "driver", "c", z)
         self.driver_cxx = self._build([CDIR / "test_driver.c"], "driver_cxx", "c++", z)
+        # A client that wants one socket and no sigma (FTS_NO_SIGMA).
+        self.driver_nosigma = self._build(
+            [CDIR / "test_driver.c"], "driver_nosigma", "c", z, ["-DFTS_NO_SIGMA"]
+        )
         try:  # the undefined-behaviour sanitizer traps any misaligned access
             self.driver_ubsan: Path | None = self._build(
                 [CDIR / "test_driver.c"],
@@ -125,7 +130,7 @@ def test_constants_match_the_wire_format_and_libzmq(tools):
         name: (int(value), flag)
         for name, value, flag in (line.split() for line in run(tools.driver, "constants").splitlines())
     }
-    for name in ("MAGIC", "VERSION", "KIND_WRENCH", "KIND_FLUX"):
+    for name in ("MAGIC", "VERSION", "KIND_WRENCH", "KIND_FLUX", "KIND_SIGMA"):
         assert table[name][0] == getattr(wire, name), name
     assert table["HEADER_SIZE"][0] == wire.HEADER.size
     wire_flags = {n: getattr(wire, n) for n in dir(wire) if n.startswith("FLAG_") and n != "FLAG_NAMES"}
@@ -192,6 +197,7 @@ def test_the_decoder_gives_what_the_python_encoder_wrote_at_any_alignment(tools,
         (wire.KIND_FLUX, rng.normal(scale=1e-3, size=24)),
         (wire.KIND_WRENCH, np.array([np.nan] * 6)),
         (wire.KIND_FLUX, np.zeros(0)),
+        (wire.KIND_SIGMA, np.array([0.025, 0.031, np.nan, 0.003, 0.0029, 0.004])),
     ]
     for kind, values in cases:
         data = frame(
@@ -224,7 +230,7 @@ BAD = {  # a bad frame, and the header's error for it
     "no NUL after the topic": (b"wrench/sensor1", "-4"),
     "wrong magic": (frame().replace(b"\0FT", b"\0FU", 1), "-7"),
     "wrong version": (frame()[:17] + b"\x02" + frame()[18:], "-8"),
-    "unknown kind": (frame()[:18] + b"\x03" + frame()[19:], "-9"),
+    "unknown kind": (frame()[:18] + b"\x04" + frame()[19:], "-9"),
     "count larger than the values": (frame()[:47] + b"\x07" + frame()[48:], "-11"),
     "count past FTS_MAX_VALUES": (frame(kind=wire.KIND_FLUX, values=np.zeros(49)), "-10"),
 }
@@ -271,6 +277,15 @@ class Driven:
         assert self.proc.wait(timeout=10) == 0
 
 
+def subscriptions(pub: zmq.Socket, n: int) -> set[bytes]:
+    """The first ``n`` subscription messages an XPUB received (5 s each at most)."""
+    got = set()
+    for _ in range(n):
+        assert pub.poll(5000), f"only {sorted(got)} of {n} subscriptions arrived"
+        got.add(pub.recv())
+    return got
+
+
 @pytest.mark.parametrize("which", ["driver", "driver_cxx"])
 def test_latest_is_the_newest_sample_never_a_backlog_with_age_and_missed_counted(tools, tmp_path, which):
     endpoint = f"ipc://{tmp_path}/wrench"
@@ -279,7 +294,8 @@ def test_latest_is_the_newest_sample_never_a_backlog_with_age_and_missed_counted
     pub.bind(endpoint)
     c = Driven(getattr(tools, which), endpoint, "wrench/sensor1")
     try:
-        assert pub.poll(5000) and pub.recv() == b"\x01wrench/sensor1\0"  # exactly one stream, NUL-ended
+        # exactly the stream and its sigma's companion, NUL-ended (two sockets: either first)
+        assert subscriptions(pub, 2) == {b"\x01wrench/sensor1\0", b"\x01sigma/wrench/sensor1\0"}
         assert c("take")["rc"] == "-1"  # nothing published yet
 
         def publish(*frames: bytes) -> None:
@@ -326,6 +342,74 @@ def test_latest_is_the_newest_sample_never_a_backlog_with_age_and_missed_counted
         pub.close(linger=0)
 
 
+def sigma_frame(seq: int, values, topic: str = "sigma/wrench/sensor1") -> bytes:
+    return frame(topic, wire.KIND_SIGMA, seq=seq, values=values)
+
+
+@pytest.mark.parametrize("which", ["driver", "driver_cxx"])
+def test_each_wrench_comes_with_the_sigma_of_its_own_sequence_number(tools, tmp_path, which):
+    endpoint = f"ipc://{tmp_path}/wrench"
+    pub = zmq.Context.instance().socket(zmq.XPUB)
+    pub.bind(endpoint)
+    c = Driven(getattr(tools, which), endpoint, "wrench/sensor1")
+    try:
+        subscriptions(pub, 2)
+
+        def publish(*frames: bytes) -> dict[str, str]:
+            for f in frames:
+                pub.send(f)
+            time.sleep(0.2)  # delivery through the I/O threads
+            return c("take")
+
+        s5 = [0.025, 0.031, 0.022, 0.003, 0.0029, np.nan]  # NaN: the daemon does not know that axis
+        got = publish(sigma_frame(5, s5), frame(seq=5))
+        assert (got["rc"], got["seq"]) == ("1", "5")
+        np.testing.assert_array_equal(values_of(got["sigma"]), s5)
+        # A wrench whose companion has not come: unknown, not the previous sample's sigma.
+        got = publish(frame(seq=6))
+        assert (got["rc"], got["seq"]) == ("1", "6") and np.isnan(values_of(got["sigma"])).all()
+        # ... until it comes (it travels on a connection of its own): the same sample, filled in.
+        s6 = [0.5, 0.6, 0.7, 0.01, 0.02, 0.03]
+        got = publish(sigma_frame(6, s6))
+        assert (got["rc"], got["seq"]) == ("0", "6")
+        np.testing.assert_array_equal(values_of(got["sigma"]), s6)
+        # A malformed companion (5 values) is refused, and the wrench is unaffected.
+        got = publish(sigma_frame(7, [1.0] * 5), frame(seq=7))
+        assert got["seq"] == "7" and np.isnan(values_of(got["sigma"])).all()
+        assert (got["sigma_rejected"], got["rejected"]) == ("1", "0")
+        # Another sample's companion is never taken for this one's ...
+        got = publish(sigma_frame(9, s6), frame(seq=8))
+        assert got["seq"] == "8" and np.isnan(values_of(got["sigma"])).all()
+        got = publish(frame(seq=9))  # ... and is kept while its own wrench is on its way
+        assert got["seq"] == "9"
+        np.testing.assert_array_equal(values_of(got["sigma"]), s6)
+    finally:
+        c.close()
+        pub.close(linger=0)
+
+
+@pytest.mark.parametrize("case", ["flux", "FTS_NO_SIGMA"])
+def test_a_flux_stream_and_a_client_built_without_sigma_open_one_socket(tools, tmp_path, case):
+    driver, topic = (
+        (tools.driver, "flux/sensor1") if case == "flux" else (tools.driver_nosigma, "wrench/sensor1")
+    )
+    endpoint = f"ipc://{tmp_path}/wrench"
+    pub = zmq.Context.instance().socket(zmq.XPUB)
+    pub.bind(endpoint)
+    c = Driven(driver, endpoint, topic)
+    try:
+        assert subscriptions(pub, 1) == {b"\x01" + topic.encode() + b"\0"}
+        assert not pub.poll(300), "a second subscription"  # none comes after the first
+        kind = wire.KIND_FLUX if case == "flux" else wire.KIND_WRENCH
+        pub.send(sigma_frame(3, [0.1] * 6, "sigma/" + topic))
+        pub.send(frame(topic, kind, seq=3))
+        got = c("wait 5000")
+        assert got["seq"] == "3" and np.isnan(values_of(got["sigma"])).all()
+    finally:
+        c.close()
+        pub.close(linger=0)
+
+
 # --- against the daemon -----------------------------------------------------------------------
 def free_port() -> int:
     with socket.socket() as s:
@@ -350,12 +434,24 @@ def daemon(tmp_path):
 
 
 def example(tools: Toolchain, endpoint: str, *args: str) -> subprocess.Popen:
-    return subprocess.Popen(
+    # --dump's line per sample (over 100 kB in 2.5 s) goes to a file: a pipe nobody reads
+    # until the end holds 64 kB, and a full one would stop the example mid-run.
+    out = tempfile.TemporaryFile("w+") if "--dump" in args else subprocess.PIPE
+    p = subprocess.Popen(
         [str(tools.example), "-e", endpoint, "-t", "wrench/sensor1", *args],
-        stdout=subprocess.PIPE,
+        stdout=out,
         stderr=subprocess.PIPE,
         text=True,
     )
+    p.dump = out  # type: ignore[attr-defined]
+    return p
+
+
+def finished(p: subprocess.Popen) -> tuple[str, str]:
+    """A --dump run's output and its stderr, once it ends."""
+    _, err = p.communicate(timeout=10)
+    p.dump.seek(0)  # type: ignore[attr-defined]
+    return p.dump.read(), err  # type: ignore[attr-defined]
 
 
 def collect_while(procs: list[subprocess.Popen], sub: Subscriber) -> dict[int, wire.Sample]:
@@ -382,16 +478,25 @@ def test_the_example_reads_the_same_wrenches_as_the_python_client(tools, daemon)
         runs = [example(tools, ipc, "-n", "2500", "--dump"), example(tools, tcp, "-s", "1.5", "--dump")]
         python = collect_while(runs, sub)
     for p in runs:
-        out, err = p.communicate(timeout=10)
+        out, err = finished(p)
         assert p.returncode == 0, err
         samples = dumped(out)
         assert len(samples) >= 50, out  # 1.5 s or more of a 100 Hz stream
+        with_sigma = 0
         for s in samples:  # same seq -> the very same doubles, flags and stamp
             py = python[int(s["seq"])]
             np.testing.assert_array_equal(values_of(s["values"]), py.values)
+            # and the sigma the daemon sent of that sample, unless it was still on its way
+            sigma = values_of(s["sigma"])
+            if not np.isnan(sigma).all():
+                assert py.sigma is not None
+                np.testing.assert_array_equal(sigma, py.sigma)
+                with_sigma += 1
             assert int(s["flags"], 16) == py.flags and math.isclose(
                 float(s["t_mono"]), py.t_mono, abs_tol=1e-9
             )
+        # The companion is sent before its wrench: seldom is the wrench there first.
+        assert with_sigma >= len(samples) // 2, (with_sigma, len(samples))
         seqs = [int(s["seq"]) for s in samples]
         # Each sample's missed count is the gap in the sequence before it.
         assert [int(s["missed"]) for s in samples[1:]] == [b - a - 1 for a, b in itertools.pairwise(seqs)]
@@ -420,7 +525,7 @@ def test_a_skipped_daemon_cycle_is_reported_as_missed(tools, daemon):
         time.sleep(0.2)
         proc.send_signal(signal.SIGCONT)
         python = collect_while([run_], sub)
-    out, err = run_.communicate(timeout=10)
+    out, err = finished(run_)
     assert run_.returncode == 0, err
     skipped = control.status()["missed_cycles"] - before
     samples = dumped(out)
@@ -487,8 +592,7 @@ def test_the_header_reaches_a_publisher_on_ipv6_loopback(tools, which, ipv6_loop
     port = pub.bind_to_random_port("tcp://[::1]")
     c = Driven(getattr(tools, which), f"tcp://[::1]:{port}", "wrench/sensor1")
     try:
-        assert pub.poll(5000), "the header's subscription never arrived"
-        assert pub.recv() == b"\x01wrench/sensor1\0"
+        assert subscriptions(pub, 2) == {b"\x01wrench/sensor1\0", b"\x01sigma/wrench/sensor1\0"}
         pub.send(frame(seq=3))
         got = c("wait 5000")
         assert (got["rc"], got["seq"]) == ("1", "3")

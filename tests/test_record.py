@@ -182,17 +182,18 @@ def test_record_stopped_keeps_every_received_sample(daemon, tmp_path, fmt, how):
             with open(path, "rb") as f:
                 summary = make_reader(f).get_summary()
             assert summary is not None and summary.chunk_indexes
-            assert summary.statistics.message_count == 2 * sum(counts.values())
+            # a wrench, its sigma and its status a sample
+            assert summary.statistics.message_count == 3 * sum(counts.values())
     elif fmt == "csv":  # the sidecar as the kill left it: the rows are counted in the CSV
         meta = recording.read_meta(path)
         assert meta["state"] == "recording" and meta["samples"] == counts[STREAMS[0]]
     elif fmt == "mcap":  # cut short, yet recoverable into a complete file
         fixed = tmp_path / "fixed.mcap"
-        assert recover_mcap(path, fixed) == 2 * sum(counts.values())
+        assert recover_mcap(path, fixed) == 3 * sum(counts.values())  # a wrench, its sigma, its status
         from mcap.reader import make_reader
 
         with open(fixed, "rb") as f:
-            assert make_reader(f).get_summary().statistics.message_count == 2 * sum(counts.values())
+            assert make_reader(f).get_summary().statistics.message_count == 3 * sum(counts.values())
 
 
 class Synthetic:
@@ -286,9 +287,12 @@ def test_mcap_holds_ros2_messages_matching_what_was_published(daemon, tmp_path):
         types = {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values()}
         assert types["/wrench/sensor1"] == types["/wrench/tip"] == "geometry_msgs/msg/WrenchStamped"
         assert types["/flux/sensor1/chip7"] == "sensor_msgs/msg/MagneticField"
+        assert types["/wrench/sensor1/sigma"] == "geometry_msgs/msg/WrenchStamped"
         assert set(types) == {
             "/wrench/sensor1",
             "/wrench/tip",
+            "/wrench/sensor1/sigma",
+            "/wrench/tip/sigma",
             "/wrench/sensor1/status",
             "/wrench/tip/status",
             "/flux/sensor1/status",
@@ -306,6 +310,7 @@ def test_mcap_holds_ros2_messages_matching_what_was_published(daemon, tmp_path):
                     other(sample)
             else:
                 stream = topic[1:] if topic.startswith("/wrench/") else topic[1:].rsplit("/", 1)[0]
+                stream = stream.removesuffix("/sigma")
                 pending.setdefault(stream, []).append(
                     lambda s, m=msg, t=topic, lt=message.log_time: _matches(s, m, t, lt, frames)
                 )
@@ -319,10 +324,14 @@ def _matches(sample: wire.Sample, msg, topic: str, log_time: int, frames: dict[s
     assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (sec, nanosec)
     assert abs(sec + nanosec * 1e-9 - sample.t_wall) < 1e-6 and log_time == sec * 10**9 + nanosec
     if topic.startswith("/wrench/"):
-        assert msg.header.frame_id == frames[topic[1:]]
+        assert msg.header.frame_id == frames[topic[1:].removesuffix("/sigma")]
         w = msg.wrench
         got = [w.force.x, w.force.y, w.force.z, w.torque.x, w.torque.y, w.torque.z]
-        assert got == sample.values.tolist()  # float64 both ways: exact
+        if topic.endswith("/sigma"):  # the sample's sigma, the daemon's companion
+            assert sample.sigma is not None
+            np.testing.assert_array_equal(got, sample.sigma)  # float64 both ways: exact, NaN where unknown
+        else:
+            assert got == sample.values.tolist()  # float64 both ways: exact
     else:
         chip = int(topic.rsplit("chip", 1)[1])
         b = msg.magnetic_field
@@ -374,7 +383,8 @@ def test_a_csv_recording_reads_with_the_usual_readers_and_its_sidecar_says_what_
         if stream.startswith("wrench/")
         else [f"b{i}{a}_T" for i in range(8) for a in "xyz"]
     )
-    columns = ["seq", "t_mono_s", "t_wall_s", "flags", *names]
+    sigmas = ["sigma_" + n for n in names] if stream.startswith("wrench/") else []  # each axis's sigma
+    columns = ["seq", "t_mono_s", "t_wall_s", "flags", *names, *sigmas]
 
     def check(table: list[list[float]]) -> None:  # rows of the columns above, as a reader gave them
         assert len(table) == 40
@@ -384,7 +394,10 @@ def test_a_csv_recording_reads_with_the_usual_readers_and_its_sidecar_says_what_
             assert row[1] == pytest.approx(sample.t_mono, abs=1e-6) and row[2] == pytest.approx(
                 sample.t_wall, abs=1e-6
             )
-            np.testing.assert_allclose(row[4:], sample.values, rtol=1e-8, atol=0)
+            np.testing.assert_allclose(row[4 : 4 + len(names)], sample.values, rtol=1e-8, atol=0)
+            if sigmas:  # 9 significant digits, NaN where the daemon does not know it
+                assert sample.sigma is not None
+                np.testing.assert_allclose(row[4 + len(names) :], sample.sigma, rtol=1e-8, atol=0)
 
     with path.open(newline="") as f:
         reader = csv.DictReader(f)
@@ -416,6 +429,10 @@ def test_a_csv_recording_reads_with_the_usual_readers_and_its_sidecar_says_what_
     assert meta["stream"] == stream and meta["frame"] == ControlClient(ctl).status()["frames"][stream]
     assert meta["kind"] == stream.split("/")[0] and meta["columns"] == columns
     assert {c: meta["units"][c] for c in names} == {c: c.rsplit("_", 1)[1] for c in names}
+    for c in sigmas:  # its unit, what it is, and what an empty or nan cell means
+        unit = meta["units"][c]
+        assert unit.startswith(c.rsplit("_", 1)[1] + ", the daemon's 1-sigma of " + c.removeprefix("sigma_"))
+        assert "empty: not received" in unit
     assert meta["units"]["t_mono_s"].startswith("s, CLOCK_MONOTONIC") and meta["units"][
         "t_wall_s"
     ].startswith("s, Unix")
@@ -653,6 +670,46 @@ def test_the_temperature_flag_reaches_every_recording(tmp_path, fmt):
     assert wire.flag_names(flags) == ["inconsistent", "temperature"]
 
 
+@pytest.mark.parametrize("fmt", ["csv", "npz", "mcap"])
+def test_each_wrench_is_recorded_with_its_sigma_and_unknown_when_none_came(tmp_path, fmt):
+    """A wrench's sigma beside it in every format: the CSV's six `sigma_*` columns, the NPZ's
+    `sigma`, the MCAP's `<topic>/sigma`; a sample whose companion never came is unknown (an
+    empty CSV cell, NaN), and the daemon's own NaN (an unknown axis) stays NaN."""
+    path = tmp_path / f"x.{fmt}"
+    writer = open_writer(path, STREAMS[:1])
+    sigma = np.array([0.025, 0.031, 0.022, 0.003, 0.0029, np.nan])
+    sent = [
+        wire.Sample(STREAMS[0], wire.KIND_WRENCH, 3, 1.0, 1.7e9, 0, np.arange(6.0), sigma),
+        wire.Sample(STREAMS[0], wire.KIND_WRENCH, 4, 1.01, 1.7e9 + 0.01, 0, np.arange(6.0)),  # none came
+    ]
+    tally = Tally()
+    for s in sent:
+        writer.write(s)
+        tally.add(s.seq)
+    writer.close({STREAMS[0]: tally})
+    nan6 = np.full(6, np.nan)
+    if fmt == "csv":
+        lines = path.read_text().splitlines()
+        assert lines[0].split(",")[-6:] == [
+            "sigma_fx_N",
+            "sigma_fy_N",
+            "sigma_fz_N",
+            "sigma_mx_Nm",
+            "sigma_my_Nm",
+            "sigma_mz_Nm",
+        ]
+        assert lines[1].split(",")[-6:] == ["0.025", "0.031", "0.022", "0.003", "0.0029", "nan"]
+        assert lines[2].split(",")[-6:] == [""] * 6  # not received
+        got = np.genfromtxt(path, delimiter=",", names=True)
+        np.testing.assert_array_equal([list(r)[-6:] for r in got.tolist()], [sigma, nan6])
+    elif fmt == "npz":
+        np.testing.assert_array_equal(np.load(path)["sigma"], [sigma, nan6])
+    else:
+        got = [m.wrench for topic, m, _ in read_mcap(path) if topic == f"/{STREAMS[0]}/sigma"]
+        vectors = [[w.force.x, w.force.y, w.force.z, w.torque.x, w.torque.y, w.torque.z] for w in got]
+        np.testing.assert_array_equal(vectors, [sigma, nan6])
+
+
 @pytest.mark.parametrize(
     "args",
     [
@@ -715,23 +772,27 @@ def test_a_control_reply_that_is_not_a_json_object_is_a_control_error(zmq_contex
         router.close(0)
 
 
-def test_the_npz_sidecar_reads_by_hand_as_docs_clients_md_lays_it_out(tmp_path):
+@pytest.mark.parametrize("stream", ["flux/sensor1", "wrench/sensor1"])
+def test_the_npz_sidecar_reads_by_hand_as_docs_clients_md_lays_it_out(tmp_path, stream):
     """An independent reader of a killed NPZ recording's `.npz.part`, from the page alone: a
-    JSON line naming `count`, then records of i64 seq, f64 t_mono, f64 t_wall, i64 flags,
-    `count` f64 values, little-endian (the layout was not on the page)."""
+    JSON line naming `count` and `sigma`, then records of i64 seq, f64 t_mono, f64 t_wall,
+    i64 flags, `count` f64 values and, with `sigma` (a wrench stream), 6 f64 sigma,
+    little-endian (the layout was not on the page)."""
     import json
     import struct
 
-    writer = open_writer(tmp_path / "r.npz", ["flux/sensor1"])
+    writer = open_writer(tmp_path / "r.npz", [stream])
+    n = 24 if stream.startswith("flux/") else 6
     sent = [
         wire.Sample(
-            "flux/sensor1",
-            wire.KIND_FLUX,
+            stream,
+            wire.KIND_FLUX if n == 24 else wire.KIND_WRENCH,
             7 + i,
             0.5 * i,
             1.7e9 + i,
             0x41 * i,
-            np.arange(24.0) * (i + 1) * 1e-6,
+            np.arange(float(n)) * (i + 1) * 1e-6,
+            None if n == 24 else np.arange(6.0) * (i + 1) * 1e-3,
         )
         for i in range(3)
     ]
@@ -740,14 +801,18 @@ def test_the_npz_sidecar_reads_by_hand_as_docs_clients_md_lays_it_out(tmp_path):
     writer.flush()  # as a kill leaves it: no close
     raw = (tmp_path / "r.npz.part").read_bytes()
     line, _, body = raw.partition(b"\n")
-    count = json.loads(line)["count"]
-    size = struct.calcsize(f"<qddq{count}d")
-    assert count == 24 and len(body) == 3 * size
+    head = json.loads(line)
+    count, sigma = head["count"], 6 if head["sigma"] else 0
+    assert (count, sigma) == ((24, 0) if n == 24 else (6, 6))
+    layout = f"<qddq{count}d{sigma}d"
+    size = struct.calcsize(layout)
+    assert len(body) == 3 * size
     for i, s in enumerate(sent):
-        seq, t_mono, t_wall, flags, *values = struct.unpack_from(f"<qddq{count}d", body, i * size)
-        assert (seq, t_mono, t_wall, flags) == (s.seq, s.t_mono, s.t_wall, s.flags) and values == list(
-            s.values
-        )
+        seq, t_mono, t_wall, flags, *values = struct.unpack_from(layout, body, i * size)
+        assert (seq, t_mono, t_wall, flags) == (s.seq, s.t_mono, s.t_wall, s.flags) and values[
+            :count
+        ] == list(s.values)
+        assert values[count:] == ([] if s.sigma is None else list(s.sigma))
     writer.file.close()
 
 

@@ -125,6 +125,7 @@ def test_a_ros2_subscriber_reads_every_wrench_as_the_zeromq_stream_has_it(daemon
     frames = control.status()["frames"]
     topics = {
         **{f"rt/{NS}/{s}": "WrenchStamped" for s in STREAMS},
+        **{f"rt/{NS}/{s}/sigma": "WrenchStamped" for s in STREAMS},  # each wrench's sigma
         f"rt/{NS}/wrench/tip/status": "SampleStatus",
     }
     lines = peer({"do": "read", "topics": topics, "count": 30, "reliable": reliable})
@@ -153,6 +154,8 @@ def test_a_ros2_subscriber_reads_every_wrench_as_the_zeromq_stream_has_it(daemon
         if line is status:
             continue
         stream = line["topic"].removeprefix(f"rt/{NS}/")
+        sigma = stream.endswith("/sigma")  # the sample's sigma: stamped and framed as its wrench
+        stream = stream.removesuffix("/sigma")
         assert line["writer"] == {
             "type_name": "geometry_msgs::msg::dds_::WrenchStamped_",
             "user_data": f"typehash={rosbags_hash(RAW['WrenchStamped'])};",
@@ -163,10 +166,13 @@ def test_a_ros2_subscriber_reads_every_wrench_as_the_zeromq_stream_has_it(daemon
             sample = ref.samples[(stream, stamp["sec"] * 10**9 + stamp["nanosec"])]
             assert m["header"]["frame_id"] == frames[stream]
             w = m["wrench"]
-            # float64 from end to end: exactly equal
+            # float64 from end to end: exactly equal (the sigma's NaN where the daemon does not know it)
             np.testing.assert_array_equal(
-                [w[p][a] for p in ("force", "torque") for a in "xyz"], sample.values
+                [w[p][a] for p in ("force", "torque") for a in "xyz"],
+                sample.sigma if sigma else sample.values,
             )
+            if sigma:  # at rest on the simulated bus, every sample's sigma is known
+                assert np.all(np.asarray(sample.sigma) > 0), sample.sigma
 
 
 def test_diagnostics_name_the_daemon_each_sensor_and_each_chip(daemon):
@@ -181,6 +187,10 @@ def test_diagnostics_name_the_daemon_each_sensor_and_each_chip(daemon):
     assert all(s["level"] == 0 for n, s in status.items() if n in chips)  # the simulated chips are all well
     values = {v["key"]: v["value"] for v in status[f"{NS}: sensor1"]["values"]}
     assert values["serial"] == "sim-sensor1" and values["chips_ok"] == "8 of 8"
+    # the predicted sigma at rest, as `ftsensord status` prints it: three forces (N), three torques (mNm)
+    forces, torques = values["predicted_sigma_at_rest"].split(" N, ")
+    assert len(forces.split()) == 3 and torques.endswith(" mNm") and len(torques.split()) == 4
+    assert all(float(v) > 0 for v in forces.split() + torques.split()[:3])
     assert status[f"{NS}: sensor1 chip 0x0C"]["hardware_id"] == "MLX90393 0x0C"
 
 
@@ -533,6 +543,7 @@ def test_a_frame_that_is_not_a_wrench_is_dropped_and_counted():
         bad_frames=0,
         endpoint="ipc://test",
         node=SimpleNamespace(publish_wrench=lambda *args: written.append(args)),
+        sigmas=[],
     )
     flux = wire.encode("wrench/sensor1", wire.KIND_FLUX, 1, 0.0, 0.0, 0, np.zeros(24))
     assert Bridge.forward(bridge, flux) is None and Bridge.forward(bridge, b"garbage") is None
@@ -540,3 +551,7 @@ def test_a_frame_that_is_not_a_wrench_is_dropped_and_counted():
     wrench = wire.encode("wrench/sensor1", wire.KIND_WRENCH, 2, 1.0, 5.0, 3, np.arange(6.0))
     assert Bridge.forward(bridge, wrench) == ("wrench/sensor1", 5.0, 2, 3)
     assert len(written) == 1 and written[0][2] == np.arange(6.0).tobytes()
+    # A wrench's sigma (its companion, sent before it) is kept to be written after the cycle's wrenches.
+    sigma = wire.encode("sigma/wrench/sensor1", wire.KIND_SIGMA, 3, 1.0, 6.0, 3, np.full(6, 0.01))
+    assert Bridge.forward(bridge, sigma) is None and bridge.bad_frames == 2 and len(written) == 1
+    assert bridge.sigmas == [("wrench/sensor1", 6.0, np.full(6, 0.01).tobytes())]

@@ -111,7 +111,9 @@ def peer(python: Path, *steps: dict, timeout_s: float = 90) -> list[dict]:
 
 
 def test_ros2_lists_each_daemons_node_its_topics_and_which_node_publishes_them(ros2, daemons):
-    topics = {f"/{ns}/{s}{tail}" for ns in (NS, NS_BRIDGE) for s in STREAMS for tail in ("", "/status")}
+    topics = {
+        f"/{ns}/{s}{tail}" for ns in (NS, NS_BRIDGE) for s in STREAMS for tail in ("", "/status", "/sigma")
+    }
     graphs = peer(
         ros2,
         *(
@@ -132,6 +134,7 @@ def test_ros2_lists_each_daemons_node_its_topics_and_which_node_publishes_them(r
         for s in STREAMS:
             assert types[f"/{ns}/{s}"] == ["geometry_msgs/msg/WrenchStamped"]
             assert types[f"/{ns}/{s}/status"] == ["ftsensord_msgs/msg/SampleStatus"]
+            assert types[f"/{ns}/{s}/sigma"] == ["geometry_msgs/msg/WrenchStamped"]  # a standard type
             assert types[f"/{ns}/{s}/compensated"] == ["geometry_msgs/msg/WrenchStamped"]
         assert types[f"/{ns}/tare"] == ["std_msgs/msg/Empty"]
         assert types[f"/{ns}/orientation/tip"] == ["geometry_msgs/msg/QuaternionStamped"]
@@ -151,19 +154,26 @@ def test_ros2_lists_each_daemons_node_its_topics_and_which_node_publishes_them(r
             assert [(s["node_namespace"], s["node_name"]) for s in subs] == [owner], topic
 
 
-def test_a_default_and_a_sensor_data_subscriber_read_each_wrench_as_the_zeromq_stream_has_it(ros2, daemons):
-    daemon = daemons[0]
+@pytest.mark.parametrize("which", [0, 1], ids=["in-loop", "bridge"])
+def test_a_default_and_a_sensor_data_subscriber_read_each_wrench_as_the_zeromq_stream_has_it(
+    ros2, daemons, which
+):
+    daemon = daemons[which]
+    ns = (NS, NS_BRIDGE)[which]
     frames = daemon.control.status()["frames"]
-    topics = {f"/{NS}/{s}": "WrenchStamped" for s in STREAMS}
+    # each wrench and its sigma, stamped and framed as it
+    topics = {f"/{ns}/{s}{tail}": "WrenchStamped" for s in STREAMS for tail in ("", "/sigma")}
     lines = peer(
         ros2,
         {"do": "read", "topics": topics, "count": 100, "qos": "default"},
         {"do": "read", "topics": topics, "count": 100, "qos": "sensor_data"},
     )
     time.sleep(0.1)  # the reference's last samples in
-    assert len(lines) == 2 * len(STREAMS)
+    assert len(lines) == 2 * len(topics)
     for line in lines:
-        stream = line["topic"].removeprefix(f"/{NS}/")
+        stream = line["topic"].removeprefix(f"/{ns}/")
+        sigma = stream.endswith("/sigma")
+        stream = stream.removesuffix("/sigma")
         assert len(line["messages"]) == 100, line["topic"]
         stamps = []
         for m in line["messages"]:
@@ -172,9 +182,10 @@ def test_a_default_and_a_sensor_data_subscriber_read_each_wrench_as_the_zeromq_s
             sample = daemon.ref.samples[(stream, stamps[-1])]
             assert m["header"]["frame_id"] == frames[stream]
             w = m["wrench"]
-            # float64 from end to end: exactly equal
+            # float64 from end to end: exactly equal (the sigma's NaN where the daemon does not know it)
             np.testing.assert_array_equal(
-                [w[p][a] for p in ("force", "torque") for a in "xyz"], sample.values
+                [w[p][a] for p in ("force", "torque") for a in "xyz"],
+                sample.sigma if sigma else sample.values,
             )
         assert stamps == sorted(set(stamps))  # in order, none twice
 

@@ -10,8 +10,9 @@
  *   -t  the stream (default wrench/sensor1)
  *   -n  stop after this many ticks; -s after this many seconds (default: run until Ctrl-C)
  *   -w  give up after this many seconds without a first sample (default 5)
- *   --dump  also print every new sample: seq, flags, t_mono, missed and the six values
- *           with 17 significant digits (enough to give back the exact doubles)
+ *   --dump  also print every new sample: seq, flags, t_mono, missed, the six values and
+ *           their sigma (NaN: unknown, or not received) with 17 significant digits (enough
+ *           to give back the exact doubles)
  *
  * Exit status: 0 when samples came; 1 when none came, within the -w wait or before the run
  * ended (a message on stderr says where it listened); 2 for a bad argument. Samples that
@@ -131,6 +132,8 @@ int main(int argc, char **argv)
                 printf("sample seq=%" PRIu64 " flags=0x%" PRIx32 " t_mono=%.9f missed=%" PRIu64 " values=",
                        r.sample.seq, r.sample.flags, r.sample.t_mono, r.missed);
                 for (int k = 0; k < r.sample.count; ++k) printf("%s%.17g", k ? "," : "", r.sample.values[k]);
+                printf(" sigma=");
+                for (int k = 0; k < FTS_SIGMA_COUNT; ++k) printf("%s%.17g", k ? "," : "", r.sigma[k]);
                 printf("\n");
             }
         } else if (rc < 0 && rc != FTS_E_NODATA && rc != last_error) {

@@ -5,7 +5,7 @@
  * tick, takes the newest sample without blocking, and renders it only while it is live:
  *
  *     #include "ftsensord.h"
- *     fts_sub sub;                        // 1.2 KiB: one per stream, no global state
+ *     fts_sub sub;                        // 1.6 KiB: one per stream, no global state
  *     fts_reading r;
  *     if (fts_open(&sub, "ipc:///run/ftsensord/wrench", "wrench/sensor1") != FTS_OK) ...
  *     for (;;) {                          // 1 kHz
@@ -24,6 +24,15 @@
  * loop rendering a frozen wrench. r still holds the last sample, with r.silent_s; a
  * restarted daemon's samples come back by themselves (FTS_NEW, r.restarted set).
  * fts_set_stale_after sets another limit in seconds.
+ *
+ * Each sample's sigma: a wrench stream's samples each have a companion on the stream
+ * "sigma/" + its topic (kind 3, the same seq), the daemon's 1-sigma per axis of that wrench.
+ * For a topic beginning "wrench/" fts_open subscribes a second conflating socket to it and
+ * fts_latest gives r.sigma[6] (N, N, N, Nm, Nm, Nm) beside r.sample: the companion of the
+ * very sample in r (matched by seq), NaN where the daemon says the sigma is unknown or
+ * none of that seq came (a daemon that does not send it, or one not yet arrived: the two
+ * streams travel on two connections, so a later call may fill it in). Define
+ * FTS_NO_SIGMA before the include for one socket and r.sigma always NaN.
  *
  * The wire format is docs/reference/protocol.md's (ftsensord/protocol/wire.py writes it): one ZeroMQ
  * frame per sample, `topic NUL header(40 bytes) count*float64`, little-endian.
@@ -143,6 +152,9 @@ static inline int fts_ipv6_(void *sock, const char *endpoint)
 #define FTS_VERSION 1u
 #define FTS_KIND_WRENCH 1u
 #define FTS_KIND_FLUX 2u
+#define FTS_KIND_SIGMA 3u      /* a wrench's 1-sigma per axis, on "sigma/" + the wrench's topic */
+#define FTS_SIGMA_PREFIX "sigma/"
+#define FTS_SIGMA_COUNT 6      /* values of a sigma sample: fx fy fz (N), mx my mz (Nm) */
 #define FTS_HEADER_SIZE 40u
 
 /* Status flags, as wire.py's FLAG_*: each marks every sample a condition affects. */
@@ -168,6 +180,9 @@ static inline int fts_ipv6_(void *sock, const char *endpoint)
 #endif
 #ifndef FTS_DRAIN_MAX
 #define FTS_DRAIN_MAX 64 /* frames one fts_latest call reads at most (1 with CONFLATE) */
+#endif
+#ifndef FTS_SIGMA_KEEP
+#define FTS_SIGMA_KEEP 4 /* companions kept to match their wrench: one may come before or after it */
 #endif
 #define FTS_FRAME_MAX (FTS_MAX_TOPIC + 1 + FTS_HEADER_SIZE + 8 * FTS_MAX_VALUES)
 
@@ -200,7 +215,7 @@ enum {
     FTS_E_SHORT = -6,     /* the frame ends inside the 40-byte header */
     FTS_E_MAGIC = -7,     /* not an ftsensord sample */
     FTS_E_VERSION = -8,   /* a wire format version this header does not know */
-    FTS_E_KIND = -9,      /* a kind other than wrench (1) or flux (2) */
+    FTS_E_KIND = -9,      /* a kind other than wrench (1), flux (2) or sigma (3) */
     FTS_E_COUNT = -10,    /* more values than FTS_MAX_VALUES */
     FTS_E_LENGTH = -11,   /* the frame's length is not header + 8 * count */
     FTS_E_TOOBIG = -12,   /* the frame is longer than FTS_FRAME_MAX */
@@ -216,8 +231,8 @@ typedef struct fts_sample {
     double t_wall;                /* s, CLOCK_REALTIME (Unix time) at the same moment */
     uint32_t flags;               /* FTS_FLAG_* */
     uint16_t count;               /* values used: 6 for a wrench, 3 per chip for flux */
-    uint8_t kind;                 /* FTS_KIND_WRENCH or FTS_KIND_FLUX */
-    double values[FTS_MAX_VALUES]; /* wrench: fx fy fz (N), mx my mz (Nm); flux: T */
+    uint8_t kind;                 /* FTS_KIND_WRENCH, FTS_KIND_FLUX or FTS_KIND_SIGMA */
+    double values[FTS_MAX_VALUES]; /* wrench: fx fy fz (N), mx my mz (Nm); flux: T; sigma: N, Nm */
 } fts_sample;
 
 /* What fts_latest reports each tick. */
@@ -228,6 +243,8 @@ typedef struct fts_reading {
     uint64_t missed;   /* sequence numbers never seen since the previous call's sample */
     int fresh;         /* 1: sample is new since the previous call; 0: the same as then */
     int restarted;     /* 1: the sequence went back (daemon restarted); not counted missed */
+    double sigma[FTS_SIGMA_COUNT]; /* 1-sigma per axis of sample.values (N, Nm), its companion's;
+                                    * NaN: unknown, or not (yet) received; all NaN but a wrench's */
 } fts_reading;
 
 /* Counts missed cycles from sequence numbers. */
@@ -258,6 +275,15 @@ typedef struct fts_sub {
     uint64_t span_seq;                /* the sample the period is measured from: its seq ... */
     double span_t;                    /* ... and its t_mono */
     double stale_after_s;             /* 0: FTS_STALE_PERIODS periods; > 0: seconds; < 0: never */
+    void *sigma_sock;                 /* the companion "sigma/<topic>" of a wrench stream, or NULL */
+    size_t sigma_topic_len;
+    char sigma_topic[FTS_MAX_TOPIC + 7]; /* "sigma/" + topic and its NUL: the companion's subscription */
+    struct {
+        uint64_t seq;
+        double values[FTS_SIGMA_COUNT];
+    } sigmas[FTS_SIGMA_KEEP];         /* the newest companions received, matched to `last` by seq */
+    unsigned sigma_count, sigma_next; /* slots filled; the slot the next one goes to */
+    uint64_t sigma_rejected;          /* companion frames refused (the wrench is unaffected) */
     unsigned char frame[FTS_FRAME_MAX];
 } fts_sub;
 
@@ -294,7 +320,7 @@ static inline int fts_decode(const void *frame, size_t len, const char *topic, s
     if (body < FTS_HEADER_SIZE) return FTS_E_SHORT;
     if (fts_le_(h, 2) != FTS_MAGIC) return FTS_E_MAGIC;
     if (h[2] != FTS_VERSION) return FTS_E_VERSION;
-    if (h[3] != FTS_KIND_WRENCH && h[3] != FTS_KIND_FLUX) return FTS_E_KIND;
+    if (h[3] != FTS_KIND_WRENCH && h[3] != FTS_KIND_FLUX && h[3] != FTS_KIND_SIGMA) return FTS_E_KIND;
     size_t count = (size_t)fts_le_(h + 32, 2);
     if (count > FTS_MAX_VALUES) return FTS_E_COUNT;
     if (body != FTS_HEADER_SIZE + 8 * count) return FTS_E_LENGTH;
@@ -388,16 +414,41 @@ static inline void fts_close(fts_sub *s)
 {
     if (s == NULL) return;
     if (s->sock != NULL) zmq_close(s->sock);
+    if (s->sigma_sock != NULL) zmq_close(s->sigma_sock);
     if (s->own_ctx && s->ctx != NULL) zmq_ctx_term(s->ctx);
     s->sock = NULL;
+    s->sigma_sock = NULL;
     s->ctx = NULL;
     s->own_ctx = 0;
+}
+
+/* A SUB socket on `ctx` subscribed to exactly `topic\0` (n bytes and the NUL), conflating,
+ * connected to `endpoint`; NULL with s->zmq_err set on a failure. */
+static inline void *fts_sub_socket_(fts_sub *s, void *ctx, const char *endpoint, const char *topic, size_t n)
+{
+    void *sock = zmq_socket(ctx, FTS_ZMQ_SUB_);
+    if (sock == NULL) {
+        fts_zfail_(s);
+        return NULL;
+    }
+    int one = 1, zero = 0;
+    /* CONFLATE acts on connections made after it is set: before zmq_connect. */
+    if (zmq_setsockopt(sock, FTS_ZMQ_CONFLATE_, &one, sizeof one) != 0 ||
+        zmq_setsockopt(sock, FTS_ZMQ_LINGER_, &zero, sizeof zero) != 0 ||
+        zmq_setsockopt(sock, FTS_ZMQ_SUBSCRIBE_, topic, n + 1) != 0 || fts_ipv6_(sock, endpoint) != 0 ||
+        zmq_connect(sock, endpoint) != 0) {
+        fts_zfail_(s);
+        zmq_close(sock);
+        return NULL;
+    }
+    return sock;
 }
 
 /* Subscribe to one stream (e.g. "wrench/sensor1") of the daemon at `endpoint`
  * ("ipc:///run/ftsensord/wrench", "tcp://127.0.0.1:5555") on a libzmq context the caller
  * owns and keeps until fts_close. Connecting does not wait for the daemon: samples
- * arrive once it runs, and after a daemon restart. */
+ * arrive once it runs, and after a daemon restart. A "wrench/..." stream's sigma comes
+ * on a second socket subscribed to its companion "sigma/wrench/..." (unless FTS_NO_SIGMA). */
 static inline int fts_open_ctx(fts_sub *s, void *ctx, const char *endpoint, const char *topic)
 {
     if (s == NULL || ctx == NULL || endpoint == NULL || topic == NULL) return FTS_E_ARG;
@@ -407,19 +458,22 @@ static inline int fts_open_ctx(fts_sub *s, void *ctx, const char *endpoint, cons
     memcpy(s->topic, topic, n); /* the memset left the NUL that ends the subscription */
     s->topic_len = n;
     s->ctx = ctx;
-    s->sock = zmq_socket(ctx, FTS_ZMQ_SUB_);
-    if (s->sock == NULL) return fts_zfail_(s);
-    int one = 1, zero = 0;
-    /* CONFLATE acts on connections made after it is set: before zmq_connect. */
-    if (zmq_setsockopt(s->sock, FTS_ZMQ_CONFLATE_, &one, sizeof one) != 0 ||
-        zmq_setsockopt(s->sock, FTS_ZMQ_LINGER_, &zero, sizeof zero) != 0 ||
-        zmq_setsockopt(s->sock, FTS_ZMQ_SUBSCRIBE_, s->topic, n + 1) != 0 || fts_ipv6_(s->sock, endpoint) != 0 ||
-        zmq_connect(s->sock, endpoint) != 0) {
-        int rc = fts_zfail_(s);
-        zmq_close(s->sock);
-        s->sock = NULL;
-        return rc;
+    s->sock = fts_sub_socket_(s, ctx, endpoint, s->topic, n);
+    if (s->sock == NULL) return FTS_E_ZMQ;
+#ifndef FTS_NO_SIGMA
+    if (strncmp(topic, "wrench/", 7) == 0) {
+        size_t p = sizeof FTS_SIGMA_PREFIX - 1;
+        memcpy(s->sigma_topic, FTS_SIGMA_PREFIX, p);
+        memcpy(s->sigma_topic + p, topic, n); /* the memset left its NUL too */
+        s->sigma_topic_len = p + n;
+        s->sigma_sock = fts_sub_socket_(s, ctx, endpoint, s->sigma_topic, s->sigma_topic_len);
+        if (s->sigma_sock == NULL) {
+            zmq_close(s->sock);
+            s->sock = NULL;
+            return FTS_E_ZMQ;
+        }
     }
+#endif
     return FTS_OK;
 }
 
@@ -491,9 +545,57 @@ static inline double fts_stale_limit(const fts_sub *s)
     return limit > FTS_STALE_MIN_S ? limit : FTS_STALE_MIN_S;
 }
 
+/* A double with every bit of a quiet NaN: "unknown", without <math.h>. */
+static inline double fts_nan_(void)
+{
+    uint64_t bits = 0x7FF8000000000000ull;
+    double d;
+    memcpy(&d, &bits, sizeof d);
+    return d;
+}
+
+/* Read every companion waiting (one, with CONFLATE) into s->sigmas; never blocks, never
+ * fails the wrench: a refused frame or a libzmq error is counted in s->sigma_rejected. */
+static inline void fts_sigma_drain_(fts_sub *s)
+{
+    if (s->sigma_sock == NULL) return;
+    fts_sample c;
+    for (int i = 0; i < FTS_DRAIN_MAX; ++i) {
+        int n = zmq_recv(s->sigma_sock, s->frame, sizeof s->frame, FTS_ZMQ_DONTWAIT_);
+        if (n < 0) {
+            int e = zmq_errno();
+            if (e != EAGAIN && e != EINTR) s->sigma_rejected++;
+            return;
+        }
+        if ((size_t)n > sizeof s->frame ||
+            fts_decode(s->frame, (size_t)n, s->sigma_topic, s->sigma_topic_len, &c) != FTS_OK ||
+            c.kind != FTS_KIND_SIGMA || c.count != FTS_SIGMA_COUNT) {
+            s->sigma_rejected++;
+            continue;
+        }
+        s->sigmas[s->sigma_next].seq = c.seq;
+        memcpy(s->sigmas[s->sigma_next].values, c.values, sizeof s->sigmas[0].values);
+        s->sigma_next = (s->sigma_next + 1) % FTS_SIGMA_KEEP;
+        if (s->sigma_count < FTS_SIGMA_KEEP) s->sigma_count++;
+    }
+}
+
+/* out[6]: the companion of sequence number `seq` if one was received and is still kept, else NaN. */
+static inline void fts_sigma_of_(const fts_sub *s, uint64_t seq, double *out)
+{
+    for (unsigned i = 0; i < s->sigma_count; ++i) {
+        if (s->sigmas[i].seq == seq) {
+            memcpy(out, s->sigmas[i].values, sizeof s->sigmas[i].values);
+            return;
+        }
+    }
+    for (int k = 0; k < FTS_SIGMA_COUNT; ++k) out[k] = fts_nan_();
+}
+
 /* The newest sample, without blocking. Reads every frame waiting (one, with CONFLATE),
  * keeps the newest valid one, and fills *r with it, its age and the cycles missed since
- * the previous call. Returns FTS_NEW (a sample not returned before), FTS_SAME (none
+ * the previous call, and r->sigma with its companion's sigma (NaN: unknown or not received).
+ * Returns FTS_NEW (a sample not returned before), FTS_SAME (none
  * since the previous call: r->sample is the previous one, its age grown), FTS_E_STALE
  * (none for longer than fts_stale_limit: *r filled as for FTS_SAME, r->silent_s past the
  * limit; the same until a new sample comes), or an error with *r untouched:
@@ -503,6 +605,9 @@ static inline double fts_stale_limit(const fts_sub *s)
 static inline int fts_latest(fts_sub *s, fts_reading *r)
 {
     if (s == NULL || r == NULL || s->sock == NULL) return FTS_E_ARG;
+    /* Companions before and after the wrenches: each is sent just before its wrench but on
+     * a connection of its own, so it may be in either read; FTS_SIGMA_KEEP holds both. */
+    fts_sigma_drain_(s);
     int newest = FTS_OK;
     for (int i = 0; i < FTS_DRAIN_MAX; ++i) {
         int n = zmq_recv(s->sock, s->frame, sizeof s->frame, FTS_ZMQ_DONTWAIT_);
@@ -514,6 +619,7 @@ static inline int fts_latest(fts_sub *s, fts_reading *r)
         }
         newest = fts_ingest_(s, n);
     }
+    fts_sigma_drain_(s);
     if (newest != FTS_OK) return newest;
     if (!s->have) return FTS_E_NODATA;
     double now = fts_now();
@@ -525,6 +631,7 @@ static inline int fts_latest(fts_sub *s, fts_reading *r)
     r->missed = s->pend_missed;
     r->fresh = s->pend_fresh;
     r->restarted = s->pend_restarted;
+    fts_sigma_of_(s, s->last.seq, r->sigma); /* a companion late on its connection fills in later */
     s->pend_missed = 0;
     s->pend_fresh = s->pend_restarted = 0;
     if (r->fresh) return FTS_NEW;

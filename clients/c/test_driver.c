@@ -8,7 +8,8 @@
  *   test_driver sub ENDPOINT TOPIC  subscribe; then per stdin line: "take" (fts_latest),
  *                                   "wait MS" (fts_wait), "stale SECONDS"
  *                                   (fts_set_stale_after) or "quit"; prints each result
- *                                   with the stale limit then in force
+ *                                   with the stale limit then in force and, after the
+ *                                   sample, its sigma (fts_reading.sigma)
  *   test_driver staleness           FTS_STALE_PERIODS, _MIN_S, _FIRST_S, FTS_PERIOD_SPAN as compiled
  */
 #define _POSIX_C_SOURCE 200809L
@@ -102,7 +103,12 @@ static int cmd_sub(const char *endpoint, const char *topic)
                " period=%.17g received=%" PRIu64 " rejected=%" PRIu64,
                rc, fts_strerror(rc), r.fresh, r.missed, r.restarted, r.age_s, r.silent_s, fts_stale_limit(sub),
                sub->period_s, sub->received, sub->rejected);
-        if (rc >= 0 || rc == FTS_E_STALE) print_sample(&r.sample); /* FTS_E_STALE fills r too */
+        if (rc >= 0 || rc == FTS_E_STALE) { /* FTS_E_STALE fills r too */
+            print_sample(&r.sample);
+            printf(" sigma=");
+            for (int k = 0; k < FTS_SIGMA_COUNT; ++k) printf("%s%.17g", k ? "," : "", r.sigma[k]);
+            printf(" sigma_rejected=%" PRIu64, sub->sigma_rejected);
+        }
         printf("\n");
         fflush(stdout);
     }
@@ -123,7 +129,8 @@ static int cmd_constants(void)
         {"FLAG_TEMPERATURE", (long)FTS_FLAG_TEMPERATURE},
         {"MAGIC", (long)FTS_MAGIC},
         {"VERSION", (long)FTS_VERSION}, {"KIND_WRENCH", (long)FTS_KIND_WRENCH},
-        {"KIND_FLUX", (long)FTS_KIND_FLUX}, {"HEADER_SIZE", (long)FTS_HEADER_SIZE},
+        {"KIND_FLUX", (long)FTS_KIND_FLUX}, {"KIND_SIGMA", (long)FTS_KIND_SIGMA},
+        {"HEADER_SIZE", (long)FTS_HEADER_SIZE},
         {"zmq.PUB", (long)FTS_ZMQ_PUB_}, {"zmq.SUB", (long)FTS_ZMQ_SUB_}, {"zmq.SUBSCRIBE", (long)FTS_ZMQ_SUBSCRIBE_},
         {"zmq.LINGER", (long)FTS_ZMQ_LINGER_}, {"zmq.RCVTIMEO", (long)FTS_ZMQ_RCVTIMEO_},
         {"zmq.CONFLATE", (long)FTS_ZMQ_CONFLATE_}, {"zmq.DONTWAIT", (long)FTS_ZMQ_DONTWAIT_},

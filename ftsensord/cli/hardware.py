@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from typing import Any
 
 from ftsensord.acquire.bus import ACCEPTED_FORMS, open_bus
 from ftsensord.acquire.scan import format_table, scan
@@ -57,7 +58,62 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="on the simulated bus, spend real time (default: its virtual clock, instant)",
     )
+    p.add_argument(
+        "--config",
+        help="the daemon's configuration: also each sensor's predicted sigma at rest at its "
+        "conversion, averaging and estimator, untared",
+    )
     p.set_defaults(func=cmd_doctor)
+
+
+def predicted_sigma(path: str) -> dict[str, Any]:
+    """Each sensor's predicted sigma at rest (N, Nm) at the configuration's settings (after its
+    sensors' ``accuracy``, if any, chose them), untared: what `status` shows once it runs."""
+    from ftsensord.config.file import load_config
+    from ftsensord.processing import accuracy
+    from ftsensord.processing.filters import WrenchFilter
+
+    config = load_config(path)
+    accuracy.apply_accuracy(config)
+    # the filter's steady variance factor at the file's rate, averaging and low-pass
+    factor = WrenchFilter(config.averaging, config.lowpass_hz, config.rate_hz).factors[-1]
+    out: dict[str, Any] = {
+        "osr": config.settings.osr,
+        "dig_filt": config.settings.dig_filt,
+        "averaging": config.averaging,
+        "lowpass_hz": config.lowpass_hz,
+        "rate_hz": config.rate_hz,
+        "sensors": {},
+    }
+    for s in config.sensors:
+        sensor = accuracy.Sensor(s, s.estimator)
+        u = accuracy.uncertainty_at(sensor, config.settings)
+        out["sensors"][s.name] = {
+            "estimator": s.estimator,
+            "sigma": u.predicted(factor, None, s.estimator)["sigma"],
+        }
+    return out
+
+
+def describe_predicted(p: dict[str, Any]) -> str:
+    lines = [
+        f"predicted sigma at rest, untared (OSR {p['osr']}, DIG_FILT {p['dig_filt']}, averaging "
+        f"{p['averaging']}, low-pass {p['lowpass_hz'] or 'off'}, {p['rate_hz']:g} Hz):"
+    ]
+    for name, s in p["sensors"].items():
+        sigma = s["sigma"]
+        lines.append(
+            f"  {name} ({s['estimator']}): "
+            + (
+                "unknown"
+                if sigma is None
+                else " ".join(f"{v:.3g}" for v in sigma[:3])
+                + " N, "
+                + " ".join(f"{v * 1e3:.3g}" for v in sigma[3:])
+                + " mNm"
+            )
+        )
+    return "\n".join(lines)
 
 
 def cmd_scan(args: argparse.Namespace) -> int:
@@ -88,7 +144,11 @@ def cmd_doctor(args: argparse.Namespace) -> int:
         real_time=args.real_time,
         rate_hz=args.rate,
     )
+    if args.config:
+        report["predicted_sigma"] = predicted_sigma(args.config)
     print(json.dumps(report, indent=2) if args.json else format_doctor(report))
+    if args.config and not args.json:
+        print(describe_predicted(report["predicted_sigma"]))
     if not report["chips"]:
         print(f"no MLX90393 answered on {args.bus} (0x0C-0x1B)", file=sys.stderr)
         return 1

@@ -8,6 +8,7 @@ calibrations). `config/ftsensord.toml` is a commented example.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -283,12 +284,18 @@ def needs_restart(old: Config, new: Config) -> list[str]:
 
 
 def reload_config(
-    old: Config, calibrations: Calibrations | None = None, timing: BusTiming | None = None
+    old: Config,
+    calibrations: Calibrations | None = None,
+    timing: BusTiming | None = None,
+    adjust: Callable[[Config, BusTiming | None], object] | None = None,
 ) -> Config:
     """Re-read ``old``'s file; ConfigError when it is bad or changes what needs a restart.
     What the file leaves unnamed is chosen again on the board's ``timing``, keeping the
-    running scheduler (a reload cannot change it)."""
+    running scheduler (a reload cannot change it). ``adjust(new, timing)``: what the daemon
+    sets from the file before that (the settings a sensor's ``accuracy`` chooses, as at start)."""
     new = load_config(old.path, calibrations)
+    if adjust is not None:
+        adjust(new, timing)
     if new.named != {"scheduler", "readback_every"}:  # as at start: a slow board runs late, not refused
         new.choose(timing, f"{new.path}: rate_hz", running=old.scheduler, strict=False)
     fixed = needs_restart(old, new)

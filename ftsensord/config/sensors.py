@@ -12,8 +12,10 @@ from pathlib import Path
 
 from ftsensord.calibration.calfile import Calibration
 from ftsensord.calibration.dataset import parse_addresses
+from ftsensord.config.accuracy import EXPECTED, Accuracy, parse_accuracies
 from ftsensord.config.frames import MAX_FRAME_NAME, TIP
 from ftsensord.docfile import Table
+from ftsensord.errors import ConfigError
 from ftsensord.model.linear import LinearModel
 from ftsensord.protocol.paths import resolve_file
 
@@ -38,6 +40,9 @@ class SensorConfig:
     table: Table | None = field(
         default=None, repr=False, compare=False
     )  # where it was read: for errors naming it
+    #: The accuracy asked for ("0.02N", "0.5mNm": `config.accuracy`): the daemon chooses the
+    #: conversion, averaging and rate that meet it at start (`processing.accuracy.plan`); () none.
+    accuracy: tuple[Accuracy, ...] = ()
 
     @property
     def model(self) -> LinearModel:  # the run time's: the calibration's, `LinearModel.with_gradient` if asked
@@ -88,7 +93,7 @@ def sensor_tables(doc: Table, calibrations: Calibrations | None = None) -> list[
     sensors: list[SensorConfig] = []
     seen: set[int] = set()
     for t in doc.tables("sensor"):
-        t.only({"name", "addresses", "calibration", "frame", "estimator", "stray_field"})
+        t.only({"name", "addresses", "calibration", "frame", "estimator", "stray_field", "accuracy"})
         addresses = parse_addresses(t, "addresses")
         for a in addresses:
             if a in seen:
@@ -121,6 +126,12 @@ def sensor_tables(doc: Table, calibrations: Calibrations | None = None) -> list[
                 estimator,
             )
         stray_field = t.string("stray_field", "uniform", choices=STRAY_FIELDS)
+        accuracy: tuple[Accuracy, ...] = ()
+        if "accuracy" in t.doc:
+            try:
+                accuracy = tuple(parse_accuracies(t.get("accuracy")))
+            except ConfigError as exc:
+                raise t.fail("accuracy", f"{EXPECTED}, or a list of one of each", t.get("accuracy")) from exc
         if stray_field != "uniform" and calibration.model.H is None:
             raise t.fail("stray_field", f'"uniform": {cal_path} has no flux model H', stray_field)
         sensors.append(
@@ -133,6 +144,7 @@ def sensor_tables(doc: Table, calibrations: Calibrations | None = None) -> list[
                 estimator,
                 stray_field,
                 t,
+                accuracy,
             )
         )
     return sensors

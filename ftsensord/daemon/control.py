@@ -85,6 +85,8 @@ class Controlled(Protocol):
 
     def set_estimator(self, estimator: str, sensor: str | None) -> dict[str, Any]: ...
 
+    def set_accuracy(self, value: object) -> dict[str, Any]: ...
+
 
 class Control:
     """Answers control requests on ``socket`` (None: no endpoint) for ``target``."""
@@ -251,7 +253,13 @@ class Control:
         return self.target.request_reload(envelope)
 
     def _set(self, args: dict[str, Any], envelope: list[bytes]) -> dict[str, Any]:
-        self._only(args, {"rate_hz", "averaging", "lowpass_hz", "estimator", "sensor"})
+        self._only(args, {"rate_hz", "averaging", "lowpass_hz", "estimator", "sensor", "accuracy"})
+        if "accuracy" in args:
+            if set(args) != {"accuracy"}:
+                raise ValueError(
+                    "accuracy: set it in a request of its own (it chooses the rate, averaging and low-pass)"
+                )
+            return self.target.set_accuracy(args["accuracy"])
         if "estimator" in args:
             if set(args) - {"estimator", "sensor"}:
                 raise ValueError("estimator: set it in a request of its own (with sensor, if any)")

@@ -27,6 +27,7 @@ from ftsensord.acquire.reader import Reader
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.chip.driver import MLX90393
 from ftsensord.chip.i2c import Bus, BusTiming
+from ftsensord.config.accuracy import parse_accuracies
 from ftsensord.config.file import Config, reload_config
 from ftsensord.config.frames import TIP
 from ftsensord.config.sensors import Calibrations, SensorConfig
@@ -39,6 +40,7 @@ from ftsensord.daemon.ros2child import BridgeWatch
 from ftsensord.daemon.sdnotify import Notifier
 from ftsensord.daemon.status import ChipLedger, status_line, status_reply
 from ftsensord.errors import ConfigError, FtsensordError
+from ftsensord.processing.accuracy import Sensor, apply_accuracy, plan
 from ftsensord.processing.filters import WrenchFilter
 from ftsensord.processing.gravity import Gravity
 from ftsensord.processing.pipeline import SensorPipeline, SensorSample, tip_moves, tip_wrench, use_estimator
@@ -99,6 +101,8 @@ class Daemon:
         self.calibrations = Calibrations().remember(config.sensors)
         self.bridge = BridgeWatch()  # the ROS 2 bridge `run` started beside it, if any
         self.outputs: list[Any] = []  # `run` adds ([ros2] output "in-loop"): after_sends(...) each cycle
+        #: The last cycle's tool tip sigma (N, Nm; NaN unknown), as sent on sigma/wrench/tip: for the outputs.
+        self.tip_sigma: np.ndarray | None = None
 
     def _reader(self, config: Config) -> Reader:
         chips = [MLX90393(self.bus, a, sleep=self.bus.sleep) for a in config.addresses]
@@ -251,7 +255,7 @@ class Daemon:
         tip = tip_wrench(samples, self._tip[1]) if poses else None
         if tip is not None:
             moves = self._tip[1]
-            sigma = tip_sigma([(X, samples[name].sigma) for name, X in moves])
+            sigma = self.tip_sigma = tip_sigma([(X, samples[name].sigma) for name, X in moves])
             self._publish("sigma/wrench/tip", wire.KIND_SIGMA, seq, t_mono, t_wall, tip[1], sigma)
             self._publish("wrench/tip", wire.KIND_WRENCH, seq, t_mono, t_wall, tip[1], tip[0])
         compensated = self.gravity.streams(samples, tip, self.sensors, start) if self.gravity else []
@@ -325,6 +329,34 @@ class Daemon:
             self.gravity.configure(averaging, lowpass_hz, rate_hz)  # the weight lags as the wrench
         return {"rate_hz": rate_hz, "averaging": averaging, "lowpass_hz": lowpass_hz}
 
+    def set_accuracy(self, value: object) -> dict[str, Any]:
+        """The fastest averaging and rate (the low-pass off) whose predicted sigma at rest meets
+        ``value`` ("0.02N", "0.5mNm", or a list of one of each) for every sensor, at its
+        estimator and tare, with the running conversion (changing OSR or DIG_FILT needs a
+        restart: a sensor table's ``accuracy`` chooses them at start); applied as `set_loop`.
+        ConfigError, nothing changed, when no averaging meets it."""
+        targets = parse_accuracies(value, "accuracy")
+        running = self.config
+        found = plan(
+            {p.name: targets for p in self.sensors},
+            [Sensor(p.config, p.estimator, p.tare_samples) for p in self.sensors],
+            running.bus_levers(self.board_timing),
+            running.scheduler,  # kept: only a restart chooses the scheduler again
+            running.readback_every if "readback_every" in running.named else None,
+            settings=[running.settings],
+        )
+        self.notifier.check_rate(found.rate_hz)  # as `set` checks a rate: the watchdog's pings follow cycles
+        done = self.set_loop(found.rate_hz, found.averaging, 0.0)
+        return {
+            **done,
+            "accuracy": [t.text for t in targets],
+            "effective_rate_hz": round(found.effective_hz, 3),
+            "osr": found.settings.osr,
+            "dig_filt": found.settings.dig_filt,
+            "sigma": found.sigma,
+            "plan": found.describe(),
+        }
+
     def set_estimator(self, estimator: str, sensor: str | None) -> dict[str, Any]:
         return {"estimator": use_estimator(self.sensors, estimator, sensor)}
 
@@ -354,7 +386,11 @@ class Daemon:
         configuration and its pipelines, or why they were refused."""
         self.notifier.reloading()
         try:
-            new = reload_config(self.config, self.calibrations, self.board_timing)
+            # A sensor's accuracy planned as at start, on the configured timing (`run`): the
+            # measured board's would change the plan, and a changed conversion needs a restart.
+            new = reload_config(
+                self.config, self.calibrations, self.board_timing, lambda c, _timing: apply_accuracy(c)
+            )
             self.notifier.check_rate(new.rate_hz, f"{new.path}: rate_hz")
         except FtsensordError as exc:
             return exc

@@ -29,6 +29,7 @@ from ftsensord.daemon.ros2child import BridgeWatch, ros2_beside
 from ftsensord.daemon.runtime import RuntimeFiles
 from ftsensord.daemon.sdnotify import Notifier
 from ftsensord.errors import ConfigError, FtsensordError
+from ftsensord.processing.accuracy import apply_accuracy
 from ftsensord.protocol.endpoints import is_loopback, needs_ipv6
 from ftsensord.protocol.orientation import open_receiver
 from ftsensord.protocol.paths import ensure_private_dir
@@ -240,6 +241,9 @@ def run(config: Config, early: Iterable[int] = (), realtime: int = 0, ros2_in_lo
     scheduling = request_fifo(realtime)  # before any ZeroMQ thread exists (`realtime`)
     if scheduling.refused:
         log.warning("real-time scheduling (SCHED_FIFO %d) refused: %s", realtime, scheduling.refused)
+    planned = apply_accuracy(config)  # a sensor's accuracy: the conversion, rate and averaging
+    if planned is not None:
+        log.info("accuracy: %s; %s", planned.describe(), config.choice)
     notifier = Notifier()
     notifier.check_rate(config.rate_hz, f"{config.path}: rate_hz")
     files = RuntimeFiles()

@@ -218,6 +218,21 @@ def status_reply(d: Reported) -> dict[str, Any]:
     }
 
 
+def predicted_sigma(s: dict[str, Any]) -> str | None:
+    """A sensor's predicted sigma at rest at the current settings (its `sensor_status`'s
+    ``sigma``, `processing.uncertainty`) as one line, "fx fy fz N, mx my mz mNm"; None where
+    it has none."""
+    sigma = (s.get("sigma") or {}).get("sigma")
+    if not sigma:
+        return None
+    return (
+        " ".join(f"{v:.3g}" for v in sigma[:3])
+        + " N, "
+        + " ".join(f"{v * 1e3:.3g}" for v in sigma[3:])
+        + " mNm"
+    )
+
+
 def describe(status: dict[str, Any]) -> str:
     """A `status` reply as the text `ftsensord status` prints: rate against bound, jitter,
     cycle time, smoothing, sensors, and the chips that are not well."""
@@ -261,6 +276,9 @@ def describe(status: dict[str, Any]) -> str:
             f"sensor {name}: frame {s['frame']}, serial {s['serial']}, {tare}; calibration {s['calibration']}"
             + (f"; silicone's creep undone ({creep['restarts']} restarts)" if creep else "")
         )
+        predicted = predicted_sigma(s)
+        if predicted:
+            out.append(f"  predicted sigma at rest ({s.get('estimator', 'linear')}): {predicted}")
     if "wrench/tip" in status.get("frames", {}):
         out.append(f"tip: frame {status['frames']['wrench/tip']}")
     gravity = status.get("gravity")

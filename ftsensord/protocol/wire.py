@@ -25,6 +25,15 @@ KIND_FLUX = 2
 KIND_SIGMA = 3
 SIGMA_PREFIX = "sigma/"
 
+
+def has_sigma(stream: str) -> bool:
+    """Whether the daemon sends a sigma companion (`SIGMA_PREFIX` + ``stream``) with each
+    sample of ``stream``: a sensor's wrench or the tip's (``wrench/<name>``), not a
+    compensated one (``wrench/<name>/compensated``) nor flux."""
+    kind, _, name = stream.partition("/")
+    return kind == "wrench" and bool(name) and "/" not in name
+
+
 #: magic u16, version u8, kind u8, flags u32, seq u64, t_mono f64, t_wall f64,
 #: count u16, reserved u16, reserved u32: 40 bytes, so the values start 8-aligned.
 HEADER = struct.Struct("<HBBIQddHHI")

@@ -23,7 +23,7 @@ from typing import Any
 
 from ftsensord.errors import ConfigError
 from ftsensord.protocol import wire
-from ftsensord.recording.columns import Tally, value_columns
+from ftsensord.recording.columns import SIGMA_COLUMNS, Tally, carries_sigma, value_columns
 
 FORMAT = "ftsensord-csv"
 #: The sidecar's size, one file-system block: the JSON is padded to it so that every
@@ -38,6 +38,10 @@ TIME_UNITS = {
     "flags": "bit field, the sum of the flag_bits of the conditions that held (docs/reference/protocol.md)",
 }
 VALUE_UNITS = {"_N": "N", "_Nm": "Nm", "_T": "T"}
+SIGMA_UNIT = (
+    "{unit}, the daemon's 1-sigma of {column} (docs/reference/protocol.md, Each sample's sigma); "
+    "nan: the daemon does not know it; empty: not received"
+)
 
 
 def meta_path(csv: str | Path) -> Path:
@@ -46,7 +50,14 @@ def meta_path(csv: str | Path) -> Path:
 
 
 def _units(columns: list[str]) -> dict[str, str]:
-    return {c: TIME_UNITS.get(c) or VALUE_UNITS["_" + c.rsplit("_", 1)[1]] for c in columns}
+    units = {c: TIME_UNITS.get(c) or VALUE_UNITS["_" + c.rsplit("_", 1)[1]] for c in columns}
+    for c in columns:
+        if c.startswith("sigma_") and c.removeprefix("sigma_") in columns:  # beside its wrench's column
+            units[c] = SIGMA_UNIT.format(unit=units[c], column=c.removeprefix("sigma_"))
+    return units
+
+
+_NO_SIGMA = "," * len(SIGMA_COLUMNS)  # six empty cells: the sample's sigma did not come
 
 
 class CsvWriter:
@@ -61,7 +72,7 @@ class CsvWriter:
             "csv": self.path.name,
             "stream": stream,
             "frame": frame or stream,
-            "kind": "wrench" if stream.startswith("wrench/") else "flux",
+            "kind": stream.split("/", 1)[0] if stream.startswith(("wrench/", "sigma/")) else "flux",
             "columns": None,
             "units": None,
             "flag_bits": {name: bit for bit, name in wire.FLAG_NAMES.items()},
@@ -74,6 +85,7 @@ class CsvWriter:
             "error": None,
             "torn_row": None,
         }
+        self.sigma = carries_sigma(stream)  # the six sigma columns after the wrench's
         self.file = open(self.path, "w", encoding="ascii")
         self.meta_file = open(meta_path(self.path), "wb")
         self._write_meta()
@@ -98,14 +110,21 @@ class CsvWriter:
                     "t_wall_s",
                     "flags",
                     *value_columns(self.stream, len(sample.values)),
+                    *(SIGMA_COLUMNS if self.sigma else []),
                 ]
                 self.file.write(",".join(columns) + "\n")
                 self.columns_written = True
                 self.meta["columns"], self.meta["units"] = columns, _units(columns)
                 self._write_meta()
+            sigma = ""
+            if self.sigma:
+                sigma = (
+                    _NO_SIGMA if sample.sigma is None else "," + ",".join(f"{v:.9g}" for v in sample.sigma)
+                )
             self.file.write(
                 f"{sample.seq},{sample.t_mono:.6f},{sample.t_wall:.6f},{sample.flags},"
                 + ",".join(f"{v:.9g}" for v in sample.values)
+                + sigma
                 + "\n"
             )
         except OSError as exc:

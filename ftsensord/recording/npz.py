@@ -1,6 +1,7 @@
 """NPZ recordings: rows go to a sidecar ``FILE.npz.part`` as they come (a JSON line, then
 fixed-size little-endian records, `_rows_dtype`), and the ``.npz`` is built from it at a clean
-end (`finish_npz`); after a kill `load_rows` reads the sidecar."""
+end (`finish_npz`); after a kill `load_rows` reads the sidecar. A wrench stream's rows carry
+its sigma (``sigma``, n x 6, N and Nm; NaN: unknown or not received)."""
 
 from __future__ import annotations
 
@@ -12,13 +13,24 @@ import numpy as np
 
 from ftsensord.errors import ConfigError
 from ftsensord.protocol import wire
-from ftsensord.recording.columns import Tally, value_columns
+from ftsensord.recording.columns import SIGMA_COLUMNS, Tally, carries_sigma, value_columns
+
+_NO_SIGMA = np.full(len(SIGMA_COLUMNS), np.nan)  # a sample whose sigma did not come: unknown
 
 
-def _rows_dtype(count: int) -> np.dtype:
-    return np.dtype(
-        [("seq", "<i8"), ("t_mono", "<f8"), ("t_wall", "<f8"), ("flags", "<i8"), ("values", "<f8", (count,))]
-    )
+def _rows_dtype(count: int, sigma: bool = False) -> np.dtype:
+    """A record: i64 seq, f64 t_mono, f64 t_wall, i64 flags, ``count`` f64 values and, with
+    ``sigma``, the 6 f64 of the wrench's sigma."""
+    fields = [
+        ("seq", "<i8"),
+        ("t_mono", "<f8"),
+        ("t_wall", "<f8"),
+        ("flags", "<i8"),
+        ("values", "<f8", (count,)),
+    ]
+    if sigma:
+        fields.append(("sigma", "<f8", (len(SIGMA_COLUMNS),)))
+    return np.dtype(fields)
 
 
 class NpzWriter:
@@ -29,11 +41,12 @@ class NpzWriter:
         self.part = Path(f"{self.path}.part")
         self.file = open(self.part, "wb")
         self.dtype: np.dtype | None = None
+        self.sigma = carries_sigma(stream)
 
     def write(self, sample: wire.Sample) -> None:
         first = self.dtype is None
         if first:
-            self.dtype = _rows_dtype(len(sample.values))
+            self.dtype = _rows_dtype(len(sample.values), self.sigma)
             head = {
                 "format": "ftsensord-rows",
                 "version": 1,
@@ -42,6 +55,7 @@ class NpzWriter:
                 "kind": sample.kind,
                 "count": len(sample.values),
                 "columns": value_columns(self.stream, len(sample.values)),
+                "sigma": self.sigma,
             }
             self.file.write(json.dumps(head).encode() + b"\n")
         row = np.zeros((), self.dtype)
@@ -52,6 +66,8 @@ class NpzWriter:
             sample.flags,
         )
         row["values"] = sample.values
+        if self.sigma:
+            row["sigma"] = _NO_SIGMA if sample.sigma is None else sample.sigma
         self.file.write(row.tobytes())
         if first:  # the header on disk at once: killed before the first flush, the file still reads
             self.file.flush()
@@ -62,17 +78,18 @@ class NpzWriter:
     def close(self, tallies: dict[str, Tally]) -> None:
         self.file.close()
         if self.dtype is None:  # nothing received: an empty file of the same keys
-            np.savez(
-                self.path,
-                seq=np.zeros(0, np.int64),
-                t_mono=np.zeros(0),
-                t_wall=np.zeros(0),
-                flags=np.zeros(0, np.int64),
-                values=np.zeros((0, 0)),
-                gaps=0,
-                stream=self.stream,
-                frame=self.frame,
-            )
+            arrays: dict[str, Any] = {
+                "seq": np.zeros(0, np.int64),
+                "t_mono": np.zeros(0),
+                "t_wall": np.zeros(0),
+                "flags": np.zeros(0, np.int64),
+                "values": np.zeros((0, 0)),
+                **({"sigma": np.zeros((0, len(SIGMA_COLUMNS)))} if self.sigma else {}),
+                "gaps": 0,
+                "stream": self.stream,
+                "frame": self.frame,
+            }
+            np.savez(self.path, **arrays)
             self.part.unlink()
             return
         finish_npz(self.part, self.path)
@@ -96,9 +113,10 @@ def load_rows(part: str | Path) -> dict[str, Any]:
     try:
         head = json.loads(line)
         count = int(head["count"])
+        sigma = bool(head.get("sigma", False))  # absent: a recording made before sigma was recorded
     except (ValueError, KeyError, TypeError) as exc:
         raise ConfigError(f'{part}: not an ftsensord rows sidecar (first line: JSON with "count")') from exc
-    dtype = _rows_dtype(count)
+    dtype = _rows_dtype(count, sigma)
     n = (part.stat().st_size - len(line)) // dtype.itemsize
     rows = np.memmap(part, dtype=dtype, mode="r", offset=len(line), shape=(n,)) if n else np.zeros(0, dtype)
     return {
@@ -107,6 +125,7 @@ def load_rows(part: str | Path) -> dict[str, Any]:
         "t_wall": rows["t_wall"],
         "flags": rows["flags"],
         "values": rows["values"],
+        **({"sigma": rows["sigma"]} if sigma else {}),
         "gaps": gaps_of(rows["seq"]),
         "stream": head["stream"],
         "frame": head.get("frame", head["stream"]),

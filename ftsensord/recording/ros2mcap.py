@@ -4,6 +4,8 @@ Topics (a stream ``wrench/sensor1`` becomes ``/wrench/sensor1``):
 
 - ``/wrench/<name>``: ``geometry_msgs/msg/WrenchStamped``, N and Nm, ``header.stamp``
   the sample's ``t_wall`` (UTC), ``header.frame_id`` the stream's frame.
+- ``/wrench/<name>/sigma``: ``geometry_msgs/msg/WrenchStamped``, the same sample's 1-sigma
+  per axis (force N, torque Nm; NaN: unknown or not received), stamped and framed as it.
 - ``/flux/<sensor>/chip<i>``: ``sensor_msgs/msg/MagneticField`` per chip, T in the
   chip's frame (``<sensor>/chip<i>``), covariance all zero (ROS: unknown); NaN for a
   chip that did not answer, as on the wire.
@@ -121,13 +123,22 @@ def encode_status(t_wall: float, frame_id: str, seq: int, flags: int, missed: in
     return Stamped(frame_id).message(t_wall, status_body(seq, flags, missed))
 
 
+#: The sigma of a wrench whose companion did not come: unknown (as the wire's NaN).
+_NO_SIGMA = (float("nan"),) * 6
+
+
 def ros2_messages(sample: wire.Sample, frame: str, last_seq: int | None) -> list[tuple[str, str, str, bytes]]:
     """One sample as ROS 2 messages, ``(topic, schema, frame_id, CDR)``: a wrench's
-    ``WrenchStamped`` (or a ``MagneticField`` per chip of a flux stream) in ``frame``, then
-    its ``SampleStatus`` (missed: sequence numbers after ``last_seq``, the stream's previous)."""
+    ``WrenchStamped`` and its sigma's on ``<topic>/sigma`` (or a ``MagneticField`` per chip
+    of a flux stream) in ``frame``, then its ``SampleStatus`` (missed: sequence numbers
+    after ``last_seq``, the stream's previous)."""
     topic, t = "/" + sample.topic, sample.t_wall
     out = []
     if sample.kind == wire.KIND_WRENCH:
+        out.append((topic, WRENCH, frame, encode_wrench(t, frame, sample.values)))
+        sigma = _NO_SIGMA if sample.sigma is None else sample.sigma
+        out.append((f"{topic}/sigma", WRENCH, frame, encode_wrench(t, frame, sigma)))
+    elif sample.kind == wire.KIND_SIGMA:  # a companion recorded as a stream of its own
         out.append((topic, WRENCH, frame, encode_wrench(t, frame, sample.values)))
     else:
         sensor = sample.topic.split("/", 1)[-1]

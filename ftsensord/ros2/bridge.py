@@ -113,6 +113,7 @@ class Bridge:
         self.node = Ros2Node(namespace, domain_id, frames, oriented if orientation else [])
         self.flags: dict[str, int] = {}  # each sensor's latest wrench's flags, for the diagnostics
         self.bad_frames = 0
+        self.sigmas: list[tuple[str, float, bytes]] = []  # the cycle's sigmas: written after its wrenches
 
     def on_orientation(self, frame: str, q_xyzw: list[float], t: float) -> None:
         if self.orientation is not None:
@@ -173,6 +174,9 @@ class Bridge:
                     name = topic.partition("/")[2]
                     if "/" not in name:  # a sensor's own stream (or the tip's), not a compensated one
                         self.flags[name] = flags
+                for topic, t_wall, values in self.sigmas:  # each sent before its wrench, written after
+                    self.node.publish_sigma(topic, t_wall, values)
+                self.sigmas.clear()
                 forwarded += len(cycle)
                 if time.monotonic() >= ask:  # between cycles, as the diagnostics
                     ask = time.monotonic() + READERS_S
@@ -198,13 +202,23 @@ class Bridge:
         sock.setsockopt(zmq.RCVHWM, QUEUE_HWM)
         for stream in self.streams:
             sock.setsockopt(zmq.SUBSCRIBE, stream.encode() + b"\0")  # the NUL: not its longer namesakes
+            if wire.has_sigma(stream):  # its sigma's companion, on the same socket: it comes first
+                sock.setsockopt(zmq.SUBSCRIBE, (wire.SIGMA_PREFIX + stream).encode() + b"\0")
         sock.connect(self.endpoint)
         return sock
 
     def forward(self, frame: bytes) -> tuple[str, float, int, int] | None:
-        """A frame's wrench written to DDS at once; its (topic, t_wall, seq, flags) for the status."""
+        """A frame's wrench written to DDS at once; its (topic, t_wall, seq, flags) for the status.
+        A sigma is kept in `sigmas`, for after the cycle's wrenches (None returned)."""
         try:
             topic, kind, flags, seq, _, t_wall, values = wire.unpack(frame)
+            if (
+                kind == wire.KIND_SIGMA
+                and topic.startswith(wire.SIGMA_PREFIX)
+                and len(values) == WRENCH_BYTES
+            ):
+                self.sigmas.append((topic.removeprefix(wire.SIGMA_PREFIX), t_wall, values))
+                return None
             if kind != wire.KIND_WRENCH or len(values) != WRENCH_BYTES:
                 raise WireError(
                     f"kind {kind} with {len(values)} bytes of values, not a wrench's {WRENCH_BYTES}"

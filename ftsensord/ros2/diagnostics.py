@@ -4,8 +4,8 @@ component, named ``<namespace>: <component>``, with a level, a one-line message,
 and key/value pairs (strings).
 
 Components: the daemon (rate, cycles missed and late), each sensor (its tare, estimator,
-temperature, the flags of its latest wrench), each chip (state, counts, temperature). Levels
-(DiagnosticStatus): OK 0, WARN 1, ERROR 2, STALE 3. No dependency on DDS: plain tuples,
+temperature, the flags of its latest wrench, its predicted sigma at rest), each chip (state,
+counts, temperature). Levels (DiagnosticStatus): OK 0, WARN 1, ERROR 2, STALE 3. No dependency on DDS: plain tuples,
 made into a message's CDR bytes by `cdr` (struct, not the binding's serializer: a tenth of
 its 2 ms, which the in-loop output spends in the loop's thread).
 """
@@ -16,6 +16,7 @@ import struct
 from itertools import chain
 from typing import Any
 
+from ftsensord.daemon.status import predicted_sigma
 from ftsensord.protocol import wire
 from ftsensord.recording.ros2mcap import CDR_LE, stamp
 
@@ -83,6 +84,7 @@ def sensor_status(
         ("mean_temperature_c", str(temperature.get("mean_c"))),
         ("flags", ",".join(wire.flag_names(flags or 0)) or "none"),
         ("chips_ok", f"{sum(1 for c in chips.values() if c.get('state') == 'ok')} of {len(chips)}"),
+        ("predicted_sigma_at_rest", predicted_sigma(s) or "unknown"),
     ]
     return (level, f"{namespace}: {name}", ", ".join(problems) or "OK", str(s.get("serial", name)), values)
 

@@ -81,7 +81,10 @@ class Stream:
         wrench_writer, status_writer, cdr = node._writers(topic)  # noqa: SLF001 (the node's own table)
         self.wrench_writer, self.status_writer = wrench_writer, status_writer
         self.wrench_ref, self.status_ref = wrench_writer._ref, status_writer._ref  # noqa: SLF001 (for ddspy_write)
+        self.sigma_writer = node.sigma_writers.get(topic)  # None: a stream without a sigma (compensated)
+        self.sigma_ref = None if self.sigma_writer is None else self.sigma_writer._ref  # noqa: SLF001
         self.wrench = bytearray(cdr.message(0.0, bytes(WRENCH_BYTES)))
+        self.sigma = bytearray(self.wrench)  # the same layout: a WrenchStamped, its stamp and frame
         self.status = bytearray(cdr.message(0.0, status_body(0, 0, 0)))
         self.values_at, self.body_at = len(self.wrench) - WRENCH_BYTES, len(self.status) - _STATUS_BODY
         self.last_seq: int | None = None
@@ -146,15 +149,18 @@ class InLoop:
             self.flags[name] = s.flags
         if tip is not None:
             self.flags["tip"] = tip[1]
-        wrenches = [(f"wrench/{n}", s.flags, s.wrench) for n, s in samples.items()]
-        wrenches += [("wrench/tip", tip[1], tip[0])] if tip is not None else []
-        for topic, flags, values in wrenches + compensated:
+        # Each wrench with its sigma (the daemon's, as on its companion stream; None: it has none)
+        wrenches: list[tuple[str, int, np.ndarray, np.ndarray | None]] = [
+            (f"wrench/{n}", s.flags, s.wrench, s.sigma.sigma) for n, s in samples.items()
+        ]
+        wrenches += [("wrench/tip", tip[1], tip[0], self.daemon.tip_sigma)] if tip is not None else []
+        for topic, flags, values, sigma in wrenches + [(*c, None) for c in compensated]:
             stream = self.streams.get(topic)
             if stream is None:
                 continue  # a stream the configuration did not have at start (a reload): not on DDS
             last, stream.last_seq = stream.last_seq, seq
             if stream in self.read:
-                self.write(stream, seq, last, time_bytes, flags, values)
+                self.write(stream, seq, last, time_bytes, flags, values, sigma)
         now = time.monotonic()
         if now >= self.ask:
             self.ask = now + READERS_S
@@ -173,10 +179,17 @@ class InLoop:
         self.node.serve(0.0, self.on_orientation, self.on_tare)
 
     def write(
-        self, stream: Stream, seq: int, last: int | None, time_bytes: bytes, flags: int, values: np.ndarray
+        self,
+        stream: Stream,
+        seq: int,
+        last: int | None,
+        time_bytes: bytes,
+        flags: int,
+        values: np.ndarray,
+        sigma: np.ndarray | None = None,
     ) -> None:
-        """One stream's WrenchStamped and SampleStatus (``last``: its previous seq) on the
-        writers some reader reads."""
+        """One stream's WrenchStamped, SampleStatus (``last``: its previous seq) and sigma's
+        WrenchStamped (``sigma``: N, Nm; NaN unknown) on the writers some reader reads."""
         ddspy_write = self.ddspy_write
         if stream.wrench_writer in self.node.read:
             buf = stream.wrench
@@ -189,6 +202,12 @@ class InLoop:
             buf[STAMP_AT : STAMP_AT + 8] = time_bytes
             buf[stream.body_at :] = status_body(seq, flags, missed_since(last, seq))
             if ddspy_write(stream.status_ref, buf) < 0:
+                self.write_errors += 1
+        if sigma is not None and stream.sigma_writer in self.node.read:
+            buf = stream.sigma
+            buf[STAMP_AT : STAMP_AT + 8] = time_bytes
+            buf[stream.values_at :] = sigma.astype("<f8", copy=False).tobytes()
+            if ddspy_write(stream.sigma_ref, buf) < 0:
                 self.write_errors += 1
 
     def status(self) -> dict[str, Any]:
@@ -207,7 +226,9 @@ class InLoop:
         self.read = tuple(
             s
             for s in self.streams.values()
-            if s.wrench_writer in self.node.read or s.status_writer in self.node.read
+            if s.wrench_writer in self.node.read
+            or s.status_writer in self.node.read
+            or s.sigma_writer in self.node.read
         )
 
     def on_orientation(self, frame: str, q_xyzw: list[float], t: float) -> None:

@@ -5,6 +5,9 @@ Topics (ROS names; the DDS topic is ``rt`` + the name):
 - ``/<ns>/wrench/<stream>`` (``wrench/sensor1``, ``wrench/tip``, ``wrench/tip/compensated``...):
   ``geometry_msgs/msg/WrenchStamped``, N and Nm, stamp the sample's ``t_wall``, frame_id its frame;
   ``/<ns>/wrench/<stream>/status``: ``ftsensord_msgs/msg/SampleStatus`` (seq, flags, missed);
+  ``/<ns>/wrench/<stream>/sigma`` (a sensor's and the tip's, `wire.has_sigma`):
+  ``geometry_msgs/msg/WrenchStamped``, the same sample's 1-sigma per axis (N, Nm; NaN
+  unknown), its stamp and frame_id (docs/guide/ros2.md says why a companion of this type);
 - ``/diagnostics``: ``diagnostic_msgs/msg/DiagnosticArray``, about 1 Hz;
 - in: ``/<ns>/orientation/<frame>`` (``geometry_msgs/msg/QuaternionStamped``) and ``/<ns>/imu/<frame>``
   (``sensor_msgs/msg/Imu``, its orientation), R_world,frame for gravity compensation;
@@ -43,6 +46,7 @@ from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 
+from ftsensord.protocol import wire
 from ftsensord.recording.ros2mcap import Stamped, missed_since, status_body
 from ftsensord.ros2 import diagnostics, msgs
 from ftsensord.ros2.diagnostics import Status
@@ -131,6 +135,7 @@ class Ros2Node:
         join_domain(domain_id)
         self.participant = DomainParticipant(domain_id, qos=Qos(Policy.Userdata(ENCLAVE)))
         self.writers: dict[str, tuple[DataWriter, DataWriter, Stamped]] = {}
+        self.sigma_writers: dict[str, DataWriter] = {}  # a stream's sigma companion (`wire.has_sigma`)
         self.last_seq: dict[str, int] = {}
         self.write_errors = 0
         # The sample writers some reader matches (`find_readers`): a sample on a topic nobody
@@ -185,7 +190,8 @@ class Ros2Node:
         def gid(entity: Any) -> msgs.Gid:
             return msgs.Gid(list(entity.get_guid().bytes))
 
-        writers = [w for ws in self.writers.values() for w in ws[:2]] + [self.diagnostics, self.replies]
+        writers = [w for ws in self.writers.values() for w in ws[:2]] + [*self.sigma_writers.values()]
+        writers += [self.diagnostics, self.replies]
         node = msgs.NodeEntitiesInfo(
             "/" + self.namespace, NODE_NAME, [gid(r) for r, _, _ in self.inputs], [gid(w) for w in writers]
         )
@@ -200,8 +206,7 @@ class Ros2Node:
         then waits for the GIL, and deleting an entity waits for its listeners."""
         self.read = {
             w
-            for ws in self.writers.values()
-            for w in ws[:2]
+            for w in [*(w for ws in self.writers.values() for w in ws[:2]), *self.sigma_writers.values()]
             if w.get_publication_matched_status().current_count > 0
         }
 
@@ -216,6 +221,8 @@ class Ros2Node:
                 self._writer(topic + "/status", msgs.SampleStatus),
                 Stamped(self.frames.get(stream, stream)),
             )
+            if wire.has_sigma(stream):
+                self.sigma_writers[stream] = self._writer(topic + "/sigma", msgs.WrenchStamped)
             if hasattr(self, "discovery"):  # a stream the daemon's status did not have at start
                 self.announce()
         return self.writers[stream]
@@ -229,6 +236,14 @@ class Ros2Node:
         writer, _, cdr = self._writers(topic)
         if writer in self.read:
             self._write(writer, cdr.message(t_wall, values))
+
+    def publish_sigma(self, topic: str, t_wall: float, values: bytes) -> None:
+        """A wrench sample's sigma on ``<topic>/sigma`` as a WrenchStamped: ``values`` the 1-sigma
+        of fx fy fz mx my mz (N, Nm; NaN unknown; 48 bytes as on the wire), stamped and framed
+        as its wrench."""
+        writer = self.sigma_writers.get(topic)
+        if writer is not None and writer in self.read:
+            self._write(writer, self._writers(topic)[2].message(t_wall, values))
 
     def publish_status(self, topic: str, t_wall: float, seq: int, flags: int) -> None:
         """A wrench sample's SampleStatus: seq, flags, seqs missed since the stream's previous."""

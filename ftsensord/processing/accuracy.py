@@ -1,0 +1,218 @@
+"""The fastest settings whose predicted sigma meets an accuracy (`config.accuracy`).
+
+For each conversion setting (OSR, DIG_FILT) the loop's rate is the fastest that holds with
+`choice.TARGET_SPARE` of the period left (`choice.options`: the computed bound of the
+schedulers the configuration leaves open), and for each averaging (powers of two up to
+`MAX_AVERAGING`, the low-pass off) each sensor's sigma at rest is what `status` shows
+(`uncertainty.Uncertainty.predicted`: the chips' noise at that setting through the
+estimator in use, times the averaging's variance factor, plus the tare's noise and the
+calibration's model error). The plan is the one that gives an independent sample most
+often, ``rate / averaging`` (a tie: the least averaging); None meets it when even the
+longest conversion and the most averaging leave a sigma above the target, which the error
+says with the part averaging cannot shrink (the model error and the tare's noise).
+
+Why averaging and not the low-pass: at equal variance the moving average of n samples has
+forgotten a step after n samples; a first-order low-pass of the same variance factor
+(alpha / (2 - alpha) = 1 / n) keeps a tail of it for longer (`filters.variance_factors`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ftsensord.acquire import choice
+from ftsensord.chip import mlx90393 as mlx
+from ftsensord.chip.i2c import BusTiming
+from ftsensord.config.accuracy import Accuracy
+from ftsensord.config.file import Config
+from ftsensord.config.sensors import SensorConfig
+from ftsensord.errors import ConfigError
+from ftsensord.processing.filters import variance_factors
+from ftsensord.processing.pipeline import channel_sigma_t
+from ftsensord.processing.uncertainty import AXES, Uncertainty
+
+#: The most averaging considered: 256 samples (2.6 s at 100 Hz), beyond which a sensor
+#: that is still too noisy needs another calibration, not more waiting.
+MAX_AVERAGING = 256
+AVERAGINGS = tuple(2**k for k in range(MAX_AVERAGING.bit_length()))
+#: The daemon's fastest loop (`Config`'s rate_hz limit).
+MAX_RATE_HZ = 10e3
+
+
+@dataclass(frozen=True)
+class Sensor:
+    """What a sensor's predicted sigma depends on: its configuration (model, calibration
+    report), the estimator in use and the samples its tare averaged (None: not tared)."""
+
+    config: SensorConfig
+    estimator: str
+    tare_samples: int | None = None
+
+
+@dataclass(frozen=True)
+class Plan:
+    """Settings that meet the targets: the conversion, the loop's ``rate_hz``, ``averaging``
+    (the low-pass off), and each sensor's predicted sigma there (6, N and Nm)."""
+
+    settings: mlx.Settings
+    rate_hz: float
+    averaging: int
+    sigma: dict[str, list[float]]
+
+    @property
+    def effective_hz(self) -> float:
+        """Independent samples a second: the rate over the averaging."""
+        return self.rate_hz / self.averaging
+
+    def describe(self) -> str:
+        worst = {
+            name: ", ".join(f"{a} {v:.3g}" for a, v in zip(AXES, sigma)) for name, sigma in self.sigma.items()
+        }
+        return (
+            f"OSR {self.settings.osr}, DIG_FILT {self.settings.dig_filt}, {self.rate_hz:g} Hz, "
+            f"averaging {self.averaging} (low-pass off): an independent sample every "
+            f"{1e3 / self.effective_hz:.3g} ms ({self.effective_hz:.3g} Hz); sigma at rest "
+            + "; ".join(f"{n}: {w} (N, Nm)" for n, w in worst.items())
+        )
+
+
+def conversions(settings: mlx.Settings) -> list[mlx.Settings]:
+    """Every permitted OSR and DIG_FILT with ``settings``' gain, HALLCONF and resolution."""
+    out = []
+    for osr in range(mlx.OSR.max + 1):
+        for dig_filt in range(mlx.DIG_FILT.max + 1):
+            candidate = replace(settings, osr=osr, dig_filt=dig_filt)
+            try:
+                candidate.validate()  # some pairs are forbidden at HALLCONF 0xC
+            except ConfigError:
+                continue
+            out.append(candidate)
+    return out
+
+
+def fastest_rate(bus: choice.Bus, scheduler: str | None, readback_every: int | None) -> float:
+    """The fastest rate (Hz, to 0.1 Hz down) that an open option holds with
+    `choice.TARGET_SPARE` of the period spare, at most `MAX_RATE_HZ`; with the register
+    read-back where an option keeps it (as `choice.choose` prefers: it catches a chip that
+    lost its settings), so accuracy never costs the check."""
+    open_ = choice.options(bus, 1.0, scheduler, readback_every)
+    bound = max(o.bound.rate_hz for o in [o for o in open_ if o.readback_every] or open_)
+    return min(MAX_RATE_HZ, int(bound * (1.0 - choice.TARGET_SPARE) * 10) / 10)
+
+
+def uncertainty_at(sensor: Sensor, settings: mlx.Settings) -> Uncertainty:
+    """A sensor's `Uncertainty` with its chips at ``settings`` (as `SensorPipeline.build` makes it)."""
+    s = sensor.config
+    nl = s.calibration.nonlinear
+    return Uncertainty(
+        s.model,
+        channel_sigma_t(settings, len(s.addresses)),
+        s.calibration.report,
+        None if nl is None else nl.K,
+    )
+
+
+def sigma_at(sensor: Sensor, uncertainty: Uncertainty, averaging: int, noise: bool = True) -> np.ndarray:
+    """A sensor's sigma at rest (6, N and Nm) with ``uncertainty`` (`uncertainty_at`) and an
+    averaging, as `status` predicts it; ``noise`` False: the part averaging cannot shrink (the
+    tare's noise and the model error)."""
+    factor = variance_factors(averaging, 1.0)[-1] if noise else 0.0
+    predicted = uncertainty.predicted(factor, sensor.tare_samples, sensor.estimator)["sigma"]
+    return np.full(6, np.inf) if predicted is None else np.array(predicted)
+
+
+def meets(sigma: np.ndarray, targets: list[Accuracy]) -> bool:
+    return all(float(np.max(sigma[t.axes])) <= t.value for t in targets)
+
+
+def plan(
+    targets: dict[str, list[Accuracy]],
+    sensors: list[Sensor],
+    bus: choice.Bus,
+    scheduler: str | None = None,
+    readback_every: int | None = None,
+    settings: list[mlx.Settings] | None = None,
+) -> Plan:
+    """The fastest `Plan` that meets each sensor's ``targets`` (by name; a sensor without
+    any is not held to one) among the conversion ``settings`` (None: every permitted one of
+    ``bus.settings``), on ``bus`` with the scheduler and read-back the configuration leaves
+    open. ConfigError saying the closest any setting comes, and why, when none meets them."""
+    held = [s for s in sensors if targets.get(s.config.name)]
+    if not held:
+        raise ConfigError("accuracy: no target given")
+    best: tuple[tuple[float, int], Plan] | None = None
+    closest: tuple[float, mlx.Settings, float, str] | None = None  # worst sigma / target, where, axis
+    for candidate in settings if settings is not None else conversions(bus.settings):
+        rate = fastest_rate(replace(bus, settings=candidate), scheduler, readback_every)
+        if rate < 0.1:  # the daemon's slowest loop
+            continue
+        uncertainties = {s.config.name: uncertainty_at(s, candidate) for s in held}
+        for averaging in AVERAGINGS:
+            sigmas = {s.config.name: sigma_at(s, uncertainties[s.config.name], averaging) for s in held}
+            ok = all(meets(sigmas[s.config.name], targets[s.config.name]) for s in held)
+            if ok:
+                found = Plan(
+                    candidate,
+                    rate,
+                    averaging,
+                    {n: [round(float(v), 7) for v in w] for n, w in sigmas.items()},
+                )
+                key = (found.effective_hz, -averaging)
+                if best is None or key > best[0]:
+                    best = (key, found)
+                break
+            # the target this setting misses most: how close the setting comes
+            ratio, what = max(
+                (float(np.max(sigmas[s.config.name][t.axes])) / t.value, f"{s.config.name}'s {t.kind}")
+                for s in held
+                for t in targets[s.config.name]
+            )
+            if closest is None or ratio < closest[0]:
+                closest = (ratio, candidate, rate, what)
+    if best is not None:
+        return best[1]
+    floor = {s.config.name: sigma_at(s, uncertainty_at(s, bus.settings), 1, noise=False) for s in held}
+    floors = "; ".join(
+        f"{n} {t.kind} {float(np.max(floor[n][t.axes])):.3g} {t.unit}" for n in floor for t in targets[n]
+    )
+    asked = ", ".join(f"{n} {' and '.join(t.text for t in targets[n])}" for n in floor)
+    near = (
+        ""
+        if closest is None
+        else f"the closest, OSR {closest[1].osr}, DIG_FILT {closest[1].dig_filt} at {closest[2]:g} Hz "
+        f"with averaging {MAX_AVERAGING}, leaves {closest[3]} sigma {closest[0]:.2g} times the target; "
+    )
+    raise ConfigError(
+        f"accuracy: no setting meets {asked}: {near}the calibration's model error and the tare's "
+        f"noise alone give {floors}, which averaging does not shrink (a calibration with more "
+        f"poses, a tare on more samples, or a larger target)"
+    )
+
+
+def apply_accuracy(config: Config, timing: BusTiming | None = None) -> Plan | None:
+    """With a sensor table's ``accuracy``: ``config``'s conversion (``[chip]`` OSR and
+    DIG_FILT), rate, averaging and low-pass (off) set to the `plan` that meets every sensor's
+    target untared (as at start), the scheduler and read-back chosen again for that rate;
+    the plan, or None when no sensor asks. ConfigError naming the file when none meets them."""
+    targets = {s.name: list(s.accuracy) for s in config.sensors if s.accuracy}
+    if not targets:
+        return None
+    named = (
+        config.scheduler if "scheduler" in config.named else None,
+        config.readback_every if "readback_every" in config.named else None,
+    )
+    sensors = [Sensor(s, s.estimator) for s in config.sensors]
+    try:
+        found = plan(targets, sensors, config.bus_levers(timing), *named)
+    except ConfigError as exc:
+        raise ConfigError(f"{config.path}: sensor: {exc}") from exc
+    config.settings, config.rate_hz, config.averaging, config.lowpass_hz = (
+        found.settings,
+        found.rate_hz,
+        found.averaging,
+        0.0,
+    )
+    config.choose(timing, f"{config.path}: accuracy", strict=False)
+    return found
