@@ -90,6 +90,9 @@ def one_part(seed: int, tmp: str) -> dict:
     series = Relaxation.from_pairs([list(p) for p in DEFAULT_RELAXATION])
     slips = [(k, a, what) for k, a, what in station.slips]
     kept = [s for s in slips if s[1] == run.attempts[s[0]] - 1]
+    slipped = {(k, a) for k, a, _ in slips}
+    # A false refusal: a try refused in which the person made no slip (a correct step redone).
+    false = [(k, a) for k, a in run.refusals if (k, a) not in slipped]
     return {
         "seed": seed,
         "guided": rmse(g_result.model, held_out),
@@ -101,6 +104,9 @@ def one_part(seed: int, tmp: str) -> dict:
         "slips": len(slips),
         "kept_slips": kept,
         "refused": len(run.refused),
+        "false_refusals": len(false),
+        "caught": len({(k, a) for k, a, _ in slips} & set(run.refusals)),
+        "slipped_tries": len(slipped),
     }
 
 
@@ -136,7 +142,9 @@ def main() -> int:
             ok &= within and close
             notes.append(
                 f"part {seed}: {r['steps']} steps, {r['done']} done (a refused pose is done again): about "
-                f"{r['minutes']:.0f} min for a person; {r['slips']} slips made, {r['refused']} poses refused, "
+                f"{r['minutes']:.0f} min for a person; {r['slips']} slips made in {r['slipped_tries']} tries, "
+                f"{r['caught']} of those tries refused, "
+                f"{r['refused']} poses refused of which {r['false_refusals']} correct (false refusals), "
                 f"{len(r['kept_slips'])} slips kept in the dataset {r['kept_slips'] or ''}; "
                 f"within Table II: {within}; within {ROBOT_FACTOR}x the robot: {close}"
             )

@@ -95,6 +95,9 @@ class GuideRun:
     kept: dict[int, Dataset] = field(default_factory=dict)
     attempts: dict[int, int] = field(default_factory=dict)
     refused: list[str] = field(default_factory=list)
+    #: Each refusal as (step, attempt refused): a pose refused at once, or kept and refused
+    #: later when all were judged again (what a benchmark matches against the slips made).
+    refusals: list[tuple[int, int]] = field(default_factory=list)
     elapsed_s: float = 0.0  # the bus's time over earlier sessions
 
     def dataset(self, serial: str = "", source: str = "") -> Dataset:
@@ -309,6 +312,7 @@ def guide(
                     )
         if why is not None:
             run.refused.append(f"step {k + 1} ({step.instruction()}): {why}")
+            run.refusals.append((k, attempt))
             prompter.say(f"  REDO: {why}")
             save(run)
             continue
@@ -324,6 +328,7 @@ def guide(
             for j, why in judge_all(judge, run):
                 del run.kept[j]
                 queue.insert(0, j)
+                run.refusals.append((j, run.attempts[j] - 1))
                 run.refused.append(f"step {j + 1} ({run.steps[j].instruction()}): {why}")
                 prompter.say(f"  step {j + 1} again: {why}")
         save(run)

@@ -4,9 +4,16 @@ instead of a robot; docs/guide/guided-calibration.md)."""
 from __future__ import annotations
 
 import argparse
+import os
+import signal
+import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 from ftsensord.errors import ConfigError
+
+T = TypeVar("T")
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -46,7 +53,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 
 
 class TerminalPrompter:
-    """Lines on stdout; each step confirmed with Enter (s or q, then Enter: stop), or by --yes."""
+    """Lines on stdout; each step confirmed by a key, or by --yes. In a terminal one key does
+    it (Enter or space: record; q or s: stop; Ctrl-C: stop), without Enter; from a pipe a line
+    is read (empty: record; q or s: stop; end of input: stop)."""
 
     def __init__(self, yes: bool):
         self.yes = yes
@@ -60,11 +69,55 @@ class TerminalPrompter:
         if self.yes:
             return
         try:
-            answer = input("  done? Enter to record, s to stop: ")
-        except EOFError:
+            if sys.stdin.isatty():
+                answer = self._key()
+            else:
+                answer = input("  done? Enter to record, q to stop: ").strip().lower()
+        except (EOFError, KeyboardInterrupt):
+            print(flush=True)
             raise Stop from None
-        if answer.strip().lower() in ("s", "q", "stop", "quit"):
+        if answer in ("s", "q", "stop", "quit"):
             raise Stop
+
+    @staticmethod
+    def _key() -> str:
+        """One key, read without Enter (the terminal in cbreak mode: Ctrl-C still interrupts)."""
+        import termios
+        import tty
+
+        fd = sys.stdin.fileno()
+        saved = termios.tcgetattr(fd)
+        try:
+            # At once, not flushing: a key typed early is kept. The prompt after it: a key
+            # typed once the prompt shows is read as a key, not held for a line.
+            tty.setcbreak(fd, termios.TCSANOW)
+            print("  done? Enter to record, q to stop: ", end="", flush=True)
+            while True:
+                key = os.read(fd, 1).decode(errors="replace").lower()
+                if not key:
+                    raise EOFError
+                if key in ("\r", "\n", " "):
+                    print(flush=True)
+                    return ""
+                if key in ("q", "s"):
+                    print(key, flush=True)
+                    return key
+        finally:
+            termios.tcsetattr(fd, termios.TCSADRAIN, saved)
+
+
+def saving_whole(save: Callable[[T], None]) -> Callable[[T], None]:
+    """``save`` with Ctrl-C held off while it writes: the dataset and the progress file are
+    written one after the other, and a stop between them would leave a run that cannot resume."""
+
+    def whole(run: T) -> None:
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            save(run)
+        finally:
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+    return whole
 
 
 class NoStation:
@@ -179,10 +232,10 @@ def cmd_guide(args: argparse.Namespace) -> int:
             prompter=prompter,
             samples=args.samples,
             settle_s=settle,
-            save=lambda r: guided.save_run(r, progress, partial, serial, source),
+            save=saving_whole(lambda r: guided.save_run(r, progress, partial, serial, source)),
             stop_after=args.stop_after,
         )
-    except guided.Stop:
+    except (guided.Stop, KeyboardInterrupt):  # Ctrl-C while a pose is read: that pose is dropped
         done = False
     if not done:
         print(
