@@ -81,6 +81,76 @@ HALF_WAY = 2.0
 PROGRESS_FORMAT, PROGRESS_VERSION = "ftsensord-guide-progress", 1
 
 
+#: Readings of the IMU averaged per pose: its noise (6.4 mg a reading, `mpu6050.noise_g`)
+#: falls to 0.9 mg, 0.05 deg of gravity's direction.
+IMU_SAMPLES = 50
+#: No-load poses the IMU's map is fitted on, at least: 12 unknowns (a 3 x 3 map and an
+#: offset), 3 equations a pose; 6 poses give them 1.5 times over.
+MIN_IMU_POSES = 6
+#: A pose whose gravity, as the IMU reads it, is this far from the face asked for (deg) was
+#: set down on another face: the holder's faces are 35 deg apart or more, a person seats one
+#: within 4.5 deg, the IMU's map is good to about 1 deg.
+FACE_CHECK_DEG = 15.0
+
+
+class Imu(Protocol):
+    """An accelerometer fixed to the holder (`chip.mpu6050.MPU6050`)."""
+
+    def mean_accel_g(self, samples: int) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+@dataclass(frozen=True)
+class ImuMap:
+    """The IMU's reading a (g, its axes) of gravity's direction n (unit, {0}) at rest:
+    a = M n + c. M takes in the sign (an accelerometer at rest reads -g), the IMU's mounting
+    on the holder, its sensitivities and cross-axis terms; c its zero-g offsets. Fitted on
+    the no-load poses against their faces' normals: each face's seating error averages out."""
+
+    M: np.ndarray
+    c: np.ndarray
+
+    @classmethod
+    def fit(cls, fixture: Fixture, run: GuideRun) -> ImuMap | None:
+        """From the kept no-load steps' readings (None: fewer than `MIN_IMU_POSES`). Each
+        reading's face is the one nearest to minus the reading (the IMU's axes along {0}, as
+        the holder's slot sets them: its offsets and mounting move gravity by 5 deg at most,
+        the faces are 35 deg apart), so a no-load face set down wrong does not skew the map;
+        a reading far from the map the others give is left out."""
+        steps = [k for k in sorted(run.accel) if k in run.kept and run.steps[k].split == "no-load"]
+        for _ in range(2):
+            if len(steps) < MIN_IMU_POSES:
+                return None
+            a = np.array([run.accel[k] for k in steps])
+            n = fixture.normals[np.argmax(-a @ fixture.normals.T, axis=1)]
+            coef, *_ = np.linalg.lstsq(np.column_stack([n, np.ones(len(n))]), a, rcond=None)
+            found = cls(coef[:3].T, coef[3])
+            off = [found.angle_deg(found.gravity(run.accel[k]), n[i]) for i, k in enumerate(steps)]
+            if max(off) <= FACE_CHECK_DEG:
+                return found
+            steps = [k for k, o in zip(steps, off) if o <= FACE_CHECK_DEG]
+        return found if len(steps) >= MIN_IMU_POSES else None
+
+    def gravity(self, accel: np.ndarray) -> np.ndarray:
+        """Gravity's direction in {0} (unit) from a reading (g)."""
+        n = np.linalg.solve(self.M, np.asarray(accel) - self.c)
+        return np.asarray(n / np.linalg.norm(n))
+
+    @staticmethod
+    def angle_deg(u: np.ndarray, v: np.ndarray) -> float:
+        return float(np.degrees(np.arccos(np.clip(float(u @ v), -1.0, 1.0))))
+
+    def check(self, fixture: Fixture, step: Step, gravity: np.ndarray) -> str | None:
+        """Why the pose is on another face than ``step``'s, or None."""
+        off = self.angle_deg(gravity, fixture.normals[step.face - 1])
+        if off <= FACE_CHECK_DEG:
+            return None
+        nearest = int(np.argmax(fixture.normals @ gravity)) + 1
+        return (
+            f"the IMU reads gravity {off:.0f} deg from face {step.face}'s direction; it looks like face "
+            f"{nearest} down, not face {step.face}: a wrong face"
+        )
+
+
 class Stop(Exception):
     """The user stopped the run (what was kept is saved)."""
 
@@ -121,6 +191,8 @@ class GuideRun:
     refusals: list[tuple[int, int]] = field(default_factory=list)
     #: Steps read alike on two tries after a refusal: the part, not a slip (kept from then on).
     confirmed: set[int] = field(default_factory=set)
+    #: The IMU's mean reading (g, its axes) at each no-load step: what its map is fitted on.
+    accel: dict[int, np.ndarray] = field(default_factory=dict)
     elapsed_s: float = 0.0  # the bus's time over earlier sessions
 
     def dataset(self, serial: str = "", source: str = "") -> Dataset:
@@ -323,10 +395,19 @@ def progress_bar(done: int, total: int, width: int = 30) -> str:
 
 
 def record_pose(
-    bus: Bus, addresses: Sequence[int], fixture: Fixture, step: Step, samples: int, offset_s: float
+    bus: Bus,
+    addresses: Sequence[int],
+    fixture: Fixture,
+    step: Step,
+    samples: int,
+    offset_s: float,
+    gravity: np.ndarray | None = None,
 ) -> Dataset:
-    """One pose of the plan read (`rig.record_dataset`), its times on the run's clock."""
-    pose = pose_of(fixture, step.face, step.mass_g, step.hook, arm_on=step.split != "no-load")
+    """One pose of the plan read (`rig.record_dataset`), its times on the run's clock; its
+    wrench with ``gravity`` (unit, {0}: the IMU's) when given, else the face's."""
+    pose = pose_of(
+        fixture, step.face, step.mass_g, step.hook, arm_on=step.split != "no-load", gravity=gravity
+    )
     ds = record_dataset(bus, addresses, [(pose, step.split)], lambda w: None, samples=samples)
     assert ds.times_s is not None  # (record_dataset stamps every pose)
     return replace(ds, times_s=ds.times_s + offset_s, rotation=None)
@@ -344,6 +425,7 @@ def guide(
     settle_s: float,
     save: Callable[[GuideRun], None],
     stop_after: int | None = None,
+    imu: Imu | None = None,
 ) -> bool:
     """Take the run's steps not yet kept, in order, each until it is kept. Returns True when
     every step is kept, False when stopped (``stop_after`` poses recorded in this session, or
@@ -369,21 +451,30 @@ def guide(
         if settle_s > 0:
             prompter.say(f"  waiting {settle_s:.0f} s for the silicone to settle")
             bus.sleep(settle_s)
-        pose = record_pose(bus, addresses, fixture, step, samples, run.elapsed_s + begin - start)
+        gravity, imu_why = None, None
+        if imu is not None:
+            accel, _ = imu.mean_accel_g(IMU_SAMPLES)
+            imu_map = ImuMap.fit(fixture, run) if step.split != "no-load" else None
+            if step.split == "no-load":
+                run.accel[k] = accel  # kept with the pose: the IMU's map is fitted on these
+            elif imu_map is not None:
+                gravity = imu_map.gravity(accel)
+                imu_why = imu_map.check(fixture, step, gravity)
+        pose = record_pose(bus, addresses, fixture, step, samples, run.elapsed_s + begin - start, gravity)
         reading_s = bus.monotonic() - begin - settle_s
         recorded += 1
         kept = [run.kept[j] for j in sorted(run.kept)]
-        why = judge.bump(pose, kept)
+        why = judge.bump(pose, kept) or imu_why
         loaded = [run.kept[j] for j in sorted(run.kept) if run.steps[j].split != "no-load"]
         no_load = [run.kept[j] for j in sorted(run.kept) if run.steps[j].split == "no-load"]
         if why is None and step.split != "no-load" and judged_at:
             read = judge.read(loaded, no_load, [pose])[0]
             kept_steps = [run.steps[j] for j in sorted(run.kept) if run.steps[j].split != "no-load"]
             tol = judge.tolerance(judge.left_out(loaded, no_load), kept_steps, step)
+            before = reads.get(k)
+            alike = before is not None and np.max(np.abs(read - before) / tol) <= 1.0
             if np.max(np.abs(read - pose.wrench[0]) / tol) > 1.0:
-                before = reads.get(k)
                 reads[k] = read
-                alike = before is not None and np.max(np.abs(read - before) / tol) <= 1.0
                 if not alike or not judge.looks_like_plan(step, read, tol):
                     why = judge.name(step, read, tol)
                 else:  # read alike twice, and like no other step: the part departs from H, no slip
@@ -391,6 +482,8 @@ def guide(
                     prompter.say(
                         "  the same reading as the last try: kept (the part departs from the early fit)"
                     )
+            elif alike:  # refused when all were judged, read alike again: not to be refused again
+                run.confirmed.add(k)
         if why is not None:
             run.refused.append(f"step {k + 1} ({step.instruction()}): {why}")
             run.refusals.append((k, attempt))
@@ -431,6 +524,7 @@ def save_run(run: GuideRun, progress: Path, partial: Path, serial: str, source: 
         "attempts": {str(k): v for k, v in sorted(run.attempts.items())},
         "refused": run.refused,
         "confirmed": sorted(run.confirmed),
+        "accel": {str(k): [float(x) for x in v] for k, v in sorted(run.accel.items())},
         "dataset": partial.name,
     }
     progress.write_text(json.dumps(doc, indent=1) + "\n")
@@ -439,7 +533,7 @@ def save_run(run: GuideRun, progress: Path, partial: Path, serial: str, source: 
 def load_run(steps: list[Step], progress: Path, partial: Path) -> GuideRun:
     """A stopped run, to resume; its plan must be this one (errors name the file and key)."""
     doc = Table(load_json(progress), progress)
-    doc.only({"format", "version", "plan", "kept", "attempts", "refused", "confirmed", "dataset"})
+    doc.only({"format", "version", "plan", "kept", "attempts", "refused", "confirmed", "accel", "dataset"})
     if doc.get("format") != PROGRESS_FORMAT:
         raise doc.fail("format", f'"{PROGRESS_FORMAT}"', doc.get("format"))
     doc.integer("version", what=str(PROGRESS_VERSION), low=PROGRESS_VERSION, high=PROGRESS_VERSION)
@@ -466,6 +560,10 @@ def load_run(steps: list[Step], progress: Path, partial: Path) -> GuideRun:
     run.refused = [str(r) for r in refused] if isinstance(refused, list) else []
     confirmed = doc.get("confirmed", [])
     run.confirmed = {int(k) for k in confirmed} if isinstance(confirmed, list) else set()
+    accel = doc.get("accel", {})
+    run.accel = (
+        {int(k): np.array(v, dtype=float) for k, v in accel.items()} if isinstance(accel, dict) else {}
+    )
     return run
 
 
