@@ -34,7 +34,7 @@ import numpy as np
 
 from ftsensord.calibration.dataset import POSE_FIELDS, Dataset
 from ftsensord.calibration.excitation import check_excitation
-from ftsensord.calibration.fixture import FIT_MASSES_G, VALIDATION_MASS_G, Fixture, Step, pose_of
+from ftsensord.calibration.fixture import KIT_MASSES_G, Fixture, Step, pose_of
 from ftsensord.calibration.rig import record_dataset
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.chip.i2c import Bus
@@ -71,7 +71,8 @@ NOISE_FLOOR = np.array([0.03, 0.03, 0.03, 0.002, 0.002, 0.002])
 #: Or this many times the kept poses' robust scatter relative to their load (`Judge.scale`:
 #: the weight for forces, the weight times the lever arm for torques), times the step's
 #: load: H is linear and the part is not, so a pose's error as H reads it grows with its load
-#: (on a careful run's 82 poses the lateral forces' left-out error is 0.02-0.03 N RMS at 50 g
+#: (on a careful run of a plan with 50 g and 200 g steps, the lateral forces' left-out error over
+#: its 82 loaded poses was 0.02-0.03 N RMS at 50 g
 #: and 0.14-0.15 N at 200 g): a tolerance fixed in N refused correct 200 g poses while it let
 #: a 50 g slip near it pass.
 SCATTER_FACTOR = 5.0
@@ -233,7 +234,7 @@ class Judge:
         candidates = [(0, 0.0, "-")] + [
             (f, m, h)
             for f in range(1, len(fixture.normals) + 1)
-            for m in (*FIT_MASSES_G, VALIDATION_MASS_G, 0.0)
+            for m in (*KIT_MASSES_G, 0.0)
             for h in fixture.hooks_mm
         ]
         self.candidates = candidates
