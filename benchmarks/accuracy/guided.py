@@ -17,8 +17,12 @@ in the Earth's field:
    Every slip the person made is counted, and whether it was caught (its pose refused) or
    kept in the dataset.
 
-    python -m benchmarks.accuracy.guided            # 3 parts, about 2 minutes; writes nothing
+With ``--imu`` each part carries an MPU-6050 on its holder (`sim.imu`) and the guide reads
+each pose's gravity with it instead of trusting the face.
+
+    python -m benchmarks.accuracy.guided            # 3 parts, about 5 minutes; writes nothing
     python -m benchmarks.accuracy.guided --quick    # 1 part
+    python -m benchmarks.accuracy.guided --imu      # the parts with an IMU
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ from ftsensord.calibration import guided
 from ftsensord.calibration.fit import rmse
 from ftsensord.calibration.procedure import calibrate, simulate_dataset
 from ftsensord.calibration.report import PAPER_TABLE_II
+from ftsensord.chip import mpu6050
 from ftsensord.model.viscoelastic import Relaxation
 from ftsensord.sim import PhysicalScene, simulated_bus
 from ftsensord.sim.memory import DEFAULT_RELAXATION
@@ -51,9 +56,14 @@ class Quiet:
         pass
 
 
-def part_scene(seed: int, tmp: str) -> PhysicalScene:
+ADDRESSES = "addresses = [0x0C, 0x0D, 0x0E, 0x0F, 0x10, 0x11, 0x12, 0x13]\n"
+
+
+def part_scene(seed: int, tmp: str, imu: bool = False) -> PhysicalScene:
     text = default_scene_text().replace("seed = 1 ", f"seed = {seed} ", 1)
-    assert f"seed = {seed} " in text
+    assert f"seed = {seed} " in text and ADDRESSES in text
+    if imu:
+        text = text.replace(ADDRESSES, ADDRESSES + "imu = 0x68\n", 1)
     path = f"{tmp}/part-{seed}.toml"
     with open(path, "w") as f:
         f.write(text)
@@ -62,16 +72,21 @@ def part_scene(seed: int, tmp: str) -> PhysicalScene:
     return scene
 
 
-def one_part(seed: int, tmp: str) -> dict:
-    scene = part_scene(seed, tmp)
+def one_part(seed: int, tmp: str, imu: bool = False) -> dict:
+    scene = part_scene(seed, tmp, imu)
     sensor = scene.sensors[0]
     fixture = fx.Fixture()
     steps = fx.guided_plan(fixture)
     station = guided.SimStation(scene, sensor.name, fixture, Person(seed=seed))
     run = guided.GuideRun(steps)
+    bus = simulated_bus(scene, seed=seed)
+    accelerometer = None
+    if imu:
+        accelerometer = mpu6050.MPU6050(bus, 0x68)
+        accelerometer.start()
     guided.guide(
         run,
-        bus=simulated_bus(scene, seed=seed),
+        bus=bus,
         addresses=sensor.addresses,
         fixture=fixture,
         station=station,
@@ -79,6 +94,7 @@ def one_part(seed: int, tmp: str) -> dict:
         samples=100,
         settle_s=0.0,  # the part's silicone has no memory; the person's wait is counted below
         save=lambda r: None,
+        imu=accelerometer,
     )
     g_cal, g_result = calibrate(run.dataset(), nonlinear=False)
     robot = simulate_dataset(
@@ -119,6 +135,7 @@ def main() -> int:
 
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true", help="one part")
+    p.add_argument("--imu", action="store_true", help="an MPU-6050 on each part's holder reads gravity")
     args = p.parse_args()
     seeds = SEEDS[:1] if args.quick else SEEDS
     print("| part | calibration | Fx (N) | Fy (N) | Fz (N) | Mx (mNm) | My (mNm) | Mz (mNm) |")
@@ -128,7 +145,7 @@ def main() -> int:
     notes = []
     with tempfile.TemporaryDirectory() as tmp:
         for seed in seeds:
-            r = one_part(seed, tmp)
+            r = one_part(seed, tmp, args.imu)
             print(f"| {seed} | guided | {fmt(r['guided'])} |")
             print(f"| {seed} | robot | {fmt(r['robot'])} |")
             print(

@@ -113,9 +113,9 @@ class ImuMap:
     @classmethod
     def fit(cls, fixture: Fixture, run: GuideRun) -> ImuMap | None:
         """From the kept no-load steps' readings (None: fewer than `MIN_IMU_POSES`). Each
-        reading's face is the one nearest to minus the reading (the IMU's axes along {0}, as
-        the holder's slot sets them: its offsets and mounting move gravity by 5 deg at most,
-        the faces are 35 deg apart), so a no-load face set down wrong does not skew the map;
+        reading's face is the one nearest to minus the reading (the IMU's axes along {0} within
+        10 deg, as the guide asks, and its offsets 5 deg at most: the faces are 35 deg apart,
+        17 deg half-way), so a no-load face set down wrong does not skew the map;
         a reading far from the map the others give is left out."""
         steps = [k for k in sorted(run.accel) if k in run.kept and run.steps[k].split == "no-load"]
         for _ in range(2):
