@@ -113,15 +113,17 @@ def test_guide_reads_each_pose_gravity_with_the_imu(tmp_path):
         assert a < run.attempts[k] - 1  # refused ...
     assert sum("the IMU reads gravity" in r for r in run.refused) >= len(faces)  # ... by the IMU
     # Each loaded pose's gravity is the one the person made, not the face's: their seating
-    # error (2 deg) measured to the IMU map's error (its fit on 8 faces seated as badly).
+    # error (2 deg standard deviation: 1.35 deg median) measured to the IMU map's error (its
+    # fit on all the faces seated as badly: 0.35 deg median, 0.8 at most, on this run).
     off_face, off_truth = [], []
     for k in [k for k in sorted(run.kept) if steps[k].split != "no-load"]:
         g = run.kept[k].gravity_dir[0]
         off_face.append(np.degrees(np.arccos(np.clip(g @ fixture.normals[steps[k].face - 1], -1, 1))))
         truth = station.truth[(k, run.attempts[k] - 1)]
         off_truth.append(np.degrees(np.arccos(np.clip(g @ truth, -1, 1))))
-    assert np.median(off_face) > 1.5
+    assert np.median(off_face) > 1.0
     assert np.median(off_truth) < 0.5 * np.median(off_face), (np.median(off_truth), np.median(off_face))
+    assert np.max(off_truth) < 0.5 * np.max(off_face)
 
 
 class _Quiet:

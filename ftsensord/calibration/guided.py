@@ -71,10 +71,9 @@ NOISE_FLOOR = np.array([0.03, 0.03, 0.03, 0.002, 0.002, 0.002])
 #: Or this many times the kept poses' robust scatter relative to their load (`Judge.scale`:
 #: the weight for forces, the weight times the lever arm for torques), times the step's
 #: load: H is linear and the part is not, so a pose's error as H reads it grows with its load
-#: (on a careful run of a plan with 50 g and 200 g steps, the lateral forces' left-out error over
-#: its 82 loaded poses was 0.02-0.03 N RMS at 50 g
-#: and 0.14-0.15 N at 200 g): a tolerance fixed in N refused correct 200 g poses while it let
-#: a 50 g slip near it pass.
+#: (a careful run of a plan with 50 g and 200 g steps: the lateral forces' left-out error over
+#: its 82 loaded poses was 0.02-0.03 N RMS at 50 g and 0.14-0.15 N at 200 g); a tolerance
+#: fixed in N refused correct 200 g poses while it let a 50 g slip near it pass.
 SCATTER_FACTOR = 5.0
 #: The tolerance reaches at most this share of the way to the nearest other step's wrench
 #: (as a divisor): half-way, so a slip read with the part's misfit is still nearer what it is.
@@ -85,12 +84,13 @@ PROGRESS_FORMAT, PROGRESS_VERSION = "ftsensord-guide-progress", 1
 #: Readings of the IMU averaged per pose: its noise (6.4 mg a reading, `mpu6050.noise_g`)
 #: falls to 0.9 mg, 0.05 deg of gravity's direction.
 IMU_SAMPLES = 50
-#: No-load poses the IMU's map is fitted on, at least: 12 unknowns (a 3 x 3 map and an
+#: Poses the IMU's map is fitted on, at least: 12 unknowns (a 3 x 3 map and an
 #: offset), 3 equations a pose; 6 poses give them 1.5 times over.
 MIN_IMU_POSES = 6
 #: A pose whose gravity, as the IMU reads it, is this far from the face asked for (deg) was
 #: set down on another face: the holder's faces are 35 deg apart or more, a person seats one
-#: within 4.5 deg, the IMU's map is good to about 1 deg.
+#: within 4.5 deg, the IMU's map is good to 1 deg (0.35 deg median on a run of faces seated
+#: 2 deg off).
 FACE_CHECK_DEG = 15.0
 
 
@@ -105,19 +105,21 @@ class ImuMap:
     """The IMU's reading a (g, its axes) of gravity's direction n (unit, {0}) at rest:
     a = M n + c. M takes in the sign (an accelerometer at rest reads -g), the IMU's mounting
     on the holder, its sensitivities and cross-axis terms; c its zero-g offsets. Fitted on
-    the no-load poses against their faces' normals: each face's seating error averages out."""
+    the poses kept so far against their faces' normals: each face's seating error averages
+    out, the more the more poses (at the end every pose is read again through the map fitted
+    on all of them)."""
 
     M: np.ndarray
     c: np.ndarray
 
     @classmethod
     def fit(cls, fixture: Fixture, run: GuideRun) -> ImuMap | None:
-        """From the kept no-load steps' readings (None: fewer than `MIN_IMU_POSES`). Each
+        """From the kept steps' readings (None: fewer than `MIN_IMU_POSES`). Each
         reading's face is the one nearest to minus the reading (the IMU's axes along {0} within
         10 deg, as the guide asks, and its offsets 5 deg at most: the faces are 35 deg apart,
-        17 deg half-way), so a no-load face set down wrong does not skew the map;
+        17 deg half-way), so a face set down wrong does not skew the map;
         a reading far from the map the others give is left out."""
-        steps = [k for k in sorted(run.accel) if k in run.kept and run.steps[k].split == "no-load"]
+        steps = [k for k in sorted(run.accel) if k in run.kept]
         for _ in range(2):
             if len(steps) < MIN_IMU_POSES:
                 return None
@@ -192,7 +194,7 @@ class GuideRun:
     refusals: list[tuple[int, int]] = field(default_factory=list)
     #: Steps read alike on two tries after a refusal: the part, not a slip (kept from then on).
     confirmed: set[int] = field(default_factory=set)
-    #: The IMU's mean reading (g, its axes) at each no-load step: what its map is fitted on.
+    #: The IMU's mean reading (g, its axes) at each step's last try: what its map is fitted on.
     accel: dict[int, np.ndarray] = field(default_factory=dict)
     elapsed_s: float = 0.0  # the bus's time over earlier sessions
 
@@ -455,10 +457,9 @@ def guide(
         gravity, imu_why = None, None
         if imu is not None:
             accel, _ = imu.mean_accel_g(IMU_SAMPLES)
+            run.accel[k] = accel  # with the pose, once kept: the IMU's map is fitted on these
             imu_map = ImuMap.fit(fixture, run) if step.split != "no-load" else None
-            if step.split == "no-load":
-                run.accel[k] = accel  # kept with the pose: the IMU's map is fitted on these
-            elif imu_map is not None:
+            if imu_map is not None:
                 gravity = imu_map.gravity(accel)
                 imu_why = imu_map.check(fixture, step, gravity)
         pose = record_pose(bus, addresses, fixture, step, samples, run.elapsed_s + begin - start, gravity)
@@ -508,8 +509,23 @@ def guide(
                 run.refused.append(f"step {j + 1} ({run.steps[j].instruction()}): {why}")
                 prompter.say(f"  step {j + 1} again: {why}")
         save(run)
+    final = ImuMap.fit(fixture, run) if imu is not None else None
+    if final is not None:  # every pose's gravity again, through the map fitted on all of them
+        regravitate(run, fixture, final)
+        save(run)
     prompter.say(progress_bar(len(run.kept), len(run.steps)))
     return True
+
+
+def regravitate(run: GuideRun, fixture: Fixture, imu_map: ImuMap) -> None:
+    """Each kept loaded pose's gravity (and so its wrench) as ``imu_map`` reads its IMU reading."""
+    for k in sorted(run.kept):
+        step = run.steps[k]
+        if step.split == "no-load" or k not in run.accel:
+            continue
+        g = imu_map.gravity(run.accel[k])
+        pose = pose_of(fixture, step.face, step.mass_g, step.hook, gravity=g)
+        run.kept[k] = replace(run.kept[k], gravity_dir=g[None, :], wrench=pose.wrench()[None, :])
 
 
 def save_run(run: GuideRun, progress: Path, partial: Path, serial: str, source: str) -> None:
