@@ -132,3 +132,18 @@ class _Quiet:
 
     def confirm(self, line: str) -> None:
         pass
+
+
+def test_guide_command_finds_the_imu(tmp_path, capsys):
+    from ftsensord.cli.parser import main
+
+    scene = scene_with(tmp_path)
+    args = ["guide", "--scene", str(scene), "--quick", "--yes", "--samples", "10", "--stop-after", "2"]
+    assert main([*args, "-o", str(tmp_path / "a.json")]) == 3
+    assert "IMU: an MPU-6050 at 0x68 reads each pose's gravity" in capsys.readouterr().out
+    assert main([*args, "--no-imu", "-o", str(tmp_path / "b.json")]) == 3
+    assert "MPU-6050" not in capsys.readouterr().out
+    assert main([*args, "--imu", "0x69", "-o", str(tmp_path / "c.json")]) == 2  # nothing there
+    assert "MPU-6050 at 0x69" in capsys.readouterr().err
+    assert main([*args, "--imu", "0x0C", "-o", str(tmp_path / "d.json")]) == 2
+    assert "--imu: expected 0x68 or 0x69" in capsys.readouterr().err
