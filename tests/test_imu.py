@@ -147,3 +147,34 @@ def test_guide_command_finds_the_imu(tmp_path, capsys):
     assert "MPU-6050 at 0x69" in capsys.readouterr().err
     assert main([*args, "--imu", "0x0C", "-o", str(tmp_path / "d.json")]) == 2
     assert "--imu: expected 0x68 or 0x69" in capsys.readouterr().err
+
+
+def test_a_run_with_the_imu_stops_and_resumes(tmp_path, capsys):
+    # The IMU's readings are kept in the progress file with the poses: a resumed run fits
+    # its map on them and reads every pose's gravity again at the end.
+    import json
+
+    from ftsensord.cli.parser import main
+
+    out = tmp_path / "cal.json"
+    args = [
+        "guide",
+        "--scene",
+        str(scene_with(tmp_path)),
+        "--quick",
+        "--yes",
+        "--linear-only",
+        "--samples",
+        "10",
+    ]
+    assert main([*args, "--stop-after", "12", "-o", str(out)]) == 3
+    progress = json.loads((tmp_path / "cal.json.progress.json").read_text())
+    assert set(progress["kept"]) <= {int(k) for k in progress["accel"]} and len(progress["kept"]) >= 10
+    assert main([*args, "-o", str(out)]) == 0
+    assert "resuming:" in capsys.readouterr().out
+    progress = json.loads((tmp_path / "cal.json.progress.json").read_text())
+    steps = fx.guided_plan(every=2, no_load=8, validation=6)
+    assert sorted(progress["kept"]) == list(range(len(steps)))
+    assert set(progress["kept"]) <= {int(k) for k in progress["accel"]}
+    poses = json.loads(out.read_text())["fit_report"]["guided"]
+    assert poses["steps"] == len(steps)
