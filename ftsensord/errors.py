@@ -24,10 +24,11 @@ class ForbiddenSettingError(ConfigError):
 
 
 class ChipError(FtsensordError, OSError):
-    """An MLX90393 did not do what was asked. ``address`` is its 7-bit I2C address."""
+    """An MLX90393 (or another ``device`` on the bus: an IMU) did not do what was asked.
+    ``address`` is its 7-bit I2C address."""
 
-    def __init__(self, address: int, message: str):
-        super().__init__(f"MLX90393 at 0x{address:02X}: {message}")
+    def __init__(self, address: int, message: str, *, device: str = "MLX90393"):
+        super().__init__(f"{device} at 0x{address:02X}: {message}")
         self.address = address
 
 
@@ -37,8 +38,8 @@ class ChipNotRespondingError(ChipError):
     ``errno`` carries the kernel's errno from the underlying ``OSError``.
     """
 
-    def __init__(self, address: int, message: str, errno: int | None = None):
-        super().__init__(address, message)
+    def __init__(self, address: int, message: str, errno: int | None = None, *, device: str = "MLX90393"):
+        super().__init__(address, message, device=device)
         self.errno = errno
 
 

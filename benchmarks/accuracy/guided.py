@@ -17,8 +17,12 @@ in the Earth's field:
    Every slip the person made is counted, and whether it was caught (its pose refused) or
    kept in the dataset.
 
-    python -m benchmarks.accuracy.guided            # 3 parts, about 2 minutes; writes nothing
+With ``--imu`` each part carries an MPU-6050 on its holder (`sim.imu`) and the guide reads
+each pose's gravity with it instead of trusting the face.
+
+    python -m benchmarks.accuracy.guided            # 3 parts, about 5 minutes; writes nothing
     python -m benchmarks.accuracy.guided --quick    # 1 part
+    python -m benchmarks.accuracy.guided --imu      # the parts with an IMU
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ from ftsensord.calibration import guided
 from ftsensord.calibration.fit import rmse
 from ftsensord.calibration.procedure import calibrate, simulate_dataset
 from ftsensord.calibration.report import PAPER_TABLE_II
+from ftsensord.chip import mpu6050
 from ftsensord.model.viscoelastic import Relaxation
 from ftsensord.sim import PhysicalScene, simulated_bus
 from ftsensord.sim.memory import DEFAULT_RELAXATION
@@ -51,9 +56,14 @@ class Quiet:
         pass
 
 
-def part_scene(seed: int, tmp: str) -> PhysicalScene:
+ADDRESSES = "addresses = [0x0C, 0x0D, 0x0E, 0x0F, 0x10, 0x11, 0x12, 0x13]\n"
+
+
+def part_scene(seed: int, tmp: str, imu: bool = False) -> PhysicalScene:
     text = default_scene_text().replace("seed = 1 ", f"seed = {seed} ", 1)
-    assert f"seed = {seed} " in text
+    assert f"seed = {seed} " in text and ADDRESSES in text
+    if imu:
+        text = text.replace(ADDRESSES, ADDRESSES + "imu = 0x68\n", 1)
     path = f"{tmp}/part-{seed}.toml"
     with open(path, "w") as f:
         f.write(text)
@@ -62,16 +72,21 @@ def part_scene(seed: int, tmp: str) -> PhysicalScene:
     return scene
 
 
-def one_part(seed: int, tmp: str) -> dict:
-    scene = part_scene(seed, tmp)
+def one_part(seed: int, tmp: str, imu: bool = False) -> dict:
+    scene = part_scene(seed, tmp, imu)
     sensor = scene.sensors[0]
     fixture = fx.Fixture()
     steps = fx.guided_plan(fixture)
     station = guided.SimStation(scene, sensor.name, fixture, Person(seed=seed))
     run = guided.GuideRun(steps)
+    bus = simulated_bus(scene, seed=seed)
+    accelerometer = None
+    if imu:
+        accelerometer = mpu6050.MPU6050(bus, 0x68)
+        accelerometer.start()
     guided.guide(
         run,
-        bus=simulated_bus(scene, seed=seed),
+        bus=bus,
         addresses=sensor.addresses,
         fixture=fixture,
         station=station,
@@ -79,6 +94,7 @@ def one_part(seed: int, tmp: str) -> dict:
         samples=100,
         settle_s=0.0,  # the part's silicone has no memory; the person's wait is counted below
         save=lambda r: None,
+        imu=accelerometer,
     )
     g_cal, g_result = calibrate(run.dataset(), nonlinear=False)
     robot = simulate_dataset(
@@ -90,6 +106,9 @@ def one_part(seed: int, tmp: str) -> dict:
     series = Relaxation.from_pairs([list(p) for p in DEFAULT_RELAXATION])
     slips = [(k, a, what) for k, a, what in station.slips]
     kept = [s for s in slips if s[1] == run.attempts[s[0]] - 1]
+    slipped = {(k, a) for k, a, _ in slips}
+    # A false refusal: a try refused in which the person made no slip (a correct step redone).
+    false = [(k, a) for k, a in run.refusals if (k, a) not in slipped]
     return {
         "seed": seed,
         "guided": rmse(g_result.model, held_out),
@@ -101,6 +120,9 @@ def one_part(seed: int, tmp: str) -> dict:
         "slips": len(slips),
         "kept_slips": kept,
         "refused": len(run.refused),
+        "false_refusals": len(false),
+        "caught": len({(k, a) for k, a, _ in slips} & set(run.refusals)),
+        "slipped_tries": len(slipped),
     }
 
 
@@ -113,6 +135,7 @@ def main() -> int:
 
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true", help="one part")
+    p.add_argument("--imu", action="store_true", help="an MPU-6050 on each part's holder reads gravity")
     args = p.parse_args()
     seeds = SEEDS[:1] if args.quick else SEEDS
     print("| part | calibration | Fx (N) | Fy (N) | Fz (N) | Mx (mNm) | My (mNm) | Mz (mNm) |")
@@ -122,7 +145,7 @@ def main() -> int:
     notes = []
     with tempfile.TemporaryDirectory() as tmp:
         for seed in seeds:
-            r = one_part(seed, tmp)
+            r = one_part(seed, tmp, args.imu)
             print(f"| {seed} | guided | {fmt(r['guided'])} |")
             print(f"| {seed} | robot | {fmt(r['robot'])} |")
             print(
@@ -136,7 +159,9 @@ def main() -> int:
             ok &= within and close
             notes.append(
                 f"part {seed}: {r['steps']} steps, {r['done']} done (a refused pose is done again): about "
-                f"{r['minutes']:.0f} min for a person; {r['slips']} slips made, {r['refused']} poses refused, "
+                f"{r['minutes']:.0f} min for a person; {r['slips']} slips made in {r['slipped_tries']} tries, "
+                f"{r['caught']} of those tries refused, "
+                f"{r['refused']} poses refused of which {r['false_refusals']} correct (false refusals), "
                 f"{len(r['kept_slips'])} slips kept in the dataset {r['kept_slips'] or ''}; "
                 f"within Table II: {within}; within {ROBOT_FACTOR}x the robot: {close}"
             )

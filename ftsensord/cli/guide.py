@@ -4,9 +4,20 @@ instead of a robot; docs/guide/guided-calibration.md)."""
 from __future__ import annotations
 
 import argparse
+import os
+import signal
+import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING, TypeVar
 
 from ftsensord.errors import ConfigError
+
+if TYPE_CHECKING:
+    from ftsensord.chip.i2c import Bus
+    from ftsensord.chip.mpu6050 import MPU6050
+
+T = TypeVar("T")
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -25,8 +36,16 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--fixture", help="write the fixture's OpenSCAD file here")
     p.add_argument("--scene", help="run on the simulator: a scene file (its [person] follows the prompts)")
     p.add_argument("--sim", action="store_true", help="run on the simulator's default scene")
-    p.add_argument("--bus", help="a real bus (/dev/i2c-N): the user does each step and presses Enter")
+    p.add_argument("--bus", help="a real bus (/dev/i2c-N): the user does each step and presses a key")
     p.add_argument("--addresses", help="the sensor's 8 chip addresses on --bus, e.g. 0x0C,0x0D,...")
+    p.add_argument(
+        "--imu",
+        help="an MPU-6050 on the bus, fixed to the holder: its address (0x68 or 0x69); "
+        "default: looked for at both (on the simulator: the scene's sensor's imu)",
+    )
+    p.add_argument(
+        "--no-imu", action="store_true", help="trust each face for gravity, even with an IMU present"
+    )
     p.add_argument("--sensor", default="sensor1", help="which sensor of the scene (default: sensor1)")
     p.add_argument(
         "--yes", action="store_true", help="confirm each step without a key (scripts, the simulator)"
@@ -46,7 +65,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 
 
 class TerminalPrompter:
-    """Lines on stdout; each step confirmed with Enter (s or q, then Enter: stop), or by --yes."""
+    """Lines on stdout; each step confirmed by a key, or by --yes. In a terminal one key does
+    it (Enter or space: record; q or s: stop; Ctrl-C: stop), without Enter; from a pipe a line
+    is read (empty: record; q or s: stop; end of input: stop)."""
 
     def __init__(self, yes: bool):
         self.yes = yes
@@ -60,11 +81,55 @@ class TerminalPrompter:
         if self.yes:
             return
         try:
-            answer = input("  done? Enter to record, s to stop: ")
-        except EOFError:
+            if sys.stdin.isatty():
+                answer = self._key()
+            else:
+                answer = input("  done? Enter to record, q to stop: ").strip().lower()
+        except (EOFError, KeyboardInterrupt):
+            print(flush=True)
             raise Stop from None
-        if answer.strip().lower() in ("s", "q", "stop", "quit"):
+        if answer in ("s", "q", "stop", "quit"):
             raise Stop
+
+    @staticmethod
+    def _key() -> str:
+        """One key, read without Enter (the terminal in cbreak mode: Ctrl-C still interrupts)."""
+        import termios
+        import tty
+
+        fd = sys.stdin.fileno()
+        saved = termios.tcgetattr(fd)
+        try:
+            # At once, not flushing: a key typed early is kept. The prompt after it: a key
+            # typed once the prompt shows is read as a key, not held for a line.
+            tty.setcbreak(fd, termios.TCSANOW)
+            print("  done? Enter to record, q to stop: ", end="", flush=True)
+            while True:
+                key = os.read(fd, 1).decode(errors="replace").lower()
+                if not key:
+                    raise EOFError
+                if key in ("\r", "\n", " "):
+                    print(flush=True)
+                    return ""
+                if key in ("q", "s"):
+                    print(key, flush=True)
+                    return key
+        finally:
+            termios.tcsetattr(fd, termios.TCSADRAIN, saved)
+
+
+def saving_whole(save: Callable[[T], None]) -> Callable[[T], None]:
+    """``save`` with Ctrl-C held off while it writes: the dataset and the progress file are
+    written one after the other, and a stop between them would leave a run that cannot resume."""
+
+    def whole(run: T) -> None:
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            save(run)
+        finally:
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+    return whole
 
 
 class NoStation:
@@ -72,6 +137,31 @@ class NoStation:
 
     def perform(self, *args: object) -> None:
         return None
+
+
+def _imu(bus: Bus, given: str | None, scene_address: int | None) -> MPU6050 | None:
+    """The IMU to read each pose's gravity with: at ``given`` (an address), else the scene's,
+    else the first MPU-6050 that answers at 0x68 or 0x69; None when there is none."""
+    from ftsensord.chip import mpu6050
+
+    if given is not None:
+        try:
+            address: int | None = int(given, 0)
+        except ValueError as exc:
+            raise ConfigError(f"--imu: expected 0x68 or 0x69, got {given!r}") from exc
+        if address not in mpu6050.ADDRESSES:
+            raise ConfigError(f"--imu: expected 0x68 or 0x69 (an MPU-6050's, AD0 low or high), got {given!r}")
+    else:
+        address = scene_address if scene_address is not None else mpu6050.probe(bus)
+    if address is None:
+        print("no IMU found (an MPU-6050 at 0x68 or 0x69): each pose's gravity is taken from its face")
+        return None
+    imu = mpu6050.MPU6050(bus, address)
+    imu.start()
+    print(
+        f"IMU: an MPU-6050 at 0x{address:02X} reads each pose's gravity (its map fitted on the no-load faces)"
+    )
+    return imu
 
 
 def cmd_guide(args: argparse.Namespace) -> int:
@@ -130,6 +220,7 @@ def cmd_guide(args: argparse.Namespace) -> int:
             [list(p) for p in DEFAULT_RELAXATION]
         )  # not known: the generous default
         serial, source = "", f"guided: bus {args.bus}"
+        imu_address = None
     else:
         from ftsensord.sim import PhysicalScene, default_scene, load_scene, simulated_bus
         from ftsensord.sim.person import Person
@@ -145,8 +236,10 @@ def cmd_guide(args: argparse.Namespace) -> int:
         bus = simulated_bus(scene, seed=args.seed)
         station = guided.SimStation(scene, sensor.name, fixture, scene.person or Person())
         relaxation = sensor.relaxation
+        imu_address = sensor.imu_address
         serial = f"sim-{sensor.name}"
         source = f"guided, simulated: scene {args.scene or 'default'}, sensor {sensor.name}, seed {args.seed}"
+    imu = None if args.no_imu else _imu(bus, args.imu, imu_address)
     settle = fx.step_settle_s(relaxation)
     out = Path(args.output)
     progress, partial = out.with_name(out.name + ".progress.json"), out.with_name(out.name + ".poses.json")
@@ -179,10 +272,11 @@ def cmd_guide(args: argparse.Namespace) -> int:
             prompter=prompter,
             samples=args.samples,
             settle_s=settle,
-            save=lambda r: guided.save_run(r, progress, partial, serial, source),
+            save=saving_whole(lambda r: guided.save_run(r, progress, partial, serial, source)),
             stop_after=args.stop_after,
+            imu=imu,
         )
-    except guided.Stop:
+    except (guided.Stop, KeyboardInterrupt):  # Ctrl-C while a pose is read: that pose is dropped
         done = False
     if not done:
         print(

@@ -22,6 +22,7 @@ from __future__ import annotations
 import ctypes
 import errno
 from collections.abc import Iterable
+from typing import Protocol
 
 import numpy as np
 from smbus2 import i2c_msg
@@ -31,6 +32,7 @@ from ftsensord.chip.i2c import ADAPTER_RULES, BITS_PER_BYTE, I2C_RDWR_MAX_MSGS, 
 from ftsensord.sim.chip import EmulatedMLX90393, FieldSource, NoiseModel
 from ftsensord.sim.clock import MonotonicClock, VirtualClock
 from ftsensord.sim.faults import BusFaults, FaultScript
+from ftsensord.sim.imu import EmulatedMPU6050
 
 #: Default adapter: the most likely board is a Raspberry Pi 4 with its own driver.
 DEFAULT_ADAPTER = "bcm2835"
@@ -41,6 +43,18 @@ DEFAULT_ADAPTER = "bcm2835"
 #: wire, so about 250 us a syscall; the Pi 4's Cortex-A72 runs such kernel paths about
 #: 4x faster, hence 60 us. `acquire.board` measures it.
 DEFAULT_IOCTL_S = 60e-6
+
+
+class Device(Protocol):
+    """What the bus needs of a device at an address (an `EmulatedMLX90393` is one)."""
+
+    address: int
+
+    def acks(self, now: float, reading: bool = False) -> bool: ...
+
+    def read(self, length: int, now: float) -> bytes: ...
+
+    def write(self, data: bytes, now: float) -> None: ...
 
 
 class SimulatedBus:
@@ -74,6 +88,8 @@ class SimulatedBus:
         if adapter not in ADAPTER_RULES:
             raise ValueError(f"adapter: expected one of {', '.join(ADAPTER_RULES)}, got {adapter!r}")
         self.chips: dict[int, EmulatedMLX90393] = {}
+        #: Other devices on the bus (an IMU: `sim.imu`), reached the same way.
+        self.devices: dict[int, Device] = {}
         for chip in chips:
             self.attach(chip)
         self.clock = clock if clock is not None else VirtualClock()
@@ -137,7 +153,7 @@ class SimulatedBus:
             for msg in msgs:
                 bits += 1 + BITS_PER_BYTE  # (repeated) start and the address byte
                 now = start + bits * bit_s
-                chip = self.chips.get(msg.addr)
+                chip: Device | None = self.chips.get(msg.addr) or self.devices.get(msg.addr)
                 if (
                     chip is None
                     or self.faults.take_nack(msg.addr)
@@ -209,6 +225,12 @@ class SimulatedBus:
             raise ValueError(f"address 0x{chip.address:02X} is already on the bus")
         self.chips[chip.address] = chip
 
+    def attach_device(self, device: Device) -> None:
+        """Connect another device (an IMU), answering from the next transfer on."""
+        if device.address in self.chips or device.address in self.devices:
+            raise ValueError(f"address 0x{device.address:02X} is already on the bus")
+        self.devices[device.address] = device
+
     def detach(self, address: int) -> EmulatedMLX90393:
         """Disconnect a chip: its address NACKs until it is attached again.
 
@@ -252,7 +274,7 @@ def simulated_bus(
         for address, stream in zip(addresses, streams)
     ]
     faults = getattr(scene, "faults", [])
-    return SimulatedBus(
+    bus = SimulatedBus(
         chips,
         clock=clock,
         bus_hz=bus_hz,
@@ -261,3 +283,9 @@ def simulated_bus(
         ioctl_s=ioctl_s,
         clock_hz=clock_hz,
     )
+    # A sensor's IMU (`sim.imu`): its noise from streams after the chips' (theirs unchanged).
+    imus = [(s.name, s.imu_address) for s in getattr(scene, "sensors", []) if s.imu_address is not None]
+    more = np.random.SeedSequence(seed).spawn(len(addresses) + len(imus))[len(addresses) :]
+    for (name, address), stream in zip(imus, more):
+        bus.attach_device(EmulatedMPU6050(address, scene, name, np.random.default_rng(stream)))
+    return bus

@@ -145,6 +145,8 @@ class SimSensor:
     #: Where the sensor's centre is in the world (m): what a stray source's distance is from.
     centre_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
     relaxation: Relaxation | None = None
+    #: An MPU-6050 fixed to the sensor's holder, its axes along {0}, at this address (None: none).
+    imu_address: int | None = None
 
     def wrench(self, t: float) -> np.ndarray:
         """The wrench on the centre piece (N, Nm, frame {0}) at ``t``: the load and the tool's weight."""
@@ -305,6 +307,10 @@ class PhysicalScene:
     def set_orientation(self, sensor: int | str, orientation: Orientation) -> None:
         """Turn a sensor in the world (its load is unchanged: it is given in {0})."""
         self._sensor(sensor).orientation = orientation
+
+    def orientation_of(self, sensor: int | str, t: float) -> np.ndarray:
+        """R_w0 of a sensor at ``t`` (s): what an IMU fixed to it sees gravity through."""
+        return self._sensor(sensor).orientation.rotation(t)
 
     def _sensor(self, sensor: int | str) -> SimSensor:
         if isinstance(sensor, int):

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ftsensord.chip import mlx90393 as mlx
+from ftsensord.chip import mpu6050
 from ftsensord.docfile import Table, load_toml
 from ftsensord.errors import ConfigError
 from ftsensord.model.geometry import SensorGeometry
@@ -257,6 +258,7 @@ def _sensor(t: Table, index: int) -> SimSensor:
             "temperature",
             "centre_m",
             "silicone",
+            "imu",
         }
     )
     addresses = t.get("addresses")
@@ -322,7 +324,18 @@ def _sensor(t: Table, index: int) -> SimSensor:
         drifts,
         np.array(t.numbers("centre_m", 3, [0.0, 0.0, 0.0], unit="m, world frame")),
         parse_silicone(t.table("silicone")) if "silicone" in t.doc else None,
+        _imu(t),
     )
+
+
+def _imu(t: Table) -> int | None:
+    """``imu``: the address of an MPU-6050 fixed to the sensor's holder (its axes along {0})."""
+    if "imu" not in t.doc:
+        return None
+    value = t.get("imu")
+    if not isinstance(value, int) or isinstance(value, bool) or value not in mpu6050.ADDRESSES:
+        raise t.fail("imu", "an MPU-6050's address, 0x68 or 0x69", value)
+    return value
 
 
 def _faults(doc: Table, addresses: tuple[int, ...]) -> list[Fault]:
@@ -414,6 +427,13 @@ def _physical(doc: Table) -> PhysicalScene:
                     f"got 0x{a:02X} twice"
                 )
             seen.add(a)
+    imus = [s.imu_address for s in sensors if s.imu_address is not None]
+    for i, s in enumerate(sensors):
+        if s.imu_address is not None and imus.count(s.imu_address) > 1:
+            raise ConfigError(
+                f"{doc.path}: sensor[{i}].imu: expected an address no other sensor's IMU uses "
+                f"(0x68 or 0x69: AD0 low or high), got 0x{s.imu_address:02X} twice"
+            )
     scene = PhysicalScene(
         sensors,
         field_model=doc.string("field_model", "cylinder", choices=FIELD_MODELS),
