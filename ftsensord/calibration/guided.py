@@ -176,12 +176,6 @@ class Prompter(Protocol):
 
 
 @dataclass
-class Verdict:
-    ok: bool
-    why: str = ""
-
-
-@dataclass
 class GuideRun:
     """The state of a run: the poses kept (by step), each step's attempts, what was refused."""
 
