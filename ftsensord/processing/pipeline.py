@@ -114,6 +114,7 @@ class SensorPipeline:
         """``thermal``: the chips' temperatures are read (`Config.temperature_every`), so
         the temperature stage compensates and flags (`processing.temperature`); ``rate_hz``: the loop's."""
         nl = s.calibration.nonlinear
+        nonlinear = nl.estimator() if nl is not None else None
         sigma_t = channel_sigma_t(settings or mlx.Settings(), len(s.addresses))
         if s.model.H is not None:  # no map built in the cycle of a fault
             s.model.build_maps(sigma_t, max_missing_chips)
@@ -124,7 +125,7 @@ class SensorPipeline:
             max_missing_chips,
             np.full(3 * len(s.addresses), np.nan),
             estimator=s.estimator,
-            nonlinear=nl.estimator() if nl is not None else None,
+            nonlinear=nonlinear,
             zero_twist=nl.zero_twist.copy() if nl is not None else None,
             sigma_t=sigma_t,
             thermal=ThermalCompensation(
@@ -134,7 +135,7 @@ class SensorPipeline:
             else None,
             stray=WorldGradient(s.calibration.model, sigma_t) if s.stray_field == "world" else None,
             creep=CreepCompensation(s.calibration.silicone, rate_hz),
-            uncertainty=Uncertainty(s.model, sigma_t, s.calibration.report, None if nl is None else nl.K),
+            uncertainty=Uncertainty(s.model, sigma_t, s.calibration.report, nonlinear),
         )
 
     @property
@@ -204,6 +205,9 @@ class SensorPipeline:
             self.tare_samples,
             self.filter.variance_factor(),
             scale,
+            (self.nonlinear.pose, self.nonlinear.background_t)
+            if used[0] == "nonlinear" and self.nonlinear is not None
+            else None,
         )
 
     def flux(self, results: Mapping[int, ChipResult]) -> tuple[np.ndarray, int, np.ndarray]:

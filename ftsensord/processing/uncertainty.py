@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from ftsensord.model.linear import SENSOR_RANGE, LinearModel
+from ftsensord.model.nonlinear import PRIOR_EYE, NonlinearEstimator
 
 AXES = ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
 _SCALE = (1.0 / SENSOR_RANGE) ** 2
@@ -107,45 +108,90 @@ UNKNOWN = SampleSigma(np.full(6, np.nan))
 UNKNOWN.sigma.setflags(write=False)
 
 
+#: The nonlinear map is made again when the solve's pose has moved this far (m, rad) from the
+#: one it was made at: the estimator's own bound for reusing a Jacobian
+#: (`model.nonlinear.JACOBIAN_REUSE_M`, 4 mrad), within which the flux model's Jacobian changes
+#: by about 3 % (so does the noise's sigma); at rest the map is made once.
+NONLINEAR_MOVE_M, NONLINEAR_MOVE_RAD = 40e-6, 4e-3
+
+
 class Uncertainty:
-    """One sensor's sigma: the chips' noise, its calibration's model error, and the maps."""
+    """One sensor's sigma: the chips' noise, its calibration's model error, and the maps.
+    ``nonlinear``: the sensor's nonlinear estimator (its flux model and stiffness), or None."""
 
     def __init__(
-        self, model: LinearModel, sigma_t: np.ndarray, report: Mapping[str, Any] | None, stiffness: Any
+        self,
+        model: LinearModel,
+        sigma_t: np.ndarray,
+        report: Mapping[str, Any] | None,
+        nonlinear: NonlinearEstimator | None,
     ):
         self.sigma_t = sigma_t
         self.linear_error = ModelError.from_report(report)
         nl = (report or {}).get("nonlinear")
         self.nonlinear_error = ModelError.from_report(nl if isinstance(nl, Mapping) else None)
         self._model = model
-        self._stiffness = stiffness  # the nonlinear calibration's K (6 x 6), or None
+        self._nonlinear = nonlinear
         self._cache: dict[tuple[int, str, bytes], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self._version = -1
+        self._anchor: tuple[np.ndarray, np.ndarray] | None = None  # the pose and field of the nonlinear maps
+
+    def _nonlinear_map(self, channels: np.ndarray, pose: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+        """K [(J_S^T J_S + P)^-1 J_S^T] (its first 6 rows): how the solve's answer moves with the
+        flux of the channels used, J the flux model's Jacobian at the solve's pose with the
+        background field's 3 columns (the solve estimates the field beside the pose, with its
+        prior P: `model.nonlinear._normal`). Without those columns the noise of Fz and the
+        torques came out at half the spread the solve gives."""
+        assert self._nonlinear is not None
+        T, u = pose if pose is not None else (np.eye(4), np.zeros(3))
+        J = self._nonlinear.model.predict_and_jacobian(T, u, background=True)[1][channels]
+        N = J.T @ J
+        N[6:, 6:] += PRIOR_EYE
+        return self._nonlinear.stiffness @ np.linalg.solve(N, J.T)[:6]
+
+    def _moved(self, pose: tuple[np.ndarray, np.ndarray] | None) -> bool:
+        """The solve's pose is off the one the nonlinear maps were made at (`NONLINEAR_MOVE_M`)."""
+        if pose is None:
+            return self._anchor is None
+        if self._anchor is None:
+            return True
+        T, T0 = pose[0], self._anchor[0]
+        R = T0[:3, :3].T @ T[:3, :3]
+        turn = math.acos(max(-1.0, min(1.0, (float(np.trace(R)) - 1.0) / 2.0)))
+        return bool(np.linalg.norm(T[:3, 3] - T0[:3, 3]) > NONLINEAR_MOVE_M or turn > NONLINEAR_MOVE_RAD)
 
     def maps(
-        self, version: int, estimator: str, chips: np.ndarray, tare_samples: int | None
+        self,
+        version: int,
+        estimator: str,
+        chips: np.ndarray,
+        tare_samples: int | None,
+        pose: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """One sample's noise covariance, its diagonal, and the tare's covariance, for the
-        estimator and ``chips`` (bool per chip) at the pipeline's ``version``; None when
+        estimator and ``chips`` (bool per chip) at the pipeline's ``version``; ``pose``: the
+        nonlinear solve's pose T_0C and background field (T, {0}) (None: at rest); None when
         the chips left do not see all six axes."""
         if version != self._version:  # a tare or untare: the tare's part changes
             self._cache.clear()
             self._version = version
+        nonlinear = estimator == "nonlinear" and self._nonlinear is not None
+        if nonlinear and self._moved(pose):
+            for key in [k for k in self._cache if k[1] == "nonlinear"]:
+                del self._cache[key]
+            self._anchor = (np.eye(4), np.zeros(3)) if pose is None else (pose[0].copy(), pose[1].copy())
         key = (version, estimator, chips.tobytes())
         found = self._cache.get(key)
         if found is None:
             channels = np.repeat(chips, 3)
             try:
-                if estimator == "nonlinear" and self._stiffness is not None:
-                    if self._model.H is None:
-                        return None
-                    H_S = self._model.H[channels]
-                    M = np.asarray(self._stiffness) @ np.linalg.pinv(H_S)
+                if nonlinear:
+                    M = self._nonlinear_map(channels, self._anchor)
                 elif chips.all():
                     M = self._model.KA
                 else:
                     M = self._model.map_from(chips)
-            except ValueError:
+            except (ValueError, np.linalg.LinAlgError):
                 return None
             noise = propagate(M, self.sigma_t[channels])
             offset = noise / tare_samples if tare_samples else np.zeros((6, 6))
@@ -163,12 +209,14 @@ class Uncertainty:
         tare_samples: int | None,
         factor: float,
         scale: float = 1.0,
+        pose: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> SampleSigma:
         """The sigma of a sample estimated by ``estimator`` from ``chips``; ``wrench``: its
         estimate before the filter (for the model error's load); ``factor``: the filter's
         variance factor (`WrenchFilter.variance_factor`); ``scale``: what the wrench was
-        multiplied by after the estimate (the temperature stage's)."""
-        maps = self.maps(version, estimator, chips, tare_samples)
+        multiplied by after the estimate (the temperature stage's); ``pose``: the nonlinear
+        solve's pose and background field (`maps`)."""
+        maps = self.maps(version, estimator, chips, tare_samples, pose)
         if maps is None or not np.all(np.isfinite(wrench)):
             return UNKNOWN
         noise, noise_diag, offset = maps
