@@ -13,8 +13,9 @@ import zmq
 
 from ftsensord.calibration.fit import error_model
 from ftsensord.client import Subscriber
+from ftsensord.model.linear import SENSOR_RANGE
 from ftsensord.processing.filters import WrenchFilter, variance_factors
-from ftsensord.processing.uncertainty import ModelError
+from ftsensord.processing.uncertainty import AXES, ModelError
 from ftsensord.protocol import wire
 
 from .test_daemon import Rig
@@ -109,22 +110,76 @@ def test_variance_factors_of_a_slow_lowpass_end_above_the_steady_one():
 
 
 def test_the_model_error_is_fitted_against_the_load_and_read_back():
+    """Errors drawn with a known spread per axis, rest^2 + sum_j (G_kj w_j)^2: the fit gives back
+    G's entries, and the sigma its variance at a load."""
     rng = np.random.default_rng(3812)
-    wrench = rng.uniform(-1, 1, (400, 6)) * np.array([10, 10, 5, 0.05, 0.05, 0.05])
-    L = np.sqrt(np.sum((wrench / np.array([50, 50, 20, 0.2, 0.2, 0.2])) ** 2, axis=1))
-    error = rng.standard_normal((400, 6)) * np.sqrt(0.01**2 + (0.2 * L[:, None]) ** 2)
+    span = np.array([10, 10, 5, 0.05, 0.05, 0.05])
+    wrench = rng.uniform(-1, 1, (4000, 6)) * span
+    G = np.zeros((6, 6))
+    # a gain, two cross-talks and a torque's gain, each as large as the rest at its axis's span
+    G[1, 1], G[1, 3], G[0, 4], G[5, 5] = 0.1, 20.0, 0.4, 0.02
+    rest = np.array([0.01, 0.01, 0.02, 0.001, 0.001, 0.001])
+    spread = np.sqrt(rest**2 + (wrench**2) @ (G**2).T)
+    error = rng.standard_normal((4000, 6)) * spread
     fitted = error_model(error, wrench)
-    assert fitted is not None and fitted["poses"] == 400
-    # 20 %: a spread's two terms from 400 noisy squares (each term's error about 10 %).
-    assert list(fitted["per_load"].values()) == pytest.approx([0.2] * 6, rel=0.2)
-    m = ModelError.from_report({"validation_error": fitted})
-    assert m.source == "validation"
+    assert fitted is not None and fitted["loads"] == 4000 and fitted["source"] == "poses"
+    m = ModelError.from_report({"error_model": fitted})
+    assert m.source == "poses"
+    # 15 %: each term's share of 4000 noisy squares (a square's relative spread is sqrt(2)), the
+    # curvature terms taking a little of the gain's; the terms not drawn stay near zero.
+    for k, j in [(1, 1), (1, 3), (0, 4), (5, 5)]:
+        assert m.gain[k, j] == pytest.approx(G[k, j], rel=0.15)
+    at = np.array([10.0, 0, 0, 0.05, 0, 0])
+    expected = rest**2 + (at**2) @ (G**2).T
+    assert np.sqrt(m.variance(at, np.zeros(6), tared=False)) == pytest.approx(np.sqrt(expected), rel=0.15)
     at_rest_tared = m.variance(np.zeros(6), np.zeros(6), tared=True)
     assert np.all(at_rest_tared == 0)  # at the tare's own load: nothing of the model's error left
-    untared = m.variance(np.zeros(6), np.zeros(6), tared=False)
-    assert np.allclose(untared, m.rest**2)
+    assert np.allclose(m.variance(np.zeros(6), np.zeros(6), tared=False), m.rest**2)
     assert ModelError.from_report({}).source == "none"
-    assert error_model(error[:3], wrench[:3]) is None
+    assert error_model(error[:12], wrench[:12]) is None  # fewer loads than the form's 13 unknowns
+
+
+def test_older_calibration_files_model_error_reads_as_it_did():
+    """A file from before the load-dependent form (one coefficient per axis against |w / range|)
+    and one older still (the validation RMS alone) load, and give the variance they gave."""
+    rest = {a: 0.01 * (k + 1) for k, a in enumerate(AXES)}
+    per_load = {a: 0.1 * (k + 1) for k, a in enumerate(AXES)}
+    older = ModelError.from_report(
+        {"validation_error": {"rest": rest, "per_load": per_load, "mean_load": 0.4}}
+    )
+    assert older.source == "validation"
+    w = np.array([5.0, -3.0, 2.0, 0.05, 0.0, -0.02])
+    L2 = np.sum((w / SENSOR_RANGE) ** 2)
+    expected = np.array(list(rest.values())) ** 2 + np.array(list(per_load.values())) ** 2 * L2
+    assert older.variance(w, np.zeros(6), tared=False) == pytest.approx(expected, rel=1e-12)
+    oldest = ModelError.from_report({"validation_rmse": rest})
+    assert oldest.source == "validation_rmse"
+    assert oldest.variance(w, np.zeros(6), tared=True) == pytest.approx(np.array(list(rest.values())) ** 2)
+
+
+def test_the_model_error_beyond_the_range_is_the_check_poses_and_zero_within():
+    """Loads within the range with a small gain error, loads 10-20 times beyond it on Fx with a
+    large one: the gain comes from the loads within alone, and the excess beyond from the rest."""
+    rng = np.random.default_rng(3813)
+    within = np.array([2.0, 2.0, 2.0, 0.2, 0.2, 0.2])
+    inside = rng.uniform(-1, 1, (3000, 6)) * within
+    outside = rng.uniform(-1, 1, (600, 6)) * within  # beyond the range on Fx alone
+    outside[:, 0] = rng.uniform(10, 20, 600) * within[0] * rng.choice([-1, 1], 600)
+    wrench = np.vstack([inside, outside])
+    spread = np.sqrt(1e-6 + (0.01 * wrench[:, 0]) ** 2)[:, None] * np.ones(6)
+    big = np.maximum(np.abs(outside[:, 0]) - within[0], 0.0) * 0.05
+    spread[3000:] = np.sqrt(spread[3000:] ** 2 + big[:, None] ** 2)
+    error = rng.standard_normal(spread.shape) * spread
+    fitted = error_model(error, wrench, 0.0, "poses", within)
+    assert fitted is not None and fitted["loads"] == 3000 and fitted["loads_beyond"] == 600
+    m = ModelError.from_report({"error_model": fitted})
+    # 15 %: as above; the gain would be several times larger fitted on every load together.
+    assert m.gain[0, 0] == pytest.approx(0.01, rel=0.15)
+    assert m.beyond[0, 0] == pytest.approx(0.05, rel=0.15)
+    edge = np.array([2.0, 0, 0, 0, 0, 0])
+    assert m.variance(edge, np.zeros(6), False)[0] == pytest.approx(
+        m.variance(edge * (1 - 1e-12), np.zeros(6), False)[0], rel=1e-9
+    )  # continuous at the range's edge: the last term starts from zero there
 
 
 def test_the_subscriber_gives_each_wrench_its_sigma_and_old_subscriptions_never_see_it(zmq_context):

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -38,47 +38,109 @@ _SCALE = (1.0 / SENSOR_RANGE) ** 2
 
 @dataclass(frozen=True)
 class ModelError:
-    """The calibration's error per axis as a function of the load, from its report's
-    ``validation_error`` (`calibration.fit.error_model`): error^2 ~ rest^2 + (per_load L)^2,
-    L = |w / SENSOR_RANGE|. After a tare the error that stays at the tare's load is taken
-    out: the load is counted from the tare's, and the rest term grows back with it, in
-    full from the validation poses' RMS load (``mean_load``) on.
+    """The calibration's error per axis as a function of the load w (N, Nm), from its report's
+    ``error_model`` (`calibration.fit.error_model`): per axis k,
 
-    ``source`` says what it came from: "validation" (load-dependent), "validation_rmse"
-    (a file written before it was recorded: the validation RMS at every load), or "none"
-    (no validation poses: no model error in the sigma)."""
+        error_k^2 ~ rest_k^2 + sum_j (gain_kj w_j)^2 + sum_j (curvature_kj w_j^2)^2
+                    + sum_j (beyond_kj max(0, |w_j| - within_j))^2,
 
-    rest: np.ndarray
-    per_load: np.ndarray
+    the last term zero within the calibration's range ``within`` (the check poses' errors beyond
+    it), where the first terms are held at the range's edge (their curvature, fitted within it,
+    would grow as w^4 beyond). Without a ``within`` (no loads beyond it were measured: the linear
+    map's, whose estimate is flagged `extrapolated` there) the form runs on as fitted.
+
+    Most of it is a bias, not noise: the same load reads the same error each time, and no
+    filter or averaging shrinks it; over the loads of the calibration's range, the errors
+    spread as this variance says. After a tare the error that stays at the tare's load is
+    taken out: the load is counted from the tare's (exact for the gain term), and the rest
+    term grows back with it, in full from the fitted loads' RMS range-scaled load
+    (``mean_load``) on.
+
+    ``source`` says what it came from: "flux model" (the linear map's error over the
+    calibration's range, read through the calibration's flux model), "poses" (the errors on
+    the poses the calibration holds), "validation" (an older file's validation poses, one
+    coefficient per axis against the load's range-scaled norm), "validation_rmse" (older still:
+    the validation RMS at every load), or "none" (no model error in the sigma)."""
+
+    rest: np.ndarray  # (6,) N, Nm
+    gain: np.ndarray  # (6, 6) error per unit load, row: the axis in error
+    curvature: np.ndarray  # (6, 6) error per unit load squared
     mean_load: float
     source: str
+    beyond: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))  # per unit load past ``within``
+    within: np.ndarray = field(
+        default_factory=lambda: np.full(6, np.inf)
+    )  # the range the first terms hold in
+    _beyond2: np.ndarray = field(init=False, repr=False)
+    _gain2: np.ndarray = field(init=False, repr=False)
+    _curvature2: np.ndarray = field(init=False, repr=False)
+    _loaded: bool = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        # Squared once: a sample's variance is then two 6 x 6 products on w^2 and w^4.
+        object.__setattr__(self, "_gain2", self.gain**2)
+        object.__setattr__(self, "_curvature2", self.curvature**2)
+        object.__setattr__(self, "_beyond2", self.beyond**2)
+        object.__setattr__(self, "_loaded", bool(np.any(self.gain) or np.any(self.curvature)))
 
     @classmethod
     def from_report(cls, report: Mapping[str, Any] | None) -> ModelError:
         report = report or {}
-        fitted = report.get("validation_error")
+        fitted = report.get("error_model")
         if isinstance(fitted, Mapping):
             return cls(
                 np.array([float(fitted["rest"][a]) for a in AXES]),
-                np.array([float(fitted["per_load"][a]) for a in AXES]),
+                np.array([[float(v) for v in fitted["gain"][a]] for a in AXES]),
+                np.array([[float(v) for v in fitted["curvature"][a]] for a in AXES]),
                 float(fitted.get("mean_load", 0.0)),
+                str(fitted.get("source", "poses")),
+                np.array([[float(v) for v in fitted.get("beyond", {}).get(a, [0.0] * 6)] for a in AXES]),
+                np.full(6, np.inf)
+                if fitted.get("within") is None
+                else np.array([float(v) for v in fitted["within"]]),
+            )
+        older = report.get("validation_error")
+        if isinstance(older, Mapping):
+            # error^2 ~ rest^2 + (per_load |w / SENSOR_RANGE|)^2: a gain of per_load / range_j on
+            # every axis j, exactly.
+            per_load = np.array([float(older["per_load"][a]) for a in AXES])
+            return cls(
+                np.array([float(older["rest"][a]) for a in AXES]),
+                per_load[:, None] / SENSOR_RANGE[None, :],
+                np.zeros((6, 6)),
+                float(older.get("mean_load", 0.0)),
                 "validation",
             )
         rmse = report.get("validation_rmse")
         if isinstance(rmse, Mapping):
-            return cls(np.array([float(rmse[a]) for a in AXES]), np.zeros(6), 0.0, "validation_rmse")
-        return cls(np.zeros(6), np.zeros(6), 0.0, "none")
+            return cls(
+                np.array([float(rmse[a]) for a in AXES]),
+                np.zeros((6, 6)),
+                np.zeros((6, 6)),
+                0.0,
+                "validation_rmse",
+            )
+        return cls(np.zeros(6), np.zeros((6, 6)), np.zeros((6, 6)), 0.0, "none")
 
     def variance(self, wrench: np.ndarray, tare_wrench: np.ndarray, tared: bool) -> np.ndarray:
         """The model error's variance per axis at ``wrench`` (as published: after the tare's
         ``tare_wrench`` was taken off)."""
-        if self.source != "validation":
-            return self.rest**2
-        load = float(np.dot(wrench * wrench, _SCALE))  # L^2, from the tare's load when tared
+        rest2 = self.rest**2
+        if not self._loaded:
+            return rest2
+        w2 = wrench * wrench
+        past = np.abs(wrench + tare_wrench) - self.within  # the load on the sensor, tare's included
+        beyond = bool(np.any(past > 0))
+        if beyond:  # the range's terms held at its edge, the last term grows from there
+            w2 = np.minimum(w2, self.within**2)
+        loaded = self._gain2 @ w2 + self._curvature2 @ (w2 * w2)
+        if beyond:
+            loaded = loaded + self._beyond2 @ np.maximum(past, 0.0) ** 2
         if not tared:
-            return self.rest**2 + self.per_load**2 * load
+            return rest2 + loaded
+        load = float(np.dot(w2, _SCALE))  # L^2, from the tare's load
         back = 1.0 if self.mean_load <= 0 else min(1.0, load / self.mean_load**2)
-        return self.rest**2 * back + self.per_load**2 * load
+        return rest2 * back + loaded
 
 
 def propagate(M: np.ndarray, sigma_t: np.ndarray) -> np.ndarray:
