@@ -103,10 +103,70 @@ def test_the_filters_variance_factor_against_a_monte_carlo(averaging, lowpass_hz
         assert predicted[-1] == pytest.approx((1 - a) / (1 + a), rel=1e-6)  # 1e-6: the table's settling
 
 
-def test_variance_factors_of_a_slow_lowpass_end_above_the_steady_one():
-    a = 1 - math.exp(-2 * math.pi * 0.05 / 1000)
-    f = variance_factors(4, a)
-    assert f[0] == 1.0 and f[-1] >= a / (2 - a) / 4 * 0.999  # (0.1 %: the moving average's correlation)
+def brute_force_factors(averaging: int, alpha: float, steps: int) -> np.ndarray:
+    """The filter's weights on each input, built output by output, and their squares' sums."""
+    w = np.zeros(steps)
+    out = []
+    for k in range(1, steps + 1):
+        n = min(k, averaging)
+        a = np.zeros(steps)
+        a[k - n : k] = 1.0 / n
+        w = a if k == 1 else (1 - alpha) * w + alpha * a
+        out.append(float(w @ w))
+    return np.array(out)
+
+
+@pytest.mark.parametrize(
+    ("averaging", "lowpass_hz", "rate_hz"),
+    [
+        (1, 5.0, 100.0),
+        (2, 5.0, 100.0),
+        (4, 0.05, 1000.0),
+        (7, 3.0, 100.0),
+        (25, 1.0, 100.0),
+        (10, 0.0, 100.0),
+    ],
+)
+def test_the_variance_factors_closed_form_is_the_brute_force_sum(averaging, lowpass_hz, rate_hz):
+    """Every output from the first to well past the start-up (2 x averaging + 600), against the
+    weights' squares summed one by one; then the steady factor against a long run's end."""
+    alpha = 1.0 if lowpass_hz == 0 else 1 - math.exp(-2 * math.pi * lowpass_hz / rate_hz)
+    f = variance_factors(averaging, alpha)
+    steps = 2 * averaging + 600
+    brute = brute_force_factors(averaging, alpha, steps)
+    closed = np.array([f.at(n) for n in range(1, steps + 1)])
+    assert closed == pytest.approx(brute, rel=1e-12)  # 1e-12: round-off of a few thousand sums
+    if alpha < 1:
+        settled = 1 + math.ceil(40 / alpha)  # b^(2k) = exp(-2 alpha k): under 1e-30 of the start by then
+        assert f.at(settled) == pytest.approx(f.steady, rel=1e-12)
+        w_steady = np.array([(1 - (1 - alpha) ** (d + 1)) / averaging for d in range(averaging)])
+        lags = np.arange(averaging, averaging + settled)
+        far = (1 - alpha) ** (lags - averaging + 1) * (1 - (1 - alpha) ** averaging) / averaging
+        assert f.steady == pytest.approx(float(w_steady @ w_steady + far @ far), rel=1e-9)
+
+
+def test_the_variance_factors_limits():
+    """The points where the formula's parts are singular or end: no low-pass (alpha = 1), no
+    averaging (the low-pass's own (1 - a)/(1 + a)), a cutoff -> 0 (alpha -> 0: the steady factor
+    -> alpha / 2, which the formula loses nothing of to cancellation), one input (factor 1)."""
+    assert variance_factors(1, 1.0).at(1) == 1.0 and variance_factors(1, 1.0).at(10**6) == 1.0
+    assert variance_factors(8, 1.0).steady == pytest.approx(1 / 8) and variance_factors(8, 1.0).at(
+        3
+    ) == pytest.approx(1 / 3)
+    a = math.exp(-2 * math.pi * 2.0 / 100)
+    assert variance_factors(1, 1 - a).steady == pytest.approx((1 - a) / (1 + a), rel=1e-14)
+    for averaging in (1, 5, 10000):
+        for alpha in (1e-6, 1e-9, 1e-12):
+            f = variance_factors(averaging, alpha)
+            assert f.at(1) == 1.0
+            # alpha / 2 (1 + O(N alpha)): the window's own terms are (N alpha)^2 / 3 N of it.
+            assert f.steady == pytest.approx(alpha / 2, rel=averaging * alpha + 1e-9)
+            assert all(0 < f.at(n) <= 1 for n in (2, averaging, 2 * averaging + 1, 10**12))
+    # The largest averaging the configuration takes, with the slowest low-pass: the start-up's
+    # 2N steps, not the low-pass's millions; its factors still fall from 1 to the steady one.
+    f = variance_factors(10000, 1 - math.exp(-2 * math.pi * 0.01 / 1000))
+    assert len(f.head) == 20000 and 1 > f.at(10000) > f.at(20000) > f.at(50000) > f.steady
+    assert f.at(10**9) == pytest.approx(f.steady, rel=1e-12)
 
 
 def test_the_model_error_is_fitted_against_the_load_and_read_back():
