@@ -214,7 +214,7 @@ def linear_error_model(
     zero = linear.with_zero(flux(np.zeros(6)))
     estimates = np.array([zero.wrench(flux(w)) for w in loads])
     # Against the estimate, not the load: a sample's sigma is asked at the wrench it reads.
-    return error_model(estimates - loads, estimates, 0.0, "flux model")
+    return error_model(estimates - loads, estimates, 0.0, "flux model", tared=True)
 
 
 def nonlinear_error_model(

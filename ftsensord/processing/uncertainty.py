@@ -41,8 +41,8 @@ class ModelError:
     """The calibration's error per axis as a function of the load w (N, Nm), from its report's
     ``error_model`` (`calibration.fit.error_model`): per axis k,
 
-        error_k^2 ~ rest_k^2 + sum_j (gain_kj w_j)^2 + sum_j (curvature_kj w_j^2)^2
-                    + sum_j (beyond_kj max(0, |w_j| - within_j))^2,
+        error_k^2 ~ rest_k^2 + sum_j spread_kj |w_j| + sum_j (gain_kj w_j)^2
+                    + sum_j (curvature_kj w_j^2)^2 + sum_j (beyond_kj max(0, |w_j| - within_j))^2,
 
     the last term zero within the calibration's range ``within`` (the check poses' errors beyond
     it), where the first terms are held at the range's edge (their curvature, fitted within it,
@@ -63,7 +63,8 @@ class ModelError:
     the validation RMS at every load), or "none" (no model error in the sigma)."""
 
     rest: np.ndarray  # (6,) N, Nm
-    gain: np.ndarray  # (6, 6) error per unit load, row: the axis in error
+    spread: np.ndarray  # (6, 6) error^2 per unit load, row: the axis in error
+    gain: np.ndarray  # (6, 6) error per unit load
     curvature: np.ndarray  # (6, 6) error per unit load squared
     mean_load: float
     source: str
@@ -81,7 +82,9 @@ class ModelError:
         object.__setattr__(self, "_gain2", self.gain**2)
         object.__setattr__(self, "_curvature2", self.curvature**2)
         object.__setattr__(self, "_beyond2", self.beyond**2)
-        object.__setattr__(self, "_loaded", bool(np.any(self.gain) or np.any(self.curvature)))
+        object.__setattr__(
+            self, "_loaded", bool(np.any(self.spread) or np.any(self.gain) or np.any(self.curvature))
+        )
 
     @classmethod
     def from_report(cls, report: Mapping[str, Any] | None) -> ModelError:
@@ -90,6 +93,7 @@ class ModelError:
         if isinstance(fitted, Mapping):
             return cls(
                 np.array([float(fitted["rest"][a]) for a in AXES]),
+                np.array([[float(v) for v in fitted["spread"][a]] for a in AXES]),
                 np.array([[float(v) for v in fitted["gain"][a]] for a in AXES]),
                 np.array([[float(v) for v in fitted["curvature"][a]] for a in AXES]),
                 float(fitted.get("mean_load", 0.0)),
@@ -106,21 +110,18 @@ class ModelError:
             per_load = np.array([float(older["per_load"][a]) for a in AXES])
             return cls(
                 np.array([float(older["rest"][a]) for a in AXES]),
+                np.zeros((6, 6)),
                 per_load[:, None] / SENSOR_RANGE[None, :],
                 np.zeros((6, 6)),
                 float(older.get("mean_load", 0.0)),
                 "validation",
             )
+        none = np.zeros((6, 6))
         rmse = report.get("validation_rmse")
         if isinstance(rmse, Mapping):
-            return cls(
-                np.array([float(rmse[a]) for a in AXES]),
-                np.zeros((6, 6)),
-                np.zeros((6, 6)),
-                0.0,
-                "validation_rmse",
-            )
-        return cls(np.zeros(6), np.zeros((6, 6)), np.zeros((6, 6)), 0.0, "none")
+            rest = np.array([float(rmse[a]) for a in AXES])
+            return cls(rest, none, none, none, 0.0, "validation_rmse")
+        return cls(np.zeros(6), none, none, none, 0.0, "none")
 
     def variance(self, wrench: np.ndarray, tare_wrench: np.ndarray, tared: bool) -> np.ndarray:
         """The model error's variance per axis at ``wrench`` (as published: after the tare's
@@ -133,7 +134,7 @@ class ModelError:
         beyond = bool(np.any(past > 0))
         if beyond:  # the range's terms held at its edge, the last term grows from there
             w2 = np.minimum(w2, self.within**2)
-        loaded = self._gain2 @ w2 + self._curvature2 @ (w2 * w2)
+        loaded = self.spread @ np.sqrt(w2) + self._gain2 @ w2 + self._curvature2 @ (w2 * w2)
         if beyond:
             loaded = loaded + self._beyond2 @ np.maximum(past, 0.0) ** 2
         if not tared:
