@@ -73,15 +73,19 @@ class ModelError:
         default_factory=lambda: np.full(6, np.inf)
     )  # the range the first terms hold in
     _beyond2: np.ndarray = field(init=False, repr=False)
-    _gain2: np.ndarray = field(init=False, repr=False)
-    _curvature2: np.ndarray = field(init=False, repr=False)
+    _terms: np.ndarray = field(init=False, repr=False)
+    _rest2: np.ndarray = field(init=False, repr=False)
+    _resting: bool = field(init=False, repr=False)
+    _bounded: bool = field(init=False, repr=False)
     _loaded: bool = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        # Squared once: a sample's variance is then two 6 x 6 products on w^2 and w^4.
-        object.__setattr__(self, "_gain2", self.gain**2)
-        object.__setattr__(self, "_curvature2", self.curvature**2)
+        # One 6 x 18 map on [|w|, w^2, w^4]: a sample's variance is one product.
+        object.__setattr__(self, "_terms", np.hstack([self.spread, self.gain**2, self.curvature**2]))
         object.__setattr__(self, "_beyond2", self.beyond**2)
+        object.__setattr__(self, "_rest2", self.rest**2)
+        object.__setattr__(self, "_resting", bool(np.any(self.rest)))
+        object.__setattr__(self, "_bounded", bool(np.all(np.isfinite(self.within))))
         object.__setattr__(
             self, "_loaded", bool(np.any(self.spread) or np.any(self.gain) or np.any(self.curvature))
         )
@@ -126,18 +130,21 @@ class ModelError:
     def variance(self, wrench: np.ndarray, tare_wrench: np.ndarray, tared: bool) -> np.ndarray:
         """The model error's variance per axis at ``wrench`` (as published: after the tare's
         ``tare_wrench`` was taken off)."""
-        rest2 = self.rest**2
+        rest2 = self._rest2
         if not self._loaded:
             return rest2
-        w2 = wrench * wrench
-        past = np.abs(wrench + tare_wrench) - self.within  # the load on the sensor, tare's included
-        beyond = bool(np.any(past > 0))
-        if beyond:  # the range's terms held at its edge, the last term grows from there
-            w2 = np.minimum(w2, self.within**2)
-        loaded = self.spread @ np.sqrt(w2) + self._gain2 @ w2 + self._curvature2 @ (w2 * w2)
-        if beyond:
-            loaded = loaded + self._beyond2 @ np.maximum(past, 0.0) ** 2
-        if not tared:
+        a = np.abs(wrench)
+        beyond = None
+        if self._bounded:
+            past = np.abs(wrench + tare_wrench) - self.within  # the load on the sensor, tare's included
+            if np.any(past > 0):  # the range's terms held at its edge, the last term grows from there
+                a = np.minimum(a, self.within)
+                beyond = self._beyond2 @ np.maximum(past, 0.0) ** 2
+        w2 = a * a
+        loaded = self._terms @ np.concatenate((a, w2, w2 * w2))
+        if beyond is not None:
+            loaded = loaded + beyond
+        if not tared or not self._resting:
             return rest2 + loaded
         load = float(np.dot(w2, _SCALE))  # L^2, from the tare's load
         back = 1.0 if self.mean_load <= 0 else min(1.0, load / self.mean_load**2)
@@ -198,6 +205,7 @@ class Uncertainty:
         self._cache: dict[tuple[int, str, bytes], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self._version = -1
         self._anchor: tuple[np.ndarray, np.ndarray] | None = None  # the pose and field of the nonlinear maps
+        self._anchor_rows: list[float] = []  # its T's top 3 rows, as `_moved` compares them
 
     def _nonlinear_map(self, channels: np.ndarray, pose: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
         """K [(J_S^T J_S + P)^-1 J_S^T] (its first 6 rows): how the solve's answer moves with the
@@ -213,15 +221,17 @@ class Uncertainty:
         return self._nonlinear.stiffness @ np.linalg.solve(N, J.T)[:6]
 
     def _moved(self, pose: tuple[np.ndarray, np.ndarray] | None) -> bool:
-        """The solve's pose is off the one the nonlinear maps were made at (`NONLINEAR_MOVE_M`)."""
+        """The solve's pose is off the one the nonlinear maps were made at (`NONLINEAR_MOVE_M`:
+        its position's, and its rotation matrix's entries, which move by at most the angle)."""
         if pose is None:
             return self._anchor is None
         if self._anchor is None:
             return True
-        T, T0 = pose[0], self._anchor[0]
-        R = T0[:3, :3].T @ T[:3, :3]
-        turn = math.acos(max(-1.0, min(1.0, (float(np.trace(R)) - 1.0) / 2.0)))
-        return bool(np.linalg.norm(T[:3, 3] - T0[:3, 3]) > NONLINEAR_MOVE_M or turn > NONLINEAR_MOVE_RAD)
+        # Twelve Python floats (the 3 x 4 top of T), not numpy's calls on a 4 x 4: a sample's check costs 2 us.
+        now, then = pose[0][:3].ravel().tolist(), self._anchor_rows
+        turned = max(abs(now[i] - then[i]) for i in (0, 1, 2, 4, 5, 6, 8, 9, 10))
+        shifted = max(abs(now[i] - then[i]) for i in (3, 7, 11))
+        return shifted > NONLINEAR_MOVE_M or turned > NONLINEAR_MOVE_RAD
 
     def maps(
         self,
@@ -243,6 +253,7 @@ class Uncertainty:
             for key in [k for k in self._cache if k[1] == "nonlinear"]:
                 del self._cache[key]
             self._anchor = (np.eye(4), np.zeros(3)) if pose is None else (pose[0].copy(), pose[1].copy())
+            self._anchor_rows = self._anchor[0][:3].ravel().tolist()
         key = (version, estimator, chips.tobytes())
         found = self._cache.get(key)
         if found is None:
