@@ -358,3 +358,15 @@ def test_calibrate_records_the_linear_maps_error_over_the_range_and_it_holds_off
         # loaded axis's own error (its gain's): the cross-talk onto the other axes at a load of
         # one axis alone can exceed it (docs/design/estimators.md, "Each sample's sigma").
         assert abs(read[k] - w[k]) <= 3 * sigma[k], AXES[k]
+
+
+def test_the_model_error_is_asked_at_the_load_less_the_readings_noise():
+    """A reading within its noise of no load adds no model error (the noise is not a load); one
+    beyond it, the model error of its size less that margin."""
+    m = ModelError(np.zeros(6), np.full((6, 6), 1e-3), np.full((6, 6), 0.05), np.zeros((6, 6)), 0.0, "poses")
+    known = np.full(6, 0.02)
+    assert np.all(m.variance(np.full(6, 0.019), np.zeros(6), True, known) == 0)
+    w = np.array([1.0, 0, 0, 0, 0, 0])
+    shrunk = m.variance(w, np.zeros(6), True, known)
+    assert shrunk == pytest.approx(m.variance(w - 0.02 * np.sign(w), np.zeros(6), True), rel=1e-12)
+    assert np.all(shrunk < m.variance(w, np.zeros(6), True))

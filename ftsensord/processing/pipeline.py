@@ -187,11 +187,13 @@ class SensorPipeline:
             wflags |= wire.FLAG_OVERLOAD
         own = wflags
         filtered, wflags = self.filter.update(wrench, wflags)  # a filtered wrench carries its inputs' flags
-        return SensorSample(flux, flags, filtered, wflags, valid, self._sigma(wrench, own, valid, scale))
+        return SensorSample(flux, flags, filtered, wflags, valid, self._sigma(filtered, own, valid, scale))
 
     def _sigma(self, wrench: np.ndarray, flags: int, valid: bool, scale: float) -> SampleSigma:
         """The sigma of this sample (`uncertainty`): unknown without an estimate or after a
-        fall-back; ``wrench``: its estimate before the filter, ``flags`` its own."""
+        fall-back; ``wrench``: the sample as published, after the filter (the load its model
+        error is asked at: the filter's output is nearer the load than one noisy estimate),
+        ``flags`` the estimate's own."""
         used = self._used
         if self.uncertainty is None or used is None or not valid or flags & wire.FLAG_FALLBACK:
             return UNKNOWN
