@@ -199,8 +199,8 @@ def linear_error_model(
     come with the torques of those arms, and K A is fitted to make its error small there. A
     force with another torque (a push near the flange, a couple) is off the plan, and there the
     map's error is several times larger: on three as-built parts a pure 2 N Fy reads 10-12 %
-    low and Fx 2-3 %; over loads drawn across the range Fy's error is 0.22 N RMS, against
-    0.06-0.08 N on the plan's fit poses. The flux model reproduces the part's
+    low and Fx 1.7-2.7 %; over loads drawn across the range Fy's error is 0.22 N RMS, against
+    0.08 N on the plan's fit poses. The flux model reproduces the part's
     flux within its 0.4 uT residual over the whole range (its estimate's error there is 0.1-0.2 %
     of the load), so it tells the map's error at any load of the range to a few mN; the poses
     cannot. Beyond the range the linear estimate is flagged `extrapolated`."""
