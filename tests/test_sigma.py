@@ -3,6 +3,7 @@ the filter, in degraded mode, on the wire and in the client."""
 
 from __future__ import annotations
 
+import json
 import math
 import time
 import uuid
@@ -11,7 +12,7 @@ import numpy as np
 import pytest
 import zmq
 
-from ftsensord.calibration.calfile import Calibration
+from ftsensord.calibration.calfile import Calibration, checksum
 from ftsensord.calibration.fit import error_model
 from ftsensord.calibration.procedure import calibrate
 from ftsensord.chip import mlx90393 as mlx
@@ -370,3 +371,45 @@ def test_the_model_error_is_asked_at_the_load_less_the_readings_noise():
     shrunk = m.variance(w, np.zeros(6), True, known)
     assert shrunk == pytest.approx(m.variance(w - 0.02 * np.sign(w), np.zeros(6), True), rel=1e-12)
     assert np.all(shrunk < m.variance(w, np.zeros(6), True))
+
+
+@pytest.mark.parametrize("form", ["validation_error", "error_model"])
+def test_a_calibration_file_with_either_model_error_form_loads_and_gives_its_sigma(tmp_path, form):
+    """The packaged file (validation RMS only) with the form of the files written before
+    `error_model` (`validation_error`) or with `error_model` in its report, checksum made
+    again: it loads, and the sigma reads the form it holds."""
+    doc = json.loads(builtin_path("sim-sensor1.json").read_text())
+    rest = {a: 0.01 for a in AXES}
+    if form == "validation_error":
+        doc["fit_report"][form] = {
+            "rest": rest,
+            "per_load": {a: 0.05 for a in AXES},
+            "mean_load": 0.4,
+            "poses": 60,
+        }
+    else:
+        doc["fit_report"][form] = {
+            "rest": rest,
+            "spread": {a: [0.0] * 6 for a in AXES},
+            "gain": {a: [0.02] * 6 for a in AXES},
+            "curvature": {a: [0.0] * 6 for a in AXES},
+            "beyond": {a: [0.0] * 6 for a in AXES},
+            "within": None,
+            "mean_load": 0.4,
+            "loads": 4000,
+            "loads_beyond": 0,
+            "source": "flux model",
+        }
+    doc["checksum"] = checksum(doc)
+    path = tmp_path / "cal.json"
+    path.write_text(json.dumps(doc))
+    cal = Calibration.load(path)
+    m = ModelError.from_report(cal.report)
+    assert m.source == ("validation" if form == "validation_error" else "flux model")
+    w = np.array([2.0, 0, 0, 0, 0, 0])
+    expected = (
+        0.01**2 + (0.05 * 2.0 / SENSOR_RANGE[0]) ** 2
+        if form == "validation_error"
+        else 0.01**2 + (0.02 * 2.0) ** 2
+    )
+    assert m.variance(w, np.zeros(6), tared=False)[0] == pytest.approx(expected, rel=1e-12)
