@@ -145,6 +145,12 @@ GENERATORS = (
         "the estimators on as-built sensors in the Earth's field",
     ),
     Generator(
+        "coverage",
+        ("coverage.md",),
+        _module("accuracy.coverage", "coverage.md"),
+        "each sample's sigma against the truth: coverage at 1 and 2 sigma, per estimator, filter and chips",
+    ),
+    Generator(
         "motor",
         ("motor-figures.md",),
         _module("accuracy.motor", "motor-figures.md"),

@@ -3,6 +3,7 @@ the filter, in degraded mode, on the wire and in the client."""
 
 from __future__ import annotations
 
+import json
 import math
 import time
 import uuid
@@ -11,12 +12,22 @@ import numpy as np
 import pytest
 import zmq
 
+from ftsensord.calibration.calfile import Calibration, checksum
 from ftsensord.calibration.fit import error_model
+from ftsensord.calibration.procedure import calibrate
+from ftsensord.chip import mlx90393 as mlx
 from ftsensord.client import Subscriber
+from ftsensord.config.file import builtin_path
+from ftsensord.model import se3
+from ftsensord.model.linear import SENSOR_RANGE
 from ftsensord.processing.filters import WrenchFilter, variance_factors
-from ftsensord.processing.uncertainty import ModelError
+from ftsensord.processing.pipeline import channel_sigma_t
+from ftsensord.processing.uncertainty import AXES, ModelError, Uncertainty, propagate
 from ftsensord.protocol import wire
+from ftsensord.sim import two_sensor_scene
+from ftsensord.sim.loads import StaticLoad
 
+from .test_calibration import small_dataset  # noqa: F401 (a fixture)
 from .test_daemon import Rig
 
 EVERY = np.ones(8, dtype=bool)
@@ -102,29 +113,152 @@ def test_the_filters_variance_factor_against_a_monte_carlo(averaging, lowpass_hz
         assert predicted[-1] == pytest.approx((1 - a) / (1 + a), rel=1e-6)  # 1e-6: the table's settling
 
 
-def test_variance_factors_of_a_slow_lowpass_end_above_the_steady_one():
-    a = 1 - math.exp(-2 * math.pi * 0.05 / 1000)
-    f = variance_factors(4, a)
-    assert f[0] == 1.0 and f[-1] >= a / (2 - a) / 4 * 0.999  # (0.1 %: the moving average's correlation)
+def brute_force_factors(averaging: int, alpha: float, steps: int) -> np.ndarray:
+    """The filter's weights on each input, built output by output, and their squares' sums."""
+    w = np.zeros(steps)
+    out = []
+    for k in range(1, steps + 1):
+        n = min(k, averaging)
+        a = np.zeros(steps)
+        a[k - n : k] = 1.0 / n
+        w = a if k == 1 else (1 - alpha) * w + alpha * a
+        out.append(float(w @ w))
+    return np.array(out)
+
+
+@pytest.mark.parametrize(
+    ("averaging", "lowpass_hz", "rate_hz"),
+    [
+        (1, 5.0, 100.0),
+        (2, 5.0, 100.0),
+        (4, 0.05, 1000.0),
+        (7, 3.0, 100.0),
+        (25, 1.0, 100.0),
+        (10, 0.0, 100.0),
+    ],
+)
+def test_the_variance_factors_closed_form_is_the_brute_force_sum(averaging, lowpass_hz, rate_hz):
+    """Every output from the first to well past the start-up (2 x averaging + 600), against the
+    weights' squares summed one by one; then the steady factor against a long run's end."""
+    alpha = 1.0 if lowpass_hz == 0 else 1 - math.exp(-2 * math.pi * lowpass_hz / rate_hz)
+    f = variance_factors(averaging, alpha)
+    steps = 2 * averaging + 600
+    brute = brute_force_factors(averaging, alpha, steps)
+    closed = np.array([f.at(n) for n in range(1, steps + 1)])
+    assert closed == pytest.approx(brute, rel=1e-12)  # 1e-12: round-off of a few thousand sums
+    if alpha < 1:
+        settled = 1 + math.ceil(40 / alpha)  # b^(2k) = exp(-2 alpha k): under 1e-30 of the start by then
+        assert f.at(settled) == pytest.approx(f.steady, rel=1e-12)
+        w_steady = np.array([(1 - (1 - alpha) ** (d + 1)) / averaging for d in range(averaging)])
+        lags = np.arange(averaging, averaging + settled)
+        far = (1 - alpha) ** (lags - averaging + 1) * (1 - (1 - alpha) ** averaging) / averaging
+        assert f.steady == pytest.approx(float(w_steady @ w_steady + far @ far), rel=1e-9)
+
+
+def test_the_variance_factors_limits():
+    """The points where the formula's parts are singular or end: no low-pass (alpha = 1), no
+    averaging (the low-pass's own (1 - a)/(1 + a)), a cutoff -> 0 (alpha -> 0: the steady factor
+    -> alpha / 2, which the formula loses nothing of to cancellation), one input (factor 1)."""
+    assert variance_factors(1, 1.0).at(1) == 1.0 and variance_factors(1, 1.0).at(10**6) == 1.0
+    assert variance_factors(8, 1.0).steady == pytest.approx(1 / 8) and variance_factors(8, 1.0).at(
+        3
+    ) == pytest.approx(1 / 3)
+    a = math.exp(-2 * math.pi * 2.0 / 100)
+    assert variance_factors(1, 1 - a).steady == pytest.approx((1 - a) / (1 + a), rel=1e-14)
+    for averaging in (1, 5, 10000):
+        for alpha in (1e-6, 1e-9, 1e-12):
+            f = variance_factors(averaging, alpha)
+            assert f.at(1) == 1.0
+            # alpha / 2 (1 + O(N alpha)): the window's own terms are (N alpha)^2 / 3 N of it.
+            assert f.steady == pytest.approx(alpha / 2, rel=averaging * alpha + 1e-9)
+            assert all(0 < f.at(n) <= 1 for n in (2, averaging, 2 * averaging + 1, 10**12))
+    # The largest averaging the configuration takes, with the slowest low-pass: the start-up's
+    # 2N steps, not the low-pass's millions; its factors still fall from 1 to the steady one.
+    f = variance_factors(10000, 1 - math.exp(-2 * math.pi * 0.01 / 1000))
+    assert len(f.head) == 20000 and 1 > f.at(10000) > f.at(20000) > f.at(50000) > f.steady
+    assert f.at(10**9) == pytest.approx(f.steady, rel=1e-12)
 
 
 def test_the_model_error_is_fitted_against_the_load_and_read_back():
+    """Errors drawn with a known spread per axis, rest^2 + sum_j (G_kj w_j)^2: the fit gives back
+    G's entries, and the sigma its variance at a load."""
     rng = np.random.default_rng(3812)
-    wrench = rng.uniform(-1, 1, (400, 6)) * np.array([10, 10, 5, 0.05, 0.05, 0.05])
-    L = np.sqrt(np.sum((wrench / np.array([50, 50, 20, 0.2, 0.2, 0.2])) ** 2, axis=1))
-    error = rng.standard_normal((400, 6)) * np.sqrt(0.01**2 + (0.2 * L[:, None]) ** 2)
+    span = np.array([10, 10, 5, 0.05, 0.05, 0.05])
+    wrench = rng.uniform(-1, 1, (4000, 6)) * span
+    G = np.zeros((6, 6))
+    # a gain, two cross-talks and a torque's gain, each as large as the rest at its axis's span
+    G[1, 1], G[1, 3], G[0, 4], G[5, 5] = 0.1, 20.0, 0.4, 0.02
+    rest = np.array([0.01, 0.01, 0.02, 0.001, 0.001, 0.001])
+    spread = np.sqrt(rest**2 + (wrench**2) @ (G**2).T)
+    error = rng.standard_normal((4000, 6)) * spread
     fitted = error_model(error, wrench)
-    assert fitted is not None and fitted["poses"] == 400
-    # 20 %: a spread's two terms from 400 noisy squares (each term's error about 10 %).
-    assert list(fitted["per_load"].values()) == pytest.approx([0.2] * 6, rel=0.2)
-    m = ModelError.from_report({"validation_error": fitted})
-    assert m.source == "validation"
+    assert fitted is not None and fitted["loads"] == 4000 and fitted["source"] == "poses"
+    m = ModelError.from_report({"error_model": fitted})
+    assert m.source == "poses"
+    # The variance it gives against the one drawn, over loads of the same span: each of the
+    # form's terms shares the spread with the others (a gain's square is partly a spread and
+    # a curvature term), so the check is the sum. 10 %: the fit's 25 coefficients from 4000
+    # noisy squares (each square's relative spread sqrt(2)), a few % each.
+    test = rng.uniform(-1, 1, (500, 6)) * span
+    drawn = rest**2 + (test**2) @ (G**2).T
+    fitted_var = np.array([m.variance(w, np.zeros(6), tared=False) for w in test])
+    assert np.mean(fitted_var, axis=0) == pytest.approx(np.mean(drawn, axis=0), rel=0.1)
+    # and at each drawn term's own load, where the variance is that term's alone (20 %: one load).
+    for k, j in [(1, 1), (1, 3), (0, 4), (5, 5)]:
+        at = np.zeros(6)
+        at[j] = span[j]
+        assert m.variance(at, np.zeros(6), False)[k] == pytest.approx(
+            rest[k] ** 2 + (G[k, j] * span[j]) ** 2, rel=0.2
+        )
     at_rest_tared = m.variance(np.zeros(6), np.zeros(6), tared=True)
     assert np.all(at_rest_tared == 0)  # at the tare's own load: nothing of the model's error left
-    untared = m.variance(np.zeros(6), np.zeros(6), tared=False)
-    assert np.allclose(untared, m.rest**2)
+    assert np.allclose(m.variance(np.zeros(6), np.zeros(6), tared=False), m.rest**2)
     assert ModelError.from_report({}).source == "none"
-    assert error_model(error[:3], wrench[:3]) is None
+    assert error_model(error[:12], wrench[:12]) is None  # fewer loads than the form's 13 unknowns
+
+
+def test_older_calibration_files_model_error_reads_as_it_did():
+    """A file from before the load-dependent form (one coefficient per axis against |w / range|)
+    and one older still (the validation RMS alone) load, and give the variance they gave."""
+    rest = {a: 0.01 * (k + 1) for k, a in enumerate(AXES)}
+    per_load = {a: 0.1 * (k + 1) for k, a in enumerate(AXES)}
+    older = ModelError.from_report(
+        {"validation_error": {"rest": rest, "per_load": per_load, "mean_load": 0.4}}
+    )
+    assert older.source == "validation"
+    w = np.array([5.0, -3.0, 2.0, 0.05, 0.0, -0.02])
+    L2 = np.sum((w / SENSOR_RANGE) ** 2)
+    expected = np.array(list(rest.values())) ** 2 + np.array(list(per_load.values())) ** 2 * L2
+    assert older.variance(w, np.zeros(6), tared=False) == pytest.approx(expected, rel=1e-12)
+    oldest = ModelError.from_report({"validation_rmse": rest})
+    assert oldest.source == "validation_rmse"
+    assert oldest.variance(w, np.zeros(6), tared=True) == pytest.approx(np.array(list(rest.values())) ** 2)
+
+
+def test_the_model_error_beyond_the_range_is_the_check_poses_and_zero_within():
+    """Loads within the range with a small gain error, loads 10-20 times beyond it on Fx with a
+    large one: the gain comes from the loads within alone, and the excess beyond from the rest."""
+    rng = np.random.default_rng(3813)
+    within = np.array([2.0, 2.0, 2.0, 0.2, 0.2, 0.2])
+    inside = rng.uniform(-1, 1, (3000, 6)) * within
+    outside = rng.uniform(-1, 1, (600, 6)) * within  # beyond the range on Fx alone
+    outside[:, 0] = rng.uniform(10, 20, 600) * within[0] * rng.choice([-1, 1], 600)
+    wrench = np.vstack([inside, outside])
+    spread = np.sqrt(1e-6 + (0.01 * wrench[:, 0]) ** 2)[:, None] * np.ones(6)
+    big = np.maximum(np.abs(outside[:, 0]) - within[0], 0.0) * 0.05
+    spread[3000:] = np.sqrt(spread[3000:] ** 2 + big[:, None] ** 2)
+    error = rng.standard_normal(spread.shape) * spread
+    fitted = error_model(error, wrench, 0.0, "poses", within)
+    assert fitted is not None and fitted["loads"] == 3000 and fitted["loads_beyond"] == 600
+    m = ModelError.from_report({"error_model": fitted})
+    # 15 %: as above; fitted on every load together, the range's terms would take several
+    # times the error they show within it.
+    edge = np.array([2.0, 0, 0, 0, 0, 0])
+    assert np.sqrt(m.variance(edge, np.zeros(6), False)[0]) == pytest.approx(math.hypot(1e-3, 0.02), rel=0.15)
+    assert m.beyond[0, 0] == pytest.approx(0.05, rel=0.15)
+    assert m.variance(edge, np.zeros(6), False)[0] == pytest.approx(
+        m.variance(edge * (1 - 1e-12), np.zeros(6), False)[0], rel=1e-9
+    )  # continuous at the range's edge: the last term starts from zero there
 
 
 def test_the_subscriber_gives_each_wrench_its_sigma_and_old_subscriptions_never_see_it(zmq_context):
@@ -160,3 +294,122 @@ def test_the_subscriber_gives_each_wrench_its_sigma_and_old_subscriptions_never_
                 old.close(linger=0)
     finally:
         pub.close(linger=0)
+
+
+@pytest.mark.parametrize("load", [np.zeros(6), np.array([6.0, -4.0, 8.0, 0.05, -0.04, 0.03])])
+def test_the_nonlinear_sigma_is_a_monte_carlo_of_the_chips_noise_through_its_solve(load):
+    """The packaged calibration's flux model at a load (none, and one off the rest pose), the
+    chips' noise drawn 400 times and each draw solved: the wrench's spread per axis against
+    the noise part of the sigma, with every chip and with one left out; and against the map
+    without the background field's columns, which the solve estimates (half the spread)."""
+    cal = Calibration.load(builtin_path("sim-sensor1.json"))
+    assert cal.nonlinear is not None and cal.model.H is not None
+    nl = cal.nonlinear
+    estimator = nl.estimator()
+    sigma_t = channel_sigma_t(mlx.Settings(), 8)
+    u = Uncertainty(cal.model, sigma_t, cal.report, estimator)
+    T = se3.exp_se3(nl.zero_twist + np.linalg.solve(nl.K, load))
+    b = estimator.model.predict(T)
+    rng = np.random.default_rng(3814)
+    noise = rng.standard_normal((400, 24)) * sigma_t
+    for out in (None, 3):
+        chips = EVERY.copy()
+        if out is not None:
+            chips[out] = False
+        spread = np.std([nl.wrench(estimator.estimate(b + n, chips, start=T).xi) for n in noise], axis=0)
+        maps = u.maps(0, "nonlinear", chips, None, (T, np.zeros(3)))
+        assert maps is not None
+        predicted = np.sqrt(maps[1])
+        # 12 %: a spread from 400 draws is within 3.5 % (1 / sqrt(2 n)) at 1 sigma; the solve is
+        # linear in the noise to a few % of it at these loads.
+        assert spread == pytest.approx(predicted, rel=0.12), f"chip {out} out"
+        if out is None:
+            full = predicted
+        else:
+            assert np.all(predicted > full)  # a chip left out widens every axis's
+    without_field = np.sqrt(np.diag(propagate(nl.K @ np.linalg.pinv(cal.model.H), sigma_t)))
+    assert np.all(full[2:] > 1.4 * without_field[2:])  # Fz and the torques: the field's share
+
+
+def test_calibrate_records_the_linear_maps_error_over_the_range_and_it_holds_off_the_plan(small_dataset):
+    """`calibrate`'s linear error model comes from the flux model over the range, the nonlinear
+    one from the poses; off the plan's arms (a pure force, a pure torque) the linear map's error
+    on the loaded axis, on the scene itself, lies within 3 of the sigma's model part."""
+    cal, result = calibrate(small_dataset, allow_poor_fit=True)
+    assert cal.report["error_model"]["source"] == "flux model"
+    assert cal.report["nonlinear"]["error_model"]["source"] == "poses"
+    m = ModelError.from_report(cal.report)
+    scene = two_sensor_scene()
+    addresses = scene.sensors[0].addresses
+
+    def flux(w: np.ndarray) -> np.ndarray:
+        scene.set_load(0, StaticLoad(w))
+        return np.concatenate([scene.field_t(a, 0.0) for a in addresses])
+
+    tared = cal.model.with_zero(flux(np.zeros(6)))
+    assert np.all(m.variance(np.zeros(6), np.zeros(6), tared=True) == 0)
+    for k in range(6):
+        w = np.zeros(6)
+        w[k] = 0.9 * cal.wrench_range[k]
+        read = tared.wrench(flux(w))
+        sigma = np.sqrt(m.variance(read, np.zeros(6), tared=True))
+        assert sigma[k] > 0
+        # 3 sigma: a bias of the map at one load, judged against its spread over the range's
+        # loads (a Gaussian's 99.7 %); the noise part left out, the scene read without it. The
+        # loaded axis's own error (its gain's): the cross-talk onto the other axes at a load of
+        # one axis alone can exceed it (docs/design/estimators.md, "Each sample's sigma").
+        assert abs(read[k] - w[k]) <= 3 * sigma[k], AXES[k]
+
+
+def test_the_model_error_is_asked_at_the_load_less_the_readings_noise():
+    """A reading within its noise of no load adds no model error (the noise is not a load); one
+    beyond it, the model error of its size less that margin."""
+    m = ModelError(np.zeros(6), np.full((6, 6), 1e-3), np.full((6, 6), 0.05), np.zeros((6, 6)), 0.0, "poses")
+    known = np.full(6, 0.02)
+    assert np.all(m.variance(np.full(6, 0.019), np.zeros(6), True, known) == 0)
+    w = np.array([1.0, 0, 0, 0, 0, 0])
+    shrunk = m.variance(w, np.zeros(6), True, known)
+    assert shrunk == pytest.approx(m.variance(w - 0.02 * np.sign(w), np.zeros(6), True), rel=1e-12)
+    assert np.all(shrunk < m.variance(w, np.zeros(6), True))
+
+
+@pytest.mark.parametrize("form", ["validation_error", "error_model"])
+def test_a_calibration_file_with_either_model_error_form_loads_and_gives_its_sigma(tmp_path, form):
+    """The packaged file (validation RMS only) with the form of the files written before
+    `error_model` (`validation_error`) or with `error_model` in its report, checksum made
+    again: it loads, and the sigma reads the form it holds."""
+    doc = json.loads(builtin_path("sim-sensor1.json").read_text())
+    rest = {a: 0.01 for a in AXES}
+    if form == "validation_error":
+        doc["fit_report"][form] = {
+            "rest": rest,
+            "per_load": {a: 0.05 for a in AXES},
+            "mean_load": 0.4,
+            "poses": 60,
+        }
+    else:
+        doc["fit_report"][form] = {
+            "rest": rest,
+            "spread": {a: [0.0] * 6 for a in AXES},
+            "gain": {a: [0.02] * 6 for a in AXES},
+            "curvature": {a: [0.0] * 6 for a in AXES},
+            "beyond": {a: [0.0] * 6 for a in AXES},
+            "within": None,
+            "mean_load": 0.4,
+            "loads": 4000,
+            "loads_beyond": 0,
+            "source": "flux model",
+        }
+    doc["checksum"] = checksum(doc)
+    path = tmp_path / "cal.json"
+    path.write_text(json.dumps(doc))
+    cal = Calibration.load(path)
+    m = ModelError.from_report(cal.report)
+    assert m.source == ("validation" if form == "validation_error" else "flux model")
+    w = np.array([2.0, 0, 0, 0, 0, 0])
+    expected = (
+        0.01**2 + (0.05 * 2.0 / SENSOR_RANGE[0]) ** 2
+        if form == "validation_error"
+        else 0.01**2 + (0.02 * 2.0) ** 2
+    )
+    assert m.variance(w, np.zeros(6), tared=False)[0] == pytest.approx(expected, rel=1e-12)

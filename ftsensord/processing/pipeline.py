@@ -114,6 +114,7 @@ class SensorPipeline:
         """``thermal``: the chips' temperatures are read (`Config.temperature_every`), so
         the temperature stage compensates and flags (`processing.temperature`); ``rate_hz``: the loop's."""
         nl = s.calibration.nonlinear
+        nonlinear = nl.estimator() if nl is not None else None
         sigma_t = channel_sigma_t(settings or mlx.Settings(), len(s.addresses))
         if s.model.H is not None:  # no map built in the cycle of a fault
             s.model.build_maps(sigma_t, max_missing_chips)
@@ -124,7 +125,7 @@ class SensorPipeline:
             max_missing_chips,
             np.full(3 * len(s.addresses), np.nan),
             estimator=s.estimator,
-            nonlinear=nl.estimator() if nl is not None else None,
+            nonlinear=nonlinear,
             zero_twist=nl.zero_twist.copy() if nl is not None else None,
             sigma_t=sigma_t,
             thermal=ThermalCompensation(
@@ -134,7 +135,7 @@ class SensorPipeline:
             else None,
             stray=WorldGradient(s.calibration.model, sigma_t) if s.stray_field == "world" else None,
             creep=CreepCompensation(s.calibration.silicone, rate_hz),
-            uncertainty=Uncertainty(s.model, sigma_t, s.calibration.report, None if nl is None else nl.K),
+            uncertainty=Uncertainty(s.model, sigma_t, s.calibration.report, nonlinear),
         )
 
     @property
@@ -186,11 +187,13 @@ class SensorPipeline:
             wflags |= wire.FLAG_OVERLOAD
         own = wflags
         filtered, wflags = self.filter.update(wrench, wflags)  # a filtered wrench carries its inputs' flags
-        return SensorSample(flux, flags, filtered, wflags, valid, self._sigma(wrench, own, valid, scale))
+        return SensorSample(flux, flags, filtered, wflags, valid, self._sigma(filtered, own, valid, scale))
 
     def _sigma(self, wrench: np.ndarray, flags: int, valid: bool, scale: float) -> SampleSigma:
         """The sigma of this sample (`uncertainty`): unknown without an estimate or after a
-        fall-back; ``wrench``: its estimate before the filter, ``flags`` its own."""
+        fall-back; ``wrench``: the sample as published, after the filter (the load its model
+        error is asked at: the filter's output is nearer the load than one noisy estimate),
+        ``flags`` the estimate's own."""
         used = self._used
         if self.uncertainty is None or used is None or not valid or flags & wire.FLAG_FALLBACK:
             return UNKNOWN
@@ -204,6 +207,9 @@ class SensorPipeline:
             self.tare_samples,
             self.filter.variance_factor(),
             scale,
+            (self.nonlinear.pose, self.nonlinear.background_t)
+            if used[0] == "nonlinear" and self.nonlinear is not None
+            else None,
         )
 
     def flux(self, results: Mapping[int, ChipResult]) -> tuple[np.ndarray, int, np.ndarray]:

@@ -24,12 +24,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from ftsensord.model.linear import SENSOR_RANGE, LinearModel
+from ftsensord.model.nonlinear import PRIOR_EYE, NonlinearEstimator
 
 AXES = ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
 _SCALE = (1.0 / SENSOR_RANGE) ** 2
@@ -37,47 +38,120 @@ _SCALE = (1.0 / SENSOR_RANGE) ** 2
 
 @dataclass(frozen=True)
 class ModelError:
-    """The calibration's error per axis as a function of the load, from its report's
-    ``validation_error`` (`calibration.fit.error_model`): error^2 ~ rest^2 + (per_load L)^2,
-    L = |w / SENSOR_RANGE|. After a tare the error that stays at the tare's load is taken
-    out: the load is counted from the tare's, and the rest term grows back with it, in
-    full from the validation poses' RMS load (``mean_load``) on.
+    """The calibration's error per axis as a function of the load w (N, Nm), from its report's
+    ``error_model`` (`calibration.fit.error_model`): per axis k,
 
-    ``source`` says what it came from: "validation" (load-dependent), "validation_rmse"
-    (a file written before it was recorded: the validation RMS at every load), or "none"
-    (no validation poses: no model error in the sigma)."""
+        error_k^2 ~ rest_k^2 + sum_j spread_kj |w_j| + sum_j (gain_kj w_j)^2
+                    + sum_j (curvature_kj w_j^2)^2 + sum_j (beyond_kj max(0, |w_j| - within_j))^2,
 
-    rest: np.ndarray
-    per_load: np.ndarray
+    the last term zero within the calibration's range ``within`` (the check poses' errors beyond
+    it), where the first terms are held at the range's edge (their curvature, fitted within it,
+    would grow as w^4 beyond). Without a ``within`` (no loads beyond it were measured: the linear
+    map's, whose estimate is flagged `extrapolated` there) the form runs on as fitted.
+
+    Most of it is a bias, not noise: the same load reads the same error each time, and no
+    filter or averaging shrinks it; over the loads of the calibration's range, the errors
+    spread as this variance says. After a tare the error that stays at the tare's load is
+    taken out: the load is counted from the tare's (exact for the gain term), and the rest
+    term grows back with it, in full from the fitted loads' RMS range-scaled load
+    (``mean_load``) on.
+
+    ``source`` says what it came from: "flux model" (the linear map's error over the
+    calibration's range, read through the calibration's flux model), "poses" (the errors on
+    the poses the calibration holds), "validation" (an older file's validation poses, one
+    coefficient per axis against the load's range-scaled norm), "validation_rmse" (older still:
+    the validation RMS at every load), or "none" (no model error in the sigma)."""
+
+    rest: np.ndarray  # (6,) N, Nm
+    spread: np.ndarray  # (6, 6) error^2 per unit load, row: the axis in error
+    gain: np.ndarray  # (6, 6) error per unit load
+    curvature: np.ndarray  # (6, 6) error per unit load squared
     mean_load: float
     source: str
+    beyond: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))  # per unit load past ``within``
+    within: np.ndarray = field(
+        default_factory=lambda: np.full(6, np.inf)
+    )  # the range the first terms hold in
+    _beyond2: np.ndarray = field(init=False, repr=False)
+    _terms: np.ndarray = field(init=False, repr=False)
+    _rest2: np.ndarray = field(init=False, repr=False)
+    _resting: bool = field(init=False, repr=False)
+    _bounded: bool = field(init=False, repr=False)
+    _loaded: bool = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        # One 6 x 18 map on [|w|, w^2, w^4]: a sample's variance is one product.
+        object.__setattr__(self, "_terms", np.hstack([self.spread, self.gain**2, self.curvature**2]))
+        object.__setattr__(self, "_beyond2", self.beyond**2)
+        object.__setattr__(self, "_rest2", self.rest**2)
+        object.__setattr__(self, "_resting", bool(np.any(self.rest)))
+        object.__setattr__(self, "_bounded", bool(np.all(np.isfinite(self.within))))
+        object.__setattr__(
+            self, "_loaded", bool(np.any(self.spread) or np.any(self.gain) or np.any(self.curvature))
+        )
 
     @classmethod
     def from_report(cls, report: Mapping[str, Any] | None) -> ModelError:
         report = report or {}
-        fitted = report.get("validation_error")
+        fitted = report.get("error_model")
         if isinstance(fitted, Mapping):
             return cls(
                 np.array([float(fitted["rest"][a]) for a in AXES]),
-                np.array([float(fitted["per_load"][a]) for a in AXES]),
+                np.array([[float(v) for v in fitted["spread"][a]] for a in AXES]),
+                np.array([[float(v) for v in fitted["gain"][a]] for a in AXES]),
+                np.array([[float(v) for v in fitted["curvature"][a]] for a in AXES]),
                 float(fitted.get("mean_load", 0.0)),
+                str(fitted.get("source", "poses")),
+                np.array([[float(v) for v in fitted.get("beyond", {}).get(a, [0.0] * 6)] for a in AXES]),
+                np.full(6, np.inf)
+                if fitted.get("within") is None
+                else np.array([float(v) for v in fitted["within"]]),
+            )
+        older = report.get("validation_error")
+        if isinstance(older, Mapping):
+            # error^2 ~ rest^2 + (per_load |w / SENSOR_RANGE|)^2: a gain of per_load / range_j on
+            # every axis j, exactly.
+            per_load = np.array([float(older["per_load"][a]) for a in AXES])
+            return cls(
+                np.array([float(older["rest"][a]) for a in AXES]),
+                np.zeros((6, 6)),
+                per_load[:, None] / SENSOR_RANGE[None, :],
+                np.zeros((6, 6)),
+                float(older.get("mean_load", 0.0)),
                 "validation",
             )
+        none = np.zeros((6, 6))
         rmse = report.get("validation_rmse")
         if isinstance(rmse, Mapping):
-            return cls(np.array([float(rmse[a]) for a in AXES]), np.zeros(6), 0.0, "validation_rmse")
-        return cls(np.zeros(6), np.zeros(6), 0.0, "none")
+            rest = np.array([float(rmse[a]) for a in AXES])
+            return cls(rest, none, none, none, 0.0, "validation_rmse")
+        return cls(np.zeros(6), none, none, none, 0.0, "none")
 
-    def variance(self, wrench: np.ndarray, tare_wrench: np.ndarray, tared: bool) -> np.ndarray:
+    def variance(
+        self, wrench: np.ndarray, tare_wrench: np.ndarray, tared: bool, known: np.ndarray | None = None
+    ) -> np.ndarray:
         """The model error's variance per axis at ``wrench`` (as published: after the tare's
-        ``tare_wrench`` was taken off)."""
-        if self.source != "validation":
-            return self.rest**2
-        load = float(np.dot(wrench * wrench, _SCALE))  # L^2, from the tare's load when tared
-        if not tared:
-            return self.rest**2 + self.per_load**2 * load
+        ``tare_wrench`` was taken off); ``known``: how far (6, N and Nm) each axis's reading may
+        be off the load by its noise, taken off its size first (`NOISE_SIGMAS`)."""
+        rest2 = self._rest2
+        if not self._loaded:
+            return rest2
+        a = np.abs(wrench) if known is None else np.maximum(np.abs(wrench) - known, 0.0)
+        beyond = None
+        if self._bounded:
+            past = np.abs(wrench + tare_wrench) - self.within  # the load on the sensor, tare's included
+            if np.any(past > 0):  # the range's terms held at its edge, the last term grows from there
+                a = np.minimum(a, self.within)
+                beyond = self._beyond2 @ np.maximum(past, 0.0) ** 2
+        w2 = a * a
+        loaded = self._terms @ np.concatenate((a, w2, w2 * w2))
+        if beyond is not None:
+            loaded = loaded + beyond
+        if not tared or not self._resting:
+            return rest2 + loaded
+        load = float(np.dot(w2, _SCALE))  # L^2, from the tare's load
         back = 1.0 if self.mean_load <= 0 else min(1.0, load / self.mean_load**2)
-        return self.rest**2 * back + self.per_load**2 * load
+        return rest2 * back + loaded
 
 
 def propagate(M: np.ndarray, sigma_t: np.ndarray) -> np.ndarray:
@@ -107,45 +181,99 @@ UNKNOWN = SampleSigma(np.full(6, np.nan))
 UNKNOWN.sigma.setflags(write=False)
 
 
+#: The model error is asked at the load less this many of the sample's noise sigma per axis: a
+#: reading is the load to within its noise, and at rest the noise read as a load widened the
+#: linear map's sigma (its spread term grows fastest near no load: Fy's samples at rest were
+#: within 1 sigma 91 % of the time, 100 % with the filter on). 2: 95 % of the noise's draws.
+NOISE_SIGMAS = 2.0
+#: The nonlinear map is made again when the solve's pose has moved this far (m, rad) from the
+#: one it was made at: the estimator's own bound for reusing a Jacobian
+#: (`model.nonlinear.JACOBIAN_REUSE_M`, 4 mrad), within which the flux model's Jacobian changes
+#: by about 3 % (so does the noise's sigma); at rest the map is made once.
+NONLINEAR_MOVE_M, NONLINEAR_MOVE_RAD = 40e-6, 4e-3
+
+
 class Uncertainty:
-    """One sensor's sigma: the chips' noise, its calibration's model error, and the maps."""
+    """One sensor's sigma: the chips' noise, its calibration's model error, and the maps.
+    ``nonlinear``: the sensor's nonlinear estimator (its flux model and stiffness), or None."""
 
     def __init__(
-        self, model: LinearModel, sigma_t: np.ndarray, report: Mapping[str, Any] | None, stiffness: Any
+        self,
+        model: LinearModel,
+        sigma_t: np.ndarray,
+        report: Mapping[str, Any] | None,
+        nonlinear: NonlinearEstimator | None,
     ):
         self.sigma_t = sigma_t
         self.linear_error = ModelError.from_report(report)
         nl = (report or {}).get("nonlinear")
         self.nonlinear_error = ModelError.from_report(nl if isinstance(nl, Mapping) else None)
         self._model = model
-        self._stiffness = stiffness  # the nonlinear calibration's K (6 x 6), or None
+        self._nonlinear = nonlinear
         self._cache: dict[tuple[int, str, bytes], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self._version = -1
+        self._anchor: tuple[np.ndarray, np.ndarray] | None = None  # the pose and field of the nonlinear maps
+        self._anchor_rows: list[float] = []  # its T's top 3 rows, as `_moved` compares them
+
+    def _nonlinear_map(self, channels: np.ndarray, pose: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+        """K [(J_S^T J_S + P)^-1 J_S^T] (its first 6 rows): how the solve's answer moves with the
+        flux of the channels used, J the flux model's Jacobian at the solve's pose with the
+        background field's 3 columns (the solve estimates the field beside the pose, with its
+        prior P: `model.nonlinear._normal`). Without those columns the noise of Fz and the
+        torques came out at half the spread the solve gives."""
+        assert self._nonlinear is not None
+        T, u = pose if pose is not None else (np.eye(4), np.zeros(3))
+        J = self._nonlinear.model.predict_and_jacobian(T, u, background=True)[1][channels]
+        N = J.T @ J
+        N[6:, 6:] += PRIOR_EYE
+        return self._nonlinear.stiffness @ np.linalg.solve(N, J.T)[:6]
+
+    def _moved(self, pose: tuple[np.ndarray, np.ndarray] | None) -> bool:
+        """The solve's pose is off the one the nonlinear maps were made at (`NONLINEAR_MOVE_M`:
+        its position's, and its rotation matrix's entries, which move by at most the angle)."""
+        if pose is None:
+            return self._anchor is None
+        if self._anchor is None:
+            return True
+        # Twelve Python floats (the 3 x 4 top of T), not numpy's calls on a 4 x 4: a sample's check costs 2 us.
+        now, then = pose[0][:3].ravel().tolist(), self._anchor_rows
+        turned = max(abs(now[i] - then[i]) for i in (0, 1, 2, 4, 5, 6, 8, 9, 10))
+        shifted = max(abs(now[i] - then[i]) for i in (3, 7, 11))
+        return shifted > NONLINEAR_MOVE_M or turned > NONLINEAR_MOVE_RAD
 
     def maps(
-        self, version: int, estimator: str, chips: np.ndarray, tare_samples: int | None
+        self,
+        version: int,
+        estimator: str,
+        chips: np.ndarray,
+        tare_samples: int | None,
+        pose: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """One sample's noise covariance, its diagonal, and the tare's covariance, for the
-        estimator and ``chips`` (bool per chip) at the pipeline's ``version``; None when
+        estimator and ``chips`` (bool per chip) at the pipeline's ``version``; ``pose``: the
+        nonlinear solve's pose T_0C and background field (T, {0}) (None: at rest); None when
         the chips left do not see all six axes."""
         if version != self._version:  # a tare or untare: the tare's part changes
             self._cache.clear()
             self._version = version
+        nonlinear = estimator == "nonlinear" and self._nonlinear is not None
+        if nonlinear and self._moved(pose):
+            for key in [k for k in self._cache if k[1] == "nonlinear"]:
+                del self._cache[key]
+            self._anchor = (np.eye(4), np.zeros(3)) if pose is None else (pose[0].copy(), pose[1].copy())
+            self._anchor_rows = self._anchor[0][:3].ravel().tolist()
         key = (version, estimator, chips.tobytes())
         found = self._cache.get(key)
         if found is None:
             channels = np.repeat(chips, 3)
             try:
-                if estimator == "nonlinear" and self._stiffness is not None:
-                    if self._model.H is None:
-                        return None
-                    H_S = self._model.H[channels]
-                    M = np.asarray(self._stiffness) @ np.linalg.pinv(H_S)
+                if nonlinear:
+                    M = self._nonlinear_map(channels, self._anchor)
                 elif chips.all():
                     M = self._model.KA
                 else:
                     M = self._model.map_from(chips)
-            except ValueError:
+            except (ValueError, np.linalg.LinAlgError):
                 return None
             noise = propagate(M, self.sigma_t[channels])
             offset = noise / tare_samples if tare_samples else np.zeros((6, 6))
@@ -163,18 +291,21 @@ class Uncertainty:
         tare_samples: int | None,
         factor: float,
         scale: float = 1.0,
+        pose: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> SampleSigma:
         """The sigma of a sample estimated by ``estimator`` from ``chips``; ``wrench``: its
         estimate before the filter (for the model error's load); ``factor``: the filter's
         variance factor (`WrenchFilter.variance_factor`); ``scale``: what the wrench was
-        multiplied by after the estimate (the temperature stage's)."""
-        maps = self.maps(version, estimator, chips, tare_samples)
+        multiplied by after the estimate (the temperature stage's); ``pose``: the nonlinear
+        solve's pose and background field (`maps`)."""
+        maps = self.maps(version, estimator, chips, tare_samples, pose)
         if maps is None or not np.all(np.isfinite(wrench)):
             return UNKNOWN
         noise, noise_diag, offset = maps
         error = self.nonlinear_error if estimator == "nonlinear" else self.linear_error
-        model = error.variance(wrench, tare_wrench, tared)
-        variance = factor * noise_diag + np.diag(offset) + model
+        noise_now = factor * noise_diag + np.diag(offset)
+        model = error.variance(wrench, tare_wrench, tared, NOISE_SIGMAS * np.sqrt(noise_now))
+        variance = noise_now + model
         sigma = np.sqrt(variance) * scale if scale != 1.0 else np.sqrt(variance)
         # The covariance's parts kept as they are (the cached maps, not copies): only the tip
         # asks for it (`tip_sigma`), so a sample makes no 6 x 6 product.

@@ -1,0 +1,30 @@
+"""benchmarks/accuracy/coverage.py --quick: what it writes (every case at rest and under held
+loads, at 1 and 2 sigma, with its sample counts, the commands, date and machine) and a figure
+that could come out wrong: within 2 sigma is never fewer samples than within 1."""
+
+from __future__ import annotations
+
+import re
+
+from benchmarks.accuracy import coverage as bench
+
+
+def test_the_quick_coverage_benchmark_reports_every_case(regenerated):
+    text = (regenerated / "coverage.md").read_text()
+    assert text.startswith("# Each sample's sigma: coverage")
+    assert "ftsensord dataset" in text and "ftsensord calibrate" in text
+    assert re.search(r"on \d{4}-\d\d-\d\d \d\d:\d\d UTC, \d+-core", text)  # when and where
+    percent = r"(\d+) %(?: \(x\))?"
+    for case in bench.CASES:
+        for load in ("rest", "held"):
+            within = {}
+            for k in (1, 2):
+                found = re.search(
+                    rf"\| {re.escape(case.name)} \| {load} \| (\d+) \| {k} sigma \| "
+                    + r" \| ".join([percent] * 6),
+                    text,
+                )
+                assert found, (case.name, load, k)
+                assert int(found.group(1)) > 0  # samples with a sigma were read
+                within[k] = [int(v) for v in found.groups()[1:]]
+            assert all(two >= one for one, two in zip(within[1], within[2])), (case.name, load)
