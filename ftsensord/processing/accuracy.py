@@ -110,7 +110,7 @@ def uncertainty_at(sensor: Sensor, settings: mlx.Settings) -> Uncertainty:
         s.model,
         channel_sigma_t(settings, len(s.addresses)),
         s.calibration.report,
-        None if nl is None else nl.K,
+        None if nl is None else nl.estimator(),
     )
 
 
@@ -118,7 +118,7 @@ def sigma_at(sensor: Sensor, uncertainty: Uncertainty, averaging: int, noise: bo
     """A sensor's sigma at rest (6, N and Nm) with ``uncertainty`` (`uncertainty_at`) and an
     averaging, as `status` predicts it; ``noise`` False: the part averaging cannot shrink (the
     tare's noise and the model error)."""
-    factor = variance_factors(averaging, 1.0)[-1] if noise else 0.0
+    factor = variance_factors(averaging, 1.0).steady if noise else 0.0
     predicted = uncertainty.predicted(factor, sensor.tare_samples, sensor.estimator)["sigma"]
     return np.full(6, np.inf) if predicted is None else np.array(predicted)
 
