@@ -184,10 +184,25 @@ def plan(
         else f"the closest, OSR {closest[1].osr}, DIG_FILT {closest[1].dig_filt} at {closest[2]:g} Hz "
         f"with averaging {MAX_AVERAGING}, leaves {closest[3]} sigma {closest[0]:.2g} times the target; "
     )
+    # What would lower that floor, from what the calibration files hold: the nonlinear
+    # estimator's own model error where a sensor runs the linear one and has it; else only a
+    # larger target (more poses or samples do not shrink a model's bias).
+    other = {
+        s.config.name: sigma_at(replace(s, estimator="nonlinear"), uncertainty_at(s, bus.settings), 1, False)
+        for s in held
+        if s.estimator == "linear" and s.config.calibration.nonlinear is not None
+    }
+    advice = (
+        "with the nonlinear estimator (ftsensord set --estimator nonlinear) they are "
+        + "; ".join(
+            f"{n} {t.kind} {float(np.max(other[n][t.axes])):.3g} {t.unit}" for n in other for t in targets[n]
+        )
+        if other
+        else "a larger target"
+    )
     raise ConfigError(
         f"accuracy: no setting meets {asked}: {near}the calibration's model error and the tare's "
-        f"noise alone give {floors}, which averaging does not shrink (a calibration with more "
-        f"poses, a tare on more samples, or a larger target)"
+        f"noise alone give {floors}, which averaging does not shrink; {advice}"
     )
 
 
