@@ -173,36 +173,53 @@ def plan(
                 closest = (ratio, candidate, rate, what)
     if best is not None:
         return best[1]
-    floor = {s.config.name: sigma_at(s, uncertainty_at(s, bus.settings), 1, noise=False) for s in held}
-    floors = "; ".join(
-        f"{n} {t.kind} {float(np.max(floor[n][t.axes])):.3g} {t.unit}" for n in floor for t in targets[n]
-    )
-    asked = ", ".join(f"{n} {' and '.join(t.text for t in targets[n])}" for n in floor)
+    asked = ", ".join(f"{s.config.name} {' and '.join(t.text for t in targets[s.config.name])}" for s in held)
     near = (
         ""
         if closest is None
         else f"the closest, OSR {closest[1].osr}, DIG_FILT {closest[1].dig_filt} at {closest[2]:g} Hz "
         f"with averaging {MAX_AVERAGING}, leaves {closest[3]} sigma {closest[0]:.2g} times the target; "
     )
-    # What would lower that floor, from what the calibration files hold: the nonlinear
-    # estimator's own model error where a sensor runs the linear one and has it; else only a
-    # larger target (more poses or samples do not shrink a model's bias).
-    other = {
-        s.config.name: sigma_at(replace(s, estimator="nonlinear"), uncertainty_at(s, bus.settings), 1, False)
-        for s in held
-        if s.estimator == "linear" and s.config.calibration.nonlinear is not None
-    }
+    raise ConfigError(f"accuracy: no setting meets {asked}: {near}{_why_not(held, targets, bus.settings)}")
+
+
+def _why_not(held: list[Sensor], targets: dict[str, list[Accuracy]], settings: mlx.Settings) -> str:
+    """Why no setting meets the targets, from what the calibration files hold: the part
+    averaging cannot shrink (the model error at rest and the tare's noise) when it stands at
+    half a target or more, with the nonlinear estimator's own where a sensor runs the linear
+    one, has it and it is lower; else the chips' noise, which `MAX_AVERAGING` readings do
+    not bring under the target."""
+
+    def floor(s: Sensor) -> np.ndarray:
+        return sigma_at(s, uncertainty_at(s, settings), 1, noise=False)
+
+    floors = {s.config.name: floor(s) for s in held}
+    worst = {(n, t.kind): float(np.max(floors[n][t.axes])) for n in floors for t in targets[n]}
+    # Half the target: below it, the floor's share of the variance is under a quarter and the
+    # chips' noise is what averaging leaves.
+    if not any(worst[(n, t.kind)] >= 0.5 * t.value for n in floors for t in targets[n]):
+        return f"the chips' noise averaged {MAX_AVERAGING} times stays above it: a larger target"
+    said = "; ".join(
+        f"{n} {kind} {v:.3g} {'N' if kind == 'force' else 'Nm'}" for (n, kind), v in worst.items()
+    )
+    better = {}
+    for s in held:
+        if s.estimator == "linear" and s.config.calibration.nonlinear is not None:
+            other = floor(replace(s, estimator="nonlinear"))
+            for t in targets[s.config.name]:
+                if float(np.max(other[t.axes])) < worst[(s.config.name, t.kind)]:
+                    better[(s.config.name, t.kind)] = float(np.max(other[t.axes]))
     advice = (
         "with the nonlinear estimator (ftsensord set --estimator nonlinear) they are "
         + "; ".join(
-            f"{n} {t.kind} {float(np.max(other[n][t.axes])):.3g} {t.unit}" for n in other for t in targets[n]
+            f"{n} {kind} {v:.3g} {'N' if kind == 'force' else 'Nm'}" for (n, kind), v in better.items()
         )
-        if other
+        if better
         else "a larger target"
     )
-    raise ConfigError(
-        f"accuracy: no setting meets {asked}: {near}the calibration's model error and the tare's "
-        f"noise alone give {floors}, which averaging does not shrink; {advice}"
+    return (
+        f"the calibration's model error and the tare's noise alone give {said}, which averaging "
+        f"does not shrink; {advice}"
     )
 
 
