@@ -22,7 +22,7 @@ from ftsensord.model import se3
 from ftsensord.model.linear import SENSOR_RANGE
 from ftsensord.processing.filters import WrenchFilter, variance_factors
 from ftsensord.processing.pipeline import channel_sigma_t
-from ftsensord.processing.uncertainty import AXES, ModelError, Uncertainty, propagate
+from ftsensord.processing.uncertainty import AXES, NOISE_SIGMAS, ModelError, Uncertainty, propagate
 from ftsensord.protocol import wire
 from ftsensord.sim import two_sensor_scene
 from ftsensord.sim.loads import StaticLoad
@@ -54,11 +54,13 @@ def test_the_sigmas_noise_part_is_the_simulated_chips_noise_through_k_a(quiet_ri
     # channel_sigma_t reads (and the LSB^2/12 term is approximate at a noise near one LSB);
     # the spread's own error over 1500 samples is 2 % (1 / sqrt(2 n)).
     assert measured == pytest.approx(noise, rel=0.15)
-    # The published sigma adds the calibration's model error (this packaged file records its
-    # validation RMS only): sqrt(noise^2 + rmse^2) at every sample, to float32-free round-off.
-    rmse = p.uncertainty.linear_error.rest
-    assert p.uncertainty.linear_error.source == "validation_rmse"
-    assert sigma[-1] == pytest.approx(np.sqrt(noise**2 + rmse**2), rel=1e-12)
+    # The published sigma adds the calibration's model error at the sample's load (the packaged
+    # file's, read through its flux model), the load taken NOISE_SIGMAS of noise towards zero:
+    # sqrt(noise^2 + model) at every sample, to float32-free round-off (untared, unfiltered).
+    m = p.uncertainty.linear_error
+    assert m.source == "flux model" and not p.tared
+    model = m.variance(wrench[-1], p.tare_wrench, False, NOISE_SIGMAS * noise)
+    assert np.all(model > 0) and sigma[-1] == pytest.approx(np.sqrt(noise**2 + model), rel=1e-12)
 
 
 def test_a_chip_left_out_widens_the_sigma_and_no_estimate_has_none(quiet_rig):
@@ -373,12 +375,28 @@ def test_the_model_error_is_asked_at_the_load_less_the_readings_noise():
     assert np.all(shrunk < m.variance(w, np.zeros(6), True))
 
 
+def test_a_calibration_file_with_its_validation_rms_alone_gives_it_as_the_model_error(tmp_path):
+    """The oldest files: the report's validation RMS only, the same error at any load."""
+    doc = json.loads(builtin_path("sim-sensor1.json").read_text())
+    for held in ("error_model", "validation_error"):
+        doc["fit_report"].pop(held, None)
+    doc["checksum"] = checksum(doc)
+    (tmp_path / "cal.json").write_text(json.dumps(doc))
+    m = ModelError.from_report(Calibration.load(tmp_path / "cal.json").report)
+    rmse = np.array([doc["fit_report"]["validation_rmse"][a] for a in AXES])
+    assert m.source == "validation_rmse"
+    for w in (np.zeros(6), np.array([2.0, 0, 0, 0, 0.1, 0])):
+        assert m.variance(w, np.zeros(6), tared=False) == pytest.approx(rmse**2, rel=1e-12)
+
+
 @pytest.mark.parametrize("form", ["validation_error", "error_model"])
 def test_a_calibration_file_with_either_model_error_form_loads_and_gives_its_sigma(tmp_path, form):
-    """The packaged file (validation RMS only) with the form of the files written before
+    """The packaged file, its model error removed, with the form of the files written before
     `error_model` (`validation_error`) or with `error_model` in its report, checksum made
     again: it loads, and the sigma reads the form it holds."""
     doc = json.loads(builtin_path("sim-sensor1.json").read_text())
+    for held in ("error_model", "validation_error"):  # the packaged file's own, replaced below
+        doc["fit_report"].pop(held, None)
     rest = {a: 0.01 for a in AXES}
     if form == "validation_error":
         doc["fit_report"][form] = {

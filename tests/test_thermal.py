@@ -110,7 +110,9 @@ def test_the_files_keep_the_temperatures(tmp_path):
     from ftsensord.errors import ConfigError
 
     cal = Cal.load(builtin_path("sim-sensor1.json"))
-    assert cal.temperature is None  # recorded before temperatures were
+    cal.temperature = None  # a file from before temperatures were recorded: none read back
+    cal.save(tmp_path / "c.json")
+    assert Cal.load(tmp_path / "c.json").temperature is None
     cal.temperature = CalibrationTemperature(30.0, 24.2, 35.8, np.linspace(-2e-6, 2e-6, 24))
     cal.save(tmp_path / "c.json")
     back = Cal.load(tmp_path / "c.json").temperature
