@@ -9,6 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from ftsensord.acquire import choice
 from ftsensord.config.accuracy import parse_accuracies, parse_accuracy
 from ftsensord.config.file import load_config
 from ftsensord.errors import ConfigError
@@ -77,7 +78,7 @@ def test_the_plan_is_the_fastest_setting_that_meets_the_target(packaged, axes, u
     assert all(max(sigma[axes]) <= target.value for sigma in plan.sigma.values())
     assert plan.averaging > 1 or plan.settings != config.settings  # the target asked for something
     # Every other conversion and averaging: none that meets it gives independent samples more often.
-    for settings in acc.conversions(config.settings):
+    for settings in choice.conversions(config.settings):
         rate = acc.fastest_rate(replace(bus, settings=settings), None, None)
         for averaging in acc.AVERAGINGS:
             if worst(sensors, settings, averaging, axes) <= target.value:

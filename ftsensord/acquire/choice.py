@@ -205,11 +205,9 @@ def _floor(hz: float) -> str:
     return f"{int(hz * 10) / 10:g}"
 
 
-def _shorter_conversion(settings: mlx.Settings) -> mlx.Settings | None:
-    """The permitted OSR and DIG_FILT whose conversion is the next shorter than today's
-    (the least noise given up); None: already the shortest."""
-    now = settings.tconvm_us()
-    shorter = []
+def conversions(settings: mlx.Settings) -> list[mlx.Settings]:
+    """Every permitted OSR and DIG_FILT with ``settings``' gain, HALLCONF and resolution."""
+    out = []
     for osr in range(mlx.OSR.max + 1):
         for dig_filt in range(mlx.DIG_FILT.max + 1):
             candidate = replace(settings, osr=osr, dig_filt=dig_filt)
@@ -217,6 +215,13 @@ def _shorter_conversion(settings: mlx.Settings) -> mlx.Settings | None:
                 candidate.validate()  # some pairs are forbidden at HALLCONF 0xC
             except ConfigError:
                 continue
-            if candidate.tconvm_us() < now:
-                shorter.append(candidate)
+            out.append(candidate)
+    return out
+
+
+def _shorter_conversion(settings: mlx.Settings) -> mlx.Settings | None:
+    """The permitted OSR and DIG_FILT whose conversion is the next shorter than today's
+    (the least noise given up); None: already the shortest."""
+    now = settings.tconvm_us()
+    shorter = [c for c in conversions(settings) if c.tconvm_us() < now]
     return max(shorter, key=lambda c: c.tconvm_us()) if shorter else None

@@ -78,20 +78,6 @@ class Plan:
         )
 
 
-def conversions(settings: mlx.Settings) -> list[mlx.Settings]:
-    """Every permitted OSR and DIG_FILT with ``settings``' gain, HALLCONF and resolution."""
-    out = []
-    for osr in range(mlx.OSR.max + 1):
-        for dig_filt in range(mlx.DIG_FILT.max + 1):
-            candidate = replace(settings, osr=osr, dig_filt=dig_filt)
-            try:
-                candidate.validate()  # some pairs are forbidden at HALLCONF 0xC
-            except ConfigError:
-                continue
-            out.append(candidate)
-    return out
-
-
 def fastest_rate(bus: choice.Bus, scheduler: str | None, readback_every: int | None) -> float:
     """The fastest rate (Hz, to 0.1 Hz down) that an open option holds with
     `choice.TARGET_SPARE` of the period spare, at most `MAX_RATE_HZ`; with the register
@@ -144,7 +130,7 @@ def plan(
         raise ConfigError("accuracy: no target given")
     best: tuple[tuple[float, int], Plan] | None = None
     closest: tuple[float, mlx.Settings, float, str] | None = None  # worst sigma / target, where, axis
-    for candidate in settings if settings is not None else conversions(bus.settings):
+    for candidate in settings if settings is not None else choice.conversions(bus.settings):
         rate = fastest_rate(replace(bus, settings=candidate), scheduler, readback_every)
         if rate < 0.1:  # the daemon's slowest loop
             continue
