@@ -96,23 +96,15 @@ def predicted_sigma(path: str) -> dict[str, Any]:
 
 
 def describe_predicted(p: dict[str, Any]) -> str:
+    from ftsensord.processing.uncertainty import sigma_text
+
     lines = [
         f"predicted sigma at rest, untared (OSR {p['osr']}, DIG_FILT {p['dig_filt']}, averaging "
         f"{p['averaging']}, low-pass {p['lowpass_hz'] or 'off'}, {p['rate_hz']:g} Hz):"
     ]
     for name, s in p["sensors"].items():
         sigma = s["sigma"]
-        lines.append(
-            f"  {name} ({s['estimator']}): "
-            + (
-                "unknown"
-                if sigma is None
-                else " ".join(f"{v:.3g}" for v in sigma[:3])
-                + " N, "
-                + " ".join(f"{v * 1e3:.3g}" for v in sigma[3:])
-                + " mNm"
-            )
-        )
+        lines.append(f"  {name} ({s['estimator']}): " + ("unknown" if sigma is None else sigma_text(sigma)))
     return "\n".join(lines)
 
 

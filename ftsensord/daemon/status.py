@@ -25,6 +25,7 @@ from ftsensord.daemon.ros2child import BridgeWatch
 from ftsensord.errors import ChipError, ChipRefusedError
 from ftsensord.processing.gravity import Gravity
 from ftsensord.processing.pipeline import SensorPipeline
+from ftsensord.processing.uncertainty import sigma_text
 
 
 @dataclass
@@ -223,14 +224,7 @@ def predicted_sigma(s: dict[str, Any]) -> str | None:
     ``sigma``, `processing.uncertainty`) as one line, "fx fy fz N, mx my mz mNm"; None where
     it has none."""
     sigma = (s.get("sigma") or {}).get("sigma")
-    if not sigma:
-        return None
-    return (
-        " ".join(f"{v:.3g}" for v in sigma[:3])
-        + " N, "
-        + " ".join(f"{v * 1e3:.3g}" for v in sigma[3:])
-        + " mNm"
-    )
+    return sigma_text(sigma) if sigma else None
 
 
 def describe(status: dict[str, Any]) -> str:

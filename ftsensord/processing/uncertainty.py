@@ -329,6 +329,16 @@ class Uncertainty:
         }
 
 
+def sigma_text(sigma: list[float]) -> str:
+    """A sigma (6: N x3, Nm x3) as an operator reads it: "fx fy fz N, mx my mz mNm"."""
+    return (
+        " ".join(f"{v:.3g}" for v in sigma[:3])
+        + " N, "
+        + " ".join(f"{v * 1e3:.3g}" for v in sigma[3:])
+        + " mNm"
+    )
+
+
 def tip_sigma(parts: list[tuple[np.ndarray, SampleSigma]]) -> np.ndarray:
     """The tool tip's sigma (6) from each sensor's transform X (6 x 6) and sigma: the
     sensors' errors independent, sum X C X^T; NaN when one sensor's is unknown."""
