@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.accuracy.creep import scene_path
 from benchmarks.common import machine
 from ftsensord import cli
 from ftsensord.acquire.readings import Readings
@@ -39,7 +40,6 @@ from ftsensord.processing.pipeline import SensorPipeline
 from ftsensord.sim import load_scene
 from ftsensord.sim.loads import StaticLoad
 from ftsensord.sim.physics import PhysicalScene
-from ftsensord.sim.scene import default_scene_path
 
 AXES = ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
 #: The load along each axis: 1 N, 50 mNm (the 200 g poses reach 2 N and 0.2 Nm together).
@@ -48,19 +48,10 @@ SIZE = np.array([1.0, 1.0, 1.0, 0.05, 0.05, 0.05])
 AT_S = 100.0
 
 
-def part_scene(seed: int, folder: Path) -> Path:
-    text = default_scene_path().read_text()
-    marker = "seed = 1                        # this part; another seed is another sensor\n"
-    assert marker in text  # sensor1's tolerances end there
-    path = folder / f"scene-{seed}.toml"
-    path.write_text(text.replace(marker, f"seed = {seed}\n", 1))
-    return path
-
-
 def calibrate(seed: int, folder: Path) -> Calibration:
     """Part ``seed`` calibrated by the two documented commands at their defaults."""
     ds, cal = folder / f"ds-{seed}.json", folder / f"cal-{seed}.json"
-    scene = part_scene(seed, folder)
+    scene = scene_path(False, folder, seed)  # the default scene, sensor1 of this seed, no memory
     with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
         if (
             cli.main(["dataset", "--scene", str(scene), "--sensor", "sensor1", "-o", str(ds)]) != 0
@@ -100,7 +91,7 @@ def main() -> int:
         folder = Path(tmp)
         for seed in args.parts:
             cal = calibrate(seed, folder)
-            scene = load_scene(part_scene(seed, folder))
+            scene = load_scene(scene_path(False, folder, seed))
             assert isinstance(scene, PhysicalScene)
             for estimator in ("linear", "nonlinear"):
                 if estimator == "nonlinear" and cal.nonlinear is None:
