@@ -138,9 +138,8 @@ def fit_linear(
 
     With ``zero`` (no-load poses' flux (m, 24) and twists (m, 6)) the zero is measured:
     b0 their mean flux, A and K fitted through it. The affine fit's zero, extrapolated
-    from the loaded poses, is bent by the room's projection: 0.033 N of Fz at no load on
-    the default scene's sensor1 (0.004 N unprojected); measured, 0.001 N (100 g
-    validation: Fz 0.016 to 0.021 N RMSE, the other axes unchanged)."""
+    from the loaded poses, is bent by the room's projection (figures: docs/guide/calibration.md,
+    "The zero")."""
     if zero is not None:
         return _fit_through_zero(flux, twist, wrench, floor_t, room, zero)
     b_mean = flux.mean(axis=0)
