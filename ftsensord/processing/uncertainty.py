@@ -24,6 +24,7 @@ or whose estimator fell back has no known sigma: NaN.
 from __future__ import annotations
 
 import math
+import operator
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -35,6 +36,7 @@ from ftsensord.model.nonlinear import NonlinearEstimator
 
 AXES = ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
 _SCALE = (1.0 / SENSOR_RANGE) ** 2
+_POWERS = np.array([[1.0], [2.0], [4.0]])  # [|w|, w^2, w^4] as one power of |w| (3 x 6)
 
 
 @dataclass(frozen=True)
@@ -78,6 +80,7 @@ class ModelError:
     _rest2: np.ndarray = field(init=False, repr=False)
     _resting: bool = field(init=False, repr=False)
     _bounded: bool = field(init=False, repr=False)
+    _within: list[float] = field(init=False, repr=False)  # ``within`` as floats, for a sample's test
     _loaded: bool = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -87,6 +90,7 @@ class ModelError:
         object.__setattr__(self, "_rest2", self.rest**2)
         object.__setattr__(self, "_resting", bool(np.any(self.rest)))
         object.__setattr__(self, "_bounded", bool(np.all(np.isfinite(self.within))))
+        object.__setattr__(self, "_within", self.within.tolist())
         object.__setattr__(
             self, "_loaded", bool(np.any(self.spread) or np.any(self.gain) or np.any(self.curvature))
         )
@@ -139,18 +143,21 @@ class ModelError:
             return rest2
         a = np.abs(wrench) if known is None else np.maximum(np.abs(wrench) - known, 0.0)
         beyond = None
-        if self._bounded:
-            past = np.abs(wrench + tare_wrench) - self.within  # the load on the sensor, tare's included
-            if past.max() > 0:  # the range's terms held at its edge, the last term grows from there
-                a = np.minimum(a, self.within)
-                beyond = self._beyond2 @ np.maximum(past, 0.0) ** 2
-        w2 = a * a
-        loaded = self._terms @ np.concatenate((a, w2, w2 * w2))
+        # The load on the sensor (the tare's included) past the range on an axis: six floats'
+        # test (numpy's calls on six numbers would cost more than the rest of the sample).
+        if self._bounded and any(
+            map(operator.gt, map(abs, map(operator.add, wrench.tolist(), tare_wrench.tolist())), self._within)
+        ):  # the range's terms held at its edge, the last term grows from there
+            past = np.abs(wrench + tare_wrench) - self.within
+            a = np.minimum(a, self.within)
+            beyond = self._beyond2 @ np.maximum(past, 0.0) ** 2
+        powers = a**_POWERS  # [|w|; w^2; w^4]: one call for the three
+        loaded = self._terms @ powers.ravel()
         if beyond is not None:
             loaded = loaded + beyond
         if not tared or not self._resting:
             return rest2 + loaded
-        load = float(np.dot(w2, _SCALE))  # L^2, from the tare's load
+        load = float(np.dot(powers[1], _SCALE))  # L^2, from the tare's load
         back = 1.0 if self.mean_load <= 0 else min(1.0, load / self.mean_load**2)
         return rest2 * back + loaded
 
