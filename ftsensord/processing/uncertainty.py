@@ -285,9 +285,9 @@ class Uncertainty:
             # `JACOBIAN_REUSE_M`, 4 mrad and 10 uT of this pose: not one of the sigma's own. It
             # differs from the one at this very pose by up to that rule's drift, 3 % at p50 and
             # 6 % at most, and so may the noise's sigma: well within what a sigma is for (its
-            # Monte Carlo holds to 12 %, tests/test_sigma.py) and under the model error's
-            # share, and it saves making the flux model's Jacobian (a solve's cost again) on
-            # every sample the load moves. The maps are made again when it is another one.
+            # Monte Carlo holds to 12 %, tests/test_sigma.py), and it saves making the flux
+            # model's Jacobian (a solve's cost again) on every sample the load moves. The maps
+            # are made again when it is another one.
             here = (self._nonlinear.pose, self._nonlinear.background_t) if pose is None else pose
             J = self._nonlinear.jacobian_at(*here)
             made_of = J.tobytes()
