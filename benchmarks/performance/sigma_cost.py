@@ -5,8 +5,9 @@ The packaged configuration's sensor1 and calibration, its flux from the default 
 0.1 uT of noise, the pipeline as the daemon builds it (`SensorPipeline.build`, the
 temperature stage off: it is the same with and without the sigma). A held load keeps the
 nonlinear estimator's noise map; a load drawn anew each sample (50 loads in turn, |F| to
-1.7 N, torques to 35 mNm) moves its pose past the map's rebuild threshold at nearly every
-sample: the worst case. CPU time of ``--samples`` steps, the best of ``--rounds``.
+1.7 N, torques to 35 mNm) moves its pose past the solve's Jacobian reuse bound at nearly
+every sample, so the map is made again from the solve's new Jacobian: the worst case. CPU
+time of ``--samples`` steps, the best of ``--rounds``.
 
     python -m benchmarks.performance.sigma_cost [--samples 4000] [--rounds 2]
 
