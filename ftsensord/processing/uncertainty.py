@@ -24,7 +24,6 @@ or whose estimator fell back has no known sigma: NaN.
 from __future__ import annotations
 
 import math
-import operator
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -146,7 +145,7 @@ class ModelError:
         # The load on the sensor (the tare's included) past the range on an axis: six floats'
         # test (numpy's calls on six numbers would cost more than the rest of the sample).
         if self._bounded and any(
-            map(operator.gt, map(abs, map(operator.add, wrench.tolist(), tare_wrench.tolist())), self._within)
+            abs(w + t) > edge for w, t, edge in zip(wrench.tolist(), tare_wrench.tolist(), self._within)
         ):  # the range's terms held at its edge, the last term grows from there
             past = np.abs(wrench + tare_wrench) - self.within
             a = np.minimum(a, self.within)
