@@ -157,6 +157,12 @@ GENERATORS = (
         "a load along one axis alone: the static gain per axis and estimator",
     ),
     Generator(
+        "sigma_cost",
+        ("sigma-cost.md",),
+        _module("performance.sigma_cost", "sigma-cost.md"),
+        "what each sample's sigma costs the pipeline's step, per estimator",
+    ),
+    Generator(
         "motor",
         ("motor-figures.md",),
         _module("accuracy.motor", "motor-figures.md"),

@@ -114,7 +114,7 @@ def page(rows: list[str], parts: list[int]) -> str:
             f"{', '.join(map(str, parts))} (the default scene's sensor1 built with these tolerance seeds, "
             "in its room), each calibrated by `ftsensord dataset --scene S --sensor sensor1 -o ds.json` "
             "and `ftsensord calibrate ds.json -o cal.json` at their defaults; 12 loads a part and "
-            'estimator. What it means: docs/design/estimators.md, "A load along one axis".',
+            "estimator. What it means: [estimators](../design/estimators.md#a-load-along-one-axis).",
             "",
             "| part | estimator | " + " | ".join(f"{a} (+ / -)" for a in AXES) + " |",
             "|---|---|" + "---|" * 6,
