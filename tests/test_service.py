@@ -15,10 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ftsensord.calibration.calfile import Calibration
-from ftsensord.calibration.fit import AXES
 from ftsensord.client import ControlClient, Subscriber
-from ftsensord.config.file import builtin_path
 from ftsensord.daemon.sdnotify import Notifier
 from ftsensord.errors import ControlError, DaemonNotAnswering
 from ftsensord.recording import read_meta
@@ -135,10 +132,16 @@ def running(tmp_path):
         notify.close()
 
 
-def mean_of(sub: Subscriber, n: int) -> tuple[np.ndarray, list[int], np.ndarray]:
-    """Mean of n samples, their sequence numbers, and the per-sample spread per axis."""
+def sub_samples(sub: Subscriber, n: int) -> list:
+    """The next n samples of ``sub``."""
     samples = [sub.receive(timeout_s=5) for _ in range(n)]
     assert all(s is not None for s in samples)
+    return samples
+
+
+def mean_of(sub: Subscriber, n: int) -> tuple[np.ndarray, list[int], np.ndarray]:
+    """Mean of n samples, their sequence numbers, and the per-sample spread per axis."""
+    samples = sub_samples(sub, n)
     values = np.array([s.values for s in samples])
     return values.mean(axis=0), [s.seq for s in samples], values.std(axis=0, ddof=1)
 
@@ -165,10 +168,12 @@ def test_end_to_end_load_rate_tare_and_clean_stop(running):
         missed_before = control.status()["missed_cycles"]
         loaded, seqs, spread = mean_of(sub, 50)
         assert_gaps_are_counted_misses(seqs, missed_before, control.status()["missed_cycles"])
-        # The packaged calibration's own accuracy (its 100 g validation RMSE per axis) sets the
-        # bound: one load of about that size, 50 samples averaged (noise /7), is within 4 RMSE.
-        rmse = Calibration.load(builtin_path("sim-sensor1.json")).report["validation_rmse"]
-        assert np.all(np.abs(loaded - LOAD) < 4 * np.array([rmse[a] for a in AXES])), (loaded, rmse)
+        # The daemon's own sigma at this load sets the bound (the calibration's model error at
+        # it, learnt over its range, and one sample's noise, which the 50 averaged shrink by 7):
+        # within 4 sigma. The 100 g validation's RMSE is no bound here: LOAD is no load of the
+        # plan's (its torques are not its forces' on one of the plan's arms).
+        sigma = np.array([s.sigma for s in sub_samples(sub, 5)]).mean(axis=0)
+        assert np.all(np.isfinite(sigma)) and np.all(np.abs(loaded - LOAD) < 4 * sigma), (loaded, sigma)
         status = control.status()
         # Not a timing claim (docs/results/performance.md has those): the loop runs and reports it.
         assert status["rate_hz"] == 100 and status["achieved_rate_hz"] > 50

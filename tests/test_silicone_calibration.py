@@ -60,7 +60,7 @@ def test_the_nonlinear_estimator_reads_a_long_held_load_after_a_calibration_on_a
         _part_with_memory(FAST),
         "sensor1",
         "six-axis",
-        poses=40,
+        poses=50,  # 10 on each of the plan's five arms
         validation_poses=4,
         samples=10,
         seed=2,

@@ -27,7 +27,7 @@ from ftsensord.calibration.dataset import Dataset
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.errors import CalibrationError
 from ftsensord.model.geometry import SensorGeometry
-from ftsensord.model.linear import LinearModel
+from ftsensord.model.linear import SENSOR_RANGE, LinearModel
 from ftsensord.model.magnet import NDFEB_BR_TEMPCO_PER_K, remanence_factor
 from ftsensord.model.silicone import STIFFNESS_TEMPCO_PER_K, stiffness_factor
 
@@ -37,9 +37,14 @@ from ftsensord.model.silicone import STIFFNESS_TEMPCO_PER_K, stiffness_factor
 #: good chip. A narrower span is the calibration's temperature, with no drift.
 MIN_DRIFT_SPAN_K = 3.0
 #: Passes of fit -> drift -> fit on the drift-corrected flux: the fit absorbs part of the
-#: drift where the plan's loads and temperatures go together; the second pass takes the
-#: rest (a third changed the drift by under 1 % on the benchmarks' parts).
-DRIFT_PASSES = 2
+#: drift where the plan's loads and temperatures go together, and each pass takes part of
+#: the rest, until a pass changes the drift by under `DRIFT_SETTLED` of it (at most
+#: `DRIFT_PASSES`: on the warm benchmark's quick parts 3-6 passes, where the plan's five arms
+#: and a temperature cycled over the poses go together the most).
+DRIFT_PASSES = 10
+#: A pass's change of the drift (RMS over the channels) under this share of the drift: settled.
+#: 2 %: 0.05 uT/K of a 2.5 uT/K drift, 0.5 uT over a 10 K warming, a tenth of the chips' noise.
+DRIFT_SETTLED = 0.02
 
 
 @dataclass(frozen=True)
@@ -109,17 +114,28 @@ def to_reference(
     return out
 
 
+def _curvature(wrench: np.ndarray) -> np.ndarray:
+    """Each pose's load's second-order terms (n x 21: w_i w_j, i <= j, of the range-scaled load):
+    what a linear model's residual holds of the part's own curvature."""
+    w = wrench / SENSOR_RANGE
+    i, j = np.triu_indices(6)
+    return w[:, i] * w[:, j]
+
+
 def fit_drift(
     dataset: Dataset, model: LinearModel, reference_c: float, geometry: SensorGeometry | None = None
 ) -> np.ndarray:
     """Each channel's drift (T/K) from the fit and no-load poses of ``dataset`` (flux already
     at ``reference_c`` by the laws): the flux model's residual b - b0 - H K^-1 w, regressed
-    on the pose's temperature beside a constant per channel (the zero's business) and the
-    room's field. With each pose's orientation recorded, the room's field is one vector in
-    the world, R_w0^T B in {0}, seen by the chips through the geometry's orientations (3
-    unknowns in all), and the whole drift is measured; without them, the room's field is free
-    at every pose and the drift along its 3 directions is left at 0 (the model is blind to
-    them anyway: a drift there changes no wrench)."""
+    on the pose's temperature beside a constant per channel (the zero's business), the load's
+    second-order terms per channel (`_curvature`: the linear model's own error, which would
+    leak into the drift wherever the plan's loads and temperatures go together, as a robot
+    cell warming through a plan ordered by orientation does), and the room's field. With each
+    pose's orientation recorded, the room's field is one vector in the world, R_w0^T B in {0},
+    seen by the chips through the geometry's orientations (3 unknowns in all), and the whole
+    drift is measured; without them, the room's field is free at every pose and the drift
+    along its 3 directions is left at 0 (the model is blind to them anyway: a drift there
+    changes no wrench)."""
     if model.H is None or dataset.temperature_c is None:
         raise CalibrationError("a drift needs the flux model H and the poses' temperatures")
     poses = dataset.select(np.isin(dataset.split, ("fit", "no-load")) & ~dataset.saturated.any(axis=1))
@@ -127,21 +143,24 @@ def fit_drift(
     residual = poses.flux_t - predicted
     assert poses.temperature_c is not None  # (the selection keeps the dataset's temperatures)
     dt: np.ndarray = poses.temperature_c - reference_c
+    # Per pose, shared by every channel: temperature, a constant, the load's curvature.
+    own = np.column_stack([dt, np.ones(len(dt)), _curvature(poses.wrench)])
     n, m = residual.shape
     if poses.rotation is None:
         room = (geometry or SensorGeometry.ring()).room_directions()
         residual = residual - (residual @ room) @ room.T
-        dt = dt - dt.mean()
-        return (dt @ (residual - residual.mean(axis=0))) / float(dt @ dt)
+        solution, *_ = np.linalg.lstsq(own, residual, rcond=None)
+        return solution[0]
     seen = np.concatenate([R.T for R in (geometry or SensorGeometry.ring()).chip_R], axis=0)  # (m, 3)
-    # Unknowns: drift (m), constant (m), B (3, world). Rows: pose p, channel k.
-    design = np.zeros((n * m, 2 * m + 3))
+    # Unknowns: each of ``own``'s columns per channel (k x m, column-major by term), B (3, world).
+    # Rows: pose p, channel c.
+    k = own.shape[1]
+    design = np.zeros((n * m, k * m + 3))
     eye = np.eye(m)
     for p in range(n):
         rows = slice(p * m, (p + 1) * m)
-        design[rows, :m] = dt[p] * eye
-        design[rows, m : 2 * m] = eye
-        design[rows, 2 * m :] = seen @ poses.rotation[p].T
+        design[rows, : k * m] = np.kron(own[p], eye)
+        design[rows, k * m :] = seen @ poses.rotation[p].T
     solution, *_ = np.linalg.lstsq(design, residual.ravel(), rcond=None)
     return solution[:m]
 
@@ -173,9 +192,14 @@ def thermal_fit(
     corrected, result = lawful, fit_model(lawful, room_field="geometry")
     for _ in range(DRIFT_PASSES):
         used = corrected if result.excluded is None else corrected.select(~result.excluded)  # as the fit
-        drift = drift + fit_drift(used, result.model, temperature.mean_c)
+        step = fit_drift(used, result.model, temperature.mean_c)
+        drift = drift + step
         corrected = replace(
             dataset, flux_t=to_reference(dataset.flux_t, celsius, temperature.mean_c, laws, drift)
         )
-        result = fit_model(corrected)
-    return corrected, replace(temperature, drift_t_per_k=drift), result
+        if np.linalg.norm(step) <= DRIFT_SETTLED * np.linalg.norm(drift):
+            break
+        result = fit_model(corrected, room_field="geometry")
+    # The no-load poses judge the room only once the drift has settled: before, they still
+    # carry the part the fit absorbed, a 4th direction that is no field's.
+    return corrected, replace(temperature, drift_t_per_k=drift), fit_model(corrected)
