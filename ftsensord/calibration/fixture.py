@@ -9,8 +9,9 @@ them (the centre of mass, near the sensor's centre, projects inside the face).
 
 The hook arm is clamped on the tool flange after the no-load poses: `HOOKS` are its hooks'
 lever arms (mm, {0}), the robot plan's four long arms (`sim.loads.SIX_AXIS_ARMS`), so the torques
-vary apart from the forces (the plan's fifth, at the flange's centre, lies inside the holder). Its own weight (weighed, ``arm_g``, at ``arm_com_mm``) is part of
-every loaded pose's wrench: one mass at the weighted centre of the two.
+vary apart from the forces (the plan's fifth, at the flange's centre, lies inside the holder).
+Its own weight (weighed, ``arm_g``, at ``arm_com_mm``) is part of every loaded pose's wrench:
+one mass at the weighted centre of the two.
 
 The plan is the robot's in shape: no-load poses first (the arm off: what the room's field
 alone does), then 200 g on every hook, face by face, and 100 g validation poses.
