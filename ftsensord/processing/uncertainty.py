@@ -1,16 +1,24 @@
 """Each wrench sample's 1-sigma per axis (N, Nm): what the daemon knows of its error.
 
-Three independent parts, added as variances (docs/design/estimators.md, "Each sample's sigma"):
+Four independent parts, added as variances (docs/design/estimators.md, "Each sample's sigma"):
 
-- the chips' reading noise (`pipeline.channel_sigma_t`, T, at their settings) through the
-  estimator used: M diag(sigma_t^2) M^T, M = K A with every chip, K pinv(H_S) over the chips
-  left (degraded), and for the nonlinear estimator its stiffness times the flux model's
-  Jacobian at rest, pinv(H) (the solve's own Jacobian at the deflection is not used); then
-  times the filter's variance factor (`filters.variance_factors`), as the noise is
+- the chips' reading noise (`pipeline.channel_sigma_t`, T, at their settings: the chip's noise
+  and its LSB's quantisation) less the quantisation's undithered part (the third part), through
+  the estimator used: M diag(sigma_t^2 - q^2) M^T, M = K A with every chip, K pinv(H_S) over
+  the chips left (degraded), and for the nonlinear estimator its stiffness times the flux
+  model's Jacobian at rest, pinv(H) (the solve's own Jacobian at the deflection is not used);
+  then times the filter's variance factor (`filters.variance_factors`), as this noise is
   independent from sample to sample;
-- the tare's own noise: its zero is the mean of n samples, so M diag(sigma_t^2) M^T / n, an
+- the tare's own noise: its zero is the mean of n samples, so that noise's M (...) M^T / n, an
   offset the filter does not shrink (none before a tare: the calibration's zero is the
-  mean of hundreds of poses' samples, and its error is in the next part);
+  mean of hundreds of poses' samples, and its error is in the last part);
+- the quantisation the chip's noise does not dither (`undithered`, q per channel): where the
+  noise is not well above the LSB (at the packaged RES 3 the LSB is 6 uT on x and y against
+  2 uT of noise; at the longest conversions 27 times the noise) the mean of a channel's
+  readings at a held field is off the field by a sawtooth of it, the same at every sample:
+  a bias of the load that no filter shrinks. After a tare the error is that bias at the load
+  less the one at the tare's field: none at the tare's load, 2 q^2 a channel once the load
+  has moved its field a fraction of an LSB (`Uncertainty.quantisation`); untared, q^2;
 - the calibration's model error, learnt on its validation poses (`ModelError`), an error
   of the load, not of the sample: the filter does not shrink it either.
 
@@ -166,7 +174,7 @@ class SampleSigma:
     sigma: np.ndarray
     noise: np.ndarray | None = None  # one sample's noise covariance (6 x 6), before the filter
     offset: np.ndarray | None = None  # the tare's (6 x 6)
-    model: np.ndarray | None = None  # the model error's variances (6)
+    model: np.ndarray | None = None  # the model error's and the undithered quantisation's variances (6)
     scale: float = 1.0
     factor: float = 1.0  # the filter's variance factor on ``noise``
 
@@ -193,9 +201,34 @@ NOISE_SIGMAS = 2.0
 NONLINEAR_MOVE_M, NONLINEAR_MOVE_RAD = 40e-6, 4e-3
 
 
+def undithered(noise: np.ndarray, lsb: np.ndarray) -> np.ndarray:
+    """The RMS, over the fields a load sets, of the mean reading's error at a held field: the
+    part of a rounding quantiser's error (LSB^2 / 12 in all) that Gaussian noise of ``noise``
+    (same units, per channel) does not dither. The error of Q(b + n) against b is a sawtooth
+    of b, sum_k (-1)^k lsb / (pi k) sin(2 pi k b / lsb); the noise multiplies its k-th
+    harmonic's mean by exp(-2 pi^2 k^2 noise^2 / lsb^2), so its mean square over b is
+
+        q^2 = sum_k (lsb / (pi k))^2 / 2 exp(-4 pi^2 k^2 (noise / lsb)^2),
+
+    LSB^2 / 12 without noise, 0.15 uT of the packaged 6 uT LSB at its 2 uT noise, nothing once
+    the noise reaches an LSB."""
+    noise, lsb = np.asarray(noise, dtype=float), np.asarray(lsb, dtype=float)
+    k = np.arange(1, UNDITHERED_TERMS + 1)[:, None]
+    ratio = np.divide(noise, lsb, out=np.zeros_like(lsb), where=lsb > 0)
+    terms = (lsb / (np.pi * k)) ** 2 / 2 * np.exp(-4 * np.pi**2 * k**2 * ratio**2)
+    return np.sqrt(terms.sum(axis=0))
+
+
+#: The harmonics `undithered` sums: without noise the tail past k is 1 / (2 pi^2 k) of LSB^2,
+#: here 1e-5 of LSB^2 / 12.
+UNDITHERED_TERMS = 5000
+
+
 class Uncertainty:
     """One sensor's sigma: the chips' noise, its calibration's model error, and the maps.
-    ``nonlinear``: the sensor's nonlinear estimator (its flux model and stiffness), or None."""
+    ``nonlinear``: the sensor's nonlinear estimator (its flux model and stiffness), or None;
+    ``lsb_t``: each channel's LSB (T, `pipeline.channel_lsb_t`), of which ``sigma_t`` holds the
+    quantisation (None: no quantisation told apart, all of ``sigma_t`` independent noise)."""
 
     def __init__(
         self,
@@ -203,8 +236,21 @@ class Uncertainty:
         sigma_t: np.ndarray,
         report: Mapping[str, Any] | None,
         nonlinear: NonlinearEstimator | None,
+        lsb_t: np.ndarray | None = None,
     ):
         self.sigma_t = sigma_t
+        if lsb_t is None:
+            self.lsb_t, self.bias_t = np.zeros_like(sigma_t), np.zeros_like(sigma_t)
+        else:
+            self.lsb_t = np.asarray(lsb_t, dtype=float)
+            chip_noise = np.sqrt(np.maximum(sigma_t**2 - self.lsb_t**2 / 12, 0.0))
+            self.bias_t = undithered(chip_noise, self.lsb_t)
+        # What the filter shrinks: the reading noise less its undithered part.
+        self.independent_t = np.sqrt(np.maximum(sigma_t**2 - self.bias_t**2, 0.0))
+        self._quantised = bool(np.any(self.bias_t > 0))
+        # Each channel's field per unit wrench (24 x 6): how far a load moves it, in LSBs.
+        self._flux_per_wrench = np.linalg.pinv(model.KA) if self._quantised else None
+        self._bias_maps: dict[tuple[int, str, bytes], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self.linear_error = ModelError.from_report(report)
         nl = (report or {}).get("nonlinear")
         self.nonlinear_error = ModelError.from_report(nl if isinstance(nl, Mapping) else None)
@@ -255,11 +301,13 @@ class Uncertainty:
         the chips left do not see all six axes."""
         if version != self._version:  # a tare or untare: the tare's part changes
             self._cache.clear()
+            self._bias_maps.clear()
             self._version = version
         nonlinear = estimator == "nonlinear" and self._nonlinear is not None
         if nonlinear and self._moved(pose):
             for key in [k for k in self._cache if k[1] == "nonlinear"]:
                 del self._cache[key]
+                self._bias_maps.pop(key, None)
             self._anchor = (np.eye(4), np.zeros(3)) if pose is None else (pose[0].copy(), pose[1].copy())
             self._anchor_rows = self._anchor[0][:3].ravel().tolist()
         key = (version, estimator, chips.tobytes())
@@ -275,10 +323,40 @@ class Uncertainty:
                     M = self._model.map_from(chips)
             except (ValueError, np.linalg.LinAlgError):
                 return None
-            noise = propagate(M, self.sigma_t[channels])
+            noise = propagate(M, self.independent_t[channels])
             offset = noise / tare_samples if tare_samples else np.zeros((6, 6))
             found = self._cache[key] = (noise, np.diag(noise).copy(), offset)
+            if self._quantised:
+                q2 = self.bias_t[channels] ** 2
+                assert self._flux_per_wrench is not None
+                self._bias_maps[key] = (
+                    M * M * q2,  # (6 x channels): each channel's q^2 on each axis
+                    np.sum(M * M * q2, axis=1),  # untared: q^2 on every channel
+                    channels,
+                )
         return found
+
+    def quantisation(
+        self, key: tuple[int, str, bytes], wrench: np.ndarray, known: np.ndarray, tared: bool
+    ) -> np.ndarray:
+        """The undithered quantisation's variance per axis (6) at ``wrench`` (as published, after
+        the tare) for the maps of ``key``: untared sum_c M_kc^2 q_c^2; after a tare each
+        channel's bias at the load less the one at the tare's field, whose variance over the
+        fields is 2 q^2 (1 - cos(2 pi d / LSB)) for a field moved by d: taken as 2 q^2
+        min(1, 2 pi^2 (d / LSB)^2), its small-d form up to its mean, d the field the load
+        ``wrench`` less ``known`` (its noise, as the model error's) moves the channel by."""
+        found = self._bias_maps.get(key)
+        if found is None:
+            return np.zeros(6)
+        weighted, untared, channels = found
+        if not tared:
+            return untared
+        load = np.sign(wrench) * np.maximum(np.abs(wrench) - known, 0.0)
+        if not np.any(load):
+            return np.zeros(6)
+        assert self._flux_per_wrench is not None
+        d = np.abs(self._flux_per_wrench[channels] @ load) / self.lsb_t[channels]
+        return 2.0 * (weighted @ np.minimum(1.0, 2 * np.pi**2 * d * d))
 
     def sample(
         self,
@@ -304,23 +382,36 @@ class Uncertainty:
         noise, noise_diag, offset = maps
         error = self.nonlinear_error if estimator == "nonlinear" else self.linear_error
         noise_now = factor * noise_diag + np.diag(offset)
-        model = error.variance(wrench, tare_wrench, tared, NOISE_SIGMAS * np.sqrt(noise_now))
+        known = NOISE_SIGMAS * np.sqrt(noise_now)
+        model = error.variance(wrench, tare_wrench, tared, known)
+        if self._quantised:
+            model = model + self.quantisation((version, estimator, chips.tobytes()), wrench, known, tared)
         variance = noise_now + model
         sigma = np.sqrt(variance) * scale if scale != 1.0 else np.sqrt(variance)
         # The covariance's parts kept as they are (the cached maps, not copies): only the tip
         # asks for it (`tip_sigma`), so a sample makes no 6 x 6 product.
         return SampleSigma(sigma, noise, offset, model, scale, factor)
 
-    def predicted(self, factor: float, tare_samples: int | None, estimator: str = "linear") -> dict[str, Any]:
+    def predicted(
+        self, factor: float, tare_samples: int | None, estimator: str = "linear", loaded: bool = False
+    ) -> dict[str, Any]:
         """The sigma at rest of the current settings (every chip, no load), and its parts:
-        for `status`."""
+        for `status`. ``loaded``: with the undithered quantisation a load brings (its mean over
+        the fields, as once a load has moved every channel's field: `quantisation`), which at
+        the tare's load is not there: what `accuracy` plans on, as no averaging shrinks it."""
         chips = np.ones(len(self.sigma_t) // 3, dtype=bool)
         maps = self.maps(self._version, estimator, chips, tare_samples)
         if maps is None:
             return {"sigma": None}
         _, noise_diag, offset = maps
         error = self.nonlinear_error if estimator == "nonlinear" else self.linear_error
-        model = error.variance(np.zeros(6), np.zeros(6), tare_samples is not None)
+        tared = tare_samples is not None
+        model = error.variance(np.zeros(6), np.zeros(6), tared)
+        key = (self._version, estimator, chips.tobytes())
+        if loaded and key in self._bias_maps:
+            model = model + self._bias_maps[key][1] * (2.0 if tared else 1.0)
+        else:
+            model = model + self.quantisation(key, np.zeros(6), np.zeros(6), tared)
         sigma = np.sqrt(factor * noise_diag + np.diag(offset) + model)
         return {
             "sigma": [round(float(v), 7) for v in sigma],
