@@ -329,10 +329,12 @@ class Uncertainty:
             if self._quantised:
                 q2 = self.bias_t[channels] ** 2
                 assert self._flux_per_wrench is not None
+                lsb = self.lsb_t[channels]
                 self._bias_maps[key] = (
                     M * M * q2,  # (6 x channels): each channel's q^2 on each axis
                     np.sum(M * M * q2, axis=1),  # untared: q^2 on every channel
-                    channels,
+                    # (channels x 6): a load's move of each field, in LSBs, times pi sqrt(2)
+                    self._flux_per_wrench[channels] * (np.pi * np.sqrt(2.0) / lsb)[:, None],
                 )
         return found
 
@@ -348,15 +350,14 @@ class Uncertainty:
         found = self._bias_maps.get(key)
         if found is None:
             return np.zeros(6)
-        weighted, untared, channels = found
+        weighted, untared, moves = found
         if not tared:
             return untared
-        load = np.sign(wrench) * np.maximum(np.abs(wrench) - known, 0.0)
-        if not np.any(load):
+        load = np.copysign(np.maximum(np.abs(wrench) - known, 0.0), wrench)
+        if not load.any():
             return np.zeros(6)
-        assert self._flux_per_wrench is not None
-        d = np.abs(self._flux_per_wrench[channels] @ load) / self.lsb_t[channels]
-        return 2.0 * (weighted @ np.minimum(1.0, 2 * np.pi**2 * d * d))
+        d = moves @ load  # pi sqrt(2) d / LSB a channel
+        return 2.0 * (weighted @ np.minimum(1.0, d * d))
 
     def sample(
         self,
