@@ -151,6 +151,18 @@ GENERATORS = (
         "each sample's sigma against the truth: coverage at 1 and 2 sigma, per estimator, filter and chips",
     ),
     Generator(
+        "axis_gain",
+        ("axis-gain.md",),
+        _module("accuracy.axis_gain", "axis-gain.md"),
+        "a load along one axis alone: the static gain per axis and estimator",
+    ),
+    Generator(
+        "sigma_cost",
+        ("sigma-cost.md",),
+        _module("performance.sigma_cost", "sigma-cost.md"),
+        "what each sample's sigma costs the pipeline's step, per estimator",
+    ),
+    Generator(
         "motor",
         ("motor-figures.md",),
         _module("accuracy.motor", "motor-figures.md"),

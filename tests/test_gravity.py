@@ -350,7 +350,7 @@ def test_with_a_load_the_compensated_wrench_is_the_load_at_every_orientation(tmp
         tip = np.mean([s.values for s in out["wrench/tip/compensated"]], axis=0)
         raw = np.mean([s.values for s in out["wrench/sensor1"]], axis=0)
         # The linear calibration's own error at the load plus the weight (up to 1.7 N here) and
-        # its untared zero: 0.3 N as tests/test_daemon.py allows, 12 mNm (10.6 mNm measured on
+        # its untared zero: 0.3 N as tests/test_daemon.py allows, 12 mNm (11.8 mNm measured on
         # My where the weight adds 1.2 N to Fz and Fx); the tip's moments, 0.2 m further.
         assert np.allclose(comp[:3], LOAD[:3], atol=0.3) and np.allclose(comp[3:], LOAD[3:], atol=0.012), comp
         assert np.allclose(tip[:3], load_at_tip[:3], atol=0.3) and np.allclose(

@@ -24,11 +24,18 @@ from .conftest import assert_names_file_and_key
 def test_openscad_file_holds_the_geometry_the_plan_is_computed_from(tmp_path):
     path = tmp_path / "fixture.scad"
     assert main(["guide", "--fixture", str(path)]) == 0
-    face_mm, faces, hooks = fx.parse_openscad(path.read_text())
+    face_mm, faces, hooks, legs = fx.parse_openscad(path.read_text())
     fixture = fx.Fixture()
     assert face_mm == fixture.face_mm
     np.testing.assert_allclose(faces, fixture.normals, atol=1e-8)  # 9 decimals written
     assert {k: tuple(v) for k, v in hooks.items()} == fixture.hooks_mm
+    assert {k: tuple(v) for k, v in legs.items()} == fixture.legs_mm
+    # A hook with z = 0 (forces without the long arms' torques); every leg clears the holder.
+    assert any(z == 0 for _, _, z in fixture.hooks_mm.values())
+    for top, foot in ((legs[k], hooks[k]) for k in legs):
+        for t in np.linspace(0, 1, 11):
+            p = top + t * (foot - top)
+            assert np.max(fixture.normals @ p) > fixture.face_mm + 3  # outside every face, the rod's radius
     for step in fx.guided_plan(fixture):
         pose = fx.pose_of(fixture, step.face, step.mass_g, step.hook, arm_on=step.split != "no-load")
         np.testing.assert_allclose(pose.gravity_dir, faces[step.face - 1])  # the face down is gravity
@@ -40,6 +47,19 @@ def test_openscad_file_holds_the_geometry_the_plan_is_computed_from(tmp_path):
         np.testing.assert_allclose(
             fx.pose_of(bare, step.face, step.mass_g, step.hook).lever_m, hooks[step.hook] * 1e-3
         )
+
+
+def test_a_leg_is_kept_off_the_table():
+    # Hook E stands clear on the face that puts the shaft down (gravity along +z), but its leg's top and the
+    # arm's stem would be below the table top there; the plan leaves that face out for E.
+    fixture = fx.Fixture()
+    shaft_down = int(np.flatnonzero(np.all(np.isclose(fixture.normals, [0, 0, 1]), axis=1))[0]) + 1
+    up = -fixture.normals[shaft_down - 1]
+    assert fixture.face_mm + up @ np.array(fixture.hooks_mm["E"]) >= fx.HOOK_CLEARANCE_MM
+    assert not fixture.clears_table(shaft_down, "E")
+    assert fx.Fixture(legs_mm={}).clears_table(shaft_down, "E") is False  # the stem alone too
+    steps = fx.guided_plan(fixture)
+    assert all(s.face != shaft_down or s.split == "no-load" for s in steps)
 
 
 def test_every_face_is_one_the_holder_stands_on():
@@ -127,9 +147,10 @@ def test_correct_steps_are_not_refused():
     for person in (Person.careful(seed=2), Person(1.5, 0.5, 0.5, 1.0, 0.0, 0.0, 0.0, 0.0, seed=2)):
         done, run, station = _run(person, steps)
         assert done and not station.slips
-        # This part's 200 g poses on hook D are read by H half-way to another step's wrench
-        # (My): one such step is asked twice, another once; 3 of 41 loaded steps at most.
-        assert len(run.refused) <= 3, run.refused
+        # This part's 200 g poses on hook D are read by H off in Mz, and two on hook E (a force
+        # without the long arms' torques, a direction the poses H is fitted on hardly hold) off
+        # in Mx, each asked once again: 4 of 41 loaded steps at most.
+        assert len(run.refused) <= 4, run.refused
 
 
 def test_every_slip_that_changes_the_wrench_exceeds_an_honest_step_tolerance():

@@ -52,7 +52,8 @@ def test_the_daemon_takes_a_learnt_motor_out_through_the_orientation_stream(tmp_
     default scene's sensor1 (seed 1: the packaged calibration's part) with a 2 A m^2 motor at
     15 cm switched on after the tare, the scene's orientation sent to its orientation
     stream every cycle, 20 orientations held 1 s. Without the stage the holds are off by
-    about 8 mNm (docs/results/accuracy.md); with it, the holds once learnt are within the figure."""
+    about 8 mNm on Mx and My (docs/results/motor-figures.md: linear, uniform, on after tare,
+    15 cm); with it, the holds once learnt are within the figure."""
     import argparse
 
     import numpy as np

@@ -208,10 +208,22 @@ def test_measuring_the_room_needs_enough_no_load_poses(room):
     )
     with pytest.raises(CalibrationError, match="3 unsaturated no-load poses.*at least 6"):
         fit(few, room_field="measured")
-    # "auto" with too few: no rejection; the corrupted K is refused, and the refusal names the room.
-    with pytest.raises(CalibrationError, match="room's field was not rejected.*not positive definite"):
+    # "auto" with too few cannot reject the field, and its own no-load poses show it turning:
+    # refused, naming the field and what measuring it needs (not a K bent by it, kept).
+    with pytest.raises(CalibrationError, match="cannot be rejected.*turns with the sensor.*at least 6"):
         fit(few)
+    with pytest.raises(CalibrationError, match="'none' takes the room as field-free, but the 3 no-load"):
+        fit(few, room_field="none")
     assert fit(few, room_field="geometry").report["room_field"]["mode"] == "geometry"
+
+
+def test_a_field_free_room_with_few_no_load_poses_is_not_taken_for_a_field(clean):
+    few = clean.select(
+        np.flatnonzero(clean.split != "no-load").tolist()
+        + np.flatnonzero(clean.split == "no-load")[:3].tolist()
+    )
+    assert fit(few).report["room_field"] == {"mode": "none", "no_load_poses": 3}
+    assert fit(few, room_field="none").report["room_field"]["mode"] == "none"
 
 
 # --- the nonlinear fit: progress and refusal ----------------------------------------------------------------

@@ -20,6 +20,7 @@ from ftsensord.client import Subscriber
 from ftsensord.config.file import builtin_path
 from ftsensord.model import se3
 from ftsensord.model.linear import SENSOR_RANGE
+from ftsensord.model.nonlinear import PRIOR_WEIGHT
 from ftsensord.processing.filters import WrenchFilter, variance_factors
 from ftsensord.processing.pipeline import channel_sigma_t
 from ftsensord.processing.uncertainty import (
@@ -495,3 +496,60 @@ def test_the_undithered_quantisation_is_none_at_the_tares_load_and_twice_its_sha
     rest = np.array(u.predicted(0.01, 100)["sigma"]) ** 2
     loaded = np.array(u.predicted(0.01, 100, loaded=True)["sigma"]) ** 2
     assert loaded - rest == pytest.approx(2 * q, rel=1e-3)  # (its sigma rounded to 1e-7)
+
+
+@pytest.mark.parametrize("solver", ["numpy", "compiled"])
+def test_the_nonlinear_sigma_takes_the_jacobian_the_solve_keeps(monkeypatch, solver):
+    """The daemon's pipeline on a held load and on one that changes every sample: the sigma
+    makes no Jacobian of the flux model of its own (`NonlinearEstimator.jacobian_at` hands it
+    the one the solve keeps), so steps with it make as many as steps without; and its noise
+    map is the solve's gains at that Jacobian, of the noise the filter shrinks, with the
+    undithered quantisation's maps through the same gains, made again with them when the solve
+    keeps a new Jacobian."""
+    from ftsensord.acquire.readings import Readings
+    from ftsensord.config.file import load_config
+    from ftsensord.model import nlcompiled
+    from ftsensord.processing.pipeline import SensorPipeline
+    from ftsensord.sim.scene import default_scene
+
+    from .test_nonlinear import count_calls
+
+    if solver == "compiled" and nlcompiled.load() is None:
+        pytest.skip("the compiled solve is not built in place")
+    scene, rng = default_scene(), np.random.default_rng(7)
+    sensor = scene.sensors[0]
+    readings = []
+    for i in range(40):
+        moving = i >= 20  # 20 samples of one held load, then a new load every sample
+        w = np.r_[rng.uniform(-1, 1, 3), rng.uniform(-0.02, 0.02, 3)] if moving else np.r_[1.0, 0, 0, 0, 0, 0]
+        scene.set_load(sensor.name, StaticLoad(w))
+        flux = np.concatenate([scene.field_t(a, 100.0) for a in sensor.addresses])
+        readings.append(Readings.of_field(sensor.addresses, flux + rng.normal(0, 1e-7, flux.size)))
+    counts = []
+    for with_sigma in (False, True):
+        p = SensorPipeline.build(load_config().sensors[0], WrenchFilter(), 2, thermal=False, rate_hz=100.0)
+        p.use("nonlinear")
+        assert p.nonlinear is not None and p.uncertainty is not None
+        nlcompiled.attach(p.nonlinear, solver)
+        if not with_sigma:
+            p.uncertainty = None
+        counted = count_calls(monkeypatch, p.nonlinear.model, "predict_and_jacobian")
+        for i, r in enumerate(readings):
+            sample = p.step(r)
+            assert np.all(np.isfinite(sample.sigma.sigma)) == with_sigma
+            if with_sigma and i == 19:  # the held load's quantisation maps (untared: q^2 a channel)
+                key = (p.version, "nonlinear", EVERY.tobytes())
+                held = p.uncertainty.quantisation(key, np.zeros(6), np.zeros(6), False).copy()
+        counts.append(counted["calls"])
+    # numpy's solve makes its Jacobians in Python, the compiled one in C: none from the sigma
+    assert counts[1] == counts[0] and (counts[0] > 0) == (solver == "numpy")
+    nl = p.nonlinear
+    J = nl.jacobian_at(nl.pose, nl.background_t)
+    maps = p.uncertainty.maps(p.version, "nonlinear", EVERY, None, (nl.pose, nl.background_t))
+    assert maps is not None
+    M = nl.stiffness @ np.linalg.solve(J.T @ J + np.diag([0.0] * 6 + [PRIOR_WEIGHT] * 3), J.T)[:6]
+    u = p.uncertainty
+    assert maps[0] == pytest.approx(propagate(M, u.independent_t), rel=1e-9)
+    q = u.quantisation((p.version, "nonlinear", EVERY.tobytes()), np.zeros(6), np.zeros(6), False)
+    assert np.all(q > 0) and q == pytest.approx((M * M) @ u.bias_t**2, rel=1e-9)
+    assert not np.allclose(q, held, rtol=1e-6, atol=0)  # made again with the new Jacobian

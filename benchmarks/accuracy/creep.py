@@ -33,8 +33,6 @@ import argparse
 import contextlib
 import io
 import math
-import os
-import platform
 import sys
 import tempfile
 import time
@@ -337,7 +335,6 @@ def main() -> int:
     args = parser.parse_args()
     quick = args.quick
     series = HARSH if quick else DEFAULT_RELAXATION
-    t_start = time.monotonic()
     config = load_config(builtin_path("sim.toml"))
     parts = PARTS[:1] if quick else PARTS
     with tempfile.TemporaryDirectory() as tmp_name:
@@ -442,9 +439,6 @@ def main() -> int:
         f"8 chips read every 1 ms step: {c['scene_ms_spring']:.0f} ms with a perfect spring, "
         f"{c['scene_ms_memory']:.0f} ms with the memory; a static scene keeps no memory at all "
         "(`SimSensor.memory` is None).",
-        "",
-        f"Run: {time.monotonic() - t_start:.0f} s; `uptime` at the end: {os.getloadavg()[0]:.2f} "
-        f"(1 min load) on a {os.cpu_count()}-core {platform.machine()} machine.",
     ]
     text = "\n".join(lines) + "\n"
     print(text)

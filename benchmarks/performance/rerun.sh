@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
-# Every figure of docs/results/performance.md's "Quiet re-run", in the order measured, with the
-# host's load and the hypervisor's steal between them. Run on a quiet machine (about 6 min):
+# The commands of docs/results/performance.md's sections "The daemon's CPU a cycle", "Rate at
+# the computed bound", "16 chips at 100 Hz, burst, a Pi 4's adapter", "Latency from a sample
+# to its subscribers" and "Control floods", in one run, with the host's load and the
+# hypervisor's steal between them. Run on a quiet machine (about 6 min):
 #   bash benchmarks/performance/rerun.sh > rerun.txt 2>&1
 set -euo pipefail
 cd "$(dirname "$0")/../.."

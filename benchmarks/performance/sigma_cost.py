@@ -5,24 +5,24 @@ The packaged configuration's sensor1 and calibration, its flux from the default 
 0.1 uT of noise, the pipeline as the daemon builds it (`SensorPipeline.build`, the
 temperature stage off: it is the same with and without the sigma). A held load keeps the
 nonlinear estimator's noise map; a load drawn anew each sample (50 loads in turn, |F| to
-1.7 N, torques to 35 mNm) moves its pose past the map's rebuild threshold at nearly every
-sample: the worst case. CPU time of ``--samples`` steps, the best of ``--rounds``.
+1.7 N, torques to 35 mNm) moves its pose past the solve's Jacobian reuse bound at nearly
+every sample, so the map is made again from the solve's new Jacobian: the worst case. CPU
+time of ``--samples`` steps, the best of ``--rounds``.
 
-    python -m benchmarks.performance.sigma_cost [--samples 4000] [--rounds 2]
-
-Figures in docs/design/estimators.md ("Each sample's sigma").
+    python -m benchmarks.performance.sigma_cost [--samples 4000] [--rounds 3]  # docs/results/sigma-cost.md
+    python -m benchmarks.performance.sigma_cost --quick --out /tmp/sigma-cost.md  # the page's structure
 """
 
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import machine
+from benchmarks.common import RESULTS
 from ftsensord.acquire.readings import Readings
 from ftsensord.config.file import load_config
 from ftsensord.processing.filters import WrenchFilter
@@ -69,23 +69,42 @@ def step_us(estimator: str, sigma: bool, readings: list[Readings], samples: int)
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--samples", type=int, default=4000)
-    parser.add_argument("--rounds", type=int, default=2)
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--out", type=Path, default=RESULTS / "sigma-cost.md")
+    parser.add_argument("--quick", action="store_true", help="200 samples, one round: the page's structure")
     args = parser.parse_args()
-    print("| estimator | load | step without the sigma (us) | with (us) | the sigma's share (us) |")
-    print("|---|---|---|---|---|")
+    samples, rounds = (200, 1) if args.quick else (args.samples, args.rounds)
+    rows = []
     for estimator in ("linear", "nonlinear"):
         for moving in (False, True):
             readings = cycles(moving)
             off, on = (
-                min(step_us(estimator, sigma, readings, args.samples) for _ in range(args.rounds))
+                min(step_us(estimator, sigma, readings, samples) for _ in range(rounds))
                 for sigma in (False, True)
             )
             load = "a new one every sample" if moving else "held"
-            print(f"| {estimator} | {load} | {off:.1f} | {on:.1f} | {on - off:.1f} |")
-    print(
-        f"\n{args.samples} samples a case, the best of {args.rounds}; {machine()}, "
-        f"1-min load {os.getloadavg()[0]:.2f}, {time.strftime('%Y-%m-%d', time.gmtime())}"
+            rows.append(f"| {estimator} | {load} | {off:.1f} | {on:.1f} | {on - off:.1f} |")
+    args.out.write_text(
+        "\n".join(
+            [
+                "# What each sample's sigma costs",
+                "",
+                "The CPU time of `SensorPipeline.step` (the daemon's per-sensor step) with each sample's "
+                "sigma and without it, per estimator, on a held load and on a load that changes every "
+                "sample (the nonlinear noise map then made again from the solve's new Jacobian at nearly "
+                "every sample: the worst case). The packaged configuration's sensor1 and calibration, the "
+                f"default scene's flux with 0.1 uT of noise; {samples} steps a case, the best of {rounds} "
+                "rounds. What the sigma holds: [estimators](../design/estimators.md#each-samples-sigma); the "
+                "daemon's whole cycle: [the trade-off](tradeoff.md).",
+                "",
+                "| estimator | load | step without the sigma (us) | with (us) | the sigma's share (us) |",
+                "|---|---|---|---|---|",
+                *rows,
+                "",
+            ]
+        )
     )
+    print(f"wrote {args.out}")
     return 0
 
 

@@ -138,9 +138,8 @@ def fit_linear(
 
     With ``zero`` (no-load poses' flux (m, 24) and twists (m, 6)) the zero is measured:
     b0 their mean flux, A and K fitted through it. The affine fit's zero, extrapolated
-    from the loaded poses, is bent by the room's projection: 0.033 N of Fz at no load on
-    the default scene's sensor1 (0.004 N unprojected); measured, 0.001 N (100 g
-    validation: Fz 0.016 to 0.021 N RMSE, the other axes unchanged)."""
+    from the loaded poses, is bent by the room's projection (figures: docs/guide/calibration.md,
+    "The zero")."""
     if zero is not None:
         return _fit_through_zero(flux, twist, wrench, floor_t, room, zero)
     b_mean = flux.mean(axis=0)
@@ -395,9 +394,11 @@ def room_directions(
     if mode not in ROOM_FIELD_MODES:
         raise ValueError(f"room field mode must be one of {ROOM_FIELD_MODES}, got {mode!r}")
     no_load = dataset.select((dataset.split == "no-load") & ~dataset.saturated.any(axis=1))
+    asked = mode
     if mode == "auto":
         mode = "measured" if len(no_load) >= MIN_NO_LOAD_POSES else "none"
     if mode == "none":
+        _refuse_a_field_left_in(dataset, no_load, asked)
         return None, {"mode": "none", "no_load_poses": len(no_load)}
     if mode == "geometry":
         return geometry.room_directions(), {
@@ -460,6 +461,37 @@ def room_directions(
         return geometry.room_directions(), report
     report["source"] = "no-load poses"
     return vt[:3].T, report
+
+
+def _refuse_a_field_left_in(dataset: Dataset, no_load: Dataset, asked: str) -> None:
+    """Refuse a fit that takes the room as field-free when its own no-load poses show a field
+    turning with the sensor (their centred flux's largest direction above `ROOM_SIGNAL_FACTOR`
+    times its noise floor): the fit would take that field for load, and K A comes out bent
+    (on the default scene's parts 4-11 times the field-free fit's error, or a K that is not
+    positive definite, depending on the plan). Fewer than 2 poses, or single readings (no
+    floor), cannot tell: nothing is refused."""
+    if len(no_load) < 2 or no_load.samples_per_pose < 2:
+        return
+    sv = np.linalg.svd(no_load.flux_t - no_load.flux_t.mean(axis=0), compute_uv=False)
+    floor = noise_floor(no_load.flux_sem_t)
+    if sv[0] <= ROOM_SIGNAL_FACTOR * floor:
+        return
+    seen = (
+        f"the {len(no_load)} no-load poses' flux turns with the sensor ({sv[0] * 1e6:.3g} uT across their "
+        f"orientations, {sv[0] / floor:.0f}x the noise floor of {floor * 1e6:.3g} uT): a room field, which the fit "
+        "would take for load"
+    )
+    if asked == "none":
+        raise CalibrationError(
+            f"{dataset.where()}room field 'none' takes the room as field-free, but {seen}. Use 'auto' or "
+            "'measured' (the no-load poses measure its directions), or 'geometry'"
+        )
+    raise CalibrationError(
+        f"{dataset.where()}the room's field cannot be rejected: {seen}, and measuring its directions needs at "
+        f"least {MIN_NO_LOAD_POSES} no-load poses. Record {MIN_NO_LOAD_POSES} or more at orientations that "
+        "turn every sensor axis through the field (docs/guide/calibration.md), or fit with room field "
+        "'geometry' (the nominal directions)"
+    )
 
 
 @dataclass
@@ -549,12 +581,14 @@ def fit(
         # the room directions set to the poses' mean), or the field would bend them.
         flux = flux - ((flux - flux.mean(axis=0)) @ room) @ room.T
     twists = np.array([deflection_twist(b.reshape(-1, 3), geometry, pmap) for b in flux])
-    floor = noise_floor(fit_set.flux_sem_t) if fit_set.samples_per_pose > 1 else 0.0
     n = len(fit_set)  # with the room's no-load poses (enough to measure it) the zero is measured
     zero = (raw[n:], twists[n:]) if room is not None and len(zero_set) >= MIN_NO_LOAD_POSES else None
 
     def fitted(keep: np.ndarray) -> LinearFit:
-        return fit_linear(raw[:n][keep], twists[:n][keep], fit_set.wrench[keep], floor, room, zero)
+        # The floor of the poses kept, as their own dataset would give it: a pose left out must
+        # not move the truncation (a flux direction near the floor would flip with it).
+        floor_kept = noise_floor(fit_set.flux_sem_t[keep]) if fit_set.samples_per_pose > 1 else 0.0
+        return fit_linear(raw[:n][keep], twists[:n][keep], fit_set.wrench[keep], floor_kept, room, zero)
 
     outliers, response, found, largest = leave_out_outliers(
         dataset, fits, raw[:n], fit_set.wrench, room, lambda keep: fitted(keep).model.wrench(raw[:n])
@@ -570,7 +604,7 @@ def fit(
     if result.flux_rank < 6:
         raise CalibrationError(
             f"the flux varies in only {result.flux_rank} directions above the noise floor "
-            f"({floor * 1e6:.3g} uT): chips missing, saturated or not moving with the load"
+            f"({result.floor_t * 1e6:.3g} uT): chips missing, saturated or not moving with the load"
         )
     check_stiffness(
         result.model.K,
@@ -606,7 +640,7 @@ def fit(
             "condition": excitation.condition,
         },
         "flux_rank_above_floor": result.flux_rank,
-        "noise_floor_ut": floor * 1e6,
+        "noise_floor_ut": result.floor_t * 1e6,
         "singular_values_ka": sv,
         "isotropy": {
             "forces": sv["forces"][-1] / sv["forces"][0],

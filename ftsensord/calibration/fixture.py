@@ -7,15 +7,22 @@ every face at ``face_mm`` from the sensor's centre. Set down on face k, its outw
 touches the sphere of radius ``face_mm`` at its centre point, so the holder stands on each of
 them (the centre of mass, near the sensor's centre, projects inside the face).
 
-The hook arm is clamped on the tool flange after the no-load poses: `HOOKS` are its hooks'
-lever arms (mm, {0}), the robot plan's four long arms (`sim.loads.SIX_AXIS_ARMS`), so the torques
-vary apart from the forces (the plan's fifth, at the flange's centre, lies inside the holder).
-Its own weight (weighed, ``arm_g``, at ``arm_com_mm``) is part of every loaded pose's wrench:
-one mass at the weighted centre of the two.
+The hook arm is clamped on the tool flange after the no-load poses; its stem rises up the bore
+to just above the holder, where its branches start. `HOOKS` are its hooks' lever arms (mm,
+{0}): A, C and D at the ends of branches, three of the robot plan's four long arms
+(`sim.loads.SIX_AXIS_ARMS`), so the torques vary apart from the forces; E at the foot of a leg
+(`LEGS`) that hangs from the fourth branch's end down beside the holder, level with the
+sensor's centre. E stands in for the robot's fifth arm, at the flange's centre, which lies
+inside the holder: a lever arm with z = 0 gives forces without the long arms' torques (a force
+along x none, one along y Mz alone), so that the linear map is not fitted only where Fy comes
+with Mx = -z Fy (it then read a force along y alone about 10 % low). Its own weight (weighed,
+``arm_g``, at ``arm_com_mm``) is part of every loaded pose's wrench: one mass at the weighted
+centre of the two.
 
 The plan is the robot's in shape: no-load poses first (the arm off: what the room's field
 alone does), then 200 g on every hook, face by face, and 100 g validation poses.
-A face a hook would put below the table top is left out for that hook.
+A face that would put a hook, or the arm's stem or a hook's leg, below the table top is left
+out for that hook (`Fixture.clears_table`).
 """
 
 from __future__ import annotations
@@ -42,11 +49,27 @@ def _rhombicuboctahedron() -> np.ndarray:
 
 #: The holder's outward face normals (frame {0}), numbered from 1 in this order.
 FACE_NORMALS = _rhombicuboctahedron()
-#: The hook arm's hooks (mm, frame {0}): lettered A-D.
-HOOKS = {"A": (0.0, 0.0, 100.0), "B": (70.0, 0.0, 70.0), "C": (0.0, 70.0, 70.0), "D": (-50.0, -50.0, 50.0)}
+#: The hook arm's hooks (mm, frame {0}): A, C and D at the ends of its branches (three of the
+#: robot's long arms), E at the foot of a leg level with the sensor's centre (its lever arm's z
+#: is 0: a force along x gives no torque, one along y gives Mz alone). There is no B: E takes
+#: the place of the robot's fourth arm, (70, 0, 70), and the plan keeps its length (measured on
+#: parts 61-63, one arm weight for all: with B kept beside E the plan had 17 steps more and was
+#: no better, the worst axis 1.42-1.49 times the robot's error against 1.25-1.35 without B;
+#: without E, 1.50-1.74).
+HOOKS = {"A": (0.0, 0.0, 100.0), "C": (0.0, 70.0, 70.0), "D": (-50.0, -50.0, 50.0), "E": (70.0, 0.0, 0.0)}
+#: Legs (mm, frame {0}): a hook on a leg hangs below the end of a branch, the leg's top,
+#: reaching down beside the holder (its faces at 45 mm: the leg at x = 70 passes them by 25).
+LEGS = {"E": (70.0, 0.0, 50.0)}
 #: A hook must stand this far above the table top (mm) for its mass to hang free past the
 #: table's edge: the hook's own eye and a mass's hanger take about that.
 HOOK_CLEARANCE_MM = 10.0
+#: The rest of the arm that carries the mass (its stem's top, where the branches start, and
+#: a leg's top) must not touch the table: this far above its top (mm), the rod's radius.
+ROD_CLEARANCE_MM = 3.0
+#: The arm is clamped on the flange at `CLAMP_MM` and its stem rises up the bore to
+#: `STEM_TOP_MM`, just above the holder's top face (45 mm); its branches start there, above the
+#: holder (mm, frame {0}).
+CLAMP_MM, STEM_TOP_MM = (0.0, 0.0, 20.0), (0.0, 0.0, 50.0)
 #: What a person takes per step besides the wait (s): turning the holder to a face and
 #: hanging or swapping a mass, timed by hand on a mock-up (10-20 s).
 HANDLING_S = 15.0
@@ -62,8 +85,11 @@ class Fixture:
     face_mm: float = 45.0
     bore_mm: float = 36.0  # the sensor's shell sits in this bore
     hooks_mm: dict[str, tuple[float, float, float]] = field(default_factory=lambda: dict(HOOKS))
-    arm_g: float = 20.0
-    arm_com_mm: tuple[float, float, float] = (0.0, 0.0, 60.0)
+    legs_mm: dict[str, tuple[float, float, float]] = field(default_factory=lambda: dict(LEGS))
+    # As designed: 20 g at (0, 0, 60) for the clamp, stem and branches, and 2 g for E's leg
+    # (50 mm of the 6 mm rod in PLA, 1.8 g, and its hook) at (70, 0, 25).
+    arm_g: float = 22.0
+    arm_com_mm: tuple[float, float, float] = (6.4, 0.0, 56.8)
 
     @property
     def normals(self) -> np.ndarray:
@@ -73,9 +99,19 @@ class Fixture:
         return np.array(self.hooks_mm[hook]) * 1e-3
 
     def clears_table(self, face: int, hook: str) -> bool:
-        """Face ``face`` down (1-based): is hook ``hook`` at least `HOOK_CLEARANCE_MM` above the table?"""
+        """Face ``face`` down (1-based): is hook ``hook`` at least `HOOK_CLEARANCE_MM` above the
+        table, and the arm's stem top and the hook's leg's top, if it hangs on one, at least
+        `ROD_CLEARANCE_MM` (the rods in between then are: an arm resting on the table would
+        carry part of the load)?"""
         up = -self.normals[face - 1]
-        return self.face_mm + float(up @ np.array(self.hooks_mm[hook])) >= HOOK_CLEARANCE_MM
+
+        def height(p: tuple[float, float, float]) -> float:
+            return self.face_mm + float(up @ np.array(p))
+
+        rods = [STEM_TOP_MM] + ([self.legs_mm[hook]] if hook in self.legs_mm else [])
+        return height(self.hooks_mm[hook]) >= HOOK_CLEARANCE_MM and all(
+            height(p) >= ROD_CLEARANCE_MM for p in rods
+        )
 
 
 @dataclass(frozen=True)
@@ -173,9 +209,10 @@ def as_dataset_poses(fixture: Fixture, steps: list[Step]) -> list[tuple[Calibrat
 
 def openscad(fixture: Fixture = Fixture()) -> str:
     """The fixture as an OpenSCAD file: the holder (face numbers engraved) and the hook arm.
-    Its ``faces``, ``face_mm`` and ``hooks`` are the data the plan is computed from."""
+    Its ``faces``, ``face_mm``, ``hooks`` and ``legs`` are the data the plan is computed from."""
     faces = ",\n  ".join(f"[{n[0]:.9f}, {n[1]:.9f}, {n[2]:.9f}]" for n in fixture.normals)
     hooks = ",\n  ".join(f'["{k}", [{x:g}, {y:g}, {z:g}]]' for k, (x, y, z) in fixture.hooks_mm.items())
+    legs = ",\n  ".join(f'["{k}", [{x:g}, {y:g}, {z:g}]]' for k, (x, y, z) in fixture.legs_mm.items())
     return f"""// ftsensord guided-calibration fixture (generated by `ftsensord guide --fixture`).
 // Frame: the sensor's {{0}}, origin at its centre, z along the shaft towards the tip; mm.
 // Print the holder and the hook arm; face k down puts gravity along faces[k-1] in {{0}}.
@@ -189,6 +226,12 @@ faces = [
 hooks = [
   {hooks}
 ];
+// A hook on a leg: the leg hangs from this point, the end of its branch, down to the hook.
+legs = [
+  {legs}
+];
+clamp_mm = [{", ".join(f"{c:g}" for c in CLAMP_MM)}];      // the clamp on the flange, in the bore
+stem_top_mm = [{", ".join(f"{c:g}" for c in STEM_TOP_MM)}];  // the stem's top: the branches start here
 
 function rot_to(n) = let(a = acos(n[2]), ax = norm([-n[1], n[0], 0]) < 1e-9 ? [1, 0, 0] : [-n[1], n[0], 0]) [a, ax];
 
@@ -207,11 +250,16 @@ module holder() {{
   }}
 }}
 
+module rod(a, b) {{ hull() {{ translate(a) sphere(d = 6, $fn = 24); translate(b) sphere(d = 6, $fn = 24); }} }}
+
 module hook_arm() {{
+  rod(clamp_mm, stem_top_mm);
   for (h = hooks) {{
-    hull() {{ translate([0, 0, 20]) sphere(d = 6, $fn = 24); translate(h[1]) sphere(d = 6, $fn = 24); }}
+    path = concat([stem_top_mm], [for (l = legs) if (l[0] == h[0]) l[1]], [h[1]]);
+    for (i = [0 : len(path) - 2]) rod(path[i], path[i + 1]);
     translate(h[1]) rotate([90, 0, 0]) rotate_extrude($fn = 32) translate([4, 0]) circle(d = 2, $fn = 12);
-    translate(h[1] + [0, 0, 6]) linear_extrude(1) text(h[0], size = 5, halign = "center");
+    label = len(path) > 2 ? [8, 0, -4] : [0, 0, 6];  // beside a leg's foot, not in the leg
+    translate(h[1] + label) linear_extrude(1) text(h[0], size = 5, halign = "center");
   }}
 }}
 
@@ -220,16 +268,21 @@ translate([3 * face_mm, 0, 0]) hook_arm();
 """
 
 
-def parse_openscad(text: str) -> tuple[float, np.ndarray, dict[str, np.ndarray]]:
-    """``face_mm``, ``faces`` and ``hooks`` read back from a file `openscad` wrote."""
+def parse_openscad(
+    text: str,
+) -> tuple[float, np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """``face_mm``, ``faces``, ``hooks`` and ``legs`` read back from a file `openscad` wrote."""
     import re
 
     face_mm = float(re.search(r"^face_mm = ([-\d.e]+);", text, re.M).group(1))  # type: ignore[union-attr]
     block = re.search(r"^faces = \[(.*?)^\];", text, re.M | re.S).group(1)  # type: ignore[union-attr]
     faces = np.array([[float(v) for v in row.split(",")] for row in re.findall(r"\[([^\[\]]+)\]", block)])
-    block = re.search(r"^hooks = \[(.*?)^\];", text, re.M | re.S).group(1)  # type: ignore[union-attr]
-    hooks = {
-        k: np.array([float(v) for v in xyz.split(",")])
-        for k, xyz in re.findall(r'\["(\w)", \[([^\]]+)\]\]', block)
-    }
-    return face_mm, faces, hooks
+
+    def points(name: str) -> dict[str, np.ndarray]:
+        block = re.search(rf"^{name} = \[(.*?)^\];", text, re.M | re.S).group(1)  # type: ignore[union-attr]
+        return {
+            k: np.array([float(v) for v in xyz.split(",")])
+            for k, xyz in re.findall(r'\["(\w)", \[([^\]]+)\]\]', block)
+        }
+
+    return face_mm, faces, points("hooks"), points("legs")

@@ -1,7 +1,7 @@
 """The guided calibration (`ftsensord guide`): a person, masses and the printed fixture
 instead of a robot (docs/guide/guided-calibration.md).
 
-Step by step: the user is told what to do ("face 7 down, 200 g on hook B"), confirms, the
+Step by step: the user is told what to do ("face 7 down, 200 g on hook E"), confirms, the
 procedure waits for the silicone to settle, records the pose (`rig.record_dataset`) and checks
 it against what the plan expects before it is kept:
 
@@ -60,7 +60,7 @@ MIN_JUDGE_POSES = 20
 #: and the torque by |r| W x it;
 FACE_TILT_RAD = math.radians(4.5)
 #: the masses within this share (an inexpensive hooked set's +-0.5 %, and as much again for
-#: the arm weighed within 1 g of 20 on a kitchen scale);
+#: the arm weighed within 1 g of 22 on a kitchen scale);
 MASS_SHARE = 0.01
 #: a hook's place off by up to this (m, each axis: +-0.5 mm of a print, on three axes);
 HOOK_ERROR_M = 0.5e-3 * math.sqrt(3)

@@ -195,13 +195,12 @@ def linear_error_model(
     each load's flux predicted by the calibration's flux model and the map tared on its no-load
     flux, as the daemon's tare does.
 
-    Why not the poses' own errors: the plan hangs each mass on one of four arms, so its forces
+    Why not the poses' own errors: the plan hangs each mass on one of its arms, so its forces
     come with the torques of those arms, and K A is fitted to make its error small there. A
     force with another torque (a push near the flange, a couple) is off the plan, and there the
-    map's error is several times larger: on three as-built parts a pure 2 N Fy reads 10-12 %
-    low and Fx 1.7-2.7 %; over loads drawn across the range Fy's error is 0.22 N RMS, against
-    0.08 N on the plan's fit poses. The flux model reproduces the part's
-    flux within its 0.4 uT residual over the whole range (its estimate's error there is 0.1-0.2 %
+    map's error is larger (docs/results/axis-gain.md: with the four long arms alone a pure Fy
+    read 10 % low, the poses showing none of it). The flux model reproduces the part's flux
+    within its 0.4 uT residual over the whole range (its estimate's error there is 0.1-0.2 %
     of the load), so it tells the map's error at any load of the range to a few mN; the poses
     cannot. Beyond the range the linear estimate is flagged `extrapolated`."""
     estimator = nl.estimator()

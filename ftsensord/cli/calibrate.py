@@ -26,7 +26,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         "--plan",
         default="six-axis",
         choices=sorted(PLANS),
-        help="lever arms: four that excite all six axes (default), or the paper's single rod",
+        help="lever arms: four long ones and the flange's centre, exciting all six axes (default), "
+        "or the paper's single rod",
     )
     p.add_argument("--poses", type=int, default=193, help="fit poses, 50 g and 200 g (default: 193)")
     p.add_argument("--validation-poses", type=int, default=60, help="validation poses, 100 g (default: 60)")

@@ -55,7 +55,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--samples", type=int, default=100, help="readings averaged per pose (default: 100)")
     p.add_argument(
-        "--arm-g", type=float, default=20.0, help="the hook arm's mass as weighed, g (default: 20)"
+        "--arm-g", type=float, default=22.0, help="the hook arm's mass as weighed, g (default: 22)"
     )
     p.add_argument("--seed", type=int, default=0, help="the simulated chips' noise seed (default: 0)")
     p.add_argument("--stop-after", type=int, help="stop after this many poses recorded (the run resumes)")

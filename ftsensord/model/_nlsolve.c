@@ -151,6 +151,61 @@ static int near(const double *T, const nl_jacobian *K, const double *u, int with
     return K->has_u && sqrt(du2) <= tun[REUSE_T];
 }
 
+/* nonlinear.NonlinearEstimator._kept_jacobian: the Jacobian kept in K when (T, u) is near
+ * where it was made (0), else a new one made there, with the flux at (T, u) into pred (1). */
+static int linearise(const nl_model *M, nl_state *S, nl_jacobian *K, const double *T, const double *u,
+                     int background, double *pred)
+{
+    if (K->valid && near(T, K, u, background, M->tun))
+        return 0;
+    nlm_predict_and_jacobian(M, T, u, pred, K->J);
+    memcpy(K->rows, T, sizeof K->rows), memcpy(K->u, u, sizeof K->u);
+    K->has_u = background, K->valid = 1, K->factored = 0, K->id = ++S->next_id;
+    return 1;
+}
+
+/* The Jacobian a solve with the background field keeps (linearise) at T (16) and field u (3),
+ * into J (3n x PMAX, row-major): made anew only where a solve would make one, and kept for
+ * the solves after. nonlinear.NonlinearEstimator.jacobian_at. */
+void nl_kept_jacobian(const nl_model *M, nl_state *S, const double *T, const double *u, double *J)
+{
+    double pred[CMAX];
+    nl_jacobian *K = &S->jac[1];
+    linearise(M, S, K, T, u, 1, pred);
+    memcpy(J, K->J, sizeof(double) * 3 * (size_t)M->n * PMAX);
+}
+
+/* nonlinear.NonlinearEstimator.gains with every channel: G = (J^T J + P)^-1 J^T into G (PMAX x
+ * CMAX, row-major) for J (3n x PMAX, row-major) with the background field's columns, from the
+ * factors the chord steps keep when J is the state's kept Jacobian (factored and kept there
+ * when not yet), else from J's own. 0 when J^T J + P is singular. */
+int nl_chord_gains(const nl_model *M, nl_state *S, const double *J, double *G)
+{
+    int nc = 3 * (int)M->n, used[CMAX];
+    double r[CMAX], u[3] = {0, 0, 0}, rhs[PMAX], x[PMAX];
+    for (int c = 0; c < nc; c++)
+        used[c] = 1, r[c] = 0.0;
+    nl_jacobian *K = &S->jac[1], own;
+    if (!(K->valid && !memcmp(K->J, J, sizeof(double) * nc * PMAX))) {
+        memcpy(own.J, J, sizeof(double) * nc * PMAX);
+        own.factored = 0, K = &own;
+    }
+    if (!K->factored) {
+        normal(K->J, r, used, nc, PMAX, u, M->tun[PRIOR_WEIGHT], K->lu, rhs);
+        K->singular = !lu_factor(K->lu, K->piv, PMAX), K->factored = 1;
+    }
+    if (K->singular)
+        return 0;
+    for (int c = 0; c < nc; c++) {
+        for (int a = 0; a < PMAX; a++)
+            x[a] = K->J[c][a];
+        lu_solve(K->lu, K->piv, PMAX, x);
+        for (int a = 0; a < PMAX; a++)
+            G[a * CMAX + c] = x[a];
+    }
+    return 1;
+}
+
 static int within(const double *size, const double *tun)
 {
     return size[0] < tun[STEP_TOL] && size[1] < tun[STEP_TOL_RAD];
@@ -213,16 +268,11 @@ int nl_solve(const nl_model *M, nl_state *S, const double *b, const double *usab
         memcpy(pred, S->end_pred, sizeof(double) * nc);
     for (int it = 1; it <= max_it; it++) {
         k = it;
-        int fresh = 0, cleared = 0;
-        if (K->valid && near(T, K, uc, background, tun)) {
-            if (!have_pred)
-                nlm_predict(M, T, uc, pred), have_pred = 1, r_valid = 0;
-        } else {
-            nlm_predict_and_jacobian(M, T, uc, pred, K->J);
-            memcpy(K->rows, T, sizeof K->rows), memcpy(K->u, uc, sizeof uc);
-            K->has_u = background, K->valid = 1, K->factored = 0, K->id = ++S->next_id;
-            fresh = 1, have_pred = 1, r_valid = 0;
-        }
+        int fresh = linearise(M, S, K, T, uc, background, pred), cleared = 0;
+        if (fresh)
+            have_pred = 1, r_valid = 0;
+        else if (!have_pred)
+            nlm_predict(M, T, uc, pred), have_pred = 1, r_valid = 0;
         if (!r_valid)
             cost = residual(b, pred, used, nc, uc, background, pw, r), r_valid = 1;
         int chord = used_n == nc && (!fresh || lam <= tun[UNDAMPED]);  /* Gauss-Newton's gains serve */

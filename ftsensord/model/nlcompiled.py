@@ -93,6 +93,10 @@ def load(path: Path | None = None) -> ctypes.CDLL | None:
         lib.nl_solve.restype = ctypes.c_int
         lib.nl_continued.argtypes = [_P, _P, ctypes.c_double, ctypes.c_double, _P, _P]
         lib.nl_continued.restype = None
+        lib.nl_kept_jacobian.argtypes = [_P, _P, _P, _P, _P]
+        lib.nl_kept_jacobian.restype = None
+        lib.nl_chord_gains.argtypes = [_P, _P, _P, _P]
+        lib.nl_chord_gains.restype = ctypes.c_int
         lib.nl_model_offset.argtypes = lib.nl_tunable_index.argtypes = [ctypes.c_char_p]
         lib.nl_model_offset.restype = lib.nl_tunable_index.restype = ctypes.c_long
     except (OSError, AttributeError):  # not loadable, or built from another source (a call missing)
@@ -177,6 +181,10 @@ class CompiledSolve:
         self._T, self._u, self._b = np.empty(16), np.empty(3), np.empty(3 * NMAX)
         self._usable, self._out, self._sizes = np.empty(NMAX), np.empty(9), np.empty(2)
         self._sizes_at = self._sizes.ctypes.data
+        self._J = np.empty((3 * NMAX, 9))  # `jacobian`'s and `chord_gains`' J (PMAX columns)
+        self._J_at = self._J.ctypes.data
+        self._G = np.empty((9, 3 * NMAX))  # `chord_gains`', as nl_chord_gains writes it
+        self._G_at = self._G.ctypes.data
         self._addresses = [
             a.ctypes.data for a in (self._model, self._state, self._b, self._usable, self._T, self._u)
         ]
@@ -229,6 +237,32 @@ class CompiledSolve:
             est.pose, est.background_t = T, u.copy()
             self._end = (T, est.background_t, background)
         return self._out[:6].copy(), T, converged, int(out[7]), out[6], u
+
+    def jacobian(self, est: Any, T: np.ndarray, u: np.ndarray, constants: dict[str, Any]) -> np.ndarray:
+        """`NonlinearEstimator.jacobian_at` for ``est``: the Jacobian with the background field's
+        columns (3n x 9) its solve keeps at pose ``T`` and field ``u`` (a copy), made and kept in
+        the state only where the solve would make one. With the model and tolerances the last
+        solve packed (its kept Jacobians are theirs); packed here before the first."""
+        if not self._packed:
+            self._pack(est, _tunables(constants, est.max_iterations), constants["PLAUSIBLE_WRENCH"])
+        self._T[:] = T.ravel()
+        self._u[:] = u
+        model, state, _, _, T_at, u_at = self._addresses
+        self.lib.nl_kept_jacobian(model, state, T_at, u_at, self._J_at)
+        return self._J[: 3 * int(self._model[0])].copy()  # the packed chips' (nl_model.n)
+
+    def chord_gains(self, J: np.ndarray) -> np.ndarray:
+        """`NonlinearEstimator.gains` with every channel: (J^T J + P)^-1 J^T (9 x 3n) for J
+        (`jacobian`'s), from the chord steps' factors when J is the kept one; LinAlgError
+        when J^T J + P is singular (as numpy's solve)."""
+        n3 = 3 * int(self._model[0])
+        if J.shape != (n3, 9) or not self._packed:
+            raise ValueError(f"a Jacobian of {J.shape} for a packed model of {n3} channels")
+        self._J[:n3] = J  # into the buffer whose address is kept: no ctypes object a call
+        model, state = self._addresses[:2]
+        if not self.lib.nl_chord_gains(model, state, self._J_at, self._G_at):
+            raise np.linalg.LinAlgError("Singular matrix")
+        return self._G[:, :n3].copy()
 
     def continued(self, before: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, float, float]:
         """`se3.continued` in C: ``pose`` moved on by the motion from ``before`` to it,

@@ -340,15 +340,49 @@ class NonlinearEstimator:
     def _linearise(
         self, T: np.ndarray, u: np.ndarray | None, background: bool, pred: np.ndarray | None
     ) -> tuple[np.ndarray, np.ndarray, bool]:
-        """Flux at (T, u) (``pred`` when known), a Jacobian, and whether it is new: the one
-        kept from a pose within `JACOBIAN_REUSE_M` and 4 mrad (and a field within
-        `JACOBIAN_REUSE_T`), else a new one."""
+        """Flux at (T, u) (``pred`` when known), a Jacobian, and whether it is new
+        (`_kept_jacobian`)."""
+        J, made = self._kept_jacobian(T, u, background)
+        if made is not None:
+            return made, J, True
+        return self.model.predict(T, u) if pred is None else pred, J, False
+
+    def _kept_jacobian(
+        self, T: np.ndarray, u: np.ndarray | None, background: bool
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """The Jacobian at (T, u) and, when it is new, the flux there (else None): the one kept
+        from a pose within `JACOBIAN_REUSE_M` and 4 mrad (and a field within
+        `JACOBIAN_REUSE_T`), else a new one, kept from here (the compiled solve's `linearise`
+        is the same rule)."""
         kept = self._jacobians.get(background)
         if kept is not None and _near(T, kept[0], u, kept[1]):
-            return self.model.predict(T, u) if pred is None else pred, kept[2], False
+            return kept[2], None
         pred, J = self.model.predict_and_jacobian(T, u, background)
         self._jacobians[background] = (T.tolist(), None if u is None else u.tolist(), J)
-        return pred, J, True
+        return J, pred
+
+    def jacobian_at(self, T: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The flux model's Jacobian at pose ``T`` and background field ``u`` with the field's
+        columns (3n x 9, every channel), as the solve with the field uses it: the one it keeps,
+        made within `JACOBIAN_REUSE_M`, 4 mrad and `JACOBIAN_REUSE_T` of (T, u), else a new
+        one, kept for the solves after (at the last fit's pose, a warm start's). Do not
+        change it in place."""
+        if self.compiled is not None:
+            return self.compiled.jacobian(self, T, u, globals())
+        return self._kept_jacobian(T, u, True)[0]
+
+    def gains(self, J: np.ndarray, channels: np.ndarray | None = None) -> np.ndarray:
+        """(J_S^T J_S + P)^-1 J_S^T (9 x the channels used): how the solve's answer (pose and
+        field) moves with the flux of ``channels`` (bool per channel; None: every one) near
+        where J (`jacobian_at`) was made, P the background field's prior. With every channel,
+        the chord steps' gains (`_chord_gains`; the compiled solve's from the factors it
+        keeps), kept while J is."""
+        if channels is None or channels.all():
+            if self.compiled is not None:
+                return self.compiled.chord_gains(J)
+            self._gains = _chord_gains(J, self._gains)
+            return self._gains[1]
+        return _chord_gains(J[channels], None)[1]
 
     def wrench(self, estimate: Estimate) -> np.ndarray:
         """w = K xi (N, Nm), the stiffness's wrench at the estimated deflection."""

@@ -5,10 +5,10 @@ Four independent parts, added as variances (docs/design/estimators.md, "Each sam
 - the chips' reading noise (`pipeline.channel_sigma_t`, T, at their settings: the chip's noise
   and its LSB's quantisation) less the quantisation's undithered part (the third part), through
   the estimator used: M diag(sigma_t^2 - q^2) M^T, M = K A with every chip, K pinv(H_S) over
-  the chips left (degraded), and for the nonlinear estimator its stiffness times the flux
-  model's Jacobian at rest, pinv(H) (the solve's own Jacobian at the deflection is not used);
-  then times the filter's variance factor (`filters.variance_factors`), as this noise is
-  independent from sample to sample;
+  the chips left (degraded), and for the nonlinear estimator its stiffness times the solve's
+  gains (J_S^T J_S + P)^-1 J_S^T, J the flux model's Jacobian the solve keeps near its pose
+  (`NonlinearEstimator.jacobian_at`); then times the filter's variance factor
+  (`filters.variance_factors`), as this noise is independent from sample to sample;
 - the tare's own noise: its zero is the mean of n samples, so that noise's M (...) M^T / n, an
   offset the filter does not shrink (none before a tare: the calibration's zero is the
   mean of hundreds of poses' samples, and its error is in the last part);
@@ -22,10 +22,12 @@ Four independent parts, added as variances (docs/design/estimators.md, "Each sam
 - the calibration's model error, learnt on its validation poses (`ModelError`), an error
   of the load, not of the sample: the filter does not shrink it either.
 
-The noise parts are constant matrices for a given estimator, set of chips and tare: built
-once and kept, keyed on the pipeline's `version` (its tare) and the chips, so a sample costs
-a few products of six numbers. A sample without an estimate (invalid) or whose estimator
-fell back has no known sigma: NaN.
+The noise parts are constant matrices for a given estimator, set of chips and tare (and the
+nonlinear solve's kept Jacobian): built once and kept, keyed on the pipeline's `version` (its
+tare) and the chips, with what they come to at the filter's variance factor and the
+quantisation's maps through the same M beside them (`_Maps`), so a sample costs its model
+error's few products of six numbers and, tared under a load, the quantisation's two. A sample
+without an estimate (invalid) or whose estimator fell back has no known sigma: NaN.
 """
 
 from __future__ import annotations
@@ -38,10 +40,11 @@ from typing import Any
 import numpy as np
 
 from ftsensord.model.linear import SENSOR_RANGE, LinearModel
-from ftsensord.model.nonlinear import PRIOR_EYE, NonlinearEstimator
+from ftsensord.model.nonlinear import NonlinearEstimator
 
 AXES = ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
 _SCALE = (1.0 / SENSOR_RANGE) ** 2
+_POWERS = np.array([[1.0], [2.0], [4.0]])  # [|w|, w^2, w^4] as one power of |w| (3 x 6)
 
 
 @dataclass(frozen=True)
@@ -85,6 +88,7 @@ class ModelError:
     _rest2: np.ndarray = field(init=False, repr=False)
     _resting: bool = field(init=False, repr=False)
     _bounded: bool = field(init=False, repr=False)
+    _within: list[float] = field(init=False, repr=False)  # ``within`` as floats, for a sample's test
     _loaded: bool = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -94,6 +98,7 @@ class ModelError:
         object.__setattr__(self, "_rest2", self.rest**2)
         object.__setattr__(self, "_resting", bool(np.any(self.rest)))
         object.__setattr__(self, "_bounded", bool(np.all(np.isfinite(self.within))))
+        object.__setattr__(self, "_within", self.within.tolist())
         object.__setattr__(
             self, "_loaded", bool(np.any(self.spread) or np.any(self.gain) or np.any(self.curvature))
         )
@@ -146,18 +151,21 @@ class ModelError:
             return rest2
         a = np.abs(wrench) if known is None else np.maximum(np.abs(wrench) - known, 0.0)
         beyond = None
-        if self._bounded:
-            past = np.abs(wrench + tare_wrench) - self.within  # the load on the sensor, tare's included
-            if np.any(past > 0):  # the range's terms held at its edge, the last term grows from there
-                a = np.minimum(a, self.within)
-                beyond = self._beyond2 @ np.maximum(past, 0.0) ** 2
-        w2 = a * a
-        loaded = self._terms @ np.concatenate((a, w2, w2 * w2))
+        # The load on the sensor (the tare's included) past the range on an axis: six floats'
+        # test (numpy's calls on six numbers would cost more than the rest of the sample).
+        if self._bounded and any(
+            abs(w + t) > edge for w, t, edge in zip(wrench.tolist(), tare_wrench.tolist(), self._within)
+        ):  # the range's terms held at its edge, the last term grows from there
+            past = np.abs(wrench + tare_wrench) - self.within
+            a = np.minimum(a, self.within)
+            beyond = self._beyond2 @ np.maximum(past, 0.0) ** 2
+        powers = a**_POWERS  # [|w|; w^2; w^4]: one call for the three
+        loaded = self._terms @ powers.ravel()
         if beyond is not None:
             loaded = loaded + beyond
         if not tared or not self._resting:
             return rest2 + loaded
-        load = float(np.dot(w2, _SCALE))  # L^2, from the tare's load
+        load = float(np.dot(powers[1], _SCALE))  # L^2, from the tare's load
         back = 1.0 if self.mean_load <= 0 else min(1.0, load / self.mean_load**2)
         return rest2 * back + loaded
 
@@ -194,11 +202,51 @@ UNKNOWN.sigma.setflags(write=False)
 #: linear map's sigma (its spread term grows fastest near no load: Fy's samples at rest were
 #: within 1 sigma 91 % of the time, 100 % with the filter on). 2: 95 % of the noise's draws.
 NOISE_SIGMAS = 2.0
-#: The nonlinear map is made again when the solve's pose has moved this far (m, rad) from the
-#: one it was made at: the estimator's own bound for reusing a Jacobian
-#: (`model.nonlinear.JACOBIAN_REUSE_M`, 4 mrad), within which the flux model's Jacobian changes
-#: by about 3 % (so does the noise's sigma); at rest the map is made once.
-NONLINEAR_MOVE_M, NONLINEAR_MOVE_RAD = 40e-6, 4e-3
+
+
+@dataclass(eq=False)
+class _Maps:
+    """One estimator's, set of chips' and tare's noise maps (`Uncertainty.maps`), what a sample
+    makes of them at the filter's variance factor (kept for the last factor: it holds once the
+    filter has settled, so a sample makes only its model error's part), and the undithered
+    quantisation's maps through the same M (`quantisation`; None when ``lsb_t`` tells none
+    apart): made together and dropped together, on a tare or a new kept Jacobian."""
+
+    noise: np.ndarray  # one sample's noise covariance (6 x 6), of the noise the filter shrinks
+    diag: np.ndarray  # its diagonal
+    offset: np.ndarray  # the tare's covariance (6 x 6)
+    offset_diag: np.ndarray  # its diagonal
+    #: (factor, factor * diag + offset_diag, NOISE_SIGMAS times its square root)
+    now: tuple[float, np.ndarray, np.ndarray] | None = None
+    bias: np.ndarray | None = None  # (6 x channels) M^2 q^2: each channel's share on each axis
+    bias_untared: np.ndarray | None = None  # (6) its sum: the variance untared, q^2 a channel
+    bias_moves: np.ndarray | None = None  # (channels x 6) a load's move of each field, pi sqrt(2) / LSB
+
+    def at(self, factor: float) -> tuple[np.ndarray, np.ndarray]:
+        """The noise's variance per axis at the filter's variance ``factor``, the tare's added,
+        and `NOISE_SIGMAS` times its square root (the noise the model error is asked without)."""
+        now = self.now
+        if now is None or now[0] != factor:
+            variance = factor * self.diag + self.offset_diag
+            now = self.now = (factor, variance, NOISE_SIGMAS * np.sqrt(variance))
+        return now[1], now[2]
+
+    def quantisation(self, wrench: np.ndarray, known: np.ndarray, tared: bool) -> np.ndarray:
+        """The undithered quantisation's variance per axis (6) at ``wrench`` (as published, after
+        the tare): untared sum_c M_kc^2 q_c^2; after a tare each channel's bias at the load less
+        the one at the tare's field, whose variance over the fields is 2 q^2 (1 - cos(2 pi d /
+        LSB)) for a field moved by d: taken as 2 q^2 min(1, 2 pi^2 (d / LSB)^2), its small-d
+        form up to its mean, d the field the load ``wrench`` less ``known`` (its noise, as the
+        model error's) moves the channel by."""
+        if self.bias is None or self.bias_untared is None or self.bias_moves is None:
+            return np.zeros(6)
+        if not tared:
+            return self.bias_untared
+        load = np.copysign(np.maximum(np.abs(wrench) - known, 0.0), wrench)
+        if not load.any():
+            return np.zeros(6)
+        d = self.bias_moves @ load  # pi sqrt(2) d / LSB a channel
+        return 2.0 * (self.bias @ np.minimum(1.0, d * d))
 
 
 def undithered(noise: np.ndarray, lsb: np.ndarray) -> np.ndarray:
@@ -238,7 +286,7 @@ class Uncertainty:
         nonlinear: NonlinearEstimator | None,
         lsb_t: np.ndarray | None = None,
     ):
-        self.sigma_t = sigma_t
+        self.sigma_t = sigma_t  # the chips' settings', for this object's life (new settings: a new pipeline)
         if lsb_t is None:
             self.lsb_t, self.bias_t = np.zeros_like(sigma_t), np.zeros_like(sigma_t)
         else:
@@ -250,42 +298,27 @@ class Uncertainty:
         self._quantised = bool(np.any(self.bias_t > 0))
         # Each channel's field per unit wrench (24 x 6): how far a load moves it, in LSBs.
         self._flux_per_wrench = np.linalg.pinv(model.KA) if self._quantised else None
-        self._bias_maps: dict[tuple[int, str, bytes], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self.linear_error = ModelError.from_report(report)
         nl = (report or {}).get("nonlinear")
         self.nonlinear_error = ModelError.from_report(nl if isinstance(nl, Mapping) else None)
         self._model = model
         self._nonlinear = nonlinear
-        self._cache: dict[tuple[int, str, bytes], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._cache: dict[tuple[int, str, bytes], _Maps] = {}
         self._version = -1
-        self._anchor: tuple[np.ndarray, np.ndarray] | None = None  # the pose and field of the nonlinear maps
-        self._anchor_rows: list[float] = []  # its T's top 3 rows, as `_moved` compares them
+        #: Per set of chips (bool per chip, its bytes): its channels (bool per channel) and their
+        #: noise the filter shrinks (``independent_t``).
+        self._channels: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+        self._jacobian = b""  # the nonlinear maps' Jacobian (`NonlinearEstimator.jacobian_at`), its bytes
 
-    def _nonlinear_map(self, channels: np.ndarray, pose: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+    def _nonlinear_map(self, J: np.ndarray, channels: np.ndarray) -> np.ndarray:
         """K [(J_S^T J_S + P)^-1 J_S^T] (its first 6 rows): how the solve's answer moves with the
         flux of the channels used, J the flux model's Jacobian at the solve's pose with the
         background field's 3 columns (the solve estimates the field beside the pose, with its
-        prior P: `model.nonlinear._normal`). Without those columns the noise of Fz and the
-        torques came out at half the spread the solve gives."""
+        prior P: `NonlinearEstimator.gains`, with every chip the solve's own chord gains).
+        Without those columns the noise of Fz and the torques came out at half the spread the
+        solve gives."""
         assert self._nonlinear is not None
-        T, u = pose if pose is not None else (np.eye(4), np.zeros(3))
-        J = self._nonlinear.model.predict_and_jacobian(T, u, background=True)[1][channels]
-        N = J.T @ J
-        N[6:, 6:] += PRIOR_EYE
-        return self._nonlinear.stiffness @ np.linalg.solve(N, J.T)[:6]
-
-    def _moved(self, pose: tuple[np.ndarray, np.ndarray] | None) -> bool:
-        """The solve's pose is off the one the nonlinear maps were made at (`NONLINEAR_MOVE_M`:
-        its position's, and its rotation matrix's entries, which move by at most the angle)."""
-        if pose is None:
-            return self._anchor is None
-        if self._anchor is None:
-            return True
-        # Twelve Python floats (the 3 x 4 top of T), not numpy's calls on a 4 x 4: a sample's check costs 2 us.
-        now, then = pose[0][:3].ravel().tolist(), self._anchor_rows
-        turned = max(abs(now[i] - then[i]) for i in (0, 1, 2, 4, 5, 6, 8, 9, 10))
-        shifted = max(abs(now[i] - then[i]) for i in (3, 7, 11))
-        return shifted > NONLINEAR_MOVE_M or turned > NONLINEAR_MOVE_RAD
+        return self._nonlinear.stiffness @ self._nonlinear.gains(J, channels)[:6]
 
     def maps(
         self,
@@ -297,67 +330,80 @@ class Uncertainty:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """One sample's noise covariance, its diagonal, and the tare's covariance, for the
         estimator and ``chips`` (bool per chip) at the pipeline's ``version``; ``pose``: the
-        nonlinear solve's pose T_0C and background field (T, {0}) (None: at rest); None when
-        the chips left do not see all six axes."""
+        nonlinear solve's pose T_0C and background field (T, {0}) (None: the estimator's last
+        fit's, at rest before its first); None when the chips left do not see all six axes."""
+        found = self._maps(version, estimator, chips, tare_samples, pose)
+        return None if found is None else (found.noise, found.diag, found.offset)
+
+    def _maps(
+        self,
+        version: int,
+        estimator: str,
+        chips: np.ndarray,
+        tare_samples: int | None,
+        pose: tuple[np.ndarray, np.ndarray] | None,
+    ) -> _Maps | None:
+        """`maps`, kept: made once per version, estimator and chips (and nonlinear Jacobian)."""
         if version != self._version:  # a tare or untare: the tare's part changes
             self._cache.clear()
-            self._bias_maps.clear()
             self._version = version
-        nonlinear = estimator == "nonlinear" and self._nonlinear is not None
-        if nonlinear and self._moved(pose):
-            for key in [k for k in self._cache if k[1] == "nonlinear"]:
-                del self._cache[key]
-                self._bias_maps.pop(key, None)
-            self._anchor = (np.eye(4), np.zeros(3)) if pose is None else (pose[0].copy(), pose[1].copy())
-            self._anchor_rows = self._anchor[0][:3].ravel().tolist()
-        key = (version, estimator, chips.tobytes())
+        J = None
+        if estimator == "nonlinear" and self._nonlinear is not None:
+            # The Jacobian the solve keeps (`NonlinearEstimator.jacobian_at`), made within
+            # `JACOBIAN_REUSE_M`, 4 mrad and 10 uT of this pose: not one of the sigma's own. It
+            # differs from the one at this very pose by up to that rule's drift, 3 % at p50 and
+            # 6 % at most, and so may the noise's sigma: well within what a sigma is for (its
+            # Monte Carlo holds to 12 %, tests/test_sigma.py), and it saves making the flux
+            # model's Jacobian (a solve's cost again) on every sample the load moves. The maps
+            # are made again when it is another one.
+            here = (self._nonlinear.pose, self._nonlinear.background_t) if pose is None else pose
+            J = self._nonlinear.jacobian_at(*here)
+            made_of = J.tobytes()
+            if made_of != self._jacobian:
+                for key in [k for k in self._cache if k[1] == "nonlinear"]:
+                    del self._cache[key]
+                self._jacobian = made_of
+        used = chips.tobytes()
+        key = (version, estimator, used)
         found = self._cache.get(key)
         if found is None:
-            channels = np.repeat(chips, 3)
+            channels = self._channels.get(used)
+            if channels is None:  # the chips' channels and their noise: the settings' alone
+                where = np.repeat(chips, 3)
+                channels = self._channels[used] = (where, self.independent_t[where])
             try:
-                if nonlinear:
-                    M = self._nonlinear_map(channels, self._anchor)
+                if J is not None:
+                    M = self._nonlinear_map(J, channels[0])
                 elif chips.all():
                     M = self._model.KA
                 else:
                     M = self._model.map_from(chips)
             except (ValueError, np.linalg.LinAlgError):
                 return None
-            noise = propagate(M, self.independent_t[channels])
+            noise = propagate(M, channels[1])
             offset = noise / tare_samples if tare_samples else np.zeros((6, 6))
-            found = self._cache[key] = (noise, np.diag(noise).copy(), offset)
-            if self._quantised:
-                q2 = self.bias_t[channels] ** 2
+            found = _Maps(noise, noise.diagonal().copy(), offset, offset.diagonal().copy())
+            if self._quantised:  # the undithered quantisation's maps, through the same M
                 assert self._flux_per_wrench is not None
-                lsb = self.lsb_t[channels]
-                self._bias_maps[key] = (
-                    M * M * q2,  # (6 x channels): each channel's q^2 on each axis
-                    np.sum(M * M * q2, axis=1),  # untared: q^2 on every channel
-                    # (channels x 6): a load's move of each field, in LSBs, times pi sqrt(2)
-                    self._flux_per_wrench[channels] * (np.pi * np.sqrt(2.0) / lsb)[:, None],
+                where = channels[0]
+                # (6 x channels): each channel's q^2 on each axis
+                found.bias = M * M * self.bias_t[where] ** 2
+                found.bias_untared = found.bias.sum(axis=1)  # untared: q^2 on every channel
+                # (channels x 6): a load's move of each field, in LSBs, times pi sqrt(2)
+                found.bias_moves = (
+                    self._flux_per_wrench[where] * (np.pi * np.sqrt(2.0) / self.lsb_t[where])[:, None]
                 )
+            self._cache[key] = found  # all of it at once: kept, and dropped, together
         return found
 
     def quantisation(
         self, key: tuple[int, str, bytes], wrench: np.ndarray, known: np.ndarray, tared: bool
     ) -> np.ndarray:
-        """The undithered quantisation's variance per axis (6) at ``wrench`` (as published, after
-        the tare) for the maps of ``key``: untared sum_c M_kc^2 q_c^2; after a tare each
-        channel's bias at the load less the one at the tare's field, whose variance over the
-        fields is 2 q^2 (1 - cos(2 pi d / LSB)) for a field moved by d: taken as 2 q^2
-        min(1, 2 pi^2 (d / LSB)^2), its small-d form up to its mean, d the field the load
-        ``wrench`` less ``known`` (its noise, as the model error's) moves the channel by."""
-        found = self._bias_maps.get(key)
-        if found is None:
-            return np.zeros(6)
-        weighted, untared, moves = found
-        if not tared:
-            return untared
-        load = np.copysign(np.maximum(np.abs(wrench) - known, 0.0), wrench)
-        if not load.any():
-            return np.zeros(6)
-        d = moves @ load  # pi sqrt(2) d / LSB a channel
-        return 2.0 * (weighted @ np.minimum(1.0, d * d))
+        """The undithered quantisation's variance per axis (6) at ``wrench`` for the maps of
+        ``key`` (version, estimator, the chips' bytes), as made (`_Maps.quantisation`); zeros
+        when none are kept."""
+        found = self._cache.get(key)
+        return np.zeros(6) if found is None else found.quantisation(wrench, known, tared)
 
     def sample(
         self,
@@ -377,21 +423,20 @@ class Uncertainty:
         variance factor (`WrenchFilter.variance_factor`); ``scale``: what the wrench was
         multiplied by after the estimate (the temperature stage's); ``pose``: the nonlinear
         solve's pose and background field (`maps`)."""
-        maps = self.maps(version, estimator, chips, tare_samples, pose)
-        if maps is None or not np.all(np.isfinite(wrench)):
+        maps = self._maps(version, estimator, chips, tare_samples, pose)
+        # math.isfinite on six floats: numpy's isfinite and all cost ten times as much.
+        if maps is None or not all(map(math.isfinite, wrench.tolist())):
             return UNKNOWN
-        noise, noise_diag, offset = maps
+        noise_now, known = maps.at(factor)
         error = self.nonlinear_error if estimator == "nonlinear" else self.linear_error
-        noise_now = factor * noise_diag + np.diag(offset)
-        known = NOISE_SIGMAS * np.sqrt(noise_now)
         model = error.variance(wrench, tare_wrench, tared, known)
-        if self._quantised:
-            model = model + self.quantisation((version, estimator, chips.tobytes()), wrench, known, tared)
+        if maps.bias is not None:
+            model = model + maps.quantisation(wrench, known, tared)
         variance = noise_now + model
         sigma = np.sqrt(variance) * scale if scale != 1.0 else np.sqrt(variance)
         # The covariance's parts kept as they are (the cached maps, not copies): only the tip
         # asks for it (`tip_sigma`), so a sample makes no 6 x 6 product.
-        return SampleSigma(sigma, noise, offset, model, scale, factor)
+        return SampleSigma(sigma, maps.noise, maps.offset, model, scale, factor)
 
     def predicted(
         self, factor: float, tare_samples: int | None, estimator: str = "linear", loaded: bool = False
@@ -401,19 +446,18 @@ class Uncertainty:
         the fields, as once a load has moved every channel's field: `quantisation`), which at
         the tare's load is not there: what `accuracy` plans on, as no averaging shrinks it."""
         chips = np.ones(len(self.sigma_t) // 3, dtype=bool)
-        maps = self.maps(self._version, estimator, chips, tare_samples)
+        maps = self._maps(self._version, estimator, chips, tare_samples, None)
         if maps is None:
             return {"sigma": None}
-        _, noise_diag, offset = maps
+        noise_diag = maps.diag
         error = self.nonlinear_error if estimator == "nonlinear" else self.linear_error
         tared = tare_samples is not None
         model = error.variance(np.zeros(6), np.zeros(6), tared)
-        key = (self._version, estimator, chips.tobytes())
-        if loaded and key in self._bias_maps:
-            model = model + self._bias_maps[key][1] * (2.0 if tared else 1.0)
+        if loaded and maps.bias_untared is not None:
+            model = model + maps.bias_untared * (2.0 if tared else 1.0)
         else:
-            model = model + self.quantisation(key, np.zeros(6), np.zeros(6), tared)
-        sigma = np.sqrt(factor * noise_diag + np.diag(offset) + model)
+            model = model + maps.quantisation(np.zeros(6), np.zeros(6), tared)
+        sigma = np.sqrt(factor * noise_diag + maps.offset_diag + model)
         return {
             "sigma": [round(float(v), 7) for v in sigma],
             "noise": [round(math.sqrt(float(v)), 7) for v in factor * noise_diag],
