@@ -28,3 +28,19 @@ def test_the_quick_coverage_benchmark_reports_every_case(regenerated):
                 assert int(found.group(1)) > 0  # samples with a sigma were read
                 within[k] = [int(v) for v in found.groups()[1:]]
             assert all(two >= one for one, two in zip(within[1], within[2])), (case.name, load)
+
+
+def test_the_quick_coverage_benchmark_names_its_conversions_and_compares_the_predicted_sigma(regenerated):
+    """The conversion settings it ran (the packaged, shortest and longest) and, per case with
+    every chip, the predicted sigma at rest against the measured one: six positive ratios."""
+    text = (regenerated / "coverage.md").read_text()
+    for name in bench.CONVERSIONS:
+        assert re.search(rf"\| {name} \| OSR \d, DIG_FILT \d \| [\d.]+ ms \| [\d.]+ Hz \|", text), name
+    ratio = r"(\d+\.\d\d)(?: \(x\))?"
+    for case in bench.CASES:
+        found = re.search(
+            rf"\| {re.escape(case.name)} \| [^|]+ \| [^|]+ \| " + r" \| ".join([ratio] * 6) + r" \|", text
+        )
+        assert (found is None) == case.chip_out, case.name  # status predicts with every chip
+        if found:
+            assert all(float(v) > 0 for v in found.groups()), case.name

@@ -23,7 +23,14 @@ from ftsensord.model.linear import SENSOR_RANGE
 from ftsensord.model.nonlinear import PRIOR_WEIGHT
 from ftsensord.processing.filters import WrenchFilter, variance_factors
 from ftsensord.processing.pipeline import channel_sigma_t
-from ftsensord.processing.uncertainty import AXES, NOISE_SIGMAS, ModelError, Uncertainty, propagate
+from ftsensord.processing.uncertainty import (
+    AXES,
+    NOISE_SIGMAS,
+    ModelError,
+    Uncertainty,
+    propagate,
+    undithered,
+)
 from ftsensord.protocol import wire
 from ftsensord.sim import two_sensor_scene
 from ftsensord.sim.loads import StaticLoad
@@ -52,16 +59,21 @@ def test_the_sigmas_noise_part_is_the_simulated_chips_noise_through_k_a(quiet_ri
     noise = np.sqrt(p.uncertainty.maps(p.version, "linear", EVERY, None)[1])
     measured = wrench.std(axis=0)
     # 15 %: the simulated chips' noise is the emulator's own, not the datasheet's table that
-    # channel_sigma_t reads (and the LSB^2/12 term is approximate at a noise near one LSB);
-    # the spread's own error over 1500 samples is 2 % (1 / sqrt(2 n)).
+    # channel_sigma_t reads; the spread at a held load is the noise's independent part (the
+    # quantisation's undithered part is the same at every sample); the spread's own error over
+    # 1500 samples is 2 % (1 / sqrt(2 n)).
     assert measured == pytest.approx(noise, rel=0.15)
     # The published sigma adds the calibration's model error at the sample's load (the packaged
-    # file's, read through its flux model), the load taken NOISE_SIGMAS of noise towards zero:
-    # sqrt(noise^2 + model) at every sample, to float32-free round-off (untared, unfiltered).
-    m = p.uncertainty.linear_error
+    # file's, read through its flux model), the load taken NOISE_SIGMAS of noise towards zero,
+    # and untared the undithered quantisation, q^2 a channel through K A: sqrt(noise^2 + model +
+    # quantisation) at every sample, to float32-free round-off (untared, unfiltered).
+    u = p.uncertainty
+    m = u.linear_error
     assert m.source == "flux model" and not p.tared
     model = m.variance(wrench[-1], p.tare_wrench, False, NOISE_SIGMAS * noise)
-    assert np.all(model > 0) and sigma[-1] == pytest.approx(np.sqrt(noise**2 + model), rel=1e-12)
+    quantisation = (p.model.KA**2) @ u.bias_t**2
+    assert np.all(model > 0) and np.all(quantisation > 0)
+    assert sigma[-1] == pytest.approx(np.sqrt(noise**2 + model + quantisation), rel=1e-12)
 
 
 def test_a_chip_left_out_widens_the_sigma_and_no_estimate_has_none(quiet_rig):
@@ -85,7 +97,8 @@ def test_the_tares_noise_enters_as_an_offset_the_filter_does_not_shrink(quiet_ri
     assert np.allclose(offset, noise / 4)
     s = p.uncertainty.sample(p.version, "linear", EVERY, np.zeros(6), p.tare_wrench, True, 4, 0.01)
     # Noise x the filter's factor, the tare's noise whole, and (this packaged file records its
-    # validation RMS only) that RMS at every load; 1e-12: round-off.
+    # validation RMS only) that RMS at every load; at the tare's load no quantisation (its bias
+    # there is the tare's own); 1e-12: round-off.
     rmse = p.uncertainty.linear_error.rest
     assert s.sigma == pytest.approx(np.sqrt(0.01 * diag + diag / 4 + rmse**2), rel=1e-12)
 
@@ -434,12 +447,65 @@ def test_a_calibration_file_with_either_model_error_form_loads_and_gives_its_sig
     assert m.variance(w, np.zeros(6), tared=False)[0] == pytest.approx(expected, rel=1e-12)
 
 
+@pytest.mark.parametrize(
+    ("noise", "lsb"), [(0.0, 6.0), (0.224, 6.009), (2.0, 6.009), (3.0, 9.68), (6.0, 6.0)]
+)
+def test_the_undithered_quantisation_is_a_monte_carlo_of_the_mean_reading_at_a_held_field(noise, lsb):
+    """The RMS over fields of the mean of many rounded noisy readings against the field: the
+    part of LSB^2 / 12 the noise does not dither (all of it without noise, none at a noise of
+    an LSB), as the chips' conversion rounds (`sim.conversion`)."""
+    rng = np.random.default_rng(3)
+    field = rng.uniform(0.0, lsb, 1500)
+    readings = np.round((field[:, None] + rng.normal(0.0, noise, (1500, 4000))) / lsb) * lsb
+    bias = readings.mean(axis=1) - field
+    # The mean's own noise, sigma / sqrt(4000) a field, taken off the mean square.
+    measured = math.sqrt(max(float(np.mean(bias**2)) - (noise**2 + lsb**2 / 12) / 4000, 0.0))
+    expected = float(undithered(np.array([noise]), np.array([lsb]))[0])
+    if noise == 0.0:
+        assert expected == pytest.approx(lsb / math.sqrt(12), rel=1e-4)
+    # 5 % of LSB / sqrt(12) or of the value: 1500 fields' spread of a sawtooth's square.
+    assert measured == pytest.approx(expected, rel=0.05, abs=0.01 * lsb)
+
+
+def test_the_undithered_quantisation_is_none_at_the_tares_load_and_twice_its_share_under_one(quiet_rig):
+    """After a tare, at its load the quantisation's bias is the tare's own (none in the sigma);
+    once a load has moved every channel's field by more than an LSB, 2 q^2 a channel through
+    the map; the filter shrinks only the rest of the noise."""
+    p = quiet_rig.daemon.sensors[0]
+    u = p.uncertainty
+    quiet_rig.cycles(2)
+    p.tare(p.model.zero, None, 100)
+    noise, diag, offset = u.maps(p.version, "linear", EVERY, 100)
+    q = (p.model.KA**2) @ u.bias_t**2
+    assert np.allclose(diag, (p.model.KA**2) @ (u.sigma_t**2 - u.bias_t**2))
+    at_rest = u.sample(p.version, "linear", EVERY, np.zeros(6), p.tare_wrench, True, 100, 0.01)
+    load = np.array([2.0, -2.0, 2.0, 0.15, -0.15, 0.15])  # the range's edge: every field moved
+    held = u.sample(p.version, "linear", EVERY, load, p.tare_wrench, True, 100, 0.01)
+    known = NOISE_SIGMAS * np.sqrt(0.01 * diag + diag / 100)
+    model = u.linear_error.variance(load, p.tare_wrench, True, known)
+    # Each channel's field moved by d LSBs: 2 q^2 min(1, 2 pi^2 d^2), through K A.
+    moved = np.abs(np.linalg.pinv(p.model.KA) @ (np.sign(load) * (np.abs(load) - known))) / u.lsb_t
+    share = np.minimum(1.0, 2 * np.pi**2 * moved**2)
+    assert held.model - model == pytest.approx(2 * (p.model.KA**2) @ (u.bias_t**2 * share), rel=1e-9)
+    # Most fields moved past the small-d form: about 2 q^2 (a channel or so this load barely moves).
+    assert np.mean(share == 1.0) > 0.9 and held.model - model == pytest.approx(2 * q, rel=0.15)
+    assert at_rest.model == pytest.approx(
+        u.linear_error.variance(np.zeros(6), p.tare_wrench, True, np.zeros(6)), rel=1e-12
+    )
+    # status's prediction at rest leaves it out; the accuracy plan's (under a load) holds it.
+    rest = np.array(u.predicted(0.01, 100)["sigma"]) ** 2
+    loaded = np.array(u.predicted(0.01, 100, loaded=True)["sigma"]) ** 2
+    assert loaded - rest == pytest.approx(2 * q, rel=1e-3)  # (its sigma rounded to 1e-7)
+
+
 @pytest.mark.parametrize("solver", ["numpy", "compiled"])
 def test_the_nonlinear_sigma_takes_the_jacobian_the_solve_keeps(monkeypatch, solver):
     """The daemon's pipeline on a held load and on one that changes every sample: the sigma
     makes no Jacobian of the flux model of its own (`NonlinearEstimator.jacobian_at` hands it
     the one the solve keeps), so steps with it make as many as steps without; and its noise
-    map is the solve's gains at that Jacobian."""
+    map is the solve's gains at that Jacobian, of the noise the filter shrinks, with the
+    undithered quantisation's maps through the same gains, made again with them when the solve
+    keeps a new Jacobian."""
     from ftsensord.acquire.readings import Readings
     from ftsensord.config.file import load_config
     from ftsensord.model import nlcompiled
@@ -468,9 +534,12 @@ def test_the_nonlinear_sigma_takes_the_jacobian_the_solve_keeps(monkeypatch, sol
         if not with_sigma:
             p.uncertainty = None
         counted = count_calls(monkeypatch, p.nonlinear.model, "predict_and_jacobian")
-        for r in readings:
+        for i, r in enumerate(readings):
             sample = p.step(r)
             assert np.all(np.isfinite(sample.sigma.sigma)) == with_sigma
+            if with_sigma and i == 19:  # the held load's quantisation maps (untared: q^2 a channel)
+                key = (p.version, "nonlinear", EVERY.tobytes())
+                held = p.uncertainty.quantisation(key, np.zeros(6), np.zeros(6), False).copy()
         counts.append(counted["calls"])
     # numpy's solve makes its Jacobians in Python, the compiled one in C: none from the sigma
     assert counts[1] == counts[0] and (counts[0] > 0) == (solver == "numpy")
@@ -479,4 +548,8 @@ def test_the_nonlinear_sigma_takes_the_jacobian_the_solve_keeps(monkeypatch, sol
     maps = p.uncertainty.maps(p.version, "nonlinear", EVERY, None, (nl.pose, nl.background_t))
     assert maps is not None
     M = nl.stiffness @ np.linalg.solve(J.T @ J + np.diag([0.0] * 6 + [PRIOR_WEIGHT] * 3), J.T)[:6]
-    assert maps[0] == pytest.approx(propagate(M, p.uncertainty.sigma_t), rel=1e-9)
+    u = p.uncertainty
+    assert maps[0] == pytest.approx(propagate(M, u.independent_t), rel=1e-9)
+    q = u.quantisation((p.version, "nonlinear", EVERY.tobytes()), np.zeros(6), np.zeros(6), False)
+    assert np.all(q > 0) and q == pytest.approx((M * M) @ u.bias_t**2, rel=1e-9)
+    assert not np.allclose(q, held, rtol=1e-6, atol=0)  # made again with the new Jacobian

@@ -3,13 +3,16 @@
 For each conversion setting (OSR, DIG_FILT) the loop's rate is the fastest that holds with
 `choice.TARGET_SPARE` of the period left (`choice.options`: the computed bound of the
 schedulers the configuration leaves open), and for each averaging (powers of two up to
-`MAX_AVERAGING`, the low-pass off) each sensor's sigma at rest is what `status` shows
+`MAX_AVERAGING`, the low-pass off) each sensor's sigma is what `status` shows at rest
 (`uncertainty.Uncertainty.predicted`: the chips' noise at that setting through the
 estimator in use, times the averaging's variance factor, plus the tare's noise and the
-calibration's model error). The plan is the one that gives an independent sample most
+calibration's model error) with the quantisation the chips' noise leaves undithered, as a
+load brings it (`predicted`'s ``loaded``: at the longest conversions most of the LSB's share,
+which averaging does not shrink). The plan is the one that gives an independent sample most
 often, ``rate / averaging`` (a tie: the least averaging); None meets it when even the
 longest conversion and the most averaging leave a sigma above the target, which the error
-says with the part averaging cannot shrink (the model error and the tare's noise).
+says with the part averaging cannot shrink (the model error, the tare's noise and the
+undithered quantisation).
 
 Why averaging and not the low-pass: at equal variance the moving average of n samples has
 forgotten a step after n samples; a first-order low-pass of the same variance factor
@@ -30,7 +33,7 @@ from ftsensord.config.file import Config
 from ftsensord.config.sensors import SensorConfig
 from ftsensord.errors import ConfigError
 from ftsensord.processing.filters import variance_factors
-from ftsensord.processing.pipeline import channel_sigma_t
+from ftsensord.processing.pipeline import channel_lsb_t, channel_sigma_t
 from ftsensord.processing.uncertainty import AXES, Uncertainty
 
 #: The most averaging considered: 256 samples (2.6 s at 100 Hz), beyond which a sensor
@@ -97,6 +100,7 @@ def uncertainty_at(sensor: Sensor, settings: mlx.Settings) -> Uncertainty:
         channel_sigma_t(settings, len(s.addresses)),
         s.calibration.report,
         None if nl is None else nl.estimator(),
+        channel_lsb_t(settings, len(s.addresses)),
     )
 
 
@@ -105,7 +109,9 @@ def sigma_at(sensor: Sensor, uncertainty: Uncertainty, averaging: int, noise: bo
     averaging, as `status` predicts it; ``noise`` False: the part averaging cannot shrink (the
     tare's noise and the model error)."""
     factor = variance_factors(averaging, 1.0).steady if noise else 0.0
-    predicted = uncertainty.predicted(factor, sensor.tare_samples, sensor.estimator)["sigma"]
+    # With the quantisation a load brings: at the tare's load it is not there, but no averaging
+    # shrinks it under one (at the longest conversions it is most of the LSB's share).
+    predicted = uncertainty.predicted(factor, sensor.tare_samples, sensor.estimator, loaded=True)["sigma"]
     return np.full(6, np.inf) if predicted is None else np.array(predicted)
 
 
@@ -171,7 +177,7 @@ def plan(
 
 def _why_not(held: list[Sensor], targets: dict[str, list[Accuracy]], settings: mlx.Settings) -> str:
     """Why no setting meets the targets, from what the calibration files hold: the part
-    averaging cannot shrink (the model error at rest and the tare's noise) when it stands at
+    averaging cannot shrink (the model error at rest, the tare's noise, the undithered quantisation) when it stands at
     half a target or more, with the nonlinear estimator's own where a sensor runs the linear
     one, has it and it is lower; else the chips' noise, which `MAX_AVERAGING` readings do
     not bring under the target."""
@@ -204,8 +210,8 @@ def _why_not(held: list[Sensor], targets: dict[str, list[Accuracy]], settings: m
         else "a larger target"
     )
     return (
-        f"the calibration's model error and the tare's noise alone give {said}, which averaging "
-        f"does not shrink; {advice}"
+        f"the calibration's model error, the tare's noise and the chips' undithered quantisation "
+        f"alone give {said}, which averaging does not shrink; {advice}"
     )
 
 

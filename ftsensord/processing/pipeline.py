@@ -53,6 +53,12 @@ def channel_sigma_t(settings: mlx.Settings, chips: int) -> np.ndarray:
     return sigma
 
 
+def channel_lsb_t(settings: mlx.Settings, chips: int) -> np.ndarray:
+    """Each channel's LSB (T, chips x 3) at ``settings``: what `uncertainty` needs to tell the part
+    of `channel_sigma_t`'s quantisation the chip's noise does not dither (a bias at a held field)."""
+    return np.tile([settings.sensitivity_ut(a) * 1e-6 for a in "xyz"], chips)
+
+
 @dataclass
 class SensorSample:
     """What one cycle made of one sensor: its flux (T) and wrench (N, Nm), each with its flags."""
@@ -135,7 +141,13 @@ class SensorPipeline:
             else None,
             stray=WorldGradient(s.calibration.model, sigma_t) if s.stray_field == "world" else None,
             creep=CreepCompensation(s.calibration.silicone, rate_hz),
-            uncertainty=Uncertainty(s.model, sigma_t, s.calibration.report, nonlinear),
+            uncertainty=Uncertainty(
+                s.model,
+                sigma_t,
+                s.calibration.report,
+                nonlinear,
+                channel_lsb_t(settings or mlx.Settings(), len(s.addresses)),
+            ),
         )
 
     @property

@@ -1,24 +1,33 @@
 """Each wrench sample's 1-sigma per axis (N, Nm): what the daemon knows of its error.
 
-Three independent parts, added as variances (docs/design/estimators.md, "Each sample's sigma"):
+Four independent parts, added as variances (docs/design/estimators.md, "Each sample's sigma"):
 
-- the chips' reading noise (`pipeline.channel_sigma_t`, T, at their settings) through the
-  estimator used: M diag(sigma_t^2) M^T, M = K A with every chip, K pinv(H_S) over the chips
-  left (degraded), and for the nonlinear estimator its stiffness times the solve's gains
-  (J_S^T J_S + P)^-1 J_S^T, J the flux model's Jacobian the solve keeps near its pose
+- the chips' reading noise (`pipeline.channel_sigma_t`, T, at their settings: the chip's noise
+  and its LSB's quantisation) less the quantisation's undithered part (the third part), through
+  the estimator used: M diag(sigma_t^2 - q^2) M^T, M = K A with every chip, K pinv(H_S) over
+  the chips left (degraded), and for the nonlinear estimator its stiffness times the solve's
+  gains (J_S^T J_S + P)^-1 J_S^T, J the flux model's Jacobian the solve keeps near its pose
   (`NonlinearEstimator.jacobian_at`); then times the filter's variance factor
-  (`filters.variance_factors`), as the noise is independent from sample to sample;
-- the tare's own noise: its zero is the mean of n samples, so M diag(sigma_t^2) M^T / n, an
+  (`filters.variance_factors`), as this noise is independent from sample to sample;
+- the tare's own noise: its zero is the mean of n samples, so that noise's M (...) M^T / n, an
   offset the filter does not shrink (none before a tare: the calibration's zero is the
-  mean of hundreds of poses' samples, and its error is in the next part);
+  mean of hundreds of poses' samples, and its error is in the last part);
+- the quantisation the chip's noise does not dither (`undithered`, q per channel): where the
+  noise is not well above the LSB (at the packaged RES 3 the LSB is 6 uT on x and y against
+  2 uT of noise; at the longest conversions 27 times the noise) the mean of a channel's
+  readings at a held field is off the field by a sawtooth of it, the same at every sample:
+  a bias of the load that no filter shrinks. After a tare the error is that bias at the load
+  less the one at the tare's field: none at the tare's load, 2 q^2 a channel once the load
+  has moved its field a fraction of an LSB (`Uncertainty.quantisation`); untared, q^2;
 - the calibration's model error, learnt on its validation poses (`ModelError`), an error
   of the load, not of the sample: the filter does not shrink it either.
 
 The noise parts are constant matrices for a given estimator, set of chips and tare (and the
 nonlinear solve's kept Jacobian): built once and kept, keyed on the pipeline's `version` (its
-tare) and the chips, with what they come to at the filter's variance factor, so a sample
-costs its model error's few products of six numbers. A sample without an estimate (invalid)
-or whose estimator fell back has no known sigma: NaN.
+tare) and the chips, with what they come to at the filter's variance factor and the
+quantisation's maps through the same M beside them (`_Maps`), so a sample costs its model
+error's few products of six numbers and, tared under a load, the quantisation's two. A sample
+without an estimate (invalid) or whose estimator fell back has no known sigma: NaN.
 """
 
 from __future__ import annotations
@@ -173,7 +182,7 @@ class SampleSigma:
     sigma: np.ndarray
     noise: np.ndarray | None = None  # one sample's noise covariance (6 x 6), before the filter
     offset: np.ndarray | None = None  # the tare's (6 x 6)
-    model: np.ndarray | None = None  # the model error's variances (6)
+    model: np.ndarray | None = None  # the model error's and the undithered quantisation's variances (6)
     scale: float = 1.0
     factor: float = 1.0  # the filter's variance factor on ``noise``
 
@@ -197,16 +206,21 @@ NOISE_SIGMAS = 2.0
 
 @dataclass(eq=False)
 class _Maps:
-    """One estimator's, set of chips' and tare's noise maps (`Uncertainty.maps`), and what a
-    sample makes of them at the filter's variance factor (kept for the last factor: it holds
-    once the filter has settled, so a sample makes only its model error's part)."""
+    """One estimator's, set of chips' and tare's noise maps (`Uncertainty.maps`), what a sample
+    makes of them at the filter's variance factor (kept for the last factor: it holds once the
+    filter has settled, so a sample makes only its model error's part), and the undithered
+    quantisation's maps through the same M (`quantisation`; None when ``lsb_t`` tells none
+    apart): made together and dropped together, on a tare or a new kept Jacobian."""
 
-    noise: np.ndarray  # one sample's noise covariance (6 x 6)
+    noise: np.ndarray  # one sample's noise covariance (6 x 6), of the noise the filter shrinks
     diag: np.ndarray  # its diagonal
     offset: np.ndarray  # the tare's covariance (6 x 6)
     offset_diag: np.ndarray  # its diagonal
     #: (factor, factor * diag + offset_diag, NOISE_SIGMAS times its square root)
     now: tuple[float, np.ndarray, np.ndarray] | None = None
+    bias: np.ndarray | None = None  # (6 x channels) M^2 q^2: each channel's share on each axis
+    bias_untared: np.ndarray | None = None  # (6) its sum: the variance untared, q^2 a channel
+    bias_moves: np.ndarray | None = None  # (channels x 6) a load's move of each field, pi sqrt(2) / LSB
 
     def at(self, factor: float) -> tuple[np.ndarray, np.ndarray]:
         """The noise's variance per axis at the filter's variance ``factor``, the tare's added,
@@ -217,10 +231,52 @@ class _Maps:
             now = self.now = (factor, variance, NOISE_SIGMAS * np.sqrt(variance))
         return now[1], now[2]
 
+    def quantisation(self, wrench: np.ndarray, known: np.ndarray, tared: bool) -> np.ndarray:
+        """The undithered quantisation's variance per axis (6) at ``wrench`` (as published, after
+        the tare): untared sum_c M_kc^2 q_c^2; after a tare each channel's bias at the load less
+        the one at the tare's field, whose variance over the fields is 2 q^2 (1 - cos(2 pi d /
+        LSB)) for a field moved by d: taken as 2 q^2 min(1, 2 pi^2 (d / LSB)^2), its small-d
+        form up to its mean, d the field the load ``wrench`` less ``known`` (its noise, as the
+        model error's) moves the channel by."""
+        if self.bias is None or self.bias_untared is None or self.bias_moves is None:
+            return np.zeros(6)
+        if not tared:
+            return self.bias_untared
+        load = np.copysign(np.maximum(np.abs(wrench) - known, 0.0), wrench)
+        if not load.any():
+            return np.zeros(6)
+        d = self.bias_moves @ load  # pi sqrt(2) d / LSB a channel
+        return 2.0 * (self.bias @ np.minimum(1.0, d * d))
+
+
+def undithered(noise: np.ndarray, lsb: np.ndarray) -> np.ndarray:
+    """The RMS, over the fields a load sets, of the mean reading's error at a held field: the
+    part of a rounding quantiser's error (LSB^2 / 12 in all) that Gaussian noise of ``noise``
+    (same units, per channel) does not dither. The error of Q(b + n) against b is a sawtooth
+    of b, sum_k (-1)^k lsb / (pi k) sin(2 pi k b / lsb); the noise multiplies its k-th
+    harmonic's mean by exp(-2 pi^2 k^2 noise^2 / lsb^2), so its mean square over b is
+
+        q^2 = sum_k (lsb / (pi k))^2 / 2 exp(-4 pi^2 k^2 (noise / lsb)^2),
+
+    LSB^2 / 12 without noise, 0.15 uT of the packaged 6 uT LSB at its 2 uT noise, nothing once
+    the noise reaches an LSB."""
+    noise, lsb = np.asarray(noise, dtype=float), np.asarray(lsb, dtype=float)
+    k = np.arange(1, UNDITHERED_TERMS + 1)[:, None]
+    ratio = np.divide(noise, lsb, out=np.zeros_like(lsb), where=lsb > 0)
+    terms = (lsb / (np.pi * k)) ** 2 / 2 * np.exp(-4 * np.pi**2 * k**2 * ratio**2)
+    return np.sqrt(terms.sum(axis=0))
+
+
+#: The harmonics `undithered` sums: without noise the tail past k is 1 / (2 pi^2 k) of LSB^2,
+#: here 1e-5 of LSB^2 / 12.
+UNDITHERED_TERMS = 5000
+
 
 class Uncertainty:
     """One sensor's sigma: the chips' noise, its calibration's model error, and the maps.
-    ``nonlinear``: the sensor's nonlinear estimator (its flux model and stiffness), or None."""
+    ``nonlinear``: the sensor's nonlinear estimator (its flux model and stiffness), or None;
+    ``lsb_t``: each channel's LSB (T, `pipeline.channel_lsb_t`), of which ``sigma_t`` holds the
+    quantisation (None: no quantisation told apart, all of ``sigma_t`` independent noise)."""
 
     def __init__(
         self,
@@ -228,8 +284,20 @@ class Uncertainty:
         sigma_t: np.ndarray,
         report: Mapping[str, Any] | None,
         nonlinear: NonlinearEstimator | None,
+        lsb_t: np.ndarray | None = None,
     ):
         self.sigma_t = sigma_t  # the chips' settings', for this object's life (new settings: a new pipeline)
+        if lsb_t is None:
+            self.lsb_t, self.bias_t = np.zeros_like(sigma_t), np.zeros_like(sigma_t)
+        else:
+            self.lsb_t = np.asarray(lsb_t, dtype=float)
+            chip_noise = np.sqrt(np.maximum(sigma_t**2 - self.lsb_t**2 / 12, 0.0))
+            self.bias_t = undithered(chip_noise, self.lsb_t)
+        # What the filter shrinks: the reading noise less its undithered part.
+        self.independent_t = np.sqrt(np.maximum(sigma_t**2 - self.bias_t**2, 0.0))
+        self._quantised = bool(np.any(self.bias_t > 0))
+        # Each channel's field per unit wrench (24 x 6): how far a load moves it, in LSBs.
+        self._flux_per_wrench = np.linalg.pinv(model.KA) if self._quantised else None
         self.linear_error = ModelError.from_report(report)
         nl = (report or {}).get("nonlinear")
         self.nonlinear_error = ModelError.from_report(nl if isinstance(nl, Mapping) else None)
@@ -237,7 +305,8 @@ class Uncertainty:
         self._nonlinear = nonlinear
         self._cache: dict[tuple[int, str, bytes], _Maps] = {}
         self._version = -1
-        #: Per set of chips (bool per chip, its bytes): its channels (bool per channel) and their noise.
+        #: Per set of chips (bool per chip, its bytes): its channels (bool per channel) and their
+        #: noise the filter shrinks (``independent_t``).
         self._channels: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
         self._jacobian = b""  # the nonlinear maps' Jacobian (`NonlinearEstimator.jacobian_at`), its bytes
 
@@ -301,7 +370,7 @@ class Uncertainty:
             channels = self._channels.get(used)
             if channels is None:  # the chips' channels and their noise: the settings' alone
                 where = np.repeat(chips, 3)
-                channels = self._channels[used] = (where, self.sigma_t[where])
+                channels = self._channels[used] = (where, self.independent_t[where])
             try:
                 if J is not None:
                     M = self._nonlinear_map(J, channels[0])
@@ -313,8 +382,28 @@ class Uncertainty:
                 return None
             noise = propagate(M, channels[1])
             offset = noise / tare_samples if tare_samples else np.zeros((6, 6))
-            found = self._cache[key] = _Maps(noise, noise.diagonal().copy(), offset, offset.diagonal().copy())
+            found = _Maps(noise, noise.diagonal().copy(), offset, offset.diagonal().copy())
+            if self._quantised:  # the undithered quantisation's maps, through the same M
+                assert self._flux_per_wrench is not None
+                where = channels[0]
+                # (6 x channels): each channel's q^2 on each axis
+                found.bias = M * M * self.bias_t[where] ** 2
+                found.bias_untared = found.bias.sum(axis=1)  # untared: q^2 on every channel
+                # (channels x 6): a load's move of each field, in LSBs, times pi sqrt(2)
+                found.bias_moves = (
+                    self._flux_per_wrench[where] * (np.pi * np.sqrt(2.0) / self.lsb_t[where])[:, None]
+                )
+            self._cache[key] = found  # all of it at once: kept, and dropped, together
         return found
+
+    def quantisation(
+        self, key: tuple[int, str, bytes], wrench: np.ndarray, known: np.ndarray, tared: bool
+    ) -> np.ndarray:
+        """The undithered quantisation's variance per axis (6) at ``wrench`` for the maps of
+        ``key`` (version, estimator, the chips' bytes), as made (`_Maps.quantisation`); zeros
+        when none are kept."""
+        found = self._cache.get(key)
+        return np.zeros(6) if found is None else found.quantisation(wrench, known, tared)
 
     def sample(
         self,
@@ -341,23 +430,34 @@ class Uncertainty:
         noise_now, known = maps.at(factor)
         error = self.nonlinear_error if estimator == "nonlinear" else self.linear_error
         model = error.variance(wrench, tare_wrench, tared, known)
+        if maps.bias is not None:
+            model = model + maps.quantisation(wrench, known, tared)
         variance = noise_now + model
         sigma = np.sqrt(variance) * scale if scale != 1.0 else np.sqrt(variance)
         # The covariance's parts kept as they are (the cached maps, not copies): only the tip
         # asks for it (`tip_sigma`), so a sample makes no 6 x 6 product.
         return SampleSigma(sigma, maps.noise, maps.offset, model, scale, factor)
 
-    def predicted(self, factor: float, tare_samples: int | None, estimator: str = "linear") -> dict[str, Any]:
+    def predicted(
+        self, factor: float, tare_samples: int | None, estimator: str = "linear", loaded: bool = False
+    ) -> dict[str, Any]:
         """The sigma at rest of the current settings (every chip, no load), and its parts:
-        for `status`."""
+        for `status`. ``loaded``: with the undithered quantisation a load brings (its mean over
+        the fields, as once a load has moved every channel's field: `quantisation`), which at
+        the tare's load is not there: what `accuracy` plans on, as no averaging shrinks it."""
         chips = np.ones(len(self.sigma_t) // 3, dtype=bool)
-        maps = self.maps(self._version, estimator, chips, tare_samples)
+        maps = self._maps(self._version, estimator, chips, tare_samples, None)
         if maps is None:
             return {"sigma": None}
-        _, noise_diag, offset = maps
+        noise_diag = maps.diag
         error = self.nonlinear_error if estimator == "nonlinear" else self.linear_error
-        model = error.variance(np.zeros(6), np.zeros(6), tare_samples is not None)
-        sigma = np.sqrt(factor * noise_diag + np.diag(offset) + model)
+        tared = tare_samples is not None
+        model = error.variance(np.zeros(6), np.zeros(6), tared)
+        if loaded and maps.bias_untared is not None:
+            model = model + maps.bias_untared * (2.0 if tared else 1.0)
+        else:
+            model = model + maps.quantisation(np.zeros(6), np.zeros(6), tared)
+        sigma = np.sqrt(factor * noise_diag + maps.offset_diag + model)
         return {
             "sigma": [round(float(v), 7) for v in sigma],
             "noise": [round(math.sqrt(float(v)), 7) for v in factor * noise_diag],
