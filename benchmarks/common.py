@@ -157,6 +157,22 @@ SENSOR2 = "0x14, 0x15, 0x16, 0x17, 0x18, 0x19, 0x1A, 0x1B"
 #: DIG_FILT 0 to 7.
 FULL_CHIP = [(0, 2), (1, 2), (1, 3), (2, 0), (2, 1), (2, 2), (2, 4), (3, 4), (3, 6), (3, 7)]
 
+#: Quick runs of a benchmark that calibrates parts by the documented commands (CI, through
+#: ``python -m benchmarks regenerate --quick``): `ftsensord dataset`'s options for a small
+#: dataset, whose fit is kept whatever it gives: the page's structure, not its figures.
+QUICK_DATASET = [
+    "--poses",
+    "60",
+    "--validation-poses",
+    "15",
+    "--samples",
+    "20",
+    "--check-poses",
+    "3",
+    "--hold-s",
+    "0",
+]
+
 #: The paper's Table II: RMSE per axis (N, Nm) at its 100 g validation loads.
 PAPER = np.array([0.2338, 0.1136, 0.3775, 4.1e-3, 10.6e-3, 8.5e-3])
 

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.accuracy.creep import scene_path
-from benchmarks.common import RESULTS
+from benchmarks.common import QUICK_DATASET, RESULTS
 from ftsensord import cli
 from ftsensord.acquire.readings import Readings
 from ftsensord.calibration.calfile import Calibration
@@ -84,22 +84,6 @@ def gains(scene: PhysicalScene, cal: Calibration, path: Path, estimator: str) ->
             w[axis] = sign * SIZE[axis]
             out[axis, k] = pipeline.step(Readings.of_field(sensor.addresses, flux(w))).wrench[axis] / w[axis]
     return out
-
-
-#: Quick runs (CI, through ``python -m benchmarks regenerate --quick``): the page's structure on
-#: one part with a small dataset, whatever its fit gives.
-QUICK_DATASET = [
-    "--poses",
-    "60",
-    "--validation-poses",
-    "15",
-    "--samples",
-    "20",
-    "--check-poses",
-    "3",
-    "--hold-s",
-    "0",
-]
 
 
 def page(rows: list[str], parts: list[int]) -> str:

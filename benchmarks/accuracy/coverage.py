@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from benchmarks.common import RESULTS, machine
+from benchmarks.common import QUICK_DATASET, RESULTS, machine
 from ftsensord import cli
 from ftsensord.acquire import choice
 from ftsensord.calibration.calfile import Calibration
@@ -63,20 +63,6 @@ CORRELATED = 20
 PACKAGED_CONFIG = Path(__file__).resolve().parents[2] / "ftsensord" / "data" / "sim.toml"
 #: The chip left out in the "one chip out" cases (sensor1's fourth).
 CHIP_OUT = 0x0F
-#: Quick runs: the dataset's sizes (a few minutes less of calibration), the fit kept whatever it
-#: gives (``--allow-poor-fit``): the page's structure, not its figures.
-QUICK_DATASET = [
-    "--poses",
-    "60",
-    "--validation-poses",
-    "15",
-    "--samples",
-    "20",
-    "--check-poses",
-    "3",
-    "--hold-s",
-    "0",
-]
 
 
 #: The smoothing of the filtered cases: a moving average of 10 samples, then a low-pass at a
