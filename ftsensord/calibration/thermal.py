@@ -38,9 +38,10 @@ from ftsensord.model.silicone import STIFFNESS_TEMPCO_PER_K, stiffness_factor
 MIN_DRIFT_SPAN_K = 3.0
 #: Passes of fit -> drift -> fit on the drift-corrected flux: the fit absorbs part of the
 #: drift where the plan's loads and temperatures go together, and each pass takes part of
-#: the rest, until a pass changes the drift by under `DRIFT_SETTLED` of it (at most
-#: `DRIFT_PASSES`: on the warm benchmark's quick parts 3-6 passes, where the plan's five arms
-#: and a temperature cycled over the poses go together the most).
+#: the rest, until a pass changes the drift by under `DRIFT_SETTLED` of it (the warm
+#: benchmark's parts 31-33 took 4-5 passes, its quick and full datasets alike; two, the former
+#: fixed count, left a warm part 1.5-1.9x the 2 mNm its rest must read within); at most this
+#: many, twice what they took.
 DRIFT_PASSES = 10
 #: A pass's change of the drift (RMS over the channels) under this share of the drift: settled.
 #: 2 %: 0.05 uT/K of a 2.5 uT/K drift, 0.5 uT over a 10 K warming, a tenth of the chips' noise.
