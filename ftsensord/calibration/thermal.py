@@ -40,7 +40,7 @@ MIN_DRIFT_SPAN_K = 3.0
 #: drift where the plan's loads and temperatures go together, and each pass takes part of
 #: the rest, until a pass changes the drift by under `DRIFT_SETTLED` of it (the warm
 #: benchmark's parts 31-33 took 4-5 passes, its quick and full datasets alike; two, the former
-#: fixed count, left a warm part 1.5-1.9x the 2 mNm its rest must read within); at most this
+#: fixed count, left warm parts 1.7-1.9x the 2 mNm their rest must read within); at most this
 #: many, twice what they took.
 DRIFT_PASSES = 10
 #: A pass's change of the drift (RMS over the channels) under this share of the drift: settled.
