@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import datetime
 import io
 import tempfile
 import time
@@ -34,7 +33,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from benchmarks.common import QUICK_DATASET, RESULTS, machine
+from benchmarks.common import QUICK_DATASET, RESULTS
 from ftsensord import cli
 from ftsensord.acquire import choice
 from ftsensord.calibration.calfile import Calibration
@@ -300,7 +299,6 @@ def page(
     results: dict[str, list[Run]],
     commands: list[str],
     args: argparse.Namespace,
-    elapsed_s: float,
     ranges: dict,
     settings: dict[str, Setting],
 ) -> str:
@@ -315,8 +313,7 @@ def page(
         f" --parts {' '.join(map(str, args.parts))}"
         + (f" --slowest-parts {' '.join(map(str, args.slowest_parts))}" if args.slowest_parts else "")
         + f" --loads {args.loads} --samples {args.samples} "
-        f"--rest-samples {args.rest_samples} --tares {args.tares}` on "
-        f"{datetime.datetime.now(datetime.UTC):%Y-%m-%d %H:%M} UTC, {machine()}, in {elapsed_s / 60:.0f} min."
+        f"--rest-samples {args.rest_samples} --tares {args.tares}` (the date, host and run time: the last line)."
         + (
             " **Quick run: small datasets, few samples; the page's structure, not its figures.**"
             if args.quick
@@ -487,7 +484,7 @@ def main(argv: list[str] | None = None) -> int:
                     )
                 )
             print(f"part {seed} done, {time.monotonic() - began:.0f} s", flush=True)
-    out.write_text(page(results, commands, args, time.monotonic() - began, ranges, settings))
+    out.write_text(page(results, commands, args, ranges, settings))
     print(f"wrote {out}")
     return 0
 
