@@ -1,5 +1,5 @@
 """benchmarks/accuracy/coverage.py --quick: what it writes (every case at rest and under held
-loads, at 1 and 2 sigma, with its sample counts, the commands, date and machine) and a figure
+loads, at 1 and 2 sigma, with its sample counts, the commands, and the stamp's date and machine) and a figure
 that could come out wrong: within 2 sigma is never fewer samples than within 1."""
 
 from __future__ import annotations
@@ -13,7 +13,9 @@ def test_the_quick_coverage_benchmark_reports_every_case(regenerated):
     text = (regenerated / "coverage.md").read_text()
     assert text.startswith("# Each sample's sigma: coverage")
     assert "ftsensord dataset" in text and "ftsensord calibrate" in text
-    assert re.search(r"on \d{4}-\d\d-\d\d \d\d:\d\d UTC, \d+-core", text)  # when and where
+    assert "Made by `python -m benchmarks.accuracy.coverage --quick --parts " in text  # its own command
+    # when and where: the stamp `benchmarks regenerate` writes, its last line
+    assert re.search(r"\nGenerated on \d{4}-\d\d-\d\d by .* on a \d+-core [^\n]*\n$", text)
     percent = r"(\d+) %(?: \(x\))?"
     for case in bench.CASES:
         for load in ("rest", "held"):
