@@ -177,41 +177,39 @@ def plan(
 
 def _why_not(held: list[Sensor], targets: dict[str, list[Accuracy]], settings: mlx.Settings) -> str:
     """Why no setting meets the targets, from what the calibration files hold: the part
-    averaging cannot shrink (the model error at rest, the tare's noise, the undithered quantisation) when it stands at
-    half a target or more, with the nonlinear estimator's own where a sensor runs the linear
-    one, has it and it is lower; else the chips' noise, which `MAX_AVERAGING` readings do
-    not bring under the target."""
+    averaging cannot shrink (the model error at rest, the tare's noise, the undithered
+    quantisation) when it stands at half a target or more, with the nonlinear estimator's own
+    where a sensor runs the linear one, has it and it is lower; else the chips' noise, which
+    `MAX_AVERAGING` readings do not bring under the target."""
 
     def floor(s: Sensor) -> np.ndarray:
         return sigma_at(s, uncertainty_at(s, settings), 1, noise=False)
 
     floors = {s.config.name: floor(s) for s in held}
-    worst = {(n, t.kind): float(np.max(floors[n][t.axes])) for n in floors for t in targets[n]}
+    worst = {(n, t): float(np.max(floors[n][t.axes])) for n in floors for t in targets[n]}
     # Half the target: below it, the floor's share of the variance is under a quarter and the
     # chips' noise is what averaging leaves.
-    if not any(worst[(n, t.kind)] >= 0.5 * t.value for n in floors for t in targets[n]):
+    if not any(v >= 0.5 * t.value for (_, t), v in worst.items()):
         return f"the chips' noise averaged {MAX_AVERAGING} times stays above it: a larger target"
-    said = "; ".join(
-        f"{n} {kind} {v:.3g} {'N' if kind == 'force' else 'Nm'}" for (n, kind), v in worst.items()
-    )
+
+    def listed(values: dict[tuple[str, Accuracy], float]) -> str:
+        return "; ".join(f"{n} {t.kind} {v:.3g} {t.unit}" for (n, t), v in values.items())
+
     better = {}
     for s in held:
         if s.estimator == "linear" and s.config.calibration.nonlinear is not None:
             other = floor(replace(s, estimator="nonlinear"))
             for t in targets[s.config.name]:
-                if float(np.max(other[t.axes])) < worst[(s.config.name, t.kind)]:
-                    better[(s.config.name, t.kind)] = float(np.max(other[t.axes]))
+                if float(np.max(other[t.axes])) < worst[(s.config.name, t)]:
+                    better[(s.config.name, t)] = float(np.max(other[t.axes]))
     advice = (
-        "with the nonlinear estimator (ftsensord set --estimator nonlinear) they are "
-        + "; ".join(
-            f"{n} {kind} {v:.3g} {'N' if kind == 'force' else 'Nm'}" for (n, kind), v in better.items()
-        )
+        "with the nonlinear estimator (ftsensord set --estimator nonlinear) they are " + listed(better)
         if better
         else "a larger target"
     )
     return (
         f"the calibration's model error, the tare's noise and the chips' undithered quantisation "
-        f"alone give {said}, which averaging does not shrink; {advice}"
+        f"alone give {listed(worst)}, which averaging does not shrink; {advice}"
     )
 
 
