@@ -231,17 +231,22 @@ class _Maps:
             now = self.now = (factor, variance, NOISE_SIGMAS * np.sqrt(variance))
         return now[1], now[2]
 
-    def quantisation(self, wrench: np.ndarray, known: np.ndarray, tared: bool) -> np.ndarray:
+    def quantisation(
+        self, wrench: np.ndarray, known: np.ndarray, tared: bool, moved: bool = False
+    ) -> np.ndarray:
         """The undithered quantisation's variance per axis (6) at ``wrench`` (as published, after
         the tare): untared sum_c M_kc^2 q_c^2; after a tare each channel's bias at the load less
         the one at the tare's field, whose variance over the fields is 2 q^2 (1 - cos(2 pi d /
         LSB)) for a field moved by d: taken as 2 q^2 min(1, 2 pi^2 (d / LSB)^2), its small-d
         form up to its mean, d the field the load ``wrench`` less ``known`` (its noise, as the
-        model error's) moves the channel by."""
+        model error's) moves the channel by. ``moved``: as once a load has moved every channel's
+        field an LSB or more, whatever ``wrench`` (the mean a load brings: what plans take)."""
         if self.bias is None or self.bias_untared is None or self.bias_moves is None:
             return np.zeros(6)
         if not tared:
             return self.bias_untared
+        if moved:
+            return 2.0 * self.bias_untared
         load = np.copysign(np.maximum(np.abs(wrench) - known, 0.0), wrench)
         if not load.any():
             return np.zeros(6)
@@ -453,10 +458,7 @@ class Uncertainty:
         error = self.nonlinear_error if estimator == "nonlinear" else self.linear_error
         tared = tare_samples is not None
         model = error.variance(np.zeros(6), np.zeros(6), tared)
-        if loaded and maps.bias_untared is not None:
-            model = model + maps.bias_untared * (2.0 if tared else 1.0)
-        else:
-            model = model + maps.quantisation(np.zeros(6), np.zeros(6), tared)
+        model = model + maps.quantisation(np.zeros(6), np.zeros(6), tared, moved=loaded)
         sigma = np.sqrt(factor * noise_diag + maps.offset_diag + model)
         return {
             "sigma": [round(float(v), 7) for v in sigma],
