@@ -299,44 +299,67 @@ ROOM_PART = (
 )
 
 
-def test_on_the_realistic_scene_the_compensated_wrench_stays_within_noise_and_calibration_error(tmp_path):
+def realistic_run(folder: Path) -> dict:
     """sensor1 as built (config/scene-room.toml's tolerances, seed 1) in the Earth's field,
     calibrated there by the paper's procedure (its calibration rejects the room's field),
-    a 50 g tool part on it; tared at a tilt, turned through 24 orientations, 10 samples each."""
+    a 50 g tool part on it; tared at a tilt, turned through 24 orientations, 10 samples each.
+    What it gives: the compensated stream's noise sigma (N x3, Nm x3), the calibration's
+    validation RMSE, the largest |sample| and |mean of an orientation| per axis of the
+    compensated wrench, the samples of it flagged, and the raw wrench's mean per orientation.
+    (benchmarks/accuracy/gravity_figures.py prints the same run's figures.)"""
     result = fit(calibration_run(room_sensor(1), EARTH_T, seed=5))
     Calibration(
         result.model, ROOM_ADDRS, "room-1", position_map=result.position_map, report=result.report
-    ).save(tmp_path / "cal.json")
+    ).save(folder / "cal.json")
     validation = np.array(list(result.report["validation_rmse"].values()))  # N x3, Nm x3
     text = scene().replace('kind = "sensors"\n', 'kind = "sensors"\nexternal_field_ut = [22.3, 1.4, -42.6]\n')
     t = Turning(
-        tmp_path,
+        folder,
         scene_text=text.replace("[sensor.tool]", ROOM_PART + "[sensor.tool]", 1),
         gravity_text=f'[gravity]\norientation = "stream"\n[gravity.sensor1]\nmass_kg = {M1}\n'
         f"com_m = {C1.tolist()}\n",
         tool="",
         frame="sensor1",
-        sensor1_cal=str(tmp_path / "cal.json"),
+        sensor1_cal=str(folder / "cal.json"),
     )
     sigma = noise_sigma(t)["wrench/sensor1/compensated"]
     t.turn(orientations(7)[3])
     t.cycles(3)
     assert t.tare(sensor="sensor1")["ok"]
-    worst_sample, worst_mean, raw = np.zeros(6), np.zeros(6), []
+    worst_sample, worst_mean, raw, flagged = np.zeros(6), np.zeros(6), [], 0
     for R in orientations(24):
         t.turn(R)
         out = t.cycles(10)
         values = np.array([s.values for s in out["wrench/sensor1/compensated"]])
-        assert all(s.flags == 0 for s in out["wrench/sensor1/compensated"])
+        flagged += sum(s.flags != 0 for s in out["wrench/sensor1/compensated"])
         worst_sample = np.maximum(worst_sample, np.abs(values).max(axis=0))
         worst_mean = np.maximum(worst_mean, np.abs(values.mean(axis=0)))
         raw.append(np.mean([s.values for s in out["wrench/sensor1"]], axis=0))
+    t.close()
+    return {
+        "sigma": sigma,
+        "validation": validation,
+        "worst_sample": worst_sample,
+        "worst_mean": worst_mean,
+        "flagged": flagged,
+        "raw": np.array(raw),
+    }
+
+
+def test_on_the_realistic_scene_the_compensated_wrench_stays_within_noise_and_calibration_error(tmp_path):
+    r = realistic_run(tmp_path)
+    sigma, validation, worst_sample, worst_mean = (
+        r["sigma"],
+        r["validation"],
+        r["worst_sample"],
+        r["worst_mean"],
+    )
+    assert r["flagged"] == 0
     # Noise (5 sigma a sample, 3 sigma / sqrt(10) a mean) plus twice the calibration's own
     # validation RMSE, the error it has at loads like the weight's swing (up to 1 N).
     assert np.all(worst_sample < 5 * sigma + 2 * validation), (worst_sample / sigma, validation)
     assert np.all(worst_mean < 3 * sigma / np.sqrt(10) + 2 * validation), worst_mean
-    assert np.all(np.ptp(raw, axis=0)[:3] > 0.6)  # uncompensated: the weight's swing
-    t.close()
+    assert np.all(np.ptp(r["raw"], axis=0)[:3] > 0.6)  # uncompensated: the weight's swing
 
 
 def test_with_a_load_the_compensated_wrench_is_the_load_at_every_orientation(tmp_path):

@@ -19,13 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ftsensord.calibration.calfile import Calibration
-from ftsensord.calibration.fit import fit
 from tests.test_daemon import LOAD
-from tests.test_gravity import C1, M1, ROOM_PART, Turning, noise_sigma, orientations, scene
-from tests.test_room import ADDRS as ROOM_ADDRS
-from tests.test_room import EARTH_T, calibration_run
-from tests.test_room import sensor as room_sensor
+from tests.test_gravity import Turning, noise_sigma, orientations, realistic_run
 
 MILLI = np.array([1e3] * 6)  # N, Nm -> mN, mNm
 
@@ -37,41 +32,15 @@ def fmt(x: np.ndarray, digits: int = 1) -> str:
 
 
 def realistic(folder: Path) -> None:
-    result = fit(calibration_run(room_sensor(1), EARTH_T, seed=5))
-    Calibration(
-        result.model, ROOM_ADDRS, "room-1", position_map=result.position_map, report=result.report
-    ).save(folder / "cal.json")
-    validation = np.array(list(result.report["validation_rmse"].values()))
-    text = scene().replace('kind = "sensors"\n', 'kind = "sensors"\nexternal_field_ut = [22.3, 1.4, -42.6]\n')
-    t = Turning(
-        folder,
-        scene_text=text.replace("[sensor.tool]", ROOM_PART + "[sensor.tool]", 1),
-        gravity_text=f'[gravity]\norientation = "stream"\n[gravity.sensor1]\nmass_kg = {M1}\n'
-        f"com_m = {C1.tolist()}\n",
-        tool="",
-        frame="sensor1",
-        sensor1_cal=str(folder / "cal.json"),
-    )
-    sigma = noise_sigma(t)["wrench/sensor1/compensated"]
-    t.turn(orientations(7)[3])
-    t.cycles(3)
-    assert t.tare(sensor="sensor1")["ok"]
-    worst_sample, worst_mean, raw, flagged = np.zeros(6), np.zeros(6), [], 0
-    for R in orientations(24):
-        t.turn(R)
-        out = t.cycles(10)
-        values = np.array([s.values for s in out["wrench/sensor1/compensated"]])
-        flagged += sum(s.flags != 0 for s in out["wrench/sensor1/compensated"])
-        worst_sample = np.maximum(worst_sample, np.abs(values).max(axis=0))
-        worst_mean = np.maximum(worst_mean, np.abs(values.mean(axis=0)))
-        raw.append(np.mean([s.values for s in out["wrench/sensor1"]], axis=0))
-    t.close()
-    swing = np.ptp(raw, axis=0)
+    r = realistic_run(folder)
+    sigma, swing = r["sigma"], np.ptp(r["raw"], axis=0)
     print("realistic scene, sensor1 compensated:")
     print(f"  noise bound sigma: {fmt(sigma * MILLI)}")
-    print(f"  calibration's validation RMSE: {fmt(validation * MILLI)}")
-    print(f"  samples flagged: {flagged} of 240; largest sample: {(worst_sample / sigma).max():.1f} sigma")
-    print(f"  largest orientation mean: {fmt(worst_mean * MILLI)}")
+    print(f"  calibration's validation RMSE: {fmt(r['validation'] * MILLI)}")
+    print(
+        f"  samples flagged: {r['flagged']} of 240; largest sample: {(r['worst_sample'] / sigma).max():.1f} sigma"
+    )
+    print(f"  largest orientation mean: {fmt(r['worst_mean'] * MILLI)}")
     print(
         f"  uncompensated swing: {fmt(swing * MILLI, 0)} ({', '.join(f'{v:.0f}' for v in swing / sigma)} sigma)"
     )
