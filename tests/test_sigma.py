@@ -8,6 +8,7 @@ import math
 import os
 import time
 import uuid
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -24,9 +25,11 @@ from ftsensord.model.linear import SENSOR_RANGE
 from ftsensord.model.nonlinear import PRIOR_WEIGHT
 from ftsensord.processing.filters import WrenchFilter, variance_factors
 from ftsensord.processing.pipeline import channel_sigma_t
+from ftsensord.processing.tare import carry_tares, tare_on
 from ftsensord.processing.uncertainty import (
     AXES,
     NOISE_SIGMAS,
+    SPREAD_SAMPLES,
     ModelError,
     Uncertainty,
     propagate,
@@ -559,3 +562,79 @@ def test_the_nonlinear_sigma_takes_the_jacobian_the_solve_keeps(monkeypatch, tmp
     q = u.quantisation((p.version, "nonlinear", EVERY.tobytes()), np.zeros(6), np.zeros(6), False)
     assert np.all(q > 0) and q == pytest.approx((M * M) @ u.bias_t**2, rel=1e-9)
     assert not np.allclose(q, held, rtol=1e-6, atol=0)  # made again with the new Jacobian
+
+
+def test_at_the_longest_conversion_the_sigma_at_the_tares_field_is_the_tares_own_spread(tmp_path):
+    """At OSR 3, DIG_FILT 7 the chips' noise is a small part of an LSB: at a held field only
+    the channels near a step of it toggle, so the noise over the fields (what a load brings)
+    is far off the one at the tare's field. After a tare through the control request, status
+    and each sample's sigma take its samples' spread, and the spread that follows is it."""
+    r = Rig(tmp_path, "temperature_every = 0", chip="osr = 3\ndig_filt = 7", rate_hz=3)
+    try:
+        r.cycles(20)
+        r.req.send(json.dumps({"cmd": "tare", "samples": 200}).encode())
+        r.daemon.handle_control()
+        r.cycles(200)
+        assert json.loads(r.req.recv())["ok"]
+        p = r.daemon.sensors[0]
+        u = p.uncertainty
+        assert p.tare_samples == 200 and p.tare_spread is not None
+        out = r.cycles(800)
+        wrench = np.array([s.values for s in out["wrench/sensor1"]])
+        sigma = np.array([s.values for s in out["sigma/wrench/sensor1"]])
+        status = np.array(r.request(cmd="status")["result"]["sensors"]["sensor1"]["sigma"]["sigma"])
+        at_rest = u.predicted(1.0, 200, spread=p.tare_spread)["sigma"]
+        over_fields = np.sqrt(u.maps(p.version, "linear", EVERY, 200)[1] * (1 + 1 / 200))
+        # A load that moves every field many chip noise sigmas: the noise over the fields
+        # again (the tare's offset stays its own samples'); the covariance says the same.
+        load = np.array([2.0, -2.0, 2.0, 0.15, -0.15, 0.15])
+        args = (p.version, "linear", EVERY)
+        loaded = u.sample(*args, load, p.tare_wrench, True, 200, 1.0, spread=p.tare_spread)
+        rest = u.sample(*args, np.zeros(6), p.tare_wrench, True, 200, 1.0, spread=p.tare_spread)
+        _, diag, offset = u.maps(*args, 200)
+    finally:
+        r.close()
+    # The samples' spread about their mean and the tare's offset against that mean: what the
+    # sigma holds, as the model error is left out (at the tare's load: none of its rest term).
+    measured = np.sqrt(wrench.var(axis=0) + (wrench.mean(axis=0)) ** 2)
+    model = u.linear_error.variance(np.zeros(6), p.tare_wrench, True)
+    noise = np.sqrt(np.maximum(np.array(at_rest) ** 2 - model, 0.0))
+    assert status == pytest.approx(at_rest, rel=1e-6)  # status shows the same
+    # as do the samples at rest (1e-4: the 7 decimals status rounds to, at 1e-3 Nm)
+    assert np.median(sigma, axis=0) == pytest.approx(at_rest, rel=1e-4)
+    # 30 %: a toggling channel's rate from 200 and 800 samples (a few tens of toggles each).
+    assert measured == pytest.approx(noise, rel=0.3)
+    # ...where the noise over the fields misses it by far on some axis (this part's).
+    assert np.max(np.abs(np.log(measured / over_fields))) > np.log(2.0)
+    # 10 %: a channel or so this load barely moves keeps part of its tare's weight.
+    assert loaded.sigma**2 - loaded.model == pytest.approx(diag + offset.diagonal(), rel=0.1)
+    assert rest.sigma == pytest.approx(np.array(at_rest), rel=1e-4)  # status rounds to 7 decimals
+    for s in (loaded, rest):  # 1e-12: round-off
+        assert np.diag(s.covariance()) == pytest.approx(s.sigma**2, rel=1e-12)
+
+
+def test_a_short_tares_spread_is_not_taken_and_another_conversion_drops_it(quiet_rig):
+    """Under `SPREAD_SAMPLES` a tare's spread says too little of each channel: the noise over
+    the fields stays. A reload that keeps the calibration keeps the tare, and its spread only
+    while the chips' settings (their noise) are the same."""
+    p = quiet_rig.daemon.sensors[0]
+    u = p.uncertainty
+    flux = []
+    for _ in range(SPREAD_SAMPLES + 2):
+        quiet_rig.cycles(1)
+        flux.append(p.last_flux.copy())
+    tare_on(p, flux[: SPREAD_SAMPLES - 1])
+    few = u.maps(p.version, "linear", EVERY, p.tare_samples, spread=p.tare_spread)
+    assert p.tare_spread is not None and few is not None
+    assert few[1] == pytest.approx((p.model.KA**2) @ u.independent_t**2, rel=1e-12)
+    tare_on(p, flux)
+    enough = u.maps(p.version, "linear", EVERY, p.tare_samples, spread=p.tare_spread)
+    assert enough is not None and np.allclose(
+        enough[2], (p.model.KA * p.tare_spread) @ p.model.KA.T / len(flux)
+    )
+    same = replace(p, tare_spread=None)
+    carry_tares([p], [same])
+    assert same.tare_spread is not None and np.array_equal(same.tare_spread, p.tare_spread)
+    other = replace(p, tare_spread=None, sigma_t=2 * p.sigma_t)
+    carry_tares([p], [other])
+    assert other.tared and other.tare_spread is None

@@ -39,6 +39,7 @@ from ftsensord.acquire import choice
 from ftsensord.calibration.calfile import Calibration
 from ftsensord.config.file import load_config
 from ftsensord.processing import accuracy
+from ftsensord.processing.tare import tare_on
 from ftsensord.protocol import wire
 from ftsensord.sim import load_scene
 from ftsensord.sim.loads import StaticLoad
@@ -229,9 +230,11 @@ def run_case(
                 for _ in range(TARE_SAMPLES):
                     step(rig)
                     flux.append(p.last_flux.copy())
-                p.tare(np.mean(flux, axis=0), None, len(flux))
+                tare_on(p, flux)
                 # What `status` predicts for these settings (every chip, at rest).
-                predicted = p.uncertainty.predicted(p.filter.factors[-1], p.tare_samples, p.estimator)
+                predicted = p.uncertainty.predicted(
+                    p.filter.factors[-1], p.tare_samples, p.estimator, spread=p.tare_spread
+                )
                 run.predicted.append(np.array(predicted["sigma"], dtype=float))
             if case.chip_out and k == 0:
                 rig.bus.detach(CHIP_OUT)

@@ -335,6 +335,6 @@ def sensor_status(p: SensorPipeline) -> dict[str, Any]:
         # The sigma at rest of the current settings, every chip (`processing.uncertainty`).
         "sigma": None
         if p.uncertainty is None
-        else p.uncertainty.predicted(p.filter.factors[-1], p.tare_samples, p.estimator),
+        else p.uncertainty.predicted(p.filter.factors[-1], p.tare_samples, p.estimator, spread=p.tare_spread),
         **p.stages_status(),
     }

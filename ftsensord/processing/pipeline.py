@@ -99,6 +99,7 @@ class SensorPipeline:
     version: int = 0
     uncertainty: Uncertainty | None = None  # each sample's sigma; None: not computed
     tare_samples: int | None = None  # how many samples the tare's zero averaged (None: unknown or untared)
+    tare_spread: np.ndarray | None = None  # each channel's variance over them (T^2; None: unknown or untared)
 
     def __post_init__(self) -> None:
         fitted = self.config.calibration.wrench_range
@@ -222,6 +223,7 @@ class SensorPipeline:
             (self.nonlinear.pose, self.nonlinear.background_t)
             if used[0] == "nonlinear" and self.nonlinear is not None
             else None,
+            self.tare_spread,
         )
 
     def flux(self, results: Mapping[int, ChipResult]) -> tuple[np.ndarray, int, np.ndarray]:
@@ -331,12 +333,17 @@ class SensorPipeline:
         return wrench, flags
 
     def tare(
-        self, zero: np.ndarray, gravity: np.ndarray | None = None, samples: int | None = None
+        self,
+        zero: np.ndarray,
+        gravity: np.ndarray | None = None,
+        samples: int | None = None,
+        spread: np.ndarray | None = None,
     ) -> np.ndarray:
         """Make ``zero`` (the mean no-load flux, T, as read) the new zero; returns the wrench it
         removes. ``gravity``: the mean gravity (m/s^2, sensor frame) while it was measured, None if
         unknown; ``samples``: how many samples ``zero`` averaged (for the sigma; None: unknown,
-        and the tare's own noise is left out of it). With the temperature stage, the zero is
+        and the tare's own noise is left out of it); ``spread``: each channel's variance over
+        them (T^2, for the sigma's noise at the tare's field; None: unknown). With the temperature stage, the zero is
         taken at the tare's temperature and compensated like every sample after it."""
         for stage in self.stages:
             zero = stage.tared(zero)
@@ -350,6 +357,7 @@ class SensorPipeline:
         self.filter.reset()
         self.tared = True
         self.tare_samples = samples
+        self.tare_spread = None if spread is None else np.array(spread, dtype=float)
         self.version += 1
         return self.tare_wrench
 
@@ -362,6 +370,7 @@ class SensorPipeline:
         self.zero_twist = nl.zero_twist.copy() if nl is not None else None
         self.tared = False
         self.tare_samples = None
+        self.tare_spread = None
         self.filter.reset()
         self.version += 1
 

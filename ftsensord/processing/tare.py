@@ -122,10 +122,7 @@ class Tares:
                     )
                     continue
                 offsets = {
-                    n: by_name[n]
-                    .tare(np.mean(job.flux[n], axis=0), _mean(job.gravity[n]), len(job.flux[n]))
-                    .round(6)
-                    .tolist()
+                    n: tare_on(by_name[n], job.flux[n], _mean(job.gravity[n])).round(6).tolist()
                     for n in job.sensors
                     if n in by_name
                 }
@@ -157,6 +154,15 @@ class Tares:
                         ),
                     },
                 )
+
+
+def tare_on(p: SensorPipeline, flux: Sequence[np.ndarray], gravity: np.ndarray | None = None) -> np.ndarray:
+    """Tare ``p`` on its no-load samples' ``flux`` (T, each the stacked channels) and their mean
+    ``gravity``: their mean the zero, their count and each channel's variance for the sigma
+    (`SensorPipeline.tare`). Returns the wrench the tare removes."""
+    samples = np.asarray(flux, dtype=float)
+    spread = samples.var(axis=0, ddof=1) if len(samples) > 1 else None
+    return p.tare(samples.mean(axis=0), gravity, len(samples), spread)
 
 
 def _mean(gravity: list[np.ndarray | None]) -> np.ndarray | None:
@@ -218,7 +224,9 @@ def carry_tares(old: Sequence[SensorPipeline], new: Sequence[SensorPipeline]) ->
         if o is None or not o.tared:
             continue
         if o.config.calibration.document() == p.config.calibration.document():
-            p.tare(o.model.zero, o.tare_gravity, o.tare_samples)
+            # The samples' spread is the chips' at their settings: another conversion, unknown.
+            same = o.sigma_t is not None and p.sigma_t is not None and np.array_equal(o.sigma_t, p.sigma_t)
+            p.tare(o.model.zero, o.tare_gravity, o.tare_samples, o.tare_spread if same else None)
             if o.stray is not None and p.stray is not None:
                 p.stray = o.stray  # what it learnt, and the gradient at that tare, hold still
             out[p.name] = "kept (calibration unchanged)"

@@ -9,6 +9,10 @@ Four independent parts, added as variances (docs/design/estimators.md, "Each sam
   gains (J_S^T J_S + P)^-1 J_S^T, J the flux model's Jacobian the solve keeps near its pose
   (`NonlinearEstimator.jacobian_at`); then times the filter's variance factor
   (`filters.variance_factors`), as this noise is independent from sample to sample;
+  At the tare's own field the noise is the one its samples spread by (each channel's variance
+  over them: at the longest conversions the chip's noise is a small part of an LSB and only
+  the channels near a step toggle, so the noise over the fields is far off at any one), and
+  a load moves each channel back to the noise over the fields (`_Maps.held_weights`);
 - the tare's own noise: its zero is the mean of n samples, so that noise's M (...) M^T / n, an
   offset the filter does not shrink (none before a tare: the calibration's zero is the
   mean of hundreds of poses' samples, and its error is in the last part);
@@ -180,17 +184,18 @@ class SampleSigma:
     """A sample's sigma (6; NaN unknown) and the parts of its covariance (`covariance`)."""
 
     sigma: np.ndarray
-    noise: np.ndarray | None = None  # one sample's noise covariance (6 x 6), before the filter
-    offset: np.ndarray | None = None  # the tare's (6 x 6)
+    maps: _Maps | None = None  # the noise maps it was made with
+    held: np.ndarray | None = None  # each channel's weight on the tare's own spread (`_Maps.held_weights`)
     model: np.ndarray | None = None  # the model error's and the undithered quantisation's variances (6)
     scale: float = 1.0
-    factor: float = 1.0  # the filter's variance factor on ``noise``
+    factor: float = 1.0  # the filter's variance factor on the noise
 
     def covariance(self) -> np.ndarray:
         """The full 6 x 6 covariance (N, Nm squared); NaN where the sigma is unknown."""
-        if self.noise is None or self.offset is None or self.model is None:
+        if self.maps is None or self.model is None:
             return np.full((6, 6), np.nan)
-        return (self.noise * self.factor + self.offset + np.diag(self.model)) * self.scale**2
+        noise = self.maps.noise_at(self.held)
+        return (noise * self.factor + self.maps.offset + np.diag(self.model)) * self.scale**2
 
 
 UNKNOWN = SampleSigma(np.full(6, np.nan))
@@ -208,28 +213,72 @@ NOISE_SIGMAS = 2.0
 class _Maps:
     """One estimator's, set of chips' and tare's noise maps (`Uncertainty.maps`), what a sample
     makes of them at the filter's variance factor (kept for the last factor: it holds once the
-    filter has settled, so a sample makes only its model error's part), and the undithered
+    filter has settled, so a sample makes only its model error's part), the undithered
     quantisation's maps through the same M (`quantisation`; None when ``lsb_t`` tells none
-    apart): made together and dropped together, on a tare or a new kept Jacobian."""
+    apart), and the noise at the tare's own field (`held_weights`; None without the tare's
+    spread): made together and dropped together, on a tare or a new kept Jacobian."""
 
-    noise: np.ndarray  # one sample's noise covariance (6 x 6), of the noise the filter shrinks
+    M: np.ndarray  # (6 x channels) how the estimate moves with each channel used
+    expected: np.ndarray  # (channels) each channel's noise variance the filter shrinks, over the fields (T^2)
+    noise: np.ndarray  # one sample's noise covariance (6 x 6) from ``expected``
     diag: np.ndarray  # its diagonal
     offset: np.ndarray  # the tare's covariance (6 x 6)
     offset_diag: np.ndarray  # its diagonal
-    #: (factor, factor * diag + offset_diag, NOISE_SIGMAS times its square root)
+    #: (factor, factor * the noise at the tare's field + offset_diag, NOISE_SIGMAS times its root)
     now: tuple[float, np.ndarray, np.ndarray] | None = None
     bias: np.ndarray | None = None  # (6 x channels) M^2 q^2: each channel's share on each axis
     bias_untared: np.ndarray | None = None  # (6) its sum: the variance untared, q^2 a channel
     bias_moves: np.ndarray | None = None  # (channels x 6) a load's move of each field, pi sqrt(2) / LSB
+    spread: np.ndarray | None = None  # (channels) the tare's own samples' variance (T^2)
+    held_noise: np.ndarray | None = None  # (6 x 6) the noise covariance from ``spread``
+    held_diag: np.ndarray | None = None  # its diagonal
+    held_shift: np.ndarray | None = None  # (6 x channels) M^2 (spread - expected)
+    held_moves: np.ndarray | None = None  # (channels x 6) a load's move of each field, in chip noise sigmas
 
     def at(self, factor: float) -> tuple[np.ndarray, np.ndarray]:
-        """The noise's variance per axis at the filter's variance ``factor``, the tare's added,
-        and `NOISE_SIGMAS` times its square root (the noise the model error is asked without)."""
+        """The noise's variance per axis at the filter's variance ``factor`` at the tare's field
+        (the tare's spread where known), the tare's added, and `NOISE_SIGMAS` times its square
+        root (the noise the model error is asked without)."""
         now = self.now
         if now is None or now[0] != factor:
-            variance = factor * self.diag + self.offset_diag
+            diag = self.diag if self.held_diag is None else self.held_diag
+            variance = factor * diag + self.offset_diag
             now = self.now = (factor, variance, NOISE_SIGMAS * np.sqrt(variance))
         return now[1], now[2]
+
+    def held_weights(self, wrench: np.ndarray, known: np.ndarray) -> np.ndarray | None:
+        """Each channel's weight (channels) on the noise the tare measured at its field against
+        the noise over the fields: exp(-z^2 / 2), z the field the load ``wrench`` less ``known``
+        (its noise, as the model error's) has moved the channel by, in the chip's noise sigmas
+        (a step of the LSB toggles a reading only within a few of them of its field: past
+        them the toggling is another field's, as likely as any). None: the tare's field
+        (every weight 1), or no spread known."""
+        if self.held_moves is None:
+            return None
+        load = np.copysign(np.maximum(np.abs(wrench) - known, 0.0), wrench)
+        if not load.any():
+            return None
+        z = self.held_moves @ load
+        return np.exp(-0.5 * z * z)
+
+    def noise_diag(self, held: np.ndarray | None) -> np.ndarray:
+        """One sample's noise variance per axis (6) at the channels' weights ``held``
+        (`held_weights`: None at the tare's field)."""
+        if self.held_diag is None:
+            return self.diag
+        if held is None:
+            return self.held_diag
+        assert self.held_shift is not None
+        return self.diag + self.held_shift @ held
+
+    def noise_at(self, held: np.ndarray | None) -> np.ndarray:
+        """`noise_diag`'s full covariance (6 x 6)."""
+        if self.spread is None:
+            return self.noise
+        if held is None:
+            assert self.held_noise is not None
+            return self.held_noise
+        return (self.M * (self.expected + held * (self.spread - self.expected))) @ self.M.T
 
     def quantisation(
         self, wrench: np.ndarray, known: np.ndarray, tared: bool, moved: bool = False
@@ -272,6 +321,11 @@ def undithered(noise: np.ndarray, lsb: np.ndarray) -> np.ndarray:
     return np.sqrt(terms.sum(axis=0))
 
 
+#: The fewest samples whose spread a tare's noise maps take (`Uncertainty.maps`): a channel's
+#: variance from n samples is off by sqrt(2 / (n - 1)), 20 % at 50, and the axes sum several
+#: channels; fewer, and the noise over the fields is the better guess.
+SPREAD_SAMPLES = 50
+
 #: The harmonics `undithered` sums: without noise the tail past k is 1 / (2 pi^2 k) of LSB^2,
 #: here 1e-5 of LSB^2 / 12.
 UNDITHERED_TERMS = 5000
@@ -294,15 +348,16 @@ class Uncertainty:
         self.sigma_t = sigma_t  # the chips' settings', for this object's life (new settings: a new pipeline)
         if lsb_t is None:
             self.lsb_t, self.bias_t = np.zeros_like(sigma_t), np.zeros_like(sigma_t)
+            self.chip_noise_t = np.asarray(sigma_t, dtype=float)
         else:
             self.lsb_t = np.asarray(lsb_t, dtype=float)
-            chip_noise = np.sqrt(np.maximum(sigma_t**2 - self.lsb_t**2 / 12, 0.0))
-            self.bias_t = undithered(chip_noise, self.lsb_t)
+            self.chip_noise_t = np.sqrt(np.maximum(sigma_t**2 - self.lsb_t**2 / 12, 0.0))
+            self.bias_t = undithered(self.chip_noise_t, self.lsb_t)
         # What the filter shrinks: the reading noise less its undithered part.
         self.independent_t = np.sqrt(np.maximum(sigma_t**2 - self.bias_t**2, 0.0))
         self._quantised = bool(np.any(self.bias_t > 0))
-        # Each channel's field per unit wrench (24 x 6): how far a load moves it, in LSBs.
-        self._flux_per_wrench = np.linalg.pinv(model.KA) if self._quantised else None
+        # Each channel's field per unit wrench (24 x 6): how far a load moves it.
+        self._flux_per_wrench = np.linalg.pinv(model.KA)
         self.linear_error = ModelError.from_report(report)
         nl = (report or {}).get("nonlinear")
         self.nonlinear_error = ModelError.from_report(nl if isinstance(nl, Mapping) else None)
@@ -332,12 +387,15 @@ class Uncertainty:
         chips: np.ndarray,
         tare_samples: int | None,
         pose: tuple[np.ndarray, np.ndarray] | None = None,
+        spread: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """One sample's noise covariance, its diagonal, and the tare's covariance, for the
         estimator and ``chips`` (bool per chip) at the pipeline's ``version``; ``pose``: the
         nonlinear solve's pose T_0C and background field (T, {0}) (None: the estimator's last
-        fit's, at rest before its first); None when the chips left do not see all six axes."""
-        found = self._maps(version, estimator, chips, tare_samples, pose)
+        fit's, at rest before its first); ``spread``: the variance (T^2) of each channel over
+        the tare's samples (None: unknown); None when the chips left do not see all six axes.
+        The noise is the one over the fields, as once a load has moved them (`_Maps`)."""
+        found = self._maps(version, estimator, chips, tare_samples, pose, spread)
         return None if found is None else (found.noise, found.diag, found.offset)
 
     def _maps(
@@ -347,8 +405,10 @@ class Uncertainty:
         chips: np.ndarray,
         tare_samples: int | None,
         pose: tuple[np.ndarray, np.ndarray] | None,
+        spread: np.ndarray | None = None,
     ) -> _Maps | None:
-        """`maps`, kept: made once per version, estimator and chips (and nonlinear Jacobian)."""
+        """`maps`, kept: made once per version, estimator and chips (and nonlinear Jacobian);
+        ``spread`` is the tare's, so the version's too."""
         if version != self._version:  # a tare or untare: the tare's part changes
             self._cache.clear()
             self._version = version
@@ -385,11 +445,28 @@ class Uncertainty:
                     M = self._model.map_from(chips)
             except (ValueError, np.linalg.LinAlgError):
                 return None
+            expected = channels[1] ** 2
             noise = propagate(M, channels[1])
-            offset = noise / tare_samples if tare_samples else np.zeros((6, 6))
-            found = _Maps(noise, noise.diagonal().copy(), offset, offset.diagonal().copy())
+            found = _Maps(M, expected, noise, noise.diagonal().copy(), noise, noise.diagonal())
+            if spread is not None and tare_samples and tare_samples >= SPREAD_SAMPLES:
+                # The noise at the tare's field, as its samples spread: at the longest
+                # conversions the chip's noise is a small part of an LSB and only the channels
+                # whose field lies near a step of it toggle, a few a part, so the noise over the
+                # fields is far off at any one (Mz's at rest a tenth of it on some parts).
+                where = channels[0]
+                held = np.asarray(spread, dtype=float)[where]
+                found.spread = held
+                found.held_noise = (M * held) @ M.T
+                found.held_diag = found.held_noise.diagonal().copy()
+                found.held_shift = M * M * (held - expected)
+                sigma_n = self.chip_noise_t[where]
+                found.held_moves = (
+                    self._flux_per_wrench[where] / np.where(sigma_n > 0, sigma_n, np.inf)[:, None]
+                )
+                found.offset = found.held_noise  # the tare's mean, of these very samples
+            found.offset = found.offset / tare_samples if tare_samples else np.zeros((6, 6))
+            found.offset_diag = found.offset.diagonal().copy()
             if self._quantised:  # the undithered quantisation's maps, through the same M
-                assert self._flux_per_wrench is not None
                 where = channels[0]
                 # (6 x channels): each channel's q^2 on each axis
                 found.bias = M * M * self.bias_t[where] ** 2
@@ -422,17 +499,21 @@ class Uncertainty:
         factor: float,
         scale: float = 1.0,
         pose: tuple[np.ndarray, np.ndarray] | None = None,
+        spread: np.ndarray | None = None,
     ) -> SampleSigma:
         """The sigma of a sample estimated by ``estimator`` from ``chips``; ``wrench``: its
         estimate before the filter (for the model error's load); ``factor``: the filter's
         variance factor (`WrenchFilter.variance_factor`); ``scale``: what the wrench was
         multiplied by after the estimate (the temperature stage's); ``pose``: the nonlinear
-        solve's pose and background field (`maps`)."""
-        maps = self._maps(version, estimator, chips, tare_samples, pose)
+        solve's pose and background field (`maps`); ``spread``: the tare's channels' variance."""
+        maps = self._maps(version, estimator, chips, tare_samples, pose, spread)
         # math.isfinite on six floats: numpy's isfinite and all cost ten times as much.
         if maps is None or not all(map(math.isfinite, wrench.tolist())):
             return UNKNOWN
         noise_now, known = maps.at(factor)
+        held = maps.held_weights(wrench, known)
+        if held is not None:  # a load has moved the fields off the tare's: the noise there
+            noise_now = factor * maps.noise_diag(held) + maps.offset_diag
         error = self.nonlinear_error if estimator == "nonlinear" else self.linear_error
         model = error.variance(wrench, tare_wrench, tared, known)
         if maps.bias is not None:
@@ -441,20 +522,27 @@ class Uncertainty:
         sigma = np.sqrt(variance) * scale if scale != 1.0 else np.sqrt(variance)
         # The covariance's parts kept as they are (the cached maps, not copies): only the tip
         # asks for it (`tip_sigma`), so a sample makes no 6 x 6 product.
-        return SampleSigma(sigma, maps.noise, maps.offset, model, scale, factor)
+        return SampleSigma(sigma, maps, held, model, scale, factor)
 
     def predicted(
-        self, factor: float, tare_samples: int | None, estimator: str = "linear", loaded: bool = False
+        self,
+        factor: float,
+        tare_samples: int | None,
+        estimator: str = "linear",
+        loaded: bool = False,
+        spread: np.ndarray | None = None,
     ) -> dict[str, Any]:
         """The sigma at rest of the current settings (every chip, no load), and its parts:
-        for `status`. ``loaded``: with the undithered quantisation a load brings (its mean over
-        the fields, as once a load has moved every channel's field: `quantisation`), which at
-        the tare's load is not there: what `accuracy` plans on, as no averaging shrinks it."""
+        for `status`; ``spread``: the tare's channels' variance (`maps`), the noise at rest.
+        ``loaded``: as once a load has moved every channel's field: the noise over the fields,
+        and the undithered quantisation a load brings (its mean over them: `quantisation`),
+        which at the tare's load is not there: what `accuracy` plans on, as no averaging
+        shrinks it."""
         chips = np.ones(len(self.sigma_t) // 3, dtype=bool)
-        maps = self._maps(self._version, estimator, chips, tare_samples, None)
+        maps = self._maps(self._version, estimator, chips, tare_samples, None, spread)
         if maps is None:
             return {"sigma": None}
-        noise_diag = maps.diag
+        noise_diag = maps.diag if loaded else maps.noise_diag(None)
         error = self.nonlinear_error if estimator == "nonlinear" else self.linear_error
         tared = tare_samples is not None
         model = error.variance(np.zeros(6), np.zeros(6), tared)
