@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -39,7 +40,7 @@ from ftsensord.daemon.reloads import Reloads
 from ftsensord.daemon.ros2child import BridgeWatch
 from ftsensord.daemon.sdnotify import Notifier
 from ftsensord.daemon.status import ChipLedger, status_line, status_reply
-from ftsensord.errors import ConfigError, FtsensordError
+from ftsensord.errors import ChipError, ConfigError, FtsensordError
 from ftsensord.processing.accuracy import Sensor, apply_accuracy, plan
 from ftsensord.processing.filters import WrenchFilter
 from ftsensord.processing.gravity import Gravity
@@ -330,22 +331,25 @@ class Daemon:
         return {"rate_hz": rate_hz, "averaging": averaging, "lowpass_hz": lowpass_hz}
 
     def set_accuracy(self, value: object) -> dict[str, Any]:
-        """The fastest averaging and rate (the low-pass off) whose predicted sigma at rest meets
-        ``value`` ("0.02N", "0.5mNm", or a list of one of each) for every sensor, at its
-        estimator and tare, with the running conversion (changing OSR or DIG_FILT needs a
-        restart: a sensor table's ``accuracy`` chooses them at start); applied as `set_loop`.
-        ConfigError, nothing changed, when no averaging meets it."""
+        """The fastest conversion (OSR, DIG_FILT), averaging and rate (the low-pass off) whose
+        predicted sigma at rest meets ``value`` ("0.02N", "0.5mNm", or a list of one of each)
+        for every sensor, at its estimator and tare, with the running scheduler (only a restart
+        chooses it again), as a sensor table's ``accuracy`` chooses them at start; applied
+        between cycles (`convert`, then as `set_loop`). ConfigError, nothing changed, when no
+        setting meets it or the running scheduler cannot hold the new conversion; a chip that
+        refuses it is said, as `convert` leaves it."""
         targets = parse_accuracies(value, "accuracy")
         running = self.config
+        before = running.settings
         found = plan(
             {p.name: targets for p in self.sensors},
             [Sensor(p.config, p.estimator, p.tare_samples) for p in self.sensors],
             running.bus_levers(self.board_timing),
             running.scheduler,  # kept: only a restart chooses the scheduler again
             running.readback_every if "readback_every" in running.named else None,
-            settings=[running.settings],
         )
         self.notifier.check_rate(found.rate_hz)  # as `set` checks a rate: the watchdog's pings follow cycles
+        self.convert(found.settings, found.rate_hz)
         done = self.set_loop(found.rate_hz, found.averaging, 0.0)
         return {
             **done,
@@ -353,9 +357,54 @@ class Daemon:
             "effective_rate_hz": round(found.effective_hz, 3),
             "osr": found.settings.osr,
             "dig_filt": found.settings.dig_filt,
+            "conversion_changed": found.settings != before,
             "sigma": found.sigma,
             "plan": found.describe(),
         }
+
+    def convert(self, settings: mlx.Settings, rate_hz: float) -> None:
+        """Between cycles: the chips' conversion changed to ``settings`` (the loop to run at
+        ``rate_hz`` next, set by the caller): written to every chip (`Reader.convert`, which
+        times the reads by it from the next cycle), then each sensor's pipeline built again
+        for its noise (`channel_sigma_t`: the sigma, the redundancy check's weights), keeping
+        its estimator and tare (`carry_tares`). A tare holds: it is a flux in tesla, and the
+        chips' scale (GAIN_SEL, RES, HALLCONF) and offset do not depend on OSR and DIG_FILT,
+        which set only how many ADC samples a conversion averages and how they are filtered;
+        the mean of the words read moves by a part of an LSB where the new noise dithers it
+        otherwise, the undithered quantisation a load brings, which the plan's sigma counts.
+        ConfigError, nothing changed, when the running scheduler cannot hold the conversion
+        at ``rate_hz``; ConfigError naming the chip when one refuses it: every chip then runs
+        the running conversion or is failing, reset to come back at it (`Reader.convert`)."""
+        running = self.config
+        if settings == running.settings:
+            return
+        conversion = f"OSR {settings.osr}, DIG_FILT {settings.dig_filt}"
+        trial = replace(running, settings=settings, rate_hz=rate_hz)
+        trial.choose(self.board_timing, f"{conversion} at {rate_hz:g} Hz", running=running.scheduler)
+        self._write_conversion(settings)
+        running.settings = settings
+        old, self.sensors = self.sensors, [self._pipeline(s, running) for s in running.sensors]
+        for o, p in zip(old, self.sensors):
+            if p.estimator != o.estimator:
+                p.use(o.estimator)  # `set --estimator`'s, which the file does not hold
+        carry_tares(old, self.sensors, f"the conversion's change to {conversion}")
+
+    def _write_conversion(self, settings: mlx.Settings) -> None:
+        """``settings`` written to the chips (`Reader.convert`) when the reader runs others;
+        ConfigError naming the chip that refused them, the running ones kept."""
+        was = self.reader.settings
+        if settings == was:
+            return
+        conversion = f"OSR {settings.osr}, DIG_FILT {settings.dig_filt}"
+        try:
+            self.reader.convert(settings)
+        except ChipError as exc:
+            raise ConfigError(
+                f"{conversion} not written: {exc}; that chip is reset and comes back at the running "
+                f"conversion, OSR {was.osr}, DIG_FILT {was.dig_filt}, which the others kept: "
+                f"nothing else changed"
+            ) from exc
+        log.info("conversion now %s (was OSR %d, DIG_FILT %d)", conversion, was.osr, was.dig_filt)
 
     def set_estimator(self, estimator: str, sensor: str | None) -> dict[str, Any]:
         return {"estimator": use_estimator(self.sensors, estimator, sensor)}
@@ -371,14 +420,17 @@ class Daemon:
     def reload(self) -> dict[str, Any]:
         """Re-read the configuration and calibrations now; keep the old ones if the new are bad.
 
-        Calibrations, rate, averaging, low-pass, tool poses and gravity change at once;
-        a change of bus, chips, scheduler or endpoints needs a restart. Unchanged
+        Calibrations, rate, averaging, low-pass, the chips' conversion (OSR, DIG_FILT), tool
+        poses and gravity change at once; a change of bus, chips' addresses or other settings,
+        scheduler or endpoints needs a restart. Unchanged
         calibration files are not read again (`config.Calibrations`).
         """
         prepared = self._prepared()
         reply = self.finish_reload(prepared)
         if isinstance(prepared, FtsensordError):
             raise prepared
+        if not reply["ok"]:  # the chips refused the file's conversion
+            raise ConfigError(reply["error"])
         return reply["result"]
 
     def _prepared(self) -> tuple[Config, list[SensorPipeline]] | FtsensordError:
@@ -387,7 +439,7 @@ class Daemon:
         self.notifier.reloading()
         try:
             # A sensor's accuracy planned as at start, on the configured timing (`run`): the
-            # measured board's would change the plan, and a changed conversion needs a restart.
+            # measured board's would change the plan, and with it the conversion.
             new = reload_config(
                 self.config, self.calibrations, self.board_timing, lambda c, _timing: apply_accuracy(c)
             )
@@ -397,7 +449,13 @@ class Daemon:
         return new, [self._pipeline(s, new) for s in new.sensors]
 
     def finish_reload(self, prepared: tuple[Config, list[SensorPipeline]] | FtsensordError) -> dict[str, Any]:
-        """Swap in what `_prepared` made (between cycles); the reply to the request."""
+        """Swap in what `_prepared` made (between cycles), the chips' conversion first where it
+        changed (their noise is what the pipelines were built for); the reply to the request."""
+        if not isinstance(prepared, FtsensordError):
+            try:
+                self._write_conversion(prepared[0].settings)
+            except ConfigError as exc:
+                prepared = ConfigError(f"{prepared[0].path}: chip: {exc}")
         if isinstance(prepared, FtsensordError):
             log.error("reload refused, the running configuration stays: %s", prepared)
             self.notifier.ready(self.status_line())
@@ -406,7 +464,7 @@ class Daemon:
         self.config = new
         # The reader's care follows the file: stuck detection and register read-back.
         self.reader.readback_every = new.readback_every
-        self.reader.stuck_cycles = self.reader.care.stuck_cycles = new.stuck_cycles
+        self.reader.care_for(new.stuck_cycles)
         old, self.sensors = self.sensors, pipelines
         tares = carry_tares(old, self.sensors)  # kept where the calibration is the same, else dropped, said
         self.gravity = self._gravity(new)
