@@ -356,6 +356,39 @@ def test_a_sensors_accuracy_key_chooses_the_conversion_averaging_and_rate_at_sta
         d.close()
 
 
+def test_a_reload_whose_accuracy_chooses_another_conversion_writes_it_to_the_chips(tmp_path):
+    from ftsensord.processing.pipeline import channel_sigma_t
+
+    rig = Rig(tmp_path)
+    try:
+        d = rig.daemon
+        tare(rig)
+        before = d.config.settings
+        path = d.config.path
+        path.write_text(path.read_text().replace('name = "sensor1"', 'name = "sensor1"\naccuracy = "0.03N"'))
+        expected = load_config(path)
+        acc.apply_accuracy(expected)
+        assert expected.settings != before  # the precondition: the key asks for another conversion
+        reply = rig.request(cmd="reload")
+        assert reply["ok"] and reply["result"]["tare"]["sensor1"].startswith("kept"), reply
+        new = expected.settings
+        assert d.config.settings == d.reader.settings == new
+        assert {c.settings() for c in rig.bus.chips.values()} == {rig.bus.chips[0x0C].settings()}
+        assert (rig.bus.chips[0x0C].settings().osr, rig.bus.chips[0x0C].settings().dig_filt) == (
+            new.osr,
+            new.dig_filt,
+        )
+        np.testing.assert_array_equal(d.sensors[0].sigma_t, channel_sigma_t(new, 8))
+        assert len(rig.cycles(5)["wrench/sensor1"]) == 5 and not d.reader.failing
+        # The chips' other settings still need a restart.
+        path.write_text(path.read_text().replace("[chip]\n", "[chip]\ngain_sel = 1\n"))
+        reply = rig.request(cmd="reload")
+        assert not reply["ok"] and "changing chip needs a restart" in reply["error"], reply
+        assert d.config.settings == new
+    finally:
+        rig.close()
+
+
 @pytest.mark.parametrize("value", ['"0.02"', "0.02", '["0.02N", "0.03N"]'])
 def test_a_bad_accuracy_key_names_the_file_and_the_key(tmp_path, value):
     path = accuracy_config(tmp_path, value)
