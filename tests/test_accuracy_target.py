@@ -177,6 +177,7 @@ def running_plan(rig: Rig, text: str) -> acc.Plan:
         [acc.Sensor(p.config, p.estimator, p.tare_samples) for p in d.sensors],
         d.config.bus_levers(d.board_timing),
         d.config.scheduler,
+        running=d.config.settings,
     )
 
 

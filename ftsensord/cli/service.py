@@ -54,9 +54,10 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         "set",
         help="change the rate, averaging, low-pass or estimator of the running daemon, or ask for an accuracy",
         description="Changes last until the next restart or reload; a rate above the "
-        "computed bound is refused, and nothing changes. --accuracy chooses the fastest rate and "
-        "averaging (the low-pass off) whose predicted sigma at rest meets the target on every "
-        "sensor at its estimator and tare, and says the rate; or why none does. docs/reference/cli.md.",
+        "computed bound is refused, and nothing changes. --accuracy chooses the fastest chip "
+        "conversion (OSR, DIG_FILT), rate and averaging (the low-pass off) whose predicted sigma "
+        "at rest meets the target on every sensor at its estimator and tare, writes the "
+        "conversion to the chips, and says the rate; or why none does. docs/reference/cli.md.",
     )
     p.add_argument("--rate", type=rate_hz, help="loop rate, Hz")
     p.add_argument("--averaging", type=int, help="samples in the moving average (1: off)")

@@ -347,6 +347,7 @@ class Daemon:
             running.bus_levers(self.board_timing),
             running.scheduler,  # kept: only a restart chooses the scheduler again
             running.readback_every if "readback_every" in running.named else None,
+            running=before,
         )
         self.notifier.check_rate(found.rate_hz)  # as `set` checks a rate: the watchdog's pings follow cycles
         self.convert(found.settings, found.rate_hz)
