@@ -192,6 +192,7 @@ def at_rest(rig: Rig, n: int = 200) -> tuple[float, np.ndarray, np.ndarray]:
 
 @pytest.mark.parametrize("scheduler", ["overlapped", "burst"])  # burst: EX before the writes, SB after
 def test_set_accuracy_changes_the_chips_conversion_on_the_running_daemon(tmp_path, scheduler):
+    from ftsensord.acquire.health import stuck_cycles_for
     from ftsensord.processing.pipeline import channel_sigma_t
 
     rig = Rig(tmp_path, scheduler=scheduler)
@@ -215,6 +216,8 @@ def test_set_accuracy_changes_the_chips_conversion_on_the_running_daemon(tmp_pat
                 (new.osr, new.dig_filt)
             }
             assert d.reader.settings == d.reader.care.settings == d.config.settings == new
+            # stuck_cycles is not in the file: a quieter conversion repeats its words more often
+            assert d.reader.care.stuck_cycles == stuck_cycles_for(new)
             assert d.reader.conversion_s(0xE) < d.period_s
             # The pipelines' noise is the new conversion's, the tares held.
             for p in d.sensors:
