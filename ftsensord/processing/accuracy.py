@@ -125,20 +125,19 @@ def plan(
     bus: choice.Bus,
     scheduler: str | None = None,
     readback_every: int | None = None,
-    settings: list[mlx.Settings] | None = None,
     running: mlx.Settings | None = None,
 ) -> Plan:
     """The fastest `Plan` that meets each sensor's ``targets`` (by name; a sensor without
-    any is not held to one) among the conversion ``settings`` (None: every permitted one of
-    ``bus.settings``), on ``bus`` with the scheduler and read-back the configuration leaves
-    open; at a tie, the ``running`` conversion (the chips are not written for nothing).
+    any is not held to one) among the conversions ``bus.settings`` permits, on ``bus`` with
+    the scheduler and read-back the configuration leaves open; at a tie, the ``running``
+    conversion (the chips are not written for nothing).
     ConfigError saying the closest any setting comes, and why, when none meets them."""
     held = [s for s in sensors if targets.get(s.config.name)]
     if not held:
         raise ConfigError("accuracy: no target given")
     best: tuple[tuple[float, int, bool], Plan] | None = None
     closest: tuple[float, mlx.Settings, float, str] | None = None  # worst sigma / target, where, axis
-    for candidate in settings if settings is not None else choice.conversions(bus.settings):
+    for candidate in choice.conversions(bus.settings):
         rate = fastest_rate(replace(bus, settings=candidate), scheduler, readback_every)
         if rate < 0.1:  # the daemon's slowest loop
             continue
