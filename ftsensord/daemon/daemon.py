@@ -379,16 +379,15 @@ class Daemon:
         running = self.config
         if settings == running.settings:
             return
-        conversion = f"OSR {settings.osr}, DIG_FILT {settings.dig_filt}"
         trial = replace(running, settings=settings, rate_hz=rate_hz)
-        trial.choose(self.board_timing, f"{conversion} at {rate_hz:g} Hz", running=running.scheduler)
+        trial.choose(self.board_timing, f"{settings.conversion} at {rate_hz:g} Hz", running=running.scheduler)
         self._write_conversion(settings)
         running.settings = settings
         old, self.sensors = self.sensors, [self._pipeline(s, running) for s in running.sensors]
         for o, p in zip(old, self.sensors):
             if p.estimator != o.estimator:
                 p.use(o.estimator)  # `set --estimator`'s, which the file does not hold
-        carry_tares(old, self.sensors, f"the conversion's change to {conversion}")
+        carry_tares(old, self.sensors, f"the conversion's change to {settings.conversion}")
 
     def _write_conversion(self, settings: mlx.Settings) -> None:
         """``settings`` written to the chips (`Reader.convert`) when the reader runs others;
@@ -396,16 +395,14 @@ class Daemon:
         was = self.reader.settings
         if settings == was:
             return
-        conversion = f"OSR {settings.osr}, DIG_FILT {settings.dig_filt}"
         try:
             self.reader.convert(settings)
         except ChipError as exc:
             raise ConfigError(
-                f"{conversion} not written: {exc}; that chip is reset and comes back at the running "
-                f"conversion, OSR {was.osr}, DIG_FILT {was.dig_filt}, which the others kept: "
-                f"nothing else changed"
+                f"{settings.conversion} not written: {exc}; that chip is reset and comes back at the "
+                f"running conversion, {was.conversion}, which the others kept: nothing else changed"
             ) from exc
-        log.info("conversion now %s (was OSR %d, DIG_FILT %d)", conversion, was.osr, was.dig_filt)
+        log.info("conversion now %s (was %s)", settings.conversion, was.conversion)
 
     def set_estimator(self, estimator: str, sensor: str | None) -> dict[str, Any]:
         return {"estimator": use_estimator(self.sensors, estimator, sensor)}

@@ -74,7 +74,7 @@ class Plan:
             name: ", ".join(f"{a} {v:.3g}" for a, v in zip(AXES, sigma)) for name, sigma in self.sigma.items()
         }
         return (
-            f"OSR {self.settings.osr}, DIG_FILT {self.settings.dig_filt}, {self.rate_hz:g} Hz, "
+            f"{self.settings.conversion}, {self.rate_hz:g} Hz, "
             f"averaging {self.averaging} (low-pass off): an independent sample every "
             f"{1e3 / self.effective_hz:.3g} ms ({self.effective_hz:.3g} Hz); sigma at rest "
             + "; ".join(f"{n}: {w} (N, Nm)" for n, w in worst.items())
@@ -170,7 +170,7 @@ def plan(
     near = (
         ""
         if closest is None
-        else f"the closest, OSR {closest[1].osr}, DIG_FILT {closest[1].dig_filt} at {closest[2]:g} Hz "
+        else f"the closest, {closest[1].conversion} at {closest[2]:g} Hz "
         f"with averaging {MAX_AVERAGING}, leaves {closest[3]} sigma {closest[0]:.2g} times the target; "
     )
     raise ConfigError(f"accuracy: no setting meets {asked}: {near}{_why_not(held, targets, bus.settings)}")
