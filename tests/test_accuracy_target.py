@@ -384,6 +384,20 @@ def test_a_reload_whose_accuracy_chooses_another_conversion_writes_it_to_the_chi
         )
         np.testing.assert_array_equal(d.sensors[0].sigma_t, channel_sigma_t(new, 8))
         assert len(rig.cycles(5)["wrench/sensor1"]) == 5 and not d.reader.failing
+        # A chip that does not take the file's conversion: the reload refused, naming the file
+        # and the chip, the running conversion kept on the others.
+        path.write_text(path.read_text().replace('accuracy = "0.03N"', 'accuracy = "0.2N"'))
+        rig.bus.faults.nack(0x0E)
+        reply = rig.request(cmd="reload")
+        assert not reply["ok"] and reply["error"].startswith(f"{path}: chip: OSR "), reply
+        assert "MLX90393 at 0x0E" in reply["error"] and "nothing else changed" in reply["error"]
+        assert d.config.settings == d.reader.settings == new and d.reader.failing == {0x0E}
+        assert (rig.bus.chips[0x0C].settings().osr, rig.bus.chips[0x0C].settings().dig_filt) == (
+            new.osr,
+            new.dig_filt,
+        )
+        rig.bus.faults.clear()
+        path.write_text(path.read_text().replace('accuracy = "0.2N"', 'accuracy = "0.03N"'))
         # The chips' other settings still need a restart.
         path.write_text(path.read_text().replace("[chip]\n", "[chip]\ngain_sel = 1\n"))
         reply = rig.request(cmd="reload")
