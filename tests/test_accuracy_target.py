@@ -473,3 +473,33 @@ def test_doctor_with_a_configuration_shows_each_sensors_predicted_sigma(tmp_path
         np.testing.assert_allclose(
             got["sensors"][s.name]["sigma"], expected, atol=1e-7
         )  # status's 7 decimals
+
+
+@pytest.mark.parametrize(
+    "changed, said", [(True, "the chips' conversion changed to it"), (False, "as running")]
+)
+def test_set_accuracy_says_whether_the_chips_conversion_changed(monkeypatch, capsys, changed, said):
+    import argparse
+    from types import SimpleNamespace
+
+    from ftsensord.cli import service
+
+    result = {
+        "rate_hz": 64.4,
+        "averaging": 1,
+        "effective_rate_hz": 64.4,
+        "osr": 2,
+        "dig_filt": 2,
+        "conversion_changed": changed,
+        "sigma": {"sensor1": [0.02, 0.03, 0.02, 0.003, 0.003, 0.003]},
+    }
+    monkeypatch.setattr(service, "control_client", lambda args: SimpleNamespace(set=lambda **kw: result))
+    args = argparse.Namespace(
+        accuracy=["0.03N"], rate=None, averaging=None, lowpass=None, estimator=None, sensor=None
+    )
+    assert service.cmd_set(args) == 0
+    first = capsys.readouterr().out.splitlines()[0]
+    assert (
+        first
+        == f"rate 64.4 Hz, averaging 1, low-pass off: 64.4 independent samples a second (OSR 2, DIG_FILT 2, {said})"
+    )
