@@ -503,3 +503,46 @@ def test_set_accuracy_says_whether_the_chips_conversion_changed(monkeypatch, cap
         first
         == f"rate 64.4 Hz, averaging 1, low-pass off: 64.4 independent samples a second (OSR 2, DIG_FILT 2, {said})"
     )
+
+
+def test_the_running_daemon_plans_an_accuracy_in_a_worker_and_applies_it_between_cycles(tmp_path):
+    """`run`'s daemon (`Daemon.plans`): the request is answered once planned and applied; a
+    second one meanwhile is refused at once; a tare between the request and the plan's end
+    makes the plan stale: an error, nothing changed."""
+    from ftsensord.daemon.plans import Plans
+
+    rig = Rig(tmp_path)
+    try:
+        d = rig.daemon
+        d.plans = Plans(d.control.reply)
+        before = d.config.settings
+        expected = running_plan(rig, "0.03N")
+        assert expected.settings != before  # the precondition: a change to apply
+        rig.req.send(json.dumps({"cmd": "set", "accuracy": "0.03N"}).encode())
+        d.handle_control()
+        assert not rig.req.poll(0) and d.config.settings == before  # not yet answered nor applied
+        other = d.control.handle(json.dumps({"cmd": "set", "accuracy": "0.2N"}).encode(), [b"x"])
+        assert other == {"ok": False, "error": "accuracy: another is being planned: wait for its reply"}
+        d.plans.wait(60)
+        rig.cycles(1)  # the loop runs while it plans
+        d.plans.poll()  # between cycles, as `run` does
+        assert rig.req.poll(1000)
+        reply = json.loads(rig.req.recv())
+        assert reply["ok"] and reply["result"]["conversion_changed"], reply
+        assert d.config.settings == d.reader.settings == expected.settings
+        # A tare while it plans: the plan, made for the untared sensors, is not applied.
+        rig.req.send(json.dumps({"cmd": "set", "accuracy": "0.2N"}).encode())
+        d.handle_control()
+        tared = d.control.handle(json.dumps({"cmd": "tare", "samples": 10}).encode(), [b"y"])
+        assert tared is None  # answered when done, to another client
+        rig.cycles(10)
+        assert all(p.tared for p in d.sensors)
+        d.plans.wait(60)
+        d.plans.poll()
+        assert rig.req.poll(1000)
+        reply = json.loads(rig.req.recv())
+        assert not reply["ok"] and "changed while it was planned" in reply["error"], reply
+        assert d.config.settings == expected.settings
+        assert len(rig.cycles(3)["wrench/sensor1"]) == 3
+    finally:
+        rig.close()

@@ -35,13 +35,14 @@ from ftsensord.config.sensors import Calibrations, SensorConfig
 from ftsensord.daemon.control import Control
 from ftsensord.daemon.host import HostGuard
 from ftsensord.daemon.loop import LoopTiming, serve_until
+from ftsensord.daemon.plans import Plans
 from ftsensord.daemon.realtime import Scheduling
 from ftsensord.daemon.reloads import Reloads
 from ftsensord.daemon.ros2child import BridgeWatch
 from ftsensord.daemon.sdnotify import Notifier
 from ftsensord.daemon.status import ChipLedger, status_line, status_reply
 from ftsensord.errors import ChipError, ConfigError, FtsensordError
-from ftsensord.processing.accuracy import Sensor, apply_accuracy, plan
+from ftsensord.processing.accuracy import Plan, Sensor, apply_accuracy, plan
 from ftsensord.processing.filters import WrenchFilter
 from ftsensord.processing.gravity import Gravity
 from ftsensord.processing.pipeline import SensorPipeline, SensorSample, tip_moves, tip_wrench, use_estimator
@@ -95,6 +96,8 @@ class Daemon:
         self.reloads = (
             Reloads(self._prepared, self.finish_reload, self.control.reply) if background_reload else None
         )
+        # `set --accuracy`'s plan in a worker thread too (`run`'s daemon); None: planned at once
+        self.plans = Plans(self.control.reply) if background_reload else None
         self.streams: set[str] = set()
         self.started_at = clock()
         self.stop_requested = self.reload_requested = False
@@ -195,6 +198,8 @@ class Daemon:
                     pass  # logged; the running configuration stays
             if self.reloads is not None:
                 self.reloads.poll()
+            if self.plans is not None:
+                self.plans.poll()
         self.shutdown()
         return 0
 
@@ -330,38 +335,68 @@ class Daemon:
             self.gravity.configure(averaging, lowpass_hz, rate_hz)  # the weight lags as the wrench
         return {"rate_hz": rate_hz, "averaging": averaging, "lowpass_hz": lowpass_hz}
 
-    def set_accuracy(self, value: object) -> dict[str, Any]:
+    def set_accuracy(self, value: object, envelope: list[bytes] | None = None) -> dict[str, Any] | None:
         """The fastest conversion (OSR, DIG_FILT), averaging and rate (the low-pass off) whose
         predicted sigma at rest meets ``value`` ("0.02N", "0.5mNm", or a list of one of each)
         for every sensor, at its estimator and tare, with the running scheduler (only a restart
         chooses it again), as a sensor table's ``accuracy`` chooses them at start; applied
-        between cycles (`convert`, then as `set_loop`). ConfigError, nothing changed, when no
-        setting meets it or the running scheduler cannot hold the new conversion; a chip that
-        refuses it is said, as `convert` leaves it."""
+        between cycles (`convert`, then as `set_loop`). With `plans` and a client's
+        ``envelope``, planned in its worker thread and answered when applied (None now); else
+        at once (the reply's result). ConfigError, nothing changed, when no setting meets it,
+        the running scheduler cannot hold the new conversion, or the sensors or configuration
+        changed while it was planned; a chip that refuses it is said, as `convert` leaves it."""
         targets = parse_accuracies(value, "accuracy")
         running = self.config
-        before = running.settings
-        found = plan(
+        before, planned_on = running.settings, self._planned_on()
+        inputs = (
             {p.name: targets for p in self.sensors},
             [Sensor(p.config, p.estimator, p.tare_samples) for p in self.sensors],
             running.bus_levers(self.board_timing),
             running.scheduler,  # kept: only a restart chooses the scheduler again
             running.readback_every if "readback_every" in running.named else None,
-            running=before,
         )
-        self.notifier.check_rate(found.rate_hz)  # as `set` checks a rate: the watchdog's pings follow cycles
-        self.convert(found.settings, found.rate_hz)
-        done = self.set_loop(found.rate_hz, found.averaging, 0.0)
-        return {
-            **done,
-            "accuracy": [t.text for t in targets],
-            "effective_rate_hz": round(found.effective_hz, 3),
-            "osr": found.settings.osr,
-            "dig_filt": found.settings.dig_filt,
-            "conversion_changed": found.settings != before,
-            "sigma": found.sigma,
-            "plan": found.describe(),
-        }
+
+        def work() -> Plan:
+            return plan(*inputs, running=before)
+
+        def finish(found: Plan) -> dict[str, Any]:
+            if self._planned_on() != planned_on:
+                raise ConfigError(
+                    "accuracy: a tare, an estimator or the configuration changed while it was "
+                    "planned, and the plan with them: nothing changed; ask again"
+                )
+            self.notifier.check_rate(
+                found.rate_hz
+            )  # as `set` checks a rate: the watchdog's pings follow cycles
+            self.convert(found.settings, found.rate_hz)
+            done = self.set_loop(found.rate_hz, found.averaging, 0.0)
+            return {
+                **done,
+                "accuracy": [t.text for t in targets],
+                "effective_rate_hz": round(found.effective_hz, 3),
+                "osr": found.settings.osr,
+                "dig_filt": found.settings.dig_filt,
+                "conversion_changed": found.settings != before,
+                "sigma": found.sigma,
+                "plan": found.describe(),
+            }
+
+        if self.plans is None or envelope is None:
+            return finish(work())
+        self.plans.request(envelope, work, finish)
+        return None
+
+    def _planned_on(self) -> tuple[Any, ...]:
+        """What an accuracy's plan depends on, by identity and version: the configuration (a
+        reload makes another), its conversion and checks, each pipeline, its tare and estimator."""
+        c = self.config
+        return (
+            id(c),
+            c.settings,
+            c.scheduler,
+            c.readback_every,
+            tuple((id(p), p.version, p.estimator, p.tare_samples) for p in self.sensors),
+        )
 
     def convert(self, settings: mlx.Settings, rate_hz: float) -> None:
         """Between cycles: the chips' conversion changed to ``settings`` (the loop to run at
