@@ -4,6 +4,7 @@ target (`processing.accuracy`), or say why none does."""
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 
 import numpy as np
@@ -145,20 +146,16 @@ def test_set_accuracy_applies_the_fastest_averaging_and_says_the_rate(tmp_path):
         floor = worst(sensors, rig.config.settings, 1, noise=False)
         single = worst(sensors, rig.config.settings, 1)
         text = f"{floor + 0.3 * (single - floor):.5g}N"
+        expected = running_plan(rig, text)
         reply = rig.request(cmd="set", accuracy=text)
         assert reply["ok"], reply
         got = reply["result"]
-        expected = acc.plan(
-            {s.config.name: [parse_accuracy(text)] for s in sensors},
-            sensors,
-            rig.config.bus_levers(rig.daemon.board_timing),
-            rig.config.scheduler,
-            settings=[rig.config.settings],
-        )
-        assert (got["rate_hz"], got["averaging"], got["lowpass_hz"]) == (
+        assert (got["rate_hz"], got["averaging"], got["lowpass_hz"], got["osr"], got["dig_filt"]) == (
             expected.rate_hz,
             expected.averaging,
             0.0,
+            expected.settings.osr,
+            expected.settings.dig_filt,
         )
         assert got["averaging"] > 1 and got["effective_rate_hz"] == pytest.approx(
             expected.effective_hz, abs=1e-3
@@ -168,6 +165,128 @@ def test_set_accuracy_applies_the_fastest_averaging_and_says_the_rate(tmp_path):
         status = rig.request(cmd="status")["result"]["sensors"]
         assert all(max(s["sigma"]["sigma"][:3]) <= float(text[:-1]) for s in status.values())
         assert len(rig.cycles(5)["wrench/sensor1"]) == 5
+    finally:
+        rig.close()
+
+
+def running_plan(rig: Rig, text: str) -> acc.Plan:
+    """The plan `set --accuracy text` makes on ``rig``'s running daemon: every conversion, its scheduler."""
+    d = rig.daemon
+    return acc.plan(
+        {p.name: [parse_accuracy(text)] for p in d.sensors},
+        [acc.Sensor(p.config, p.estimator, p.tare_samples) for p in d.sensors],
+        d.config.bus_levers(d.board_timing),
+        d.config.scheduler,
+        running=d.config.settings,
+    )
+
+
+def at_rest(rig: Rig, n: int = 200) -> tuple[float, np.ndarray, np.ndarray]:
+    """Over ``n`` cycles: sensor1's flux noise (its channels' standard deviation, mean, T), its
+    mean wrench (N, Nm) and the last published sigma (N, Nm)."""
+    got = rig.cycles(n)
+    flux = np.array([s.values for s in got["flux/sensor1"]])
+    wrench = np.array([s.values for s in got["wrench/sensor1"]])
+    return float(flux.std(axis=0).mean()), wrench.mean(axis=0), got["sigma/wrench/sensor1"][-1].values
+
+
+@pytest.mark.parametrize("scheduler", ["overlapped", "burst"])  # burst: EX before the writes, SB after
+def test_set_accuracy_changes_the_chips_conversion_on_the_running_daemon(tmp_path, scheduler):
+    from ftsensord.acquire.health import stuck_cycles_for
+    from ftsensord.processing.pipeline import channel_sigma_t
+
+    rig = Rig(tmp_path, scheduler=scheduler)
+    try:
+        d = rig.daemon
+        tare(rig)
+        noise = {d.config.settings: at_rest(rig)}  # by the conversion running
+        tared = {p.name: p.model.zero.copy() for p in d.sensors}
+        for text in ("0.03N", "0.2N"):  # a tighter target, then a looser one
+            before = d.config.settings
+            expected = running_plan(rig, text)
+            # the precondition: each target asks for another conversion, the looser a faster one
+            assert expected.settings != before
+            reply = rig.request(cmd="set", accuracy=text)
+            assert reply["ok"] and reply["result"]["conversion_changed"], reply
+            new = expected.settings
+            assert (reply["result"]["osr"], reply["result"]["dig_filt"]) == (new.osr, new.dig_filt)
+            # Every chip holds it (its registers, as the emulated chip reads them), and the reader
+            # times its reads and checks its read-backs by it.
+            assert {(c.settings().osr, c.settings().dig_filt) for c in rig.bus.chips.values()} == {
+                (new.osr, new.dig_filt)
+            }
+            assert d.reader.settings == d.reader.care.settings == d.config.settings == new
+            # stuck_cycles is not in the file: a quieter conversion repeats its words more often
+            assert d.reader.care.stuck_cycles == stuck_cycles_for(new)
+            assert d.reader.conversion_s(0xE) < d.period_s
+            # The pipelines' noise is the new conversion's, the tares held.
+            for p in d.sensors:
+                np.testing.assert_array_equal(p.sigma_t, channel_sigma_t(new, len(p.config.addresses)))
+                assert p.tared
+                np.testing.assert_array_equal(p.model.zero, tared[p.name])
+            noise[new] = at_rest(rig)
+            assert not d.reader.failing  # the read-backs found every chip as written
+            status = rig.request(cmd="status")["result"]
+            assert (status["osr"], status["dig_filt"]) == (new.osr, new.dig_filt)
+            assert all(max(s["sigma"]["sigma"][:3]) <= float(text[:-1]) for s in status["sensors"].values())
+            # The measured noise and the published sigma follow the conversion (the averaging
+            # stays 1 in both plans: the conversion alone moves them).
+            assert expected.averaging == 1
+            measured = noise[new][0] / noise[before][0]
+            predicted = float(np.mean(channel_sigma_t(new, 1)) / np.mean(channel_sigma_t(before, 1)))
+            # Half to twice the predicted change (in log): the words' quantisation (an LSB of
+            # 6-10 uT, twice the noise) makes the measured spread follow the noise only roughly.
+            assert 0.5 < np.log(measured) / np.log(predicted) < 2, (measured, predicted)
+            assert np.all(np.sign(noise[new][2] - noise[before][2]) == np.sign(predicted - 1))
+            # The tare holds: at rest the mean wrench stays where it was, within 5 standard errors
+            # of the two means' difference (200 samples each; the tare's own error is in both).
+            moved = np.abs(noise[new][1] - noise[before][1])
+            assert np.all(moved < 5 * np.hypot(noise[new][2], noise[before][2]) / np.sqrt(200)), moved
+    finally:
+        rig.close()
+
+
+def tare(rig: Rig) -> None:
+    """Tare every sensor on 50 samples, waiting for its reply."""
+    rig.req.send(json.dumps({"cmd": "tare", "samples": 50}).encode())
+    rig.daemon.handle_control()
+    rig.cycles(50)
+    assert rig.req.poll(1000) and json.loads(rig.req.recv())["ok"]
+
+
+def test_a_chip_refusing_the_new_conversion_is_an_error_reply_and_the_daemon_goes_on(tmp_path):
+    rig = Rig(tmp_path)
+    try:
+        d = rig.daemon
+        rig.cycles(2)
+        before = d.config.settings
+        rate, averaging = d.config.rate_hz, d.config.averaging
+        rig.bus.faults.nack(0x0E)  # the third chip: the two before it were written
+        reply = rig.request(cmd="set", accuracy="0.03N")
+        assert reply["ok"] is False, reply
+        assert reply["error"].startswith(
+            "OSR 2, DIG_FILT 2 not written: MLX90393 at 0x0E: RR failed on the bus"
+        )
+        assert (
+            "that chip is reset and comes back at the running conversion, OSR 1, DIG_FILT 2" in reply["error"]
+        )
+        assert (d.config.settings, d.reader.settings, d.config.rate_hz, d.config.averaging) == (
+            before,
+            before,
+            rate,
+            averaging,
+        )
+        # Every chip runs the running conversion, or is failing, to be reset to it.
+        assert d.reader.failing == {0x0E}
+        for a, chip in rig.bus.chips.items():
+            if a != 0x0E:
+                assert (chip.settings().osr, chip.settings().dig_filt) == (before.osr, before.dig_filt)
+        assert len(rig.cycles(5)["wrench/sensor1"]) == 5  # and the daemon goes on
+        rig.bus.faults.clear()
+        rig.cycles(20)  # its reset, one step a cycle
+        assert not d.reader.failing
+        chip = rig.bus.chips[0x0E]
+        assert (chip.settings().osr, chip.settings().dig_filt) == (before.osr, before.dig_filt)
     finally:
         rig.close()
 
@@ -241,6 +360,53 @@ def test_a_sensors_accuracy_key_chooses_the_conversion_averaging_and_rate_at_sta
         d.close()
 
 
+def test_a_reload_whose_accuracy_chooses_another_conversion_writes_it_to_the_chips(tmp_path):
+    from ftsensord.processing.pipeline import channel_sigma_t
+
+    rig = Rig(tmp_path)
+    try:
+        d = rig.daemon
+        tare(rig)
+        before = d.config.settings
+        path = d.config.path
+        path.write_text(path.read_text().replace('name = "sensor1"', 'name = "sensor1"\naccuracy = "0.03N"'))
+        expected = load_config(path)
+        acc.apply_accuracy(expected)
+        assert expected.settings != before  # the precondition: the key asks for another conversion
+        reply = rig.request(cmd="reload")
+        assert reply["ok"] and reply["result"]["tare"]["sensor1"].startswith("kept"), reply
+        new = expected.settings
+        assert d.config.settings == d.reader.settings == new
+        assert {c.settings() for c in rig.bus.chips.values()} == {rig.bus.chips[0x0C].settings()}
+        assert (rig.bus.chips[0x0C].settings().osr, rig.bus.chips[0x0C].settings().dig_filt) == (
+            new.osr,
+            new.dig_filt,
+        )
+        np.testing.assert_array_equal(d.sensors[0].sigma_t, channel_sigma_t(new, 8))
+        assert len(rig.cycles(5)["wrench/sensor1"]) == 5 and not d.reader.failing
+        # A chip that does not take the file's conversion: the reload refused, naming the file
+        # and the chip, the running conversion kept on the others.
+        path.write_text(path.read_text().replace('accuracy = "0.03N"', 'accuracy = "0.2N"'))
+        rig.bus.faults.nack(0x0E)
+        reply = rig.request(cmd="reload")
+        assert not reply["ok"] and reply["error"].startswith(f"{path}: chip: OSR "), reply
+        assert "MLX90393 at 0x0E" in reply["error"] and "nothing else changed" in reply["error"]
+        assert d.config.settings == d.reader.settings == new and d.reader.failing == {0x0E}
+        assert (rig.bus.chips[0x0C].settings().osr, rig.bus.chips[0x0C].settings().dig_filt) == (
+            new.osr,
+            new.dig_filt,
+        )
+        rig.bus.faults.clear()
+        path.write_text(path.read_text().replace('accuracy = "0.2N"', 'accuracy = "0.03N"'))
+        # The chips' other settings still need a restart.
+        path.write_text(path.read_text().replace("[chip]\n", "[chip]\ngain_sel = 1\n"))
+        reply = rig.request(cmd="reload")
+        assert not reply["ok"] and "changing chip needs a restart" in reply["error"], reply
+        assert d.config.settings == new
+    finally:
+        rig.close()
+
+
 @pytest.mark.parametrize("value", ['"0.02"', "0.02", '["0.02N", "0.03N"]'])
 def test_a_bad_accuracy_key_names_the_file_and_the_key(tmp_path, value):
     path = accuracy_config(tmp_path, value)
@@ -309,25 +475,74 @@ def test_doctor_with_a_configuration_shows_each_sensors_predicted_sigma(tmp_path
         )  # status's 7 decimals
 
 
-def test_set_says_when_another_conversion_would_meet_it_faster_after_a_restart(tmp_path):
+@pytest.mark.parametrize(
+    "changed, said", [(True, "the chips' conversion changed to it"), (False, "as running")]
+)
+def test_set_accuracy_says_whether_the_chips_conversion_changed(monkeypatch, capsys, changed, said):
+    import argparse
     from types import SimpleNamespace
 
-    from ftsensord.cli.service import faster_conversion
+    from ftsensord.cli import service
 
-    path = write_config(tmp_path)
-    status = {"config": str(path), "sensors": {"sensor1": {"estimator": "linear"}, "sensor2": {}}}
-    control = SimpleNamespace(status=lambda: status)
-    config = load_config(path)
-    sensors = [acc.Sensor(s, s.estimator) for s in config.sensors]
-    floor = worst(sensors, config.settings, 1, noise=False)
-    single = worst(sensors, config.settings, 1)
-    text = f"{floor + 0.3 * (single - floor):.5g}N"
-    best = acc.plan({s.config.name: [parse_accuracy(text)] for s in sensors}, sensors, config.bus_levers())
-    said = faster_conversion(control, [text], best.effective_hz / 2)
-    assert said is not None and said.startswith(
-        f"faster with a restart: [chip] osr = {best.settings.osr}, dig_filt = {best.settings.dig_filt} "
-        f"gives {best.rate_hz:g} Hz with averaging {best.averaging}"
+    result = {
+        "rate_hz": 64.4,
+        "averaging": 1,
+        "effective_rate_hz": 64.4,
+        "osr": 2,
+        "dig_filt": 2,
+        "conversion_changed": changed,
+        "sigma": {"sensor1": [0.02, 0.03, 0.02, 0.003, 0.003, 0.003]},
+    }
+    monkeypatch.setattr(service, "control_client", lambda args: SimpleNamespace(set=lambda **kw: result))
+    args = argparse.Namespace(
+        accuracy=["0.03N"], rate=None, averaging=None, lowpass=None, estimator=None, sensor=None
     )
-    assert faster_conversion(control, [text], best.effective_hz) is None  # already the fastest
-    status["config"] = str(tmp_path / "elsewhere.toml")  # a file this host cannot read: nothing said
-    assert faster_conversion(control, [text], 1.0) is None
+    assert service.cmd_set(args) == 0
+    first = capsys.readouterr().out.splitlines()[0]
+    assert (
+        first
+        == f"rate 64.4 Hz, averaging 1, low-pass off: 64.4 independent samples a second (OSR 2, DIG_FILT 2, {said})"
+    )
+
+
+def test_the_running_daemon_plans_an_accuracy_in_a_worker_and_applies_it_between_cycles(tmp_path):
+    """`run`'s daemon (`Daemon.plans`): the request is answered once planned and applied; a
+    second one meanwhile is refused at once; a tare between the request and the plan's end
+    makes the plan stale: an error, nothing changed."""
+    from ftsensord.daemon.plans import Plans
+
+    rig = Rig(tmp_path)
+    try:
+        d = rig.daemon
+        d.plans = Plans(d.control.reply)
+        before = d.config.settings
+        expected = running_plan(rig, "0.03N")
+        assert expected.settings != before  # the precondition: a change to apply
+        rig.req.send(json.dumps({"cmd": "set", "accuracy": "0.03N"}).encode())
+        d.handle_control()
+        assert not rig.req.poll(0) and d.config.settings == before  # not yet answered nor applied
+        other = d.control.handle(json.dumps({"cmd": "set", "accuracy": "0.2N"}).encode(), [b"x"])
+        assert other == {"ok": False, "error": "accuracy: another is being planned: wait for its reply"}
+        d.plans.wait(60)
+        rig.cycles(1)  # the loop runs while it plans
+        d.plans.poll()  # between cycles, as `run` does
+        assert rig.req.poll(1000)
+        reply = json.loads(rig.req.recv())
+        assert reply["ok"] and reply["result"]["conversion_changed"], reply
+        assert d.config.settings == d.reader.settings == expected.settings
+        # A tare while it plans: the plan, made for the untared sensors, is not applied.
+        rig.req.send(json.dumps({"cmd": "set", "accuracy": "0.2N"}).encode())
+        d.handle_control()
+        tared = d.control.handle(json.dumps({"cmd": "tare", "samples": 10}).encode(), [b"y"])
+        assert tared is None  # answered when done, to another client
+        rig.cycles(10)
+        assert all(p.tared for p in d.sensors)
+        d.plans.wait(60)
+        d.plans.poll()
+        assert rig.req.poll(1000)
+        reply = json.loads(rig.req.recv())
+        assert not reply["ok"] and "changed while it was planned" in reply["error"], reply
+        assert d.config.settings == expected.settings
+        assert len(rig.cycles(3)["wrench/sensor1"]) == 3
+    finally:
+        rig.close()

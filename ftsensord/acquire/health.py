@@ -125,13 +125,20 @@ class ChipCare:
         stuck_cycles: int | None = None,
         burst_zyxt: int = mlx.ZYXT_XYZ,
     ):
-        self.bus, self.settings, self.burst = bus, settings, burst
+        self.bus, self.burst = bus, burst
         self.burst_zyxt = burst_zyxt  # what a burst converts: X, Y, Z, and T when temperatures are read
         self.health = {c.address: ChipHealth() for c in chips}
-        self.stuck_cycles = stuck_cycles_for(settings) if stuck_cycles is None else stuck_cycles
+        self.use(settings, stuck_cycles)
         self._attempted = False  # one recovery a cycle
         self.turns = 0  # bumped as a chip starts or stops failing: `healthy` keeps its list till then
         self._healthy: tuple[int, list[MLX90393], list[MLX90393]] = (-1, [], [])
+
+    def use(self, settings: mlx.Settings, stuck_cycles: int | None = None) -> None:
+        """The chips' settings from now on (what a re-initialisation writes) and the identical
+        readings that mean a stuck chip (None: `stuck_cycles_for` those settings: a longer
+        conversion is quieter, and its words repeat more often at rest)."""
+        self.settings = settings
+        self.stuck_cycles = stuck_cycles_for(settings) if stuck_cycles is None else stuck_cycles
 
     @property
     def failing(self) -> set[int]:

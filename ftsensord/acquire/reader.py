@@ -142,6 +142,51 @@ class Reader:
             self.bus.sleep(self.conversion_s(self.care.burst_zyxt))
         return errors
 
+    def care_for(self, stuck_cycles: int | None) -> None:
+        """Stuck detection after ``stuck_cycles`` identical readings (None: as the settings ask)."""
+        self.stuck_cycles = stuck_cycles
+        self.care.use(self.settings, stuck_cycles)
+
+    def convert(self, settings: mlx.Settings) -> None:
+        """Between cycles: write ``settings`` (a new conversion, OSR and DIG_FILT) to every
+        healthy chip (in burst: EX before, SB after), and time the reads by them from the next
+        cycle. A failing chip takes them as it is re-initialised (reset, then configured).
+
+        A chip that fails the write (no answer, a refusal, a register that does not hold it) is
+        taken out to be reset, which brings it back at the running settings; the chips written
+        before it are written back to them (one that fails that is taken out the same way), and
+        the `ChipError` is raised: every chip then runs the running settings or is failing,
+        none is left on the new ones unknown to the reader."""
+        old, now = self.settings, self.bus.monotonic()
+        written: list[MLX90393] = []
+        try:
+            for chip in self.care.healthy(self.chips):
+                written.append(chip)  # before the write: a failure midway leaves it half-written
+                self._configure(chip, settings)
+        except ChipError as exc:
+            failed = written.pop()
+            self.care.fail(failed.address, now, reset=True, why=f"refused the new conversion ({exc})")
+            for chip in written:
+                try:
+                    self._configure(chip, old)
+                except ChipError as back:
+                    self.care.fail(chip.address, now, reset=True, why=f"refused its conversion back ({back})")
+            raise
+        for chip in self.chips:
+            if self.health[chip.address].failing:
+                self.health[chip.address].needs_reset = True  # its registers intact are the old ones
+        self.settings = settings
+        self.care_for(self.stuck_cycles)
+        if self.scheduler == "burst":  # as at `start`: the first result of the new conversion
+            self.bus.sleep(self.conversion_s(self.care.burst_zyxt))
+
+    def _configure(self, chip: MLX90393, settings: mlx.Settings) -> None:
+        if self.scheduler == "burst":
+            chip.exit_mode()  # a chip in burst refuses WR
+        chip.configure(settings)
+        if self.scheduler == "burst":
+            chip.start_burst(self.care.burst_zyxt)
+
     def stop(self) -> None:
         """Put every chip back to idle (EX), ignoring the ones that do not answer."""
         for chip in self.chips:

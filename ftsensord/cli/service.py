@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-from typing import Any
 
 from ftsensord.cli.options import control_client, control_options, rate_hz
 from ftsensord.config.accuracy import parse_accuracies
@@ -55,9 +54,10 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         "set",
         help="change the rate, averaging, low-pass or estimator of the running daemon, or ask for an accuracy",
         description="Changes last until the next restart or reload; a rate above the "
-        "computed bound is refused, and nothing changes. --accuracy chooses the fastest rate and "
-        "averaging (the low-pass off) whose predicted sigma at rest meets the target on every "
-        "sensor at its estimator and tare, and says the rate; or why none does. docs/reference/cli.md.",
+        "computed bound is refused, and nothing changes. --accuracy chooses the fastest chip "
+        "conversion (OSR, DIG_FILT), rate and averaging (the low-pass off) whose predicted sigma "
+        "at rest meets the target on every sensor at its estimator and tare, writes the "
+        "conversion to the chips, and says the rate; or why none does. docs/reference/cli.md.",
     )
     p.add_argument("--rate", type=rate_hz, help="loop rate, Hz")
     p.add_argument("--averaging", type=int, help="samples in the moving average (1: off)")
@@ -134,7 +134,8 @@ def cmd_set(args: argparse.Namespace) -> int:
         print(
             f"rate {result['rate_hz']:g} Hz, averaging {result['averaging']}, low-pass off: "
             f"{result['effective_rate_hz']:g} independent samples a second (OSR {result['osr']}, "
-            f"DIG_FILT {result['dig_filt']}, the running conversion)"
+            f"DIG_FILT {result['dig_filt']}, "
+            + ("the chips' conversion changed to it)" if result["conversion_changed"] else "as running)")
         )
         for name, sigma in result["sigma"].items():
             print(
@@ -142,9 +143,6 @@ def cmd_set(args: argparse.Namespace) -> int:
                 + " ".join(f"{v:.4g}" for v in sigma)
                 + " (N, N, N, Nm, Nm, Nm)"
             )
-        faster = faster_conversion(control_client(args), args.accuracy, result["effective_rate_hz"])
-        if faster:
-            print(faster)
         return 0
     changes = {
         k: v
@@ -174,37 +172,6 @@ def cmd_set(args: argparse.Namespace) -> int:
             f"low-pass {result['lowpass_hz'] or 'off'}"
         )
     return 0
-
-
-def faster_conversion(control: Any, accuracy: list[str], effective_hz: float) -> str | None:
-    """Whether another conversion (OSR, DIG_FILT: a restart) meets ``accuracy`` with
-    independent samples more often than ``effective_hz``: the plan over every conversion on
-    the daemon's configuration file and calibrations, read here (the daemon plans at the
-    running conversion only, in its loop's thread: this costs tens of ms). None when none is
-    faster, or the file cannot be read here (a daemon on another host)."""
-    from ftsensord.config.file import load_config
-    from ftsensord.errors import FtsensordError
-    from ftsensord.processing import accuracy as planning
-
-    try:
-        status = control.status()
-        config = load_config(status["config"])
-        running = status["sensors"]
-        sensors = [
-            planning.Sensor(s, str(running.get(s.name, {}).get("estimator", s.estimator)))
-            for s in config.sensors
-        ]
-        targets = parse_accuracies(accuracy, "--accuracy")
-        found = planning.plan({s.config.name: targets for s in sensors}, sensors, config.bus_levers())
-    except (FtsensordError, OSError, KeyError, TypeError):
-        return None
-    if found.effective_hz <= effective_hz * 1.01:  # 1 %: the same within the rates' rounding
-        return None
-    return (
-        f"faster with a restart: [chip] osr = {found.settings.osr}, dig_filt = {found.settings.dig_filt} "
-        f"gives {found.rate_hz:g} Hz with averaging {found.averaging} ({found.effective_hz:.4g} independent "
-        f"samples a second, untared); a sensor table's accuracy key chooses it at start"
-    )
 
 
 def cmd_reload(args: argparse.Namespace) -> int:

@@ -9,7 +9,7 @@ calibrations). `config/ftsensord.toml` is a commented example.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +19,6 @@ from ftsensord.acquire.board import bus_timing
 from ftsensord.acquire.bound import SCHEDULERS, CycleBound
 from ftsensord.acquire.bus import parse_bus_spec
 from ftsensord.acquire.choice import Bus as ChoiceBus
-from ftsensord.acquire.health import stuck_cycles_for
 from ftsensord.chip import mlx90393 as mlx
 from ftsensord.chip.i2c import BusTiming
 from ftsensord.config.frames import TIP, GravityConfig, gravity_config, tool_poses
@@ -59,7 +58,9 @@ class Config:
     gravity: GravityConfig | None = None  # gravity compensation ([gravity]), off when None
     security: Security = field(default_factory=Security)
     temperature_every: int = 100
-    stuck_cycles: int = 0  # load_config's default: stuck_cycles_for(settings)
+    #: Identical readings that mean a stuck chip; None (not in the file): as the conversion
+    #: asks (`acquire.health.stuck_cycles_for`), also after it changes.
+    stuck_cycles: int | None = None
     readback_every: int = 1
     max_missing_chips: int = 2
     #: What the file names of ``scheduler`` and ``readback_every``; the daemon chooses the rest (`choose`).
@@ -225,9 +226,9 @@ def load_config(path: str | Path | None = None, calibrations: Calibrations | Non
             "(or allow_insecure_control = true, which is logged)",
         ),
         temperature_every=doc.integer("temperature_every", 100, low=0, what="cycles (0: never)"),
-        stuck_cycles=doc.integer(
-            "stuck_cycles", stuck_cycles_for(settings), low=0, what="cycles (0: no stuck detection)"
-        ),
+        stuck_cycles=doc.integer("stuck_cycles", low=0, what="cycles (0: no stuck detection)")
+        if "stuck_cycles" in doc.doc
+        else None,
         readback_every=doc.integer("readback_every", 1, low=0, what="cycles (0: no register read-back)"),
         named=frozenset({"scheduler", "readback_every"} & doc.doc.keys()),
         max_missing_chips=doc.integer(
@@ -260,14 +261,19 @@ def load_config(path: str | Path | None = None, calibrations: Calibrations | Non
 
 def needs_restart(old: Config, new: Config) -> list[str]:
     """What differs between two configurations that a reload cannot change (the bus,
-    its chips, the scheduler, the endpoints); empty when a reload can take ``new``."""
+    its chips, their settings but the conversion, the scheduler, the endpoints); empty when
+    a reload can take ``new``. The conversion (OSR, DIG_FILT) is written to running chips."""
     return [
         name
         for name, a, b in (
             ("bus", new.bus, old.bus),
             ("bus_hz", new.bus_hz, old.bus_hz),
             ("scheduler", new.scheduler, old.scheduler),
-            ("chip", new.settings, old.settings),
+            (
+                "chip",
+                replace(new.settings, osr=old.settings.osr, dig_filt=old.settings.dig_filt),
+                old.settings,
+            ),
             (
                 "sensor addresses",
                 [(s.name, s.addresses) for s in new.sensors],

@@ -4,7 +4,8 @@
 - `loop`: the cycles' deadlines, late and missed cycles, their statistics.
 - `control`: the control endpoint's requests, parsed and bounded; `commands`: what they do.
 - `status`: the status reply and its one-line summary.
-- `reloads`: configuration and calibration re-read off the loop's critical path.
+- `reloads`: configuration and calibration re-read off the loop's critical path; `plans`:
+  `set --accuracy`'s choice of conversion made the same way.
 - `run`: `ftsensord run`: bus, sockets, signals, clean-up.
 - The OS plumbing: `sdnotify` (systemd's notify protocol), `realtime` (SCHED_FIFO),
   `connections` (caps on clients), `runtime` (the runtime folder's files), `host` (all

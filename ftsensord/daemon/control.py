@@ -85,7 +85,7 @@ class Controlled(Protocol):
 
     def set_estimator(self, estimator: str, sensor: str | None) -> dict[str, Any]: ...
 
-    def set_accuracy(self, value: object) -> dict[str, Any]: ...
+    def set_accuracy(self, value: object, envelope: list[bytes] | None = None) -> dict[str, Any] | None: ...
 
 
 class Control:
@@ -252,14 +252,14 @@ class Control:
         self._only(args, set())
         return self.target.request_reload(envelope)
 
-    def _set(self, args: dict[str, Any], envelope: list[bytes]) -> dict[str, Any]:
+    def _set(self, args: dict[str, Any], envelope: list[bytes]) -> dict[str, Any] | None:
         self._only(args, {"rate_hz", "averaging", "lowpass_hz", "estimator", "sensor", "accuracy"})
         if "accuracy" in args:
             if set(args) != {"accuracy"}:
                 raise ValueError(
                     "accuracy: set it in a request of its own (it chooses the rate, averaging and low-pass)"
                 )
-            return self.target.set_accuracy(args["accuracy"])
+            return self.target.set_accuracy(args["accuracy"], envelope)  # None: answered when planned
         if "estimator" in args:
             if set(args) - {"estimator", "sensor"}:
                 raise ValueError("estimator: set it in a request of its own (with sensor, if any)")

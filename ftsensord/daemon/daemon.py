@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -34,13 +35,14 @@ from ftsensord.config.sensors import Calibrations, SensorConfig
 from ftsensord.daemon.control import Control
 from ftsensord.daemon.host import HostGuard
 from ftsensord.daemon.loop import LoopTiming, serve_until
+from ftsensord.daemon.plans import Plans
 from ftsensord.daemon.realtime import Scheduling
 from ftsensord.daemon.reloads import Reloads
 from ftsensord.daemon.ros2child import BridgeWatch
 from ftsensord.daemon.sdnotify import Notifier
 from ftsensord.daemon.status import ChipLedger, status_line, status_reply
-from ftsensord.errors import ConfigError, FtsensordError
-from ftsensord.processing.accuracy import Sensor, apply_accuracy, plan
+from ftsensord.errors import ChipError, ConfigError, FtsensordError
+from ftsensord.processing.accuracy import Plan, Sensor, apply_accuracy, plan
 from ftsensord.processing.filters import WrenchFilter
 from ftsensord.processing.gravity import Gravity
 from ftsensord.processing.pipeline import SensorPipeline, SensorSample, tip_moves, tip_wrench, use_estimator
@@ -94,6 +96,8 @@ class Daemon:
         self.reloads = (
             Reloads(self._prepared, self.finish_reload, self.control.reply) if background_reload else None
         )
+        # `set --accuracy`'s plan in a worker thread too (`run`'s daemon); None: planned at once
+        self.plans = Plans(self.control.reply) if background_reload else None
         self.streams: set[str] = set()
         self.started_at = clock()
         self.stop_requested = self.reload_requested = False
@@ -194,6 +198,8 @@ class Daemon:
                     pass  # logged; the running configuration stays
             if self.reloads is not None:
                 self.reloads.poll()
+            if self.plans is not None:
+                self.plans.poll()
         self.shutdown()
         return 0
 
@@ -329,33 +335,109 @@ class Daemon:
             self.gravity.configure(averaging, lowpass_hz, rate_hz)  # the weight lags as the wrench
         return {"rate_hz": rate_hz, "averaging": averaging, "lowpass_hz": lowpass_hz}
 
-    def set_accuracy(self, value: object) -> dict[str, Any]:
-        """The fastest averaging and rate (the low-pass off) whose predicted sigma at rest meets
-        ``value`` ("0.02N", "0.5mNm", or a list of one of each) for every sensor, at its
-        estimator and tare, with the running conversion (changing OSR or DIG_FILT needs a
-        restart: a sensor table's ``accuracy`` chooses them at start); applied as `set_loop`.
-        ConfigError, nothing changed, when no averaging meets it."""
+    def set_accuracy(self, value: object, envelope: list[bytes] | None = None) -> dict[str, Any] | None:
+        """The fastest conversion (OSR, DIG_FILT), averaging and rate (the low-pass off) whose
+        predicted sigma at rest meets ``value`` ("0.02N", "0.5mNm", or a list of one of each)
+        for every sensor, at its estimator and tare, with the running scheduler (only a restart
+        chooses it again), as a sensor table's ``accuracy`` chooses them at start; applied
+        between cycles (`convert`, then as `set_loop`). With `plans` and a client's
+        ``envelope``, planned in its worker thread and answered when applied (None now); else
+        at once (the reply's result). ConfigError, nothing changed, when no setting meets it,
+        the running scheduler cannot hold the new conversion, or the sensors or configuration
+        changed while it was planned; a chip that refuses it is said, as `convert` leaves it."""
         targets = parse_accuracies(value, "accuracy")
         running = self.config
-        found = plan(
+        before, planned_on = running.settings, self._planned_on()
+        inputs = (
             {p.name: targets for p in self.sensors},
             [Sensor(p.config, p.estimator, p.tare_samples) for p in self.sensors],
             running.bus_levers(self.board_timing),
             running.scheduler,  # kept: only a restart chooses the scheduler again
             running.readback_every if "readback_every" in running.named else None,
-            settings=[running.settings],
         )
-        self.notifier.check_rate(found.rate_hz)  # as `set` checks a rate: the watchdog's pings follow cycles
-        done = self.set_loop(found.rate_hz, found.averaging, 0.0)
-        return {
-            **done,
-            "accuracy": [t.text for t in targets],
-            "effective_rate_hz": round(found.effective_hz, 3),
-            "osr": found.settings.osr,
-            "dig_filt": found.settings.dig_filt,
-            "sigma": found.sigma,
-            "plan": found.describe(),
-        }
+
+        def work() -> Plan:
+            return plan(*inputs, running=before)
+
+        def finish(found: Plan) -> dict[str, Any]:
+            if self._planned_on() != planned_on:
+                raise ConfigError(
+                    "accuracy: a tare, an estimator or the configuration changed while it was "
+                    "planned, and the plan with them: nothing changed; ask again"
+                )
+            self.notifier.check_rate(
+                found.rate_hz
+            )  # as `set` checks a rate: the watchdog's pings follow cycles
+            self.convert(found.settings, found.rate_hz)
+            done = self.set_loop(found.rate_hz, found.averaging, 0.0)
+            return {
+                **done,
+                "accuracy": [t.text for t in targets],
+                "effective_rate_hz": round(found.effective_hz, 3),
+                "osr": found.settings.osr,
+                "dig_filt": found.settings.dig_filt,
+                "conversion_changed": found.settings != before,
+                "sigma": found.sigma,
+                "plan": found.describe(),
+            }
+
+        if self.plans is None or envelope is None:
+            return finish(work())
+        self.plans.request(envelope, work, finish)
+        return None
+
+    def _planned_on(self) -> tuple[Any, ...]:
+        """What an accuracy's plan depends on, by identity and version: the configuration (a
+        reload makes another), its conversion and checks, each pipeline, its tare and estimator."""
+        c = self.config
+        return (
+            id(c),
+            c.settings,
+            c.scheduler,
+            c.readback_every,
+            tuple((id(p), p.version, p.estimator, p.tare_samples) for p in self.sensors),
+        )
+
+    def convert(self, settings: mlx.Settings, rate_hz: float) -> None:
+        """Between cycles: the chips' conversion changed to ``settings`` (the loop to run at
+        ``rate_hz`` next, set by the caller): written to every chip (`Reader.convert`, which
+        times the reads by it from the next cycle), then each sensor's pipeline built again
+        for its noise (`channel_sigma_t`: the sigma, the redundancy check's weights), keeping
+        its estimator and tare (`carry_tares`). A tare holds: it is a flux in tesla, and the
+        chips' scale (GAIN_SEL, RES, HALLCONF) and offset do not depend on OSR and DIG_FILT,
+        which set only how many ADC samples a conversion averages and how they are filtered;
+        the mean of the words read moves by a part of an LSB where the new noise dithers it
+        otherwise, the undithered quantisation a load brings, which the plan's sigma counts.
+        ConfigError, nothing changed, when the running scheduler cannot hold the conversion
+        at ``rate_hz``; ConfigError naming the chip when one refuses it: every chip then runs
+        the running conversion or is failing, reset to come back at it (`Reader.convert`)."""
+        running = self.config
+        if settings == running.settings:
+            return
+        trial = replace(running, settings=settings, rate_hz=rate_hz)
+        trial.choose(self.board_timing, f"{settings.conversion} at {rate_hz:g} Hz", running=running.scheduler)
+        self._write_conversion(settings)
+        running.settings = settings
+        old, self.sensors = self.sensors, [self._pipeline(s, running) for s in running.sensors]
+        for o, p in zip(old, self.sensors):
+            if p.estimator != o.estimator:
+                p.use(o.estimator)  # `set --estimator`'s, which the file does not hold
+        carry_tares(old, self.sensors, f"the conversion's change to {settings.conversion}")
+
+    def _write_conversion(self, settings: mlx.Settings) -> None:
+        """``settings`` written to the chips (`Reader.convert`) when the reader runs others;
+        ConfigError naming the chip that refused them, the running ones kept."""
+        was = self.reader.settings
+        if settings == was:
+            return
+        try:
+            self.reader.convert(settings)
+        except ChipError as exc:
+            raise ConfigError(
+                f"{settings.conversion} not written: {exc}; that chip is reset and comes back at the "
+                f"running conversion, {was.conversion}, which the others kept: nothing else changed"
+            ) from exc
+        log.info("conversion now %s (was %s)", settings.conversion, was.conversion)
 
     def set_estimator(self, estimator: str, sensor: str | None) -> dict[str, Any]:
         return {"estimator": use_estimator(self.sensors, estimator, sensor)}
@@ -371,14 +453,17 @@ class Daemon:
     def reload(self) -> dict[str, Any]:
         """Re-read the configuration and calibrations now; keep the old ones if the new are bad.
 
-        Calibrations, rate, averaging, low-pass, tool poses and gravity change at once;
-        a change of bus, chips, scheduler or endpoints needs a restart. Unchanged
+        Calibrations, rate, averaging, low-pass, the chips' conversion (OSR, DIG_FILT), tool
+        poses and gravity change at once; a change of bus, chips' addresses or other settings,
+        scheduler or endpoints needs a restart. Unchanged
         calibration files are not read again (`config.Calibrations`).
         """
         prepared = self._prepared()
         reply = self.finish_reload(prepared)
         if isinstance(prepared, FtsensordError):
             raise prepared
+        if not reply["ok"]:  # the chips refused the file's conversion
+            raise ConfigError(reply["error"])
         return reply["result"]
 
     def _prepared(self) -> tuple[Config, list[SensorPipeline]] | FtsensordError:
@@ -387,7 +472,7 @@ class Daemon:
         self.notifier.reloading()
         try:
             # A sensor's accuracy planned as at start, on the configured timing (`run`): the
-            # measured board's would change the plan, and a changed conversion needs a restart.
+            # measured board's would change the plan, and with it the conversion.
             new = reload_config(
                 self.config, self.calibrations, self.board_timing, lambda c, _timing: apply_accuracy(c)
             )
@@ -397,7 +482,13 @@ class Daemon:
         return new, [self._pipeline(s, new) for s in new.sensors]
 
     def finish_reload(self, prepared: tuple[Config, list[SensorPipeline]] | FtsensordError) -> dict[str, Any]:
-        """Swap in what `_prepared` made (between cycles); the reply to the request."""
+        """Swap in what `_prepared` made (between cycles), the chips' conversion first where it
+        changed (their noise is what the pipelines were built for); the reply to the request."""
+        if not isinstance(prepared, FtsensordError):
+            try:
+                self._write_conversion(prepared[0].settings)
+            except ConfigError as exc:
+                prepared = ConfigError(f"{prepared[0].path}: chip: {exc}")
         if isinstance(prepared, FtsensordError):
             log.error("reload refused, the running configuration stays: %s", prepared)
             self.notifier.ready(self.status_line())
@@ -406,7 +497,7 @@ class Daemon:
         self.config = new
         # The reader's care follows the file: stuck detection and register read-back.
         self.reader.readback_every = new.readback_every
-        self.reader.stuck_cycles = self.reader.care.stuck_cycles = new.stuck_cycles
+        self.reader.care_for(new.stuck_cycles)
         old, self.sensors = self.sensors, pipelines
         tares = carry_tares(old, self.sensors)  # kept where the calibration is the same, else dropped, said
         self.gravity = self._gravity(new)

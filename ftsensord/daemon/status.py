@@ -204,6 +204,8 @@ def status_reply(d: Reported) -> dict[str, Any]:
         "period_us": d.period_s * 1e6,
         # The daemon's part of a sample's latency: t_mono to its first stream's send.
         "publish_us": percentiles_us(t.publish_delays),
+        "osr": d.config.settings.osr,
+        "dig_filt": d.config.settings.dig_filt,
         "averaging": d.config.averaging,
         "lowpass_hz": d.config.lowpass_hz,
         "streams": sorted(d.streams),
@@ -253,7 +255,10 @@ def describe(status: dict[str, Any]) -> str:
         f"cycle p50 {cycle['p50']:.0f} us, p99 {cycle['p99']:.0f} us, max {cycle['max']:.0f} us "
         f"of a {status['period_us']:.0f} us period"
     )
-    out.append(f"averaging {status['averaging']}, low-pass {status['lowpass_hz'] or 'off'}")
+    out.append(
+        f"conversion OSR {status['osr']}, DIG_FILT {status['dig_filt']}; "
+        f"averaging {status['averaging']}, low-pass {status['lowpass_hz'] or 'off'}"
+    )
     sched = status.get("scheduling")
     if sched:
         out.append(

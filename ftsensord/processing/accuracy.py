@@ -74,7 +74,7 @@ class Plan:
             name: ", ".join(f"{a} {v:.3g}" for a, v in zip(AXES, sigma)) for name, sigma in self.sigma.items()
         }
         return (
-            f"OSR {self.settings.osr}, DIG_FILT {self.settings.dig_filt}, {self.rate_hz:g} Hz, "
+            f"{self.settings.conversion}, {self.rate_hz:g} Hz, "
             f"averaging {self.averaging} (low-pass off): an independent sample every "
             f"{1e3 / self.effective_hz:.3g} ms ({self.effective_hz:.3g} Hz); sigma at rest "
             + "; ".join(f"{n}: {w} (N, Nm)" for n, w in worst.items())
@@ -125,18 +125,19 @@ def plan(
     bus: choice.Bus,
     scheduler: str | None = None,
     readback_every: int | None = None,
-    settings: list[mlx.Settings] | None = None,
+    running: mlx.Settings | None = None,
 ) -> Plan:
     """The fastest `Plan` that meets each sensor's ``targets`` (by name; a sensor without
-    any is not held to one) among the conversion ``settings`` (None: every permitted one of
-    ``bus.settings``), on ``bus`` with the scheduler and read-back the configuration leaves
-    open. ConfigError saying the closest any setting comes, and why, when none meets them."""
+    any is not held to one) among the conversions ``bus.settings`` permits, on ``bus`` with
+    the scheduler and read-back the configuration leaves open; at a tie, the ``running``
+    conversion (the chips are not written for nothing).
+    ConfigError saying the closest any setting comes, and why, when none meets them."""
     held = [s for s in sensors if targets.get(s.config.name)]
     if not held:
         raise ConfigError("accuracy: no target given")
-    best: tuple[tuple[float, int], Plan] | None = None
+    best: tuple[tuple[float, int, bool], Plan] | None = None
     closest: tuple[float, mlx.Settings, float, str] | None = None  # worst sigma / target, where, axis
-    for candidate in settings if settings is not None else choice.conversions(bus.settings):
+    for candidate in choice.conversions(bus.settings):
         rate = fastest_rate(replace(bus, settings=candidate), scheduler, readback_every)
         if rate < 0.1:  # the daemon's slowest loop
             continue
@@ -151,7 +152,7 @@ def plan(
                     averaging,
                     {n: [round(float(v), 7) for v in w] for n, w in sigmas.items()},
                 )
-                key = (found.effective_hz, -averaging)
+                key = (found.effective_hz, -averaging, candidate == running)
                 if best is None or key > best[0]:
                     best = (key, found)
                 break
@@ -169,7 +170,7 @@ def plan(
     near = (
         ""
         if closest is None
-        else f"the closest, OSR {closest[1].osr}, DIG_FILT {closest[1].dig_filt} at {closest[2]:g} Hz "
+        else f"the closest, {closest[1].conversion} at {closest[2]:g} Hz "
         f"with averaging {MAX_AVERAGING}, leaves {closest[3]} sigma {closest[0]:.2g} times the target; "
     )
     raise ConfigError(f"accuracy: no setting meets {asked}: {near}{_why_not(held, targets, bus.settings)}")

@@ -213,10 +213,13 @@ def untare(p: SensorPipeline) -> list[float]:
     return removed
 
 
-def carry_tares(old: Sequence[SensorPipeline], new: Sequence[SensorPipeline]) -> dict[str, str]:
-    """After a reload: each tared sensor keeps its tare if its calibration is unchanged,
-    else drops it (a zero measured through one calibration is no zero for another
-    fitted on other data). Logs and returns what happened, by sensor, for the reply."""
+def carry_tares(
+    old: Sequence[SensorPipeline], new: Sequence[SensorPipeline], after: str = "reload"
+) -> dict[str, str]:
+    """After a reload (or what ``after`` names, for the log): each tared sensor keeps its tare
+    if its calibration is unchanged, else drops it (a zero measured through one calibration
+    is no zero for another fitted on other data). Logs and returns what happened, by sensor,
+    for the reply."""
     before = {p.name: p for p in old}
     out = {}
     for p in new:
@@ -230,8 +233,8 @@ def carry_tares(old: Sequence[SensorPipeline], new: Sequence[SensorPipeline]) ->
             if o.stray is not None and p.stray is not None:
                 p.stray = o.stray  # what it learnt, and the gradient at that tare, hold still
             out[p.name] = "kept (calibration unchanged)"
-            log.info("reload: %s's tare %s", p.name, out[p.name])
+            log.info("%s: %s's tare %s", after, p.name, out[p.name])
         else:
             out[p.name] = "dropped: its calibration changed; tare it again"
-            log.warning("reload: %s's tare %s", p.name, out[p.name])
+            log.warning("%s: %s's tare %s", after, p.name, out[p.name])
     return out

@@ -100,6 +100,11 @@ class Settings:
     def tconvm_us(self) -> float:
         return tconvm_us(self.osr, self.dig_filt)
 
+    @property
+    def conversion(self) -> str:
+        """The conversion's settings as a person reads them: "OSR 1, DIG_FILT 2"."""
+        return f"OSR {self.osr}, DIG_FILT {self.dig_filt}"
+
     def single_measurement_us(self, zyxt: int = ZYXT_XYZ) -> float:
         return single_measurement_us(zyxt, self.osr, self.dig_filt, self.osr2)
 
