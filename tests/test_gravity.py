@@ -600,6 +600,13 @@ def test_malformed_orientation_messages_are_dropped_and_counted_and_the_daemon_g
         ("[tool.pose.sensor2]", "[tool.pose.sensor3]", "tool.pose.sensor3", "one of the sensors"),
         ('orientation = "stream"', 'orientation = "imu"', "gravity.orientation", "one of"),
         ("stale_after_s = 0.05", "gravity_mps2 = [0.0, 0.0, -9810.0]", "gravity.gravity_mps2", "|g| 9.7-9.9"),
+        # radians for degrees, or a noise no orientation source has
+        (
+            "stale_after_s = 0.05",
+            "orientation_sigma_deg = 30.0",
+            "gravity.orientation_sigma_deg",
+            "[0.0, 10.0]",
+        ),
         (f"mass_kg = {M1}", "mass_kg = 50.0", "gravity.sensor1.mass_kg", "kg"),
         # 30 for 30 mm: was taken, and the compensated moment was -49 N m, unflagged (1e308: -4.9e307)
         (f"com_m = {C1.tolist()}", "com_m = [0.0, 0.0, 30.0]", "gravity.sensor1.com_m", "within 2 m"),

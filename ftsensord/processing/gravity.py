@@ -230,6 +230,7 @@ class Gravity:
             "endpoint": self.config.endpoint,
             "stale_after_s": self.config.stale_after_s,
             "gravity_mps2": self.config.gravity_mps2.tolist(),
+            "orientation_sigma_deg": float(np.degrees(self.config.orientation_sigma_rad)),
             "frames": frames,
             "stream": self.receiver.status(now),
         }
