@@ -43,9 +43,10 @@ class Payload:
 
     def wrench(self, g: np.ndarray) -> np.ndarray:
         """The weight's wrench [f; m] (N, Nm) in the frame, for gravity ``g`` (m/s^2) seen
-        in the frame: f = m g at the centre of mass, m = c x f (`se3.wrench_transform`)."""
+        in the frame: f = m g at the centre of mass, m = c x f (`se3.wrench_transform`).
+        Several at once: ``g`` n x 3, the wrenches n x 6."""
         f = self.mass_kg * np.asarray(g, dtype=float)
-        return np.concatenate([f, np.cross(self.com_m, f)])
+        return np.concatenate([f, np.cross(self.com_m, f)], axis=-1)
 
 
 @dataclass

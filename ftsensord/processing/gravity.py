@@ -57,17 +57,21 @@ class Compensated(NamedTuple):
     sigma: np.ndarray  # its 1-sigma per axis (N, Nm); NaN unknown
 
 
-def weight_variance(payload: Payload, g: np.ndarray, sigma_rad: float) -> np.ndarray:
+def weight_variance(payload: Payload, g: np.ndarray, sigma_rad: float | np.ndarray) -> np.ndarray:
     """The variance per axis (6; N^2, Nm^2) of the weight W(g) (`Payload.wrench`) when g
     (m/s^2, in the frame) comes from an orientation off by a small rotation d (rad, about the
-    frame's axes, each of 1-sigma ``sigma_rad``, independent).
+    frame's axes, each of 1-sigma ``sigma_rad``, independent). Several independent ones at
+    once, summed: ``g`` n x 3 and ``sigma_rad`` n.
 
     The frame's gravity is R^T g_world; with R = R_true Exp(d) it is Exp(-d) g = g + g x d
     to first order, so its error g x d = [g]x d has covariance sigma^2 [g]x [g]x^T (nothing
-    along g: a turn about the vertical leaves the weight as it is). W is linear in g, so
-    W's covariance is J [g]x [g]x^T J^T sigma^2, J = dW/dg; its column k is W(sigma g x e_k)."""
-    columns = [payload.wrench(c) for c in sigma_rad * np.cross(g, np.eye(3))]  # W(sigma g x e_k)
-    return np.sum(np.square(columns), axis=0)
+    along g: a turn about the vertical leaves the weight as it is; an error d about the world's
+    axes instead, R = Exp(d) R_true, has the same covariance, d's being isotropic). W is linear
+    in g, so W's covariance is sigma^2 J [g]x [g]x^T J^T, J = dW/dg; its column k is
+    W(sigma g x e_k)."""
+    g = np.asarray(g, dtype=float).reshape(-1, 3)
+    turned = np.cross(g[:, None, :], np.eye(3)) * np.reshape(sigma_rad, (-1, 1, 1))  # sigma g x e_k
+    return np.sum(np.square(payload.wrench(turned.reshape(-1, 3))), axis=0)
 
 
 class Gravity:
@@ -166,7 +170,9 @@ class Gravity:
         The variance per axis: the raw one, the weight's now (`weight_variance` times the
         weight filter's variance factor: each cycle's orientation taken as a fresh,
         independent draw, and the filter's inputs as of one variance, the tool turning
-        little within its window) and the tare's (the mean of n draws: 1 / n of it)."""
+        little within its window) and the tare's (the mean of n draws: 1 / n of it). An
+        orientation sender slower than the loop repeats its draws: the filter then shrinks
+        their noise less than the factor says."""
         payload, weights = self.config.payloads[frame], self.filters[frame]
         g_tare, n_tare = tare
         g, stale = self.gravity(frame, now)
@@ -174,11 +180,20 @@ class Gravity:
             weights.reset()  # no weight to follow: start again with the next one
             return NAN6, flags | stale | wire.FLAG_INVALID, NAN6
         weight, wflags = weights.update(payload.wrench(g), stale)
+        values, flags = raw + payload.wrench(g_tare) - weight, flags | wflags
         s = self.config.orientation_sigma_rad
-        variance = np.square(sigma) + weight_variance(payload, g, s) * weights.variance_factor()
+        if s == 0.0:  # exact orientations (a mount's): the raw sample's sigma alone
+            return values, flags, sigma
+        # The weight now (through its filter) and at the tare, independent: one call for both.
+        gs, scales = [g], [s * np.sqrt(weights.variance_factor())]
         if n_tare:
-            variance += weight_variance(payload, g_tare, s) / n_tare
-        return raw + payload.wrench(g_tare) - weight, flags | wflags, np.sqrt(variance)
+            gs.append(g_tare)
+            scales.append(s / np.sqrt(n_tare))
+        return (
+            values,
+            flags,
+            np.sqrt(np.square(sigma) + weight_variance(payload, np.array(gs), np.array(scales))),
+        )
 
     def streams(
         self,
