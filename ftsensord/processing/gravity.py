@@ -34,6 +34,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from ftsensord.config.frames import TIP, GravityConfig, Payload
+from ftsensord.model import se3
 from ftsensord.processing.filters import WrenchFilter
 from ftsensord.processing.pipeline import SensorPipeline, SensorSample
 from ftsensord.protocol import wire
@@ -69,8 +70,9 @@ def weight_variance(payload: Payload, g: np.ndarray, sigma_rad: float | np.ndarr
     axes instead, R = Exp(d) R_true, has the same covariance, d's being isotropic). W is linear
     in g, so W's covariance is sigma^2 J [g]x [g]x^T J^T, J = dW/dg; its column k is
     W(sigma g x e_k)."""
-    g = np.asarray(g, dtype=float).reshape(-1, 3)
-    turned = np.cross(g[:, None, :], np.eye(3)) * np.reshape(sigma_rad, (-1, 1, 1))  # sigma g x e_k
+    # [g]x's columns g x e_k are minus its rows (skew), a sign the squares drop: hat builds
+    # them for less than np.cross against the identity, and this runs each cycle on each frame.
+    turned = se3.hat(np.reshape(g, (-1, 3))) * np.reshape(sigma_rad, (-1, 1, 1))  # rows: -sigma g x e_k
     return np.sum(np.square(payload.wrench(turned.reshape(-1, 3))), axis=0)
 
 
