@@ -47,6 +47,7 @@ CONFIG = {
         "orientation": "stream",
         "stale_after_s": 0.1,
         "gravity_mps2": [0, 0, -9.81],
+        "orientation_sigma_deg": 0.3,
         "sensor1": {"mass_kg": 0.1, "com_m": [0, 0, 0.01]},
     },
     "security": {"allow_insecure_control": False, "public_stream": False},

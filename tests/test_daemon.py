@@ -522,6 +522,7 @@ def test_the_commented_example_configuration_loads(tmp_path):
     assert (
         gravity is not None and gravity.source == "stream" and sorted(gravity.payloads) == ["sensor1", "tip"]
     )
+    assert gravity.orientation_sigma_rad == pytest.approx(np.radians(0.37))
 
 
 def test_shutdown_puts_every_chip_back_to_idle(tmp_path):

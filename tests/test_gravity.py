@@ -31,11 +31,14 @@ from ftsensord.calibration.fit import fit
 from ftsensord.calibration.procedure import calibrate, simulate_dataset
 from ftsensord.client import ControlClient, OrientationPublisher, Subscriber
 from ftsensord.config.file import load_config
+from ftsensord.config.frames import STREAM_SIGMA_DEG, GravityConfig, Payload
 from ftsensord.daemon.status import describe
 from ftsensord.model import se3
+from ftsensord.processing.gravity import Gravity, weight_variance
 from ftsensord.processing.pipeline import SensorSample, tip_moves, tip_wrench
 from ftsensord.protocol import orientation as ori
 from ftsensord.protocol import wire
+from ftsensord.protocol.orientation import OrientationReceiver, Received
 from ftsensord.sim import load_scene
 from ftsensord.sim.loads import FixedOrientation, fibonacci_directions, gravity_to_down
 
@@ -396,9 +399,20 @@ def test_mount_orientation_compensates_without_a_stream(tmp_path):
     for name, T in (("sensor1", T1), ("sensor2", T2)):
         rig.scene.set_orientation(name, FixedOrientation(R @ T[:3, :3]))
     out = rig.cycles(20)
+    assert rig.config.gravity.orientation_sigma_rad == 0.0  # a mount is exact unless configured
     for topic in ("wrench/sensor1/compensated", "wrench/sensor2/compensated", "wrench/tip/compensated"):
         w = np.mean([s.values for s in out[topic]], axis=0)
         assert all(s.flags == 0 for s in out[topic])
+        # Its sigma, one a sample, is the raw one's: the orientation and the payload exact.
+        raw_topic = "sigma/" + topic.removesuffix("/compensated")
+        assert (
+            [s.seq for s in out["sigma/" + topic]]
+            == [s.seq for s in out[raw_topic]]
+            == [s.seq for s in out[topic]]
+        )
+        sigma = np.array([s.values for s in out["sigma/" + topic]])
+        assert np.all(np.isfinite(sigma)) and np.all(sigma > 0)
+        np.testing.assert_array_equal(sigma, [s.values for s in out[raw_topic]])
         # Untared: the calibration's zero error (the scene's zero is 4 uT off) stays; the weight goes.
         assert np.max(np.abs(w[:3])) < 0.15, (topic, w)
     raw = np.mean([s.values for s in out["wrench/sensor2"]], axis=0)
@@ -410,14 +424,29 @@ def test_before_any_orientation_the_compensated_wrench_is_nan_and_flagged_then_s
     tmp_path,
 ):
     t = Turning(tmp_path)
-    first = t.cycles(2, send=False)["wrench/sensor1/compensated"]
+    out = t.cycles(2, send=False)
+    first = out["wrench/sensor1/compensated"]
     assert all(
         np.all(np.isnan(s.values)) and s.flags == wire.FLAG_ORIENTATION_STALE | wire.FLAG_INVALID
         for s in first
     )
+    assert all(np.all(np.isnan(s.values)) for s in out["sigma/wrench/sensor1/compensated"])  # unknown too
     t.turn(orientations(5)[1])
-    fresh = t.cycles(5)["wrench/sensor1/compensated"]
+    out = t.cycles(5)
+    fresh = out["wrench/sensor1/compensated"]
     assert [s.flags for s in fresh] == [0] * 5
+    # Its sigma: the raw one's and the stream's orientation noise (by default an MPU-6050's
+    # tilt) through sensor1's part's weight, untared: sigma^2 (|g|^2 I - g g^T) through m [I; [c]x].
+    sigma_rad = np.radians(STREAM_SIGMA_DEG)
+    assert t.rig.config.gravity.orientation_sigma_rad == pytest.approx(sigma_rad) and 5e-3 < sigma_rad < 8e-3
+    g = (orientations(5)[1] @ T1[:3, :3]).T @ np.array([0.0, 0.0, -9.80665])
+    J = M1 * np.vstack([np.eye(3), se3.hat(C1)])
+    weight = np.diag(J @ (sigma_rad**2 * (g @ g * np.eye(3) - np.outer(g, g))) @ J.T)
+    raw = np.array([s.values for s in out["sigma/wrench/sensor1"]])
+    comp = np.array([s.values for s in out["sigma/wrench/sensor1/compensated"]])
+    np.testing.assert_allclose(comp, np.sqrt(raw**2 + weight), rtol=1e-9)
+    assert np.all(comp > raw)  # tilted: the weight's every axis moves with a small turn
+
     # stale_after_s = 0.05: four 10 ms cycles without a message are fresh, the fifth is at the
     # limit (its start a few us past the grid, with the bus's time), the sixth on stale.
     quiet = t.cycles(9, send=False)
@@ -571,6 +600,13 @@ def test_malformed_orientation_messages_are_dropped_and_counted_and_the_daemon_g
         ("[tool.pose.sensor2]", "[tool.pose.sensor3]", "tool.pose.sensor3", "one of the sensors"),
         ('orientation = "stream"', 'orientation = "imu"', "gravity.orientation", "one of"),
         ("stale_after_s = 0.05", "gravity_mps2 = [0.0, 0.0, -9810.0]", "gravity.gravity_mps2", "|g| 9.7-9.9"),
+        # radians for degrees, or a noise no orientation source has
+        (
+            "stale_after_s = 0.05",
+            "orientation_sigma_deg = 30.0",
+            "gravity.orientation_sigma_deg",
+            "[0.0, 10.0]",
+        ),
         (f"mass_kg = {M1}", "mass_kg = 50.0", "gravity.sensor1.mass_kg", "kg"),
         # 30 for 30 mm: was taken, and the compensated moment was -49 N m, unflagged (1e308: -4.9e307)
         (f"com_m = {C1.tolist()}", "com_m = [0.0, 0.0, 30.0]", "gravity.sensor1.com_m", "within 2 m"),
@@ -635,6 +671,9 @@ def test_ftsensord_run_compensates_with_orientations_from_the_python_publisher(t
         assert (rt / "orientation").exists() and oct((rt / "orientation").stat().st_mode & 0o777) == "0o660"
         streams = ["wrench/sensor1", "wrench/sensor1/compensated"]
         got: dict[str, list] = {s: [] for s in streams}
+        sigmas: dict[str, dict] = {
+            s: {} for s in streams
+        }  # each sample's by seq, as the Subscriber pairs them
         with (
             OrientationPublisher(f"ipc://{rt}/orientation") as pub,
             Subscriber(f"ipc://{rt}/wrench", streams) as sub,
@@ -645,6 +684,7 @@ def test_ftsensord_run_compensates_with_orientations_from_the_python_publisher(t
                 s = sub.receive(timeout_s=0.01)
                 if s is not None and (s.topic == "wrench/sensor1" or s.flags == 0):
                     got[s.topic].append(s.values)
+                    sigmas[s.topic][s.seq] = s.sigma
         status = ControlClient(f"ipc://{rt}/control").status()
     finally:
         proc.send_signal(signal.SIGTERM)
@@ -654,6 +694,18 @@ def test_ftsensord_run_compensates_with_orientations_from_the_python_publisher(t
     assert min(len(v) for v in got.values()) == 20
     raw, comp = (np.mean(got[s], axis=0) for s in streams)
     assert raw[2] < -0.35 and abs(comp[2]) < 0.15  # the 0.49 N weight taken off (untared: the zero's error)
+    # Each compensated sample came with its sigma: its raw sample's (the same seq) and the
+    # stream's orientation noise through the weight, in variance. Upright, g = [0, 0, -g]: a
+    # small tilt moves fx, fy by m g sigma, mx, my by c_z m g sigma, mz by |c_xy| m g sigma.
+    assert all(x is not None for v in sigmas.values() for x in v.values())
+    both = sorted(sigmas[streams[0]].keys() & sigmas[streams[1]].keys())
+    assert len(both) >= 10
+    raw_sigma, comp_sigma = (np.array([sigmas[s][q] for q in both]) for s in streams)
+    f = M1 * 9.80665 * np.radians(STREAM_SIGMA_DEG)
+    weight = f**2 * np.array([1.0, 1.0, 0.0, C1[2] ** 2, C1[2] ** 2, C1[0] ** 2 + C1[1] ** 2])
+    np.testing.assert_allclose(
+        comp_sigma**2 - raw_sigma**2, np.broadcast_to(weight, raw_sigma.shape), atol=1e-12
+    )
     assert (
         status["gravity"]["stream"]["received"] > 0
         and status["frames"]["wrench/tip/compensated"] == "tool_tip"
@@ -771,3 +823,111 @@ def test_a_tare_whose_orientations_stop_is_refused_within_a_second_saying_why(tm
     assert waited <= TARE_STALE_RUN + 20, waited
     assert not reply["ok"] and "keep sending orientations" in reply["error"], reply
     t.close()
+
+
+# The compensated streams' sigma (`processing.gravity`: the raw sample's plus the weight's
+# through the orientation's noise), on `Gravity` alone: one frame "s" carrying sensor1's part.
+PART = Payload(M1, C1)
+#: An orientation turned so that gravity is on every axis of the frame (and so the weight).
+R_PART = gravity_to_down(np.array([0.3, -0.5, -0.8]) / np.linalg.norm([0.3, -0.5, -0.8]), 0.7)
+
+
+def part_gravity(
+    source: str, sigma_rad: float, averaging: int = 1, lowpass_hz: float = 0.0
+) -> tuple[Gravity, OrientationReceiver]:
+    receiver = OrientationReceiver(None, {"s"})
+    config = GravityConfig(source, {"s": PART}, {"s": R_PART}, orientation_sigma_rad=sigma_rad)
+    return Gravity(config, {}, receiver, averaging, lowpass_hz, 100.0), receiver
+
+
+def propagated_by_hand(g: np.ndarray, sigma_rad: float) -> np.ndarray:
+    """The weight's variance per axis for small turns d (rad, the frame's axes, 1-sigma each):
+    g's error is g x d, of covariance sigma^2 (|g|^2 I - g g^T); W = m [I; [c]x] g."""
+    J = M1 * np.vstack([np.eye(3), se3.hat(C1)])
+    return np.diag(J @ (sigma_rad**2 * (g @ g * np.eye(3) - np.outer(g, g))) @ J.T)
+
+
+def test_the_orientations_variance_through_the_weight_is_the_jacobians():
+    g = R_PART.T @ np.array([0.0, 0.0, -9.80665])
+    np.testing.assert_allclose(weight_variance(PART, g, 0.01), propagated_by_hand(g, 0.01), rtol=1e-12)
+    # A small tilt turns g across itself, never along: a frame with g along z has no fz variance.
+    flat = weight_variance(PART, np.array([0.0, 0.0, -9.8]), 0.01)
+    assert flat[2] == 0.0 and np.all(flat[[0, 1, 3, 4, 5]] > 0)
+
+
+@pytest.mark.parametrize(("averaging", "lowpass_hz"), [(1, 0.0), (4, 0.0), (3, 15.0)])
+def test_with_an_exact_mount_the_compensated_sigma_is_the_raw_one_and_nan_where_unknown(
+    averaging, lowpass_hz
+):
+    gravity, _ = part_gravity("mount", 0.0, averaging, lowpass_hz)
+    raw_sigma = np.array([0.02, 0.03, 0.05, 1e-3, 2e-3, 3e-4])
+    tare = (np.array([0.0, 0.0, -9.8]), 50)  # tared upright over 50 samples: exact too
+    for k in range(10):
+        _, flags, sigma = gravity.compensate("s", np.zeros(6), 0, raw_sigma, tare, 0.01 * k)
+        assert flags == 0
+        np.testing.assert_array_equal(sigma, raw_sigma)
+    # A raw sigma the daemon does not know stays unknown; so does an invalid sample's.
+    unknown = raw_sigma.copy()
+    unknown[4] = np.nan
+    assert np.isnan(gravity.compensate("s", np.zeros(6), 0, unknown, tare, 1.0)[2][4])
+    values, flags, sigma = gravity.compensate("s", np.full(6, np.nan), 0, raw_sigma, tare, 1.0)
+    assert flags & wire.FLAG_INVALID and np.all(np.isnan(values)) and np.all(np.isnan(sigma))
+    values, flags, sigma = gravity.compensate("s", np.zeros(6), 0, raw_sigma, (None, None), 1.0)
+    assert flags & wire.FLAG_INVALID and np.all(np.isnan(sigma))  # the weight at the tare unknown
+
+
+def noisy(receiver: OrientationReceiver, rng: np.random.Generator, sigma_rad: float, now: float) -> None:
+    """One orientation message of R_PART, off by a small turn of ``sigma_rad`` per axis."""
+    receiver.latest["s"] = Received(R_PART @ se3.exp_so3(rng.normal(0.0, sigma_rad, 3)), now, now)
+
+
+@pytest.mark.parametrize(("averaging", "lowpass_hz"), [(1, 0.0), (4, 0.0), (3, 15.0)])
+def test_the_compensated_sigma_is_a_monte_carlo_of_the_orientations_noise_through_the_filtered_weight(
+    averaging, lowpass_hz
+):
+    sigma_rad = 0.01  # 0.6 deg: small enough that the first order holds (its error ~ sigma^2)
+    gravity, receiver = part_gravity("stream", sigma_rad, averaging, lowpass_hz)
+    rng = np.random.default_rng(7)
+    tare = (R_PART.T @ gravity.config.gravity_mps2, None)  # the tare's own orientation left out
+    out, sigmas = [], []
+    for k in range(12000):
+        noisy(receiver, rng, sigma_rad, 0.01 * k)
+        values, flags, sigma = gravity.compensate("s", np.zeros(6), 0, np.zeros(6), tare, 0.01 * k)
+        assert flags == 0
+        out.append(values)
+        sigmas.append(sigma)
+    settled = 100  # the filter's start-up: its variance factor moves until then
+    measured = np.std(out[settled:], axis=0)
+    # The filter's outputs are correlated over a few samples: 11900 of them pin each axis's
+    # sigma within a few %; 10 % is the agreement asked.
+    propagated = np.mean(sigmas[settled:], axis=0)
+    np.testing.assert_allclose(measured, propagated, rtol=0.10)
+    # The filter shrinks it as it shrinks the wrench's noise (its variance factor); each
+    # sample's is taken at its own noisy g, 1 % off the true one (sigma_rad): 5 % allowed.
+    g = R_PART.T @ gravity.config.gravity_mps2
+    factor = gravity.filters["s"].variance_factor()
+    assert factor < 1.0 or averaging == 1
+    np.testing.assert_allclose(propagated, np.sqrt(propagated_by_hand(g, sigma_rad) * factor), rtol=0.05)
+
+
+def test_the_tares_mean_orientation_adds_its_share_and_the_raw_sigma_adds_in_variance():
+    sigma_rad, n = 0.01, 5
+    gravity, receiver = part_gravity("stream", sigma_rad)
+    rng = np.random.default_rng(11)
+    raw_sigma = np.array([0.02, 0.03, 0.05, 1e-3, 2e-3, 3e-4])
+    out = []
+    for k in range(8000):  # each draw: a tare of n noisy orientations, then a sample
+        gs = []
+        for _ in range(n):
+            noisy(receiver, rng, sigma_rad, float(k))
+            gs.append(gravity.gravity("s", float(k))[0])
+        noisy(receiver, rng, sigma_rad, float(k))
+        raw = rng.normal(0.0, raw_sigma)
+        values, _, sigma = gravity.compensate("s", raw, 0, raw_sigma, (np.mean(gs, axis=0), n), float(k))
+        out.append(values)
+    np.testing.assert_allclose(np.std(out, axis=0), sigma, rtol=0.10)  # 8000 draws: within ~2 %
+    g = R_PART.T @ gravity.config.gravity_mps2
+    # The last sample's, at its own noisy g and g_tare (1 % off, sigma_rad): 5 % allowed.
+    np.testing.assert_allclose(
+        sigma**2, raw_sigma**2 + propagated_by_hand(g, sigma_rad) * (1 + 1 / n), rtol=0.05
+    )

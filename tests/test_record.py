@@ -36,6 +36,16 @@ from ftsensord.recording.ros2mcap import stamp
 from .test_daemon import write_config
 
 STREAMS = ["wrench/sensor1", "wrench/tip"]
+#: sensor1's weight taken off at a fixed mount: its compensated stream, whose sigma is then the raw one's.
+GRAVITY = """
+[gravity]
+orientation = "mount"
+[gravity.sensor1]
+mass_kg = 0.05
+com_m = [0.0, 0.0, 0.01]
+mount_rotvec_deg = [0.0, 0.0, 0.0]
+"""
+COMPENSATED = "wrench/sensor1/compensated"
 #: A kill -9 may lose what waited for its flush (0.5 s) and the hop to the recorder: 1 s promised.
 KILL_LOSS_S = 1.0
 #: A sample published this long before a stop signal has surely reached the recorder's queue.
@@ -48,7 +58,7 @@ from .conftest import start_daemon
 def daemon(tmp_path_factory):
     """`ftsensord run` on the simulated bus (sensor1 loaded, static), shared by this module's tests."""
     tmp = tmp_path_factory.mktemp("daemon")
-    config = write_config(tmp)
+    config = write_config(tmp, extra=GRAVITY)
     proc, notify = start_daemon(config, tmp, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         yield f"ipc://{tmp / 'ftsensord' / 'wrench'}", f"ipc://{tmp / 'ftsensord' / 'control'}"
@@ -253,7 +263,7 @@ def test_mcap_holds_ros2_messages_matching_what_was_published(daemon, tmp_path):
     from mcap_ros2.decoder import DecoderFactory
 
     pub, ctl = daemon
-    streams = [*STREAMS, "flux/sensor1"]
+    streams = [*STREAMS, COMPENSATED, "flux/sensor1"]
     path = tmp_path / "rec.mcap"
     ref = Reference(pub, streams)
     ref.start()
@@ -295,6 +305,9 @@ def test_mcap_holds_ros2_messages_matching_what_was_published(daemon, tmp_path):
             "/wrench/tip/sigma",
             "/wrench/sensor1/status",
             "/wrench/tip/status",
+            f"/{COMPENSATED}",
+            f"/{COMPENSATED}/sigma",
+            f"/{COMPENSATED}/status",
             "/flux/sensor1/status",
             *(f"/flux/sensor1/chip{i}" for i in range(8)),
         }
@@ -330,6 +343,7 @@ def _matches(sample: wire.Sample, msg, topic: str, log_time: int, frames: dict[s
         if topic.endswith("/sigma"):  # the sample's sigma, the daemon's companion
             assert sample.sigma is not None
             np.testing.assert_array_equal(got, sample.sigma)  # float64 both ways: exact, NaN where unknown
+            assert np.all(np.isfinite(got))  # at rest, every sample's is known (at a mount, compensated too)
         else:
             assert got == sample.values.tolist()  # float64 both ways: exact
     else:
@@ -339,7 +353,7 @@ def _matches(sample: wire.Sample, msg, topic: str, log_time: int, frames: dict[s
         assert msg.header.frame_id == f"sensor1/chip{chip}"
 
 
-@pytest.mark.parametrize("stream", ["wrench/sensor1", "flux/sensor1"])
+@pytest.mark.parametrize("stream", ["wrench/sensor1", COMPENSATED, "flux/sensor1"])
 def test_a_csv_recording_reads_with_the_usual_readers_and_its_sidecar_says_what_it_is(
     daemon, tmp_path, stream
 ):
@@ -396,7 +410,7 @@ def test_a_csv_recording_reads_with_the_usual_readers_and_its_sidecar_says_what_
             )
             np.testing.assert_allclose(row[4 : 4 + len(names)], sample.values, rtol=1e-8, atol=0)
             if sigmas:  # 9 significant digits, NaN where the daemon does not know it
-                assert sample.sigma is not None
+                assert sample.sigma is not None and np.all(np.isfinite(sample.sigma))
                 np.testing.assert_allclose(row[4 + len(names) :], sample.sigma, rtol=1e-8, atol=0)
 
     with path.open(newline="") as f:
@@ -477,7 +491,7 @@ def test_npz_sidecar_killed_before_and_after_its_first_sample(tmp_path):
     assert rows["stream"] == STREAMS[0]
 
 
-@pytest.mark.parametrize("stream", ["wrench/sensor1", "flux/sensor1"])
+@pytest.mark.parametrize("stream", ["wrench/sensor1", COMPENSATED, "flux/sensor1"])
 def test_echo_prints_a_header_naming_each_column_and_its_unit_over_it(daemon, stream):
     pub, _ = daemon
     done = subprocess.run(
@@ -496,6 +510,10 @@ def test_echo_prints_a_header_naming_each_column_and_its_unit_over_it(daemon, st
     )  # flux is printed in uT
     assert head.startswith("#") and head[1:].split() == ["seq", "t_mono_s", *values, "flags"], head
     assert len(rows) == 3
+    if stream.startswith(
+        "wrench/"
+    ):  # each sample's sigma came with it: known at rest (at a mount, compensated too)
+        assert all(np.all(np.isfinite([float(v) for v in row.split()[8:14]])) for row in rows), rows
     n = 2 + len(values)  # seq, t_mono_s and the values; then the flags' names, if any
     name_ends = [m.end() for m in re.finditer(r"\S+", " " + head[1:])][:n]
     for row in rows:  # each name ends where its numbers end

@@ -24,6 +24,7 @@ pytest.importorskip("cyclonedds")  # the ros2 extra, which the test extra includ
 
 from ftsensord.client import ControlClient  # noqa: E402
 from ftsensord.config.file import load_config  # noqa: E402
+from ftsensord.protocol import wire  # noqa: E402
 
 from .conftest import StreamRecorder, assert_names_file_and_key, start_daemon  # noqa: E402
 from .test_daemon import Rig, write_config  # noqa: E402
@@ -38,7 +39,7 @@ URI = (
     "</Discovery></Domain></CycloneDDS>"
 )
 ENV = {**os.environ, "CYCLONEDDS_URI": URI}
-STREAMS = ["wrench/sensor1", "wrench/tip"]
+STREAMS = ["wrench/sensor1", "wrench/tip", "wrench/tip/compensated"]
 GRAVITY = """
 [gravity]
 orientation = "stream"
@@ -171,7 +172,10 @@ def test_a_ros2_subscriber_reads_every_wrench_as_the_zeromq_stream_has_it(daemon
                 [w[p][a] for p in ("force", "torque") for a in "xyz"],
                 sample.sigma if sigma else sample.values,
             )
-            if sigma:  # at rest on the simulated bus, every sample's sigma is known
+            if sigma and stream.endswith("/compensated"):  # known once an orientation came, else NaN
+                known = not sample.flags & wire.FLAG_INVALID
+                assert np.all(np.asarray(sample.sigma) > 0) if known else np.all(np.isnan(sample.sigma))
+            elif sigma:  # at rest on the simulated bus, every raw sample's sigma is known
                 assert np.all(np.asarray(sample.sigma) > 0), sample.sigma
 
 
@@ -213,7 +217,7 @@ def test_ros2_node_list_finds_the_node_with_the_endpoints_discovery_finds(daemon
 
 
 def test_an_orientation_from_ros_reaches_the_gravity_compensation(daemon):
-    folder, _ = daemon
+    folder = daemon[0]
     s45 = float(np.sqrt(0.5))
     out = peer(
         {
@@ -239,6 +243,18 @@ def test_an_orientation_from_ros_reaches_the_gravity_compensation(daemon):
     # 90 deg about x: the world's gravity [0, 0, -g] is along -y in the tip frame
     np.testing.assert_allclose(gravity["frames"]["tip"]["gravity_now_mps2"], [0.0, -9.80665, 0.0], atol=1e-5)
     assert "sensor1" not in gravity["stream"]["frames"]  # an Imu whose covariance[0] is -1 has no orientation
+    # From the first on, the tip's compensated samples are valid, each with its sigma: the raw
+    # one's and the stream's orientation noise through the tool's weight, in variance.
+    ref = daemon[1]
+    valid = [
+        x
+        for (topic, _), x in list(ref.samples.items())
+        if topic == "wrench/tip/compensated" and not x.flags & wire.FLAG_INVALID
+    ]
+    assert valid
+    for x in valid:
+        raw = ref.samples[("wrench/tip", round(x.t_wall * 1e9))].sigma
+        assert np.all(x.sigma >= raw) and np.any(x.sigma > raw), (x.sigma, raw)
 
 
 def test_the_trigger_service_and_the_tare_topic_tare_the_sensors(daemon):

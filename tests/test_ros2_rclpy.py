@@ -136,6 +136,7 @@ def test_ros2_lists_each_daemons_node_its_topics_and_which_node_publishes_them(r
             assert types[f"/{ns}/{s}/status"] == ["ftsensord_msgs/msg/SampleStatus"]
             assert types[f"/{ns}/{s}/sigma"] == ["geometry_msgs/msg/WrenchStamped"]  # a standard type
             assert types[f"/{ns}/{s}/compensated"] == ["geometry_msgs/msg/WrenchStamped"]
+            assert types[f"/{ns}/{s}/compensated/sigma"] == ["geometry_msgs/msg/WrenchStamped"]
         assert types[f"/{ns}/tare"] == ["std_msgs/msg/Empty"]
         assert types[f"/{ns}/orientation/tip"] == ["geometry_msgs/msg/QuaternionStamped"]
         assert types[f"/{ns}/imu/sensor1"] == ["sensor_msgs/msg/Imu"]

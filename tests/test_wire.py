@@ -70,6 +70,13 @@ def test_sigma_vector_matches_the_encoder_and_an_old_decoder_reads_it_as_six_val
     assert np.array_equal(s.values, [0.025, 0.031, 0.022, 0.003, 0.0029, np.nan], equal_nan=True)
 
 
+def test_every_wrench_stream_has_a_sigma_companion_and_flux_none():
+    for stream in ("wrench/sensor1", "wrench/tip", "wrench/sensor1/compensated", "wrench/tip/compensated"):
+        assert wire.has_sigma(stream), stream
+    for stream in ("flux/sensor1", "wrench/", "wrench//compensated", "wrench/a/b", "sigma/wrench/tip"):
+        assert not wire.has_sigma(stream), stream
+
+
 def test_header_offsets_are_the_documented_ones():
     body = vector("wrench")[len(b"wrench/sensor1\0") :]
     assert body[0:2] == b"\x46\x54" and body[2] == 1 and body[3] == 1

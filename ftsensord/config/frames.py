@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ftsensord.chip import mpu6050
 from ftsensord.docfile import Table
 from ftsensord.model import se3
 
@@ -23,6 +24,11 @@ STANDARD_G = 9.80665
 ORIENTATION_SOURCES = ("mount", "stream")
 #: Longest frame name an orientation message carries (its 32-byte field keeps a NUL).
 MAX_FRAME_NAME = 31
+#: An orientation stream's 1-sigma per axis (deg) unless configured: an MPU-6050's tilt from one
+#: accelerometer reading, its datasheet noise (`mpu6050.noise_g`, 6.4 mg RMS with the digital
+#: low-pass off) over 1 g, in rad: the cheapest IMU a tool carries. The stream's messages say
+#: nothing of their noise; an encoder-fed haptic device is far better (set it lower).
+STREAM_SIGMA_DEG = float(np.degrees(mpu6050.noise_g()))
 #: Farthest a sensor or a payload's centre of mass lies from the frame it is given in (m):
 #: a hand-held or robot-carried tool is well within it; more is a unit mistake (30 for 30 mm).
 MAX_LEVER_M = 2.0
@@ -37,9 +43,10 @@ class Payload:
 
     def wrench(self, g: np.ndarray) -> np.ndarray:
         """The weight's wrench [f; m] (N, Nm) in the frame, for gravity ``g`` (m/s^2) seen
-        in the frame: f = m g at the centre of mass, m = c x f (`se3.wrench_transform`)."""
+        in the frame: f = m g at the centre of mass, m = c x f (`se3.wrench_transform`).
+        Several at once: ``g`` n x 3, the wrenches n x 6."""
         f = self.mass_kg * np.asarray(g, dtype=float)
-        return np.concatenate([f, np.cross(self.com_m, f)])
+        return np.concatenate([f, np.cross(self.com_m, f)], axis=-1)
 
 
 @dataclass
@@ -53,6 +60,9 @@ class GravityConfig:
     gravity_mps2: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -STANDARD_G]))  # world frame
     stale_after_s: float = 0.05
     endpoint: str | None = None  # the orientation stream's, when source = "stream"
+    #: Each orientation's 1-sigma about each of the frame's axes (rad), independent from one
+    #: cycle to the next: 0 (exact) for the mounts unless configured (`STREAM_SIGMA_DEG`).
+    orientation_sigma_rad: float = 0.0
 
 
 def tool_poses(tool: Table, sensors: list[str]) -> tuple[dict[str, np.ndarray], str]:
@@ -105,7 +115,7 @@ def gravity_config(
 ) -> GravityConfig:
     """``[gravity]``: payloads per frame, the orientations' source and its checks."""
     frames = [*sensors, *([TIP] if tool else [])]
-    g.only({"orientation", "endpoint", "stale_after_s", "gravity_mps2", *frames})
+    g.only({"orientation", "endpoint", "stale_after_s", "gravity_mps2", "orientation_sigma_deg", *frames})
     source = g.string("orientation", choices=ORIENTATION_SOURCES)
     gravity = np.array(g.numbers("gravity_mps2", 3, [0.0, 0.0, -STANDARD_G], unit="m/s^2, world frame"))
     # 9.7-9.9 m/s^2 is every place on Earth's surface; other magnitudes are a unit or sign mistake.
@@ -122,6 +132,18 @@ def gravity_config(
         gravity_mps2=gravity,
         stale_after_s=g.number("stale_after_s", 0.05, low=1e-3, high=60.0, unit="s"),
         endpoint=g.string("endpoint", default_endpoint) if source == "stream" else None,
+        # 10 deg is far beyond any IMU's or encoder's noise: more is a unit mistake (rad for deg).
+        orientation_sigma_rad=float(
+            np.radians(
+                g.number(
+                    "orientation_sigma_deg",
+                    STREAM_SIGMA_DEG if source == "stream" else 0.0,
+                    low=0.0,
+                    high=10.0,
+                    unit="deg, each orientation's 1-sigma about each axis",
+                )
+            )
+        ),
     )
     for name in frames:
         if name not in g.doc:

@@ -264,9 +264,12 @@ class Daemon:
             sigma = self.tip_sigma = tip_sigma([(X, samples[name].sigma) for name, X in moves])
             self._publish("sigma/wrench/tip", wire.KIND_SIGMA, seq, t_mono, t_wall, tip[1], sigma)
             self._publish("wrench/tip", wire.KIND_WRENCH, seq, t_mono, t_wall, tip[1], tip[0])
-        compensated = self.gravity.streams(samples, tip, self.sensors, start) if self.gravity else []
-        for topic, flags, values in compensated:
-            self._publish(topic, wire.KIND_WRENCH, seq, t_mono, t_wall, flags, values)
+        compensated = (
+            self.gravity.streams(samples, tip, self.tip_sigma, self.sensors, start) if self.gravity else []
+        )
+        for c in compensated:  # each with its sigma just before it, as the raw ones
+            self._publish(wire.SIGMA_PREFIX + c.topic, wire.KIND_SIGMA, seq, t_mono, t_wall, c.flags, c.sigma)
+            self._publish(c.topic, wire.KIND_WRENCH, seq, t_mono, t_wall, c.flags, c.wrench)
         for name, s in samples.items():
             self._publish(f"flux/{name}", wire.KIND_FLUX, seq, t_mono, t_wall, s.flux_flags, s.flux)
         for out in self.outputs:  # after every ZeroMQ send: no ZeroMQ sample waits for them

@@ -19,16 +19,22 @@ NaN, flagged invalid, until they are tared together (or all untared).
 
 The weight goes through a filter like the raw wrench's (averaging, low-pass), so
 both lag alike as the tool turns.
+
+Each compensated sample carries a 1-sigma per axis (`Compensated.sigma`, N and Nm): the
+raw sample's and the compensation's, independent, added in variance (`weight_variance`
+for the orientations' part). The payloads are configured values, taken as exact; the
+orientations are as exact as `GravityConfig.orientation_sigma_rad` says.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
-from ftsensord.config.frames import TIP, GravityConfig
+from ftsensord.config.frames import TIP, GravityConfig, Payload
+from ftsensord.model import se3
 from ftsensord.processing.filters import WrenchFilter
 from ftsensord.processing.pipeline import SensorPipeline, SensorSample
 from ftsensord.protocol import wire
@@ -40,6 +46,34 @@ from ftsensord.protocol.orientation import OrientationReceiver
 #: by far more (a hand holding a tool still wanders by degrees between two tares).
 TARE_AGREE = 1e-3
 NAN6 = np.full(6, np.nan)
+NAN6.setflags(write=False)
+
+
+class Compensated(NamedTuple):
+    """One compensated stream's sample of a cycle."""
+
+    topic: str  # wrench/<frame>/compensated
+    flags: int
+    wrench: np.ndarray  # N, Nm, in the frame; NaN invalid
+    sigma: np.ndarray  # its 1-sigma per axis (N, Nm); NaN unknown
+
+
+def weight_variance(payload: Payload, g: np.ndarray, sigma_rad: float | np.ndarray) -> np.ndarray:
+    """The variance per axis (6; N^2, Nm^2) of the weight W(g) (`Payload.wrench`) when g
+    (m/s^2, in the frame) comes from an orientation off by a small rotation d (rad, about the
+    frame's axes, each of 1-sigma ``sigma_rad``, independent). Several independent ones at
+    once, summed: ``g`` n x 3 and ``sigma_rad`` n.
+
+    The frame's gravity is R^T g_world; with R = R_true Exp(d) it is Exp(-d) g = g + g x d
+    to first order, so its error g x d = [g]x d has covariance sigma^2 [g]x [g]x^T (nothing
+    along g: a turn about the vertical leaves the weight as it is; an error d about the world's
+    axes instead, R = Exp(d) R_true, has the same covariance, d's being isotropic). W is linear
+    in g, so W's covariance is sigma^2 J [g]x [g]x^T J^T, J = dW/dg; its column k is
+    W(sigma g x e_k)."""
+    # [g]x's columns g x e_k are minus its rows (skew), a sign the squares drop: hat builds
+    # them for less than np.cross against the identity, and this runs each cycle on each frame.
+    turned = se3.hat(np.reshape(g, (-1, 3))) * np.reshape(sigma_rad, (-1, 1, 1))  # rows: -sigma g x e_k
+    return np.sum(np.square(payload.wrench(turned.reshape(-1, 3))), axis=0)
 
 
 class Gravity:
@@ -107,54 +141,92 @@ class Gravity:
             return 0, None
         return flags, g
 
-    def tip_tare_gravity(self, pipelines: Sequence[SensorPipeline]) -> np.ndarray | None:
-        """The tip's gravity at the tool's sensors' tares (tip frame), None unless they agree."""
+    def tip_tare(self, pipelines: Sequence[SensorPipeline]) -> tuple[np.ndarray | None, int | None]:
+        """The tip's gravity at the tool's sensors' tares (m/s^2, tip frame), None unless they
+        agree, and how many samples the one it is taken from averaged (`compensate`'s ``tare``)."""
+        tool = [p for p in pipelines if p.name in self.poses]
         gs = [
-            p.tare_gravity if p.tare_gravity is None else self._R_tip(p.name) @ p.tare_gravity
-            for p in pipelines
-            if p.name in self.poses
+            p.tare_gravity if p.tare_gravity is None else self._R_tip(p.name) @ p.tare_gravity for p in tool
         ]
         if not gs or any(g is None for g in gs):
-            return None
+            return None, None
         limit = TARE_AGREE * float(np.linalg.norm(self.config.gravity_mps2))
-        return gs[0] if all(np.max(np.abs(g - gs[0])) <= limit for g in gs) else None  # type: ignore[operator]
+        agree = all(np.max(np.abs(g - gs[0])) <= limit for g in gs)  # type: ignore[operator]
+        return (gs[0], tool[0].tare_samples) if agree else (None, None)
 
     def compensate(
-        self, frame: str, raw: np.ndarray, flags: int, g_tare: np.ndarray | None, now: float
-    ) -> tuple[np.ndarray, int]:
-        """``frame``'s compensated wrench (N, Nm) and flags from its raw (tared) one."""
+        self,
+        frame: str,
+        raw: np.ndarray,
+        flags: int,
+        sigma: np.ndarray,
+        tare: tuple[np.ndarray | None, int | None],
+        now: float,
+    ) -> tuple[np.ndarray, int, np.ndarray]:
+        """``frame``'s compensated wrench (N, Nm), flags and 1-sigma per axis (N, Nm; NaN
+        unknown) from its raw (tared) one and that one's sigma. ``tare``: the gravity
+        (m/s^2, frame) over the tare's samples (None: unknown) and how many samples it
+        averaged (None: unknown or untared, and the tare's orientation noise is left out, as
+        the raw sigma leaves out the tare's own noise then).
+
+        The variance per axis: the raw one, the weight's now (`weight_variance` times the
+        weight filter's variance factor: each cycle's orientation taken as a fresh,
+        independent draw, and the filter's inputs as of one variance, the tool turning
+        little within its window) and the tare's (the mean of n draws: 1 / n of it). An
+        orientation sender slower than the loop repeats its draws: the filter then shrinks
+        their noise less than the factor says."""
         payload, weights = self.config.payloads[frame], self.filters[frame]
+        g_tare, n_tare = tare
         g, stale = self.gravity(frame, now)
         if g is None or g_tare is None or not np.all(np.isfinite(raw)):
             weights.reset()  # no weight to follow: start again with the next one
-            return NAN6, flags | stale | wire.FLAG_INVALID
+            return NAN6, flags | stale | wire.FLAG_INVALID, NAN6
         weight, wflags = weights.update(payload.wrench(g), stale)
-        return raw + payload.wrench(g_tare) - weight, flags | wflags
+        values, flags = raw + payload.wrench(g_tare) - weight, flags | wflags
+        s = self.config.orientation_sigma_rad
+        if s == 0.0:  # exact orientations (a mount's): the raw sample's sigma alone
+            return values, flags, sigma
+        # The weight now (through its filter) and at the tare, independent: one call for both.
+        gs, scales = [g], [s * np.sqrt(weights.variance_factor())]
+        if n_tare:
+            gs.append(g_tare)
+            scales.append(s / np.sqrt(n_tare))
+        return (
+            values,
+            flags,
+            np.sqrt(np.square(sigma) + weight_variance(payload, np.array(gs), np.array(scales))),
+        )
 
     def streams(
         self,
         samples: dict[str, SensorSample],
         tip: tuple[np.ndarray, int] | None,
+        tip_sigma: np.ndarray | None,
         pipelines: Sequence[SensorPipeline],
         now: float,
-    ) -> list[tuple[str, int, np.ndarray]]:
-        """This cycle's compensated streams: (topic, flags, wrench)."""
+    ) -> list[Compensated]:
+        """This cycle's compensated streams, from the raw samples, the tip's wrench and flags
+        and its sigma (N, Nm; NaN or None unknown)."""
         out = []
         for p in pipelines:
             if p.name in self.config.payloads:
                 s = samples[p.name]
-                values, flags = self.compensate(p.name, s.wrench, s.flags, p.tare_gravity, now)
-                out.append((f"wrench/{p.name}/compensated", flags, values))
+                tare = (p.tare_gravity, p.tare_samples)
+                values, flags, sigma = self.compensate(p.name, s.wrench, s.flags, s.sigma.sigma, tare, now)
+                out.append(Compensated(f"wrench/{p.name}/compensated", flags, values, sigma))
         if tip is not None and TIP in self.config.payloads:
-            values, flags = self.compensate(TIP, tip[0], tip[1], self.tip_tare_gravity(pipelines), now)
-            out.append(("wrench/tip/compensated", flags, values))
+            raw_sigma = NAN6 if tip_sigma is None else tip_sigma
+            values, flags, sigma = self.compensate(
+                TIP, tip[0], tip[1], raw_sigma, self.tip_tare(pipelines), now
+            )
+            out.append(Compensated("wrench/tip/compensated", flags, values, sigma))
         return out
 
     def status(self, pipelines: Sequence[SensorPipeline], now: float) -> dict[str, Any]:
         """The `status` reply's ``gravity``: source, payloads, orientations' ages, drops."""
         tares = {p.name: p.tare_gravity for p in pipelines}
         if TIP in self.config.payloads:
-            tares[TIP] = self.tip_tare_gravity(pipelines)
+            tares[TIP] = self.tip_tare(pipelines)[0]
         frames = {}
         for f, payload in self.config.payloads.items():
             R, stale = self.orientation(f, now)
@@ -175,6 +247,7 @@ class Gravity:
             "endpoint": self.config.endpoint,
             "stale_after_s": self.config.stale_after_s,
             "gravity_mps2": self.config.gravity_mps2.tolist(),
+            "orientation_sigma_deg": float(np.degrees(self.config.orientation_sigma_rad)),
             "frames": frames,
             "stream": self.receiver.status(now),
         }

@@ -28,9 +28,10 @@ SIGMA_PREFIX = "sigma/"
 
 def has_sigma(stream: str) -> bool:
     """Whether the daemon sends a sigma companion (`SIGMA_PREFIX` + ``stream``) with each
-    sample of ``stream``: a sensor's wrench or the tip's (``wrench/<name>``), not a
-    compensated one (``wrench/<name>/compensated``) nor flux."""
+    sample of ``stream``: a sensor's wrench or the tip's (``wrench/<name>``) and their
+    compensated ones (``wrench/<name>/compensated``), not flux."""
     kind, _, name = stream.partition("/")
+    name = name.removesuffix("/compensated")
     return kind == "wrench" and bool(name) and "/" not in name
 
 

@@ -38,6 +38,7 @@ from ftsensord.ros2.bridge import DIAGNOSTICS_S, READERS_S, WRENCH_BYTES, tare
 if TYPE_CHECKING:
     from ftsensord.config.ros2conf import Ros2Config
     from ftsensord.daemon.daemon import Daemon
+    from ftsensord.processing.gravity import Compensated
     from ftsensord.processing.pipeline import SensorSample
     from ftsensord.ros2.node import Ros2Node
 
@@ -81,7 +82,7 @@ class Stream:
         wrench_writer, status_writer, cdr = node._writers(topic)  # noqa: SLF001 (the node's own table)
         self.wrench_writer, self.status_writer = wrench_writer, status_writer
         self.wrench_ref, self.status_ref = wrench_writer._ref, status_writer._ref  # noqa: SLF001 (for ddspy_write)
-        self.sigma_writer = node.sigma_writers.get(topic)  # None: a stream without a sigma (compensated)
+        self.sigma_writer = node.sigma_writers.get(topic)  # None: a stream without a sigma (`wire.has_sigma`)
         self.sigma_ref = None if self.sigma_writer is None else self.sigma_writer._ref  # noqa: SLF001
         self.wrench = bytearray(cdr.message(0.0, bytes(WRENCH_BYTES)))
         self.sigma = bytearray(self.wrench)  # the same layout: a WrenchStamped, its stamp and frame
@@ -123,7 +124,7 @@ class InLoop:
         t_wall: float,
         samples: dict[str, SensorSample],
         tip: tuple[np.ndarray, int] | None,
-        compensated: list[tuple[str, int, np.ndarray]],
+        compensated: list[Compensated],
     ) -> None:
         """A cycle's wrenches (N, Nm, each in its stream's frame), stamped ``t_wall`` (UNIX s), to
         the DDS readers; then, when due, readers, diagnostics and inputs. What fails in DDS is
@@ -142,7 +143,7 @@ class InLoop:
         t_wall: float,
         samples: dict[str, SensorSample],
         tip: tuple[np.ndarray, int] | None,
-        compensated: list[tuple[str, int, np.ndarray]],
+        compensated: list[Compensated],
     ) -> None:
         time_bytes = _TIME.pack(*stamp(t_wall))
         for name, s in samples.items():
@@ -154,7 +155,8 @@ class InLoop:
             (f"wrench/{n}", s.flags, s.wrench, s.sigma.sigma) for n, s in samples.items()
         ]
         wrenches += [("wrench/tip", tip[1], tip[0], self.daemon.tip_sigma)] if tip is not None else []
-        for topic, flags, values, sigma in wrenches + [(*c, None) for c in compensated]:
+        wrenches += compensated
+        for topic, flags, values, sigma in wrenches:
             stream = self.streams.get(topic)
             if stream is None:
                 continue  # a stream the configuration did not have at start (a reload): not on DDS

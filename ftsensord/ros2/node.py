@@ -5,7 +5,7 @@ Topics (ROS names; the DDS topic is ``rt`` + the name):
 - ``/<ns>/wrench/<stream>`` (``wrench/sensor1``, ``wrench/tip``, ``wrench/tip/compensated``...):
   ``geometry_msgs/msg/WrenchStamped``, N and Nm, stamp the sample's ``t_wall``, frame_id its frame;
   ``/<ns>/wrench/<stream>/status``: ``ftsensord_msgs/msg/SampleStatus`` (seq, flags, missed);
-  ``/<ns>/wrench/<stream>/sigma`` (a sensor's and the tip's, `wire.has_sigma`):
+  ``/<ns>/wrench/<stream>/sigma`` (a sensor's, the tip's and their compensated ones, `wire.has_sigma`):
   ``geometry_msgs/msg/WrenchStamped``, the same sample's 1-sigma per axis (N, Nm; NaN
   unknown), its stamp and frame_id (docs/guide/ros2.md says why a companion of this type);
 - ``/diagnostics``: ``diagnostic_msgs/msg/DiagnosticArray``, about 1 Hz;
