@@ -22,7 +22,7 @@ from ftsensord.client import Subscriber
 from ftsensord.config.file import builtin_path
 from ftsensord.model import se3
 from ftsensord.model.linear import SENSOR_RANGE
-from ftsensord.model.nonlinear import PRIOR_WEIGHT
+from ftsensord.model.nonlinear import JACOBIAN_REUSE_M, PRIOR_WEIGHT
 from ftsensord.processing.filters import WrenchFilter, variance_factors
 from ftsensord.processing.pipeline import channel_sigma_t
 from ftsensord.processing.tare import carry_tares, tare_on
@@ -534,7 +534,7 @@ def test_the_nonlinear_sigma_takes_the_jacobian_the_solve_keeps(monkeypatch, tmp
         scene.set_load(sensor.name, StaticLoad(w))
         flux = np.concatenate([scene.field_t(a, 100.0) for a in sensor.addresses])
         readings.append(Readings.of_field(sensor.addresses, flux + rng.normal(0, 1e-7, flux.size)))
-    counts = []
+    counts, kept = [], []
     for with_sigma in (False, True):
         p = SensorPipeline.build(load_config().sensors[0], WrenchFilter(), 2, thermal=False, rate_hz=100.0)
         p.use("nonlinear")
@@ -546,14 +546,26 @@ def test_the_nonlinear_sigma_takes_the_jacobian_the_solve_keeps(monkeypatch, tmp
         for i, r in enumerate(readings):
             sample = p.step(r)
             assert np.all(np.isfinite(sample.sigma.sigma)) == with_sigma
+            if with_sigma and i in (10, 19):  # the held load's maps: its variances per axis
+                kept.append(p.uncertainty.maps(p.version, "nonlinear", EVERY, None)[1])  # type: ignore[index]
             if with_sigma and i == 19:  # the held load's quantisation maps (untared: q^2 a channel)
                 key = (p.version, "nonlinear", EVERY.tobytes())
                 held = p.uncertainty.quantisation(key, np.zeros(6), np.zeros(6), False).copy()
         counts.append(counted["calls"])
     # numpy's solve makes its Jacobians in Python, the compiled one in C: none from the sigma
     assert counts[1] == counts[0] and (counts[0] > 0) == (solver == "numpy")
+    assert kept[0] is kept[1]  # the held load's solve kept its Jacobian: its maps were not made again
     nl = p.nonlinear
-    J = nl.jacobian_at(nl.pose, nl.background_t)
+    version, J = nl.jacobian_at(nl.pose, nl.background_t)
+    # Its version is the kept Jacobian's: the same again (no copy for who has it), a new one
+    # with a new Jacobian (past the reuse rule's 40 um).
+    assert nl.jacobian_at(nl.pose, nl.background_t, version) == (version, None)
+    moved = nl.pose.copy()
+    moved[0, 3] += 2 * JACOBIAN_REUSE_M
+    other, J_moved = nl.jacobian_at(moved, nl.background_t, version)
+    assert other != version and J_moved is not None and not np.allclose(J_moved, J, rtol=1e-6, atol=0)
+    assert nl.jacobian_at(nl.pose, nl.background_t, other)[0] not in (version, other)  # and back: another
+    version, J = nl.jacobian_at(nl.pose, nl.background_t)
     maps = p.uncertainty.maps(p.version, "nonlinear", EVERY, None, (nl.pose, nl.background_t))
     assert maps is not None
     M = nl.stiffness @ np.linalg.solve(J.T @ J + np.diag([0.0] * 6 + [PRIOR_WEIGHT] * 3), J.T)[:6]

@@ -92,19 +92,35 @@ static int lu_factor(double A[][PMAX], int *piv, int m)
     return ok;
 }
 
-static void lu_solve(double A[][PMAX], const int *piv, int m, double *x)
+/* A X = B solved in place for B's n columns (m rows, row i from x + i * stride), A factored by
+ * lu_factor. Each column takes the same operations in the same order as it would alone; the
+ * columns are the innermost loop, so the compiler runs them side by side (the chord gains'
+ * 3n columns one after the other waited on each other's divisions: most of the sigma's cost). */
+static void lu_solve(double A[][PMAX], const int *piv, int m, double *restrict x, int n, int stride)
 {
     for (int k = 0; k < m; k++) {  /* the row swaps first: they moved L's rows too */
-        double t = x[k];
-        x[k] = x[piv[k]], x[piv[k]] = t;
+        double *restrict row = x + k * stride, *restrict other = x + piv[k] * stride;
+        if (piv[k] != k)
+            for (int c = 0; c < n; c++) {
+                double t = row[c];
+                row[c] = other[c], other[c] = t;
+            }
     }
     for (int k = 0; k < m; k++)
-        for (int i = k + 1; i < m; i++)
-            x[i] -= A[i][k] * x[k];
+        for (int i = k + 1; i < m; i++) {
+            double l = A[i][k];
+            for (int c = 0; c < n; c++)
+                x[i * stride + c] -= l * x[k * stride + c];
+        }
     for (int k = m - 1; k >= 0; k--) {
-        for (int j = k + 1; j < m; j++)
-            x[k] -= A[k][j] * x[j];
-        x[k] /= A[k][k];
+        for (int j = k + 1; j < m; j++) {
+            double u = A[k][j];
+            for (int c = 0; c < n; c++)
+                x[k * stride + c] -= u * x[j * stride + c];
+        }
+        double d = A[k][k];
+        for (int c = 0; c < n; c++)
+            x[k * stride + c] /= d;
     }
 }
 
@@ -166,13 +182,15 @@ static int linearise(const nl_model *M, nl_state *S, nl_jacobian *K, const doubl
 
 /* The Jacobian a solve with the background field keeps (linearise) at T (16) and field u (3),
  * into J (3n x PMAX, row-major): made anew only where a solve would make one, and kept for
- * the solves after. nonlinear.NonlinearEstimator.jacobian_at. */
-void nl_kept_jacobian(const nl_model *M, nl_state *S, const double *T, const double *u, double *J)
+ * the solves after. Returns its id (S->next_id when it was made, unique in this state): what
+ * was made from it is still its own while the id is the same. nonlinear.NonlinearEstimator.jacobian_at. */
+long nl_kept_jacobian(const nl_model *M, nl_state *S, const double *T, const double *u, double *J)
 {
     double pred[CMAX];
     nl_jacobian *K = &S->jac[1];
     linearise(M, S, K, T, u, 1, pred);
     memcpy(J, K->J, sizeof(double) * 3 * (size_t)M->n * PMAX);
+    return K->id;
 }
 
 /* nonlinear.NonlinearEstimator.gains with every channel: G = (J^T J + P)^-1 J^T into G (PMAX x
@@ -182,7 +200,7 @@ void nl_kept_jacobian(const nl_model *M, nl_state *S, const double *T, const dou
 int nl_chord_gains(const nl_model *M, nl_state *S, const double *J, double *G)
 {
     int nc = 3 * (int)M->n, used[CMAX];
-    double r[CMAX], u[3] = {0, 0, 0}, rhs[PMAX], x[PMAX];
+    double r[CMAX], u[3] = {0, 0, 0}, rhs[PMAX];
     for (int c = 0; c < nc; c++)
         used[c] = 1, r[c] = 0.0;
     nl_jacobian *K = &S->jac[1], own;
@@ -196,13 +214,10 @@ int nl_chord_gains(const nl_model *M, nl_state *S, const double *J, double *G)
     }
     if (K->singular)
         return 0;
-    for (int c = 0; c < nc; c++) {
-        for (int a = 0; a < PMAX; a++)
-            x[a] = K->J[c][a];
-        lu_solve(K->lu, K->piv, PMAX, x);
-        for (int a = 0; a < PMAX; a++)
-            G[a * CMAX + c] = x[a];
-    }
+    for (int a = 0; a < PMAX; a++)  /* J^T, solved for in place: all its columns at once */
+        for (int c = 0; c < nc; c++)
+            G[a * CMAX + c] = K->J[c][a];
+    lu_solve(K->lu, K->piv, PMAX, G, nc, CMAX);
     return 1;
 }
 
@@ -298,7 +313,7 @@ int nl_solve(const nl_model *M, nl_state *S, const double *b, const double *usab
                     if (background)
                         for (int a = 0; a < 3; a++)
                             step[6 + a] -= pw * uc[a];
-                    lu_solve(K->lu, K->piv, p, step);
+                    lu_solve(K->lu, K->piv, p, step, 1, 1);
                 }
             } else {  /* JtJ + lam diag(JtJ) */
                 double damped[PMAX][PMAX];
@@ -308,7 +323,7 @@ int nl_solve(const nl_model *M, nl_state *S, const double *b, const double *usab
                     damped[a][a] *= 1 + lam;
                 solvable = lu_factor(damped, piv, p);
                 if (solvable)
-                    memcpy(step, Jtr, sizeof(double) * p), lu_solve(damped, piv, p, step);
+                    memcpy(step, Jtr, sizeof(double) * p), lu_solve(damped, piv, p, step, 1, 1);
             }
             if (!solvable) {  /* J^T J singular (a pose no chip sees move): a refusal */
                 nlm_log_se3(T, tun[SMALL_ANGLE], tun[NEAR_PI], out);

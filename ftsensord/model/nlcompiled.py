@@ -94,7 +94,7 @@ def load(path: Path | None = None) -> ctypes.CDLL | None:
         lib.nl_continued.argtypes = [_P, _P, ctypes.c_double, ctypes.c_double, _P, _P]
         lib.nl_continued.restype = None
         lib.nl_kept_jacobian.argtypes = [_P, _P, _P, _P, _P]
-        lib.nl_kept_jacobian.restype = None
+        lib.nl_kept_jacobian.restype = ctypes.c_long
         lib.nl_chord_gains.argtypes = [_P, _P, _P, _P]
         lib.nl_chord_gains.restype = ctypes.c_int
         lib.nl_model_offset.argtypes = lib.nl_tunable_index.argtypes = [ctypes.c_char_p]
@@ -238,18 +238,23 @@ class CompiledSolve:
             self._end = (T, est.background_t, background)
         return self._out[:6].copy(), T, converged, int(out[7]), out[6], u
 
-    def jacobian(self, est: Any, T: np.ndarray, u: np.ndarray, constants: dict[str, Any]) -> np.ndarray:
+    def jacobian(
+        self, est: Any, T: np.ndarray, u: np.ndarray, constants: dict[str, Any], known: int | None = None
+    ) -> tuple[int, np.ndarray | None]:
         """`NonlinearEstimator.jacobian_at` for ``est``: the Jacobian with the background field's
-        columns (3n x 9) its solve keeps at pose ``T`` and field ``u`` (a copy), made and kept in
-        the state only where the solve would make one. With the model and tolerances the last
-        solve packed (its kept Jacobians are theirs); packed here before the first."""
+        columns (3n x 9) its solve keeps at pose ``T`` and field ``u`` (a copy; None when its
+        count is ``known``), made and kept in the state only where the solve would make one,
+        and its count in this state (`nl_kept_jacobian`'s id). With the model and tolerances
+        the last solve packed (its kept Jacobians are theirs); packed here before the first."""
         if not self._packed:
             self._pack(est, _tunables(constants, est.max_iterations), constants["PLAUSIBLE_WRENCH"])
         self._T[:] = T.ravel()
         self._u[:] = u
         model, state, _, _, T_at, u_at = self._addresses
-        self.lib.nl_kept_jacobian(model, state, T_at, u_at, self._J_at)
-        return self._J[: 3 * int(self._model[0])].copy()  # the packed chips' (nl_model.n)
+        count = self.lib.nl_kept_jacobian(model, state, T_at, u_at, self._J_at)
+        if count == known:
+            return count, None
+        return count, self._J[: 3 * int(self._model[0])].copy()  # the packed chips' (nl_model.n)
 
     def chord_gains(self, J: np.ndarray) -> np.ndarray:
         """`NonlinearEstimator.gains` with every channel: (J^T J + P)^-1 J^T (9 x 3n) for J

@@ -153,8 +153,10 @@ class NonlinearEstimator:
         self.pose = np.eye(4)  # the warm start: the previous sample's pose
         self.background_t = np.zeros(3)  # and its background field
         #: The last Jacobian per kind of solve (with the background field or not), its pose's
-        #: rows and field as lists: `_linearise` reuses it near there.
-        self._jacobians: dict[bool, tuple[list[list[float]], list[float] | None, np.ndarray]] = {}
+        #: rows and field as lists, and its count (`_made` when it was made): `_linearise`
+        #: reuses it near there.
+        self._jacobians: dict[bool, tuple[list[list[float]], list[float] | None, np.ndarray, int]] = {}
+        self._made = 0  # the Jacobians numpy's solve has made: each one's count (`jacobian_at`)
         #: The last converged fit's pose, field, kind (with the field or not) and predicted
         #: flux: a warm start from that pose and field needs no prediction of its own.
         self._end: tuple[np.ndarray, np.ndarray, bool, np.ndarray | None] | None = None
@@ -358,18 +360,27 @@ class NonlinearEstimator:
         if kept is not None and _near(T, kept[0], u, kept[1]):
             return kept[2], None
         pred, J = self.model.predict_and_jacobian(T, u, background)
-        self._jacobians[background] = (T.tolist(), None if u is None else u.tolist(), J)
+        self._made += 1
+        self._jacobians[background] = (T.tolist(), None if u is None else u.tolist(), J, self._made)
         return J, pred
 
-    def jacobian_at(self, T: np.ndarray, u: np.ndarray) -> np.ndarray:
+    def jacobian_at(
+        self, T: np.ndarray, u: np.ndarray, known: tuple[object, int] | None = None
+    ) -> tuple[tuple[object, int], np.ndarray | None]:
         """The flux model's Jacobian at pose ``T`` and background field ``u`` with the field's
         columns (3n x 9, every channel), as the solve with the field uses it: the one it keeps,
         made within `JACOBIAN_REUSE_M`, 4 mrad and `JACOBIAN_REUSE_T` of (T, u), else a new
-        one, kept for the solves after (at the last fit's pose, a warm start's). Do not
-        change it in place."""
+        one, kept for the solves after (at the last fit's pose, a warm start's). With its
+        version: the solve that keeps it (numpy's: this estimator; the compiled one's) and its
+        count there, new with each Jacobian made, so a cache of what was made from it stays
+        right while the version does. None instead of the Jacobian when its version is
+        ``known`` (the caller has it). Do not change it in place."""
         if self.compiled is not None:
-            return self.compiled.jacobian(self, T, u, globals())
-        return self._kept_jacobian(T, u, True)[0]
+            count, J = self.compiled.jacobian(self, T, u, globals(), None if known is None else known[1])
+            return (self.compiled, count), J
+        J = self._kept_jacobian(T, u, True)[0]
+        version = (self, self._jacobians[True][3])
+        return version, None if version == known else J
 
     def gains(self, J: np.ndarray, channels: np.ndarray | None = None) -> np.ndarray:
         """(J_S^T J_S + P)^-1 J_S^T (9 x the channels used): how the solve's answer (pose and

@@ -37,8 +37,10 @@ without an estimate (invalid) or whose estimator fell back has no known sigma: N
 from __future__ import annotations
 
 import math
+import operator
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -156,9 +158,10 @@ class ModelError:
         a = np.abs(wrench) if known is None else np.maximum(np.abs(wrench) - known, 0.0)
         beyond = None
         # The load on the sensor (the tare's included) past the range on an axis: six floats'
-        # test (numpy's calls on six numbers would cost more than the rest of the sample).
+        # test (numpy's calls on six numbers would cost more than the rest of the sample), in
+        # maps of builtins (no Python frame a value, as a generator's).
         if self._bounded and any(
-            abs(w + t) > edge for w, t, edge in zip(wrench.tolist(), tare_wrench.tolist(), self._within)
+            map(operator.gt, map(abs, map(operator.add, wrench.tolist(), tare_wrench.tolist())), self._within)
         ):  # the range's terms held at its edge, the last term grows from there
             past = np.abs(wrench + tare_wrench) - self.within
             a = np.minimum(a, self.within)
@@ -211,29 +214,77 @@ NOISE_SIGMAS = 2.0
 
 @dataclass(eq=False)
 class _Maps:
-    """One estimator's, set of chips' and tare's noise maps (`Uncertainty.maps`), what a sample
-    makes of them at the filter's variance factor (kept for the last factor: it holds once the
-    filter has settled, so a sample makes only its model error's part), the undithered
-    quantisation's maps through the same M (`quantisation`; None when ``lsb_t`` tells none
-    apart), and the noise at the tare's own field (`held_weights`; None without the tare's
-    spread): made together and dropped together, on a tare or a new kept Jacobian."""
+    """One estimator's, set of chips' and tare's noise maps (`Uncertainty.maps`), all through M,
+    how the estimate moves with each channel used (6 x channels): the noise over the fields
+    (``channels``' independent noise), at the tare's own field where its spread is known
+    (`held_weights`), the tare's, and the undithered quantisation's (`quantisation`; none when
+    ``lsb_t`` tells none apart). Made together and dropped together, on a tare or a new kept
+    Jacobian, as a moving load's nonlinear estimate keeps at nearly every sample: what each
+    sample takes of them (their variances per axis) is made with them, the rest when first
+    asked (the 6 x 6 covariances: the tip's; the per-channel maps: a tared load's). What a
+    sample makes of them at the filter's variance factor is kept for the last factor: it holds
+    once the filter has settled, so a sample makes only its model error's part."""
 
-    M: np.ndarray  # (6 x channels) how the estimate moves with each channel used
-    expected: np.ndarray  # (channels) each channel's noise variance the filter shrinks, over the fields (T^2)
-    noise: np.ndarray  # one sample's noise covariance (6 x 6) from ``expected``
-    diag: np.ndarray  # its diagonal
-    offset: np.ndarray  # the tare's covariance (6 x 6)
-    offset_diag: np.ndarray  # its diagonal
+    M: np.ndarray
+    channels: _Channels
+    tare_samples: int | None  # how many samples the tare's zero averaged (None: its noise unknown)
+    #: (channels) the tare's own samples' variance (T^2); None: not known (or too few samples)
+    spread: np.ndarray | None = None
+    diag: np.ndarray = field(init=False)  # one sample's noise variance per axis (`noise`'s diagonal)
+    held_diag: np.ndarray | None = field(
+        init=False
+    )  # at the tare's field (`held_noise`'s); None without ``spread``
+    offset_diag: np.ndarray = field(init=False)  # the tare's (`offset`'s diagonal)
+    #: The undithered quantisation's variance untared, q^2 a channel (`quantisation`); None when
+    #: ``lsb_t`` tells none apart
+    bias_untared: np.ndarray | None = field(init=False)
     #: (factor, factor * the noise at the tare's field + offset_diag, NOISE_SIGMAS times its root)
     now: tuple[float, np.ndarray, np.ndarray] | None = None
-    bias: np.ndarray | None = None  # (6 x channels) M^2 q^2: each channel's share on each axis
-    bias_untared: np.ndarray | None = None  # (6) its sum: the variance untared, q^2 a channel
-    bias_moves: np.ndarray | None = None  # (channels x 6) a load's move of each field, pi sqrt(2) / LSB
-    spread: np.ndarray | None = None  # (channels) the tare's own samples' variance (T^2)
-    held_noise: np.ndarray | None = None  # (6 x 6) the noise covariance from ``spread``
-    held_diag: np.ndarray | None = None  # its diagonal
-    held_shift: np.ndarray | None = None  # (6 x channels) M^2 (spread - expected)
-    held_moves: np.ndarray | None = None  # (channels x 6) a load's move of each field, in chip noise sigmas
+
+    def __post_init__(self) -> None:
+        squared = self.M * self.M
+        # The variances per axis over the fields in one product: sum_c M_kc^2 (sigma_c^2, q_c^2).
+        per_axis = self.channels.variances @ squared.T
+        self.diag = per_axis[0]
+        self.bias_untared = None if self.channels.bias_moves is None else per_axis[1]
+        self.held_diag = None if self.spread is None else squared @ self.spread
+        # The tare's mean is of its own samples: their spread where known.
+        tare = self.diag if self.held_diag is None else self.held_diag
+        self.offset_diag = tare / self.tare_samples if self.tare_samples else np.zeros(6)
+
+    @property
+    def expected(self) -> np.ndarray:
+        """(channels) Each channel's noise variance the filter shrinks, over the fields (T^2)."""
+        return self.channels.variances[0]
+
+    @cached_property
+    def noise(self) -> np.ndarray:
+        """One sample's noise covariance (6 x 6) over the fields, of the noise the filter shrinks."""
+        return propagate(self.M, self.channels.independent)
+
+    @cached_property
+    def held_noise(self) -> np.ndarray:
+        """`noise` at the tare's field (6 x 6), from ``spread``."""
+        assert self.spread is not None
+        return (self.M * self.spread) @ self.M.T
+
+    @cached_property
+    def held_shift(self) -> np.ndarray:
+        """(6 x channels) M^2 (spread - expected): each channel's move from `held_diag` to `diag`."""
+        assert self.spread is not None
+        return self.M * self.M * (self.spread - self.expected)
+
+    @cached_property
+    def offset(self) -> np.ndarray:
+        """The tare's noise covariance (6 x 6): its own samples' noise over their number."""
+        if not self.tare_samples:
+            return np.zeros((6, 6))
+        return (self.noise if self.spread is None else self.held_noise) / self.tare_samples
+
+    @cached_property
+    def bias(self) -> np.ndarray:
+        """(6 x channels) M^2 q^2: each channel's share of `bias_untared` on each axis."""
+        return self.M * self.M * self.channels.variances[1]
 
     def at(self, factor: float) -> tuple[np.ndarray, np.ndarray]:
         """The noise's variance per axis at the filter's variance ``factor`` at the tare's field
@@ -253,12 +304,12 @@ class _Maps:
         (a step of the LSB toggles a reading only within a few of them of its field: past
         them the toggling is another field's, as likely as any). None: the tare's field
         (every weight 1), or no spread known."""
-        if self.held_moves is None:
+        if self.spread is None:
             return None
         load = np.copysign(np.maximum(np.abs(wrench) - known, 0.0), wrench)
         if not load.any():
             return None
-        z = self.held_moves @ load
+        z = self.channels.held_moves @ load
         return np.exp(-0.5 * z * z)
 
     def noise_diag(self, held: np.ndarray | None) -> np.ndarray:
@@ -268,7 +319,6 @@ class _Maps:
             return self.diag
         if held is None:
             return self.held_diag
-        assert self.held_shift is not None
         return self.diag + self.held_shift @ held
 
     def noise_at(self, held: np.ndarray | None) -> np.ndarray:
@@ -276,7 +326,6 @@ class _Maps:
         if self.spread is None:
             return self.noise
         if held is None:
-            assert self.held_noise is not None
             return self.held_noise
         return (self.M * (self.expected + held * (self.spread - self.expected))) @ self.M.T
 
@@ -290,7 +339,8 @@ class _Maps:
         form up to its mean, d the field the load ``wrench`` less ``known`` (its noise, as the
         model error's) moves the channel by. ``moved``: as once a load has moved every channel's
         field an LSB or more, whatever ``wrench`` (the mean a load brings: what plans take)."""
-        if self.bias is None or self.bias_untared is None or self.bias_moves is None:
+        moves = self.channels.bias_moves
+        if self.bias_untared is None or moves is None:
             return np.zeros(6)
         if not tared:
             return self.bias_untared
@@ -299,8 +349,24 @@ class _Maps:
         load = np.copysign(np.maximum(np.abs(wrench) - known, 0.0), wrench)
         if not load.any():
             return np.zeros(6)
-        d = self.bias_moves @ load  # pi sqrt(2) d / LSB a channel
+        d = moves @ load  # pi sqrt(2) d / LSB a channel
         return 2.0 * (self.bias @ np.minimum(1.0, d * d))
+
+
+@dataclass(frozen=True, eq=False)
+class _Channels:
+    """A set of chips' channels and what its maps take of the chips' settings for them."""
+
+    where: np.ndarray  # bool per channel: the chips' channels
+    every: bool  # every chip's
+    independent: np.ndarray  # their noise the filter shrinks (T, `Uncertainty.independent_t`)
+    #: (2 x channels) that noise's variance over the fields and the undithered quantisation's,
+    #: q^2 (T^2, `Uncertainty.bias_t` squared)
+    variances: np.ndarray
+    #: (channels x 6) a load's move of each field in LSBs, times pi sqrt(2) (`_Maps.quantisation`);
+    #: None when no quantisation is told apart
+    bias_moves: np.ndarray | None
+    held_moves: np.ndarray  # (channels x 6) a load's move of each field, in the chip's noise sigmas
 
 
 def undithered(noise: np.ndarray, lsb: np.ndarray) -> np.ndarray:
@@ -365,20 +431,43 @@ class Uncertainty:
         self._nonlinear = nonlinear
         self._cache: dict[tuple[int, str, bytes], _Maps] = {}
         self._version = -1
-        #: Per set of chips (bool per chip, its bytes): its channels (bool per channel) and their
-        #: noise the filter shrinks (``independent_t``).
-        self._channels: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
-        self._jacobian = b""  # the nonlinear maps' Jacobian (`NonlinearEstimator.jacobian_at`), its bytes
+        #: Per set of chips (bool per chip, its bytes): what its maps take of the settings' alone.
+        self._channels: dict[bytes, _Channels] = {}
+        #: The nonlinear maps' Jacobian (`NonlinearEstimator.jacobian_at`) and its version.
+        self._jacobian: tuple[tuple[object, int] | None, np.ndarray | None] = (None, None)
 
-    def _nonlinear_map(self, J: np.ndarray, channels: np.ndarray) -> np.ndarray:
+    def _nonlinear_map(self, J: np.ndarray, channels: np.ndarray | None) -> np.ndarray:
         """K [(J_S^T J_S + P)^-1 J_S^T] (its first 6 rows): how the solve's answer moves with the
-        flux of the channels used, J the flux model's Jacobian at the solve's pose with the
-        background field's 3 columns (the solve estimates the field beside the pose, with its
-        prior P: `NonlinearEstimator.gains`, with every chip the solve's own chord gains).
-        Without those columns the noise of Fz and the torques came out at half the spread the
-        solve gives."""
+        flux of ``channels`` (bool per channel; None: every one), J the flux model's Jacobian at
+        the solve's pose with the background field's 3 columns (the solve estimates the field
+        beside the pose, with its prior P: `NonlinearEstimator.gains`, with every chip the
+        solve's own chord gains). Without those columns the noise of Fz and the torques came
+        out at half the spread the solve gives."""
         assert self._nonlinear is not None
         return self._nonlinear.stiffness @ self._nonlinear.gains(J, channels)[:6]
+
+    def _channels_of(self, chips: np.ndarray, used: bytes) -> _Channels:
+        """What the maps of ``chips`` (bool per chip; ``used`` its bytes) take of the settings'
+        alone, made once per set of chips."""
+        found = self._channels.get(used)
+        if found is None:
+            where = np.repeat(chips, 3)
+            independent = self.independent_t[where]
+            bias_moves = None
+            if self._quantised:  # (channels x 6): a load's move of each field, in LSBs, times pi sqrt(2)
+                bias_moves = (
+                    self._flux_per_wrench[where] * (np.pi * np.sqrt(2.0) / self.lsb_t[where])[:, None]
+                )
+            sigma_n = self.chip_noise_t[where]
+            found = self._channels[used] = _Channels(
+                where,
+                bool(chips.all()),
+                independent,
+                np.array([independent**2, self.bias_t[where] ** 2]),
+                bias_moves,
+                self._flux_per_wrench[where] / np.where(sigma_n > 0, sigma_n, np.inf)[:, None],
+            )
+        return found
 
     def maps(
         self,
@@ -422,60 +511,35 @@ class Uncertainty:
             # model's Jacobian (a solve's cost again) on every sample the load moves. The maps
             # are made again when it is another one.
             here = (self._nonlinear.pose, self._nonlinear.background_t) if pose is None else pose
-            J = self._nonlinear.jacobian_at(*here)
-            made_of = J.tobytes()
-            if made_of != self._jacobian:
+            made_of, J = self._nonlinear.jacobian_at(here[0], here[1], self._jacobian[0])
+            if J is None:  # the one the maps are of
+                J = self._jacobian[1]
+            else:  # another one (its version's count is new): its maps made again
                 for key in [k for k in self._cache if k[1] == "nonlinear"]:
                     del self._cache[key]
-                self._jacobian = made_of
+                self._jacobian = (made_of, J)
         used = chips.tobytes()
         key = (version, estimator, used)
         found = self._cache.get(key)
         if found is None:
-            channels = self._channels.get(used)
-            if channels is None:  # the chips' channels and their noise: the settings' alone
-                where = np.repeat(chips, 3)
-                channels = self._channels[used] = (where, self.independent_t[where])
+            channels = self._channels_of(chips, used)
             try:
                 if J is not None:
-                    M = self._nonlinear_map(J, channels[0])
-                elif chips.all():
+                    M = self._nonlinear_map(J, None if channels.every else channels.where)
+                elif channels.every:
                     M = self._model.KA
                 else:
                     M = self._model.map_from(chips)
             except (ValueError, np.linalg.LinAlgError):
                 return None
-            expected = channels[1] ** 2
-            noise = propagate(M, channels[1])
-            found = _Maps(M, expected, noise, noise.diagonal().copy(), noise, noise.diagonal())
+            held = None
             if spread is not None and tare_samples and tare_samples >= SPREAD_SAMPLES:
                 # The noise at the tare's field, as its samples spread: at the longest
                 # conversions the chip's noise is a small part of an LSB and only the channels
                 # whose field lies near a step of it toggle, a few a part, so the noise over the
                 # fields is far off at any one (Mz's at rest a tenth of it on some parts).
-                where = channels[0]
-                held = np.asarray(spread, dtype=float)[where]
-                found.spread = held
-                found.held_noise = (M * held) @ M.T
-                found.held_diag = found.held_noise.diagonal().copy()
-                found.held_shift = M * M * (held - expected)
-                sigma_n = self.chip_noise_t[where]
-                found.held_moves = (
-                    self._flux_per_wrench[where] / np.where(sigma_n > 0, sigma_n, np.inf)[:, None]
-                )
-                found.offset = found.held_noise  # the tare's mean, of these very samples
-            found.offset = found.offset / tare_samples if tare_samples else np.zeros((6, 6))
-            found.offset_diag = found.offset.diagonal().copy()
-            if self._quantised:  # the undithered quantisation's maps, through the same M
-                where = channels[0]
-                # (6 x channels): each channel's q^2 on each axis
-                found.bias = M * M * self.bias_t[where] ** 2
-                found.bias_untared = found.bias.sum(axis=1)  # untared: q^2 on every channel
-                # (channels x 6): a load's move of each field, in LSBs, times pi sqrt(2)
-                found.bias_moves = (
-                    self._flux_per_wrench[where] * (np.pi * np.sqrt(2.0) / self.lsb_t[where])[:, None]
-                )
-            self._cache[key] = found  # all of it at once: kept, and dropped, together
+                held = np.asarray(spread, dtype=float)[channels.where]
+            found = self._cache[key] = _Maps(M, channels, tare_samples, held)  # kept, and dropped, together
         return found
 
     def quantisation(
@@ -516,7 +580,7 @@ class Uncertainty:
             noise_now = factor * maps.noise_diag(held) + maps.offset_diag
         error = self.nonlinear_error if estimator == "nonlinear" else self.linear_error
         model = error.variance(wrench, tare_wrench, tared, known)
-        if maps.bias is not None:
+        if maps.bias_untared is not None:
             model = model + maps.quantisation(wrench, known, tared)
         variance = noise_now + model
         sigma = np.sqrt(variance) * scale if scale != 1.0 else np.sqrt(variance)
