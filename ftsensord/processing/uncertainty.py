@@ -28,10 +28,13 @@ Four independent parts, added as variances (docs/design/estimators.md, "Each sam
 
 The noise parts are constant matrices for a given estimator, set of chips and tare (and the
 nonlinear solve's kept Jacobian): built once and kept, keyed on the pipeline's `version` (its
-tare) and the chips, with what they come to at the filter's variance factor and the
-quantisation's maps through the same M beside them (`_Maps`), so a sample costs its model
-error's few products of six numbers and, tared under a load, the quantisation's two. A sample
-without an estimate (invalid) or whose estimator fell back has no known sigma: NaN.
+tare), the chips and the kept Jacobian's version (`NonlinearEstimator.jacobian_at`), with what
+they come to at the filter's variance factor and the quantisation's maps through the same M
+beside them (`_Maps`), so a sample costs its model error's few products of six numbers and,
+tared under a load, the quantisation's two. A moving load's nonlinear estimate keeps a new
+Jacobian at nearly every sample: its maps then make at once only the variances per axis a
+sample takes, the rest when asked. A sample without an estimate (invalid) or whose estimator
+fell back has no known sigma: NaN.
 """
 
 from __future__ import annotations
@@ -496,8 +499,8 @@ class Uncertainty:
         pose: tuple[np.ndarray, np.ndarray] | None,
         spread: np.ndarray | None = None,
     ) -> _Maps | None:
-        """`maps`, kept: made once per version, estimator and chips (and nonlinear Jacobian);
-        ``spread`` is the tare's, so the version's too."""
+        """`maps`, kept: made once per version, estimator and chips (and the nonlinear solve's
+        kept Jacobian, by its version); ``spread`` is the tare's, so the version's too."""
         if version != self._version:  # a tare or untare: the tare's part changes
             self._cache.clear()
             self._version = version
