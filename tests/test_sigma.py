@@ -565,6 +565,10 @@ def test_the_nonlinear_sigma_takes_the_jacobian_the_solve_keeps(monkeypatch, tmp
     other, J_moved = nl.jacobian_at(moved, nl.background_t, version)
     assert other != version and J_moved is not None and not np.allclose(J_moved, J, rtol=1e-6, atol=0)
     assert nl.jacobian_at(nl.pose, nl.background_t, other)[0] not in (version, other)  # and back: another
+    # A new compiled solve counts its Jacobians from one again: its first is not another
+    # solve's first.
+    nlcompiled.attach(nl, solver, library)
+    assert nl.jacobian_at(nl.pose, nl.background_t, (object(), 1))[1] is not None
     version, J = nl.jacobian_at(nl.pose, nl.background_t)
     maps = p.uncertainty.maps(p.version, "nonlinear", EVERY, None, (nl.pose, nl.background_t))
     assert maps is not None

@@ -376,7 +376,8 @@ class NonlinearEstimator:
         right while the version does. None instead of the Jacobian when its version is
         ``known`` (the caller has it). Do not change it in place."""
         if self.compiled is not None:
-            count, J = self.compiled.jacobian(self, T, u, globals(), None if known is None else known[1])
+            mine = None if known is None or known[0] is not self.compiled else known[1]  # this solve's count
+            count, J = self.compiled.jacobian(self, T, u, globals(), mine)
             return (self.compiled, count), J
         J = self._kept_jacobian(T, u, True)[0]
         version = (self, self._jacobians[True][3])
