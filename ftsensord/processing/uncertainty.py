@@ -383,11 +383,15 @@ def undithered(noise: np.ndarray, lsb: np.ndarray) -> np.ndarray:
 
     LSB^2 / 12 without noise, 0.15 uT of the packaged 6 uT LSB at its 2 uT noise, nothing once
     the noise reaches an LSB."""
-    noise, lsb = np.asarray(noise, dtype=float), np.asarray(lsb, dtype=float)
+    noise, lsb = np.broadcast_arrays(np.asarray(noise, dtype=float), np.asarray(lsb, dtype=float))
+    # Each distinct (noise, LSB) once: a sensor's channels are its chips' three axes again and
+    # again, and an accuracy plan makes this for every conversion setting.
+    pairs, back = np.unique(np.stack([noise.ravel(), lsb.ravel()]), axis=1, return_inverse=True)
+    noise_u, lsb_u = pairs
     k = np.arange(1, UNDITHERED_TERMS + 1)[:, None]
-    ratio = np.divide(noise, lsb, out=np.zeros_like(lsb), where=lsb > 0)
-    terms = (lsb / (np.pi * k)) ** 2 / 2 * np.exp(-4 * np.pi**2 * k**2 * ratio**2)
-    return np.sqrt(terms.sum(axis=0))
+    ratio = np.divide(noise_u, lsb_u, out=np.zeros_like(lsb_u), where=lsb_u > 0)
+    terms = (lsb_u / (np.pi * k)) ** 2 / 2 * np.exp(-4 * np.pi**2 * k**2 * ratio**2)
+    return np.sqrt(terms.sum(axis=0))[back.ravel()].reshape(noise.shape)
 
 
 #: The fewest samples whose spread a tare's noise maps take (`Uncertainty.maps`): a channel's
