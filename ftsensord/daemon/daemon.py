@@ -368,9 +368,8 @@ class Daemon:
                     "accuracy: a tare, an estimator or the configuration changed while it was "
                     "planned, and the plan with them: nothing changed; ask again"
                 )
-            self.notifier.check_rate(
-                found.rate_hz
-            )  # as `set` checks a rate: the watchdog's pings follow cycles
+            # As `set` checks a rate: the watchdog's pings follow cycles.
+            self.notifier.check_rate(found.rate_hz)
             self.convert(found.settings, found.rate_hz)
             done = self.set_loop(found.rate_hz, found.averaging, 0.0)
             return {
