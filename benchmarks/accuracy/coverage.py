@@ -275,6 +275,18 @@ def coverage(errors: np.ndarray, sigmas: np.ndarray) -> tuple[int, int, dict[int
     return int(ok.sum()), int((~ok).sum()), within, np.median(s, axis=0)
 
 
+def shape(errors: np.ndarray, sigmas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per axis, over the samples with a sigma: the errors' RMS over the sigmas' (their size),
+    and the kurtosis of error / sigma, E[z^4] / E[z^2]^2 (their shape: a Gaussian's 3; below it,
+    flatter, more within 2 sigma and fewer within 1 than a Gaussian's at the same RMS)."""
+    ok = np.all(np.isfinite(sigmas), axis=1) & np.all(np.isfinite(errors), axis=1)
+    e, s = errors[ok], sigmas[ok]
+    z = e / s
+    return np.sqrt(np.mean(e**2, axis=0) / np.mean(s**2, axis=0)), np.mean(z**4, axis=0) / np.mean(
+        z**2, axis=0
+    ) ** 2
+
+
 def measured_sigma(runs: list[Run]) -> tuple[np.ndarray, np.ndarray]:
     """At rest, over the parts: the predicted sigma (`status`'s, the mean over the parts' tares)
     and the measured one, the RMS of the samples' error against the truth (their spread about
@@ -399,8 +411,40 @@ def page(
         "LSB: the quantisation is a bias of each channel's field, and every tare of a part, at the same field "
         "at rest, takes off the same one, which stays in each of its samples under load (the sigma holds it: "
         "a part's tare is one draw of it); at rest the noise is the few channels whose field lies near a step "
-        "of the LSB. These figures rest on the parts more than on the samples: "
+        "of the LSB (the sigma takes the tare's spread of them), each reading one of two words: a sample's error "
+        "is mostly none and now and then a step, more within 1 sigma than a Gaussian's until the filter averages "
+        "the steps. These figures rest on the parts more than on the samples: "
         f"{len(args.parts) + len(args.slowest_parts)} of them.",
+        "",
+        "## The errors' size and shape",
+        "",
+        "The same samples: per axis, the errors' RMS over the sigmas' RMS (the size the sigma says: 1), and the "
+        "kurtosis of error over sigma (E[z^4] / E[z^2]^2: a Gaussian's is 3; a flatter spread, below it, puts "
+        "fewer than 68 % within 1 sigma and more than 95 % within 2 at the same RMS, a peaked one, above it, "
+        "the other way).",
+        "",
+        "| case | load | RMS error / RMS sigma: "
+        + ", ".join(AXES)
+        + " | kurtosis: "
+        + ", ".join(AXES)
+        + " |",
+        "|---|---|---|---|",
+    ]
+    for case in CASES:
+        for which in ("rest", "held"):
+            runs = results[case.name]
+            size, kurtosis = shape(
+                np.concatenate([np.array(getattr(r, which)[0]) for r in runs]),
+                np.concatenate([np.array(getattr(r, which)[1]) for r in runs]),
+            )
+            lines.append(
+                f"| {case.name} | {which} | "
+                + ", ".join(f"{v:.2f}" for v in size)
+                + " | "
+                + ", ".join(f"{v:.1f}" for v in kurtosis)
+                + " |"
+            )
+    lines += [
         "",
         "## Predicted and measured sigma at rest",
         "",
