@@ -24,15 +24,15 @@ from ftsensord.model.linear import LinearModel
 
 #: The flux model's residual on check poses (p50 over poses, RMS per channel) above which a
 #: part departs from it, with 4 standard errors of a pose's mean in quadrature (noisier
-#: readings fit a model that extrapolates worse). At 100 readings a pose (limit 1.98 uT),
-#: 9 as-built parts leave 0.82-1.47 uT (the dipole-and-octupole model's own error at 10-40
-#: N) and the same with magnets glued 2-7 deg tilted 2.55-5.31 uT: 1.35x to spare below,
-#: 1.29x above; at 25 readings (limit 2.81 uT) 2.06-2.19 against 4.2-4.6 uT
-#: (`python -m benchmarks.accuracy.large_loads`, docs/guide/calibration.md "Check poses").
+#: readings fit a model that extrapolates worse): between what as-built parts leave (the
+#: dipole-and-octupole model's own error at 10-40 N) and what the same parts leave with their
+#: magnets glued 2-7 deg tilted, with a margin each side at 100 and at 25 readings a pose
+#: (measured by `python -m benchmarks.accuracy.large_loads`: docs/guide/calibration.md,
+#: "Check poses").
 CHECK_RESIDUAL_T = 1.6e-6
 #: The nonlinear force error (RMS of |F error| over RMS of |F|) above which the silicone is
-#: not the model's: the same parts leave 0.6-1.8 % (tilted 1.6-2.0 %), silicone 30 % stiffer
-#: at range 15.1-15.2 %: 5 % leaves 2.8x to spare above the first and 3x below the second.
+#: not the model's: between what the same parts leave, tilted or not, and what silicone 30 %
+#: stiffer at the range's edge leaves, about 3x from each (the same benchmark and section).
 CHECK_FORCE_SHARE = 0.05
 #: The summary's line when there are no check poses.
 NOT_JUDGED = (
