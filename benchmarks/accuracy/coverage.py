@@ -267,6 +267,14 @@ def step(rig: InProcess) -> tuple[np.ndarray, np.ndarray]:
     return w, s
 
 
+def pooled(runs: list[Run], which: str) -> tuple[np.ndarray, np.ndarray]:
+    """The parts' errors and sigmas (samples x 6 each) ``which`` ("rest" or "held"), together."""
+    return (
+        np.concatenate([np.array(getattr(r, which)[0]) for r in runs]),
+        np.concatenate([np.array(getattr(r, which)[1]) for r in runs]),
+    )
+
+
 def coverage(errors: np.ndarray, sigmas: np.ndarray) -> tuple[int, int, dict[int, np.ndarray], np.ndarray]:
     """Samples with a sigma, samples without, the % within 1 and 2 sigma per axis, the median sigma."""
     ok = np.all(np.isfinite(sigmas), axis=1) & np.all(np.isfinite(errors), axis=1)
@@ -386,11 +394,7 @@ def page(
     unknown_total = 0
     for case in CASES:
         for which in ("rest", "held"):
-            runs = results[case.name]
-            n, unknown, within, median = coverage(
-                np.concatenate([np.array(getattr(r, which)[0]) for r in runs]),
-                np.concatenate([np.array(getattr(r, which)[1]) for r in runs]),
-            )
+            n, unknown, within, median = coverage(*pooled(results[case.name], which))
             unknown_total += unknown
             for k in (1, 2):
                 lines.append(
@@ -432,18 +436,9 @@ def page(
     ]
     for case in CASES:
         for which in ("rest", "held"):
-            runs = results[case.name]
-            size, kurtosis = shape(
-                np.concatenate([np.array(getattr(r, which)[0]) for r in runs]),
-                np.concatenate([np.array(getattr(r, which)[1]) for r in runs]),
-            )
-            lines.append(
-                f"| {case.name} | {which} | "
-                + ", ".join(f"{v:.2f}" for v in size)
-                + " | "
-                + ", ".join(f"{v:.1f}" for v in kurtosis)
-                + " |"
-            )
+            size, kurtosis = shape(*pooled(results[case.name], which))
+            sizes, kurtoses = ", ".join(f"{v:.2f}" for v in size), ", ".join(f"{v:.1f}" for v in kurtosis)
+            lines.append(f"| {case.name} | {which} | {sizes} | {kurtoses} |")
     lines += [
         "",
         "## Predicted and measured sigma at rest",
