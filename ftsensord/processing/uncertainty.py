@@ -180,6 +180,12 @@ class ModelError:
         return rest2 * back + loaded
 
 
+def beyond_noise(wrench: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """The load (6, N and Nm) a reading ``wrench`` shows beyond ``known``, how far its noise
+    may take it on each axis: what has moved the fields since the tare for certain."""
+    return np.copysign(np.maximum(np.abs(wrench) - known, 0.0), wrench)
+
+
 def propagate(M: np.ndarray, sigma_t: np.ndarray) -> np.ndarray:
     """M diag(sigma_t^2) M^T: the covariance (6 x 6) of M b for channels of noise ``sigma_t``."""
     return (M * sigma_t**2) @ M.T
@@ -234,9 +240,8 @@ class _Maps:
     #: (channels) the tare's own samples' variance (T^2); None: not known (or too few samples)
     spread: np.ndarray | None = None
     diag: np.ndarray = field(init=False)  # one sample's noise variance per axis (`noise`'s diagonal)
-    held_diag: np.ndarray | None = field(
-        init=False
-    )  # at the tare's field (`held_noise`'s); None without ``spread``
+    #: At the tare's field (`held_noise`'s diagonal); None without ``spread``
+    held_diag: np.ndarray | None = field(init=False)
     offset_diag: np.ndarray = field(init=False)  # the tare's (`offset`'s diagonal)
     #: The undithered quantisation's variance untared, q^2 a channel (`quantisation`); None when
     #: ``lsb_t`` tells none apart
@@ -309,7 +314,7 @@ class _Maps:
         (every weight 1), or no spread known."""
         if self.spread is None:
             return None
-        load = np.copysign(np.maximum(np.abs(wrench) - known, 0.0), wrench)
+        load = beyond_noise(wrench, known)
         if not load.any():
             return None
         z = self.channels.held_moves @ load
@@ -349,7 +354,7 @@ class _Maps:
             return self.bias_untared
         if moved:
             return 2.0 * self.bias_untared
-        load = np.copysign(np.maximum(np.abs(wrench) - known, 0.0), wrench)
+        load = beyond_noise(wrench, known)
         if not load.any():
             return np.zeros(6)
         d = moves @ load  # pi sqrt(2) d / LSB a channel
