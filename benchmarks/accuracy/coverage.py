@@ -296,10 +296,11 @@ def shape(errors: np.ndarray, sigmas: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
 
 def measured_sigma(runs: list[Run]) -> tuple[np.ndarray, np.ndarray]:
-    """At rest, over the parts: the predicted sigma (`status`'s, the mean over the parts' tares)
+    """At rest, over the parts: the predicted sigma (`status`'s, its RMS over the parts' tares, as
+    the measured one is an RMS: where it differs from part to part, its mean would be less)
     and the measured one, the RMS of the samples' error against the truth (their spread about
     each tare's zero and the tares' own offsets, both of which the sigma holds); per axis."""
-    predicted = np.mean([p for r in runs for p in r.predicted], axis=0)
+    predicted = np.sqrt(np.mean(np.square([p for r in runs for p in r.predicted]), axis=0))
     errors = np.concatenate([np.array(r.rest[0]) for r in runs])
     errors = errors[np.all(np.isfinite(errors), axis=1)]
     return predicted, np.sqrt(np.mean(errors**2, axis=0))
@@ -445,7 +446,8 @@ def page(
         "",
         "Predicted: what `ftsensord status` (and `doctor --config`) shows for the settings, every chip, after a "
         f"tare of {TARE_SAMPLES} samples (the chips' noise through the estimator times the filter's steady "
-        "variance factor, the tare's noise, the model error at no load), the mean over the parts. Measured: "
+        "variance factor, the tare's noise, the model error at no load), its RMS over the parts and their "
+        "tares. Measured: "
         "the RMS of the samples' error at rest against the truth, over the parts and their tares. The ratio "
         "is measured over predicted, per axis; the cases with a chip out are left out (`status` predicts "
         "with every chip).",
