@@ -8,8 +8,8 @@ Four independent parts, added as variances (docs/design/estimators.md, "Each sam
   the chips left (degraded), and for the nonlinear estimator its stiffness times the solve's
   gains (J_S^T J_S + P)^-1 J_S^T, J the flux model's Jacobian the solve keeps near its pose
   (`NonlinearEstimator.jacobian_at`); then times the filter's variance factor
-  (`filters.variance_factors`), as this noise is independent from sample to sample;
-  At the tare's own field the noise is the one its samples spread by (each channel's variance
+  (`filters.variance_factors`), as this noise is independent from sample to sample. At the
+  tare's own field the noise is the one its samples spread by (each channel's variance
   over them: at the longest conversions the chip's noise is a small part of an LSB and only
   the channels near a step toggle, so the noise over the fields is far off at any one), and
   a load moves each channel back to the noise over the fields (`_Maps.held_weights`);
