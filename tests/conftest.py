@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 import threading
@@ -25,6 +26,12 @@ from ftsensord.sim import (
 )
 
 ADDR = 0x0C
+
+# A shell without job control starts a background command (`pytest ... &`) with SIGINT ignored,
+# and every command a test starts would inherit that: Ctrl-C, or the SIGINT a test sends,
+# would not reach them (the guide's and echo's tests). The test process takes it back.
+if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 #: Every zmq.Context made in this process (weakly held), for `no_zmq_context_left_open`.
 _CONTEXTS: weakref.WeakSet[zmq.Context] = weakref.WeakSet()
