@@ -158,7 +158,18 @@ class ChipCare:
     def initialise(self, chip: MLX90393) -> None:
         """Reset and configure a chip (and start burst mode) in one go."""
         chip.reset()
-        chip.configure(self.settings)
+        self._configure(chip, self.settings)
+
+    def rewrite(self, chip: MLX90393, settings: mlx.Settings) -> None:
+        """A running chip's registers written with ``settings`` (`Reader.convert`): in burst,
+        EX first (a chip in burst refuses WR) and burst mode started again after."""
+        if self.burst:
+            chip.exit_mode()
+        self._configure(chip, settings)
+
+    def _configure(self, chip: MLX90393, settings: mlx.Settings) -> None:
+        """An idle chip configured with ``settings``, and burst mode started when the chips run it."""
+        chip.configure(settings)
         if self.burst:
             chip.start_burst(self.burst_zyxt)
 
@@ -213,9 +224,7 @@ class ChipCare:
                 how = "reset under way (RT)"
             else:
                 h.step = 0
-                chip.configure(self.settings)
-                if self.burst:
-                    chip.start_burst(self.burst_zyxt)
+                self._configure(chip, self.settings)
                 h.reinits += 1
                 how = "re-initialised"
         except ChipError as exc:

@@ -162,13 +162,13 @@ class Reader:
         try:
             for chip in self.care.healthy(self.chips):
                 written.append(chip)  # before the write: a failure midway leaves it half-written
-                self._configure(chip, settings)
+                self.care.rewrite(chip, settings)
         except ChipError as exc:
             failed = written.pop()
             self.care.fail(failed.address, now, reset=True, why=f"refused the new conversion ({exc})")
             for chip in written:
                 try:
-                    self._configure(chip, old)
+                    self.care.rewrite(chip, old)
                 except ChipError as back:
                     self.care.fail(chip.address, now, reset=True, why=f"refused its conversion back ({back})")
             raise
@@ -179,13 +179,6 @@ class Reader:
         self.care_for(self.stuck_cycles)
         if self.scheduler == "burst":  # as at `start`: the first result of the new conversion
             self.bus.sleep(self.conversion_s(self.care.burst_zyxt))
-
-    def _configure(self, chip: MLX90393, settings: mlx.Settings) -> None:
-        if self.scheduler == "burst":
-            chip.exit_mode()  # a chip in burst refuses WR
-        chip.configure(settings)
-        if self.scheduler == "burst":
-            chip.start_burst(self.care.burst_zyxt)
 
     def stop(self) -> None:
         """Put every chip back to idle (EX), ignoring the ones that do not answer."""
