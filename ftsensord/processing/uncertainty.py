@@ -188,7 +188,13 @@ def beyond_noise(wrench: np.ndarray, known: np.ndarray) -> np.ndarray:
 
 def propagate(M: np.ndarray, sigma_t: np.ndarray) -> np.ndarray:
     """M diag(sigma_t^2) M^T: the covariance (6 x 6) of M b for channels of noise ``sigma_t``."""
-    return (M * sigma_t**2) @ M.T
+    return through(M, sigma_t**2)
+
+
+def through(M: np.ndarray, variances: np.ndarray) -> np.ndarray:
+    """M diag(variances) M^T: the covariance (6 x 6) of M b for independent channels of
+    ``variances``."""
+    return (M * variances) @ M.T
 
 
 @dataclass(frozen=True, eq=False)
@@ -268,13 +274,13 @@ class _Maps:
     @cached_property
     def noise(self) -> np.ndarray:
         """One sample's noise covariance (6 x 6) over the fields, of the noise the filter shrinks."""
-        return propagate(self.M, self.channels.independent)
+        return through(self.M, self.expected)
 
     @cached_property
     def held_noise(self) -> np.ndarray:
         """`noise` at the tare's field (6 x 6), from ``spread``."""
         assert self.spread is not None
-        return (self.M * self.spread) @ self.M.T
+        return through(self.M, self.spread)
 
     @cached_property
     def held_shift(self) -> np.ndarray:
@@ -335,7 +341,7 @@ class _Maps:
             return self.noise
         if held is None:
             return self.held_noise
-        return (self.M * (self.expected + held * (self.spread - self.expected))) @ self.M.T
+        return through(self.M, self.expected + held * (self.spread - self.expected))
 
     def quantisation(
         self, wrench: np.ndarray, known: np.ndarray, tared: bool, moved: bool = False
